@@ -1,0 +1,89 @@
+"""What each path of a candidate costs: parameters and MACs from its workloads, latency and energy
+from a device profile. Paths are prefixes of one execution, so costs accumulate stage by stage."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import pandas as pd
+
+from explorer.cost.devices import (DeviceProfile, available_devices, get_device,
+                                   path_latencies_ms)
+from explorer.cost.workloads import KINDS, Workload, candidate_workloads
+from explorer.model.network import stage_specs
+from explorer.space import Candidate
+
+__all__ = ["CandidateCost", "DeviceProfile", "KINDS", "Workload", "available_devices",
+           "candidate_cost", "candidate_workloads", "get_device", "profile_candidate"]
+
+
+@dataclass(frozen=True)
+class CandidateCost:
+    """Workloads of a candidate at one input size, and which stages each path needs."""
+
+    candidate: Candidate
+    input_size: tuple[int, int]
+    workloads: tuple[Workload, ...]
+    path_stages: tuple[tuple[str, ...], ...]   # for paths 1..K
+    path_exits: tuple[str, ...]
+
+    def stage_totals(self) -> dict[str, tuple[int, int]]:
+        """(params, MACs) per stage, in execution order."""
+        totals: dict[str, list[int]] = {}
+        for w in self.workloads:
+            t = totals.setdefault(w.stage, [0, 0])
+            t[0] += w.params
+            t[1] += w.macs
+        return {k: (v[0], v[1]) for k, v in totals.items()}
+
+    def path_params_macs(self) -> list[tuple[int, int]]:
+        """Cumulative (params, MACs) at each path, path 0 (0, 0) included."""
+        totals = self.stage_totals()
+        out = [(0, 0)]
+        for stages in self.path_stages:
+            out.append((sum(totals.get(s, (0, 0))[0] for s in stages),
+                        sum(totals.get(s, (0, 0))[1] for s in stages)))
+        return out
+
+    def path_latency_ms(self, device: DeviceProfile) -> list[float]:
+        """Ready time of each path on ``device``, path 0 (0 ms) included."""
+        return [0.0] + path_latencies_ms(device, self.workloads, self.path_stages)
+
+    def path_energy_j(self, device: DeviceProfile) -> list[float]:
+        return [float(device.energy_j(t)) for t in self.path_latency_ms(device)]
+
+    def path_costs(self, device: DeviceProfile, kind: str) -> list[float]:
+        """Costs in a budget's unit: ms for 'time', J for 'energy'."""
+        return self.path_latency_ms(device) if kind == "time" else self.path_energy_j(device)
+
+
+def candidate_cost(candidate: Candidate, input_size: tuple[int, int] = (224, 224)) -> CandidateCost:
+    specs = stage_specs(candidate)
+    workloads = candidate_workloads(candidate, input_size, specs)
+    path_stages, exits, done = [], [], []
+    for spec in specs:
+        done.append(spec.name)
+        if spec.path is not None:
+            path_stages.append(tuple(done))
+            exits.append(spec.name)
+    return CandidateCost(candidate, tuple(input_size), tuple(workloads), tuple(path_stages), tuple(exits))
+
+
+def profile_candidate(candidate: Candidate, input_size: tuple[int, int] = (224, 224),
+                      device: str | Path | DeviceProfile | None = None) -> pd.DataFrame:
+    """One row per path (path 0 included): exit, params, macs, and latency_ms / energy_j when a
+    device profile (name, file or object) is given."""
+    cost = candidate_cost(candidate, input_size)
+    pm = cost.path_params_macs()
+    frame = pd.DataFrame({
+        "path": range(len(pm)),
+        "exit": ["scan (nearest)"] + list(cost.path_exits),
+        "params": [p for p, _ in pm],
+        "macs": [m for _, m in pm],
+    })
+    if device is not None:
+        profile = get_device(device)
+        frame["latency_ms"] = cost.path_latency_ms(profile)
+        frame["energy_j"] = cost.path_energy_j(profile)
+    return frame

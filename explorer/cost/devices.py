@@ -1,0 +1,209 @@
+"""Device profiles: data (YAML) that turn workloads into latency and energy.
+
+Per layer kind, a profile has an effective compute rate (GMAC/s) and a fixed per-layer cost (ms);
+one memory bandwidth (GB/s) prices bytes moved. On a GPU-like device compute and memory overlap
+(a layer takes the longer of the two), on a CPU-like one they add. A run also pays a fixed
+``inference_overhead_ms`` before its first stage. Energy is a fixed energy per inference plus
+active power times time. ``provenance`` records what a profile was fitted on and its error there.
+
+Built-in profiles live in ``explorer/cost/profiles/*.yaml``; any YAML file with the same fields
+can be passed wherever a device name is accepted (``--device ./mybox.yaml``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterable, Sequence
+
+import numpy as np
+import yaml
+
+from explorer.cost.workloads import KINDS, Workload
+from explorer.errors import UserError
+
+PROFILES_DIR = Path(__file__).resolve().parent / "profiles"
+
+
+@dataclass(frozen=True)
+class KindCost:
+    gmacs: float = 1.0          # effective compute rate, GMAC/s
+    overhead_ms: float = 0.0    # fixed cost per layer of this kind
+    bandwidth_gbs: float | None = None  # this kind's own memory rate (else the profile's)
+
+
+@dataclass(frozen=True)
+class DeviceProfile:
+    name: str
+    description: str
+    overlap: bool
+    bandwidth_gbs: float
+    kinds: dict[str, KindCost]
+    inference_overhead_ms: float = 0.0
+    stage_overhead_ms: float = 0.0
+    energy_fixed_j: float = 0.0
+    active_power_w: float = 0.0
+    provenance: dict[str, Any] = field(default_factory=dict)
+    source: str = ""
+
+    # -- prediction ----------------------------------------------------------------------------
+    def layer_ms(self, w: Workload) -> float:
+        k = self.kinds[w.kind]
+        compute = w.macs / (k.gmacs * 1e6) if w.macs else 0.0
+        memory = (w.bytes_read + w.bytes_written) / ((k.bandwidth_gbs or self.bandwidth_gbs) * 1e6)
+        body = max(compute, memory) if self.overlap else compute + memory
+        return k.overhead_ms + body
+
+    def latencies_ms(self, workloads: Iterable[Workload]) -> np.ndarray:
+        return np.array([self.layer_ms(w) for w in workloads])
+
+    def energy_j(self, latency_ms: float | np.ndarray) -> float | np.ndarray:
+        """Energy of a run that lasted ``latency_ms`` (0 ms = nothing ran = 0 J)."""
+        t = np.asarray(latency_ms, dtype=float)
+        e = np.where(t > 0, self.energy_fixed_j + self.active_power_w * t / 1000.0, 0.0)
+        return float(e) if e.ndim == 0 else e
+
+    @property
+    def calibrated(self) -> bool:
+        return bool(self.provenance.get("calibrated", False))
+
+    # -- (de)serialisation ---------------------------------------------------------------------
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "name": self.name,
+            "description": self.description,
+            "overlap": self.overlap,
+            "bandwidth_gbs": _round(self.bandwidth_gbs),
+            "inference_overhead_ms": _round(self.inference_overhead_ms),
+            "stage_overhead_ms": _round(self.stage_overhead_ms),
+            "kinds": {k: {"gmacs": _round(v.gmacs), "overhead_ms": _round(v.overhead_ms),
+                          **({"bandwidth_gbs": _round(v.bandwidth_gbs)} if v.bandwidth_gbs else {})}
+                      for k, v in self.kinds.items()},
+            "energy": {"fixed_j": _round(self.energy_fixed_j), "active_power_w": _round(self.active_power_w)},
+            "provenance": self.provenance,
+        }
+
+    def to_yaml(self) -> str:
+        return yaml.safe_dump(self.to_dict(), sort_keys=False, width=100)
+
+    @classmethod
+    def from_dict(cls, data: Any, source: str) -> "DeviceProfile":
+        if not isinstance(data, dict):
+            raise UserError(f"{source}: a device profile is a YAML mapping")
+        required = ("name", "overlap", "bandwidth_gbs", "kinds")
+        missing = [k for k in required if k not in data]
+        if missing:
+            raise UserError(f"{source}: device profile lacks {missing}")
+        known = set(required) | {"description", "inference_overhead_ms", "stage_overhead_ms", "energy",
+                                 "provenance"}
+        unknown = sorted(set(data) - known)
+        if unknown:
+            raise UserError(f"{source}: unknown device profile key(s) {unknown}; known: {sorted(known)}")
+        kinds_raw = data["kinds"]
+        if not isinstance(kinds_raw, dict):
+            raise UserError(f"{source}: 'kinds' must map layer kinds {list(KINDS)} to gmacs/overhead_ms")
+        lacking = [k for k in KINDS if k not in kinds_raw]
+        if lacking:
+            raise UserError(f"{source}: 'kinds' lacks {lacking}: a profile must price every layer kind {list(KINDS)}")
+        kinds = {}
+        for k, v in kinds_raw.items():
+            if k not in KINDS:
+                raise UserError(f"{source}: unknown layer kind '{k}'; kinds are {list(KINDS)}")
+            if not isinstance(v, dict) or set(v) - {"gmacs", "overhead_ms", "bandwidth_gbs"}:
+                raise UserError(f"{source}: kinds.{k} must be a mapping with gmacs, overhead_ms "
+                                "and optionally bandwidth_gbs")
+            bw = v.get("bandwidth_gbs")
+            kinds[k] = KindCost(_positive(v.get("gmacs", 1.0), f"{source}: kinds.{k}.gmacs"),
+                                _nonneg(v.get("overhead_ms", 0.0), f"{source}: kinds.{k}.overhead_ms"),
+                                None if bw is None else _positive(bw, f"{source}: kinds.{k}.bandwidth_gbs"))
+        energy = data.get("energy") or {}
+        if not isinstance(energy, dict):
+            raise UserError(f"{source}: 'energy' must be a mapping with fixed_j and active_power_w")
+        return cls(
+            name=str(data["name"]), description=str(data.get("description", "")),
+            overlap=_bool(data["overlap"], f"{source}: overlap"),
+            bandwidth_gbs=_positive(data["bandwidth_gbs"], f"{source}: bandwidth_gbs"),
+            kinds=kinds,
+            inference_overhead_ms=_nonneg(data.get("inference_overhead_ms", 0.0), f"{source}: inference_overhead_ms"),
+            stage_overhead_ms=_nonneg(data.get("stage_overhead_ms", 0.0), f"{source}: stage_overhead_ms"),
+            energy_fixed_j=_nonneg(energy.get("fixed_j", 0.0), f"{source}: energy.fixed_j"),
+            active_power_w=_nonneg(energy.get("active_power_w", 0.0), f"{source}: energy.active_power_w"),
+            provenance=data.get("provenance") or {}, source=source)
+
+    @classmethod
+    def from_yaml(cls, path: str | Path) -> "DeviceProfile":
+        p = Path(path)
+        try:
+            data = yaml.safe_load(p.read_text())
+        except OSError as exc:
+            raise UserError(f"{p}: cannot read device profile ({exc.strerror})") from None
+        except yaml.YAMLError as exc:
+            raise UserError(f"{p}: device profile is not valid YAML ({getattr(exc, 'problem', exc)})") from None
+        return cls.from_dict(data, str(p))
+
+
+def _round(x: float) -> float:
+    return float(f"{x:.6g}")
+
+
+def _number(v: Any, where: str) -> float:
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        raise UserError(f"{where} must be a number, got {v!r}")
+    return float(v)
+
+
+def _positive(v: Any, where: str) -> float:
+    x = _number(v, where)
+    if not x > 0:
+        raise UserError(f"{where} must be positive, got {x}")
+    return x
+
+
+def _nonneg(v: Any, where: str) -> float:
+    x = _number(v, where)
+    if x < 0:
+        raise UserError(f"{where} must not be negative, got {x}")
+    return x
+
+
+def _bool(v: Any, where: str) -> bool:
+    if not isinstance(v, bool):
+        raise UserError(f"{where} must be true or false, got {v!r}")
+    return v
+
+
+# -- registry ------------------------------------------------------------------------------------
+def available_devices() -> list[str]:
+    """Names of the built-in profiles (plus 'host', measured on this machine)."""
+    return sorted(p.stem for p in PROFILES_DIR.glob("*.yaml"))
+
+
+def get_device(spec: str | Path | DeviceProfile) -> DeviceProfile:
+    """A built-in profile by name, or a profile file by path."""
+    if isinstance(spec, DeviceProfile):
+        return spec
+    text = str(spec)
+    builtin = PROFILES_DIR / f"{text}.yaml"
+    if builtin.is_file():
+        return DeviceProfile.from_yaml(builtin)
+    if text.endswith((".yaml", ".yml")) or "/" in text:
+        if not Path(text).is_file():
+            raise UserError(f"device profile {text}: no such file")
+        return DeviceProfile.from_yaml(text)
+    raise UserError(f"unknown device '{text}': use one of {available_devices()} or a profile YAML file "
+                    "(make one with `explorer calibrate --out mybox.yaml`)")
+
+
+def path_latencies_ms(profile: DeviceProfile, workloads: Sequence[Workload],
+                      path_stages: Sequence[Sequence[str]]) -> list[float]:
+    """Latency at which each path is ready: the inference overhead plus every stage up to its exit
+    (each stage paying its own launch cost, ``stage_overhead_ms``).
+
+    ``path_stages[i]`` lists the stages that path i+1 needs (a prefix of the execution order).
+    """
+    per_stage: dict[str, float] = {}
+    for w, t in zip(workloads, profile.latencies_ms(workloads)):
+        per_stage[w.stage] = per_stage.get(w.stage, 0.0) + float(t)
+    return [profile.inference_overhead_ms
+            + sum(per_stage.get(s, 0.0) + profile.stage_overhead_ms for s in stages)
+            for stages in path_stages]

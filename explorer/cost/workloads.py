@@ -1,0 +1,146 @@
+"""Workloads: every layer of every stage with its kind, shapes, MACs, parameters and bytes moved.
+
+They are read off the real torch modules (one model definition): each stage is built once on the
+meta device (no memory, no compute) and traced with forward hooks; the result is cached by the
+stage's config and input shapes, so costing a whole space builds each distinct stage only once.
+BatchNorm and ReLU are folded into the preceding convolution, as every deployment runtime does:
+their parameters are added to that layer, they add no MACs.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+from functools import lru_cache
+from typing import Hashable
+
+import torch
+from torch import nn
+
+from explorer.model import ops
+from explorer.model.network import StageSpec, stage_specs
+from explorer.space import Candidate
+
+BYTES_PER_VALUE = 4  # float32
+
+#: Layer kinds a device profile must price.
+KINDS = ("conv", "pointwise", "depthwise", "conv1d", "resize", "add", "concat", "slice")
+
+
+@dataclass(frozen=True)
+class Workload:
+    stage: str
+    layer: str
+    kind: str
+    in_shape: tuple[int, ...]
+    out_shape: tuple[int, ...]
+    kernel: int
+    stride: int
+    macs: int
+    params: int
+    bytes_read: int
+    bytes_written: int
+
+    def as_dict(self) -> dict:
+        d = asdict(self)
+        d["in_shape"] = "x".join(map(str, self.in_shape))
+        d["out_shape"] = "x".join(map(str, self.out_shape))
+        return d
+
+
+def _conv_kind(m: nn.Module) -> str:
+    if isinstance(m, nn.Conv1d):
+        return "conv1d"
+    if m.groups > 1 and m.groups == m.in_channels:
+        return "depthwise"
+    if all(k == 1 for k in m.kernel_size):
+        return "pointwise"
+    return "conv"
+
+
+def _numel(shape: tuple[int, ...]) -> int:
+    return math.prod(shape)
+
+
+def trace_stage(module: nn.Module, stage: str, inputs: list) -> tuple[list[Workload], list[tuple[int, ...]]]:
+    """Run ``module`` on meta tensors of the given shapes (ints pass through) and record layers."""
+    records: list[Workload] = []
+    handles = []
+
+    def hook(name: str):
+        def fn(m: nn.Module, args: tuple, out) -> None:
+            tensors = [a for a in args if isinstance(a, torch.Tensor)]
+            in_shape = tuple(tensors[0].shape[1:])
+            out_shape = tuple(out.shape[1:])
+            n_in = sum(_numel(tuple(t.shape[1:])) for t in tensors)
+            n_out = _numel(out_shape)
+            params = sum(p.numel() for p in m.parameters(recurse=False))
+            if isinstance(m, (nn.BatchNorm1d, nn.BatchNorm2d)):
+                if records:
+                    r = records[-1]
+                    records[-1] = Workload(**{**asdict(r), "params": r.params + params})
+                return
+            if isinstance(m, (nn.Conv1d, nn.Conv2d)):
+                kernel = math.prod(m.kernel_size)
+                macs = n_out * (m.in_channels // m.groups) * kernel
+                kind, k, s = _conv_kind(m), m.kernel_size[0], m.stride[0]
+            elif isinstance(m, ops.Resize):
+                if m.factor == 1:
+                    return
+                # bilinear: 4 multiply-adds per output value; nearest only copies
+                kind, k, s = "resize", 0, m.factor
+                macs = 4 * n_out if m.mode == "bilinear" else 0
+            elif isinstance(m, (ops.SkipAdd, ops.BroadcastAdd, ops.Normalize)):
+                kind, k, s, macs = "add", 0, 1, 0
+            elif isinstance(m, ops.Concat):
+                kind, k, s, macs = "concat", 0, 1, 0
+            elif isinstance(m, ops.BandCrop):
+                kind, k, s, macs = "slice", 0, 1, 0
+                n_in = n_out  # reads only the band
+            else:
+                return  # ReLU and containers: folded or structural
+            records.append(Workload(stage, name, kind, in_shape, out_shape, k, s, int(macs), params,
+                                    (n_in + params) * BYTES_PER_VALUE, n_out * BYTES_PER_VALUE))
+        return fn
+
+    for name, m in module.named_modules():
+        if not list(m.children()) or isinstance(m, (ops.Resize, ops.SkipAdd)):
+            handles.append(m.register_forward_hook(hook(name)))
+    try:
+        with torch.no_grad():
+            out = module(*inputs)
+    finally:
+        for h in handles:
+            h.remove()
+    outs = out if isinstance(out, tuple) else (out,)
+    return records, [tuple(o.shape) for o in outs]
+
+
+@lru_cache(maxsize=8192)
+def _stage_cost(config: Hashable, name: str, in_shapes: tuple, scan_row: int | None):
+    with torch.device("meta"):
+        module = config.build().eval()
+        inputs: list = [torch.empty(s) for s in in_shapes]
+    if scan_row is not None:
+        inputs.append(scan_row)
+    records, out_shapes = trace_stage(module, name, inputs)
+    return tuple(records), tuple(out_shapes)
+
+
+def candidate_workloads(candidate: Candidate, input_size: tuple[int, int] = (224, 224),
+                        specs: list[StageSpec] | None = None) -> list[Workload]:
+    """All workloads of ``candidate`` at ``input_size`` (H, W), batch 1, in execution order."""
+    h, w = input_size
+    if h % candidate.stride or w % candidate.stride:
+        from explorer.errors import UserError
+        raise UserError(f"input {h}x{w} does not divide by the encoder stride {candidate.stride}: "
+                        f"use sides that are multiples of {candidate.stride}")
+    shapes: dict[str, tuple] = {"image": (1, 3, h, w), "scan": (1, w)}
+    out: list[Workload] = []
+    for spec in specs or stage_specs(candidate):
+        in_shapes = tuple(shapes[n] for n in spec.inputs)
+        records, out_shapes = _stage_cost(spec.config, spec.name, in_shapes,
+                                          h // 2 if spec.uses_scan_row else None)
+        shapes.update(zip(spec.outputs, out_shapes))
+        out.extend(records)
+    return out

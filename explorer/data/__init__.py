@@ -1,0 +1,162 @@
+"""Data sets named by specs: ``synthetic[:TRAIN[:VAL]]`` (generated, the default), ``nyu:PATH``
+(Ma et al.'s h5 folder, or a CSV of RGB / 16-bit depth PNG pairs), ``kitti:PATH`` (Ma et al.'s h5
+folder, or raw frames: image_2/, velodyne/, calib/).
+
+Every item is a dict: ``image`` (3, H, W) float in [0, 1], ``depth`` (1, H, W) metres (0 = unknown),
+``scan`` (W,) metres (0 = no return) and ``scan_row``, at the network's input size.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+from torch.utils.data import Dataset
+
+from explorer.data import transforms as T
+from explorer.data.lidar import ScanConfig, simulate_scan
+from explorer.data.readers import KittiH5, KittiRaw, NYUH5, PairCSV, RawFrame
+from explorer.data.synthetic import SyntheticConfig, ensure_synthetic
+from explorer.errors import UserError
+
+__all__ = ["DataSpec", "DepthDataset", "ScanConfig", "SyntheticConfig", "open_dataset", "parse_data_spec",
+           "scan_from_image", "simulate_scan"]
+
+SPEC_HELP = "data specs: synthetic, synthetic:TRAIN:VAL, nyu:PATH (h5 folder or CSV), kitti:PATH"
+
+
+@dataclass(frozen=True)
+class DataSpec:
+    kind: str          # synthetic | nyu | kitti
+    path: str = ""
+    train: int = 2000
+    val: int = 200
+
+    def __str__(self) -> str:
+        if self.kind == "synthetic":
+            return "synthetic" if (self.train, self.val) == (2000, 200) else f"synthetic:{self.train}:{self.val}"
+        return f"{self.kind}:{self.path}"
+
+
+def parse_data_spec(spec: str | DataSpec) -> DataSpec:
+    if isinstance(spec, DataSpec):
+        return spec
+    kind, _, rest = str(spec).partition(":")
+    kind = kind.lower()
+    if kind == "synthetic":
+        parts = [p for p in rest.split(":") if p] if rest else []
+        try:
+            nums = [int(p) for p in parts]
+        except ValueError:
+            raise UserError(f"data '{spec}': synthetic takes frame counts, e.g. synthetic:2000:200") from None
+        train = nums[0] if nums else 2000
+        val = nums[1] if len(nums) > 1 else max(train // 10, 4)
+        if train < 1 or val < 1:
+            raise UserError(f"data '{spec}': frame counts must be positive")
+        return DataSpec("synthetic", "", train, val)
+    if kind in ("nyu", "kitti"):
+        if not rest:
+            raise UserError(f"data '{spec}': give a path, e.g. {kind}:/data/{kind}")
+        if not Path(rest).exists():
+            raise UserError(f"data '{spec}': {rest} does not exist")
+        return DataSpec(kind, rest)
+    raise UserError(f"unknown data set '{spec}': {SPEC_HELP}")
+
+
+def scan_from_image(scan_image: np.ndarray) -> tuple[np.ndarray, int]:
+    """Collapse a sparse image of one scan's returns to (scan vector, its median row)."""
+    mask = scan_image > 0
+    if not mask.any():
+        return np.zeros(scan_image.shape[1], np.float32), scan_image.shape[0] // 2
+    rows = np.nonzero(mask)[0]
+    row = int(np.median(rows))
+    dist = np.where(mask, np.abs(np.arange(scan_image.shape[0])[:, None] - row), 10 ** 9)
+    pick = dist.argmin(axis=0)
+    scan = scan_image[pick, np.arange(scan_image.shape[1])].astype(np.float32)
+    scan[~mask.any(axis=0)] = 0.0
+    return scan, row
+
+
+class _SyntheticFrames:
+    def __init__(self, path: Path, split: str) -> None:
+        import h5py
+        with h5py.File(path, "r") as f:
+            self.rgb = np.asarray(f[split]["rgb"])
+            self.depth = np.asarray(f[split]["depth"], dtype=np.float32)
+
+    def __len__(self) -> int:
+        return len(self.rgb)
+
+    def __getitem__(self, i: int) -> RawFrame:
+        return RawFrame(self.rgb[i], self.depth[i], None, f"{i:05d}")
+
+
+class DepthDataset(Dataset):
+    def __init__(self, frames, kind: str, input_size: tuple[int, int], train: bool = False,
+                 scan: ScanConfig = ScanConfig(), seed: int = 0, name: str = "") -> None:
+        self.frames, self.kind, self.input_size = frames, kind, tuple(input_size)
+        self.train, self.scan, self.seed, self.name = train, scan, seed, name
+        self.epoch = 0
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def _transform(self, f: RawFrame, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        size = self.input_size
+        scan_img = f.scan_image
+        if self.kind == "nyu":
+            if self.train:
+                rgb, depth = T.nyu_train(f.rgb, f.depth, size, rng)
+            else:
+                rgb, depth = T.nyu_val(f.rgb, f.depth, size)
+        elif self.kind == "kitti":
+            rgb, depth = T.kitti_val(f.rgb, f.depth, size)
+            if scan_img is not None:
+                _, scan_img = T.kitti_val(f.rgb, scan_img, size)
+            if self.train and rng.random() < 0.5:
+                rgb, depth = rgb[:, ::-1], depth[:, ::-1]
+                scan_img = scan_img[:, ::-1] if scan_img is not None else None
+        else:
+            rgb, depth = T.resize_rgb(f.rgb, size), T.resize_nearest(f.depth, size)
+            if self.train and rng.random() < 0.5:
+                rgb, depth = rgb[:, ::-1], depth[:, ::-1]
+        return np.ascontiguousarray(rgb), np.ascontiguousarray(depth), scan_img
+
+    def __getitem__(self, i: int) -> dict:
+        rng = np.random.default_rng([self.seed, self.epoch, i])
+        f = self.frames[i]
+        rgb, depth, scan_img = self._transform(f, rng)
+        if scan_img is not None:
+            scan, row = scan_from_image(np.ascontiguousarray(scan_img))
+        else:
+            scan, row = simulate_scan(depth, self.scan, rng if (self.scan.noise or self.scan.dropout) else None)
+        return {"image": torch.tensor(rgb).permute(2, 0, 1).float() / 255.0,
+                "depth": torch.tensor(depth, dtype=torch.float32)[None],
+                "scan": torch.tensor(scan, dtype=torch.float32), "scan_row": row}
+
+
+def open_dataset(spec: str | DataSpec, split: str, input_size: tuple[int, int] = (224, 224),
+                 train_augment: bool | None = None, scan: ScanConfig = ScanConfig(), seed: int = 0,
+                 progress: Callable[[int, int], None] | None = None) -> DepthDataset:
+    """The ``split`` ('train' or 'val') of a data set at the network's input size."""
+    ds = parse_data_spec(spec)
+    if split not in ("train", "val"):
+        raise UserError(f"split must be 'train' or 'val', got {split!r}")
+    augment = (split == "train") if train_augment is None else train_augment
+    if ds.kind == "synthetic":
+        cfg = SyntheticConfig(train=ds.train, val=ds.val)
+        frames = _SyntheticFrames(ensure_synthetic(cfg, progress), split)
+    else:
+        p = Path(ds.path)
+        if ds.kind == "nyu":
+            frames = PairCSV(p) if p.is_file() else NYUH5(p, split)
+        elif p.is_dir() and (p / "velodyne").is_dir():
+            frames = KittiRaw(p)
+        else:
+            frames = KittiH5(p, split)
+    if scan.max_range == ScanConfig().max_range and ds.kind == "kitti":
+        scan = ScanConfig(row=scan.row, points=scan.points, max_range=80.0, dropout=scan.dropout, noise=scan.noise)
+    return DepthDataset(frames, ds.kind, input_size, augment, scan, seed, str(ds))

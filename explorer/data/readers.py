@@ -1,0 +1,192 @@
+"""Readers of real data sets. Each yields raw frames: (rgb uint8 (H, W, 3), depth float32 (H, W)
+metres with 0 = unknown, optional scan image (H, W): a real 2D scan's returns where it has them)."""
+
+from __future__ import annotations
+
+import csv
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from PIL import Image
+
+from explorer.errors import UserError
+
+
+@dataclass
+class RawFrame:
+    rgb: np.ndarray
+    depth: np.ndarray
+    scan_image: np.ndarray | None = None
+    name: str = ""
+
+
+def _check_frame(rgb: np.ndarray, depth: np.ndarray, name: str) -> None:
+    if rgb.ndim != 3 or rgb.shape[2] != 3:
+        raise UserError(f"{name}: rgb has shape {rgb.shape}, expected (H, W, 3)")
+    if depth.shape != rgb.shape[:2]:
+        raise UserError(f"{name}: depth {depth.shape} and rgb {rgb.shape[:2]} differ in size")
+    if not np.isfinite(depth).all():
+        raise UserError(f"{name}: depth has NaN or infinite values; clean the file or mark them 0 (unknown)")
+    if (depth < 0).any():
+        raise UserError(f"{name}: depth has negative values")
+
+
+# -- NYU Depth v2 ----------------------------------------------------------------------------------
+class NYUH5:
+    """Ma et al.'s layout: ``ROOT/{train,val}/<scene>/NNNNN.h5`` with ``rgb`` (3, 480, 640) uint8 and
+    ``depth`` (480, 640) float metres. ROOT may also be one split's folder."""
+
+    def __init__(self, root: Path, split: str) -> None:
+        base = root / split if (root / split).is_dir() else root
+        self.files = sorted(base.rglob("*.h5"))
+        if not self.files:
+            raise UserError(f"{base}: no .h5 files found (expected {{train,val}}/<scene>/NNNNN.h5)")
+
+    def __len__(self) -> int:
+        return len(self.files)
+
+    def __getitem__(self, i: int) -> RawFrame:
+        import h5py
+        f = self.files[i]
+        try:
+            with h5py.File(f, "r") as h:
+                missing = [k for k in ("rgb", "depth") if k not in h]
+                if missing:
+                    raise UserError(f"{f}: missing dataset(s) {missing} (expected 'rgb' and 'depth')")
+                rgb = np.asarray(h["rgb"])
+                depth = np.asarray(h["depth"], dtype=np.float32)
+        except OSError as exc:
+            raise UserError(f"{f}: unreadable HDF5 file ({exc})") from None
+        if rgb.ndim == 3 and rgb.shape[0] == 3:
+            rgb = np.transpose(rgb, (1, 2, 0))
+        rgb = np.ascontiguousarray(rgb.astype(np.uint8))
+        _check_frame(rgb, depth, str(f))
+        return RawFrame(rgb, depth, None, f.stem)
+
+
+class PairCSV:
+    """A CSV of (image, depth) PNG pairs, paths relative to the CSV; depth 16-bit millimetres."""
+
+    def __init__(self, path: Path) -> None:
+        self.root = path.parent
+        try:
+            with path.open(newline="") as fh:
+                rows = [r for r in csv.reader(fh) if r]
+        except OSError as exc:
+            raise UserError(f"{path}: cannot read ({exc.strerror})") from None
+        if rows and not rows[0][0].lower().endswith((".png", ".jpg", ".jpeg")):
+            rows = rows[1:]  # header
+        if not rows:
+            raise UserError(f"{path}: no image/depth pairs listed")
+        bad = [i + 2 for i, r in enumerate(rows) if len(r) < 2]
+        if bad:
+            raise UserError(f"{path}: line {bad[0]} does not have two columns (image, depth)")
+        self.pairs = [(self.root / r[0].strip(), self.root / r[1].strip()) for r in rows]
+
+    def __len__(self) -> int:
+        return len(self.pairs)
+
+    def __getitem__(self, i: int) -> RawFrame:
+        img_path, depth_path = self.pairs[i]
+        for p in (img_path, depth_path):
+            if not p.is_file():
+                raise UserError(f"{p}: listed in the CSV but missing")
+        try:
+            rgb = np.asarray(Image.open(img_path).convert("RGB"))
+            raw = np.asarray(Image.open(depth_path)).astype(np.float32)
+        except (OSError, ValueError) as exc:
+            raise UserError(f"{img_path.name}/{depth_path.name}: unreadable image ({exc})") from None
+        if raw.ndim != 2:
+            raise UserError(f"{depth_path}: depth must be a single-channel 16-bit PNG")
+        depth = raw / 1000.0
+        _check_frame(rgb, depth, str(img_path))
+        return RawFrame(rgb, depth, None, img_path.stem)
+
+
+# -- KITTI ---------------------------------------------------------------------------------------
+def read_calib(path: Path) -> dict[str, np.ndarray]:
+    out = {}
+    for line in path.read_text().splitlines():
+        if ":" in line:
+            k, v = line.split(":", 1)
+            try:
+                out[k.strip()] = np.array([float(x) for x in v.split()])
+            except ValueError:
+                raise UserError(f"{path}: malformed calibration line '{k}'") from None
+    for k in ("P2", "R0_rect", "Tr_velo_to_cam"):
+        if k not in out:
+            raise UserError(f"{path}: calibration lacks {k}")
+    return out
+
+
+def project_velodyne(points: np.ndarray, calib: dict[str, np.ndarray], shape: tuple[int, int]
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Image columns, rows and depths of the points in front of the camera and inside the image."""
+    p2 = calib["P2"].reshape(3, 4)
+    r0 = np.eye(4)
+    r0[:3, :3] = calib["R0_rect"].reshape(3, 3)
+    tr = np.eye(4)
+    tr[:3, :4] = calib["Tr_velo_to_cam"].reshape(3, 4)
+    xyz1 = np.c_[points[:, :3], np.ones(len(points))]
+    cam = r0 @ tr @ xyz1.T
+    front = cam[2] > 0.5
+    img = p2 @ cam[:, front]
+    u, v, z = img[0] / img[2], img[1] / img[2], cam[2, front]
+    inside = (u >= 0) & (u < shape[1]) & (v >= 0) & (v < shape[0])
+    return u[inside].astype(int), v[inside].astype(int), z[inside]
+
+
+def sparse_depth(u: np.ndarray, v: np.ndarray, z: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    depth = np.zeros(shape, dtype=np.float32)
+    order = np.argsort(-z)  # nearest point wins where several land on one pixel
+    depth[v[order], u[order]] = z[order]
+    return depth
+
+
+def ring_mask(points: np.ndarray, elevation_deg: float, tolerance_deg: float = 0.2) -> np.ndarray:
+    """Points of the laser ring nearest ``elevation_deg`` (a 2D LiDAR's single scan plane)."""
+    elev = np.degrees(np.arctan2(points[:, 2], np.hypot(points[:, 0], points[:, 1])))
+    target = elev[np.argmin(np.abs(elev - elevation_deg))]
+    return np.abs(elev - target) <= tolerance_deg
+
+
+class KittiRaw:
+    """``ROOT/image_2/*.png``, ``ROOT/velodyne/*.bin`` (float32 x, y, z, reflectance) and
+    ``ROOT/calib/*.txt``: ground truth is the projected point cloud; the 2D LiDAR is the ring nearest
+    ``elevation_deg`` (0 = level with the sensor)."""
+
+    def __init__(self, root: Path, elevation_deg: float = 0.0) -> None:
+        self.root, self.elevation = root, elevation_deg
+        for sub in ("image_2", "velodyne", "calib"):
+            if not (root / sub).is_dir():
+                raise UserError(f"{root}: missing folder {sub}/ (expected image_2/, velodyne/, calib/)")
+        self.names = sorted(p.stem for p in (root / "image_2").glob("*.png"))
+        if not self.names:
+            raise UserError(f"{root / 'image_2'}: no .png frames")
+
+    def __len__(self) -> int:
+        return len(self.names)
+
+    def __getitem__(self, i: int) -> RawFrame:
+        n = self.names[i]
+        img, velo, cal = (self.root / "image_2" / f"{n}.png", self.root / "velodyne" / f"{n}.bin",
+                          self.root / "calib" / f"{n}.txt")
+        for p in (velo, cal):
+            if not p.is_file():
+                raise UserError(f"{p}: missing for frame {n}")
+        rgb = np.asarray(Image.open(img).convert("RGB"))
+        raw = np.fromfile(velo, dtype=np.float32)
+        if raw.size % 4:
+            raise UserError(f"{velo}: size is not a multiple of 4 floats (x, y, z, reflectance)")
+        points = raw.reshape(-1, 4)
+        calib = read_calib(cal)
+        shape = rgb.shape[:2]
+        depth = sparse_depth(*project_velodyne(points, calib, shape), shape)
+        ring = points[ring_mask(points, self.elevation)]
+        scan_image = sparse_depth(*project_velodyne(ring, calib, shape), shape)
+        return RawFrame(rgb, depth, scan_image, n)
+
+
+class KittiH5(NYUH5):
+    """Ma et al.'s KITTI layout: ``{train,val}/<drive>/*.h5`` with ``rgb`` and sparse ``depth``."""

@@ -1,0 +1,55 @@
+"""Depth metrics as FastDepth and sparse-to-dense compute them: over pixels with target > 0, per
+image, in metres; RMSE, MAE, REL (mean |pred - gt| / gt), delta_k (max(p/g, g/p) < 1.25^k)."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+METRICS = ("rmse", "mae", "rel", "delta1", "delta2", "delta3")
+
+
+def depth_metrics(pred: torch.Tensor | np.ndarray, target: torch.Tensor | np.ndarray) -> dict[str, float]:
+    """Metrics of one image (any shape; pred and target the same size)."""
+    p = torch.as_tensor(np.asarray(pred) if not isinstance(pred, torch.Tensor) else pred).double().flatten()
+    t = torch.as_tensor(np.asarray(target) if not isinstance(target, torch.Tensor) else target).double().flatten()
+    if p.shape != t.shape:
+        raise ValueError(f"prediction has {p.numel()} values but target {t.numel()}")
+    valid = t > 0
+    if not valid.any():
+        return {m: float("nan") for m in METRICS}
+    p, t = p[valid], t[valid]
+    err = (p - t).abs()
+    # ratios with a non-positive prediction count as failures, as a 0 prediction would
+    ratio = torch.maximum(p / t, t / p.clamp(min=1e-9))
+    return {
+        "rmse": float(torch.sqrt((err ** 2).mean())),
+        "mae": float(err.mean()),
+        "rel": float((err / t).mean()),
+        "delta1": float((ratio < 1.25).double().mean()),
+        "delta2": float((ratio < 1.25 ** 2).double().mean()),
+        "delta3": float((ratio < 1.25 ** 3).double().mean()),
+    }
+
+
+def batch_metrics(pred: torch.Tensor, target: torch.Tensor) -> list[dict[str, float]]:
+    """Per-image metrics of a batch (N, 1, H, W)."""
+    return [depth_metrics(pred[i], target[i]) for i in range(pred.shape[0])]
+
+
+class MetricAverager:
+    """Averages per-image metrics (the convention of FastDepth's evaluation)."""
+
+    def __init__(self) -> None:
+        self.sums = {m: 0.0 for m in METRICS}
+        self.count = 0
+
+    def add(self, metrics: dict[str, float]) -> None:
+        if any(np.isnan(v) for v in metrics.values()):
+            return
+        for m in METRICS:
+            self.sums[m] += metrics[m]
+        self.count += 1
+
+    def result(self) -> dict[str, float]:
+        return {m: (self.sums[m] / self.count if self.count else float("nan")) for m in METRICS}

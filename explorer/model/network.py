@@ -1,0 +1,120 @@
+"""The anytime network: an ordered list of stages. Path i is ready once every stage up to and
+including exit head i has run; the same list drives training, costing, export and the runtime."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Hashable
+
+import torch
+from torch import nn
+
+from explorer.model.decoder import DecoderStageConfig
+from explorer.model.ecu import ECUConfig
+from explorer.model.exits import ExitHeadConfig, interpolate_scan
+from explorer.model.image_encoder import ImageEncoderConfig
+from explorer.model.lidar_encoder import LidarEncoderConfig
+from explorer.space import Candidate
+
+
+@dataclass(frozen=True)
+class StageSpec:
+    """One stage: its module's config (hashable, builds the module), the named tensors it reads and
+    writes, and for an exit head the path it completes."""
+
+    name: str
+    config: Hashable
+    inputs: tuple[str, ...]
+    outputs: tuple[str, ...]
+    path: int | None = None
+
+    @property
+    def uses_scan_row(self) -> bool:
+        return isinstance(self.config, ECUConfig)
+
+
+def stage_specs(candidate: Candidate) -> list[StageSpec]:
+    """The execution order of ``candidate``'s stages (path 0 needs none)."""
+    enc = ImageEncoderConfig(candidate.encoder_blocks, candidate.width_mult)
+    stride = candidate.stride
+    skips = sorted(enc.skip_strides(), reverse=True)
+    specs = [StageSpec("image_encoder", enc, ("image",), ("enc", *(f"skip_s{s}" for s in skips)))]
+    x = "enc"
+    if candidate.ecu:
+        lidar = LidarEncoderConfig(candidate.lidar_depth, candidate.lidar_width, stride)
+        specs.append(StageSpec("lidar_encoder", lidar, ("scan",), ("lidar",)))
+        ecu = ECUConfig(enc.out_channels(), lidar.out_channels(), candidate.ecu_band,
+                        candidate.ecu_width, stride)
+        specs.append(StageSpec("ecu", ecu, ("enc", "lidar"), ("x0",)))
+        x = "x0"
+    channels = enc.out_channels()
+    path = 1
+
+    def exit_head(position: int, tensor: str, cin: int, scale: int) -> StageSpec:
+        cfg = ExitHeadConfig(cin, candidate.head_depth, candidate.head_width, scale)
+        return StageSpec(f"exit_{position}", cfg, (tensor,), (f"depth_{path}",), path)
+
+    if 0 in candidate.exits:
+        specs.append(exit_head(0, x, channels, stride))
+        path += 1
+    for k, width in enumerate(candidate.decoder_widths, start=1):
+        out_stride = stride // 2 ** k
+        has_skip = out_stride in skips
+        cfg = DecoderStageConfig(channels, width, has_skip)
+        inputs = (x, f"skip_s{out_stride}") if has_skip else (x,)
+        x, channels = f"x{k}", width
+        specs.append(StageSpec(f"decoder_{k}", cfg, inputs, (x,)))
+        if k in candidate.exits:
+            specs.append(exit_head(k, x, channels, out_stride))
+            path += 1
+    return specs
+
+
+class AnytimeDepthNet(nn.Module):
+    """``forward(image, scan, scan_row=None)`` returns the depth maps of paths 0..K, each
+    (N, 1, H, W) metres. ``image`` is (N, 3, H, W) RGB in [0, 1], H and W divisible by the stride;
+    ``scan`` is (N, W) metres (0 = no return) lying on image row ``scan_row`` (default H // 2)."""
+
+    def __init__(self, candidate: Candidate) -> None:
+        super().__init__()
+        self.candidate = candidate
+        self.specs = stage_specs(candidate)
+        self.stages = nn.ModuleDict({s.name: s.config.build() for s in self.specs})
+
+    @property
+    def stride(self) -> int:
+        return self.candidate.stride
+
+    def check_input(self, image: torch.Tensor, scan: torch.Tensor) -> None:
+        if image.dim() != 4 or image.shape[1] != 3:
+            raise ValueError(f"image must be (N, 3, H, W), got {tuple(image.shape)}")
+        h, w = image.shape[2:]
+        if h % self.stride or w % self.stride:
+            raise ValueError(f"image sides {h}x{w} must divide by the encoder stride {self.stride}")
+        if scan.shape != (image.shape[0], w):
+            raise ValueError(f"scan must be (N, W) = ({image.shape[0]}, {w}), got {tuple(scan.shape)}")
+
+    def run_stage(self, spec: StageSpec, env: dict[str, torch.Tensor], scan_row: int) -> None:
+        args = [env[name] for name in spec.inputs]
+        if spec.uses_scan_row:
+            args.append(scan_row)
+        out = self.stages[spec.name](*args)
+        outs = out if isinstance(out, tuple) else (out,)
+        env.update(zip(spec.outputs, outs))
+
+    def forward(self, image: torch.Tensor, scan: torch.Tensor,
+                scan_row: int | None = None) -> list[torch.Tensor]:
+        self.check_input(image, scan)
+        scan_row = image.shape[2] // 2 if scan_row is None else int(scan_row)
+        env: dict[str, torch.Tensor] = {"image": image, "scan": scan}
+        depths = [interpolate_scan(scan, image.shape[2])]
+        for spec in self.specs:
+            self.run_stage(spec, env, scan_row)
+            if spec.path is not None:
+                depths.append(env[spec.outputs[0]])
+        return depths
+
+
+def build_network(candidate: Candidate) -> AnytimeDepthNet:
+    """The PyTorch network of ``candidate`` (randomly initialised)."""
+    return AnytimeDepthNet(candidate)

@@ -1,0 +1,88 @@
+"""Parameter-free operations as small named modules, so that costing sees every one of them."""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+IMAGENET_MEAN = (0.485, 0.456, 0.406)
+IMAGENET_STD = (0.229, 0.224, 0.225)
+
+
+class Normalize(nn.Module):
+    """ImageNet mean/std, so that images enter as [0, 1] RGB everywhere (training, export, runtime)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.register_buffer("mean", torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1), persistent=False)
+        self.register_buffer("std", torch.tensor(IMAGENET_STD).view(1, 3, 1, 1), persistent=False)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return (x - self.mean) / self.std
+
+
+class Resize(nn.Module):
+    """Up-sampling by an integer factor (nearest in the decoder, bilinear for exit outputs)."""
+
+    def __init__(self, factor: int, mode: str = "nearest") -> None:
+        super().__init__()
+        self.factor = int(factor)
+        self.mode = mode
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if self.factor == 1:
+            return x
+        kwargs = {"align_corners": False} if self.mode == "bilinear" else {}
+        return F.interpolate(x, scale_factor=float(self.factor), mode=self.mode, **kwargs)
+
+
+class SkipAdd(nn.Module):
+    """Additive skip. Channels that only one side has pass through (no projection, no parameters),
+    so decoder widths can be searched freely."""
+
+    def forward(self, x: torch.Tensor, skip: torch.Tensor) -> torch.Tensor:
+        cx, cs = x.shape[1], skip.shape[1]
+        if cs > cx:
+            skip = skip[:, :cx]
+        elif cs < cx:
+            skip = F.pad(skip, (0, 0, 0, 0, 0, cx - cs))
+        return x + skip
+
+
+class BroadcastAdd(nn.Module):
+    """Adds a one-row compensation (N, C, 1, W) to every row of a feature (N, C, H, W)."""
+
+    def forward(self, x: torch.Tensor, row: torch.Tensor) -> torch.Tensor:
+        return x + row
+
+
+class Concat(nn.Module):
+    def forward(self, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+        return torch.cat([a, b], dim=1)
+
+
+class BandCrop(nn.Module):
+    """Rows ``[row - band//2, row + band//2]`` of a feature, clamped to the feature."""
+
+    def __init__(self, band: int) -> None:
+        super().__init__()
+        self.band = band
+
+    def forward(self, x: torch.Tensor, row: int) -> torch.Tensor:
+        h = x.shape[2]
+        band = min(self.band, h)
+        top = min(max(row - band // 2, 0), h - band)
+        return x[:, :, top:top + band]
+
+
+def conv_bn_relu(cin: int, cout: int, kernel: int, stride: int = 1, groups: int = 1) -> nn.Sequential:
+    return nn.Sequential(
+        nn.Conv2d(cin, cout, kernel, stride, kernel // 2, groups=groups, bias=False),
+        nn.BatchNorm2d(cout), nn.ReLU(inplace=True))
+
+
+def conv1d_bn_relu(cin: int, cout: int, kernel: int, stride: int = 1) -> nn.Sequential:
+    return nn.Sequential(
+        nn.Conv1d(cin, cout, kernel, stride, kernel // 2, bias=False),
+        nn.BatchNorm1d(cout), nn.ReLU(inplace=True))

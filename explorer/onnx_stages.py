@@ -1,0 +1,91 @@
+"""ONNX graphs of a network's stages (and of the whole network), from the one torch definition.
+
+Each stage becomes one graph whose inputs and outputs are the stage's named tensors, so running
+the graphs in order reproduces ``AnytimeDepthNet.forward`` and every exit's depth map is available
+as soon as its stage ends. Path 0 (the interpolated scan) is its own small graph.
+"""
+
+from __future__ import annotations
+
+import io
+import warnings
+
+import torch
+from torch import nn
+
+from explorer.model.exits import interpolate_scan
+from explorer.model.network import AnytimeDepthNet, StageSpec
+
+OPSET = 17
+
+
+class _StageModule(nn.Module):
+    def __init__(self, module: nn.Module, spec: StageSpec, scan_row: int) -> None:
+        super().__init__()
+        self.module, self.spec, self.scan_row = module, spec, scan_row
+
+    def forward(self, *inputs: torch.Tensor):
+        args = list(inputs) + ([self.scan_row] if self.spec.uses_scan_row else [])
+        return self.module(*args)
+
+
+class _Path0(nn.Module):
+    def __init__(self, height: int) -> None:
+        super().__init__()
+        self.height = height
+
+    def forward(self, scan: torch.Tensor) -> torch.Tensor:
+        return interpolate_scan(scan, self.height)
+
+
+class _Whole(nn.Module):
+    def __init__(self, net: AnytimeDepthNet, scan_row: int) -> None:
+        super().__init__()
+        self.net, self.scan_row = net, scan_row
+
+    def forward(self, image: torch.Tensor, scan: torch.Tensor):
+        return tuple(self.net(image, scan, self.scan_row))
+
+
+def _export(module: nn.Module, args: tuple, input_names: list[str], output_names: list[str]) -> bytes:
+    buf = io.BytesIO()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        torch.onnx.export(module, args, buf, input_names=input_names, output_names=output_names,
+                          opset_version=OPSET, dynamo=False, do_constant_folding=True)
+    return buf.getvalue()
+
+
+def example_inputs(input_size: tuple[int, int], batch: int = 1) -> dict[str, torch.Tensor]:
+    h, w = input_size
+    g = torch.Generator().manual_seed(0)
+    return {"image": torch.rand(batch, 3, h, w, generator=g),
+            "scan": torch.rand(batch, w, generator=g) * 5 + 0.5}
+
+
+def export_stages(net: AnytimeDepthNet, input_size: tuple[int, int], scan_row: int | None = None
+                  ) -> list[tuple[StageSpec | None, bytes]]:
+    """[(None, path-0 graph), (spec, stage graph), ...] in execution order, for batch 1."""
+    net = net.eval()
+    h, _ = input_size
+    scan_row = h // 2 if scan_row is None else scan_row
+    env = example_inputs(input_size)
+    graphs: list[tuple[StageSpec | None, bytes]] = [
+        (None, _export(_Path0(h), (env["scan"],), ["scan"], ["depth_0"]))]
+    with torch.no_grad():
+        for spec in net.specs:
+            wrapper = _StageModule(net.stages[spec.name], spec, scan_row)
+            args = tuple(env[n] for n in spec.inputs)
+            graphs.append((spec, _export(wrapper, args, list(spec.inputs), list(spec.outputs))))
+            net.run_stage(spec, env, scan_row)
+    return graphs
+
+
+def export_whole(net: AnytimeDepthNet, input_size: tuple[int, int], scan_row: int | None = None) -> bytes:
+    """The whole network as one graph (outputs depth_0..depth_K), to compare with staged runs."""
+    net = net.eval()
+    scan_row = input_size[0] // 2 if scan_row is None else scan_row
+    env = example_inputs(input_size)
+    names = [f"depth_{i}" for i in range(net.candidate.num_paths)]
+    with torch.no_grad():
+        return _export(_Whole(net, scan_row), (env["image"], env["scan"]), ["image", "scan"], names)

@@ -1,0 +1,457 @@
+"""Search spaces (YAML) and the candidates they contain.
+
+A :class:`Candidate` is one point of the model family in DESIGN.md: a small frozen, hashable
+value that prints as YAML, names a trial, a cache entry and an exported model. A
+:class:`SearchSpace` lists the choices of every searched dimension; it can be enumerated, sized,
+and sampled by an Optuna trial.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import itertools
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Iterator
+
+import yaml
+
+from explorer.errors import UserError
+
+#: MobileNet v1 depthwise-separable blocks (in, out, stride), after conv0 (3 -> 32, stride 2).
+MOBILENET_V1_BLOCKS: tuple[tuple[int, int, int], ...] = (
+    (32, 64, 1), (64, 128, 2), (128, 128, 1), (128, 256, 2), (256, 256, 1), (256, 512, 2),
+    (512, 512, 1), (512, 512, 1), (512, 512, 1), (512, 512, 1), (512, 512, 1),
+    (512, 1024, 2), (1024, 1024, 1),
+)
+
+SPACES_DIR = Path(__file__).resolve().parent.parent / "search_spaces"
+
+
+def encoder_stride(blocks: int) -> int:
+    """Output stride of MobileNet v1 truncated after ``blocks`` blocks (conv0 has stride 2)."""
+    stride = 2
+    for _, _, s in MOBILENET_V1_BLOCKS[:blocks]:
+        stride *= s
+    return stride
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """One network of the family. When ``ecu`` is off the LiDAR fields are 0 (canonical form)."""
+
+    encoder_blocks: int = 9
+    width_mult: float = 1.0
+    ecu: bool = True
+    lidar_depth: int = 4
+    lidar_width: int = 16
+    ecu_band: int = 3
+    ecu_width: int = 256
+    decoder_widths: tuple[int, ...] = (768, 64, 32, 16)
+    exits: tuple[int, ...] = (0, 1, 2, 4)
+    head_depth: int = 1
+    head_width: int = 32
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "decoder_widths", tuple(int(w) for w in self.decoder_widths))
+        object.__setattr__(self, "exits", tuple(sorted({int(e) for e in self.exits})))
+        object.__setattr__(self, "width_mult", float(self.width_mult))
+        if not self.ecu:
+            for name in ("lidar_depth", "lidar_width", "ecu_band", "ecu_width"):
+                object.__setattr__(self, name, 0)
+        if self.head_depth == 1:
+            object.__setattr__(self, "head_width", 0)
+        self.validate()
+
+    # -- validation --------------------------------------------------------------------------
+    def validate(self) -> None:
+        n = len(MOBILENET_V1_BLOCKS)
+        if not 1 <= self.encoder_blocks <= n:
+            raise UserError(f"encoder_blocks={self.encoder_blocks} is out of range: MobileNet v1 has blocks 1..{n}")
+        if not 0.1 <= self.width_mult <= 2.0:
+            raise UserError(f"width_mult={self.width_mult} is out of range: use a value in [0.1, 2.0]")
+        stride = encoder_stride(self.encoder_blocks)
+        stages = int(math.log2(stride))
+        if len(self.decoder_widths) != stages:
+            raise UserError(
+                f"encoder_blocks={self.encoder_blocks} gives stride {stride}, which needs "
+                f"{stages} decoder stages, but decoder_widths has {len(self.decoder_widths)}: "
+                "keep blocks whose stride matches the decoder")
+        if any(w < 1 for w in self.decoder_widths):
+            raise UserError(f"decoder_widths {list(self.decoder_widths)} must all be positive")
+        if not self.exits:
+            raise UserError("a candidate needs at least one exit (the last decoder stage)")
+        if self.exits[-1] != stages:
+            raise UserError(
+                f"exits {list(self.exits)} must include the last decoder stage ({stages}): "
+                "the last stage always has an exit")
+        if self.exits[0] < 0:
+            raise UserError(f"exit positions {list(self.exits)} must be >= 0 (0 = after the ECU)")
+        if self.head_depth not in (1, 2):
+            raise UserError(f"head_depth={self.head_depth}: an exit head has 1 or 2 pointwise convs")
+        if self.head_depth == 2 and self.head_width < 1:
+            raise UserError("head_width must be positive when head_depth is 2")
+        if self.ecu:
+            if self.lidar_depth < int(math.log2(stride)):
+                raise UserError(
+                    f"lidar_depth={self.lidar_depth} cannot reach the image feature's stride {stride}: "
+                    f"it needs at least {int(math.log2(stride))} strided 1D convs")
+            if self.lidar_width < 1 or self.ecu_width < 1:
+                raise UserError("lidar_width and ecu_width must be positive when the ECU is on")
+            if self.ecu_band < 1 or self.ecu_band % 2 == 0:
+                raise UserError(f"ecu_band={self.ecu_band} must be a positive odd number of feature rows")
+
+    # -- derived -------------------------------------------------------------------------------
+    @property
+    def stride(self) -> int:
+        return encoder_stride(self.encoder_blocks)
+
+    @property
+    def num_paths(self) -> int:
+        """Number of paths, path 0 (the interpolated scan) included."""
+        return len(self.exits) + 1
+
+    @property
+    def key(self) -> str:
+        """Short stable name: a hash of the canonical YAML."""
+        return hashlib.sha1(self.to_yaml().encode()).hexdigest()[:10]
+
+    def describe(self) -> str:
+        """The architecture in words."""
+        parts = [f"MobileNet v1 x{self.width_mult:g}, {self.encoder_blocks} blocks (stride {self.stride})"]
+        if self.ecu:
+            parts.append(f"LiDAR encoder {self.lidar_depth} layers from {self.lidar_width} ch, "
+                         f"ECU band {self.ecu_band} rows, {self.ecu_width} ch")
+        else:
+            parts.append("no LiDAR branch (image only)")
+        parts.append("decoder " + "-".join(str(w) for w in self.decoder_widths))
+        names = ["ECU" if e == 0 else f"stage {e}" for e in self.exits]
+        head = "1 pw conv" if self.head_depth == 1 else f"2 pw convs ({self.head_width} ch)"
+        parts.append(f"exits after {', '.join(names)} ({head})")
+        return "; ".join(parts)
+
+    def to_dict(self) -> dict[str, Any]:
+        d = dataclasses.asdict(self)
+        d["decoder_widths"] = list(self.decoder_widths)
+        d["exits"] = list(self.exits)
+        return d
+
+    def to_yaml(self) -> str:
+        return yaml.safe_dump({"candidate": self.to_dict()}, sort_keys=False)
+
+    @classmethod
+    def from_dict(cls, data: Any, source: str = "candidate") -> "Candidate":
+        if not isinstance(data, dict):
+            raise UserError(f"{source}: a candidate is a mapping of fields, got {type(data).__name__}")
+        known = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(data) - known)
+        if unknown:
+            raise UserError(f"{source}: unknown candidate field(s) {unknown}; known: {sorted(known)}")
+        try:
+            return cls(**data)
+        except TypeError as exc:
+            raise UserError(f"{source}: {exc}") from None
+
+    @classmethod
+    def from_yaml(cls, path: str | Path) -> "Candidate":
+        data = _load_yaml(path)
+        if isinstance(data, dict) and "candidate" in data:
+            data = data["candidate"]
+        return cls.from_dict(data, source=str(path))
+
+
+def paper_candidate() -> Candidate:
+    """The paper's design (Table 1) as this project interprets it; see search_spaces/paper.yaml."""
+    return Candidate()
+
+
+def paper_nee_candidate() -> Candidate:
+    """The paper's design without early exits ("Ours-NEE" in Table 2)."""
+    return dataclasses.replace(Candidate(), exits=(4,))
+
+
+def fastdepth_candidate() -> Candidate:
+    """FastDepth-like: full MobileNet v1 (stride 32), FastDepth's decoder widths, one exit, image only."""
+    return Candidate(encoder_blocks=13, width_mult=1.0, ecu=False,
+                     decoder_widths=(512, 256, 128, 64, 32), exits=(5,), head_depth=1)
+
+
+# ------------------------------------------------------------------------------------------------
+_SPACE_SCHEMA: dict[str, dict[str, str]] = {
+    "image_encoder": {"blocks": "encoder_blocks", "width_mult": "width_mult"},
+    "lidar_encoder": {"depth": "lidar_depth", "width": "lidar_width"},
+    "ecu": {"enabled": "ecu", "band": "ecu_band", "width": "ecu_width"},
+    "decoder": {"widths": "decoder_widths"},
+    "exits": {"optional": "exits", "required": "required_exits", "head_depth": "head_depth",
+              "head_width": "head_width"},
+}
+_TOP_KEYS = set(_SPACE_SCHEMA) | {"name", "description"}
+
+
+def _load_yaml(path: str | Path) -> Any:
+    p = Path(path)
+    if not p.is_file():
+        raise UserError(f"{p}: no such file")
+    try:
+        return yaml.safe_load(p.read_text())
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" (line {mark.line + 1})" if mark else ""
+        raise UserError(f"{p}: not valid YAML{where}: {getattr(exc, 'problem', exc)}") from None
+
+
+def resolve_space_path(spec: str | Path) -> Path:
+    """A path, or the name of a shipped space (``tiny`` -> search_spaces/tiny.yaml)."""
+    p = Path(spec)
+    if p.is_file():
+        return p
+    shipped = SPACES_DIR / f"{spec}.yaml"
+    if shipped.is_file():
+        return shipped
+    names = sorted(f.stem for f in SPACES_DIR.glob("*.yaml"))
+    raise UserError(f"search space {spec!s} not found: give a YAML file or one of {names}")
+
+
+@dataclass(frozen=True)
+class SearchSpace:
+    """Choices per dimension. ``decoder_widths`` holds one list of choices per decoder stage;
+    ``optional_exits`` the exit positions that may or may not be present (the last stage's exit is
+    always there)."""
+
+    name: str
+    encoder_blocks: tuple[int, ...]
+    width_mult: tuple[float, ...]
+    ecu: tuple[bool, ...]
+    lidar_depth: tuple[int, ...]
+    lidar_width: tuple[int, ...]
+    ecu_band: tuple[int, ...]
+    ecu_width: tuple[int, ...]
+    decoder_widths: tuple[tuple[int, ...], ...]
+    optional_exits: tuple[int, ...]
+    head_depth: tuple[int, ...]
+    head_width: tuple[int, ...]
+    required_exits: tuple[int, ...] = ()
+    description: str = ""
+    source: str = ""
+
+    @classmethod
+    def from_yaml(cls, path: str | Path) -> "SearchSpace":
+        path = resolve_space_path(path)
+        data = _load_yaml(path)
+        return cls.from_dict(data, source=str(path))
+
+    @classmethod
+    def from_dict(cls, data: Any, source: str = "space") -> "SearchSpace":
+        if not isinstance(data, dict):
+            raise UserError(f"{source}: a search space is a mapping with sections {sorted(_SPACE_SCHEMA)}")
+        unknown = sorted(set(data) - _TOP_KEYS)
+        if unknown:
+            raise UserError(f"{source}: unknown section(s) {unknown}; known: {sorted(_TOP_KEYS)}")
+        defaults = Candidate()
+        values: dict[str, Any] = {}
+        for section, fields in _SPACE_SCHEMA.items():
+            body = data.get(section, {}) or {}
+            if not isinstance(body, dict):
+                raise UserError(f"{source}: section '{section}' must be a mapping of {sorted(fields)}")
+            bad = sorted(set(body) - set(fields))
+            if bad:
+                raise UserError(f"{source}: unknown key(s) {bad} in '{section}'; known: {sorted(fields)}")
+            for key, field in fields.items():
+                where = f"{source}: {section}.{key}"
+                if key not in body:
+                    default = getattr(defaults, field, None)
+                    if field == "decoder_widths":
+                        values[field] = tuple((w,) for w in default)
+                    elif field == "exits":
+                        values["optional_exits"] = tuple(default[:-1])
+                    elif field == "required_exits":
+                        values["required_exits"] = ()
+                    else:
+                        values[field] = (default,)
+                    continue
+                raw = body[key]
+                if field == "decoder_widths":
+                    values[field] = _stage_choices(raw, where)
+                elif field in ("exits", "required_exits"):
+                    name = "optional_exits" if field == "exits" else field
+                    values[name] = tuple(_choices(raw, where, int, allow_empty=True))
+                elif field == "ecu":
+                    values[field] = tuple(_choices(raw, where, bool))
+                else:
+                    kind = float if field == "width_mult" else int
+                    values[field] = tuple(_choices(raw, where, kind))
+        space = cls(name=str(data.get("name", Path(source).stem)),
+                    description=str(data.get("description", "")), source=source, **values)
+        space._validate(source)
+        return space
+
+    def _validate(self, source: str) -> None:
+        stages = len(self.decoder_widths)
+        for blocks in self.encoder_blocks:
+            if not 1 <= blocks <= len(MOBILENET_V1_BLOCKS):
+                raise UserError(f"{source}: image_encoder.blocks {blocks} is out of range 1..{len(MOBILENET_V1_BLOCKS)}")
+            stride = encoder_stride(blocks)
+            if int(math.log2(stride)) != stages:
+                raise UserError(
+                    f"{source}: image_encoder.blocks {blocks} gives stride {stride} "
+                    f"({int(math.log2(stride))} decoder stages) but decoder.widths lists {stages} stages: "
+                    "a truncation must keep the stride the decoder needs")
+        both = sorted(set(self.optional_exits) & set(self.required_exits))
+        if both:
+            raise UserError(f"{source}: exit position(s) {both} are both optional and required")
+        for e in self.optional_exits + self.required_exits:
+            if not 0 <= e < stages:
+                raise UserError(
+                    f"{source}: exits.optional has position {e}, but the decoder has stages 1..{stages} "
+                    f"(0 = after the ECU; the last stage {stages} always has an exit)")
+        if True in self.ecu:
+            need = int(math.log2(encoder_stride(self.encoder_blocks[0])))
+            low = [d for d in self.lidar_depth if d < need]
+            if low:
+                raise UserError(f"{source}: lidar_encoder.depth {low} cannot reach stride {2 ** need}: use >= {need}")
+            even = [b for b in self.ecu_band if b < 1 or b % 2 == 0]
+            if even:
+                raise UserError(f"{source}: ecu.band {even} must be positive odd numbers of rows")
+        for d in self.head_depth:
+            if d not in (1, 2):
+                raise UserError(f"{source}: exits.head_depth {d}: a head has 1 or 2 pointwise convs")
+        # Every combination must be a valid candidate: build the smallest and largest.
+        next(iter(self.enumerate()))
+
+    # -- dimensions ----------------------------------------------------------------------------
+    def dimensions(self) -> dict[str, tuple]:
+        dims: dict[str, tuple] = {
+            "encoder_blocks": self.encoder_blocks,
+            "width_mult": self.width_mult,
+            "ecu": self.ecu,
+            "lidar_depth": self.lidar_depth,
+            "lidar_width": self.lidar_width,
+            "ecu_band": self.ecu_band,
+            "ecu_width": self.ecu_width,
+        }
+        for k, choices in enumerate(self.decoder_widths, start=1):
+            dims[f"decoder_width_{k}"] = choices
+        for e in self.optional_exits:
+            dims[f"exit_{e}"] = (False, True)
+        dims["head_depth"] = self.head_depth
+        dims["head_width"] = self.head_width
+        return dims
+
+    @property
+    def size(self) -> int:
+        """Number of distinct candidates (LiDAR/ECU choices only count when the ECU is on;
+        head width only when heads have two layers)."""
+        lidar = len(self.lidar_depth) * len(self.lidar_width) * len(self.ecu_band) * len(self.ecu_width)
+        ecu = sum(lidar if on else 1 for on in self.ecu)
+        heads = sum(len(self.head_width) if d == 2 else 1 for d in self.head_depth)
+        rest = len(self.encoder_blocks) * len(self.width_mult) * math.prod(len(c) for c in self.decoder_widths)
+        return ecu * heads * rest * 2 ** len(self.optional_exits)
+
+    def _exit_sets(self) -> Iterator[tuple[int, ...]]:
+        last = len(self.decoder_widths)
+        for mask in itertools.product((False, True), repeat=len(self.optional_exits)):
+            chosen = [e for e, on in zip(self.optional_exits, mask) if on]
+            yield tuple(sorted(chosen + list(self.required_exits))) + (last,)
+
+    def enumerate(self) -> Iterator[Candidate]:
+        """Every candidate once, in a deterministic order."""
+        ecu_options: list[tuple] = []
+        for on in self.ecu:
+            if on:
+                ecu_options += [(True, *c) for c in itertools.product(
+                    self.lidar_depth, self.lidar_width, self.ecu_band, self.ecu_width)]
+            else:
+                ecu_options.append((False, 0, 0, 0, 0))
+        heads = [(d, w) for d in self.head_depth for w in (self.head_width if d == 2 else (0,))]
+        exit_sets = list(self._exit_sets())
+        for blocks, wm, ecu, widths, exits, head in itertools.product(
+                self.encoder_blocks, self.width_mult, ecu_options,
+                itertools.product(*self.decoder_widths), exit_sets, heads):
+            yield Candidate(encoder_blocks=blocks, width_mult=wm, ecu=ecu[0], lidar_depth=ecu[1],
+                            lidar_width=ecu[2], ecu_band=ecu[3], ecu_width=ecu[4],
+                            decoder_widths=widths, exits=exits, head_depth=head[0], head_width=head[1])
+
+    def sample(self, trial: Any) -> Candidate:
+        """Draw a candidate with an Optuna trial (conditional dimensions only when they apply)."""
+        s = trial.suggest_categorical
+        ecu = s("ecu", list(self.ecu))
+        lidar = dict(lidar_depth=0, lidar_width=0, ecu_band=0, ecu_width=0)
+        if ecu:
+            lidar = dict(lidar_depth=s("lidar_depth", list(self.lidar_depth)),
+                         lidar_width=s("lidar_width", list(self.lidar_width)),
+                         ecu_band=s("ecu_band", list(self.ecu_band)),
+                         ecu_width=s("ecu_width", list(self.ecu_width)))
+        head_depth = s("head_depth", list(self.head_depth))
+        head_width = s("head_width", list(self.head_width)) if head_depth == 2 else 0
+        exits = sorted([e for e in self.optional_exits if s(f"exit_{e}", [False, True])]
+                       + list(self.required_exits))
+        return Candidate(
+            encoder_blocks=s("encoder_blocks", list(self.encoder_blocks)),
+            width_mult=s("width_mult", list(self.width_mult)),
+            ecu=ecu, **lidar,
+            decoder_widths=tuple(s(f"decoder_width_{k}", list(c))
+                                 for k, c in enumerate(self.decoder_widths, start=1)),
+            exits=tuple(exits) + (len(self.decoder_widths),),
+            head_depth=head_depth, head_width=head_width)
+
+    def params_of(self, candidate: Candidate) -> dict[str, Any]:
+        """The Optuna parameters that :meth:`sample` would draw for ``candidate`` (for enqueueing)."""
+        p: dict[str, Any] = {"ecu": candidate.ecu, "encoder_blocks": candidate.encoder_blocks,
+                             "width_mult": candidate.width_mult, "head_depth": candidate.head_depth}
+        if candidate.ecu:
+            p.update(lidar_depth=candidate.lidar_depth, lidar_width=candidate.lidar_width,
+                     ecu_band=candidate.ecu_band, ecu_width=candidate.ecu_width)
+        if candidate.head_depth == 2:
+            p["head_width"] = candidate.head_width
+        for k, w in enumerate(candidate.decoder_widths, start=1):
+            p[f"decoder_width_{k}"] = w
+        for e in self.optional_exits:
+            p[f"exit_{e}"] = e in candidate.exits
+        return p
+
+    def contains(self, candidate: Candidate) -> bool:
+        d = self.dimensions()
+        p = self.params_of(candidate)
+        inner = set(candidate.exits[:-1])
+        return len(candidate.decoder_widths) == len(self.decoder_widths) and all(
+            v in d[k] for k, v in p.items()) and set(self.required_exits) <= inner and \
+            inner <= set(self.optional_exits) | set(self.required_exits)
+
+
+def _choices(raw: Any, where: str, kind: type, allow_empty: bool = False) -> list:
+    if not isinstance(raw, list):
+        raw = [raw]
+    if not raw and not allow_empty:
+        raise UserError(f"{where}: the list of choices is empty: give at least one value")
+    out = []
+    for v in raw:
+        if kind is bool:
+            if not isinstance(v, bool):
+                raise UserError(f"{where}: {v!r} is not true/false")
+        elif kind is int:
+            if isinstance(v, bool) or not isinstance(v, int):
+                raise UserError(f"{where}: {v!r} is not an integer")
+            if v < 0:
+                raise UserError(f"{where}: {v} must not be negative")
+        elif kind is float:
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or v <= 0:
+                raise UserError(f"{where}: {v!r} is not a positive number")
+            v = float(v)
+        out.append(v)
+    if len(set(out)) != len(out):
+        raise UserError(f"{where}: choices {raw} repeat a value")
+    return out
+
+
+def _stage_choices(raw: Any, where: str) -> tuple[tuple[int, ...], ...]:
+    if not isinstance(raw, list) or not raw:
+        raise UserError(f"{where}: give one list of width choices per decoder stage, e.g. [[256, 512], [64, 128]]")
+    stages = []
+    for k, stage in enumerate(raw, start=1):
+        choices = _choices(stage, f"{where}[stage {k}]", int)
+        if any(c < 1 for c in choices):
+            raise UserError(f"{where}[stage {k}]: widths must be positive")
+        stages.append(tuple(choices))
+    return tuple(stages)
