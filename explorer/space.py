@@ -11,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import itertools
+import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -115,8 +116,9 @@ class Candidate:
 
     @property
     def key(self) -> str:
-        """Short stable name: a hash of the canonical YAML."""
-        return hashlib.sha1(self.to_yaml().encode()).hexdigest()[:10]
+        """Short stable name: a hash of the canonical field values."""
+        text = json.dumps(self.to_dict(), sort_keys=True, separators=(",", ":"))
+        return hashlib.sha1(text.encode()).hexdigest()[:10]
 
     def describe(self) -> str:
         """The architecture in words."""
@@ -133,7 +135,7 @@ class Candidate:
         return "; ".join(parts)
 
     def to_dict(self) -> dict[str, Any]:
-        d = dataclasses.asdict(self)
+        d = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
         d["decoder_widths"] = list(self.decoder_widths)
         d["exits"] = list(self.exits)
         return d

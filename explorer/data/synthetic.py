@@ -181,7 +181,9 @@ class _pool:
     def __enter__(self):
         import multiprocessing as mp
         n = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-        self.pool = mp.get_context("spawn").Pool(n) if n > 1 else None
+        # fork: the workers only run numpy, and fork needs no `if __name__ == "__main__"` guard
+        method = "fork" if "fork" in mp.get_all_start_methods() else "spawn"
+        self.pool = mp.get_context(method).Pool(n) if n > 1 else None
         return self.pool
 
     def __exit__(self, *exc) -> None:

@@ -1,0 +1,134 @@
+"""Reading a study: trials as a pandas table, per-path costs re-computed from stored workloads, and
+re-scoring for another device or budget without training anything again."""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+import optuna
+import pandas as pd
+
+from explorer.anytime import anytime_loss, parse_budget
+from explorer.cost.devices import DeviceProfile, get_device, path_latencies_ms
+from explorer.cost.workloads import Workload
+from explorer.space import Candidate
+
+BASELINE_LABELS = {"paper": "paper design", "paper-nee": "paper design, no early exit",
+                   "fastdepth": "FastDepth-like"}
+
+
+def compact_workloads(cost) -> dict:
+    """What re-costing on any profile needs: per layer (stage, kind, MACs, bytes, params)."""
+    stages = list(dict.fromkeys(w.stage for w in cost.workloads))
+    return {"input_size": list(cost.input_size), "stages": stages,
+            "path_stages": [[stages.index(s) for s in ps] for ps in cost.path_stages],
+            "layers": [[stages.index(w.stage), w.kind, w.macs, w.bytes_read, w.bytes_written, w.params]
+                       for w in cost.workloads]}
+
+
+def expand_workloads(compact: dict) -> tuple[list[Workload], list[list[str]]]:
+    stages = compact["stages"]
+    wl = [Workload(stages[s], "", kind, (), (), 0, 0, int(macs), int(params), int(br), int(bw))
+          for s, kind, macs, br, bw, params in compact["layers"]]
+    return wl, [[stages[i] for i in ps] for ps in compact["path_stages"]]
+
+
+def trial_path_costs(trial: optuna.trial.FrozenTrial, device: DeviceProfile, kind: str) -> list[float]:
+    """Per-path cost (path 0 included) of a stored trial on ``device``: ms for time, J for energy."""
+    wl, path_stages = expand_workloads(trial.user_attrs["workloads"])
+    ms = [0.0] + path_latencies_ms(device, wl, path_stages)
+    if kind == "time":
+        return ms
+    return [float(device.energy_j(t)) for t in ms]
+
+
+def trial_losses(trial: optuna.trial.FrozenTrial, metric: str = "rmse") -> list[float]:
+    return [float(m[metric]) for m in trial.user_attrs["path_metrics"]]
+
+
+def trial_anytime_loss(trial: optuna.trial.FrozenTrial, device: DeviceProfile, budget, metric: str = "rmse") -> float:
+    dist = parse_budget(budget)
+    return anytime_loss(trial_path_costs(trial, device, dist.kind), trial_losses(trial, metric), dist)
+
+
+def scored_trials(study: optuna.Study) -> list[optuna.trial.FrozenTrial]:
+    """Completed trials that carry per-path metrics and workloads (everything re-scoring needs)."""
+    return [t for t in study.get_trials(deepcopy=False, states=(optuna.trial.TrialState.COMPLETE,))
+            if "path_metrics" in t.user_attrs and "workloads" in t.user_attrs]
+
+
+def trials_frame(study: optuna.Study) -> pd.DataFrame:
+    """One row per trial: state, objective value(s), baseline tag, candidate, params, MACs,
+    per-path metrics and costs as stored, and every recorded budget's anytime loss."""
+    rows = []
+    for t in study.get_trials(deepcopy=False):
+        ua = t.user_attrs
+        row = {"number": t.number, "state": t.state.name,
+               "value": (t.values[0] if t.values else np.nan),
+               "baseline": ua.get("baseline", ""),
+               "candidate_key": ua.get("candidate_key", ""),
+               "architecture": Candidate.from_dict(ua["candidate"]).describe() if "candidate" in ua else "",
+               "params": (ua.get("params") or [np.nan])[-1],
+               "macs": (ua.get("macs") or [np.nan])[-1],
+               "paths": len(ua.get("path_metrics", [])) or np.nan,
+               "first_exit_ms": (ua.get("latency_ms") or [0, np.nan])[1] if len(ua.get("latency_ms") or []) > 1 else np.nan,
+               "last_exit_ms": (ua.get("latency_ms") or [np.nan])[-1],
+               "last_rmse": (ua.get("path_metrics") or [{"rmse": np.nan}])[-1]["rmse"],
+               "duration_s": t.duration.total_seconds() if t.duration else np.nan,
+               "reason": ua.get("rejected") or t.system_attrs.get("fail_reason", "")}
+        if t.values and len(t.values) > 1:
+            for i, v in enumerate(t.values):
+                row[f"value_{i}"] = v
+        for spec, v in (ua.get("losses") or {}).items():
+            row[f"L[{spec}]"] = v
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def rescore(study: optuna.Study, device: str | DeviceProfile, budgets: Sequence[str],
+            metric: str = "rmse") -> pd.DataFrame:
+    """Ranks the finished trials for ``device`` and ``budgets`` (sorted by the first budget) from
+    what the study stored: no network is built or trained."""
+    profile = get_device(device)
+    dists = [parse_budget(b) for b in budgets]
+    rows = []
+    for t in scored_trials(study):
+        row = {"number": t.number, "baseline": t.user_attrs.get("baseline", ""),
+               "candidate_key": t.user_attrs.get("candidate_key", "")}
+        for d in dists:
+            row[d.spec] = trial_anytime_loss(t, profile, d, metric)
+        ms = trial_path_costs(t, profile, "time")
+        row["first_exit_ms"] = ms[1] if len(ms) > 1 else np.nan
+        row["last_exit_ms"] = ms[-1]
+        row["params"] = t.user_attrs["params"][-1]
+        rows.append(row)
+    frame = pd.DataFrame(rows)
+    if frame.empty:
+        return frame
+    return frame.sort_values(dists[0].spec, kind="stable").reset_index(drop=True)
+
+
+def best_trial(study: optuna.Study, baseline: bool = False) -> optuna.trial.FrozenTrial | None:
+    """Lowest objective among scored trials (baselines excluded unless ``baseline``)."""
+    pool = [t for t in scored_trials(study) if baseline or not t.user_attrs.get("baseline")]
+    return min(pool, key=lambda t: t.values[0], default=None)
+
+
+def baseline_trial(study: optuna.Study, name: str) -> optuna.trial.FrozenTrial | None:
+    return next((t for t in scored_trials(study) if t.user_attrs.get("baseline") == name), None)
+
+
+def path_table(trial: optuna.trial.FrozenTrial, devices: Sequence[DeviceProfile] = ()) -> pd.DataFrame:
+    """Table 1 of the paper for one trial: per path, cost per device, RMSE, REL, delta1, params, MACs."""
+    metrics = trial.user_attrs["path_metrics"]
+    frame = pd.DataFrame({"path": range(len(metrics))})
+    for dev in devices:
+        frame[f"{dev.name} ms"] = trial_path_costs(trial, dev, "time")
+        if dev.active_power_w > 0:
+            frame[f"{dev.name} J"] = trial_path_costs(trial, dev, "energy")
+    for m in ("rmse", "rel", "delta1"):
+        frame[m] = [pm[m] for pm in metrics]
+    frame["params"] = trial.user_attrs["params"]
+    frame["macs"] = trial.user_attrs["macs"]
+    return frame
