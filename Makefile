@@ -1,0 +1,30 @@
+# `make test` and `make search` each create .venv and install what they need.
+# torch is pinned by constraints.txt to the CPU build on this machine's disk; on a GPU machine,
+# point CONSTRAINTS at your own file (e.g. `make search CONSTRAINTS=gpu-constraints.txt`).
+PYTHON ?= python3
+VENV ?= .venv
+CONSTRAINTS ?= constraints.txt
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed-$(notdir $(CONSTRAINTS))
+SEARCH_ARGS ?=
+
+.PHONY: test search install benchmarks clean
+
+$(STAMP): pyproject.toml $(CONSTRAINTS)
+	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --disable-pip-version-check -c $(CONSTRAINTS) -e ".[test]"
+	touch $(STAMP)
+
+install: $(STAMP)
+
+test: $(STAMP)
+	$(BIN)/python -m pytest -q
+
+search: $(STAMP)
+	$(BIN)/explorer search --device tx2 $(SEARCH_ARGS)
+
+benchmarks: $(STAMP)
+	for b in benchmarks/bench_*.py; do $(BIN)/python $$b || exit 1; done
+
+clean:
+	rm -rf $(VENV) .cache .pytest_cache

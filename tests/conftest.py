@@ -1,0 +1,33 @@
+import os
+from pathlib import Path
+
+import pytest
+
+SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+TINY_DATA = "synthetic:48:16"
+
+
+def pytest_configure(config):
+    os.environ.setdefault("ANYTIME_EXPLORER_CACHE", str(Path(config.rootpath) / ".cache" / "test-data"))
+
+
+@pytest.fixture
+def shared_data() -> Path:
+    if not SHARED.is_dir():
+        pytest.skip("../shared/data is absent (a fresh clone has no shared/ beside it)")
+    return SHARED
+
+
+@pytest.fixture
+def run_cli(capsys):
+    """Runs the CLI in-process; returns (exit code, stdout, stderr)."""
+    from explorer.cli import main
+
+    def run(*args: str):
+        try:
+            code = main([str(a) for a in args])
+        except SystemExit as exc:  # argparse
+            code = exc.code
+        out, err = capsys.readouterr()
+        return code, out, err
+    return run

@@ -1,0 +1,65 @@
+import numpy as np
+import pytest
+
+from explorer.anytime import (Exponential, Trace, TruncatedNormal, Uniform, anytime_curve, anytime_loss,
+                              parse_budget)
+from explorer.errors import UserError
+
+
+def test_eq1_by_hand():
+    # U(0, 10): path 0 on [0, 2), path 1 on [2, 5), path 2 on [5, 10)
+    got = anytime_loss([0, 2, 5], [1.0, 0.5, 0.2], "time:uniform:10ms")
+    assert got == pytest.approx((1.0 * 2 + 0.5 * 3 + 0.2 * 5) / 10)
+
+
+def test_path_beyond_budget_never_counts():
+    # path 2 needs 12 ms > B_max = 10 ms: path 1 holds until the end
+    got = anytime_loss([0, 4, 12], [1.0, 0.5, 0.1], "time:uniform:10ms")
+    assert got == pytest.approx((1.0 * 4 + 0.5 * 6) / 10)
+
+
+def test_single_path_network():
+    assert anytime_loss([0, 6], [0.9, 0.4], "time:uniform:12ms") == pytest.approx((0.9 * 6 + 0.4 * 6) / 12)
+    assert anytime_loss([0], [0.9], "time:uniform:12ms") == pytest.approx(0.9)
+
+
+def test_energy_and_units():
+    assert anytime_loss([0, 0.1, 0.3], [1, 0.5, 0.25], "energy:uniform:500mJ") == pytest.approx(
+        (0.1 * 1 + 0.2 * 0.5 + 0.2 * 0.25) / 0.5)
+    assert parse_budget("time:uniform:0.033s").maximum == pytest.approx(33)
+
+
+def test_other_distributions_by_hand(tmp_path):
+    costs, losses = [0, 5], [1.0, 0.2]
+    p = 1 - np.exp(-5 / 10)
+    assert anytime_loss(costs, losses, "time:exponential:10ms") == pytest.approx(1.0 * p + 0.2 * (1 - p))
+    trace = tmp_path / "deadlines.csv"
+    trace.write_text("deadline_ms\n2\n4\n6\n8\n")
+    assert anytime_loss(costs, losses, f"time:trace:{trace}") == pytest.approx(0.5 * 1.0 + 0.5 * 0.2)
+    tn = parse_budget("time:truncnormal:5ms:2ms")
+    assert isinstance(tn, TruncatedNormal)
+    assert anytime_loss(costs, losses, tn) == pytest.approx(0.5 * 1.0 + 0.5 * 0.2, abs=0.02)
+    assert tn.cdf(0.0) == pytest.approx(0.0)
+
+
+def test_curve_area_is_the_loss():
+    costs, losses = [0, 2, 5], [1.0, 0.5, 0.2]
+    xs, ys = anytime_curve(costs, losses, 10)
+    area = float(np.sum(np.diff(xs) * ys[:-1]))
+    assert area / 10 == pytest.approx(anytime_loss(costs, losses, Uniform(10.0)))
+
+
+@pytest.mark.parametrize("spec, msg", [
+    ("time:uniform", "incomplete"), ("speed:uniform:3ms", "kind"), ("time:gauss:3ms", "distribution"),
+    ("time:uniform:3J", "unit"), ("time:uniform:-3ms", "quantity"), ("time:uniform:0ms", "positive"),
+    ("time:trace:/nonexistent.csv", "no such file")])
+def test_bad_specs(spec, msg):
+    with pytest.raises(UserError, match=msg):
+        parse_budget(spec)
+
+
+def test_bad_costs():
+    with pytest.raises(UserError, match="decrease"):
+        anytime_loss([0, 5, 3], [1, 1, 1], "time:uniform:10ms")
+    with pytest.raises(UserError, match="same length"):
+        anytime_loss([0, 5], [1], "time:uniform:10ms")

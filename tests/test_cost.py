@@ -1,0 +1,60 @@
+import random
+
+import pytest
+import torch
+from torch.utils.flop_counter import FlopCounterMode
+
+from explorer.cost import candidate_cost, profile_candidate
+from explorer.cost.workloads import candidate_workloads
+from explorer.errors import UserError
+from explorer.model import build_network
+from explorer.space import SearchSpace, fastdepth_candidate, paper_candidate
+
+
+def _torch_conv_macs(cand, h, w):
+    net = build_network(cand).eval()
+    with FlopCounterMode(display=False) as counter, torch.no_grad():
+        net(torch.rand(1, 3, h, w), torch.rand(1, w) + 1)
+    return counter.get_total_flops() // 2
+
+
+@pytest.mark.parametrize("cand", [paper_candidate(), fastdepth_candidate()]
+                         + random.Random(1).sample(list(SearchSpace.from_yaml("anytime_depth").enumerate()), 2))
+def test_workloads_match_torch(cand):
+    h, w = 224, 224
+    wl = candidate_workloads(cand, (h, w))
+    conv_macs = sum(x.macs for x in wl if x.kind != "resize")  # flop_counter counts convolutions only
+    assert conv_macs == _torch_conv_macs(cand, h, w)
+    assert sum(x.params for x in wl) == sum(p.numel() for p in build_network(cand).parameters())
+
+
+def test_workload_fields():
+    wl = candidate_workloads(paper_candidate())
+    first = wl[1]  # conv0 (after the normalisation)
+    assert first.kind == "conv" and first.in_shape == (3, 224, 224) and first.out_shape == (32, 112, 112)
+    assert first.macs == 112 * 112 * 32 * 27
+    assert first.bytes_written == 32 * 112 * 112 * 4
+    kinds = {x.kind for x in wl}
+    assert {"conv", "pointwise", "depthwise", "conv1d", "resize", "add", "concat", "slice"} <= kinds
+
+
+def test_per_path_costs_grow():
+    for cand in list(SearchSpace.from_yaml("tiny").enumerate()) + [paper_candidate()]:
+        frame = profile_candidate(cand, (64, 64) if cand.stride < 16 else (224, 224), device="tx2")
+        for col in ("params", "macs", "latency_ms", "energy_j"):
+            assert frame[col].is_monotonic_increasing, (cand, col)
+        assert frame.loc[0, "latency_ms"] == 0 and frame.loc[0, "params"] == 0
+
+
+def test_paper_design_against_table1():
+    frame = profile_candidate(paper_candidate())
+    p1, p4 = frame.iloc[1], frame.iloc[4]
+    assert abs(p1.params / 1.489e6 - 1) <= 0.10
+    assert abs(p4.params / 2.014e6 - 1) <= 0.10
+    assert abs(p1.macs / 0.319e9 - 1) <= 0.25
+    assert abs(p4.macs / 0.594e9 - 1) <= 0.25
+
+
+def test_input_must_divide_by_stride():
+    with pytest.raises(UserError, match="stride"):
+        candidate_cost(paper_candidate(), (100, 100))

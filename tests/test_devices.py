@@ -1,0 +1,98 @@
+import dataclasses
+
+import numpy as np
+import pytest
+import yaml
+
+from explorer.cost import candidate_cost, get_device
+from explorer.cost.devices import DeviceProfile, KindCost, available_devices
+from explorer.cost.workloads import KINDS, Workload
+from explorer.errors import UserError
+from explorer.space import paper_candidate
+
+
+def _profile(overlap):
+    return DeviceProfile("hand", "", overlap, bandwidth_gbs=1.0,
+                         kinds={k: KindCost(gmacs=2.0, overhead_ms=0.5) for k in KINDS},
+                         inference_overhead_ms=1.0, stage_overhead_ms=0.25,
+                         energy_fixed_j=0.1, active_power_w=10.0)
+
+
+def test_cost_arithmetic_on_hand_workloads():
+    w = Workload("s", "l", "pointwise", (1,), (1,), 1, 1, macs=4_000_000, params=0,
+                 bytes_read=1_000_000, bytes_written=1_000_000)
+    # compute 4e6 / 2e9 s = 2 ms; memory 2e6 B / 1e9 B/s = 2 ms... make them differ:
+    w2 = dataclasses.replace(w, bytes_written=3_000_000)  # memory 4 ms
+    assert _profile(True).layer_ms(w2) == pytest.approx(0.5 + 4.0)       # overlap: the longer
+    assert _profile(False).layer_ms(w2) == pytest.approx(0.5 + 2.0 + 4.0)  # CPU: the sum
+    assert _profile(True).energy_j(10.0) == pytest.approx(0.1 + 10.0 * 0.01)
+    assert _profile(True).energy_j(0.0) == 0.0
+
+
+def test_path_latency_includes_overheads():
+    prof = _profile(False)
+    cost = candidate_cost(paper_candidate())
+    ms = cost.path_latency_ms(prof)
+    per = {}
+    for w in cost.workloads:
+        per[w.stage] = per.get(w.stage, 0) + prof.layer_ms(w)
+    expected_p1 = 1.0 + sum(per[s] + 0.25 for s in cost.path_stages[0])
+    assert ms[1] == pytest.approx(expected_p1)
+
+
+def test_all_builtins_load_and_round_trip(tmp_path):
+    assert {"tx2", "tx2-cpu", "rpi4", "jetson-nano", "orin-nano", "rpi5"} <= set(available_devices())
+    for name in available_devices():
+        p = get_device(name)
+        f = tmp_path / f"{name}.yaml"
+        f.write_text(p.to_yaml())
+        q = get_device(str(f))
+        assert q.kinds == p.kinds and q.energy_fixed_j == pytest.approx(p.energy_fixed_j)
+        assert "sources" in p.provenance
+    assert not get_device("orin-nano").calibrated and get_device("tx2").calibrated
+
+
+def test_profile_errors(tmp_path):
+    with pytest.raises(UserError, match="unknown device"):
+        get_device("tx3")
+    with pytest.raises(UserError, match="no such file"):
+        get_device(str(tmp_path / "none.yaml"))
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("name: x\noverlap: true\nbandwidth_gbs: 10\nkinds: {conv: {gmacs: 1}}\n")
+    with pytest.raises(UserError, match="lacks"):
+        get_device(str(bad))
+    bad.write_text(": : :")
+    with pytest.raises(UserError, match="YAML"):
+        get_device(str(bad))
+    data = get_device("tx2").to_dict()
+    data["kinds"]["conv"]["gmacs"] = -1
+    bad.write_text(yaml.safe_dump(data))
+    with pytest.raises(UserError, match="positive"):
+        get_device(str(bad))
+
+
+def test_tx2_reproduces_its_calibration(shared_data):
+    from explorer.cost.fit import PAPER_TX2_PATHS_MS, Observation, errors, kernel_workloads
+    tx2 = get_device("tx2")
+    obs = [Observation(w.layer, [w], ms) for w, ms in kernel_workloads(shared_data / "tx2-tvm-kernels" / "kernels.csv", "gpu")]
+    assert len(obs) == 71
+    assert errors(tx2, obs)["error"].abs().median() <= 0.20
+    ms = candidate_cost(paper_candidate()).path_latency_ms(tx2)[1:]
+    for got, want in zip(ms, PAPER_TX2_PATHS_MS):
+        assert abs(got / want - 1) <= 0.10
+    cpu = get_device("tx2-cpu")
+    obs = [Observation(w.layer, [w], ms) for w, ms in kernel_workloads(shared_data / "tx2-tvm-kernels" / "kernels.csv", "cpu")]
+    assert errors(cpu, obs)["error"].abs().median() <= 0.20
+
+
+def test_tx2_energy_model_matches_paper_points():
+    tx2 = get_device("tx2")
+    assert tx2.energy_j(6.37) == pytest.approx(0.2, abs=1e-3)
+    assert tx2.energy_j(554.7) == pytest.approx(6.244, abs=1e-3)
+
+
+def test_rpi4_reproduces_table2():
+    from explorer.cost.fit import PAPER_RPI4_TABLE2, rpi4_table2
+    got = rpi4_table2(get_device("rpi4"))
+    for spec, want in PAPER_RPI4_TABLE2.items():
+        assert abs(got[spec] - want) <= 0.03, spec

@@ -1,0 +1,71 @@
+import random
+
+import pytest
+import torch
+
+from explorer.model import build_network, interpolate_scan, stage_specs
+from explorer.space import SearchSpace, fastdepth_candidate, paper_candidate
+
+
+def _forward(cand, h, w):
+    net = build_network(cand).eval()
+    with torch.no_grad():
+        return net(torch.rand(2, 3, h, w), torch.rand(2, w) * 5 + 0.5)
+
+
+@pytest.mark.parametrize("cand", list(SearchSpace.from_yaml("tiny").enumerate()))
+def test_tiny_candidates_forward_square_and_not(cand):
+    for h, w in ((32, 32), (32, 48)):
+        outs = _forward(cand, h, w)
+        assert len(outs) == cand.num_paths
+        assert all(o.shape == (2, 1, h, w) for o in outs)
+
+
+def test_default_space_sample_forward():
+    cands = list(SearchSpace.from_yaml("anytime_depth").enumerate())
+    for cand in random.Random(0).sample(cands, 3) + [paper_candidate()]:
+        for h, w in ((64, 64), (64, 96)):
+            outs = _forward(cand, h, w)
+            assert len(outs) == cand.num_paths and all(o.shape == (2, 1, h, w) for o in outs)
+
+
+@pytest.mark.parametrize("size", [(224, 224), (224, 320), (192, 640), (224, 896)])
+def test_paper_sizes(size):
+    outs = _forward(paper_candidate(), *size)
+    assert [o.shape[-2:] for o in outs] == [torch.Size(size)] * 5
+
+
+def test_fastdepth_baseline_is_one_exit_image_only():
+    net = build_network(fastdepth_candidate())
+    names = [s.name for s in net.specs]
+    assert "lidar_encoder" not in names and names[-1] == "exit_5"
+    assert 3.5e6 < sum(p.numel() for p in net.parameters()) < 4.5e6
+
+
+def test_bad_inputs():
+    net = build_network(paper_candidate())
+    with pytest.raises(ValueError, match="divide"):
+        net(torch.rand(1, 3, 100, 100), torch.rand(1, 100))
+    with pytest.raises(ValueError, match="scan"):
+        net(torch.rand(1, 3, 64, 64), torch.rand(1, 60))
+
+
+def test_stages_are_ordered_prefixes():
+    specs = stage_specs(paper_candidate())
+    produced = {"image", "scan"}
+    paths = []
+    for s in specs:
+        assert set(s.inputs) <= produced, s.name  # a stage only reads what ran before it
+        produced |= set(s.outputs)
+        if s.path is not None:
+            paths.append(s.path)
+    assert paths == [1, 2, 3, 4]
+
+
+def test_path0_nearest_fill():
+    scan = torch.tensor([[0.0, 2.0, 0.0, 0.0, 5.0, 0.0]])
+    out = interpolate_scan(scan, 3)
+    assert out.shape == (1, 1, 3, 6)
+    assert out[0, 0, 0].tolist() == [2.0, 2.0, 2.0, 5.0, 5.0, 5.0]
+    assert torch.equal(out[0, 0, 0], out[0, 0, 2])
+    assert interpolate_scan(torch.zeros(1, 4), 2).abs().sum() == 0
