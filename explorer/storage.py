@@ -51,15 +51,30 @@ def open_storage(url: str | None, study: str, workers: int = 1, reports: Path = 
             raise UserError(f"no study database at {path} (run `explorer search --study {study}` first, "
                             "or give --storage)")
         path.parent.mkdir(parents=True, exist_ok=True)
+    url = _with_driver(url)
     try:
         kwargs = {}
         if not url.startswith("sqlite"):
             # crashed workers' trials are failed by the others after the grace period
             kwargs = {"heartbeat_interval": 30, "grace_period": 120}
-        return optuna.storages.RDBStorage(url, engine_kwargs={"pool_pre_ping": True}, **kwargs)
+        import warnings
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
+            return optuna.storages.RDBStorage(url, engine_kwargs={"pool_pre_ping": True}, **kwargs)
     except Exception as exc:  # sqlalchemy raises many types for unreachable or malformed URLs
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise UserError(f"storage {url}: unreachable or invalid ({first[:160]})") from None
+
+
+def _with_driver(url: str) -> str:
+    """postgresql:// with whichever driver is installed (SQLAlchemy 2.1 defaults to psycopg 3)."""
+    if url.startswith("postgresql://"):
+        import importlib.util
+        if importlib.util.find_spec("psycopg") is None:
+            if importlib.util.find_spec("psycopg2") is None:
+                raise UserError("PostgreSQL storage needs a driver: pip install 'anytime-explorer[postgres]'")
+            return "postgresql+psycopg2://" + url[len("postgresql://"):]
+    return url
 
 
 def find_storage(study: str, url: str | None, reports: Path = REPORTS_DIR) -> optuna.storages.BaseStorage:
