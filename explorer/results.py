@@ -132,3 +132,14 @@ def path_table(trial: optuna.trial.FrozenTrial, devices: Sequence[DeviceProfile]
     frame["params"] = trial.user_attrs["params"]
     frame["macs"] = trial.user_attrs["macs"]
     return frame
+
+
+def study_frame(study: str, storage: str | None = None, reports: str = "reports") -> pd.DataFrame:
+    """One call for notebooks: a stored study's trials as a table (see :func:`trials_frame`); the
+    study object itself is in ``frame.attrs['study']``."""
+    from pathlib import Path
+    from explorer.storage import load_study
+    s = load_study(study, storage, Path(reports))
+    frame = trials_frame(s)
+    frame.attrs["study"] = s
+    return frame

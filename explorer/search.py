@@ -315,6 +315,8 @@ def search(config: SearchConfig, storage_url: str | None = None, workers: int = 
     failed = 0
     if storage_url is None or storage_url.startswith("sqlite"):
         failed = fail_interrupted_trials(study)
+    if config.keep_weights:
+        study.set_user_attr("artifacts_dir", str((study_dir(config.study, reports) / "artifacts").resolve()))
     url = storage_url or (f"journal:{reports / config.study / 'journal.log'}" if workers > 1
                           else f"sqlite:///{reports / config.study / 'study.db'}")
     t0 = time.time()

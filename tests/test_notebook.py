@@ -1,0 +1,25 @@
+import os
+from pathlib import Path
+
+import nbformat
+import pytest
+from nbclient import NotebookClient
+
+from explorer.search import SearchConfig, search
+from conftest import TINY_DATA
+
+NOTEBOOK = Path(__file__).resolve().parents[1] / "notebooks" / "analysis.ipynb"
+
+
+def test_analysis_notebook_runs_on_a_tiny_study(tmp_path, monkeypatch):
+    search(SearchConfig(study="nb", space="tiny", data=TINY_DATA, train_size=(32, 32), input_size=(64, 64),
+                        train_steps=4, batch_size=8, val_limit=8), n_trials=5, timeout_s=None, reports=tmp_path)
+    monkeypatch.setenv("EXPLORER_STUDY", "nb")
+    monkeypatch.setenv("EXPLORER_REPORTS", str(tmp_path))
+    monkeypatch.setenv("MPLBACKEND", "Agg")
+    nb = nbformat.read(NOTEBOOK, as_version=4)
+    NotebookClient(nb, timeout=300, kernel_name="python3", resources={"metadata": {"path": str(tmp_path)}}).execute()
+    outputs = [o for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", [])]
+    assert not [o for o in outputs if o.get("output_type") == "error"]
+    text = "".join(str(o.get("data", {}).get("text/plain", "")) for o in outputs)
+    assert "time:uniform:100ms" in text  # the re-scored table
