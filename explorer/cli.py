@@ -318,11 +318,12 @@ def cmd_search(args) -> None:
         batch_size=args.batch_size, seed=args.seed, max_params=args.max_params,
         max_first_exit_ms=args.max_first_exit, baselines=not args.no_baselines,
         pruning=not args.no_pruning, keep_weights=not args.no_weights, accelerator=args.accelerator)
+    cfg.validate()
     reports = Path(args.reports)
     timeout = None if args.timeout == 0 else args.timeout
     total = args.trials
     t0 = time.time()
-    with progress() as bar:
+    with progress(transient=True) as bar:
         task = bar.add_task(f"search {study}", total=total, status="starting (data, baselines)")
 
         def show(study_obj, trial=None) -> None:

@@ -48,6 +48,9 @@ class _Whole(nn.Module):
 
 
 def _export(module: nn.Module, args: tuple, input_names: list[str], output_names: list[str]) -> bytes:
+    # The exporter restores the wrapper's training flag on all its children afterwards: a fresh
+    # wrapper is in training mode and would leave the network's BatchNorms training.
+    module.eval()
     buf = io.BytesIO()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")

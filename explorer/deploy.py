@@ -1,0 +1,121 @@
+"""``explorer export``: a trained candidate as ONNX graphs, one per stage in execution order (every
+exit's depth map is available as soon as its stage ends), plus a manifest. Verified against PyTorch
+at export time."""
+
+from __future__ import annotations
+
+import json
+import tempfile
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+import torch
+
+from explorer import __version__
+from explorer.cost import candidate_cost, get_device
+from explorer.errors import UserError
+from explorer.model import AnytimeDepthNet
+from explorer.onnx_stages import OPSET, example_inputs, export_stages
+
+TOLERANCE = 1e-4
+MANIFEST = "manifest.json"
+
+
+def verify(graphs, net: AnytimeDepthNet, input_size: tuple[int, int], scan_row: int) -> float:
+    """Max |onnxruntime - torch| over every path's depth map on a random input."""
+    from explorer.cost.measure import session
+    env = example_inputs(input_size)
+    with torch.no_grad():
+        ref = [d.numpy() for d in net.eval()(env["image"], env["scan"], scan_row)]
+    feeds = {k: v.numpy() for k, v in env.items()}
+    outs: dict[str, np.ndarray] = {}
+    for spec, model in graphs:
+        sess = session(model, 1)
+        res = sess.run(None, {i.name: (outs | feeds)[i.name] for i in sess.get_inputs()})
+        outs.update({o.name: v for o, v in zip(sess.get_outputs(), res)})
+    return max(float(np.abs(outs[f"depth_{p}"] - r).max()) for p, r in enumerate(ref))
+
+
+def export_network(net: AnytimeDepthNet, out_dir: Path, input_size: tuple[int, int],
+                   scan_row: int | None = None, path_metrics: list[dict] | None = None,
+                   devices: Sequence[str] = ("tx2", "rpi4"), source: dict | None = None) -> dict:
+    h, w = input_size
+    if h % net.stride or w % net.stride:
+        raise UserError(f"input {h}x{w} does not divide by the encoder stride {net.stride}")
+    scan_row = h // 2 if scan_row is None else scan_row
+    net = net.eval()
+    graphs = export_stages(net, input_size, scan_row)
+    diff = verify(graphs, net, input_size, scan_row)
+    if diff > TOLERANCE:
+        raise RuntimeError(f"ONNX export differs from PyTorch by {diff:.2e} (> {TOLERANCE:g}): not written")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    stages = []
+    for i, (spec, model) in enumerate(graphs):
+        name = "path0" if spec is None else spec.name
+        file = f"{i:02d}_{name}.onnx"
+        (out_dir / file).write_bytes(model)
+        stages.append({"file": file, "name": name, "inputs": ["scan"] if spec is None else list(spec.inputs),
+                       "outputs": ["depth_0"] if spec is None else list(spec.outputs),
+                       "path": 0 if spec is None else spec.path})
+    cost = candidate_cost(net.candidate, input_size)
+    expected = {}
+    for d in devices:
+        prof = get_device(d)
+        expected[prof.name] = {"latency_ms": cost.path_latency_ms(prof), "energy_j": cost.path_energy_j(prof),
+                               "calibrated": prof.calibrated}
+    manifest = {
+        "format": "anytime-explorer/1", "explorer_version": __version__, "opset": OPSET,
+        "candidate": net.candidate.to_dict(), "candidate_key": net.candidate.key,
+        "architecture": net.candidate.describe(), "input_size": [h, w], "scan_row": scan_row,
+        "image": "RGB in [0, 1], (1, 3, H, W) float32", "scan": "(1, W) float32 metres, 0 = no return",
+        "stages": stages, "paths": net.candidate.num_paths,
+        "path_metrics": path_metrics or [], "expected_cost": expected,
+        "params": [p for p, _ in cost.path_params_macs()], "macs": [m for _, m in cost.path_params_macs()],
+        "verification": {"max_abs_diff": diff, "tolerance": TOLERANCE}, "source": source or {},
+    }
+    (out_dir / MANIFEST).write_text(json.dumps(manifest, indent=2))
+    return manifest
+
+
+def export_from_checkpoint(ckpt: Path, out_dir: Path, input_size: tuple[int, int] | None = None,
+                           devices: Sequence[str] | None = None) -> dict:
+    from explorer.train import network_from_checkpoint
+    net, state = network_from_checkpoint(ckpt)
+    size = tuple(input_size or state["train_config"]["input_size"])
+    return export_network(net, out_dir, size, devices=devices or ("tx2", "rpi4"),
+                          source={"checkpoint": str(ckpt)})
+
+
+def export_from_study(study_name: str, trial_number: int | None, out_dir: Path, storage: str | None,
+                      reports: Path, input_size: tuple[int, int] | None = None,
+                      devices: Sequence[str] | None = None) -> dict:
+    from optuna.artifacts import FileSystemArtifactStore, download_artifact
+    from explorer.results import best_trial, scored_trials
+    from explorer.storage import load_study
+    from explorer.train import network_from_checkpoint
+    study = load_study(study_name, storage, reports)
+    trials = {t.number: t for t in scored_trials(study)}
+    if trial_number is None:
+        trial = best_trial(study) or best_trial(study, baseline=True)
+        if trial is None:
+            raise UserError(f"study '{study_name}' has no completed trial to export")
+    elif trial_number not in trials:
+        raise UserError(f"trial {trial_number} of '{study_name}' is not a completed trial (completed: "
+                        f"{sorted(trials)[:20]})")
+    else:
+        trial = trials[trial_number]
+    artifact = trial.user_attrs.get("weights_artifact")
+    root = study.user_attrs.get("artifacts_dir")
+    if not artifact or not root or not Path(root).is_dir():
+        raise UserError(f"trial {trial.number} has no stored weights here (searched with --no-weights, or its "
+                        "artifacts live on another machine): train it with `explorer train` and export the checkpoint")
+    cfg = study.user_attrs.get("config", {})
+    with tempfile.TemporaryDirectory() as tmp:
+        f = Path(tmp) / "w.pt"
+        download_artifact(artifact_store=FileSystemArtifactStore(root), file_path=str(f), artifact_id=artifact)
+        net, _ = network_from_checkpoint(f)
+    size = tuple(input_size or cfg.get("input_size", (224, 224)))
+    devs = list(devices or dict.fromkeys([cfg.get("device", "tx2"), "tx2", "rpi4"]))
+    return export_network(net, out_dir, size, path_metrics=trial.user_attrs.get("path_metrics"), devices=devs,
+                          source={"study": study_name, "trial": trial.number, "objective": trial.values[0]})

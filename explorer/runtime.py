@@ -1,0 +1,199 @@
+"""The anytime runtime: runs exported stage graphs in order with onnxruntime and returns the best
+depth map completed within a deadline (path 0, the interpolated scan, at worst). Another thread can
+halt it at any moment (``AnytimeRunner.halt``) and get the best map so far."""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from explorer.errors import UserError
+
+MANIFEST = "manifest.json"
+
+
+@dataclass
+class AnytimeResult:
+    depth: np.ndarray                 # (H, W) metres
+    path: int                         # which path it is
+    ready_ms: float                   # when that path was ready, from the start of the run
+    completed: list[tuple[int, float]] = field(default_factory=list)  # (path, ready ms)
+    halted: bool = False
+
+
+class AnytimeRunner:
+    def __init__(self, model_dir: str | Path, threads: int | None = None, warmup: bool = True) -> None:
+        import onnxruntime as ort
+        from explorer.cost.measure import session
+        self.dir = Path(model_dir)
+        mpath = self.dir / MANIFEST
+        if not mpath.is_file():
+            raise UserError(f"{self.dir}: no {MANIFEST} (export a model with `explorer export --out DIR`)")
+        try:
+            self.manifest = json.loads(mpath.read_text())
+        except json.JSONDecodeError as exc:
+            raise UserError(f"{mpath}: not valid JSON ({exc.msg})") from None
+        self.input_size = tuple(self.manifest["input_size"])
+        self.scan_row = int(self.manifest["scan_row"])
+        self.sessions = []
+        for st in self.manifest["stages"]:
+            f = self.dir / st["file"]
+            if not f.is_file():
+                raise UserError(f"{f}: stage graph listed in the manifest is missing")
+            try:
+                sess = session(f.read_bytes(), threads)
+            except Exception as exc:  # onnxruntime raises its own types for corrupt graphs
+                raise UserError(f"{f}: not a loadable ONNX graph ({str(exc).splitlines()[0][:100]})") from None
+            self.sessions.append((st, sess))
+        self._lock = threading.Lock()
+        self._halt = threading.Event()
+        self._options: "ort.RunOptions | None" = None
+        if warmup:
+            h, w = self.input_size
+            self.run(np.zeros((3, h, w), np.float32), np.ones(w, np.float32))
+
+    def check(self, image: np.ndarray, scan: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        h, w = self.input_size
+        img = np.asarray(image)
+        if img.ndim == 3 and img.shape[2] == 3 and img.shape[0] != 3:
+            img = img.transpose(2, 0, 1)
+        if img.ndim != 3 or img.shape != (3, h, w):
+            raise UserError(f"image has shape {tuple(np.asarray(image).shape)}, the model takes {h}x{w} RGB "
+                            f"(resize it to {w}x{h} first)")
+        if img.dtype == np.uint8:
+            img = img.astype(np.float32) / 255.0
+        s = np.asarray(scan, dtype=np.float32).reshape(-1)
+        if s.shape != (w,):
+            raise UserError(f"scan has {s.size} values, the model takes one per image column ({w})")
+        if not np.isfinite(s).all() or (s < 0).any():
+            raise UserError("scan must hold finite depths >= 0 (0 = no return)")
+        return img[None].astype(np.float32), s[None]
+
+    def halt(self) -> None:
+        """Stops the current run as soon as possible; it returns the best map completed so far."""
+        self._halt.set()
+        with self._lock:
+            if self._options is not None:
+                self._options.terminate = True
+
+    def run(self, image: np.ndarray, scan: np.ndarray, deadline_ms: float | None = None,
+            on_path: "Callable[[int, float], None] | None" = None) -> AnytimeResult:
+        """Runs the stages in order; returns the last path ready within ``deadline_ms`` (None: all).
+        ``on_path(path, ready_ms)`` is called as each path becomes ready."""
+        import onnxruntime as ort
+        img, s = self.check(image, scan)
+        self._halt.clear()
+        env = {"image": img, "scan": s}
+        t0 = time.perf_counter()
+        timer = None
+        if deadline_ms is not None:
+            timer = threading.Timer(max(deadline_ms, 0.0) / 1000.0, self.halt)
+            timer.start()
+        best: tuple[int, np.ndarray, float] | None = None
+        completed = []
+        halted = False
+        try:
+            for st, sess in self.sessions:
+                if best is not None and self._halt.is_set():
+                    halted = True
+                    break
+                opts = ort.RunOptions()
+                with self._lock:
+                    self._options = opts
+                try:
+                    outs = sess.run(None, {i.name: env[i.name] for i in sess.get_inputs()}, opts)
+                except Exception:
+                    if self._halt.is_set() and best is not None:
+                        halted = True
+                        break  # terminated mid-stage: keep what was ready
+                    raise
+                ready = (time.perf_counter() - t0) * 1000.0
+                env.update({o.name: v for o, v in zip(sess.get_outputs(), outs)})
+                path = st["path"]
+                if path is not None:
+                    if path == 0:
+                        ready = 0.0  # the scan itself: available at once (its cost is ~0)
+                    within = deadline_ms is None or ready <= deadline_ms or path == 0
+                    if within:
+                        best = (path, env[f"depth_{path}"], ready)
+                        completed.append((path, ready))
+                        if on_path is not None:
+                            on_path(path, ready)
+                    else:
+                        halted = True
+                        break
+        finally:
+            if timer is not None:
+                timer.cancel()
+            with self._lock:
+                self._options = None
+        path, depth, ready = best
+        return AnytimeResult(depth[0, 0], path, ready, completed, halted)
+
+
+def read_scan(path: Path) -> np.ndarray:
+    if not path.is_file():
+        raise UserError(f"{path}: no such scan file")
+    try:
+        if path.suffix == ".npy":
+            return np.load(path).astype(np.float32).reshape(-1)
+        text = path.read_text().replace(",", " ").split()
+        return np.array([float(x) for x in text], dtype=np.float32)
+    except (ValueError, OSError) as exc:
+        raise UserError(f"{path}: unreadable scan ({exc}); give one depth in metres per image column") from None
+
+
+def read_image(path: Path) -> np.ndarray:
+    from PIL import Image
+    if not path.is_file():
+        raise UserError(f"{path}: no such image")
+    try:
+        return np.asarray(Image.open(path).convert("RGB"))
+    except OSError as exc:
+        raise UserError(f"{path}: unreadable image ({exc})") from None
+
+
+def write_depth(depth: np.ndarray, out: Path) -> None:
+    out.parent.mkdir(parents=True, exist_ok=True)
+    if out.suffix == ".npy":
+        np.save(out, depth.astype(np.float32))
+    else:
+        from PIL import Image
+        mm = np.clip(depth * 1000.0, 0, 65535).astype(np.uint16)
+        Image.fromarray(mm).save(out)
+
+
+def run_files(model_dir: Path, image: Path, scan: Path, deadline_ms: float, out: Path | None,
+              threads: int | None = None) -> dict:
+    runner = AnytimeRunner(model_dir, threads)
+    result = runner.run(read_image(image), read_scan(scan), deadline_ms)
+    if out is not None:
+        write_depth(result.depth, out)
+    return {"path": result.path, "ready_ms": result.ready_ms, "deadline_ms": deadline_ms,
+            "completed_paths": len(result.completed), "timeline": result.completed,
+            "out": str(out) if out else None}
+
+
+def measured_anytime(runner: AnytimeRunner, frames: list[dict], deadlines_ms: np.ndarray,
+                     metric: str = "rmse") -> dict:
+    """Runs every frame under every deadline; returns the mean loss of what came back per deadline
+    and the measured anytime loss for U(0, max deadline) (deadlines on a uniform grid)."""
+    from explorer.metrics import depth_metrics
+    per_deadline = []
+    paths = []
+    for d in deadlines_ms:
+        losses, ps = [], []
+        for f in frames:
+            res = runner.run(f["image"].numpy(), f["scan"].numpy(), float(d))
+            losses.append(depth_metrics(res.depth, f["depth"][0].numpy())[metric])
+            ps.append(res.path)
+        per_deadline.append(float(np.mean(losses)))
+        paths.append(float(np.mean(ps)))
+    return {"deadlines_ms": [float(d) for d in deadlines_ms], "loss": per_deadline, "mean_path": paths,
+            "anytime_loss": float(np.mean(per_deadline))}
