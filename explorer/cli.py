@@ -396,7 +396,8 @@ def cmd_report(args) -> None:
     from explorer.storage import load_study
     study = load_study(args.study, args.storage, Path(args.reports))
     out = Path(args.out) if args.out else Path(args.reports) / args.study
-    path = write_report(study, out_dir=out, devices=args.device, budgets=args.budget, data=args.data)
+    path = write_report(study, out_dir=out, devices=args.device, budgets=args.budget, data=args.data,
+                        curve=Path(args.curve) if args.curve else None)
     console.print(f"report: {path}")
 
 
@@ -424,6 +425,21 @@ def cmd_run(args) -> None:
         return
     console.print(f"returned path {res['path']} (ready at {res['ready_ms']:.2f} ms, deadline {args.deadline:g} ms); "
                   f"{res['completed_paths']} path(s) completed" + (f"; wrote {args.out}" if args.out else ""))
+
+
+def cmd_curve(args) -> None:
+    from explorer._console import console, print_json, progress
+    from explorer.runtime import curve_check
+    with progress(transient=True) as bar:
+        task = bar.add_task("deadlines", total=args.deadlines, status="")
+        res = curve_check(Path(args.model), args.data, args.device, args.frames, args.deadlines,
+                          progress=lambda i, n: bar.update(task, completed=i))
+    if args.json:
+        print_json(res)
+        return
+    m, p = res["measured_anytime_loss"], res["predicted_anytime_loss"]
+    console.print(f"anytime loss U(0, {res['b_max_ms']:.1f} ms) on this machine: measured {m:.4f}, predicted by "
+                  f"{res['device']} {p:.4f} ({m / p - 1:+.1%}); written to {Path(args.model) / 'anytime_curve.json'}")
 
 
 # -- parser ---------------------------------------------------------------------------------------
@@ -559,6 +575,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--budget", action="append", help="budgets for the tables (default: a standard set)")
     s.add_argument("--data", help="data set for the depth-map figure (default: the study's)")
     s.add_argument("--out", help="folder (default reports/<study>/)")
+    s.add_argument("--curve", help="anytime_curve.json from explorer curve (default: OUT/export/ if there)")
     s.add_argument("--reports", **reports)
 
     s = add("export", cmd_export, "export a trained candidate as ONNX stage graphs + manifest")
@@ -578,6 +595,14 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--deadline", type=_ms, required=True, help="e.g. 8ms")
     s.add_argument("--out", help="write the depth map (.png 16-bit mm, or .npy metres)")
     s.add_argument("--threads", type=int, default=None)
+    s.add_argument("--json", action="store_true")
+
+    s = add("curve", cmd_curve, "measure an exported model's anytime curve here and compare with the prediction")
+    s.add_argument("model", help="folder written by explorer export")
+    s.add_argument("--data", default="synthetic", help="frames to measure on (validation split)")
+    s.add_argument("--device", help="host profile from explorer calibrate (default: calibrate now)")
+    s.add_argument("--frames", type=int, default=16)
+    s.add_argument("--deadlines", type=int, default=40)
     s.add_argument("--json", action="store_true")
     return p
 

@@ -58,6 +58,15 @@ class AnytimeRunner:
             h, w = self.input_size
             self.run(np.zeros((3, h, w), np.float32), np.ones(w, np.float32))
 
+    def depths(self, image: np.ndarray, scan: np.ndarray) -> list[np.ndarray]:
+        """Every path's depth map (no deadline), in order."""
+        img, s = self.check(image, scan)
+        env = {"image": img, "scan": s}
+        for _, sess in self.sessions:
+            outs = sess.run(None, {i.name: env[i.name] for i in sess.get_inputs()})
+            env.update({o.name: v for o, v in zip(sess.get_outputs(), outs)})
+        return [env[f"depth_{p}"][0, 0] for p in range(self.manifest["paths"])]
+
     def check(self, image: np.ndarray, scan: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         h, w = self.input_size
         img = np.asarray(image)
@@ -197,3 +206,46 @@ def measured_anytime(runner: AnytimeRunner, frames: list[dict], deadlines_ms: np
         paths.append(float(np.mean(ps)))
     return {"deadlines_ms": [float(d) for d in deadlines_ms], "loss": per_deadline, "mean_path": paths,
             "anytime_loss": float(np.mean(per_deadline))}
+
+
+def curve_check(model_dir: Path, data: str, device: str | None = None, frames: int = 16,
+                deadlines: int = 40, progress: Callable[[int, int], None] | None = None) -> dict:
+    """The anytime curve measured on this machine next to the one a host profile predicts.
+
+    Per-path losses come from the exported graphs on ``frames`` validation frames; the prediction
+    prices the paths with ``device`` (a profile from ``explorer calibrate``; calibrated now if None);
+    the measurement runs every frame under ``deadlines`` deadlines spread evenly over (0, B_max),
+    B_max = 1.25 x the predicted last path. Written to ``model_dir/anytime_curve.json``.
+    """
+    from explorer.anytime import anytime_loss
+    from explorer.cost import candidate_cost, get_device
+    from explorer.cost.calibrate import calibrate
+    from explorer.data import open_dataset
+    from explorer.metrics import MetricAverager, depth_metrics
+    from explorer.space import Candidate
+    runner = AnytimeRunner(model_dir)
+    cand = Candidate.from_dict(runner.manifest["candidate"])
+    ds = open_dataset(data, "val", runner.input_size, train_augment=False)
+    items = [ds[i] for i in range(min(frames, len(ds)))]
+    per_path = [MetricAverager() for _ in range(cand.num_paths)]
+    for it in items:
+        for p, depth in enumerate(runner.depths(it["image"].numpy(), it["scan"].numpy())):
+            per_path[p].add(depth_metrics(depth, it["depth"][0].numpy()))
+    losses = [a.result()["rmse"] for a in per_path]
+    profile = get_device(device) if device else calibrate(scale=0.5)
+    costs = candidate_cost(cand, runner.input_size).path_latency_ms(profile)
+    b_max = 1.25 * costs[-1]
+    grid = (np.arange(deadlines) + 0.5) * b_max / deadlines
+    measured = {"deadlines_ms": [], "loss": [], "mean_path": []}
+    for i, d in enumerate(grid):
+        part = measured_anytime(runner, items, np.array([d]))
+        for k in ("deadlines_ms", "loss", "mean_path"):
+            measured[k] += part[k]
+        if progress:
+            progress(i + 1, len(grid))
+    result = {"candidate_key": cand.key, "device": profile.name, "frames": len(items), "b_max_ms": b_max,
+              "path_losses": losses, "predicted_costs_ms": costs,
+              "predicted_anytime_loss": anytime_loss(costs, losses, f"time:uniform:{b_max}ms"),
+              "measured": measured, "measured_anytime_loss": float(np.mean(measured["loss"]))}
+    (Path(model_dir) / "anytime_curve.json").write_text(json.dumps(result, indent=2))
+    return result

@@ -95,3 +95,15 @@ def test_run_cli_and_bad_inputs(exported, tmp_path, run_cli):
     code, _, e = run_cli("run", broken, "--image", tmp_path / "ok.png", "--scan", tmp_path / "scan.npy",
                          "--deadline", "5ms")
     assert code == 2 and "missing" in e
+
+
+def test_measured_curve_next_to_prediction(exported):
+    from explorer.report import _measured_curve
+    from explorer.runtime import curve_check
+    from conftest import TINY_DATA
+    out, _ = exported
+    res = curve_check(out, TINY_DATA, device="tx2-cpu", frames=2, deadlines=4)
+    assert len(res["measured"]["loss"]) == 4 and len(res["path_losses"]) == CAND.num_paths
+    assert res["measured_anytime_loss"] > 0 and res["predicted_anytime_loss"] > 0
+    assert (out / "anytime_curve.json").is_file()
+    assert _measured_curve(out / "anytime_curve.json")

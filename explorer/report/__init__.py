@@ -255,10 +255,38 @@ def build_context(study: optuna.Study, devices: Sequence[str] | None = None,
     return ctx
 
 
+def _measured_curve(curve: Path) -> str | None:
+    import json
+    try:
+        res = json.loads(curve.read_text())
+        m = res["measured"]
+    except (OSError, ValueError, KeyError):
+        return None
+    fig, ax = plt.subplots(figsize=(6.4, 3.6))
+    xs, ys = anytime_curve(res["predicted_costs_ms"], res["path_losses"], res["b_max_ms"])
+    ax.step(xs, ys, where="post", color="#1f77b4", lw=2,
+            label=f"predicted ({res['device']}): L = {res['predicted_anytime_loss']:.4f}")
+    ax.plot(m["deadlines_ms"], m["loss"], "o", ms=3, color="#d62728",
+            label=f"measured here: L = {res['measured_anytime_loss']:.4f}")
+    ax.set_xlabel("deadline (ms) on this machine")
+    ax.set_ylabel("RMSE of the returned map (m)")
+    ax.set_title(f"exported model {res['candidate_key']}, {res['frames']} frames")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    return _png(fig)
+
+
 def write_report(study: optuna.Study, out_dir: str | Path, devices: Sequence[str] | None = None,
-                 budgets: Sequence[str] | None = None, data: str | None = None) -> Path:
-    """Writes ``out_dir/report.html`` (atomically) and returns its path."""
+                 budgets: Sequence[str] | None = None, data: str | None = None,
+                 curve: Path | None = None) -> Path:
+    """Writes ``out_dir/report.html`` (atomically) and returns its path. ``curve``: a measured
+    anytime curve (``explorer curve``) to show next to its prediction."""
     ctx = build_context(study, devices, budgets, data)
+    curve = curve or Path(out_dir) / "export" / "anytime_curve.json"
+    if curve.is_file():
+        png = _measured_curve(curve)
+        if png:
+            ctx["figures"]["measured_curve"] = png
     env = Environment(loader=FileSystemLoader(Path(__file__).parent), autoescape=select_autoescape(["html", "j2"]))
     html = env.get_template("report.html.j2").render(**ctx)
     out = Path(out_dir)

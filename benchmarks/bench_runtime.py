@@ -1,0 +1,79 @@
+"""Deployment on this machine: staged execution against one whole graph, onnxruntime against
+PyTorch eager, and the measured anytime loss against the one the host profile predicts.
+
+    .venv/bin/python benchmarks/bench_runtime.py [--frames 16] [--deadlines 40]
+"""
+
+import argparse
+import statistics
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from explorer.anytime import anytime_loss
+from explorer.cost import candidate_cost
+from explorer.cost.calibrate import calibrate
+from explorer.cost.measure import session, time_call
+from explorer.data import open_dataset
+from explorer.deploy import export_network
+from explorer.metrics import MetricAverager, depth_metrics
+from explorer.model import build_network
+from explorer.onnx_stages import example_inputs, export_whole
+from explorer.runtime import AnytimeRunner, measured_anytime
+from explorer.space import paper_candidate
+from explorer.train import TrainConfig, train
+
+if __name__ == "__main__":
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--frames", type=int, default=16)
+    ap.add_argument("--deadlines", type=int, default=40)
+    ap.add_argument("--train-steps", type=int, default=100)
+    args = ap.parse_args()
+    size = (224, 224)
+    cand = paper_candidate()
+    torch.manual_seed(0)
+    net = build_network(cand)
+    cfg = TrainConfig(steps=args.train_steps, batch_size=16, input_size=(64, 64))
+    train(net, open_dataset("synthetic", "train", (64, 64)), open_dataset("synthetic:48:16", "val", (64, 64)), cfg,
+          val_limit=16)
+    net.eval()
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp)
+        export_network(net, out, size)
+        runner = AnytimeRunner(out)
+        env = {k: v.numpy() for k, v in example_inputs(size).items()}
+        staged, whole_ms = [], []
+        whole = session(export_whole(net, size))
+        feeds = {"image": env["image"], "scan": env["scan"]}
+        for _ in range(5):  # interleaved, so both see the same machine
+            staged.append(time_call(lambda: runner.run(env["image"][0], env["scan"][0]), 2, 20))
+            whole_ms.append(time_call(lambda: whole.run(None, feeds), 2, 20))
+        s, w = statistics.median(staged), statistics.median(whole_ms)
+        print(f"staged execution {s:.2f} ms vs one whole graph {w:.2f} ms: overhead {s / w - 1:+.1%} (goal <= 5%)")
+        img, scan = torch.from_numpy(env["image"]), torch.from_numpy(env["scan"])
+        with torch.no_grad():
+            eager = time_call(lambda: net(img, scan), 2, 20)
+        print(f"PyTorch eager {eager:.2f} ms ({torch.get_num_threads()} threads) vs onnxruntime whole graph {w:.2f} ms: "
+              f"{eager / w:.2f}x (goal >= 3x)")
+
+        prof = calibrate()
+        pred_ms = candidate_cost(cand, size).path_latency_ms(prof)
+        ds = open_dataset("synthetic", "val", size, train_augment=False)
+        frames = [ds[i] for i in range(args.frames)]
+        per_path = [MetricAverager() for _ in range(cand.num_paths)]
+        with torch.no_grad():
+            for f in frames:
+                outs = net(f["image"][None], f["scan"][None], f["scan_row"])
+                for p, o in enumerate(outs):
+                    per_path[p].add(depth_metrics(o[0, 0], f["depth"][0]))
+        losses = [a.result()["rmse"] for a in per_path]
+        b_max = 1.25 * pred_ms[-1]
+        predicted = anytime_loss(pred_ms, losses, f"time:uniform:{b_max}ms")
+        grid = (np.arange(args.deadlines) + 0.5) * b_max / args.deadlines
+        meas = measured_anytime(runner, frames, grid)
+        print(f"predicted path times (host profile): {' '.join(f'{x:.2f}' for x in pred_ms[1:])} ms")
+        print(f"anytime loss U(0, {b_max:.1f} ms): measured {meas['anytime_loss']:.4f} vs predicted {predicted:.4f} "
+              f"({meas['anytime_loss'] / predicted - 1:+.1%}, goal within 5%)")
