@@ -156,6 +156,14 @@ class Objective:
             if reason:
                 trial.set_user_attr("rejected", reason)
                 raise optuna.TrialPruned(reason)
+            done = self._finished_twin(trial, candidate.key)
+            if done is not None:
+                # the sampler proposed a candidate already trained: reuse what was paid for
+                for key in ("path_metrics", "train", "losses", "weights_artifact"):
+                    if key in done.user_attrs:
+                        trial.set_user_attr(key, done.user_attrs[key])
+                trial.set_user_attr("duplicate_of", done.number)
+                return done.values[0] if len(done.values) == 1 else tuple(done.values)
         primary = self.budgets[0]
         costs = cost.path_costs(self.device_profile, primary.kind)
 
@@ -201,6 +209,14 @@ class Objective:
             else:
                 values.append(latency[1] if len(latency) > 1 else 0.0)
         return values[0] if len(values) == 1 else tuple(values)
+
+    @staticmethod
+    def _finished_twin(trial: optuna.Trial, key: str) -> optuna.trial.FrozenTrial | None:
+        for t in trial.study.get_trials(deepcopy=False, states=(optuna.trial.TrialState.COMPLETE,)):
+            if t.user_attrs.get("candidate_key") == key and not t.user_attrs.get("baseline") and \
+                    "path_metrics" in t.user_attrs:
+                return t
+        return None
 
     def _rejection(self, pm, latency) -> str:
         cfg = self.config

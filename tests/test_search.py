@@ -171,3 +171,18 @@ def test_three_workers_on_postgres(tmp_path):
     assert [t.user_attrs.get("baseline") for t in trials].count("paper") == 1
     assert len({t.user_attrs.get("candidate_key") for t in trials if t.user_attrs.get("baseline")}) == 3
     optuna.delete_study(study_name=study, storage=storage)
+
+
+def test_a_candidate_sampled_twice_is_not_trained_twice(tmp_path):
+    from explorer.space import SearchSpace
+    cfg = SearchConfig(study="dup", baselines=False, **TINY)
+    space = SearchSpace.from_yaml("tiny")
+    cand = list(space.enumerate())[0]
+    out = search(cfg, n_trials=1, timeout_s=None, reports=tmp_path)
+    out.study.enqueue_trial(space.params_of(cand))
+    out.study.enqueue_trial(space.params_of(cand))
+    out = search(cfg, n_trials=3, timeout_s=None, reports=tmp_path)
+    a, b = out.study.trials[1], out.study.trials[2]
+    assert a.user_attrs["candidate_key"] == b.user_attrs["candidate_key"] == cand.key
+    assert "duplicate_of" in b.user_attrs and b.values == a.values
+    assert "path_metrics" in b.user_attrs  # re-scoring still sees it
