@@ -272,6 +272,8 @@ def cmd_train(args) -> None:
     device = resolve_device(args.accelerator)
     train_set = open_dataset(args.data, "train", cfg.input_size, seed=cfg.seed)
     val_set = open_dataset(args.data, "val", cfg.input_size, train_augment=False)
+    import torch
+    torch.manual_seed(cfg.seed)
     net = build_network(candidate)
     if args.encoder_weights:
         n = load_encoder_weights(net, args.encoder_weights)
@@ -335,8 +337,11 @@ def cmd_search(args) -> None:
             left = "" if timeout is None else f", {max(timeout - (time.time() - t0), 0) / 60:.1f} min left"
             bar.update(task, completed=len(done), status=f"{last}  best {best:.4f}{left}")
 
+        def data(i: int, n: int) -> None:
+            bar.update(task, status=f"generating synthetic scenes {i}/{n} (once, then cached)")
+
         outcome = search(cfg, storage_url=args.storage, workers=args.workers, n_trials=total,
-                         timeout_s=timeout, reports=reports, on_trial=show, on_poll=show)
+                         timeout_s=timeout, reports=reports, on_trial=show, on_poll=show, on_data=data)
     if outcome.interrupted_failed:
         err_console.print(f"marked {outcome.interrupted_failed} interrupted trial(s) as failed")
     _print_outcome(outcome.study, cfg, outcome.storage_url, reports, args.report)

@@ -76,7 +76,8 @@ def trials_frame(study: optuna.Study) -> pd.DataFrame:
                "last_exit_ms": (ua.get("latency_ms") or [np.nan])[-1],
                "last_rmse": (ua.get("path_metrics") or [{"rmse": np.nan}])[-1]["rmse"],
                "duration_s": t.duration.total_seconds() if t.duration else np.nan,
-               "reason": ua.get("rejected") or t.system_attrs.get("fail_reason", "")}
+               "reason": (ua.get("rejected") or ua.get("pruned") or t.system_attrs.get("fail_reason", "")
+                          or (f"same candidate as trial {ua['duplicate_of']}" if "duplicate_of" in ua else ""))}
         if t.values and len(t.values) > 1:
             for i, v in enumerate(t.values):
                 row[f"value_{i}"] = v

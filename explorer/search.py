@@ -76,7 +76,7 @@ class SearchConfig:
         return dataclasses.replace(PROXY, steps=self.train_steps, batch_size=self.batch_size,
                                    input_size=self.train_size, lr=self.lr, lr_end=self.lr / 10,
                                    seed=self.seed,
-                                   eval_every=max(self.train_steps // 3, 1) if self.pruning else 0)
+                                   eval_every=max(2 * self.train_steps // 3, 1) if self.pruning else 0)
 
     def validate(self) -> None:
         SearchSpace.from_yaml(self.space)
@@ -108,7 +108,8 @@ def _json_safe(x):
 class Objective:
     """Callable for ``study.optimize``: everything a worker needs, data loaded once."""
 
-    def __init__(self, config: SearchConfig, study_path: Path | None) -> None:
+    def __init__(self, config: SearchConfig, study_path: Path | None,
+                 data_progress: Callable[[int, int], None] | None = None) -> None:
         from explorer.data import open_dataset
         self.config = config
         self.space = SearchSpace.from_yaml(config.space)
@@ -116,7 +117,8 @@ class Objective:
         self.budgets = [parse_budget(b) for b in config.budgets]
         self.train_cfg = config.train_config()
         self.torch_device = resolve_device(config.accelerator)
-        self.train_set = open_dataset(config.data, "train", config.train_size, seed=config.seed)
+        self.train_set = open_dataset(config.data, "train", config.train_size, seed=config.seed,
+                                      progress=data_progress)
         self.val_set = open_dataset(config.data, "val", config.train_size, train_augment=False)
         self.artifacts = None
         if config.keep_weights and study_path is not None:
@@ -173,8 +175,12 @@ class Objective:
             value = anytime_loss(costs, list(metrics[cfg.metric]), primary)
             trial.report(value, step)
             if trial.should_prune():
-                raise Pruned(f"anytime loss {value:.4f} at step {step}")
+                reason = f"pruned: anytime loss {value:.4f} at step {step} (worst quarter)"
+                trial.set_user_attr("pruned", reason)
+                raise Pruned(reason)
 
+        import torch
+        torch.manual_seed(cfg.seed)  # same candidate, same initial weights: results are repeatable
         net = build_network(candidate)
         with tempfile.TemporaryDirectory() as tmp:
             ckpt = Path(tmp) / f"{candidate.key}.pt"
@@ -241,7 +247,10 @@ def make_sampler(config: SearchConfig, worker: int = 0) -> optuna.samplers.BaseS
 def make_pruner(config: SearchConfig) -> optuna.pruners.BasePruner:
     if not config.pruning or len(config.objectives) > 1:
         return optuna.pruners.NopPruner()
-    return optuna.pruners.MedianPruner(n_startup_trials=5, n_warmup_steps=0)
+    # Early proxy losses rank candidates poorly: judge only in the second half of training, and
+    # only prune the worst quarter (the baselines count towards the startup trials).
+    return optuna.pruners.PercentilePruner(75.0, n_startup_trials=6,
+                                           n_warmup_steps=max(config.train_steps // 2, 0))
 
 
 def create_or_resume(config: SearchConfig, storage: optuna.storages.BaseStorage) -> optuna.Study:
@@ -320,7 +329,8 @@ def _optimize(study: optuna.Study, objective: Objective, n_trials: int | None, d
 def search(config: SearchConfig, storage_url: str | None = None, workers: int = 1,
            n_trials: int | None = None, timeout_s: float | None = 600.0, reports: Path = REPORTS_DIR,
            on_trial: Callable[[optuna.Study, optuna.trial.FrozenTrial], None] | None = None,
-           on_poll: Callable[[optuna.Study], None] | None = None) -> SearchOutcome:
+           on_poll: Callable[[optuna.Study], None] | None = None,
+           on_data: Callable[[int, int], None] | None = None) -> SearchOutcome:
     """Runs (or resumes) the study until ``n_trials`` trials are done or ``timeout_s`` passes."""
     config.validate()
     if workers < 1:
@@ -338,10 +348,12 @@ def search(config: SearchConfig, storage_url: str | None = None, workers: int = 
     t0 = time.time()
     deadline = None if timeout_s is None else t0 + timeout_s
     if workers == 1:
-        objective = Objective(config, study_dir(config.study, reports))
+        objective = Objective(config, study_dir(config.study, reports), on_data)
         cb = [lambda s, t: on_trial(s, t)] if on_trial else []
         _optimize(study, objective, n_trials, deadline, cb)
     else:
+        from explorer.data import open_dataset
+        open_dataset(config.data, "val", config.train_size, progress=on_data)  # generate once, not per worker
         import multiprocessing as mp
         ctx = mp.get_context("spawn")
         threads = max(1, (os.cpu_count() or 1) // workers)

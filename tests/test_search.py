@@ -186,3 +186,13 @@ def test_a_candidate_sampled_twice_is_not_trained_twice(tmp_path):
     assert a.user_attrs["candidate_key"] == b.user_attrs["candidate_key"] == cand.key
     assert "duplicate_of" in b.user_attrs and b.values == a.values
     assert "path_metrics" in b.user_attrs  # re-scoring still sees it
+
+
+def test_two_workers_on_a_journal_file(tmp_path):
+    cfg = SearchConfig(study="journal", **TINY)
+    out = search(cfg, workers=2, n_trials=6, timeout_s=None, reports=tmp_path)
+    assert out.storage_url.startswith("journal:") and (tmp_path / "journal" / "journal.log").is_file()
+    trials = out.study.get_trials()
+    assert len({t.number for t in trials}) == len(trials) >= 6
+    assert all(t.state.is_finished() for t in trials)
+    assert [t.user_attrs.get("baseline") for t in trials].count("paper") == 1
