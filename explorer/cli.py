@@ -187,9 +187,10 @@ def cmd_calibrate(args) -> None:
                          progress=lambda i, n: bar.update(task, completed=i, total=n))
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text("# Made by `explorer calibrate` on this machine.\n" + prof.to_yaml())
-    fit = prof.provenance["fit"][0]
-    console.print(f"wrote {out}: {fit['count']} layers, median error {fit['median_abs_error']:.1%}, "
-                  f"{fit['within_10pct']:.0%} within 10%")
+    console.print(f"wrote {out}")
+    for fit in prof.provenance["fit"]:
+        console.print(f"  fit on {fit['what']}: median error {fit['median_abs_error']:.1%}, "
+                      f"{fit['within_10pct']:.0%} within 10%")
 
 
 def cmd_enumerate(args) -> None:

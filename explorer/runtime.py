@@ -113,8 +113,9 @@ class AnytimeRunner:
                     halted = True
                     break
                 opts = ort.RunOptions()
-                with self._lock:
-                    self._options = opts
+                if best is not None:  # path 0 always completes: it is the floor of every answer
+                    with self._lock:
+                        self._options = opts
                 try:
                     outs = sess.run(None, {i.name: env[i.name] for i in sess.get_inputs()}, opts)
                 except Exception:

@@ -153,9 +153,43 @@ def measure_sweep(layers: list[SweepLayer], threads: int | None = None, repeats:
     return out
 
 
+def measure_stages(count: int, seed: int, threads: int | None, repeats: int,
+                   input_size: tuple[int, int] = (224, 224), exclude: set[str] = frozenset(),
+                   progress: Callable[[int, int], None] | None = None) -> list[Observation]:
+    """Whole stage graphs of random candidates of the default space: layers in context (fused,
+    sharing caches and threads) run faster than alone, and only multi-layer graphs tell a per-layer
+    cost from a per-launch one."""
+    from explorer.cost import candidate_cost
+    from explorer.model import build_network
+    from explorer.onnx_stages import example_inputs, export_stages
+    from explorer.space import SearchSpace
+    space = SearchSpace.from_yaml("anytime_depth")
+    pool = [c for c in space.enumerate() if c.key not in exclude]
+    cands = random.Random(seed).sample(pool, count)
+    obs = []
+    for i, cand in enumerate(cands):
+        net = build_network(cand).eval()
+        cost = candidate_cost(cand, input_size)
+        env = {k: v.numpy() for k, v in example_inputs(input_size).items()}
+        for spec, model in export_stages(net, input_size):
+            if spec is None:
+                continue
+            sess = session(model, threads)
+            feeds = {n.name: env[n.name] for n in sess.get_inputs()}
+            outs = sess.run(None, feeds)
+            env.update({o.name: v for o, v in zip(sess.get_outputs(), outs)})
+            ms = time_call(lambda: sess.run(None, feeds), 3, repeats)
+            wl = [w for w in cost.workloads if w.stage == spec.name]
+            obs.append(Observation(f"{cand.key}/{spec.name}", wl, ms, weight=2.0, stages=1))
+        if progress:
+            progress(i + 1, count)
+    return obs
+
+
 def fit_host(measured: list[tuple[Workload, float]], name: str = "host",
-             description: str | None = None, cond: dict | None = None) -> DeviceProfile:
-    obs = [Observation(w.layer, [w], ms, stages=1) for w, ms in measured]
+             description: str | None = None, cond: dict | None = None,
+             stage_obs: list[Observation] = ()) -> DeviceProfile:
+    obs = [Observation(w.layer, [w], ms, stages=1) for w, ms in measured] + list(stage_obs)
     base = DeviceProfile(
         name=name, description=description or f"{platform.node() or 'this machine'} CPU, onnxruntime",
         overlap=False, bandwidth_gbs=10.0, kinds={k: KindCost(20.0, 0.005) for k in KINDS},
@@ -170,21 +204,33 @@ def fit_host(measured: list[tuple[Workload, float]], name: str = "host",
         err = float(errors(p, obs)["error"].abs().median())
         if best_err is None or err < best_err:
             best, best_err = p, err
-    frame = errors(best, obs)
-    summary = fit_summary(frame, f"{len(obs)} single-layer graphs measured here")
-    per_kind = {k: round(float(frame[[w.kind == k for w, _ in measured]]["error"].abs().median()), 4)
+    layers = errors(best, obs[:len(measured)])
+    summary = [fit_summary(layers, f"{len(measured)} single-layer graphs measured here")]
+    if stage_obs:
+        summary.append(fit_summary(errors(best, list(stage_obs)), f"{len(stage_obs)} stage graphs of "
+                                   "random candidates measured here"))
+    per_kind = {k: round(float(layers[[w.kind == k for w, _ in measured]]["error"].abs().median()), 4)
                 for k in KINDS if any(w.kind == k for w, _ in measured)}
     return dataclasses.replace(best, provenance={
         "calibrated": True,
         "sources": [f"explorer calibrate on {platform.node()} at "
                     f"{datetime.datetime.now().isoformat(timespec='seconds')}"],
         "conditions": cond or conditions(),
-        "fit": [summary], "median_abs_error_per_kind": per_kind, "checks": []})
+        "fit": summary, "median_abs_error_per_kind": per_kind, "checks": []})
 
 
 def calibrate(threads: int | None = None, repeats: int = 25, seed: int = 0, scale: float = 1.0,
-              progress: Callable[[int, int], None] | None = None, name: str = "host") -> DeviceProfile:
+              progress: Callable[[int, int], None] | None = None, name: str = "host",
+              stage_candidates: int | None = None, exclude: set[str] = frozenset()) -> DeviceProfile:
+    """Layer sweep plus the stages of ``stage_candidates`` random default-space candidates (none
+    of ``exclude``, candidate keys), then the fit."""
     counts = {k: max(2, int(round(v * scale))) for k, v in DEFAULT_COUNTS.items()}
     layers = _rng_layers(seed, counts)
-    measured = measure_sweep(layers, threads, repeats, progress)
-    return fit_host(measured, name=name, cond=conditions(threads, repeats))
+    n_stage = max(1, round(6 * scale)) if stage_candidates is None else stage_candidates
+    total = len(layers) + n_stage
+    measured = measure_sweep(layers, threads, repeats,
+                             (lambda i, n: progress(i, total)) if progress else None)
+    stage_obs = measure_stages(n_stage, seed + 7919, threads, repeats, exclude=exclude,
+                               progress=(lambda i, n: progress(len(layers) + i, total)) if progress else None) \
+        if n_stage else []
+    return fit_host(measured, name=name, cond=conditions(threads, repeats), stage_obs=stage_obs)
