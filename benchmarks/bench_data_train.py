@@ -45,7 +45,7 @@ if __name__ == "__main__":
 
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()
-        generate(SyntheticConfig(train=200, val=0), Path(tmp) / "s.h5")
+        generate(SyntheticConfig(train=192, val=8), Path(tmp) / "s.h5")
         dt = time.perf_counter() - t0
         print(f"synthetic generation: {200 / dt:.1f} frames/s at 224x224 (2,200 default frames: {2200 / (200 / dt) / 60:.1f} min)")
 

@@ -50,7 +50,9 @@ class AnytimeRunner:
                 sess = session(f.read_bytes(), threads)
             except Exception as exc:  # onnxruntime raises its own types for corrupt graphs
                 raise UserError(f"{f}: not a loadable ONNX graph ({str(exc).splitlines()[0][:100]})") from None
-            self.sessions.append((st, sess))
+            # names looked up once: get_inputs() builds new objects on every call
+            self.sessions.append((st, sess, [i.name for i in sess.get_inputs()],
+                                  [o.name for o in sess.get_outputs()]))
         self._lock = threading.Lock()
         self._halt = threading.Event()
         self._options: "ort.RunOptions | None" = None
@@ -62,9 +64,9 @@ class AnytimeRunner:
         """Every path's depth map (no deadline), in order."""
         img, s = self.check(image, scan)
         env = {"image": img, "scan": s}
-        for _, sess in self.sessions:
-            outs = sess.run(None, {i.name: env[i.name] for i in sess.get_inputs()})
-            env.update({o.name: v for o, v in zip(sess.get_outputs(), outs)})
+        for _, sess, ins, outs_names in self.sessions:
+            outs = sess.run(outs_names, {n: env[n] for n in ins})
+            env.update(zip(outs_names, outs))
         return [env[f"depth_{p}"][0, 0] for p in range(self.manifest["paths"])]
 
     def check(self, image: np.ndarray, scan: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -107,24 +109,28 @@ class AnytimeRunner:
         best: tuple[int, np.ndarray, float] | None = None
         completed = []
         halted = False
+        opts = ort.RunOptions()
         try:
-            for st, sess in self.sessions:
+            for st, sess, ins, out_names in self.sessions:
                 if best is not None and self._halt.is_set():
                     halted = True
                     break
-                opts = ort.RunOptions()
-                if best is not None:  # path 0 always completes: it is the floor of every answer
+                if best is not None and self._options is None:
+                    # path 0 always completes (the floor of every answer); later stages can be cut
                     with self._lock:
                         self._options = opts
+                    if self._halt.is_set():
+                        halted = True
+                        break
                 try:
-                    outs = sess.run(None, {i.name: env[i.name] for i in sess.get_inputs()}, opts)
+                    outs = sess.run(out_names, {n: env[n] for n in ins}, opts)
                 except Exception:
                     if self._halt.is_set() and best is not None:
                         halted = True
                         break  # terminated mid-stage: keep what was ready
                     raise
                 ready = (time.perf_counter() - t0) * 1000.0
-                env.update({o.name: v for o, v in zip(sess.get_outputs(), outs)})
+                env.update(zip(out_names, outs))
                 path = st["path"]
                 if path is not None:
                     if path == 0:

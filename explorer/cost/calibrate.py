@@ -180,7 +180,7 @@ def measure_stages(count: int, seed: int, threads: int | None, repeats: int,
             env.update({o.name: v for o, v in zip(sess.get_outputs(), outs)})
             ms = time_call(lambda: sess.run(None, feeds), 3, repeats)
             wl = [w for w in cost.workloads if w.stage == spec.name]
-            obs.append(Observation(f"{cand.key}/{spec.name}", wl, ms, weight=2.0, stages=1))
+            obs.append(Observation(f"{cand.key}/{spec.name}", wl, ms, weight=4.0, stages=1))
         if progress:
             progress(i + 1, count)
     return obs
@@ -226,7 +226,7 @@ def calibrate(threads: int | None = None, repeats: int = 25, seed: int = 0, scal
     of ``exclude``, candidate keys), then the fit."""
     counts = {k: max(2, int(round(v * scale))) for k, v in DEFAULT_COUNTS.items()}
     layers = _rng_layers(seed, counts)
-    n_stage = max(1, round(6 * scale)) if stage_candidates is None else stage_candidates
+    n_stage = max(1, round(12 * scale)) if stage_candidates is None else stage_candidates
     total = len(layers) + n_stage
     measured = measure_sweep(layers, threads, repeats,
                              (lambda i, n: progress(i, total)) if progress else None)

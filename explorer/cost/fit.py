@@ -165,7 +165,7 @@ def _start(name: str, description: str, overlap: bool, gmacs: float, overhead: f
                          kinds={k: KindCost(gmacs, overhead) for k in KINDS}, inference_overhead_ms=0.1)
 
 
-def _path_observations(weight: float, targets: Sequence[float], candidates) -> list[Observation]:
+def _path_observations(weight: float, targets) -> list[Observation]:
     from explorer.cost import candidate_cost
     obs = []
     for label, candidate, paths_ms in targets:
@@ -194,7 +194,7 @@ def fit_tx2(data_dir: Path) -> tuple[DeviceProfile, DeviceProfile, dict]:
         "paper: 0.2 J at 6.37 ms (first path), 6.244 J at 554.7 ms (S2D) -> fixed energy + active power",
     ]
     gpu_kernels = [Observation(w.layer, [w], ms) for w, ms in kernel_workloads(csv, "gpu")]
-    gpu_e2e = _path_observations(4.0, e2e, None)
+    gpu_e2e = _path_observations(4.0, e2e)
     base = _start("tx2", "NVIDIA Jetson TX2 GPU (256 Pascal cores), TVM-compiled, batch 1, fp32",
                   True, 150.0, 0.03, 30.0)
     base = dataclasses.replace(base, energy_fixed_j=fixed, active_power_w=power)

@@ -33,7 +33,7 @@ class ImageEncoderConfig:
 
     def skip_strides(self) -> list[int]:
         """Strides at which a skip feature is emitted: every stride below the output's, from 2."""
-        out, strides, s = [], [2], 2
+        strides, s = [2], 2
         for _, _, bs in MOBILENET_V1_BLOCKS[:self.blocks]:
             s *= bs
             strides.append(s)
