@@ -1,6 +1,6 @@
-"""``explorer export``: a trained candidate as ONNX graphs, one per stage in execution order (every
-exit's depth map is available as soon as its stage ends), plus a manifest. Verified against PyTorch
-at export time."""
+"""``explorer export``: a trained candidate as ONNX graphs in execution order, cut so that every
+exit's depth map is available as soon as its stage ends (one graph per group of stages ending with
+an exit, path 0 on its own), plus a manifest. Verified against PyTorch at export time."""
 
 from __future__ import annotations
 
@@ -16,7 +16,7 @@ from explorer import __version__
 from explorer.cost import candidate_cost, get_device
 from explorer.errors import UserError
 from explorer.model import AnytimeDepthNet
-from explorer.onnx_stages import OPSET, example_inputs, export_stages
+from explorer.onnx_stages import OPSET, example_inputs, export_segments
 
 TOLERANCE = 1e-4
 MANIFEST = "manifest.json"
@@ -30,7 +30,7 @@ def verify(graphs, net: AnytimeDepthNet, input_size: tuple[int, int], scan_row: 
         ref = [d.numpy() for d in net.eval()(env["image"], env["scan"], scan_row)]
     feeds = {k: v.numpy() for k, v in env.items()}
     outs: dict[str, np.ndarray] = {}
-    for spec, model in graphs:
+    for _, model in graphs:
         sess = session(model, 1)
         res = sess.run(None, {i.name: (outs | feeds)[i.name] for i in sess.get_inputs()})
         outs.update({o.name: v for o, v in zip(sess.get_outputs(), res)})
@@ -45,19 +45,16 @@ def export_network(net: AnytimeDepthNet, out_dir: Path, input_size: tuple[int, i
         raise UserError(f"input {h}x{w} does not divide by the encoder stride {net.stride}")
     scan_row = h // 2 if scan_row is None else scan_row
     net = net.eval()
-    graphs = export_stages(net, input_size, scan_row)
+    graphs = export_segments(net, input_size, scan_row)
     diff = verify(graphs, net, input_size, scan_row)
     if diff > TOLERANCE:
         raise RuntimeError(f"ONNX export differs from PyTorch by {diff:.2e} (> {TOLERANCE:g}): not written")
     out_dir.mkdir(parents=True, exist_ok=True)
     stages = []
-    for i, (spec, model) in enumerate(graphs):
-        name = "path0" if spec is None else spec.name
-        file = f"{i:02d}_{name}.onnx"
+    for i, (seg, model) in enumerate(graphs):
+        file = f"{i:02d}_path{seg['path']}.onnx"
         (out_dir / file).write_bytes(model)
-        stages.append({"file": file, "name": name, "inputs": ["scan"] if spec is None else list(spec.inputs),
-                       "outputs": ["depth_0"] if spec is None else list(spec.outputs),
-                       "path": 0 if spec is None else spec.path})
+        stages.append({"file": file, **seg})
     cost = candidate_cost(net.candidate, input_size)
     expected = {}
     for d in devices:

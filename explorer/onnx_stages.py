@@ -84,6 +84,61 @@ def export_stages(net: AnytimeDepthNet, input_size: tuple[int, int], scan_row: i
     return graphs
 
 
+class _Segment(nn.Module):
+    """Consecutive stages run as one graph (for deployment: fewer launches, same exits)."""
+
+    def __init__(self, net: AnytimeDepthNet, specs: list[StageSpec], inputs: list[str], outputs: list[str],
+                 scan_row: int) -> None:
+        super().__init__()
+        self.net, self.specs, self.inputs, self.outputs, self.scan_row = net, specs, inputs, outputs, scan_row
+
+    def forward(self, *tensors: torch.Tensor):
+        env = dict(zip(self.inputs, tensors))
+        for spec in self.specs:
+            self.net.run_stage(spec, env, self.scan_row)
+        return tuple(env[n] for n in self.outputs)
+
+
+def segments(specs: list[StageSpec]) -> list[list[StageSpec]]:
+    """Stages grouped so that each group ends with an exit head: every exit's depth map is
+    available as soon as its group ends, with as few graph launches as that allows."""
+    groups, current = [], []
+    for spec in specs:
+        current.append(spec)
+        if spec.path is not None:
+            groups.append(current)
+            current = []
+    if current:
+        groups.append(current)
+    return groups
+
+
+def export_segments(net: AnytimeDepthNet, input_size: tuple[int, int], scan_row: int | None = None
+                    ) -> list[tuple[dict, bytes]]:
+    """[(segment description, graph), ...]: path 0, then one graph per group of stages ending with
+    an exit. A description has name, stages, inputs, outputs and the path it completes."""
+    net = net.eval()
+    h, _ = input_size
+    scan_row = h // 2 if scan_row is None else scan_row
+    env = example_inputs(input_size)
+    out = [({"name": "path0", "stages": [], "inputs": ["scan"], "outputs": ["depth_0"], "path": 0},
+            _export(_Path0(h), (env["scan"],), ["scan"], ["depth_0"]))]
+    groups = segments(net.specs)
+    with torch.no_grad():
+        for gi, group in enumerate(groups):
+            produced = [o for sp in group for o in sp.outputs]
+            needed_later = {i for later in groups[gi + 1:] for sp in later for i in sp.inputs}
+            inputs = list(dict.fromkeys(i for sp in group for i in sp.inputs if i not in produced))
+            outputs = [o for o in produced if o in needed_later or o.startswith("depth_")]
+            module = _Segment(net, group, inputs, outputs, scan_row)
+            graph = _export(module, tuple(env[n] for n in inputs), inputs, outputs)
+            for sp in group:
+                net.run_stage(sp, env, scan_row)
+            out.append(({"name": "+".join(sp.name for sp in group), "stages": [sp.name for sp in group],
+                         "inputs": inputs, "outputs": outputs, "path": group[-1].path}, graph))
+    return out
+
+
 def export_whole(net: AnytimeDepthNet, input_size: tuple[int, int], scan_row: int | None = None) -> bytes:
     """The whole network as one graph (outputs depth_0..depth_K), to compare with staged runs."""
     net = net.eval()

@@ -42,7 +42,10 @@ def test_export_matches_torch_on_every_path(exported):
 
 def test_paper_design_export_verified(tmp_path):
     m = export_network(build_network(paper_candidate()), tmp_path, (224, 224), devices=("tx2",))
-    assert m["verification"]["max_abs_diff"] <= 1e-4 and len(m["stages"]) == 12
+    assert m["verification"]["max_abs_diff"] <= 1e-4
+    # path 0, then one graph per exit: encoders+ECU+exit, decoder 1+exit, decoder 2+exit, decoders 3-4+exit
+    assert [s["path"] for s in m["stages"]] == [0, 1, 2, 3, 4]
+    assert m["stages"][4]["stages"] == ["decoder_3", "decoder_4", "exit_4"]
 
 
 def test_deadlines_and_halt(exported):
