@@ -7,7 +7,6 @@ and compare with measurement.
 
 import argparse
 import random
-import statistics
 import time
 from pathlib import Path
 

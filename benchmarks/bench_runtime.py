@@ -7,7 +7,6 @@ PyTorch eager, and the measured anytime loss against the one the host profile pr
 import argparse
 import statistics
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np

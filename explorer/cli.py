@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 import time
 import warnings
@@ -77,7 +76,6 @@ def cmd_space_show(args) -> None:
 
 def _candidates_of(path: str) -> list:
     """A candidate file, or every candidate of a (small) space."""
-    import yaml
     from explorer.space import Candidate, SearchSpace, resolve_space_path, _load_yaml
     p = resolve_space_path(path) if not Path(path).is_file() else Path(path)
     data = _load_yaml(p)
@@ -123,7 +121,7 @@ def cmd_profile(args) -> None:
 
 def cmd_anytime(args) -> None:
     from explorer._console import console, print_json
-    from explorer.anytime import anytime_curve, anytime_loss, interval_probabilities, parse_budget
+    from explorer.anytime import anytime_loss, interval_probabilities, parse_budget
     if not args.path:
         raise UserError("give at least one --path COST:LOSS (path 0 is added with cost 0 if missing)")
     pairs = []
@@ -259,7 +257,6 @@ def cmd_train(args) -> None:
     from explorer._console import console, print_frame, progress
     from explorer.data import open_dataset
     from explorer.model import build_network
-    from explorer.space import Candidate
     from explorer.train import RECIPES, load_encoder_weights, resolve_device, train
     candidate = _candidates_of(args.candidate)
     if len(candidate) != 1:
@@ -306,11 +303,9 @@ def cmd_evaluate(args) -> None:
 
 def cmd_search(args) -> None:
     import optuna
-    from explorer._console import console, err_console, print_frame, progress
-    from explorer.results import baseline_trial, best_trial, path_table
+    from explorer._console import err_console, progress
     from explorer.search import SearchConfig, search
     from explorer.space import SearchSpace
-    from explorer.cost import get_device
     optuna.logging.set_verbosity(optuna.logging.WARNING)
     space_name = SearchSpace.from_yaml(args.space).name
     study = args.study or f"{Path(str(args.device)).stem}-{space_name}"

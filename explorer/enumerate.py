@@ -7,14 +7,13 @@ from __future__ import annotations
 from functools import lru_cache
 from typing import Callable, Iterator
 
-import numpy as np
 import pandas as pd
 
 from explorer.anytime import BudgetDistribution, interval_probabilities, parse_budget
 from explorer.cost.devices import DeviceProfile, get_device
 from explorer.cost.workloads import _stage_cost
 from explorer.model.network import stage_specs
-from explorer.space import Candidate, SearchSpace
+from explorer.space import SearchSpace
 
 
 def _stage_totals(profile: DeviceProfile) -> Callable:

@@ -14,7 +14,7 @@ import math
 import os
 import tempfile
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
@@ -24,7 +24,7 @@ from explorer import __version__
 from explorer.anytime import anytime_loss, parse_budget
 from explorer.cost import candidate_cost, get_device
 from explorer.errors import UserError
-from explorer.results import BASELINE_LABELS, compact_workloads
+from explorer.results import compact_workloads
 from explorer.space import (Candidate, SearchSpace, fastdepth_candidate, paper_candidate,
                             paper_nee_candidate)
 from explorer.storage import REPORTS_DIR, fail_interrupted_trials, open_storage, study_dir

@@ -4,20 +4,17 @@ for search, checkpoints and resume, per-path evaluation."""
 from __future__ import annotations
 
 import dataclasses
-import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
-import numpy as np
 import pandas as pd
 import torch
-from torch import nn
 from torch.utils.data import DataLoader
 
 from explorer.errors import UserError
-from explorer.metrics import METRICS, MetricAverager, depth_metrics
+from explorer.metrics import MetricAverager, depth_metrics
 from explorer.model import AnytimeDepthNet, build_network
 from explorer.space import Candidate
 

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from explorer.anytime import (Exponential, Trace, TruncatedNormal, Uniform, anytime_curve, anytime_loss,
+from explorer.anytime import (TruncatedNormal, Uniform, anytime_curve, anytime_loss,
                               parse_budget)
 from explorer.errors import UserError
 

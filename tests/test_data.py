@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from explorer.data import ScanConfig, open_dataset, parse_data_spec, scan_from_image, simulate_scan
-from explorer.data.readers import KittiRaw, NYUH5
+from explorer.data.readers import KittiRaw
 from explorer.data.synthetic import render_scene
 from explorer.errors import UserError
 from explorer.metrics import MetricAverager, depth_metrics

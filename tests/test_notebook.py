@@ -1,8 +1,6 @@
-import os
 from pathlib import Path
 
 import nbformat
-import pytest
 from nbclient import NotebookClient
 
 from explorer.search import SearchConfig, search

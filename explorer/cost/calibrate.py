@@ -10,7 +10,6 @@ import random
 from typing import Callable
 
 import numpy as np
-import onnx
 from onnx import TensorProto, helper, numpy_helper
 
 from explorer.cost.devices import DeviceProfile, KindCost

@@ -8,7 +8,6 @@ import time
 from dataclasses import dataclass, field
 from typing import Callable
 
-import numpy as np
 
 from explorer.model.network import AnytimeDepthNet, build_network
 from explorer.space import Candidate

@@ -6,7 +6,6 @@ depth maps of every path (Figure 4), and a sortable table of all trials."""
 from __future__ import annotations
 
 import base64
-import dataclasses
 import io
 import platform
 import tempfile
