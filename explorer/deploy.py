@@ -5,7 +5,6 @@ an exit, path 0 on its own), plus a manifest. Verified against PyTorch at export
 from __future__ import annotations
 
 import json
-import tempfile
 from pathlib import Path
 from typing import Sequence
 
@@ -87,10 +86,8 @@ def export_from_checkpoint(ckpt: Path, out_dir: Path, input_size: tuple[int, int
 def export_from_study(study_name: str, trial_number: int | None, out_dir: Path, storage: str | None,
                       reports: Path, input_size: tuple[int, int] | None = None,
                       devices: Sequence[str] | None = None) -> dict:
-    from optuna.artifacts import FileSystemArtifactStore, download_artifact
-    from explorer.results import best_trial, scored_trials
+    from explorer.results import best_trial, scored_trials, trial_network
     from explorer.storage import load_study
-    from explorer.train import network_from_checkpoint
     study = load_study(study_name, storage, reports)
     trials = {t.number: t for t in scored_trials(study)}
     if trial_number is None:
@@ -102,16 +99,8 @@ def export_from_study(study_name: str, trial_number: int | None, out_dir: Path, 
                         f"{sorted(trials)[:20]})")
     else:
         trial = trials[trial_number]
-    artifact = trial.user_attrs.get("weights_artifact")
-    root = study.user_attrs.get("artifacts_dir")
-    if not artifact or not root or not Path(root).is_dir():
-        raise UserError(f"trial {trial.number} has no stored weights here (searched with --no-weights, or its "
-                        "artifacts live on another machine): train it with `explorer train` and export the checkpoint")
+    net = trial_network(study, trial)
     cfg = study.user_attrs.get("config", {})
-    with tempfile.TemporaryDirectory() as tmp:
-        f = Path(tmp) / "w.pt"
-        download_artifact(artifact_store=FileSystemArtifactStore(root), file_path=str(f), artifact_id=artifact)
-        net, _ = network_from_checkpoint(f)
     size = tuple(input_size or cfg.get("input_size", (224, 224)))
     devs = list(devices or dict.fromkeys([cfg.get("device", "tx2"), "tx2", "rpi4"]))
     return export_network(net, out_dir, size, path_metrics=trial.user_attrs.get("path_metrics"), devices=devs,

@@ -19,16 +19,6 @@ from explorer.model.network import AnytimeDepthNet, StageSpec
 OPSET = 17
 
 
-class _StageModule(nn.Module):
-    def __init__(self, module: nn.Module, spec: StageSpec, scan_row: int) -> None:
-        super().__init__()
-        self.module, self.spec, self.scan_row = module, spec, scan_row
-
-    def forward(self, *inputs: torch.Tensor):
-        args = list(inputs) + ([self.scan_row] if self.spec.uses_scan_row else [])
-        return self.module(*args)
-
-
 class _Path0(nn.Module):
     def __init__(self, height: int) -> None:
         super().__init__()
@@ -66,24 +56,6 @@ def example_inputs(input_size: tuple[int, int], batch: int = 1) -> dict[str, tor
             "scan": torch.rand(batch, w, generator=g) * 5 + 0.5}
 
 
-def export_stages(net: AnytimeDepthNet, input_size: tuple[int, int], scan_row: int | None = None
-                  ) -> list[tuple[StageSpec | None, bytes]]:
-    """[(None, path-0 graph), (spec, stage graph), ...] in execution order, for batch 1."""
-    net = net.eval()
-    h, _ = input_size
-    scan_row = h // 2 if scan_row is None else scan_row
-    env = example_inputs(input_size)
-    graphs: list[tuple[StageSpec | None, bytes]] = [
-        (None, _export(_Path0(h), (env["scan"],), ["scan"], ["depth_0"]))]
-    with torch.no_grad():
-        for spec in net.specs:
-            wrapper = _StageModule(net.stages[spec.name], spec, scan_row)
-            args = tuple(env[n] for n in spec.inputs)
-            graphs.append((spec, _export(wrapper, args, list(spec.inputs), list(spec.outputs))))
-            net.run_stage(spec, env, scan_row)
-    return graphs
-
-
 class _Segment(nn.Module):
     """Consecutive stages run as one graph (for deployment: fewer launches, same exits)."""
 
@@ -113,30 +85,44 @@ def segments(specs: list[StageSpec]) -> list[list[StageSpec]]:
     return groups
 
 
-def export_segments(net: AnytimeDepthNet, input_size: tuple[int, int], scan_row: int | None = None
-                    ) -> list[tuple[dict, bytes]]:
-    """[(segment description, graph), ...]: path 0, then one graph per group of stages ending with
-    an exit. A description has name, stages, inputs, outputs and the path it completes."""
+def _export_groups(net: AnytimeDepthNet, input_size: tuple[int, int], scan_row: int | None,
+                   groups: list[list[StageSpec]], keep_all_outputs: bool) -> list[tuple[dict, bytes]]:
+    """Path 0's graph, then one graph per group of consecutive stages. A graph outputs what later
+    groups read and its depth maps (or everything its stages write, with ``keep_all_outputs``)."""
     net = net.eval()
     h, _ = input_size
     scan_row = h // 2 if scan_row is None else scan_row
     env = example_inputs(input_size)
     out = [({"name": "path0", "stages": [], "inputs": ["scan"], "outputs": ["depth_0"], "path": 0},
             _export(_Path0(h), (env["scan"],), ["scan"], ["depth_0"]))]
-    groups = segments(net.specs)
     with torch.no_grad():
         for gi, group in enumerate(groups):
             produced = [o for sp in group for o in sp.outputs]
             needed_later = {i for later in groups[gi + 1:] for sp in later for i in sp.inputs}
             inputs = list(dict.fromkeys(i for sp in group for i in sp.inputs if i not in produced))
-            outputs = [o for o in produced if o in needed_later or o.startswith("depth_")]
-            module = _Segment(net, group, inputs, outputs, scan_row)
-            graph = _export(module, tuple(env[n] for n in inputs), inputs, outputs)
+            outputs = [o for o in produced if keep_all_outputs or o in needed_later or o.startswith("depth_")]
+            graph = _export(_Segment(net, group, inputs, outputs, scan_row), tuple(env[n] for n in inputs),
+                            inputs, outputs)
             for sp in group:
                 net.run_stage(sp, env, scan_row)
             out.append(({"name": "+".join(sp.name for sp in group), "stages": [sp.name for sp in group],
                          "inputs": inputs, "outputs": outputs, "path": group[-1].path}, graph))
     return out
+
+
+def export_stages(net: AnytimeDepthNet, input_size: tuple[int, int], scan_row: int | None = None
+                  ) -> list[tuple[StageSpec | None, bytes]]:
+    """[(None, path-0 graph), (spec, stage graph), ...]: one graph per stage, in execution order
+    (what measurement and calibration time)."""
+    graphs = _export_groups(net, input_size, scan_row, [[sp] for sp in net.specs], keep_all_outputs=True)
+    return [(None, graphs[0][1])] + [(sp, g) for sp, (_, g) in zip(net.specs, graphs[1:])]
+
+
+def export_segments(net: AnytimeDepthNet, input_size: tuple[int, int], scan_row: int | None = None
+                    ) -> list[tuple[dict, bytes]]:
+    """[(description, graph), ...] for deployment: path 0, then one graph per group of stages ending
+    with an exit. A description has name, stages, inputs, outputs and the path it completes."""
+    return _export_groups(net, input_size, scan_row, segments(net.specs), keep_all_outputs=False)
 
 
 def export_whole(net: AnytimeDepthNet, input_size: tuple[int, int], scan_row: int | None = None) -> bytes:

@@ -144,3 +144,26 @@ def study_frame(study: str, storage: str | None = None, reports: str = "reports"
     frame = trials_frame(s)
     frame.attrs["study"] = s
     return frame
+
+
+def trial_network(study: optuna.Study, trial: optuna.trial.FrozenTrial):
+    """The trained network of a trial, from the study's artifact store (raises UserError when its
+    weights are not stored on this machine)."""
+    import tempfile
+    from pathlib import Path
+    from optuna.artifacts import FileSystemArtifactStore, download_artifact
+    from explorer.errors import UserError
+    from explorer.train import network_from_checkpoint
+    artifact = trial.user_attrs.get("weights_artifact")
+    root = study.user_attrs.get("artifacts_dir")
+    if not artifact or not root or not Path(root).is_dir():
+        raise UserError(f"trial {trial.number} has no stored weights here (searched with --no-weights, or its "
+                        "artifacts live on another machine): train it with `explorer train` and use the checkpoint")
+    with tempfile.TemporaryDirectory() as tmp:
+        f = Path(tmp) / "w.pt"
+        try:
+            download_artifact(artifact_store=FileSystemArtifactStore(root), file_path=str(f), artifact_id=artifact)
+        except Exception as exc:  # a missing or damaged artifact file
+            raise UserError(f"trial {trial.number}: its weights could not be read ({exc})") from None
+        net, _ = network_from_checkpoint(f)
+    return net

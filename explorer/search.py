@@ -357,9 +357,8 @@ def search(config: SearchConfig, storage_url: str | None = None, workers: int = 
         import multiprocessing as mp
         ctx = mp.get_context("spawn")
         threads = max(1, (os.cpu_count() or 1) // workers)
-        procs = [ctx.Process(target=run_worker, args=(config.to_dict(), url if storage_url else
-                                                      f"journal:{reports / config.study / 'journal.log'}",
-                                                      n_trials, deadline, i, str(reports), threads))
+        procs = [ctx.Process(target=run_worker, args=(config.to_dict(), url, n_trials, deadline, i,
+                                                      str(reports), threads))
                  for i in range(workers)]
         for p in procs:
             p.start()

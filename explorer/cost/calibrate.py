@@ -159,27 +159,19 @@ def measure_stages(count: int, seed: int, threads: int | None, repeats: int,
     sharing caches and threads) run faster than alone, and only multi-layer graphs tell a per-layer
     cost from a per-launch one."""
     from explorer.cost import candidate_cost
+    from explorer.cost.measure import measure_network
     from explorer.model import build_network
-    from explorer.onnx_stages import example_inputs, export_stages
     from explorer.space import SearchSpace
     space = SearchSpace.from_yaml("anytime_depth")
     pool = [c for c in space.enumerate() if c.key not in exclude]
     cands = random.Random(seed).sample(pool, count)
     obs = []
     for i, cand in enumerate(cands):
-        net = build_network(cand).eval()
+        m = measure_network(build_network(cand), input_size, threads, repeats, whole=False)
         cost = candidate_cost(cand, input_size)
-        env = {k: v.numpy() for k, v in example_inputs(input_size).items()}
-        for spec, model in export_stages(net, input_size):
-            if spec is None:
-                continue
-            sess = session(model, threads)
-            feeds = {n.name: env[n.name] for n in sess.get_inputs()}
-            outs = sess.run(None, feeds)
-            env.update({o.name: v for o, v in zip(sess.get_outputs(), outs)})
-            ms = time_call(lambda: sess.run(None, feeds), 3, repeats)
-            wl = [w for w in cost.workloads if w.stage == spec.name]
-            obs.append(Observation(f"{cand.key}/{spec.name}", wl, ms, weight=4.0, stages=1))
+        for stage, ms in m.stage_ms.items():
+            wl = [w for w in cost.workloads if w.stage == stage]
+            obs.append(Observation(f"{cand.key}/{stage}", wl, ms, weight=4.0, stages=1))
         if progress:
             progress(i + 1, count)
     return obs

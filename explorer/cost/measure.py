@@ -70,8 +70,9 @@ class Measurement:
 
 
 def measure_network(net: AnytimeDepthNet, input_size: tuple[int, int] = (224, 224),
-                    threads: int | None = None, repeats: int = 15, warmup: int = 3) -> Measurement:
-    """Times every stage graph with onnxruntime, and the whole network as one graph."""
+                    threads: int | None = None, repeats: int = 15, warmup: int = 3,
+                    whole: bool = True) -> Measurement:
+    """Times every stage graph with onnxruntime, and (``whole``) the whole network as one graph."""
     from explorer.onnx_stages import example_inputs, export_stages, export_whole
     graphs = export_stages(net, input_size)
     env = {k: v.numpy() for k, v in example_inputs(input_size).items()}
@@ -93,9 +94,11 @@ def measure_network(net: AnytimeDepthNet, input_size: tuple[int, int] = (224, 22
         elapsed += ms
         if spec.path is not None:
             path_ms.append(elapsed)
-    whole = session(export_whole(net, input_size), threads)
-    feeds = {"image": env["image"], "scan": env["scan"]}
-    whole_ms = time_call(lambda: whole.run(None, feeds), warmup, repeats)
+    whole_ms = float("nan")
+    if whole:
+        sess = session(export_whole(net, input_size), threads)
+        feeds = {"image": env["image"], "scan": env["scan"]}
+        whole_ms = time_call(lambda: sess.run(None, feeds), warmup, repeats)
     return Measurement(net.candidate, tuple(input_size), stage_ms, path_ms, whole_ms,
                        conditions(threads, repeats, warmup))
 

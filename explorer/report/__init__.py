@@ -8,7 +8,6 @@ from __future__ import annotations
 import base64
 import io
 import platform
-import tempfile
 import time
 import warnings
 from pathlib import Path
@@ -117,22 +116,14 @@ def _optuna_plot(fn, study) -> str | None:
 
 def _depth_maps(study: optuna.Study, trial: optuna.trial.FrozenTrial, data: str | None, count: int = 3):
     """Every path's depth map on a few validation images (needs the trial's stored weights)."""
-    artifact = trial.user_attrs.get("weights_artifact")
-    cfg = study.user_attrs.get("config", {})
-    root = study.user_attrs.get("artifacts_dir")
-    if not artifact or not root or not Path(root).is_dir():
-        return None, "the best trial's weights are not stored here (searched with --no-weights, or on another machine)"
     import torch
-    from optuna.artifacts import FileSystemArtifactStore, download_artifact
     from explorer.data import open_dataset
-    from explorer.train import network_from_checkpoint
-    with tempfile.TemporaryDirectory() as tmp:
-        f = Path(tmp) / "w.pt"
-        try:
-            download_artifact(artifact_store=FileSystemArtifactStore(root), file_path=str(f), artifact_id=artifact)
-        except Exception as exc:
-            return None, f"weights could not be read ({exc})"
-        net, _ = network_from_checkpoint(f)
+    from explorer.results import trial_network
+    cfg = study.user_attrs.get("config", {})
+    try:
+        net = trial_network(study, trial)
+    except UserError as exc:
+        return None, str(exc)
     size = tuple(cfg.get("train_size", (64, 64)))
     try:
         ds = open_dataset(data or cfg.get("data", "synthetic"), "val", size, train_augment=False)
