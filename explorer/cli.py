@@ -315,7 +315,9 @@ def cmd_search(args) -> None:
         input_size=args.input_size, train_size=args.train_size, train_steps=args.train_steps,
         batch_size=args.batch_size, seed=args.seed, max_params=args.max_params,
         max_first_exit_ms=args.max_first_exit, baselines=not args.no_baselines,
-        pruning=not args.no_pruning, keep_weights=not args.no_weights, accelerator=args.accelerator)
+        pruning=not args.no_pruning, keep_weights=not args.no_weights, accelerator=args.accelerator,
+        evaluator=args.evaluator, supernet=args.supernet, supernet_steps=args.supernet_steps,
+        finalists=args.finalists, finalist_steps=args.finalist_steps)
     cfg.validate()
     reports = Path(args.reports)
     timeout = None if args.timeout == 0 else args.timeout
@@ -323,8 +325,23 @@ def cmd_search(args) -> None:
     t0 = time.time()
     with progress(transient=True) as bar:
         task = bar.add_task(f"search {study}", total=total, status="starting (data, baselines)")
+        phases: dict = {}
+
+        def supernet(step: int, steps: int, record: dict) -> None:
+            if "supernet" not in phases:
+                phases["supernet"] = bar.add_task("supernet (once per space, data, recipe)", total=steps, status="")
+            bar.update(phases["supernet"], completed=step, status=f"largest {record['largest']:.3f}, "
+                       f"smallest {record['smallest']:.3f}")
+
+        def finalist(i: int, n: int, what: str) -> None:
+            if "finalists" not in phases:
+                phases["finalists"] = bar.add_task("finalists (retraining)", total=n, status="")
+            bar.update(phases["finalists"], completed=i, status=what)
 
         def show(study_obj, trial=None) -> None:
+            nonlocal t0
+            if "search_start" not in phases:
+                phases["search_start"], t0 = True, time.time()
             done = [t for t in study_obj.get_trials(deepcopy=False) if t.state.is_finished()]
             complete = [t for t in done if t.state == optuna.trial.TrialState.COMPLETE and t.values]
             best = min((t.values[0] for t in complete), default=float("nan"))
@@ -337,7 +354,8 @@ def cmd_search(args) -> None:
             bar.update(task, status=f"generating synthetic scenes {i}/{n} (once, then cached)")
 
         outcome = search(cfg, storage_url=args.storage, workers=args.workers, n_trials=total,
-                         timeout_s=timeout, reports=reports, on_trial=show, on_poll=show, on_data=data)
+                         timeout_s=timeout, reports=reports, on_trial=show, on_poll=show, on_data=data,
+                         on_supernet=supernet, on_finalist=finalist)
     if outcome.interrupted_failed:
         err_console.print(f"marked {outcome.interrupted_failed} interrupted trial(s) as failed")
     _print_outcome(outcome.study, cfg, outcome.storage_url, reports, args.report)
@@ -347,24 +365,36 @@ def _print_outcome(study, cfg, storage_url: str, reports: Path, write_report: bo
     import optuna
     from explorer._console import console, print_frame
     from explorer.cost import get_device
-    from explorer.results import baseline_trial, best_trial, path_table
+    from explorer.results import baseline_trial, best_trial, finalists_frame, is_retrained, path_table, winner
     from explorer.space import Candidate
     states = [t.state for t in study.get_trials(deepcopy=False)]
     count = {s.name.lower(): states.count(s) for s in optuna.trial.TrialState if states.count(s)}
     console.print(f"study [bold]{cfg.study}[/bold]: " + ", ".join(f"{v} {k}" for k, v in count.items()))
-    best = best_trial(study)
-    paper = baseline_trial(study, "paper")
+    best, estimate = winner(study), best_trial(study)
     if best is None:
         console.print("no candidate trial completed yet: run longer (--timeout / --trials)")
     else:
+        retrained = is_retrained(best)
         cand = Candidate.from_dict(best.user_attrs["candidate"])
-        console.print(f"best: trial {best.number} ({cand.key}) anytime loss [bold]{best.values[0]:.4f}[/bold] "
-                      f"for {cfg.budgets[0]} on {cfg.device}")
+        how = "retrained" if retrained else f"estimated ({(best.user_attrs.get('evaluator') or {}).get('evaluator', 'proxy')})"
+        console.print(f"winner: trial {best.number} ({cand.key}) anytime loss [bold]{best.values[0]:.4f}[/bold] "
+                      f"{how}, for {cfg.budgets[0]} on {cfg.device}")
         console.print(f"  {cand.describe()}")
-        print_frame(path_table(best, [get_device(cfg.device)]), "best candidate, per path")
+        print_frame(path_table(best, [get_device(cfg.device)]), "winner, per path")
+        fin = finalists_frame(study)
+        if not fin.empty:
+            cols = ["model", "candidate_key", "estimated", "retrained", "estimated_rank", "retrained_rank"]
+            print_frame(fin[cols], f"finalists: search estimate vs retrained ({cfg.finalist_steps} steps)")
+        paper = baseline_trial(study, "paper", retrained=retrained)
         if paper is not None:
-            console.print(f"ratio to the paper-design baseline ({paper.values[0]:.4f}): "
+            kind = "retrained " if retrained else ""
+            console.print(f"ratio to the {kind}paper-design baseline ({paper.values[0]:.4f}): "
                           f"[bold]{best.values[0] / paper.values[0]:.3f}[/bold]")
+        else:
+            console.print("no ratio to the paper design: its baseline trial has not completed "
+                          "(--no-baselines, failed, or not run yet)")
+        if retrained and estimate is not None and estimate.number != best.user_attrs["finalist"].get("estimate_trial"):
+            console.print(f"  (the search's best estimate was trial {estimate.number}; retraining ranked another first)")
     console.print(f"study: {storage_url}")
     if write_report:
         try:
@@ -373,6 +403,48 @@ def _print_outcome(study, cfg, storage_url: str, reports: Path, write_report: bo
             return
         path = _write(study, out_dir=reports / cfg.study)
         console.print(f"report: {path}")
+
+
+def cmd_supernet_train(args) -> None:
+    from explorer._console import console, progress
+    from explorer.space import SearchSpace
+    from explorer.supernet import SupernetRecipe, default_path, train_supernet
+    from explorer.supernet.train import read
+    from explorer.train import resolve_device
+    space = SearchSpace.from_yaml(args.space)
+    if args.steps < 1 or args.random_subnets < 0 or args.micro_batches < 1 or args.batch_size < 1:
+        raise UserError("--steps, --batch-size and --micro-batches must be at least 1, --random-subnets at least 0")
+    recipe = SupernetRecipe(steps=args.steps, batch_size=args.batch_size, input_size=args.input_size, lr=args.lr,
+                            lr_end=args.lr / 10, random_subnets=args.random_subnets,
+                            micro_batches=args.micro_batches, seed=args.seed)
+    out = Path(args.out) if args.out else default_path(space, args.data, recipe)
+    with progress() as bar:
+        task = bar.add_task("supernet", total=recipe.steps, status="")
+        data = bar.add_task("data", total=None, status="", visible=False)
+        path = train_supernet(
+            space, args.data, recipe, out, resolve_device(args.accelerator),
+            progress=lambda s, n, r: bar.update(task, completed=s, status=f"largest {r['largest']:.3f}, "
+                                                f"smallest {r['smallest']:.3f}, random {r['random']:.3f}"),
+            data_progress=lambda i, n: bar.update(data, completed=i, total=n, visible=True,
+                                                  description="generating synthetic scenes (once)"))
+    state = read(path)
+    console.print(f"supernet of {space.name}: {path} (step {state['step']}/{recipe.steps}, "
+                  f"{state['seconds'] / 60:.1f} min of training)")
+
+
+def cmd_supernet_show(args) -> None:
+    from explorer._console import console, print_json
+    from explorer.supernet.train import read
+    state = read(args.file)
+    info = {k: state[k] for k in ("space_name", "space_key", "data", "recipe", "step", "complete", "seconds")}
+    info["last"] = state["history"][-1] if state.get("history") else None
+    if args.json:
+        print_json(info)
+        return
+    console.print(f"{args.file}: space {info['space_name']} ({info['space_key']}), data {info['data']}, "
+                  f"step {info['step']}/{info['recipe']['steps']}{' (complete)' if info['complete'] else ''}, "
+                  f"{info['seconds'] / 60:.1f} min")
+    console.print(f"  recipe: {info['recipe']}")
 
 
 def cmd_rescore(args) -> None:
@@ -467,7 +539,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = add("profile", cmd_profile, "per-path parameters, MACs, latency and energy of a candidate")
     s.add_argument("target", help="candidate YAML, or a space of at most 16 candidates (e.g. paper)")
-    s.add_argument("--input", type=_size, default=(224, 224), help="input HxW (default 224x224)")
+    s.add_argument("--input-size", "--input", dest="input", type=_size, default=(224, 224),
+                   help="input HxW (default 224x224)")
     s.add_argument("--device", help="device profile name or YAML file")
     s.add_argument("--measure", action="store_true", help="also measure on this machine with onnxruntime")
     s.add_argument("--threads", type=int, default=None, help="onnxruntime threads (default: all cores)")
@@ -496,7 +569,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--space", default="anytime_depth")
     s.add_argument("--device", default="tx2")
     s.add_argument("--budget", default="time:uniform:33ms")
-    s.add_argument("--input", type=_size, default=(224, 224))
+    s.add_argument("--input-size", "--input", dest="input", type=_size, default=(224, 224))
     s.add_argument("--csv", help="write the table here")
 
     sp = add("data", None, "inspect a data set")
@@ -504,7 +577,7 @@ def build_parser() -> argparse.ArgumentParser:
     s = dsub.add_parser("inspect", help="frames, shapes, depth range and path 0's metrics")
     s.add_argument("--data", default="synthetic", help="synthetic | nyu:PATH | kitti:PATH")
     s.add_argument("--split", default="val", choices=["train", "val"])
-    s.add_argument("--input", type=_size, default=(224, 224))
+    s.add_argument("--input-size", "--input", dest="input", type=_size, default=(224, 224))
     s.add_argument("--limit", type=int, default=None, help="inspect at most this many frames")
     s.add_argument("--json", action="store_true")
     s.set_defaults(fn=cmd_data_inspect)
@@ -526,7 +599,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("checkpoint")
     s.add_argument("--data", default="synthetic")
     s.add_argument("--split", default="val", choices=["train", "val"])
-    s.add_argument("--input", type=_size, help="input HxW (default: the training size)")
+    s.add_argument("--input-size", "--input", dest="input", type=_size, help="input HxW (default: the training size)")
     s.add_argument("--limit", type=int)
     s.add_argument("--json", action="store_true")
 
@@ -540,16 +613,28 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--storage", help="Optuna storage URL (default reports/<study>/study.db; "
                    "postgresql://... for several machines)")
     s.add_argument("--workers", type=int, default=1, help="processes on this machine (journal storage)")
-    s.add_argument("--timeout", type=_duration_s, default=600.0, help="stop after this long (default 10m; 0 = none)")
+    s.add_argument("--timeout", type=_duration_s, default=300.0, help="stop sampling after this long (default 5m; "
+                   "0 = none; the supernet's training and the finalists come on top)")
     s.add_argument("--trials", type=int, default=None, help="stop after this many finished trials")
     s.add_argument("--objectives", default="anytime_loss", help="e.g. anytime_loss,params (NSGA-II)")
     s.add_argument("--metric", default="rmse", choices=["rmse", "mae", "rel"])
     s.add_argument("--max-params", type=_count, help="reject candidates above this, e.g. 2.5M")
     s.add_argument("--max-first-exit", type=_ms, help="reject candidates whose first exit is later, e.g. 10ms")
-    s.add_argument("--train-steps", type=int, default=150)
-    s.add_argument("--train-size", type=_size, default=(64, 64), help="proxy training resolution")
+    s.add_argument("--evaluator", default="supernet", choices=["supernet", "proxy"],
+                   help="how a candidate's accuracy is estimated: its slice of the space's supernet (trained "
+                   "once, then ~1 s a candidate; default) or proxy training alone (~20 s a candidate)")
+    s.add_argument("--supernet", help="supernet file (default: the one cached for space, data and recipe, "
+                   "trained first if missing)")
+    s.add_argument("--supernet-steps", type=int, default=1000, help="supernet training steps (default 1000)")
+    s.add_argument("--finalists", type=int, default=3, help="best distinct candidates retrained stand-alone "
+                   "at the end, next to the baselines (default 3; 0 = none)")
+    s.add_argument("--finalist-steps", type=int, default=300, help="steps of the finalists' longer recipe "
+                   "(default 300)")
+    s.add_argument("--train-steps", type=int, default=150, help="proxy recipe steps (default 150)")
+    s.add_argument("--train-size", type=_size, default=(64, 64), help="training resolution (default 64x64)")
     s.add_argument("--batch-size", type=int, default=16)
-    s.add_argument("--input-size", type=_size, default=(224, 224), help="deployment resolution for costs")
+    s.add_argument("--input-size", "--input", type=_size, default=(224, 224),
+                   help="deployment resolution for costs (default 224x224)")
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--accelerator", default="auto", choices=["auto", "cpu", "cuda"])
     s.add_argument("--no-baselines", action="store_true")
@@ -557,6 +642,32 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--no-weights", action="store_true", help="do not keep trained weights as artifacts")
     s.add_argument("--no-report", dest="report", action="store_false", help="skip the HTML report")
     s.add_argument("--reports", **reports)
+
+    sp = add("supernet", None, "train or inspect the weight-sharing supernet of a space")
+    nsub = sp.add_subparsers(dest="sub", required=True, parser_class=_Parser, metavar="SUBCOMMAND")
+    s = nsub.add_parser("train", help="train (or resume) a supernet: sandwich rule, in-place distillation",
+                        description="Train the supernet of a space once; every study on that space, data and "
+                        "recipe reuses it. Resumes after a kill. Data parallel under torchrun "
+                        "(torchrun --nproc_per_node N -m explorer supernet train ...).")
+    s.add_argument("--space", default="anytime_depth")
+    s.add_argument("--data", default="synthetic")
+    s.add_argument("--steps", type=int, default=1000)
+    s.add_argument("--input-size", "--input", dest="input_size", type=_size, default=(64, 64),
+                   help="training resolution (default 64x64)")
+    s.add_argument("--batch-size", type=int, default=16, help="global batch (over all processes)")
+    s.add_argument("--lr", type=float, default=2e-3)
+    s.add_argument("--random-subnets", type=int, default=2, help="random subnets per step besides the largest "
+                   "and the smallest (default 2)")
+    s.add_argument("--micro-batches", type=int, default=1, help="split each process's batch (gradient "
+                   "accumulation; BatchNorm statistics per micro-batch)")
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--accelerator", default="auto", choices=["auto", "cpu", "cuda"])
+    s.add_argument("--out", help="file (default: the cache, where searches find it)")
+    s.set_defaults(fn=cmd_supernet_train)
+    s = nsub.add_parser("show", help="what a supernet file holds: space, data, recipe, progress")
+    s.add_argument("file")
+    s.add_argument("--json", action="store_true")
+    s.set_defaults(fn=cmd_supernet_show)
 
     s = add("rescore", cmd_rescore, "rank a finished study's trials for another device or budget")
     s.add_argument("--study", required=True)
@@ -585,7 +696,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--checkpoint", help="export a checkpoint instead of a study trial")
     s.add_argument("--storage")
     s.add_argument("--out", required=True)
-    s.add_argument("--input", type=_size, default=None, help="input HxW (default: the study's input size)")
+    s.add_argument("--input-size", "--input", dest="input", type=_size, default=None,
+                   help="input HxW (default: the study's input size)")
     s.add_argument("--device", action="append", help="devices whose expected costs go in the manifest")
     s.add_argument("--reports", **reports)
 

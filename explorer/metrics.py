@@ -32,6 +32,25 @@ def depth_metrics(pred: torch.Tensor | np.ndarray, target: torch.Tensor | np.nda
     }
 
 
+def batch_depth_metrics(pred: torch.Tensor, target: torch.Tensor) -> list[dict[str, float]]:
+    """:func:`depth_metrics` of every image of a batch (N, ...), computed at once."""
+    p, t = pred.double().flatten(1), target.double().flatten(1)
+    if p.shape != t.shape:
+        raise ValueError(f"prediction has shape {tuple(pred.shape)} but target {tuple(target.shape)}")
+    valid = t > 0
+    n = valid.sum(1).double()
+    safe_t = torch.where(valid, t, torch.ones_like(t))
+    err = torch.where(valid, (p - t).abs(), torch.zeros_like(t))
+    ratio = torch.maximum(p / safe_t, safe_t / p.clamp(min=1e-9))
+    values = {"rmse": torch.sqrt((err ** 2).sum(1) / n), "mae": err.sum(1) / n, "rel": (err / safe_t).sum(1) / n}
+    for k in (1, 2, 3):
+        values[f"delta{k}"] = ((ratio < 1.25 ** k) & valid).sum(1).double() / n
+    rows = []
+    for i in range(p.shape[0]):
+        rows.append({m: (float(values[m][i]) if n[i] > 0 else float("nan")) for m in METRICS})
+    return rows
+
+
 def batch_metrics(pred: torch.Tensor, target: torch.Tensor) -> list[dict[str, float]]:
     """Per-image metrics of a batch (N, 1, H, W)."""
     return [depth_metrics(pred[i], target[i]) for i in range(pred.shape[0])]

@@ -67,6 +67,7 @@ def trials_frame(study: optuna.Study) -> pd.DataFrame:
         row = {"number": t.number, "state": t.state.name,
                "value": (t.values[0] if t.values else np.nan),
                "baseline": ua.get("baseline", ""),
+               "evaluator": (ua.get("evaluator") or {}).get("evaluator", "proxy" if "train" in ua else ""),
                "candidate_key": ua.get("candidate_key", ""),
                "architecture": Candidate.from_dict(ua["candidate"]).describe() if "candidate" in ua else "",
                "params": (ua.get("params") or [np.nan])[-1],
@@ -110,14 +111,48 @@ def rescore(study: optuna.Study, device: str | DeviceProfile, budgets: Sequence[
     return frame.sort_values(dists[0].spec, kind="stable").reset_index(drop=True)
 
 
+def is_retrained(trial: optuna.trial.FrozenTrial) -> bool:
+    """A finalist: retrained stand-alone with the study's longer recipe (see explorer.finalists)."""
+    return "finalist" in trial.user_attrs
+
+
 def best_trial(study: optuna.Study, baseline: bool = False) -> optuna.trial.FrozenTrial | None:
-    """Lowest objective among scored trials (baselines excluded unless ``baseline``)."""
-    pool = [t for t in scored_trials(study) if baseline or not t.user_attrs.get("baseline")]
+    """The search's lowest estimate among scored trials (baselines excluded unless ``baseline``;
+    retrained finalists excluded: see :func:`winner`)."""
+    pool = [t for t in scored_trials(study) if (baseline or not t.user_attrs.get("baseline")) and not is_retrained(t)]
     return min(pool, key=lambda t: t.values[0], default=None)
 
 
-def baseline_trial(study: optuna.Study, name: str) -> optuna.trial.FrozenTrial | None:
-    return next((t for t in scored_trials(study) if t.user_attrs.get("baseline") == name), None)
+def winner(study: optuna.Study) -> optuna.trial.FrozenTrial | None:
+    """The study's answer: the best retrained finalist, or the best estimate while none is retrained."""
+    retrained = [t for t in scored_trials(study) if is_retrained(t) and not t.user_attrs.get("baseline")]
+    return min(retrained, key=lambda t: t.values[0], default=None) or best_trial(study)
+
+
+def baseline_trial(study: optuna.Study, name: str, retrained: bool = False) -> optuna.trial.FrozenTrial | None:
+    """Baseline ``name``'s trial: its search estimate, or its retraining with ``retrained``."""
+    return next((t for t in scored_trials(study) if t.user_attrs.get("baseline") == name
+                 and is_retrained(t) == retrained), None)
+
+
+def finalists_frame(study: optuna.Study) -> pd.DataFrame:
+    """Per retrained finalist and baseline: the search's estimate beside the retrained anytime loss,
+    with both ranks (how far the estimate can be trusted)."""
+    rows = []
+    for t in scored_trials(study):
+        if not is_retrained(t):
+            continue
+        fin = t.user_attrs["finalist"]
+        rows.append({"model": BASELINE_LABELS.get(t.user_attrs.get("baseline", ""), "") or "finalist",
+                     "candidate_key": t.user_attrs["candidate_key"], "estimate_trial": fin.get("estimate_trial"),
+                     "estimated": fin.get("estimated"), "retrained": t.values[0], "trial": t.number})
+    frame = pd.DataFrame(rows)
+    if frame.empty:
+        return frame
+    frame = frame.sort_values("retrained", kind="stable").reset_index(drop=True)
+    frame["retrained_rank"] = range(1, len(frame) + 1)
+    frame["estimated_rank"] = frame["estimated"].rank(method="min").astype("Int64")
+    return frame
 
 
 def path_table(trial: optuna.trial.FrozenTrial, devices: Sequence[DeviceProfile] = ()) -> pd.DataFrame:

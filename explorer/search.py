@@ -1,9 +1,12 @@
 """The search: Optuna over a search space, minimising the anytime loss on a device.
 
 Each trial samples a candidate, costs its paths on the device (no training), rejects it if a
-constraint rules it out, trains it with the proxy recipe (reporting the anytime loss so hopeless
-ones are pruned), and stores everything re-scoring needs. The paper's design, the same without
-early exits, and a FastDepth-like network are the study's first trials, tagged as baselines.
+constraint rules it out, estimates its per-path accuracy with an evaluator (a slice of the space's
+trained supernet, about a second; or proxy training, reporting the anytime loss so hopeless ones are
+pruned), and stores everything re-scoring needs. The paper's design, the same without early exits,
+and a FastDepth-like network are the study's first trials (when the evaluator can estimate them),
+tagged as baselines. A study ends by retraining its best candidates and the baselines stand-alone
+with a longer recipe (the finalists): the winner a user reads about is always a retrained one.
 """
 
 from __future__ import annotations
@@ -28,6 +31,7 @@ from explorer.results import compact_workloads
 from explorer.space import (Candidate, SearchSpace, fastdepth_candidate, paper_candidate,
                             paper_nee_candidate)
 from explorer.storage import REPORTS_DIR, fail_interrupted_trials, open_storage, study_dir
+from explorer.evaluators import EVALUATORS, ProxyEvaluator, SupernetEvaluator
 from explorer.train import PROXY, Pruned, TrainConfig, resolve_device, train
 
 BASELINES: dict[str, Callable[[], Candidate]] = {
@@ -57,6 +61,11 @@ class SearchConfig:
     pruning: bool = True
     keep_weights: bool = True
     accelerator: str = "auto"
+    evaluator: str = "supernet"
+    supernet: str | None = None                  # a supernet file (default: the cached one)
+    supernet_steps: int = 1000
+    finalists: int = 3                           # retrained stand-alone at the end (0 = none)
+    finalist_steps: int = 300
 
     def to_dict(self) -> dict:
         d = dataclasses.asdict(self)
@@ -78,6 +87,16 @@ class SearchConfig:
                                    seed=self.seed,
                                    eval_every=max(2 * self.train_steps // 3, 1) if self.pruning else 0)
 
+    def finalist_config(self, seed: int | None = None) -> TrainConfig:
+        """The longer stand-alone recipe of the finalists (and of the baselines beside them)."""
+        return dataclasses.replace(self.train_config(), steps=self.finalist_steps, eval_every=0,
+                                   seed=self.seed if seed is None else seed)
+
+    def supernet_recipe(self):
+        from explorer.supernet import SupernetRecipe
+        return SupernetRecipe(steps=self.supernet_steps, batch_size=self.batch_size, input_size=self.train_size,
+                              lr=self.lr, lr_end=self.lr / 10, seed=self.seed)
+
     def validate(self) -> None:
         SearchSpace.from_yaml(self.space)
         get_device(self.device)
@@ -95,10 +114,21 @@ class SearchConfig:
                 raise UserError(f"{name} {size}: give HxW, e.g. 224x224")
         if self.train_steps < 1:
             raise UserError("--train-steps must be at least 1")
+        if self.evaluator not in EVALUATORS:
+            raise UserError(f"--evaluator {self.evaluator}: use one of {list(EVALUATORS)}")
+        if self.supernet_steps < 1 or self.finalist_steps < 1:
+            raise UserError("--supernet-steps and --finalist-steps must be at least 1")
+        if self.finalists < 0:
+            raise UserError("--finalists must be 0 (none) or more")
 
     # settings that change what a trial's value means: a resumed study must keep them
     IDENTITY = ("space", "device", "budgets", "data", "objectives", "metric", "input_size", "train_size",
-                "train_steps", "batch_size", "lr")
+                "train_steps", "batch_size", "lr", "evaluator", "supernet_steps")
+
+    @classmethod
+    def defaults_of_older_studies(cls) -> dict:
+        """Settings a study made before they existed was run with."""
+        return {"evaluator": "proxy", "finalists": 0}
 
 
 def _json_safe(x):
@@ -120,6 +150,15 @@ class Objective:
         self.train_set = open_dataset(config.data, "train", config.train_size, seed=config.seed,
                                       progress=data_progress)
         self.val_set = open_dataset(config.data, "val", config.train_size, train_augment=False)
+        if config.evaluator == "supernet":
+            from explorer.supernet import default_path
+            file = config.supernet or default_path(self.space, config.data, config.supernet_recipe())
+            calibration = open_dataset(config.data, "train", config.train_size, train_augment=False)
+            self.evaluator = SupernetEvaluator(file, self.space, calibration, self.val_set, self.torch_device,
+                                               val_limit=config.val_limit)
+        else:
+            self.evaluator = ProxyEvaluator(self.train_set, self.val_set, self.train_cfg, self.torch_device,
+                                            val_limit=config.val_limit, seed=config.seed)
         self.artifacts = None
         if config.keep_weights and study_path is not None:
             from optuna.artifacts import FileSystemArtifactStore
@@ -138,21 +177,35 @@ class Objective:
             out[dist.spec] = anytime_loss(cost.path_costs(self.device_profile, dist.kind), path_losses, dist)
         return out
 
-    def __call__(self, trial: optuna.Trial):
-        from explorer.model import build_network
-        cfg = self.config
-        candidate, baseline = self.candidate_for(trial)
-        cost = candidate_cost(candidate, cfg.input_size)
+    def describe(self, trial, candidate: Candidate):
+        """Costs every path of ``candidate`` and stores what re-scoring needs on ``trial``."""
+        cost = candidate_cost(candidate, self.config.input_size)
         pm = cost.path_params_macs()
         latency = cost.path_latency_ms(self.device_profile)
-        energy = cost.path_energy_j(self.device_profile)
-        trial.set_user_attr("candidate", candidate.to_dict())
-        trial.set_user_attr("candidate_key", candidate.key)
-        trial.set_user_attr("params", [p for p, _ in pm])
-        trial.set_user_attr("macs", [m for _, m in pm])
-        trial.set_user_attr("latency_ms", latency)
-        trial.set_user_attr("energy_j", energy)
-        trial.set_user_attr("workloads", compact_workloads(cost))
+        attrs = {"candidate": candidate.to_dict(), "candidate_key": candidate.key, "params": [p for p, _ in pm],
+                 "macs": [m for _, m in pm], "latency_ms": latency,
+                 "energy_j": cost.path_energy_j(self.device_profile), "workloads": compact_workloads(cost)}
+        for k, v in attrs.items():
+            trial.set_user_attr(k, v)
+        return cost, pm, latency
+
+    def values(self, losses: dict[str, float], pm, latency):
+        values = []
+        for obj in self.config.objectives:
+            if obj == "anytime_loss":
+                values.append(losses[self.budgets[0].spec])
+            elif obj == "params":
+                values.append(float(pm[-1][0]))
+            elif obj == "macs":
+                values.append(float(pm[-1][1]))
+            else:
+                values.append(latency[1] if len(latency) > 1 else 0.0)
+        return values[0] if len(values) == 1 else tuple(values)
+
+    def __call__(self, trial: optuna.Trial):
+        cfg = self.config
+        candidate, baseline = self.candidate_for(trial)
+        cost, pm, latency = self.describe(trial, candidate)
         if not baseline:
             reason = self._rejection(pm, latency)
             if reason:
@@ -160,8 +213,8 @@ class Objective:
                 raise optuna.TrialPruned(reason)
             done = self._finished_twin(trial, candidate.key)
             if done is not None:
-                # the sampler proposed a candidate already trained: reuse what was paid for
-                for key in ("path_metrics", "train", "losses", "weights_artifact"):
+                # the sampler proposed a candidate already evaluated: reuse what was paid for
+                for key in ("path_metrics", "train", "losses", "weights_artifact", "evaluator"):
                     if key in done.user_attrs:
                         trial.set_user_attr(key, done.user_attrs[key])
                 trial.set_user_attr("duplicate_of", done.number)
@@ -179,48 +232,34 @@ class Objective:
                 trial.set_user_attr("pruned", reason)
                 raise Pruned(reason)
 
-        import torch
-        torch.manual_seed(cfg.seed)  # same candidate, same initial weights: results are repeatable
-        net = build_network(candidate)
+        keep = self.artifacts is not None and self.evaluator.name == "proxy"
         with tempfile.TemporaryDirectory() as tmp:
             ckpt = Path(tmp) / f"{candidate.key}.pt"
             try:
-                result = train(net, self.train_set, self.val_set, self.train_cfg, self.torch_device,
-                               checkpoint=ckpt if self.artifacts else None, report=report,
-                               val_limit=cfg.val_limit, checkpoint_every=10 ** 9)
+                result = self.evaluator(candidate, checkpoint=ckpt if keep else None, report=report)
             except Pruned as exc:
                 raise optuna.TrialPruned(str(exc)) from None
-            metrics = result.metrics
-            path_metrics = _json_safe(metrics.drop(columns=["path"]).to_dict("records"))
+            path_metrics = _json_safe(result.metrics.drop(columns=["path"]).to_dict("records"))
             trial.set_user_attr("path_metrics", path_metrics)
-            trial.set_user_attr("train", {"seconds": result.seconds, "steps": result.steps,
-                                          "images_per_second": result.images_per_second})
+            trial.set_user_attr("evaluator", _json_safe(result.info))
+            if result.info["evaluator"] == "proxy":
+                trial.set_user_attr("train", {k: result.info[k] for k in ("seconds", "steps", "images_per_second")})
             path_losses = [m[cfg.metric] for m in path_metrics]
             if any(not math.isfinite(v) for v in path_losses):
                 raise FloatingPointError(f"non-finite validation {cfg.metric}: {path_losses}")
             losses = self.losses_for(cost, path_losses)
             trial.set_user_attr("losses", losses)
-            if self.artifacts is not None:
+            if keep:
                 artifact = optuna.artifacts.upload_artifact(
                     artifact_store=self.artifacts, file_path=str(ckpt), study_or_trial=trial)
                 trial.set_user_attr("weights_artifact", artifact)
-        values = []
-        for obj in cfg.objectives:
-            if obj == "anytime_loss":
-                values.append(losses[primary.spec])
-            elif obj == "params":
-                values.append(float(pm[-1][0]))
-            elif obj == "macs":
-                values.append(float(pm[-1][1]))
-            else:
-                values.append(latency[1] if len(latency) > 1 else 0.0)
-        return values[0] if len(values) == 1 else tuple(values)
+        return self.values(losses, pm, latency)
 
     @staticmethod
     def _finished_twin(trial: optuna.Trial, key: str) -> optuna.trial.FrozenTrial | None:
         for t in trial.study.get_trials(deepcopy=False, states=(optuna.trial.TrialState.COMPLETE,)):
             if t.user_attrs.get("candidate_key") == key and not t.user_attrs.get("baseline") and \
-                    "path_metrics" in t.user_attrs:
+                    "path_metrics" in t.user_attrs and "finalist" not in t.user_attrs:
                 return t
         return None
 
@@ -274,12 +313,23 @@ def create_or_resume(config: SearchConfig, storage: optuna.storages.BaseStorage)
         study.set_user_attr("device_profile", get_device(config.device).to_dict())
         study.set_user_attr("created", time.strftime("%Y-%m-%d %H:%M:%S"))
         if config.baselines:
-            for name in BASELINES:
+            skipped = {}
+            for name, make in BASELINES.items():
+                if config.evaluator == "supernet" and not space.contains(make()):
+                    skipped[name] = (f"outside the space '{space.name}': the supernet cannot estimate it, so it "
+                                     "is compared after retraining (finalists) only")
+                    continue
                 study.enqueue_trial({}, user_attrs={"baseline": name})
+            study.set_user_attr("baselines_not_estimated", skipped)
+        import warnings
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
+            # optuna-dashboard and every Optuna tool show what is minimised, not "Objective 0"
+            study.set_metric_names([f"anytime_loss[{config.budgets[0]}]"] + list(config.objectives[1:]))
     else:
         old = study.user_attrs.get("config")
         if old:
-            prev = SearchConfig.from_dict(old)
+            prev = SearchConfig.from_dict({**SearchConfig.defaults_of_older_studies(), **old})
             diff = [k for k in SearchConfig.IDENTITY if getattr(prev, k) != getattr(config, k)]
             if diff:
                 k = diff[0]
@@ -326,12 +376,31 @@ def _optimize(study: optuna.Study, objective: Objective, n_trials: int | None, d
     study.optimize(objective, timeout=timeout, callbacks=cbs, catch=(Exception,), gc_after_trial=True)
 
 
+def ensure_supernet(config: SearchConfig, progress: Callable[[int, int, dict], None] | None = None,
+                    data_progress: Callable[[int, int], None] | None = None) -> Path | None:
+    """The supernet file the study's evaluator reads: the given one (checked), or the cached one for
+    (space, data, recipe), trained here first if it is missing or unfinished."""
+    if config.evaluator != "supernet":
+        return None
+    from explorer.supernet import default_path, load_supernet, train_supernet
+    space = SearchSpace.from_yaml(config.space)
+    if config.supernet:
+        load_supernet(config.supernet, space)  # one clear line if it is foreign, corrupt or unfinished
+        return Path(config.supernet)
+    return train_supernet(space, config.data, config.supernet_recipe(), default_path(
+        space, config.data, config.supernet_recipe()), resolve_device(config.accelerator),
+        progress=progress, data_progress=data_progress)
+
+
 def search(config: SearchConfig, storage_url: str | None = None, workers: int = 1,
            n_trials: int | None = None, timeout_s: float | None = 600.0, reports: Path = REPORTS_DIR,
            on_trial: Callable[[optuna.Study, optuna.trial.FrozenTrial], None] | None = None,
            on_poll: Callable[[optuna.Study], None] | None = None,
-           on_data: Callable[[int, int], None] | None = None) -> SearchOutcome:
-    """Runs (or resumes) the study until ``n_trials`` trials are done or ``timeout_s`` passes."""
+           on_data: Callable[[int, int], None] | None = None,
+           on_supernet: Callable[[int, int, dict], None] | None = None,
+           on_finalist: Callable[[int, int, str], None] | None = None) -> SearchOutcome:
+    """Runs (or resumes) the study until ``n_trials`` trials are done or ``timeout_s`` passes (the
+    supernet's training and the finalists' retraining are not counted), then retrains the finalists."""
     config.validate()
     if workers < 1:
         raise UserError("--workers must be at least 1")
@@ -345,6 +414,9 @@ def search(config: SearchConfig, storage_url: str | None = None, workers: int = 
         study.set_user_attr("artifacts_dir", str((study_dir(config.study, reports) / "artifacts").resolve()))
     url = storage_url or (f"journal:{reports / config.study / 'journal.log'}" if workers > 1
                           else f"sqlite:///{reports / config.study / 'study.db'}")
+    supernet = ensure_supernet(config, on_supernet, on_data)
+    if supernet is not None:
+        study.set_user_attr("supernet", str(supernet.resolve()))
     t0 = time.time()
     deadline = None if timeout_s is None else t0 + timeout_s
     if workers == 1:
@@ -372,4 +444,7 @@ def search(config: SearchConfig, storage_url: str | None = None, workers: int = 
                 p.join(timeout=5)
                 if p.is_alive():
                     p.terminate()
+    if config.finalists:
+        from explorer.finalists import retrain_finalists
+        retrain_finalists(study, config, reports, progress=on_finalist)
     return SearchOutcome(study, url, time.time() - t0, failed)

@@ -54,14 +54,22 @@ class Candidate:
     exits: tuple[int, ...] = (0, 1, 2, 4)
     head_depth: int = 1
     head_width: int = 32
+    # Added with the widened space; left out of to_dict() at these defaults, so keys stay stable.
+    encoder_exits: tuple[int, ...] = ()    # image exits after these encoder blocks (stride 4 or 8)
+    lidar_exit: bool = False               # a learned LiDAR-only path, run before the image encoder
+    lidar_first: bool = False              # LiDAR encoder before the image encoder (encoder exits fuse it)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "decoder_widths", tuple(int(w) for w in self.decoder_widths))
         object.__setattr__(self, "exits", tuple(sorted({int(e) for e in self.exits})))
         object.__setattr__(self, "width_mult", float(self.width_mult))
+        object.__setattr__(self, "encoder_exits", tuple(sorted({int(e) for e in self.encoder_exits})))
+        object.__setattr__(self, "lidar_exit", bool(self.lidar_exit))
         if not self.ecu:
             for name in ("lidar_depth", "lidar_width", "ecu_band", "ecu_width"):
                 object.__setattr__(self, name, 0)
+        # The order only changes anything when an encoder exit can fuse the LiDAR feature.
+        object.__setattr__(self, "lidar_first", bool(self.lidar_first and self.ecu and self.encoder_exits))
         if self.head_depth == 1:
             object.__setattr__(self, "head_width", 0)
         self.validate()
@@ -90,6 +98,11 @@ class Candidate:
                 "the last stage always has an exit")
         if self.exits[0] < 0:
             raise UserError(f"exit positions {list(self.exits)} must be >= 0 (0 = after the ECU)")
+        for k in self.encoder_exits:
+            if not 1 <= k < self.encoder_blocks or encoder_stride(k) not in ENCODER_EXIT_STRIDES:
+                raise UserError(
+                    f"encoder exit after block {k}: no such place in a {self.encoder_blocks}-block encoder; "
+                    f"encoder exits go after a block at stride 4 or 8 (blocks {list(encoder_exit_blocks(self.encoder_blocks))})")
         if self.head_depth not in (1, 2):
             raise UserError(f"head_depth={self.head_depth}: an exit head has 1 or 2 pointwise convs")
         if self.head_depth == 2 and self.head_width < 1:
@@ -112,7 +125,7 @@ class Candidate:
     @property
     def num_paths(self) -> int:
         """Number of paths, path 0 (the interpolated scan) included."""
-        return len(self.exits) + 1
+        return len(self.exits) + len(self.encoder_exits) + int(self.lidar_exit) + 1
 
     @property
     def key(self) -> str:
@@ -122,10 +135,15 @@ class Candidate:
 
     def describe(self) -> str:
         """The architecture in words."""
-        parts = [f"MobileNet v1 x{self.width_mult:g}, {self.encoder_blocks} blocks (stride {self.stride})"]
+        parts = ["LiDAR-only exit first"] if self.lidar_exit else []
+        parts.append(f"MobileNet v1 x{self.width_mult:g}, {self.encoder_blocks} blocks (stride {self.stride})")
+        if self.encoder_exits:
+            fused = " fused with the LiDAR feature" if self.lidar_first else ""
+            parts.append("encoder exits after block " + ", ".join(map(str, self.encoder_exits)) + fused)
         if self.ecu:
-            parts.append(f"LiDAR encoder {self.lidar_depth} layers from {self.lidar_width} ch, "
-                         f"ECU band {self.ecu_band} rows, {self.ecu_width} ch")
+            order = "before" if self.lidar_first else "after"
+            parts.append(f"LiDAR encoder ({order} the image encoder) {self.lidar_depth} layers from "
+                         f"{self.lidar_width} ch, ECU band {self.ecu_band} rows, {self.ecu_width} ch")
         else:
             parts.append("no LiDAR branch (image only)")
         parts.append("decoder " + "-".join(str(w) for w in self.decoder_widths))
@@ -138,6 +156,10 @@ class Candidate:
         d = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
         d["decoder_widths"] = list(self.decoder_widths)
         d["exits"] = list(self.exits)
+        d["encoder_exits"] = list(self.encoder_exits)
+        for name, default in _LATER_FIELDS.items():
+            if d[name] == default:
+                del d[name]
         return d
 
     def to_yaml(self) -> str:
@@ -164,6 +186,17 @@ class Candidate:
         return cls.from_dict(data, source=str(path))
 
 
+#: Fields added after the first release, with the value that leaves them out of a candidate's dict.
+_LATER_FIELDS: dict[str, Any] = {"encoder_exits": [], "lidar_exit": False, "lidar_first": False}
+#: Strides at which an image exit may leave the encoder (after block k, before the decoder).
+ENCODER_EXIT_STRIDES = (4, 8)
+
+
+def encoder_exit_blocks(encoder_blocks: int = len(MOBILENET_V1_BLOCKS)) -> tuple[int, ...]:
+    """Block numbers after which an encoder exit may sit in an ``encoder_blocks``-block encoder."""
+    return tuple(k for k in range(1, encoder_blocks) if encoder_stride(k) in ENCODER_EXIT_STRIDES)
+
+
 def paper_candidate() -> Candidate:
     """The paper's design (Table 1) as this project interprets it; see search_spaces/paper.yaml."""
     return Candidate()
@@ -182,12 +215,12 @@ def fastdepth_candidate() -> Candidate:
 
 # ------------------------------------------------------------------------------------------------
 _SPACE_SCHEMA: dict[str, dict[str, str]] = {
-    "image_encoder": {"blocks": "encoder_blocks", "width_mult": "width_mult"},
-    "lidar_encoder": {"depth": "lidar_depth", "width": "lidar_width"},
+    "image_encoder": {"blocks": "encoder_blocks", "width_mult": "width_mult", "exits": "encoder_exits"},
+    "lidar_encoder": {"depth": "lidar_depth", "width": "lidar_width", "first": "lidar_first"},
     "ecu": {"enabled": "ecu", "band": "ecu_band", "width": "ecu_width"},
     "decoder": {"widths": "decoder_widths"},
     "exits": {"optional": "exits", "required": "required_exits", "head_depth": "head_depth",
-              "head_width": "head_width"},
+              "head_width": "head_width", "lidar_only": "lidar_exit"},
 }
 _TOP_KEYS = set(_SPACE_SCHEMA) | {"name", "description"}
 
@@ -235,6 +268,9 @@ class SearchSpace:
     head_depth: tuple[int, ...]
     head_width: tuple[int, ...]
     required_exits: tuple[int, ...] = ()
+    optional_encoder_exits: tuple[int, ...] = ()
+    lidar_first: tuple[bool, ...] = (False,)
+    lidar_exit: tuple[bool, ...] = (False,)
     description: str = ""
     source: str = ""
 
@@ -268,18 +304,18 @@ class SearchSpace:
                         values[field] = tuple((w,) for w in default)
                     elif field == "exits":
                         values["optional_exits"] = tuple(default[:-1])
-                    elif field == "required_exits":
-                        values["required_exits"] = ()
+                    elif field in ("required_exits", "encoder_exits"):
+                        pass  # dataclass defaults: none
                     else:
                         values[field] = (default,)
                     continue
                 raw = body[key]
                 if field == "decoder_widths":
                     values[field] = _stage_choices(raw, where)
-                elif field in ("exits", "required_exits"):
-                    name = "optional_exits" if field == "exits" else field
+                elif field in ("exits", "required_exits", "encoder_exits"):
+                    name = {"exits": "optional_exits", "encoder_exits": "optional_encoder_exits"}.get(field, field)
                     values[name] = tuple(_choices(raw, where, int, allow_empty=True))
-                elif field == "ecu":
+                elif field in ("ecu", "lidar_first", "lidar_exit"):
                     values[field] = tuple(_choices(raw, where, bool))
                 else:
                     kind = float if field == "width_mult" else int
@@ -316,6 +352,13 @@ class SearchSpace:
             even = [b for b in self.ecu_band if b < 1 or b % 2 == 0]
             if even:
                 raise UserError(f"{source}: ecu.band {even} must be positive odd numbers of rows")
+        for k in self.optional_encoder_exits:
+            for blocks in self.encoder_blocks:
+                if k not in encoder_exit_blocks(blocks):
+                    raise UserError(
+                        f"{source}: image_encoder.exits has block {k}, but a {blocks}-block encoder has no exit "
+                        f"place there: encoder exits go after a block at stride 4 or 8, i.e. one of "
+                        f"{list(encoder_exit_blocks(min(self.encoder_blocks)))}")
         for d in self.head_depth:
             if d not in (1, 2):
                 raise UserError(f"{source}: exits.head_depth {d}: a head has 1 or 2 pointwise convs")
@@ -339,6 +382,11 @@ class SearchSpace:
             dims[f"exit_{e}"] = (False, True)
         dims["head_depth"] = self.head_depth
         dims["head_width"] = self.head_width
+        for k in self.optional_encoder_exits:
+            dims[f"encoder_exit_{k}"] = (False, True)
+        if self.optional_encoder_exits and True in self.ecu:
+            dims["lidar_first"] = self.lidar_first
+        dims["lidar_exit"] = self.lidar_exit
         return dims
 
     @property
@@ -346,10 +394,13 @@ class SearchSpace:
         """Number of distinct candidates (LiDAR/ECU choices only count when the ECU is on;
         head width only when heads have two layers)."""
         lidar = len(self.lidar_depth) * len(self.lidar_width) * len(self.ecu_band) * len(self.ecu_width)
-        ecu = sum(lidar if on else 1 for on in self.ecu)
+        encoder_exit_sets = 2 ** len(self.optional_encoder_exits)
+        # with the ECU on, a non-empty set of encoder exits also chooses the stage order
+        with_order = 1 + (encoder_exit_sets - 1) * len(set(self.lidar_first))
+        ecu = sum(lidar * with_order if on else encoder_exit_sets for on in self.ecu)
         heads = sum(len(self.head_width) if d == 2 else 1 for d in self.head_depth)
         rest = len(self.encoder_blocks) * len(self.width_mult) * math.prod(len(c) for c in self.decoder_widths)
-        return ecu * heads * rest * 2 ** len(self.optional_exits)
+        return ecu * heads * rest * 2 ** len(self.optional_exits) * len(set(self.lidar_exit))
 
     def _exit_sets(self) -> Iterator[tuple[int, ...]]:
         last = len(self.decoder_widths)
@@ -368,12 +419,19 @@ class SearchSpace:
                 ecu_options.append((False, 0, 0, 0, 0))
         heads = [(d, w) for d in self.head_depth for w in (self.head_width if d == 2 else (0,))]
         exit_sets = list(self._exit_sets())
-        for blocks, wm, ecu, widths, exits, head in itertools.product(
-                self.encoder_blocks, self.width_mult, ecu_options,
-                itertools.product(*self.decoder_widths), exit_sets, heads):
+        early: list[tuple] = []  # (ecu option, encoder exits, lidar first)
+        for ecu in ecu_options:
+            for mask in itertools.product((False, True), repeat=len(self.optional_encoder_exits)):
+                enc = tuple(k for k, on in zip(self.optional_encoder_exits, mask) if on)
+                orders = sorted(set(self.lidar_first)) if ecu[0] and enc else [False]
+                early += [(ecu, enc, first) for first in orders]
+        for blocks, wm, (ecu, enc, first), widths, exits, head, lidar_exit in itertools.product(
+                self.encoder_blocks, self.width_mult, early, itertools.product(*self.decoder_widths),
+                exit_sets, heads, sorted(set(self.lidar_exit))):
             yield Candidate(encoder_blocks=blocks, width_mult=wm, ecu=ecu[0], lidar_depth=ecu[1],
                             lidar_width=ecu[2], ecu_band=ecu[3], ecu_width=ecu[4],
-                            decoder_widths=widths, exits=exits, head_depth=head[0], head_width=head[1])
+                            decoder_widths=widths, exits=exits, head_depth=head[0], head_width=head[1],
+                            encoder_exits=enc, lidar_exit=lidar_exit, lidar_first=first)
 
     def sample(self, trial: Any) -> Candidate:
         """Draw a candidate with an Optuna trial (conditional dimensions only when they apply)."""
@@ -389,7 +447,11 @@ class SearchSpace:
         head_width = s("head_width", list(self.head_width)) if head_depth == 2 else 0
         exits = sorted([e for e in self.optional_exits if s(f"exit_{e}", [False, True])]
                        + list(self.required_exits))
+        encoder_exits = tuple(k for k in self.optional_encoder_exits if s(f"encoder_exit_{k}", [False, True]))
+        lidar_first = s("lidar_first", list(self.lidar_first)) if ecu and encoder_exits else False
+        lidar_exit = s("lidar_exit", list(self.lidar_exit))
         return Candidate(
+            encoder_exits=encoder_exits, lidar_first=lidar_first, lidar_exit=lidar_exit,
             encoder_blocks=s("encoder_blocks", list(self.encoder_blocks)),
             width_mult=s("width_mult", list(self.width_mult)),
             ecu=ecu, **lidar,
@@ -411,13 +473,19 @@ class SearchSpace:
             p[f"decoder_width_{k}"] = w
         for e in self.optional_exits:
             p[f"exit_{e}"] = e in candidate.exits
+        for k in self.optional_encoder_exits:
+            p[f"encoder_exit_{k}"] = k in candidate.encoder_exits
+        if candidate.ecu and candidate.encoder_exits:
+            p["lidar_first"] = candidate.lidar_first
+        p["lidar_exit"] = candidate.lidar_exit
         return p
 
     def contains(self, candidate: Candidate) -> bool:
         d = self.dimensions()
         p = self.params_of(candidate)
         inner = set(candidate.exits[:-1])
-        return len(candidate.decoder_widths) == len(self.decoder_widths) and all(
+        return len(candidate.decoder_widths) == len(self.decoder_widths) and \
+            set(candidate.encoder_exits) <= set(self.optional_encoder_exits) and all(
             v in d[k] for k, v in p.items()) and set(self.required_exits) <= inner and \
             inner <= set(self.optional_exits) | set(self.required_exits)
 

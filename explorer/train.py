@@ -14,7 +14,7 @@ import torch
 from torch.utils.data import DataLoader
 
 from explorer.errors import UserError
-from explorer.metrics import MetricAverager, depth_metrics
+from explorer.metrics import MetricAverager, batch_depth_metrics
 from explorer.model import AnytimeDepthNet, build_network
 from explorer.space import Candidate
 
@@ -91,20 +91,23 @@ def _batch_row(batch: dict) -> int:
 
 def evaluate(net: AnytimeDepthNet, dataset, batch_size: int = 8, device: torch.device | None = None,
              limit: int | None = None) -> pd.DataFrame:
-    """Per-path metrics (averaged per image, FastDepth's convention): one row per path."""
+    """Per-path metrics (averaged per image, FastDepth's convention): one row per path. ``dataset``
+    is a data set, or a list of ready batches (dicts of batched tensors)."""
+    if isinstance(dataset, list):
+        batches = dataset
+    else:
+        batches = DataLoader(dataset, batch_size=batch_size, shuffle=False)
     device = device or next(net.parameters()).device
     net.eval()
     averagers = [MetricAverager() for _ in range(net.candidate.num_paths)]
-    loader = DataLoader(dataset, batch_size=batch_size, shuffle=False)
     seen = 0
     with torch.no_grad():
-        for batch in loader:
+        for batch in batches:
             outs = net(batch["image"].to(device), batch["scan"].to(device), _batch_row(batch))
             target = batch["depth"]
             for p, out in enumerate(outs):
-                out = out.float().cpu()
-                for i in range(out.shape[0]):
-                    averagers[p].add(depth_metrics(out[i], target[i]))
+                for m in batch_depth_metrics(out.float().cpu(), target):
+                    averagers[p].add(m)
             seen += target.shape[0]
             if limit and seen >= limit:
                 break

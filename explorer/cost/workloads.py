@@ -94,6 +94,9 @@ def trace_stage(module: nn.Module, stage: str, inputs: list) -> tuple[list[Workl
                 kind, k, s, macs = "add", 0, 1, 0
             elif isinstance(m, ops.Concat):
                 kind, k, s, macs = "concat", 0, 1, 0
+            elif isinstance(m, ops.RowGrid):
+                kind, k, s, macs = "concat", 0, 1, 0
+                n_in = n_out  # the image is read for its height only
             elif isinstance(m, ops.BandCrop):
                 kind, k, s, macs = "slice", 0, 1, 0
                 n_in = n_out  # reads only the band

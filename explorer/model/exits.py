@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from explorer.model.ops import Resize
+from explorer.model.ops import BroadcastAdd, Resize
 
 #: Initial bias of the depth output (metres): a typical indoor depth, so training starts near it.
 DEPTH_INIT_M = 2.5
@@ -19,6 +19,7 @@ class ExitHeadConfig:
     depth: int
     width: int
     upscale: int
+    lidar_channels: int = 0      # > 0: the LiDAR feature at this stride is added to every row first
 
     def build(self) -> "ExitHead":
         return ExitHead(self)
@@ -29,6 +30,9 @@ class ExitHead(nn.Module):
         super().__init__()
         layers: list[nn.Module] = []
         cin = config.in_channels
+        if config.lidar_channels:
+            self.fuse = nn.Conv1d(config.lidar_channels, cin, 1)
+            self.add = BroadcastAdd()
         if config.depth == 2:
             layers += [nn.Conv2d(cin, config.width, 1, bias=False), nn.BatchNorm2d(config.width),
                        nn.ReLU(inplace=True)]
@@ -39,7 +43,9 @@ class ExitHead(nn.Module):
         self.layers = nn.Sequential(*layers)
         self.resize = Resize(config.upscale, "bilinear")
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
+    def forward(self, x: torch.Tensor, lidar: torch.Tensor | None = None) -> torch.Tensor:
+        if lidar is not None:
+            x = self.add(x, self.fuse(lidar).unsqueeze(2))
         return self.resize(self.layers(x))
 
 

@@ -8,7 +8,7 @@ import torch
 from torch import nn
 
 from explorer.model.ops import Normalize, conv_bn_relu
-from explorer.space import MOBILENET_V1_BLOCKS
+from explorer.space import MOBILENET_V1_BLOCKS, encoder_stride
 
 
 def scaled(channels: int, width_mult: float) -> int:
@@ -28,17 +28,26 @@ class DepthwiseSeparable(nn.Module):
 
 @dataclass(frozen=True)
 class ImageEncoderConfig:
+    """MobileNet v1 blocks ``start+1 .. blocks`` (conv0 too when ``start`` is 0): the whole encoder,
+    or one segment of it when encoder exits split it into several stages."""
+
     blocks: int
     width_mult: float
+    start: int = 0
 
     def skip_strides(self) -> list[int]:
-        """Strides at which a skip feature is emitted: every stride below the output's, from 2."""
-        strides, s = [2], 2
-        for _, _, bs in MOBILENET_V1_BLOCKS[:self.blocks]:
-            s *= bs
-            strides.append(s)
-        final = strides[-1]
-        return sorted({x for x in strides if x < final})
+        """Strides of the skip features this segment emits: the feature just before each stride-2
+        block it runs (the segment's own input excepted: an earlier stage already named it)."""
+        strides, s = [], encoder_stride(self.start)
+        for i in range(self.start, self.blocks):
+            if MOBILENET_V1_BLOCKS[i][2] == 2:
+                if i > self.start or self.start == 0:
+                    strides.append(s)
+                s *= 2
+        return sorted(strides)
+
+    def in_channels(self) -> int:
+        return 3 if self.start == 0 else scaled(MOBILENET_V1_BLOCKS[self.start - 1][1], self.width_mult)
 
     def out_channels(self) -> int:
         return scaled(MOBILENET_V1_BLOCKS[self.blocks - 1][1], self.width_mult)
@@ -48,26 +57,30 @@ class ImageEncoderConfig:
 
 
 class ImageEncoder(nn.Module):
-    """Returns the stride-S feature and one skip feature per lower stride (the last block's output
-    at that resolution), in order of decreasing stride."""
+    """Returns the segment's output feature and one skip feature per stride it leaves (the last
+    block's output at that resolution), in order of decreasing stride."""
 
     def __init__(self, config: ImageEncoderConfig) -> None:
         super().__init__()
         self.config = config
         wm = config.width_mult
-        self.normalize = Normalize()
-        self.conv0 = conv_bn_relu(3, scaled(32, wm), 3, 2)
+        if config.start == 0:
+            self.normalize = Normalize()
+            self.conv0 = conv_bn_relu(3, scaled(32, wm), 3, 2)
         self.blocks = nn.ModuleList(
             DepthwiseSeparable(scaled(cin, wm), scaled(cout, wm), s)
-            for cin, cout, s in MOBILENET_V1_BLOCKS[:config.blocks])
-        self.skip_strides = config.skip_strides()
+            for cin, cout, s in MOBILENET_V1_BLOCKS[config.start:config.blocks])
 
-    def forward(self, image: torch.Tensor) -> tuple[torch.Tensor, ...]:
-        x = self.conv0(self.normalize(image))
-        stride, skips = 2, {}
-        for block, (_, _, s) in zip(self.blocks, MOBILENET_V1_BLOCKS):
-            if s == 2:
-                skips[stride] = x
+    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        start = self.config.start
+        if start == 0:
+            x = self.conv0(self.normalize(x))
+        stride = encoder_stride(start)
+        skips = {}
+        for i, block in zip(range(start, self.config.blocks), self.blocks):
+            if MOBILENET_V1_BLOCKS[i][2] == 2:
+                if i > start or start == 0:
+                    skips[stride] = x
                 stride *= 2
             x = block(x)
-        return (x, *(skips[s] for s in sorted(self.skip_strides, reverse=True)))
+        return (x, *(skips[s] for s in sorted(skips, reverse=True)))

@@ -14,7 +14,8 @@ from explorer.model.ecu import ECUConfig
 from explorer.model.exits import ExitHeadConfig, interpolate_scan
 from explorer.model.image_encoder import ImageEncoderConfig
 from explorer.model.lidar_encoder import LidarEncoderConfig
-from explorer.space import Candidate
+from explorer.model.lidar_exit import LidarExitConfig
+from explorer.space import MOBILENET_V1_BLOCKS, Candidate, encoder_stride
 
 
 @dataclass(frozen=True)
@@ -33,30 +34,65 @@ class StageSpec:
         return isinstance(self.config, ECUConfig)
 
 
+def _encoder_tensor(block: int, encoder_blocks: int) -> str:
+    """The name of the image feature after ``block`` blocks: a skip name when the decoder reads it."""
+    if block < encoder_blocks and MOBILENET_V1_BLOCKS[block][2] == 2:
+        return f"skip_s{encoder_stride(block)}"
+    return f"enc_b{block}"
+
+
 def stage_specs(candidate: Candidate) -> list[StageSpec]:
-    """The execution order of ``candidate``'s stages (path 0 needs none)."""
-    enc = ImageEncoderConfig(candidate.encoder_blocks, candidate.width_mult)
+    """The execution order of ``candidate``'s stages (path 0 needs none): the LiDAR-only exit, the
+    LiDAR encoder when it runs first, the image encoder (split by its exits), the LiDAR encoder
+    otherwise, the ECU, then decoder stages, each exit head right after what it reads."""
     stride = candidate.stride
+    specs: list[StageSpec] = []
+    path = 1
+
+    def add_exit(name: str, cfg: ExitHeadConfig, inputs: tuple[str, ...]) -> None:
+        nonlocal path
+        specs.append(StageSpec(name, cfg, inputs, (f"depth_{path}",), path))
+        path += 1
+
+    if candidate.lidar_exit:
+        specs.append(StageSpec("lidar_exit", LidarExitConfig(), ("scan", "image"), (f"depth_{path}",), path))
+        path += 1
+    lidar = None
+    if candidate.ecu:
+        taps = tuple(encoder_stride(k) for k in candidate.encoder_exits) if candidate.lidar_first else ()
+        lidar = LidarEncoderConfig(candidate.lidar_depth, candidate.lidar_width, stride, taps)
+        lidar_stage = StageSpec("lidar_encoder", lidar, ("scan",), ("lidar", *(f"lidar_s{t}" for t in taps)))
+        if candidate.lidar_first:
+            specs.append(lidar_stage)
+    start, x = 0, "image"
+    for k in (*candidate.encoder_exits, candidate.encoder_blocks):
+        seg = ImageEncoderConfig(k, candidate.width_mult, start)
+        out = "enc" if k == candidate.encoder_blocks else _encoder_tensor(k, candidate.encoder_blocks)
+        name = "image_encoder" if start == 0 else f"image_encoder_{start + 1}"
+        specs.append(StageSpec(name, seg, (x,), (out, *(f"skip_s{s}" for s in sorted(seg.skip_strides(), reverse=True)))))
+        if k < candidate.encoder_blocks:
+            s = encoder_stride(k)
+            fuse = lidar.tap_channels(s) if candidate.lidar_first else 0
+            cfg = ExitHeadConfig(seg.out_channels(), candidate.head_depth, candidate.head_width, s, fuse)
+            add_exit(f"exit_b{k}", cfg, (out, f"lidar_s{s}") if fuse else (out,))
+        start, x = k, out
+    enc = ImageEncoderConfig(candidate.encoder_blocks, candidate.width_mult)
     skips = sorted(enc.skip_strides(), reverse=True)
-    specs = [StageSpec("image_encoder", enc, ("image",), ("enc", *(f"skip_s{s}" for s in skips)))]
     x = "enc"
     if candidate.ecu:
-        lidar = LidarEncoderConfig(candidate.lidar_depth, candidate.lidar_width, stride)
-        specs.append(StageSpec("lidar_encoder", lidar, ("scan",), ("lidar",)))
+        if not candidate.lidar_first:
+            specs.append(lidar_stage)
         ecu = ECUConfig(enc.out_channels(), lidar.out_channels(), candidate.ecu_band,
                         candidate.ecu_width, stride)
         specs.append(StageSpec("ecu", ecu, ("enc", "lidar"), ("x0",)))
         x = "x0"
     channels = enc.out_channels()
-    path = 1
 
-    def exit_head(position: int, tensor: str, cin: int, scale: int) -> StageSpec:
-        cfg = ExitHeadConfig(cin, candidate.head_depth, candidate.head_width, scale)
-        return StageSpec(f"exit_{position}", cfg, (tensor,), (f"depth_{path}",), path)
+    def exit_cfg(cin: int, scale: int) -> ExitHeadConfig:
+        return ExitHeadConfig(cin, candidate.head_depth, candidate.head_width, scale)
 
     if 0 in candidate.exits:
-        specs.append(exit_head(0, x, channels, stride))
-        path += 1
+        add_exit("exit_0", exit_cfg(channels, stride), (x,))
     for k, width in enumerate(candidate.decoder_widths, start=1):
         out_stride = stride // 2 ** k
         has_skip = out_stride in skips
@@ -65,8 +101,7 @@ def stage_specs(candidate: Candidate) -> list[StageSpec]:
         x, channels = f"x{k}", width
         specs.append(StageSpec(f"decoder_{k}", cfg, inputs, (x,)))
         if k in candidate.exits:
-            specs.append(exit_head(k, x, channels, out_stride))
-            path += 1
+            add_exit(f"exit_{k}", exit_cfg(channels, out_stride), (x,))
     return specs
 
 

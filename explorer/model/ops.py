@@ -62,6 +62,22 @@ class Concat(nn.Module):
         return torch.cat([a, b], dim=1)
 
 
+class RowGrid(nn.Module):
+    """(N, C, W') column features -> (N, C + 1, H / stride, W'): every row of a coarse grid gets the
+    column's feature and its own vertical position in [-1, 1] (only the image's height is read)."""
+
+    def __init__(self, stride: int) -> None:
+        super().__init__()
+        self.stride = stride
+
+    def forward(self, columns: torch.Tensor, image: torch.Tensor) -> torch.Tensor:
+        n, c, w = columns.shape
+        rows = image.shape[2] // self.stride
+        position = torch.linspace(-1.0, 1.0, rows, dtype=columns.dtype, device=columns.device)
+        position = position.view(1, 1, rows, 1).expand(n, 1, rows, w)
+        return torch.cat([columns.unsqueeze(2).expand(n, c, rows, w), position], dim=1)
+
+
 class BandCrop(nn.Module):
     """Rows ``[row - band//2, row + band//2]`` of a feature, clamped to the feature."""
 

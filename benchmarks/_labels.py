@@ -1,0 +1,66 @@
+"""Stand-alone training results shared by the supernet and search benchmarks: each (candidate, recipe,
+seed) is trained once and cached in a JSON file, so a benchmark can be rerun (or resumed after a kill)
+without paying for the trainings again."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import time
+from pathlib import Path
+
+import torch
+
+from explorer.anytime import anytime_loss
+from explorer.cost import candidate_cost, get_device
+from explorer.data import open_dataset
+from explorer.model import build_network
+from explorer.space import Candidate
+from explorer.train import TrainConfig, train
+
+CACHE_DIR = Path(__file__).resolve().parents[1] / "reports" / "bench"
+BUDGET = "time:uniform:33ms"
+
+
+def recipe(steps: int, size=(64, 64), seed: int = 0) -> TrainConfig:
+    """The search's proxy recipe (AdamW, lr 2e-3 -> 2e-4, batch 16), with ``steps`` steps."""
+    return TrainConfig(steps=steps, batch_size=16, input_size=tuple(size), lr=2e-3, lr_end=2e-4, seed=seed)
+
+
+def _cache(steps: int) -> Path:
+    return CACHE_DIR / f"standalone-{steps}.json"
+
+
+def _load(steps: int) -> dict:
+    f = _cache(steps)
+    return json.loads(f.read_text()) if f.is_file() else {}
+
+
+def standalone(candidate: Candidate, cfg: TrainConfig, data: str = "synthetic", device: str = "tx2",
+               val_limit: int | None = None) -> dict:
+    """Per-path RMSE and the anytime loss (tx2, U(0, 33 ms)) of ``candidate`` trained alone with ``cfg``."""
+    key = f"{candidate.key}|{data}|{json.dumps(cfg.to_dict(), sort_keys=True)}|{val_limit}"
+    cache = _load(cfg.steps)
+    if key in cache:
+        return cache[key]
+    torch.manual_seed(cfg.seed)
+    net = build_network(candidate)
+    tr = open_dataset(data, "train", cfg.input_size, seed=cfg.seed)
+    va = open_dataset(data, "val", cfg.input_size, train_augment=False)
+    t0 = time.perf_counter()
+    res = train(net, tr, va, cfg, val_limit=val_limit)
+    rmse = [float(x) for x in res.metrics["rmse"]]
+    costs = candidate_cost(candidate).path_costs(get_device(device), "time")
+    entry = {"candidate": candidate.to_dict(), "rmse": rmse, "seconds": time.perf_counter() - t0,
+             "anytime_loss": anytime_loss(costs, rmse, BUDGET), "steps": cfg.steps, "seed": cfg.seed}
+    cache = _load(cfg.steps)
+    cache[key] = entry
+    CACHE_DIR.mkdir(parents=True, exist_ok=True)
+    tmp = _cache(cfg.steps).with_suffix(".tmp")
+    tmp.write_text(json.dumps(cache, indent=1))
+    tmp.replace(_cache(cfg.steps))
+    return entry
+
+
+def with_seed(cfg: TrainConfig, seed: int) -> TrainConfig:
+    return dataclasses.replace(cfg, seed=seed)

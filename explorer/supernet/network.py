@@ -1,0 +1,149 @@
+"""A weight-sharing supernet over a search space (Once-for-All style).
+
+The supernet is the space's largest network, built from the same stage configs as any candidate,
+plus every exit head any candidate can have (each head depth, every exit position, the fused encoder
+exits and the LiDAR-only exit). A candidate is a set of views into these tensors (first blocks, first
+channels, first layers): :meth:`Supernet.forward_subnet` runs it for training without copying a
+weight, :meth:`Supernet.extract` returns an ordinary :class:`AnytimeDepthNet` carrying copies of its
+slices, so evaluation, export, fine-tuning and the runtime never know where the weights came from.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import random
+from collections import OrderedDict
+
+import torch
+from torch import nn
+from torch.func import functional_call
+
+from explorer.model import AnytimeDepthNet, build_network, stage_specs
+from explorer.model.image_encoder import ImageEncoderConfig
+from explorer.space import Candidate, SearchSpace
+from explorer.supernet._slicing import slice_of, slot_of, super_name
+
+
+def space_identity(space: SearchSpace) -> dict:
+    """What a supernet depends on in a space: its dimensions, not its name or description."""
+    dims = {k: list(v) for k, v in space.dimensions().items()}
+    dims["required_exits"] = list(space.required_exits)
+    dims["decoder_stages"] = len(space.decoder_widths)
+    return dims
+
+
+def space_key(space: SearchSpace) -> str:
+    text = json.dumps(space_identity(space), sort_keys=True, default=str)
+    return hashlib.sha1(text.encode()).hexdigest()[:10]
+
+
+def largest_candidate(space: SearchSpace, head_depth: int | None = None) -> Candidate:
+    """The biggest network of ``space`` with every exit it allows."""
+    depth = max(space.head_depth) if head_depth is None else head_depth
+    ecu = True in space.ecu
+    last = len(space.decoder_widths)
+    return Candidate(
+        encoder_blocks=max(space.encoder_blocks), width_mult=max(space.width_mult), ecu=ecu,
+        lidar_depth=max(space.lidar_depth), lidar_width=max(space.lidar_width), ecu_band=max(space.ecu_band),
+        ecu_width=max(space.ecu_width), decoder_widths=tuple(max(c) for c in space.decoder_widths),
+        exits=tuple(sorted(set(space.optional_exits) | set(space.required_exits))) + (last,),
+        head_depth=depth, head_width=max(space.head_width) if depth == 2 else 0,
+        encoder_exits=space.optional_encoder_exits, lidar_exit=True in space.lidar_exit,
+        lidar_first=True in space.lidar_first)
+
+
+def smallest_candidate(space: SearchSpace, head_depth: int | None = None) -> Candidate:
+    """The smallest backbone of ``space``, with every exit (heads cost nothing to train along)."""
+    depth = min(space.head_depth) if head_depth is None else head_depth
+    ecu = False not in space.ecu
+    last = len(space.decoder_widths)
+    return Candidate(
+        encoder_blocks=min(space.encoder_blocks), width_mult=min(space.width_mult), ecu=ecu,
+        lidar_depth=min(space.lidar_depth), lidar_width=min(space.lidar_width), ecu_band=min(space.ecu_band),
+        ecu_width=min(space.ecu_width), decoder_widths=tuple(min(c) for c in space.decoder_widths),
+        exits=tuple(sorted(set(space.optional_exits) | set(space.required_exits))) + (last,),
+        head_depth=depth, head_width=min(space.head_width) if depth == 2 else 0,
+        encoder_exits=space.optional_encoder_exits, lidar_exit=True in space.lidar_exit,
+        lidar_first=False not in space.lidar_first)
+
+
+def random_training_subnet(space: SearchSpace, rng: random.Random) -> Candidate:
+    """A random backbone of ``space`` (each dimension drawn uniformly) with every exit."""
+    base = largest_candidate(space)
+    ecu = rng.choice(space.ecu)
+    depth = rng.choice(space.head_depth)
+    return dataclasses.replace(
+        base, encoder_blocks=rng.choice(space.encoder_blocks), width_mult=rng.choice(space.width_mult), ecu=ecu,
+        lidar_depth=rng.choice(space.lidar_depth) if ecu else 0, lidar_width=rng.choice(space.lidar_width) if ecu else 0,
+        ecu_band=rng.choice(space.ecu_band) if ecu else 0, ecu_width=rng.choice(space.ecu_width) if ecu else 0,
+        decoder_widths=tuple(rng.choice(c) for c in space.decoder_widths),
+        head_depth=depth, head_width=rng.choice(space.head_width) if depth == 2 else 0,
+        lidar_first=rng.choice(space.lidar_first))
+
+
+class Supernet(nn.Module):
+    def __init__(self, space: SearchSpace) -> None:
+        super().__init__()
+        self.space = space
+        self.largest = largest_candidate(space)
+        slots: dict[str, nn.Module] = {}
+        for depth in sorted(set(space.head_depth)):
+            widest = largest_candidate(space, depth)
+            # the whole image encoder in one slot; encoder exits split a candidate's encoder into views of it
+            for spec in stage_specs(dataclasses.replace(widest, encoder_exits=())) + stage_specs(widest):
+                slot = slot_of(spec)
+                if slot not in slots and not (isinstance(spec.config, ImageEncoderConfig) and spec.config.start):
+                    slots[slot] = spec.config.build()
+        self.slots = nn.ModuleDict(slots)
+        self.ecu_channels = ImageEncoderConfig(self.largest.encoder_blocks, self.largest.width_mult).out_channels()
+        self._plans: OrderedDict[Candidate, tuple] = OrderedDict()
+
+    # -- candidates as views ------------------------------------------------------------------------
+    def _plan(self, candidate: Candidate) -> tuple[AnytimeDepthNet, list[tuple]]:
+        """A weightless (meta) network of ``candidate`` and, per tensor, where it lives here."""
+        if candidate in self._plans:
+            self._plans.move_to_end(candidate)
+            return self._plans[candidate]
+        if not self.space.contains(candidate) and candidate != self.largest:
+            from explorer.errors import UserError
+            raise UserError(f"candidate {candidate.key} is outside the supernet's space '{self.space.name}': "
+                            "train a supernet for a space that contains it")
+        with torch.device("meta"):
+            template = build_network(candidate)
+        entries = []
+        for spec in template.specs:
+            module = template.stages[spec.name]
+            for local, t in [*module.named_parameters(), *module.named_buffers()]:
+                entries.append((f"stages.{spec.name}.{local}", super_name(spec, local), spec, local, t.shape))
+        plan = (template, entries)
+        self._plans[candidate] = plan
+        if len(self._plans) > 64:
+            self._plans.popitem(last=False)
+        return plan
+
+    def subnet_tensors(self, candidate: Candidate) -> dict[str, torch.Tensor]:
+        """``candidate``'s parameters and buffers, as slices of this supernet's."""
+        _, entries = self._plan(candidate)
+        full = {**dict(self.slots.named_parameters()), **dict(self.slots.named_buffers())}
+        return {key: slice_of(spec, local, full[name], shape, self.ecu_channels)
+                for key, name, spec, local, shape in entries}
+
+    def forward_subnet(self, candidate: Candidate, image: torch.Tensor, scan: torch.Tensor,
+                       scan_row: int | None = None) -> list[torch.Tensor]:
+        """``candidate``'s forward pass on this supernet's weights (differentiable, no copies)."""
+        template, _ = self._plan(candidate)
+        template.train(self.training)
+        return functional_call(template, self.subnet_tensors(candidate), (image, scan, scan_row))
+
+    def forward(self, image: torch.Tensor, scan: torch.Tensor, scan_row: int | None = None) -> list[torch.Tensor]:
+        return self.forward_subnet(self.largest, image, scan, scan_row)
+
+    def extract(self, candidate: Candidate) -> AnytimeDepthNet:
+        """An ordinary network of ``candidate`` carrying copies of its slices of the supernet."""
+        net = build_network(candidate)
+        tensors = self.subnet_tensors(candidate)
+        state = net.state_dict()
+        net.load_state_dict({k: tensors[k].detach().clone() for k in state})
+        return net.to(next(self.parameters()).device)
