@@ -426,7 +426,8 @@ def cmd_supernet_train(args) -> None:
             progress=lambda s, n, r: bar.update(task, completed=s, status=f"largest {r['largest']:.3f}, "
                                                 f"smallest {r['smallest']:.3f}, random {r['random']:.3f}"),
             data_progress=lambda i, n: bar.update(data, completed=i, total=n, visible=True,
-                                                  description="generating synthetic scenes (once)"))
+                                                  description="generating synthetic scenes (once)"),
+            checkpoint_every=max(args.checkpoint_every, 1), max_steps=args.max_steps)
     state = read(path)
     console.print(f"supernet of {space.name}: {path} (step {state['step']}/{recipe.steps}, "
                   f"{state['seconds'] / 60:.1f} min of training)")
@@ -663,6 +664,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--accelerator", default="auto", choices=["auto", "cpu", "cuda"])
     s.add_argument("--out", help="file (default: the cache, where searches find it)")
+    s.add_argument("--checkpoint-every", type=int, default=100, help="steps between checkpoints (default 100)")
+    s.add_argument("--max-steps", type=int, help="stop after this many steps in this run (resume later)")
     s.set_defaults(fn=cmd_supernet_train)
     s = nsub.add_parser("show", help="what a supernet file holds: space, data, recipe, progress")
     s.add_argument("file")

@@ -86,12 +86,12 @@ def export_from_checkpoint(ckpt: Path, out_dir: Path, input_size: tuple[int, int
 def export_from_study(study_name: str, trial_number: int | None, out_dir: Path, storage: str | None,
                       reports: Path, input_size: tuple[int, int] | None = None,
                       devices: Sequence[str] | None = None) -> dict:
-    from explorer.results import best_trial, scored_trials, trial_network
+    from explorer.results import best_trial, scored_trials, trial_network, winner
     from explorer.storage import load_study
     study = load_study(study_name, storage, reports)
     trials = {t.number: t for t in scored_trials(study)}
     if trial_number is None:
-        trial = best_trial(study) or best_trial(study, baseline=True)
+        trial = winner(study) or best_trial(study, baseline=True)
         if trial is None:
             raise UserError(f"study '{study_name}' has no completed trial to export")
     elif trial_number not in trials:

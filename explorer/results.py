@@ -191,6 +191,8 @@ def trial_network(study: optuna.Study, trial: optuna.trial.FrozenTrial):
     from explorer.train import network_from_checkpoint
     artifact = trial.user_attrs.get("weights_artifact")
     root = study.user_attrs.get("artifacts_dir")
+    if not artifact and (trial.user_attrs.get("evaluator") or {}).get("evaluator") == "supernet":
+        return _supernet_network(study, trial)
     if not artifact or not root or not Path(root).is_dir():
         raise UserError(f"trial {trial.number} has no stored weights here (searched with --no-weights, or its "
                         "artifacts live on another machine): train it with `explorer train` and use the checkpoint")
@@ -202,3 +204,24 @@ def trial_network(study: optuna.Study, trial: optuna.trial.FrozenTrial):
             raise UserError(f"trial {trial.number}: its weights could not be read ({exc})") from None
         net, _ = network_from_checkpoint(f)
     return net
+
+
+def _supernet_network(study: optuna.Study, trial: optuna.trial.FrozenTrial):
+    """A supernet-estimated trial's network: its slice of the supernet, BatchNorm recalibrated on
+    the study's training data, exactly as the search evaluated it."""
+    from pathlib import Path
+    from explorer.data import open_dataset
+    from explorer.errors import UserError
+    from explorer.evaluators import _batches, recalibrate_batchnorm
+    from explorer.supernet import load_supernet
+    file = Path(trial.user_attrs["evaluator"]["supernet"])
+    if not file.is_file():
+        raise UserError(f"trial {trial.number} was estimated with supernet {file}, which is not on this machine: "
+                        "export a retrained finalist instead (the default)")
+    net, _ = load_supernet(file)
+    cfg = study.user_attrs.get("config", {})
+    calibration = open_dataset(cfg.get("data", "synthetic"), "train", tuple(cfg.get("train_size", (64, 64))),
+                               train_augment=False)
+    sub = net.extract(Candidate.from_dict(trial.user_attrs["candidate"]))
+    recalibrate_batchnorm(sub, _batches(calibration, 64, 32))
+    return sub

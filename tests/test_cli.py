@@ -109,9 +109,11 @@ def test_search_rescore_report_export_cli(run_cli, tmp_path):
     common = ["--reports", tmp_path]
     code, out, err = run_cli("search", "--study", "cli", "--space", "tiny", "--data", TINY_DATA,
                              "--train-size", "32x32", "--input-size", "64x64", "--train-steps", "4",
-                             "--batch-size", "8", "--trials", "5", "--timeout", "0", *common)
+                             "--batch-size", "8", "--trials", "5", "--timeout", "0", "--supernet-steps", "4",
+                             "--finalists", "1", "--finalist-steps", "4", *common)
     assert code == 0, err
-    assert "ratio to the paper-design baseline" in out and (tmp_path / "cli" / "report.html").is_file()
+    assert "ratio to the retrained paper-design baseline" in out and (tmp_path / "cli" / "report.html").is_file()
+    assert "finalists: search estimate vs retrained" in out
     code, out, _ = run_cli("rescore", "--study", "cli", "--device", "rpi4", "--budget", "energy:uniform:0.5J",
                            "--json", *common)
     assert code == 0 and len(json.loads(out)) >= 3

@@ -18,10 +18,12 @@ from explorer.search import SearchConfig, search
 from explorer.space import Candidate
 from conftest import TINY_DATA
 
+# These tests exercise storage, workers and resume with the proxy evaluator (tests/test_supernet.py
+# covers the supernet evaluator, tests/test_finalists.py the end of a study).
 TINY = dict(space="tiny", data=TINY_DATA, train_size=(32, 32), input_size=(64, 64), train_steps=6,
-            batch_size=8, val_limit=16)
+            batch_size=8, val_limit=16, evaluator="proxy", finalists=0)
 CLI_TINY = ["--space", "tiny", "--data", TINY_DATA, "--train-size", "32x32", "--input-size", "64x64",
-            "--train-steps", "6", "--batch-size", "8", "--no-report"]
+            "--train-steps", "6", "--batch-size", "8", "--no-report", "--evaluator", "proxy", "--finalists", "0"]
 
 
 @pytest.fixture(scope="module")

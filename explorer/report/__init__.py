@@ -27,7 +27,8 @@ from explorer import __version__  # noqa: E402
 from explorer.anytime import anytime_curve, parse_budget  # noqa: E402
 from explorer.cost.devices import DeviceProfile, get_device  # noqa: E402
 from explorer.errors import UserError  # noqa: E402
-from explorer.results import (BASELINE_LABELS, baseline_trial, best_trial, path_table,  # noqa: E402
+from explorer.results import (BASELINE_LABELS, baseline_trial, best_trial, finalists_frame, is_retrained, path_table,
+                              winner,  # noqa: E402
                               scored_trials, trial_anytime_loss, trial_losses, trial_path_costs,
                               trials_frame)
 from explorer.space import Candidate  # noqa: E402
@@ -181,12 +182,26 @@ def build_context(study: optuna.Study, devices: Sequence[str] | None = None,
     dists = [parse_budget(b) for b in budget_list]
     frame = trials_frame(study)
     states = frame["state"].value_counts().to_dict() if not frame.empty else {}
-    best = best_trial(study)
+    best = winner(study)
+    retrained = best is not None and is_retrained(best)
     scored = scored_trials(study)
-    ranked = sorted([t for t in scored if not t.user_attrs.get("baseline")], key=lambda t: t.values[0])[:3]
-    baselines = [t for name in ("paper", "paper-nee", "fastdepth") if (t := baseline_trial(study, name))]
+    ranked = sorted([t for t in scored if not t.user_attrs.get("baseline") and is_retrained(t) == retrained],
+                    key=lambda t: t.values[0])[:3]
+    baselines = [t for name in ("paper", "paper-nee", "fastdepth")
+                 if (t := baseline_trial(study, name, retrained=retrained))]
     ctx: dict = {"study": study.study_name, "config": cfg, "states": states, "versions": _versions(),
-                 "generated": time.strftime("%Y-%m-%d %H:%M:%S"), "figures": {}, "notes": []}
+                 "generated": time.strftime("%Y-%m-%d %H:%M:%S"), "figures": {}, "notes": [],
+                 "evaluator": cfg.get("evaluator", "proxy"), "finalist_steps": cfg.get("finalist_steps")}
+    fin = finalists_frame(study)
+    ctx["finalists"], ctx["finalists_tau"] = "", None
+    if not fin.empty:
+        both = fin.dropna(subset=["estimated"])
+        if len(both) >= 3:
+            from scipy.stats import kendalltau
+            ctx["finalists_tau"] = float(kendalltau(both["estimated"], both["retrained"]).statistic)
+        ctx["finalists"] = _frame_html(fin, "finalists-table")
+    for name, why in (study.user_attrs.get("baselines_not_estimated") or {}).items():
+        ctx["notes"].append(f"Baseline {BASELINE_LABELS.get(name, name)} has no search estimate: {why}.")
     starts = [t.datetime_start for t in study.trials if t.datetime_start]
     ends = [t.datetime_complete for t in study.trials if t.datetime_complete]
     ctx["wall_time"] = f"{(max(ends) - min(starts)).total_seconds() / 60:.1f} min" if starts and ends else "n/a"
@@ -197,10 +212,11 @@ def build_context(study: optuna.Study, devices: Sequence[str] | None = None,
     ctx["multi_objective"] = len(study.directions) > 1
     if best is not None:
         cand = Candidate.from_dict(best.user_attrs["candidate"])
-        ctx["best"] = {"number": best.number, "value": best.values[0], "key": cand.key,
+        how = "retrained" if retrained else f"estimated by the {(best.user_attrs.get('evaluator') or {}).get('evaluator', 'proxy')} evaluator"
+        ctx["best"] = {"number": best.number, "value": best.values[0], "key": cand.key, "how": how,
                        "architecture": cand.describe(), "yaml": cand.to_yaml(),
                        "table": _frame_html(path_table(best, devs), "best-table")}
-        paper = baseline_trial(study, "paper")
+        paper = baseline_trial(study, "paper", retrained=retrained)
         if paper is not None:
             ctx["best"]["ratio"] = best.values[0] / paper.values[0]
     # Table 2: rows = best candidates and baselines, columns = device x budget

@@ -181,6 +181,7 @@ def train_supernet(space: SearchSpace, data: str, recipe: SupernetRecipe = Super
     if recipe.batch_size % (world * recipe.micro_batches):
         raise UserError(f"--batch-size {recipe.batch_size} must divide by processes x micro-batches "
                         f"({world} x {recipe.micro_batches})")
+    torch.manual_seed(recipe.seed)  # every process starts from the same weights
     net = Supernet(space).to(device)
     opt = torch.optim.AdamW(net.parameters(), lr=recipe.lr, weight_decay=recipe.weight_decay)
     step, history, seconds = 0, [], 0.0
