@@ -73,7 +73,8 @@ class RowGrid(nn.Module):
     def forward(self, columns: torch.Tensor, image: torch.Tensor) -> torch.Tensor:
         n, c, w = columns.shape
         rows = image.shape[2] // self.stride
-        position = torch.linspace(-1.0, 1.0, rows, dtype=columns.dtype, device=columns.device)
+        # arange, not linspace: the ONNX exporter writes linspace's constant as float64
+        position = torch.arange(rows, dtype=columns.dtype, device=columns.device) * (2.0 / max(rows - 1, 1)) - 1.0
         position = position.view(1, 1, rows, 1).expand(n, 1, rows, w)
         return torch.cat([columns.unsqueeze(2).expand(n, c, rows, w), position], dim=1)
 
