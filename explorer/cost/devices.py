@@ -19,7 +19,7 @@ from typing import Any, Iterable, Sequence
 import numpy as np
 import yaml
 
-from explorer.cost.workloads import KINDS, Workload
+from explorer.cost.workloads import ALL_KINDS, KINDS, OPTIONAL_KINDS, Workload
 from explorer.errors import UserError
 
 PROFILES_DIR = Path(__file__).resolve().parent / "profiles"
@@ -45,6 +45,11 @@ class DeviceProfile:
     active_power_w: float = 0.0
     provenance: dict[str, Any] = field(default_factory=dict)
     source: str = ""
+
+    def __post_init__(self) -> None:
+        missing = {k: self.kinds[f] for k, f in OPTIONAL_KINDS.items() if k not in self.kinds and f in self.kinds}
+        if missing:  # an optional kind the profile does not price costs what its fallback costs
+            object.__setattr__(self, "kinds", {**self.kinds, **missing})
 
     # -- prediction ----------------------------------------------------------------------------
     def layer_ms(self, w: Workload) -> float:
@@ -107,8 +112,8 @@ class DeviceProfile:
             raise UserError(f"{source}: 'kinds' lacks {lacking}: a profile must price every layer kind {list(KINDS)}")
         kinds = {}
         for k, v in kinds_raw.items():
-            if k not in KINDS:
-                raise UserError(f"{source}: unknown layer kind '{k}'; kinds are {list(KINDS)}")
+            if k not in ALL_KINDS:
+                raise UserError(f"{source}: unknown layer kind '{k}'; kinds are {list(ALL_KINDS)}")
             if not isinstance(v, dict) or set(v) - {"gmacs", "overhead_ms", "bandwidth_gbs"}:
                 raise UserError(f"{source}: kinds.{k} must be a mapping with gmacs, overhead_ms "
                                 "and optionally bandwidth_gbs")
