@@ -1,7 +1,9 @@
 """Device profiles: data (YAML) that turn workloads into latency and energy.
 
 Per layer kind, a profile has an effective compute rate (GMAC/s) and a fixed per-layer cost (ms);
-one memory bandwidth (GB/s) prices bytes moved. On a GPU-like device compute and memory overlap
+one memory bandwidth (GB/s) prices bytes moved, or the kind's own where it has one: memory-bound
+kinds (resize, add, concat, slice) are priced by the bytes they move at their own rate, so their
+cost grows with the tensors as on the device. On a GPU-like device compute and memory overlap
 (a layer takes the longer of the two), on a CPU-like one they add. A run also pays a fixed
 ``inference_overhead_ms`` before its first stage. Energy is a fixed energy per inference plus
 active power times time. ``provenance`` records what a profile was fitted on and its error there.

@@ -14,16 +14,18 @@ Decoders, checked against the paper's parameter counts (Tables 1 and 3):
   (Laina et al.'s up-projection, 63.6 M with ResNet-50) is ``s2d-resnet50-upproj`` /
   ``s2d-resnet18-upproj``; it cannot be what the paper measured (its parameters are 2.2x the
   paper's). The un-pooling of UpProj is a nearest x2 resize here (same tensor sizes and traffic).
-- MonoDepth2: ResNet-18 encoder (11.18 M) + its depth decoder (3.12 M) = 14.30 M; the paper says
-  15.24 M (+6.6%, within 10%; the paper likely counts the encoder's unused ImageNet classifier).
+- MonoDepth2: ResNet-18 encoder (11.18 M) + its depth decoder (3.15 M) = 14.33 M; the paper says
+  15.24 M (-6%, within 10%; the paper likely counts the encoder's unused ImageNet classifier).
+- FastDepth 3.96 M (paper 4.016 M, -1.4%); pruned 1.36 M (fast-depth's 1.34 M, +1.6%).
 
-GFLOPs: the paper's "GFlops" column is not one convention. FastDepth's 0.867 is 18% above its
-0.737 GMACs (FastDepth's own paper says 0.74 GMACs), the paper design's path 4 (0.594) is 7% above
-its 0.554 GMACs, S2D-ResNet-18 at 228x912 (8.593) is 3% below its 8.87 GMACs, MonoDepth2
-(8.051) is 2% above its 7.88 GMACs, while S2D-ResNet-50 at 228x304 (8.910) is 44% above its
-6.20 GMACs (no decoder of Ma & Karaman with 28.39 M parameters reaches 8.9 G multiply-adds). Tests
-check our MAC counts against ``torch.utils.flop_counter`` (exact), and the paper's figures within
-10% except S2D-ResNet-50's and FastDepth's GFLOPs, for the reasons above.
+GFLOPs (``explorer profile NAME --input HxW`` gives our exact MACs): the paper's "GFlops" column is
+multiply-adds under no single convention. S2D-ResNet-18 at 228x912: 8.20 G vs 8.593 (-4.5%);
+MonoDepth2 at 192x640: 8.01 G vs 8.051 (-0.5%); pruned FastDepth 0.366 G vs fast-depth's 0.37.
+Two are off by more than 10%, and explained: FastDepth's 0.737 G (-15%) is what FastDepth's own
+paper says (0.74 GMACs), so the 0.867 counts something beyond its multiply-adds; S2D-ResNet-50 at
+228x304: 6.86 G vs 8.910 (-23%), yet its 28.39 M parameters pin the network exactly (ResNet-50 +
+deconv2), and no decoder of Ma & Karaman with that parameter count reaches 8.9 G. Tests check our
+counts against ``torch.utils.flop_counter`` exactly.
 """
 
 from __future__ import annotations
