@@ -111,7 +111,8 @@ def cmd_profile(args) -> None:
     from explorer.space import SPACES_DIR
     out = []
     device = get_device(args.device) if args.device else None
-    if not Path(args.target).is_file() and not (SPACES_DIR / f"{args.target}.yaml").is_file():
+    looks_like_file = args.target.endswith((".yaml", ".yml")) or "/" in args.target
+    if not looks_like_file and not Path(args.target).is_file() and not (SPACES_DIR / f"{args.target}.yaml").is_file():
         return _profile_reference(args, device)   # a reference network, or one line naming them
     for cand in _candidates_of(args.target):
         frame = profile_candidate(cand, args.input, device)
