@@ -22,7 +22,6 @@ from scipy.optimize import least_squares
 from explorer.cost.devices import PROFILES_DIR, DeviceProfile, KindCost
 from explorer.cost.workloads import ALL_KINDS, BYTES_PER_VALUE, Workload
 
-CONV_KINDS = ("conv", "pointwise", "depthwise", "conv1d")
 MEMORY_KINDS = ("resize", "add", "concat", "slice")
 
 
@@ -152,7 +151,6 @@ def fit_summary(frame: pd.DataFrame, name: str) -> dict:
 
 # -- the shipped profiles -------------------------------------------------------------------------
 PAPER_TX2_PATHS_MS = (6.4, 8.0, 9.8, 12.2)
-FASTDEPTH_TX2_MS = 17.1
 PAPER_TABLE1_RMSE = (0.9871, 0.4651, 0.4225, 0.4184, 0.4156)
 PAPER_RPI4_TABLE2 = {"time:uniform:100ms": 0.755, "time:uniform:50ms": 0.987, "time:uniform:33ms": 0.987,
                      "energy:uniform:0.5J": 0.582, "energy:uniform:0.25J": 0.746}
