@@ -97,9 +97,9 @@ def _profile_reference(args, device) -> None:
         raise UserError("--measure works on candidates only; reference networks are costed, not measured")
     frame = profile_reference(ref.name, args.input, device)
     if args.json:
-        paper = ref.paper.__dict__ if ref.paper else None
+        published = ref.paper.__dict__ if ref.paper else None
         print_json({"reference": ref.name, "description": ref.description, "input_size": list(args.input),
-                    "paths": frame.to_dict("records"), "paper": paper})
+                    "paths": frame.to_dict("records"), "published": published})
         return
     console.print(f"[bold]{ref.name}[/bold]  {ref.description}")
     print_frame(frame, f"at {args.input[0]}x{args.input[1]}" + (f" on {device.name}" if device else ""))
