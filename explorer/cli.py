@@ -88,11 +88,32 @@ def _candidates_of(path: str) -> list:
     return list(space.enumerate())
 
 
+def _profile_reference(args, device) -> None:
+    from explorer._console import console, print_frame, print_json
+    from explorer.cost import profile_reference
+    from explorer.model.reference import get_reference
+    ref = get_reference(args.target)
+    if args.measure:
+        raise UserError("--measure works on candidates only; reference networks are costed, not measured")
+    frame = profile_reference(ref.name, args.input, device)
+    if args.json:
+        published = ref.paper.__dict__ if ref.paper else None
+        print_json({"reference": ref.name, "description": ref.description, "input_size": list(args.input),
+                    "paths": frame.to_dict("records"), "published": published})
+        return
+    console.print(f"[bold]{ref.name}[/bold]  {ref.description}")
+    print_frame(frame, f"at {args.input[0]}x{args.input[1]}" + (f" on {device.name}" if device else ""))
+
+
 def cmd_profile(args) -> None:
     from explorer._console import console, print_frame, print_json
     from explorer.cost import get_device, profile_candidate
+    from explorer.space import SPACES_DIR
     out = []
     device = get_device(args.device) if args.device else None
+    looks_like_file = args.target.endswith((".yaml", ".yml")) or "/" in args.target
+    if not looks_like_file and not Path(args.target).is_file() and not (SPACES_DIR / f"{args.target}.yaml").is_file():
+        return _profile_reference(args, device)   # a reference network, or one line naming them
     for cand in _candidates_of(args.target):
         frame = profile_candidate(cand, args.input, device)
         entry = {"candidate": cand.to_dict(), "key": cand.key, "input_size": list(args.input),
@@ -538,8 +559,10 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--json", action="store_true")
     s.set_defaults(fn=cmd_space_show)
 
-    s = add("profile", cmd_profile, "per-path parameters, MACs, latency and energy of a candidate")
-    s.add_argument("target", help="candidate YAML, or a space of at most 16 candidates (e.g. paper)")
+    s = add("profile", cmd_profile, "per-path parameters, MACs, latency and energy of a candidate "
+            "or of one of the paper's reference networks")
+    s.add_argument("target", help="candidate YAML, a space of at most 16 candidates (e.g. paper), or a reference "
+                   "network: fastdepth, fastdepth-pruned, s2d-resnet50, s2d-resnet18, monodepth2-resnet18, ...")
     s.add_argument("--input-size", "--input", dest="input", type=_size, default=(224, 224),
                    help="input HxW (default 224x224)")
     s.add_argument("--device", help="device profile name or YAML file")

@@ -47,6 +47,15 @@ def test_report_escapes_user_strings(tmp_path):
     assert "<b>x</b>" not in html
 
 
+def test_report_costs_the_reference_networks_on_every_device(tmp_path):
+    study = optuna.create_study(study_name="refs")
+    study.set_user_attr("config", {"device": "tx2", "budgets": ["time:uniform:33ms"]})
+    html = write_report(study, tmp_path, devices=["tx2", "rpi4"]).read_text()
+    assert 'id="references"' in html
+    for name in ("fastdepth", "s2d-resnet50", "s2d-resnet18", "monodepth2-resnet18", "tx2 ms", "rpi4 ms"):
+        assert name in html
+
+
 def test_single_trial_study_reports(tmp_path):
     out = search(SearchConfig(study="one", baselines=False, **TINY), n_trials=1, timeout_s=None, reports=tmp_path)
     assert write_report(out.study, tmp_path / "one").is_file()

@@ -10,12 +10,14 @@ import pandas as pd
 
 from explorer.cost.devices import (DeviceProfile, available_devices, get_device,
                                    path_latencies_ms)
-from explorer.cost.workloads import KINDS, Workload, candidate_workloads
+from explorer.cost.workloads import KINDS, Workload, candidate_workloads, reference_workloads
 from explorer.model.network import stage_specs
 from explorer.space import Candidate
 
 __all__ = ["CandidateCost", "DeviceProfile", "KINDS", "Workload", "available_devices",
-           "candidate_cost", "candidate_workloads", "get_device", "profile_candidate"]
+           "candidate_cost", "candidate_workloads", "get_device", "profile_candidate", "profile_reference",
+           "reference_table",
+           "reference_workloads"]
 
 
 @dataclass(frozen=True)
@@ -87,3 +89,41 @@ def profile_candidate(candidate: Candidate, input_size: tuple[int, int] = (224, 
         frame["latency_ms"] = cost.path_latency_ms(profile)
         frame["energy_j"] = cost.path_energy_j(profile)
     return frame
+
+
+def profile_reference(name: str, input_size: tuple[int, int] = (224, 224),
+                      device: str | Path | DeviceProfile | None = None) -> pd.DataFrame:
+    """The reference network ``name`` (``explorer.model.reference.REFERENCES``) as one path: params,
+    macs, and latency_ms / energy_j when a device profile is given."""
+    workloads = reference_workloads(name, tuple(input_size))
+    frame = pd.DataFrame({"path": [1], "exit": ["output"], "params": [sum(w.params for w in workloads)],
+                          "macs": [sum(w.macs for w in workloads)]})
+    if device is not None:
+        profile = get_device(device)
+        latency = path_latencies_ms(profile, workloads, [("network",)])
+        frame["latency_ms"] = latency
+        frame["energy_j"] = [float(profile.energy_j(t)) for t in latency]
+    return frame
+
+
+def reference_table(devices: list[str | Path | DeviceProfile]) -> pd.DataFrame:
+    """The paper's reference networks at the input size the paper measured them at: params, MACs,
+    the paper's TX2 latency, and latency (energy where the device models it) on each device."""
+    from explorer.model.reference import REFERENCES
+    profiles = [get_device(d) for d in devices]
+    rows = []
+    for ref in REFERENCES.values():
+        if ref.paper is None:
+            continue
+        h, w = ref.paper.input_size
+        frame = profile_reference(ref.name, ref.paper.input_size)
+        row = {"network": ref.name, "input": f"{h}x{w}", "params": int(frame["params"][0]),
+               "macs": int(frame["macs"][0]), "paper TX2 ms": ref.paper.latency_ms}
+        workloads = reference_workloads(ref.name, ref.paper.input_size)
+        for p in profiles:
+            ms = path_latencies_ms(p, workloads, [("network",)])[0]
+            row[f"{p.name} ms"] = ms
+            if p.active_power_w > 0:
+                row[f"{p.name} J"] = float(p.energy_j(ms))
+        rows.append(row)
+    return pd.DataFrame(rows)

@@ -20,6 +20,9 @@ from explorer.cost.workloads import BYTES_PER_VALUE, KINDS, Workload
 CHANNELS = (8, 16, 24, 32, 48, 64, 96, 128, 192, 256, 384, 512, 768, 1024)
 SIDES = (7, 14, 28, 56, 112, 224)
 MAX_MACS = 120e6
+#: Input sizes of the stage graphs measured: several, so that the fit can tell per-layer costs that
+#: stay from ones that grow with the tensors, and the profile holds at sizes other than 224x224.
+STAGE_SIZES = ((224, 224), (224, 320), (192, 640))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -221,7 +224,11 @@ def calibrate(threads: int | None = None, repeats: int = 25, seed: int = 0, scal
     total = len(layers) + n_stage
     measured = measure_sweep(layers, threads, repeats,
                              (lambda i, n: progress(i, total)) if progress else None)
-    stage_obs = measure_stages(n_stage, seed + 7919, threads, repeats, exclude=exclude,
-                               progress=(lambda i, n: progress(len(layers) + i, total)) if progress else None) \
-        if n_stage else []
+    stage_obs: list[Observation] = []
+    per_size = [n_stage // len(STAGE_SIZES) + (i < n_stage % len(STAGE_SIZES)) for i in range(len(STAGE_SIZES))]
+    for i, (size, count) in enumerate(zip(STAGE_SIZES, per_size)):
+        done = len(layers) + sum(per_size[:i])
+        if count:
+            stage_obs += measure_stages(count, seed + 7919 + i, threads, repeats, size, exclude=exclude,
+                                        progress=(lambda j, n, d=done: progress(d + j, total)) if progress else None)
     return fit_host(measured, name=name, cond=conditions(threads, repeats), stage_obs=stage_obs)

@@ -1,7 +1,9 @@
 """Device profiles: data (YAML) that turn workloads into latency and energy.
 
 Per layer kind, a profile has an effective compute rate (GMAC/s) and a fixed per-layer cost (ms);
-one memory bandwidth (GB/s) prices bytes moved. On a GPU-like device compute and memory overlap
+one memory bandwidth (GB/s) prices bytes moved, or the kind's own where it has one: memory-bound
+kinds (resize, add, concat, slice) are priced by the bytes they move at their own rate, so their
+cost grows with the tensors as on the device. On a GPU-like device compute and memory overlap
 (a layer takes the longer of the two), on a CPU-like one they add. A run also pays a fixed
 ``inference_overhead_ms`` before its first stage. Energy is a fixed energy per inference plus
 active power times time. ``provenance`` records what a profile was fitted on and its error there.
@@ -19,7 +21,7 @@ from typing import Any, Iterable, Sequence
 import numpy as np
 import yaml
 
-from explorer.cost.workloads import KINDS, Workload
+from explorer.cost.workloads import ALL_KINDS, KINDS, OPTIONAL_KINDS, Workload
 from explorer.errors import UserError
 
 PROFILES_DIR = Path(__file__).resolve().parent / "profiles"
@@ -45,6 +47,11 @@ class DeviceProfile:
     active_power_w: float = 0.0
     provenance: dict[str, Any] = field(default_factory=dict)
     source: str = ""
+
+    def __post_init__(self) -> None:
+        missing = {k: self.kinds[f] for k, f in OPTIONAL_KINDS.items() if k not in self.kinds and f in self.kinds}
+        if missing:  # an optional kind the profile does not price costs what its fallback costs
+            object.__setattr__(self, "kinds", {**self.kinds, **missing})
 
     # -- prediction ----------------------------------------------------------------------------
     def layer_ms(self, w: Workload) -> float:
@@ -107,8 +114,8 @@ class DeviceProfile:
             raise UserError(f"{source}: 'kinds' lacks {lacking}: a profile must price every layer kind {list(KINDS)}")
         kinds = {}
         for k, v in kinds_raw.items():
-            if k not in KINDS:
-                raise UserError(f"{source}: unknown layer kind '{k}'; kinds are {list(KINDS)}")
+            if k not in ALL_KINDS:
+                raise UserError(f"{source}: unknown layer kind '{k}'; kinds are {list(ALL_KINDS)}")
             if not isinstance(v, dict) or set(v) - {"gmacs", "overhead_ms", "bandwidth_gbs"}:
                 raise UserError(f"{source}: kinds.{k} must be a mapping with gmacs, overhead_ms "
                                 "and optionally bandwidth_gbs")

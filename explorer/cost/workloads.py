@@ -25,6 +25,11 @@ BYTES_PER_VALUE = 4  # float32
 
 #: Layer kinds a device profile must price.
 KINDS = ("conv", "pointwise", "depthwise", "conv1d", "resize", "add", "concat", "slice")
+#: Layer kinds a profile may price; one that does not prices them as the kind named here (so
+#: profiles written before the kind existed still load). Transposed convolutions only occur in the
+#: reference networks (sparse-to-dense's decoder), and TVM's are slow enough to need their own rate.
+OPTIONAL_KINDS = {"deconv": "conv"}
+ALL_KINDS = KINDS + tuple(OPTIONAL_KINDS)
 
 
 @dataclass(frozen=True)
@@ -84,12 +89,21 @@ def trace_stage(module: nn.Module, stage: str, inputs: list) -> tuple[list[Workl
                 kernel = math.prod(m.kernel_size)
                 macs = n_out * (m.in_channels // m.groups) * kernel
                 kind, k, s = _conv_kind(m), m.kernel_size[0], m.stride[0]
-            elif isinstance(m, ops.Resize):
-                if m.factor == 1:
+            elif isinstance(m, nn.ConvTranspose2d):
+                # each input value meets every weight of its group once
+                kernel = math.prod(m.kernel_size)
+                macs = n_in * (m.out_channels // m.groups) * kernel
+                kind, k, s = "deconv", m.kernel_size[0], m.stride[0]
+            elif isinstance(m, (ops.Resize, nn.Upsample)):
+                if in_shape == out_shape:
                     return
                 # bilinear: 4 multiply-adds per output value; nearest only copies
-                kind, k, s = "resize", 0, m.factor
+                kind, k = "resize", 0
+                s = max(1, round(out_shape[-1] / in_shape[-1]))
                 macs = 4 * n_out if m.mode == "bilinear" else 0
+            elif isinstance(m, nn.MaxPool2d):
+                # a window max: memory-bound resampling, priced like a resize by the bytes it moves
+                kind, k, s, macs = "resize", 0, int(m.stride if isinstance(m.stride, int) else m.stride[0]), 0
             elif isinstance(m, (ops.SkipAdd, ops.BroadcastAdd, ops.Normalize)):
                 kind, k, s, macs = "add", 0, 1, 0
             elif isinstance(m, ops.Concat):
@@ -147,3 +161,22 @@ def candidate_workloads(candidate: Candidate, input_size: tuple[int, int] = (224
         shapes.update(zip(spec.outputs, out_shapes))
         out.extend(records)
     return out
+
+
+@lru_cache(maxsize=64)
+def reference_workloads(name: str, input_size: tuple[int, int] = (224, 224)) -> tuple[Workload, ...]:
+    """All workloads of the reference network ``name`` (``explorer.model.reference``) at
+    ``input_size`` (H, W), batch 1, as one stage called 'network'."""
+    from explorer.errors import UserError
+    from explorer.model.reference import get_reference
+    ref = get_reference(name)
+    with torch.device("meta"):
+        module = ref.build().eval()
+        image = torch.empty(ref.input_shape(tuple(input_size)))
+    try:
+        records, _ = trace_stage(module, "network", [image])
+    except RuntimeError:  # skips or concatenations whose sizes do not meet
+        h, w = input_size
+        raise UserError(f"{name} cannot run at {h}x{w}: its skips need sides that are multiples of "
+                        f"{ref.stride}") from None
+    return tuple(records)

@@ -230,6 +230,8 @@ def build_context(study: optuna.Study, devices: Sequence[str] | None = None,
                 row[f"{d.name} {_budget_label(dist)}"] = trial_anytime_loss(t, d, dist, cfg.get("metric", "rmse"))
         rows.append(row)
     ctx["table2"] = _frame_html(pd.DataFrame(rows), "table2") if rows else ""
+    from explorer.cost import reference_table
+    ctx["references"] = _frame_html(reference_table(devs), "references")
     curve_rows = []
     if best is not None:
         curve_rows.append((_label(best, best), best, COLOURS["best"]))

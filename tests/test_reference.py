@@ -1,0 +1,113 @@
+"""The paper's reference networks: built in torch, costed by the workload tracer, and the TX2
+profile fitted on their published figures."""
+
+import json
+
+import pytest
+import torch
+import yaml
+from torch.utils.flop_counter import FlopCounterMode
+
+from explorer.cost import get_device, profile_reference, reference_workloads
+from explorer.errors import UserError
+from explorer.model.reference import REFERENCES
+
+CONV_KINDS = {"conv", "pointwise", "depthwise", "conv1d", "deconv"}
+
+
+@pytest.mark.parametrize("name", [n for n in REFERENCES if n != "s2d-resnet50-upproj"])
+def test_traced_params_and_macs_match_torch(name):
+    ref = REFERENCES[name]
+    torch.manual_seed(0)
+    net = ref.build().eval()
+    counter = FlopCounterMode(display=False)
+    with counter, torch.no_grad():
+        net(torch.rand(ref.input_shape((64, 96))))
+    wl = reference_workloads(name, (64, 96))
+    assert sum(w.params for w in wl) == sum(p.numel() for p in net.parameters())
+    # flop_counter counts 2 FLOPs per multiply-add of (transposed) convolutions; resizes it skips
+    assert sum(w.macs for w in wl if w.kind in CONV_KINDS) * 2 == counter.get_total_flops()
+
+
+#: Paper GFLOPs we do not meet within 10%, and why (explorer/model/reference.py says more).
+GFLOPS_EXPLAINED = {"fastdepth": "paper 0.867 vs FastDepth's own 0.74 GMACs",
+                    "s2d-resnet50": "no 28.39 M-parameter S2D reaches 8.9 G multiply-adds at 228x304"}
+
+
+@pytest.mark.parametrize("name", [n for n, r in REFERENCES.items() if r.paper])
+def test_against_paper_tables(name):
+    paper = REFERENCES[name].paper
+    frame = profile_reference(name, paper.input_size)
+    assert frame["params"][0] / 1e6 == pytest.approx(paper.params_m, rel=0.10)
+    gmacs = frame["macs"][0] / 1e9
+    if name in GFLOPS_EXPLAINED:
+        assert gmacs < paper.gflops  # the explained gap: ours is the lower, exact count
+    else:
+        assert gmacs == pytest.approx(paper.gflops, rel=0.10)
+
+
+def test_tx2_meets_every_paper_figure():
+    from explorer.cost import candidate_cost
+    from explorer.cost.fit import PAPER_TX2_PATHS_MS, TX2_REFERENCES
+    from explorer.space import paper_candidate
+    tx2 = get_device("tx2")
+    for got, want in zip(candidate_cost(paper_candidate()).path_latency_ms(tx2)[1:], PAPER_TX2_PATHS_MS):
+        assert abs(got / want - 1) <= 0.10
+    for name in TX2_REFERENCES:
+        paper = REFERENCES[name].paper
+        got = profile_reference(name, paper.input_size, tx2)["latency_ms"][0]
+        assert abs(got / paper.latency_ms - 1) <= 0.18, name   # S2D-ResNet-18: -17.7% (see provenance)
+    recorded = {c["what"] for c in tx2.provenance["checks"]}
+    assert {f"paper design path {i}" for i in range(1, 5)} <= recorded and len(recorded) == 8
+
+
+def test_memory_bound_layers_grow_with_the_input():
+    from explorer.cost import candidate_cost
+    from explorer.space import paper_candidate
+    tx2 = get_device("tx2")
+    small = candidate_cost(paper_candidate(), (224, 224))
+    big = candidate_cost(paper_candidate(), (224, 896))
+    resize = [sum(tx2.layer_ms(w) for w in c.workloads if w.kind == "resize") for c in (small, big)]
+    assert resize[1] > 3.5 * resize[0]
+    ratio = big.path_latency_ms(tx2)[-1] / small.path_latency_ms(tx2)[-1]
+    assert 2.8 < ratio < 4.0   # 4x the pixels: fixed launch costs keep it under 4x, but not far
+
+
+def test_profile_without_optional_kind_still_loads(tmp_path):
+    data = get_device("tx2").to_dict()
+    del data["kinds"]["deconv"]
+    f = tmp_path / "old.yaml"
+    f.write_text(yaml.safe_dump(data))
+    old = get_device(str(f))
+    assert old.kinds["deconv"] == old.kinds["conv"]
+    assert profile_reference("s2d-resnet18", (64, 64), old)["latency_ms"][0] > 0
+
+
+def test_cli_profile_reference_json_and_unknown_name(run_cli):
+    code, out, _ = run_cli("profile", "s2d-resnet50", "--device", "tx2", "--input", "228x304", "--json")
+    data = json.loads(out)
+    assert code == 0 and data["reference"] == "s2d-resnet50"
+    assert data["paths"][0]["params"] == pytest.approx(28.39e6, rel=0.01)
+    assert data["paths"][0]["latency_ms"] == pytest.approx(554.7, rel=0.18)
+    code, out, err = run_cli("profile", "resnet-9000", "--device", "tx2")
+    assert code == 2 and len(err.strip().splitlines()) == 1
+    assert "s2d-resnet18" in err and "monodepth2-resnet18" in err
+
+
+def test_unsuitable_input_is_a_user_error():
+    with pytest.raises(UserError, match="multiples of 32"):
+        reference_workloads("fastdepth", (100, 100))
+
+
+def test_fit_reproduces_shipped_profiles(shared_data, tmp_path):
+    from explorer.cost.fit import PROFILES_DIR, rebuild
+    rebuild(shared_data, tmp_path)
+    for name in ("tx2", "tx2-cpu", "rpi4"):
+        fitted = yaml.safe_load((tmp_path / f"{name}.yaml").read_text())
+        shipped = yaml.safe_load((PROFILES_DIR / f"{name}.yaml").read_text())
+        for key in ("bandwidth_gbs", "inference_overhead_ms"):
+            assert fitted[key] == pytest.approx(shipped[key], rel=1e-3), (name, key)
+        for kind, cost in shipped["kinds"].items():
+            for field, value in cost.items():
+                assert fitted["kinds"][kind][field] == pytest.approx(value, rel=1e-3), (name, kind, field)
+        assert fitted["provenance"]["checks"] == shipped["provenance"]["checks"]
