@@ -338,7 +338,8 @@ def cmd_search(args) -> None:
         max_first_exit_ms=args.max_first_exit, baselines=not args.no_baselines,
         pruning=not args.no_pruning, keep_weights=not args.no_weights, accelerator=args.accelerator,
         evaluator=args.evaluator, supernet=args.supernet, supernet_steps=args.supernet_steps,
-        finalists=args.finalists, finalist_steps=args.finalist_steps)
+        finalists=args.finalists, finalist_steps=args.finalist_steps,
+        max_retries=args.max_retries)
     cfg.validate()
     reports = Path(args.reports)
     timeout = None if args.timeout == 0 else args.timeout
@@ -363,13 +364,14 @@ def cmd_search(args) -> None:
             nonlocal t0
             if "search_start" not in phases:
                 phases["search_start"], t0 = True, time.time()
-            done = [t for t in study_obj.get_trials(deepcopy=False) if t.state.is_finished()]
-            complete = [t for t in done if t.state == optuna.trial.TrialState.COMPLETE and t.values]
+            from explorer.retry import counted_trials
+            complete = study_obj.get_trials(deepcopy=False, states=(optuna.trial.TrialState.COMPLETE,))
+            complete = [t for t in complete if t.values]
             best = min((t.values[0] for t in complete), default=float("nan"))
             last = f"trial {trial.number} {trial.state.name.lower()}" + (
                 f" {trial.values[0]:.4f}" if trial is not None and trial.values else "") if trial else ""
             left = "" if timeout is None else f", {max(timeout - (time.time() - t0), 0) / 60:.1f} min left"
-            bar.update(task, completed=len(done), status=f"{last}  best {best:.4f}{left}")
+            bar.update(task, completed=counted_trials(study_obj), status=f"{last}  best {best:.4f}{left}")
 
         def data(i: int, n: int) -> None:
             bar.update(task, status=f"generating synthetic scenes {i}/{n} (once, then cached)")
@@ -379,14 +381,30 @@ def cmd_search(args) -> None:
                          on_supernet=supernet, on_finalist=finalist)
     if outcome.interrupted_failed:
         err_console.print(f"marked {outcome.interrupted_failed} interrupted trial(s) as failed")
+    _print_retries(outcome, cfg)
     _print_outcome(outcome.study, cfg, outcome.storage_url, reports, args.report)
+
+
+def _print_retries(outcome, cfg) -> None:
+    from explorer._console import err_console
+    from explorer.results import BASELINE_LABELS
+    trials = {t.number: t for t in outcome.study.get_trials(deepcopy=False)}
+    def what(n: int) -> str:
+        b = trials[n].user_attrs.get("baseline") if n in trials else None
+        return f"trial {n}" + (f" ({BASELINE_LABELS.get(b, b)})" if b else "")
+    for old, new in outcome.retried.items():
+        err_console.print(f"{what(old)} was interrupted: tried again as trial {new}")
+    for old in outcome.not_retried:
+        err_console.print(f"{what(old)} was interrupted and is not tried again (--max-retries {cfg.max_retries} "
+                          "reached)")
 
 
 def _print_outcome(study, cfg, storage_url: str, reports: Path, write_report: bool) -> None:
     import optuna
     from explorer._console import console, print_frame
     from explorer.cost import get_device
-    from explorer.results import baseline_trial, best_trial, finalists_frame, is_retrained, path_table, winner
+    from explorer.results import (baseline_trial, best_trial, finalists_frame, is_retrained, missing_baselines,
+                                  path_table, winner)
     from explorer.space import Candidate
     states = [t.state for t in study.get_trials(deepcopy=False)]
     count = {s.name.lower(): states.count(s) for s in optuna.trial.TrialState if states.count(s)}
@@ -411,11 +429,17 @@ def _print_outcome(study, cfg, storage_url: str, reports: Path, write_report: bo
             kind = "retrained " if retrained else ""
             console.print(f"ratio to the {kind}paper-design baseline ({paper.values[0]:.4f}): "
                           f"[bold]{best.values[0] / paper.values[0]:.3f}[/bold]")
-        else:
-            console.print("no ratio to the paper design: its baseline trial has not completed "
-                          "(--no-baselines, failed, or not run yet)")
         if retrained and estimate is not None and estimate.number != best.user_attrs["finalist"].get("estimate_trial"):
             console.print(f"  (the search's best estimate was trial {estimate.number}; retraining ranked another first)")
+    # a missing comparison is said, with why, never dropped silently
+    missing = missing_baselines(study)
+    if missing and all("--no-baselines" in m["why"] for m in missing):
+        console.print("no baselines (the study was created with --no-baselines): no ratio to the paper design")
+    else:
+        for m in missing:
+            lead = "no ratio to the paper-design baseline:" if m["name"] == "paper" and best is not None \
+                else f"baseline {m['label']} missing:"
+            console.print(f"{lead} {m['why']}", markup=False, highlight=False)
     console.print(f"study: {storage_url}")
     if write_report:
         try:
@@ -662,6 +686,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--accelerator", default="auto", choices=["auto", "cpu", "cuda"])
     s.add_argument("--no-baselines", action="store_true")
+    s.add_argument("--max-retries", type=int, default=2, help="try an interrupted trial (killed, Ctrl-C, "
+                   "lost worker) again at most this many times (default 2); a trial that fails is not")
     s.add_argument("--no-pruning", action="store_true")
     s.add_argument("--no-weights", action="store_true", help="do not keep trained weights as artifacts")
     s.add_argument("--no-report", dest="report", action="store_false", help="skip the HTML report")

@@ -58,11 +58,28 @@ def scored_trials(study: optuna.Study) -> list[optuna.trial.FrozenTrial]:
             if "path_metrics" in t.user_attrs and "workloads" in t.user_attrs]
 
 
+def _reason(t: optuna.trial.FrozenTrial, interrupted: dict[int, str], retries: dict) -> str:
+    ua = t.user_attrs
+    reason = (ua.get("rejected") or ua.get("pruned") or interrupted.get(t.number)
+              or t.system_attrs.get("fail_reason", "")
+              or (f"same candidate as trial {ua['duplicate_of']}" if "duplicate_of" in ua else ""))
+    if t.number in interrupted:
+        retry = retries.get(t.number)
+        reason += f"; tried again as trial {retry.number}" if retry is not None else "; not tried again"
+    if "retry_of" in ua:
+        reason = f"retry of trial {ua['retry_of']}" + (f"; {reason}" if reason else "")
+    return reason
+
+
 def trials_frame(study: optuna.Study) -> pd.DataFrame:
     """One row per trial: state, objective value(s), baseline tag, candidate, params, MACs,
-    per-path metrics and costs as stored, and every recorded budget's anytime loss."""
+    per-path metrics and costs as stored, every recorded budget's anytime loss, and why a trial
+    did not complete (rejected, pruned, failed, interrupted and tried again as which trial)."""
+    from explorer.retry import interrupted_trials, retries_by_origin
     rows = []
-    for t in study.get_trials(deepcopy=False):
+    trials = study.get_trials(deepcopy=False)
+    interrupted, retries = interrupted_trials(study, trials), retries_by_origin(trials)
+    for t in trials:
         ua = t.user_attrs
         row = {"number": t.number, "state": t.state.name,
                "value": (t.values[0] if t.values else np.nan),
@@ -77,8 +94,8 @@ def trials_frame(study: optuna.Study) -> pd.DataFrame:
                "last_exit_ms": (ua.get("latency_ms") or [np.nan])[-1],
                "last_rmse": (ua.get("path_metrics") or [{"rmse": np.nan}])[-1]["rmse"],
                "duration_s": t.duration.total_seconds() if t.duration else np.nan,
-               "reason": (ua.get("rejected") or ua.get("pruned") or t.system_attrs.get("fail_reason", "")
-                          or (f"same candidate as trial {ua['duplicate_of']}" if "duplicate_of" in ua else ""))}
+               "retry_of": ua.get("retry_of", np.nan),
+               "reason": _reason(t, interrupted, retries)}
         if t.values and len(t.values) > 1:
             for i, v in enumerate(t.values):
                 row[f"value_{i}"] = v
@@ -153,6 +170,50 @@ def finalists_frame(study: optuna.Study) -> pd.DataFrame:
     frame["retrained_rank"] = range(1, len(frame) + 1)
     frame["estimated_rank"] = frame["estimated"].rank(method="min").astype("Int64")
     return frame
+
+
+def missing_baselines(study: optuna.Study) -> list[dict]:
+    """The baselines that have no scored trial, each as {"name", "label", "why"}, "why" saying what
+    happened to it: not run (--no-baselines, or not yet: queued), still running, failed (its reason),
+    interrupted and not tried again. Summaries and reports print these instead of dropping a row."""
+    from explorer.retry import interrupted_trials
+    trials = study.get_trials(deepcopy=False)
+    scored = {t.user_attrs.get("baseline") for t in scored_trials(study)}
+    interrupted = interrupted_trials(study, trials)
+    with_baselines = study.user_attrs.get("config", {}).get("baselines", True)
+    out = []
+    for name, label in BASELINE_LABELS.items():
+        if name in scored:
+            continue
+        tagged = [t for t in trials if t.user_attrs.get("baseline") == name]
+        if not tagged:
+            skipped = (study.user_attrs.get("baselines_not_estimated") or {}).get(name)
+            why = ("not run: the study was created with --no-baselines" if not with_baselines
+                   else f"not estimated: {skipped}; not retrained yet (--finalists 0, or the study has "
+                   "not ended)" if skipped else "not run: it is not in this study")
+            out.append({"name": name, "label": label, "why": why})
+            continue
+        t = tagged[-1]  # the latest attempt
+        ua, state = t.user_attrs, t.state
+        earlier = f" (trial {ua['retry_of']} was {interrupted.get(ua['retry_of'], 'interrupted')})" \
+            if "retry_of" in ua else ""
+        if state == optuna.trial.TrialState.WAITING:
+            why = f"not run yet: queued as trial {t.number}{earlier}; run the search longer"
+        elif state == optuna.trial.TrialState.RUNNING:
+            why = (f"still running as trial {t.number}{earlier}, or its process was killed: resume the "
+                   "search to try it again")
+        elif t.number in interrupted:
+            attempts = len(t.system_attrs.get("retry_history", [])) + 1
+            why = (f"trial {t.number} was {interrupted[t.number]} and was not tried again ({attempts} "
+                   f"interrupted attempt(s)); resume the search with --max-retries {attempts} or more")
+        elif state == optuna.trial.TrialState.FAIL:
+            why = f"failed in trial {t.number}: {t.system_attrs.get('fail_reason') or 'no reason recorded'}"
+        elif state == optuna.trial.TrialState.PRUNED:
+            why = f"pruned in trial {t.number}: {ua.get('pruned') or ua.get('rejected') or 'no reason recorded'}"
+        else:
+            why = f"trial {t.number} finished without per-path metrics"
+        out.append({"name": name, "label": label, "why": why})
+    return out
 
 
 def path_table(trial: optuna.trial.FrozenTrial, devices: Sequence[DeviceProfile] = ()) -> pd.DataFrame:

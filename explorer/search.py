@@ -30,13 +30,19 @@ from explorer.errors import UserError
 from explorer.results import compact_workloads
 from explorer.space import (Candidate, SearchSpace, fastdepth_candidate, paper_candidate,
                             paper_nee_candidate)
-from explorer.storage import REPORTS_DIR, fail_interrupted_trials, open_storage, study_dir
 from explorer.evaluators import EVALUATORS, ProxyEvaluator, SupernetEvaluator
+from explorer.retry import StopAfterTrials, counted_trials, guarded, resume_interrupted, set_objective_names
+from explorer.storage import REPORTS_DIR, open_storage, study_dir
 from explorer.train import PROXY, Pruned, TrainConfig, resolve_device, train
 
 BASELINES: dict[str, Callable[[], Candidate]] = {
     "paper": paper_candidate, "paper-nee": paper_nee_candidate, "fastdepth": fastdepth_candidate}
 OBJECTIVES = ("anytime_loss", "params", "macs", "first_exit_ms")
+
+
+def objective_names(config: "SearchConfig") -> list[str]:
+    """What each objective is, for optuna-dashboard and Optuna's plots: anytime_loss[time:uniform:33ms]."""
+    return [f"anytime_loss[{config.budgets[0]}]" if o == "anytime_loss" else o for o in config.objectives]
 
 
 @dataclass(frozen=True)
@@ -66,6 +72,7 @@ class SearchConfig:
     supernet_steps: int = 1000
     finalists: int = 3                           # retrained stand-alone at the end (0 = none)
     finalist_steps: int = 300
+    max_retries: int = 2          # an interrupted trial (killed, Ctrl-C, lost worker) is tried again
 
     def to_dict(self) -> dict:
         d = dataclasses.asdict(self)
@@ -120,6 +127,8 @@ class SearchConfig:
             raise UserError("--supernet-steps and --finalist-steps must be at least 1")
         if self.finalists < 0:
             raise UserError("--finalists must be 0 (none) or more")
+        if self.max_retries < 0:
+            raise UserError("--max-retries must be 0 or more")
 
     # settings that change what a trial's value means: a resumed study must keep them
     IDENTITY = ("space", "device", "budgets", "data", "objectives", "metric", "input_size", "train_size",
@@ -321,11 +330,7 @@ def create_or_resume(config: SearchConfig, storage: optuna.storages.BaseStorage)
                     continue
                 study.enqueue_trial({}, user_attrs={"baseline": name})
             study.set_user_attr("baselines_not_estimated", skipped)
-        import warnings
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
-            # optuna-dashboard and every Optuna tool show what is minimised, not "Objective 0"
-            study.set_metric_names([f"anytime_loss[{config.budgets[0]}]"] + list(config.objectives[1:]))
+        set_objective_names(study, objective_names(config))
     else:
         old = study.user_attrs.get("config")
         if old:
@@ -337,6 +342,7 @@ def create_or_resume(config: SearchConfig, storage: optuna.storages.BaseStorage)
                     f"study '{config.study}' was created with {k}={getattr(prev, k)!r}, not "
                     f"{getattr(config, k)!r}: resume with the same settings, pick another --study, or "
                     "use `explorer rescore` for another device or budget")
+        set_objective_names(study, objective_names(config))  # studies made before objectives had names
     return study
 
 
@@ -346,6 +352,8 @@ class SearchOutcome:
     storage_url: str
     seconds: float
     interrupted_failed: int = 0
+    retried: dict[int, int] = dataclasses.field(default_factory=dict)   # interrupted trial -> its retry
+    not_retried: list[int] = dataclasses.field(default_factory=list)    # interrupted past --max-retries
 
 
 def run_worker(config_dict: dict, storage_url: str | None, n_trials: int | None, deadline: float | None,
@@ -354,7 +362,7 @@ def run_worker(config_dict: dict, storage_url: str | None, n_trials: int | None,
     import torch
     torch.set_num_threads(max(threads, 1))
     config = SearchConfig.from_dict(config_dict)
-    storage = open_storage(storage_url, config.study, workers=2, reports=Path(reports))
+    storage = open_storage(storage_url, config.study, workers=2, reports=Path(reports), max_retries=config.max_retries)
     study = optuna.load_study(study_name=config.study, storage=storage, sampler=make_sampler(config, worker),
                               pruner=make_pruner(config))
     objective = Objective(config, study_dir(config.study, Path(reports)))
@@ -363,17 +371,17 @@ def run_worker(config_dict: dict, storage_url: str | None, n_trials: int | None,
 
 def _optimize(study: optuna.Study, objective: Objective, n_trials: int | None, deadline: float | None,
               callbacks: list | None = None) -> None:
-    from optuna.study import MaxTrialsCallback
-    from optuna.trial import TrialState
     cbs = list(callbacks or [])
     if n_trials is not None:
-        cbs.append(MaxTrialsCallback(n_trials, states=(TrialState.COMPLETE, TrialState.PRUNED, TrialState.FAIL)))
-        if len(study.get_trials(deepcopy=False, states=(TrialState.COMPLETE, TrialState.PRUNED, TrialState.FAIL))) >= n_trials:
+        # interrupted trials do not count (their retries do): see explorer.retry
+        cbs.append(StopAfterTrials(n_trials))
+        if counted_trials(study) >= n_trials:
             return
     timeout = None if deadline is None else max(deadline - time.time(), 0.0)
     if timeout is not None and timeout <= 0:
         return
-    study.optimize(objective, timeout=timeout, callbacks=cbs, catch=(Exception,), gc_after_trial=True)
+    study.optimize(guarded(objective, objective.config.max_retries), timeout=timeout, callbacks=cbs,
+                   catch=(Exception,), gc_after_trial=True)
 
 
 def ensure_supernet(config: SearchConfig, progress: Callable[[int, int, dict], None] | None = None,
@@ -404,12 +412,13 @@ def search(config: SearchConfig, storage_url: str | None = None, workers: int = 
     config.validate()
     if workers < 1:
         raise UserError("--workers must be at least 1")
-    storage = open_storage(storage_url, config.study, workers, reports)
+    storage = open_storage(storage_url, config.study, workers, reports, max_retries=config.max_retries)
     study = create_or_resume(config, storage)
-    # No worker of this run has started yet; on local storage nobody else can be running.
-    failed = 0
+    # No worker of this run has started yet; on local storage nobody else can be running: its RUNNING
+    # trials were interrupted (kill -9), and are tried again. RDB storage does this by heartbeat.
+    failed, retried, not_retried = 0, {}, []
     if storage_url is None or storage_url.startswith("sqlite"):
-        failed = fail_interrupted_trials(study)
+        failed, retried, not_retried = resume_interrupted(study, config.max_retries)
     if config.keep_weights:
         study.set_user_attr("artifacts_dir", str((study_dir(config.study, reports) / "artifacts").resolve()))
     url = storage_url or (f"journal:{reports / config.study / 'journal.log'}" if workers > 1
@@ -447,4 +456,4 @@ def search(config: SearchConfig, storage_url: str | None = None, workers: int = 
     if config.finalists:
         from explorer.finalists import retrain_finalists
         retrain_finalists(study, config, reports, progress=on_finalist)
-    return SearchOutcome(study, url, time.time() - t0, failed)
+    return SearchOutcome(study, url, time.time() - t0, failed, retried, not_retried)

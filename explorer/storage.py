@@ -3,6 +3,7 @@ machine, PostgreSQL (or any RDB URL) for several machines. SQLite with several w
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import optuna
@@ -10,6 +11,25 @@ import optuna
 from explorer.errors import UserError
 
 REPORTS_DIR = Path("reports")
+# RDB storage (PostgreSQL): a running trial records a heartbeat every HEARTBEAT_S seconds; one silent
+# for GRACE_S is failed by another worker (and tried again, see explorer.retry). Both can be set in
+# the environment (ANYTIME_EXPLORER_HEARTBEAT_S, ANYTIME_EXPLORER_GRACE_S), e.g. short ones for tests.
+HEARTBEAT_S, GRACE_S = 30, 120
+
+
+def heartbeat_settings() -> tuple[int, int]:
+    """(heartbeat interval, grace period) in whole seconds, from the environment or the defaults."""
+    out = []
+    for var, default in (("ANYTIME_EXPLORER_HEARTBEAT_S", HEARTBEAT_S), ("ANYTIME_EXPLORER_GRACE_S", GRACE_S)):
+        text = os.environ.get(var, "").strip()
+        try:
+            value = int(text) if text else default
+        except ValueError:
+            raise UserError(f"{var}={text!r}: give a whole number of seconds") from None
+        if value < 1:
+            raise UserError(f"{var}={text!r}: give at least 1 second")
+        out.append(value)
+    return out[0], out[1]
 
 
 def study_dir(study: str, reports: Path = REPORTS_DIR) -> Path:
@@ -27,9 +47,10 @@ def journal_path(study: str, reports: Path = REPORTS_DIR) -> Path:
 
 
 def open_storage(url: str | None, study: str, workers: int = 1, reports: Path = REPORTS_DIR,
-                 create: bool = True) -> optuna.storages.BaseStorage:
+                 create: bool = True, max_retries: int | None = None) -> optuna.storages.BaseStorage:
     """The storage for ``study``. ``url`` None: SQLite in reports/<study>/ for one worker, a journal
-    file there for several. A ``journal:PATH`` URL names a journal file explicitly."""
+    file there for several. A ``journal:PATH`` URL names a journal file explicitly. ``max_retries``
+    (searching workers): on RDB storage, a trial whose worker stopped is tried again that many times."""
     if url is None:
         if workers > 1 or journal_path(study, reports).exists():
             url = f"journal:{journal_path(study, reports)}"
@@ -52,11 +73,13 @@ def open_storage(url: str | None, study: str, workers: int = 1, reports: Path = 
                             "or give --storage)")
         path.parent.mkdir(parents=True, exist_ok=True)
     url = _with_driver(url)
+    kwargs = {}
+    if not url.startswith("sqlite"):
+        # crashed workers' trials are failed by the others after the grace period, and retried
+        from explorer.retry import rdb_retry_kwargs
+        interval, grace = heartbeat_settings()
+        kwargs = {"heartbeat_interval": interval, "grace_period": grace, **rdb_retry_kwargs(max_retries, grace)}
     try:
-        kwargs = {}
-        if not url.startswith("sqlite"):
-            # crashed workers' trials are failed by the others after the grace period
-            kwargs = {"heartbeat_interval": 30, "grace_period": 120}
         import warnings
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
@@ -96,8 +119,8 @@ def load_study(study: str, url: str | None = None, reports: Path = REPORTS_DIR) 
 
 
 def fail_interrupted_trials(study: optuna.Study) -> int:
-    """Marks RUNNING trials as FAIL (their process died, e.g. kill -9). Only call when no other
-    worker can be running on this study."""
+    """Marks RUNNING trials as FAIL, interrupted (their process died, e.g. kill -9). Only call when no
+    other worker can be running on this study. ``explorer.retry.resume_interrupted`` also retries them."""
     n = 0
     for t in study.get_trials(deepcopy=False, states=(optuna.trial.TrialState.RUNNING,)):
         study._storage.set_trial_system_attr(t._trial_id, "fail_reason", "interrupted (process killed)")

@@ -87,6 +87,7 @@ def test_multi_objective(tmp_path):
     cfg = SearchConfig(study="mo", baselines=False, objectives=("anytime_loss", "params"), **TINY)
     out = search(cfg, n_trials=3, timeout_s=None, reports=tmp_path)
     assert len(out.study.directions) == 2
+    assert out.study.metric_names == ["anytime_loss[time:uniform:33ms]", "params"]  # named for dashboards
     assert all(len(t.values) == 2 for t in out.study.get_trials() if t.values)
 
 
@@ -138,6 +139,7 @@ def test_kill_9_then_resume(tmp_path):
     assert "RUNNING" not in after
     study = optuna.load_study(study_name="killed", storage=f"sqlite:///{db}")
     assert "interrupted" in study.trials[len(before) - 1].system_attrs["fail_reason"]
+    assert [t.user_attrs.get("retry_of") for t in study.trials].count(len(before) - 1) == 1  # tried again
 
 
 POSTGRES = "postgresql://postgres@127.0.0.1:5432/test"

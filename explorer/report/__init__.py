@@ -27,10 +27,9 @@ from explorer import __version__  # noqa: E402
 from explorer.anytime import anytime_curve, parse_budget  # noqa: E402
 from explorer.cost.devices import DeviceProfile, get_device  # noqa: E402
 from explorer.errors import UserError  # noqa: E402
-from explorer.results import (BASELINE_LABELS, baseline_trial, best_trial, finalists_frame, is_retrained, path_table,
-                              winner,  # noqa: E402
-                              scored_trials, trial_anytime_loss, trial_losses, trial_path_costs,
-                              trials_frame)
+from explorer.results import (BASELINE_LABELS, baseline_trial, best_trial, finalists_frame,  # noqa: E402
+                              is_retrained, missing_baselines, path_table, scored_trials, trial_anytime_loss,
+                              trial_losses, trial_path_costs, trials_frame, winner)
 from explorer.space import Candidate  # noqa: E402
 
 TABLE2_BUDGETS = ("time:uniform:100ms", "time:uniform:50ms", "time:uniform:33ms",
@@ -219,6 +218,9 @@ def build_context(study: optuna.Study, devices: Sequence[str] | None = None,
         paper = baseline_trial(study, "paper", retrained=retrained)
         if paper is not None:
             ctx["best"]["ratio"] = best.values[0] / paper.values[0]
+    # a baseline without a row is named, with why (not run, queued, failed, interrupted)
+    ctx["missing_baselines"] = missing_baselines(study)
+    ctx["no_ratio"] = next((m["why"] for m in ctx["missing_baselines"] if m["name"] == "paper"), "")
     # Table 2: rows = best candidates and baselines, columns = device x budget
     rows = []
     for t in ranked + baselines:
@@ -257,7 +259,7 @@ def build_context(study: optuna.Study, devices: Sequence[str] | None = None,
             ctx["figures"]["depth_maps"] = png
         elif note:
             ctx["notes"].append(f"Depth maps left out: {note}.")
-    cols = ["number", "state", "value", "baseline", "candidate_key", "params", "macs", "paths",
+    cols = ["number", "state", "value", "baseline", "retry_of", "candidate_key", "params", "macs", "paths",
             "first_exit_ms", "last_exit_ms", "last_rmse", "duration_s", "reason", "architecture"]
     ctx["trials"] = _frame_html(frame[[c for c in cols if c in frame.columns]], "trials") if not frame.empty else ""
     return ctx
