@@ -9,7 +9,6 @@ import tarfile
 import time
 from pathlib import Path
 
-import numpy as np
 import pytest
 import yaml
 

@@ -116,6 +116,7 @@ class PowerSensor:
     kind = "power"
     name = "sensor"
     what = ""
+    interval_s = 0.02   # between samples while sampling in the background
 
     def read(self):  # pragma: no cover - interface
         raise NotImplementedError
@@ -267,6 +268,7 @@ class RpiPmic(PowerSensor):
     """Raspberry Pi 5's PMIC through ``vcgencmd pmic_read_adc`` (each reading starts the command)."""
 
     name = "rpi5-pmic"
+    interval_s = 0.25   # every reading starts a process: sample rarely, so it does not load the CPU
 
     def __init__(self, command: str) -> None:
         self.command = command
@@ -313,8 +315,8 @@ class PowerWindow:
     """Mean power (W) over a ``with`` block: energy counters read at both ends, instantaneous
     sensors sampled every ``interval_s`` by a background thread (and once at each end)."""
 
-    def __init__(self, sensor: PowerSensor, interval_s: float = 0.02) -> None:
-        self.sensor, self.interval_s = sensor, interval_s
+    def __init__(self, sensor: PowerSensor, interval_s: float | None = None) -> None:
+        self.sensor, self.interval_s = sensor, interval_s or sensor.interval_s
         self.watts = float("nan")
         self.seconds = 0.0
         self.samples = 0
@@ -455,6 +457,7 @@ def run_probe(bundle_dir: "str | Path", out: "str | Path", provider: str = DEFAU
     Returns the results, also written (atomically, after every graph) to ``out``."""
     bundle_dir, out = Path(bundle_dir), Path(out)
     manifest = load_manifest(bundle_dir)
+    out.parent.mkdir(parents=True, exist_ok=True)
     check_provider(provider)
     threads = threads or default_threads()
     repeats = repeats or int(manifest["repeats"])

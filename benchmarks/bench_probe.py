@@ -1,0 +1,81 @@
+"""The probe bundle on this machine: bundle size (target <= 50 MB), the probe's run time (target
+<= 3 min), and a profile fitted from a probe run against one from `explorer calibrate` run directly
+(median per-path prediction difference over the held-out candidates of bench_devices.py, target
+<= 5%). Repeated --repeats times, the two calibrations interleaved; every repetition and the median.
+
+    .venv/bin/python benchmarks/bench_probe.py [--repeats 3] [--candidates 24]
+"""
+
+import argparse
+import random
+import statistics
+import subprocess
+import sys
+import tarfile
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from explorer.cost import candidate_cost
+from explorer.cost.bundle import write_bundle
+from explorer.cost.calibrate import calibrate, fit_results, read_results
+from explorer.space import SearchSpace
+
+
+def held_out(n: int, seed: int) -> list:
+    # the same draw as bench_devices.py
+    return random.Random(seed + 1).sample(list(SearchSpace.from_yaml("anytime_depth").enumerate()), n)
+
+
+def probe_profile(tmp: Path, seed: int, exclude: set[str]) -> tuple[object, float, float, float]:
+    tar = tmp / "probe.tar"
+    t0 = time.perf_counter()
+    write_bundle(tar, seed=seed, exclude=exclude)
+    t_bundle = time.perf_counter() - t0
+    device = tmp / "device"
+    device.mkdir()
+    with tarfile.open(tar) as t:
+        t.extractall(device)
+    t0 = time.perf_counter()
+    subprocess.run([sys.executable, "probe.py", "--out", "results.json"], cwd=device, check=True,
+                   stderr=subprocess.DEVNULL)
+    t_probe = time.perf_counter() - t0
+    return fit_results(read_results(device / "results.json"), "probe"), tar.stat().st_size / 1e6, t_bundle, t_probe
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--candidates", type=int, default=24)
+    ap.add_argument("--seed", type=int, default=0)
+    args = ap.parse_args()
+    cands = held_out(args.candidates, args.seed)
+    keys = {c.key for c in cands}
+    costs = [candidate_cost(c) for c in cands]
+    sizes, bundles, probes, directs, diffs = [], [], [], [], []
+    for rep in range(1, args.repeats + 1):
+        with tempfile.TemporaryDirectory() as tmp:
+            via_probe, mb, t_bundle, t_probe = probe_profile(Path(tmp), args.seed, keys)
+        t0 = time.perf_counter()
+        direct = calibrate(seed=args.seed, exclude=keys)
+        t_direct = time.perf_counter() - t0
+        d = []
+        for cost in costs:
+            a, b = cost.path_latency_ms(via_probe)[1:], cost.path_latency_ms(direct)[1:]
+            d += [x / y - 1 for x, y in zip(a, b)]
+        diff = float(np.median(np.abs(d)))
+        sizes.append(mb), bundles.append(t_bundle), probes.append(t_probe), directs.append(t_direct)
+        diffs.append(diff)
+        print(f"rep {rep}: bundle {mb:.2f} MB written in {t_bundle:.0f} s; probe {t_probe:.0f} s; explorer calibrate "
+              f"{t_direct:.0f} s; probe vs calibrate: median per-path |difference| {diff:.1%} over {len(d)} paths "
+              f"of {len(cands)} held-out candidates", flush=True)
+    med = statistics.median
+    print(f"median of {args.repeats}: bundle {med(sizes):.2f} MB (target <= 50 MB), probe {med(probes):.0f} s "
+          f"(target <= 180 s), bundle export {med(bundles):.0f} s, explorer calibrate {med(directs):.0f} s, "
+          f"probe vs calibrate {med(diffs):.1%} (target <= 5%)")
+
+
+if __name__ == "__main__":
+    main()
