@@ -264,10 +264,10 @@ def calibrate(threads: int | None = None, repeats: int = 25, seed: int = 0, scal
               progress: Callable[[int, int], None] | None = None, name: str = "host",
               stage_candidates: int | None = None, exclude: set[str] = frozenset(),
               provider: str = DEFAULT_PROVIDER, energy: bool = True, sysfs_root: str = "/",
-              log: Callable[[str], None] = lambda s: None) -> DeviceProfile:
+              log: Callable[[str], None] = lambda s: None, results_out: Path | None = None) -> DeviceProfile:
     """Bundle, probe and fit in one process (the numbers a separate probe run would give): layer
     sweep plus the stages of ``stage_candidates`` random default-space candidates (none of
-    ``exclude``, candidate keys)."""
+    ``exclude``, candidate keys). ``results_out``: also keep the probe's results there."""
     import tempfile
     from explorer.cost.bundle import write_bundle_dir
     try:
@@ -290,10 +290,10 @@ def calibrate(threads: int | None = None, repeats: int = 25, seed: int = 0, scal
             if progress and what != "energy":
                 progress(n_export[0] + i, n_export[0] + n)
 
-        results = _probe.run_probe(folder, Path(tmp) / "results.json", provider, threads, repeats, energy,
-                                   sysfs_root, progress=measured, log=log)
         try:
-            return fit_results(results, name=name, source=f"explorer calibrate on {platform.node()} at "
-                               f"{datetime.datetime.now().isoformat(timespec='seconds')}")
+            results = _probe.run_probe(folder, results_out or Path(tmp) / "results.json", provider, threads, repeats, energy,
+                                       sysfs_root, progress=measured, log=log)
         except _probe.ProbeError as exc:
             raise UserError(str(exc)) from None
+    return fit_results(results, name=name, source=f"explorer calibrate on {platform.node()} at "
+                       f"{datetime.datetime.now().isoformat(timespec='seconds')}")
