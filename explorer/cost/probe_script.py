@@ -29,7 +29,10 @@ import time
 from pathlib import Path
 from typing import Callable, Iterable, Sequence
 
-import numpy as np
+try:
+    import numpy as np
+except ImportError:  # main() says what to install, in one line
+    np = None
 
 BUNDLE_FORMAT = "explorer-probe-bundle"
 RESULTS_FORMAT = "explorer-probe-results"
@@ -447,6 +450,16 @@ def _candidate_inputs(manifest: dict, rng: np.random.Generator) -> dict[str, np.
             "scan": rng.random((1, w), dtype=np.float32) * 5 + 0.5}
 
 
+def schedule(layers: list[dict], cands: list[dict]) -> list[tuple[str, dict]]:
+    """Layer graphs with the candidates spread evenly among them: a board that heats up and
+    throttles (or a machine whose load drifts) then slows both kinds alike, and the fit, which
+    reads them together, does not mistake the drift for a difference between them."""
+    order: list[tuple[str, dict]] = [("layer", layer) for layer in layers]
+    for j, cand in reversed(list(enumerate(cands))):
+        order.insert(round((j + 0.5) * len(layers) / len(cands)), ("candidate", cand))
+    return order
+
+
 def run_probe(bundle_dir: "str | Path", out: "str | Path", provider: str = DEFAULT_PROVIDER,
               threads: int | None = None, repeats: int | None = None, energy: bool = True,
               root: str = "/", vcgencmd: str = "vcgencmd", idle_s: float = 2.0, window_s: float = 1.0,
@@ -487,21 +500,22 @@ def run_probe(bundle_dir: "str | Path", out: "str | Path", provider: str = DEFAU
             progress(done, total, what)
 
     rng = np.random.default_rng(0)
-    for layer in layers:
-        if layer["id"] not in res["layers"]:
-            sess = session(bundle_dir / layer["file"], threads, provider)
-            feeds = _random_feeds(layer["inputs"], rng)
-            res["layers"][layer["id"]] = time_call(lambda: sess.run(None, feeds), WARMUP, repeats)
-            write_atomically(out, res)
-        tick("layers")
-    for cand in cands:
-        kept = res["stages"].setdefault(cand["key"], {})
-        if all(g["stage"] in kept for g in cand["graphs"]):
-            for _ in cand["graphs"]:
+    for kind, item in schedule(layers, cands):
+        if kind == "layer":
+            if item["id"] not in res["layers"]:
+                sess = session(bundle_dir / item["file"], threads, provider)
+                feeds = _random_feeds(item["inputs"], rng)
+                res["layers"][item["id"]] = time_call(lambda: sess.run(None, feeds), WARMUP, repeats)
+                write_atomically(out, res)
+            tick("layers")
+            continue
+        kept = res["stages"].setdefault(item["key"], {})
+        if all(g["stage"] in kept for g in item["graphs"]):
+            for _ in item["graphs"]:
                 tick("stages")
             continue
         env = _candidate_inputs(manifest, rng)
-        for g in cand["graphs"]:
+        for g in item["graphs"]:
             sess = session(bundle_dir / g["file"], threads, provider)
             names = [i.name for i in sess.get_inputs()]
             feeds = {n: env[n] for n in names}
@@ -574,6 +588,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--sysfs-root", default="/", help="where /sys and /proc are (default /; for tests)")
     ap.add_argument("--vcgencmd", default="vcgencmd", help="the Raspberry Pi's vcgencmd (default: on PATH)")
     args = ap.parse_args(argv)
+    try:
+        import onnxruntime  # noqa: F401  (checked here: one line, not a traceback, when it is missing)
+        if np is None:
+            raise ImportError("numpy")
+    except ImportError:
+        print("probe.py: error: needs onnxruntime and numpy: `python3 -m pip install onnxruntime numpy` "
+              "(or your board's onnxruntime build)", file=sys.stderr)
+        return 2
     last = [0.0]
 
     def progress(i: int, n: int, what: str) -> None:
