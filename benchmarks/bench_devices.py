@@ -56,7 +56,7 @@ def host(n: int, seed: int, scale: float, reps: int = 3) -> None:
     """Calibrate once (stage graphs at every size of ``STAGE_SIZES``), then measure ``n`` held-out
     candidates at each of ``HOST_SIZES`` ``reps`` times, interleaved, and report the median
     per-path error of each size in each repetition."""
-    cands = random.Random(seed + 1).sample(list(SearchSpace.from_yaml("anytime_depth").enumerate()), n)
+    cands = SearchSpace.from_yaml("anytime_depth").random_candidates(n, seed + 1)
     t0 = time.perf_counter()
     prof = calibrate(seed=seed, scale=scale, exclude={c.key for c in cands})  # held out: never in the sweep
     print(f"\nhost calibration (scale {scale}): {time.perf_counter() - t0:.0f} s; "

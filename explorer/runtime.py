@@ -28,9 +28,16 @@ class AnytimeResult:
 
 
 class AnytimeRunner:
-    def __init__(self, model_dir: str | Path, threads: int | None = None, warmup: bool = True) -> None:
+    def __init__(self, model_dir: str | Path, threads: int | None = None, warmup: bool = True,
+                 provider: str = "CPUExecutionProvider") -> None:
         import onnxruntime as ort
         from explorer.cost.measure import session
+        from explorer.cost.probe_script import ProbeError, check_provider
+        try:
+            check_provider(provider)
+        except ProbeError as exc:
+            raise UserError(str(exc)) from None
+        self.provider = provider
         self.dir = Path(model_dir)
         mpath = self.dir / MANIFEST
         if not mpath.is_file():
@@ -47,7 +54,7 @@ class AnytimeRunner:
             if not f.is_file():
                 raise UserError(f"{f}: stage graph listed in the manifest is missing")
             try:
-                sess = session(f.read_bytes(), threads)
+                sess = session(f.read_bytes(), threads, provider)
             except Exception as exc:  # onnxruntime raises its own types for corrupt graphs
                 raise UserError(f"{f}: not a loadable ONNX graph ({str(exc).splitlines()[0][:100]})") from None
             # names looked up once: get_inputs() builds new objects on every call
@@ -186,14 +193,14 @@ def write_depth(depth: np.ndarray, out: Path) -> None:
 
 
 def run_files(model_dir: Path, image: Path, scan: Path, deadline_ms: float, out: Path | None,
-              threads: int | None = None) -> dict:
-    runner = AnytimeRunner(model_dir, threads)
+              threads: int | None = None, provider: str = "CPUExecutionProvider") -> dict:
+    runner = AnytimeRunner(model_dir, threads, provider=provider)
     result = runner.run(read_image(image), read_scan(scan), deadline_ms)
     if out is not None:
         write_depth(result.depth, out)
     return {"path": result.path, "ready_ms": result.ready_ms, "deadline_ms": deadline_ms,
             "completed_paths": len(result.completed), "timeline": result.completed,
-            "out": str(out) if out else None}
+            "out": str(out) if out else None, "provider": provider}
 
 
 def measured_anytime(runner: AnytimeRunner, frames: list[dict], deadlines_ms: np.ndarray,
@@ -216,11 +223,13 @@ def measured_anytime(runner: AnytimeRunner, frames: list[dict], deadlines_ms: np
 
 
 def curve_check(model_dir: Path, data: str, device: str | None = None, frames: int = 16,
-                deadlines: int = 40, progress: Callable[[int, int], None] | None = None) -> dict:
+                deadlines: int = 40, progress: Callable[[int, int], None] | None = None,
+                provider: str = "CPUExecutionProvider") -> dict:
     """The anytime curve measured on this machine next to the one a host profile predicts.
 
     Per-path losses come from the exported graphs on ``frames`` validation frames; the prediction
-    prices the paths with ``device`` (a profile from ``explorer calibrate``; calibrated now if None);
+    prices the paths with ``device`` (a profile from ``explorer calibrate``; calibrated now, with
+    ``provider``, if None); the graphs run on ``provider``;
     the measurement runs every frame under ``deadlines`` deadlines spread evenly over (0, B_max),
     B_max = 1.25 x the predicted last path. Written to ``model_dir/anytime_curve.json``.
     """
@@ -230,7 +239,7 @@ def curve_check(model_dir: Path, data: str, device: str | None = None, frames: i
     from explorer.data import open_dataset
     from explorer.metrics import MetricAverager, depth_metrics
     from explorer.space import Candidate
-    runner = AnytimeRunner(model_dir)
+    runner = AnytimeRunner(model_dir, provider=provider)
     cand = Candidate.from_dict(runner.manifest["candidate"])
     ds = open_dataset(data, "val", runner.input_size, train_augment=False)
     items = [ds[i] for i in range(min(frames, len(ds)))]
@@ -239,7 +248,7 @@ def curve_check(model_dir: Path, data: str, device: str | None = None, frames: i
         for p, depth in enumerate(runner.depths(it["image"].numpy(), it["scan"].numpy())):
             per_path[p].add(depth_metrics(depth, it["depth"][0].numpy()))
     losses = [a.result()["rmse"] for a in per_path]
-    profile = get_device(device) if device else calibrate(scale=0.5)
+    profile = get_device(device) if device else calibrate(scale=0.5, provider=provider)
     costs = candidate_cost(cand, runner.input_size).path_latency_ms(profile)
     b_max = 1.25 * costs[-1]
     grid = (np.arange(deadlines) + 0.5) * b_max / deadlines
@@ -250,7 +259,7 @@ def curve_check(model_dir: Path, data: str, device: str | None = None, frames: i
             measured[k] += part[k]
         if progress:
             progress(i + 1, len(grid))
-    result = {"candidate_key": cand.key, "device": profile.name, "frames": len(items), "b_max_ms": b_max,
+    result = {"candidate_key": cand.key, "device": profile.name, "provider": provider, "frames": len(items), "b_max_ms": b_max,
               "path_losses": losses, "predicted_costs_ms": costs,
               "predicted_anytime_loss": anytime_loss(costs, losses, f"time:uniform:{b_max}ms"),
               "measured": measured, "measured_anytime_loss": float(np.mean(measured["loss"]))}

@@ -460,6 +460,19 @@ class SearchSpace:
             exits=tuple(exits) + (len(self.decoder_widths),),
             head_depth=head_depth, head_width=head_width)
 
+    def random_candidates(self, count: int, seed: int = 0) -> list[Candidate]:
+        """``count`` distinct candidates drawn at random (each dimension uniformly, as :meth:`sample`
+        does), without enumerating the space; fewer if the space is smaller."""
+        import random
+        rng = random.Random(seed)
+        trial = _RandomTrial(rng)
+        out: dict[Candidate, None] = {}
+        for _ in range(20 * count + 100):
+            out.setdefault(self.sample(trial))
+            if len(out) == min(count, self.size):
+                break
+        return list(out)
+
     def params_of(self, candidate: Candidate) -> dict[str, Any]:
         """The Optuna parameters that :meth:`sample` would draw for ``candidate`` (for enqueueing)."""
         p: dict[str, Any] = {"ecu": candidate.ecu, "encoder_blocks": candidate.encoder_blocks,
@@ -488,6 +501,16 @@ class SearchSpace:
             set(candidate.encoder_exits) <= set(self.optional_encoder_exits) and all(
             v in d[k] for k, v in p.items()) and set(self.required_exits) <= inner and \
             inner <= set(self.optional_exits) | set(self.required_exits)
+
+
+class _RandomTrial:
+    """Stands in for an Optuna trial: each categorical is drawn uniformly."""
+
+    def __init__(self, rng) -> None:
+        self.rng = rng
+
+    def suggest_categorical(self, name: str, choices: list) -> Any:
+        return self.rng.choice(list(choices))
 
 
 def _choices(raw: Any, where: str, kind: type, allow_empty: bool = False) -> list:

@@ -19,7 +19,7 @@ def _torch_conv_macs(cand, h, w):
 
 
 @pytest.mark.parametrize("cand", [paper_candidate(), fastdepth_candidate()]
-                         + random.Random(1).sample(list(SearchSpace.from_yaml("anytime_depth").enumerate()), 2))
+                         + SearchSpace.from_yaml("anytime_depth").random_candidates(2, seed=1))
 def test_workloads_match_torch(cand):
     h, w = 224, 224
     wl = candidate_workloads(cand, (h, w))

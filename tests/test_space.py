@@ -10,8 +10,7 @@ from explorer.space import Candidate, SearchSpace, paper_candidate
 
 def test_shipped_spaces_sizes_and_paper_design():
     default = SearchSpace.from_yaml("anytime_depth")
-    assert default.size >= 10_000
-    assert default.size == sum(1 for _ in default.enumerate())
+    assert default.size >= 1_000_000      # tests/test_widened_space.py checks size against enumeration
     assert default.contains(paper_candidate())
     paper = SearchSpace.from_yaml("paper")
     assert list(paper.enumerate()) == [paper_candidate()]

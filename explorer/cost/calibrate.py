@@ -1,5 +1,7 @@
-"""``explorer calibrate``: measure a sweep of single-layer graphs on this machine with onnxruntime
-and fit a CPU-style profile to them. This is what a user runs on their robot's computer."""
+"""``explorer calibrate``: a sweep of single-layer graphs and the stage graphs of a few candidates,
+timed with onnxruntime on the device (the probe, ``probe_script.py``) and fitted to a CPU-style
+profile. The graphs travel in a bundle (``bundle.py``) so the device needs no torch; run in one
+process, ``calibrate`` is bundle + probe + fit on this machine."""
 
 from __future__ import annotations
 
@@ -7,6 +9,7 @@ import dataclasses
 import datetime
 import platform
 import random
+from pathlib import Path
 from typing import Callable
 
 import numpy as np
@@ -14,8 +17,11 @@ from onnx import TensorProto, helper, numpy_helper
 
 from explorer.cost.devices import DeviceProfile, KindCost
 from explorer.cost.fit import Observation, errors, fit_profile, fit_summary
-from explorer.cost.measure import conditions, session, time_call
+from explorer.cost import probe_script as _probe
+from explorer.cost.measure import conditions
+from explorer.cost.probe_script import DEFAULT_PROVIDER
 from explorer.cost.workloads import BYTES_PER_VALUE, KINDS, Workload
+from explorer.errors import UserError
 
 CHANNELS = (8, 16, 24, 32, 48, 64, 96, 128, 192, 256, 384, 512, 768, 1024)
 SIDES = (7, 14, 28, 56, 112, 224)
@@ -143,46 +149,12 @@ def layer_graph(layer: SweepLayer) -> tuple[bytes, dict[str, np.ndarray], Worklo
     return model.SerializeToString(), feeds, wl
 
 
-def measure_sweep(layers: list[SweepLayer], threads: int | None = None, repeats: int = 15,
-                  progress: Callable[[int, int], None] | None = None) -> list[tuple[Workload, float]]:
-    out = []
-    for i, layer in enumerate(layers):
-        model, feeds, wl = layer_graph(layer)
-        sess = session(model, threads)
-        out.append((wl, time_call(lambda: sess.run(None, feeds), 3, repeats)))
-        if progress:
-            progress(i + 1, len(layers))
-    return out
-
-
-def measure_stages(count: int, seed: int, threads: int | None, repeats: int,
-                   input_size: tuple[int, int] = (224, 224), exclude: set[str] = frozenset(),
-                   progress: Callable[[int, int], None] | None = None) -> list[Observation]:
-    """Whole stage graphs of random candidates of the default space: layers in context (fused,
-    sharing caches and threads) run faster than alone, and only multi-layer graphs tell a per-layer
-    cost from a per-launch one."""
-    from explorer.cost import candidate_cost
-    from explorer.cost.measure import measure_network
-    from explorer.model import build_network
-    from explorer.space import SearchSpace
-    space = SearchSpace.from_yaml("anytime_depth")
-    pool = [c for c in space.enumerate() if c.key not in exclude]
-    cands = random.Random(seed).sample(pool, count)
-    obs = []
-    for i, cand in enumerate(cands):
-        m = measure_network(build_network(cand), input_size, threads, repeats, whole=False)
-        cost = candidate_cost(cand, input_size)
-        for stage, ms in m.stage_ms.items():
-            wl = [w for w in cost.workloads if w.stage == stage]
-            obs.append(Observation(f"{cand.key}/{stage}", wl, ms, weight=4.0, stages=1))
-        if progress:
-            progress(i + 1, count)
-    return obs
-
-
 def fit_host(measured: list[tuple[Workload, float]], name: str = "host",
              description: str | None = None, cond: dict | None = None,
-             stage_obs: list[Observation] = ()) -> DeviceProfile:
+             stage_obs: list[Observation] = (), energy: dict | None = None,
+             source: str | None = None) -> DeviceProfile:
+    """A CPU-style profile fitted to single-layer and stage timings; with ``energy`` (the probe's
+    energy section), also its fixed energy and active power."""
     obs = [Observation(w.layer, [w], ms, stages=1) for w, ms in measured] + list(stage_obs)
     base = DeviceProfile(
         name=name, description=description or f"{platform.node() or 'this machine'} CPU, onnxruntime",
@@ -205,30 +177,126 @@ def fit_host(measured: list[tuple[Workload, float]], name: str = "host",
                                    "random candidates measured here"))
     per_kind = {k: round(float(layers[[w.kind == k for w, _ in measured]]["error"].abs().median()), 4)
                 for k in KINDS if any(w.kind == k for w, _ in measured)}
-    return dataclasses.replace(best, provenance={
-        "calibrated": True,
-        "sources": [f"explorer calibrate on {platform.node()} at "
+    cond = cond or conditions()
+    provenance = {
+        "calibrated": True, "latency": "measured",
+        "sources": [source or f"explorer calibrate on {platform.node()} at "
                     f"{datetime.datetime.now().isoformat(timespec='seconds')}"],
-        "conditions": cond or conditions(),
-        "fit": summary, "median_abs_error_per_kind": per_kind, "checks": []})
+        "conditions": cond, "provider": cond.get("provider", DEFAULT_PROVIDER),
+        "fit": summary, "median_abs_error_per_kind": per_kind, "checks": []}
+    fixed_j, power_w, energy_prov = fit_energy(energy)
+    provenance.update(energy_prov)
+    return dataclasses.replace(best, energy_fixed_j=fixed_j, active_power_w=power_w, provenance=provenance)
+
+
+def fit_energy(energy: dict | None) -> tuple[float, float, dict]:
+    """(fixed J, active W, provenance) from the probe's energy section: E = fixed + P x t, least
+    squares over whole inferences of the calibration candidates, both terms kept >= 0."""
+    if not energy or not energy.get("sensor") or not energy.get("inferences"):
+        note = (energy or {}).get("note") or "energy not measured (the probe ran without --energy)"
+        return 0.0, 0.0, {"energy": "not measured", "energy_note": f"{note}; the profile prices no energy (0 J)"}
+    runs = list(energy["inferences"].values())
+    t = np.array([r["ms"] for r in runs]) / 1000.0
+    e = np.array([r["j"] for r in runs])
+    if len(runs) >= 2 and np.ptp(t) > 0:
+        power, fixed = np.polyfit(t, e, 1)
+    else:
+        power, fixed = 0.0, -1.0
+    if fixed < 0:
+        fixed, power = 0.0, float(np.dot(e, t) / max(np.dot(t, t), 1e-12))
+    if power < 0:
+        fixed, power = float(e.mean()), 0.0
+    pred = fixed + power * t
+    err = np.abs(pred / np.where(e > 0, e, np.nan) - 1)
+    return float(fixed), float(power), {
+        "energy": "measured",
+        "energy_sensor": {k: energy[k] for k in ("sensor", "kind", "what")},
+        "energy_note": f"E = {fixed:.4g} J + {power:.4g} W x t over {len(runs)} whole inferences, idle "
+                       f"{energy['idle_w']:.3g} W subtracted",
+        "energy_fit": {"count": len(runs), "median_abs_error": round(float(np.nanmedian(err)), 4)
+                       if np.isfinite(err).any() else None}}
+
+
+def read_results(path: str | Path) -> dict:
+    """A probe results file, checked (one line, exit 2, for a truncated or foreign file)."""
+    try:
+        return _probe.read_results(Path(path))
+    except _probe.ProbeError as exc:
+        raise UserError(str(exc)) from None
+
+
+def fit_results(results: dict, name: str = "host", source: str | None = None) -> DeviceProfile:
+    """The profile a probe run gives: the same fit ``explorer calibrate`` makes."""
+    from explorer.cost import candidate_cost
+    from explorer.space import Candidate
+    bundle = results["bundle"]
+    measured = []
+    for layer in bundle["layers"]:
+        if layer["id"] in results["layers"]:
+            w = dict(layer["workload"])
+            w["in_shape"], w["out_shape"] = tuple(w["in_shape"]), tuple(w["out_shape"])
+            measured.append((Workload(**w), float(results["layers"][layer["id"]])))
+    stage_obs = []
+    for cand in bundle["candidates"]:
+        kept = results["stages"].get(cand["key"], {})
+        if not kept:
+            continue
+        size = tuple(cand.get("input_size", bundle["input_size"]))
+        cost = candidate_cost(Candidate.from_dict(cand["candidate"]), size)
+        for stage, ms in kept.items():
+            wl = [w for w in cost.workloads if w.stage == stage]
+            stage_obs.append(Observation(f"{cand['key']}/{stage}", wl, float(ms), weight=4.0, stages=1))
+    if len(measured) < len(KINDS):
+        raise UserError(f"the results hold {len(measured)} measured layer graphs, too few to fit: let the probe "
+                        "finish (run it again with the same --out to go on)")
+    dev = results["device"]
+    c = results["conditions"]
+    cond = {"onnxruntime": dev["onnxruntime"], "provider": c["provider"], "threads": c["threads"],
+            "repeats": c["repeats"], "warmup": c["warmup"], "statistic": c["statistic"],
+            "machine": dev["machine"], "processor": dev["cpu"], "cores": dev["cores"],
+            **({"board": dev["board"]} if dev.get("board") else {}), "bundle": bundle["id"]}
+    where = dev.get("board") or dev.get("host") or "a device"
+    description = f"{where}: {dev['cpu']}, onnxruntime {dev['onnxruntime']} {c['provider']}, {c['threads']} threads"
+    return fit_host(measured, name=name, description=description, cond=cond, stage_obs=stage_obs,
+                    energy=results.get("energy"),
+                    source=source or f"probe on {dev.get('host') or where} (bundle {bundle['id']}), fitted at "
+                    f"{datetime.datetime.now().isoformat(timespec='seconds')}")
 
 
 def calibrate(threads: int | None = None, repeats: int = 25, seed: int = 0, scale: float = 1.0,
               progress: Callable[[int, int], None] | None = None, name: str = "host",
-              stage_candidates: int | None = None, exclude: set[str] = frozenset()) -> DeviceProfile:
-    """Layer sweep plus the stages of ``stage_candidates`` random default-space candidates (none
-    of ``exclude``, candidate keys), then the fit."""
-    counts = {k: max(2, int(round(v * scale))) for k, v in DEFAULT_COUNTS.items()}
-    layers = _rng_layers(seed, counts)
-    n_stage = max(1, round(12 * scale)) if stage_candidates is None else stage_candidates
-    total = len(layers) + n_stage
-    measured = measure_sweep(layers, threads, repeats,
-                             (lambda i, n: progress(i, total)) if progress else None)
-    stage_obs: list[Observation] = []
-    per_size = [n_stage // len(STAGE_SIZES) + (i < n_stage % len(STAGE_SIZES)) for i in range(len(STAGE_SIZES))]
-    for i, (size, count) in enumerate(zip(STAGE_SIZES, per_size)):
-        done = len(layers) + sum(per_size[:i])
-        if count:
-            stage_obs += measure_stages(count, seed + 7919 + i, threads, repeats, size, exclude=exclude,
-                                        progress=(lambda j, n, d=done: progress(d + j, total)) if progress else None)
-    return fit_host(measured, name=name, cond=conditions(threads, repeats), stage_obs=stage_obs)
+              stage_candidates: int | None = None, exclude: set[str] = frozenset(),
+              provider: str = DEFAULT_PROVIDER, energy: bool = True, sysfs_root: str = "/",
+              log: Callable[[str], None] = lambda s: None, results_out: Path | None = None) -> DeviceProfile:
+    """Bundle, probe and fit in one process (the numbers a separate probe run would give): layer
+    sweep plus the stages of ``stage_candidates`` random default-space candidates (none of
+    ``exclude``, candidate keys). ``results_out``: also keep the probe's results there."""
+    import tempfile
+    from explorer.cost.bundle import write_bundle_dir
+    try:
+        _probe.check_provider(provider)
+    except _probe.ProbeError as exc:
+        raise UserError(str(exc)) from None
+    with tempfile.TemporaryDirectory(prefix="explorer-calibrate-") as tmp:
+        folder = Path(tmp) / "bundle"
+        n_export = [0]
+
+        def exported(i: int, n: int) -> None:
+            n_export[0] = n
+            if progress:
+                progress(i, n)
+
+        write_bundle_dir(folder, scale=scale, seed=seed, n_stage=stage_candidates, exclude=exclude,
+                         repeats=repeats, progress=exported)
+
+        def measured(i: int, n: int, what: str) -> None:
+            if progress and what != "energy":
+                progress(n_export[0] + i, n_export[0] + n)
+
+        try:
+            results = _probe.run_probe(folder, results_out or Path(tmp) / "results.json", provider, threads, repeats, energy,
+                                       sysfs_root, progress=measured, log=log)
+        except _probe.ProbeError as exc:
+            raise UserError(str(exc)) from None
+    return fit_results(results, name=name, source=f"explorer calibrate on {platform.node()} at "
+                       f"{datetime.datetime.now().isoformat(timespec='seconds')}")

@@ -26,6 +26,9 @@ from explorer.errors import UserError
 
 PROFILES_DIR = Path(__file__).resolve().parent / "profiles"
 
+#: Where a profile's latency or energy comes from (``provenance.latency`` / ``provenance.energy``).
+BASES = ("measured", "published", "estimate")
+
 
 @dataclass(frozen=True)
 class KindCost:
@@ -73,6 +76,29 @@ class DeviceProfile:
     @property
     def calibrated(self) -> bool:
         return bool(self.provenance.get("calibrated", False))
+
+    @property
+    def latency_basis(self) -> str:
+        """'measured' (on the device), 'published' (fitted to published figures) or 'estimate'."""
+        said = self.provenance.get("latency")
+        if said in BASES:
+            return said
+        if not self.calibrated:
+            return "estimate"
+        sources = " ".join(map(str, self.provenance.get("sources") or []))
+        return "measured" if "explorer calibrate" in sources else "published"
+
+    @property
+    def energy_basis(self) -> str:
+        """As ``latency_basis``, or 'none' when the profile prices no energy."""
+        said = self.provenance.get("energy")
+        if said in BASES:
+            return said
+        if self.energy_fixed_j == 0 and self.active_power_w == 0:
+            return "none"
+        if not self.calibrated or "estimate" in str(self.provenance.get("energy_note", "")):
+            return "estimate"
+        return "published"
 
     # -- (de)serialisation ---------------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:

@@ -1,0 +1,126 @@
+"""Calibration bundles: the graphs ``explorer calibrate`` measures, exported once (torch is needed
+here) and packed with the probe, which runs them on a device that has only numpy and onnxruntime.
+
+Layout (top level of the archive): ``probe.py`` (``explorer/cost/probe_script.py`` verbatim),
+``manifest.json`` (every graph with what the fit needs to know about it), ``layers/*.onnx`` (the
+single-layer sweep) and ``stages/<candidate>/*.onnx`` (each calibration candidate's stage graphs,
+in execution order).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime
+import hashlib
+import json
+import os
+import random
+import shutil
+import tarfile
+import tempfile
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+from onnx import TensorProto, load_from_string, numpy_helper
+
+from explorer.cost import probe_script
+from explorer.cost.calibrate import DEFAULT_COUNTS, _rng_layers, layer_graph
+from explorer.errors import UserError
+
+#: Float initializers at least this large ship as zeros (their values do not change how long a
+#: dense kernel takes), so the archive compresses to a few MB instead of hundreds.
+ZERO_FROM_ELEMENTS = 64
+STAGE_SEED_OFFSET = 7919
+
+
+def _zero_weights(model: bytes) -> bytes:
+    proto = load_from_string(model)
+    for i, init in enumerate(proto.graph.initializer):
+        if init.data_type == TensorProto.FLOAT and int(np.prod(init.dims)) >= ZERO_FROM_ELEMENTS:
+            zeros = np.zeros(tuple(init.dims), dtype=np.float32)
+            proto.graph.initializer[i].CopyFrom(numpy_helper.from_array(zeros, init.name))
+    return proto.SerializeToString()
+
+
+def stage_candidates(count: int, seed: int, exclude: set[str] = frozenset()) -> list:
+    """The calibration candidates: ``count`` random default-space candidates, none of ``exclude``."""
+    from explorer.space import SearchSpace
+    pool = SearchSpace.from_yaml("anytime_depth").random_candidates(count + len(exclude), seed + STAGE_SEED_OFFSET)
+    return [c for c in pool if c.key not in exclude][:count]
+
+
+def write_bundle_dir(folder: Path, scale: float = 1.0, seed: int = 0, n_stage: int | None = None,
+                     exclude: set[str] = frozenset(), input_size: tuple[int, int] = (224, 224),
+                     stage_sizes: tuple[tuple[int, int], ...] | None = None, repeats: int = 25, progress: Callable[[int, int], None] | None = None) -> dict:
+    """Exports the layer sweep (``scale`` x the default counts) and the stage graphs of ``n_stage``
+    candidates (default 12 x ``scale``) into ``folder``; returns the manifest."""
+    from explorer import __version__
+    from explorer.model import build_network
+    from explorer.onnx_stages import export_stages
+    from explorer.cost.calibrate import STAGE_SIZES
+    stage_sizes = stage_sizes or STAGE_SIZES
+    folder = Path(folder)
+    counts = {k: max(2, int(round(v * scale))) for k, v in DEFAULT_COUNTS.items()}
+    layers = _rng_layers(seed, counts)
+    n_stage = max(1, round(12 * scale)) if n_stage is None else n_stage
+    cands = stage_candidates(n_stage, seed, exclude) if n_stage else []
+    total = len(layers) + len(cands)
+    (folder / "layers").mkdir(parents=True, exist_ok=True)
+    digest = hashlib.sha256()
+
+    def put(rel: str, data: bytes) -> None:
+        (folder / rel).write_bytes(data)
+        digest.update(rel.encode() + hashlib.sha256(data).digest())
+
+    layer_entries = []
+    for i, layer in enumerate(layers):
+        model, feeds, wl = layer_graph(layer)
+        rel = f"layers/L{i:03d}-{layer.kind}.onnx"
+        put(rel, _zero_weights(model))
+        layer_entries.append({"id": f"L{i:03d}", "file": rel,
+                              "inputs": [{"name": k, "shape": list(v.shape)} for k, v in feeds.items()],
+                              "workload": dataclasses.asdict(wl)})
+        if progress:
+            progress(i + 1, total)
+    cand_entries = []
+    for j, cand in enumerate(cands):
+        (folder / "stages" / cand.key).mkdir(parents=True, exist_ok=True)
+        graphs = []
+        # the stage graphs cycle through input sizes, so that the fitted profile holds at each of them
+        size = tuple(stage_sizes[j % len(stage_sizes)])
+        for k, (spec, model) in enumerate(export_stages(build_network(cand), size)[1:]):
+            rel = f"stages/{cand.key}/{k:02d}-{spec.name}.onnx"
+            put(rel, _zero_weights(model))
+            graphs.append({"stage": spec.name, "file": rel})
+        cand_entries.append({"key": cand.key, "candidate": cand.to_dict(), "graphs": graphs,
+                             "input_size": list(size)})
+        if progress:
+            progress(len(layers) + j + 1, total)
+    manifest = {"format": probe_script.BUNDLE_FORMAT, "version": probe_script.VERSION,
+                "explorer": __version__, "created": datetime.datetime.now().isoformat(timespec="seconds"),
+                "scale": scale, "seed": seed, "input_size": list(input_size), "repeats": repeats,
+                "layers": layer_entries, "candidates": cand_entries}
+    digest.update(json.dumps({k: v for k, v in manifest.items() if k != "created"}, sort_keys=True).encode())
+    manifest["id"] = digest.hexdigest()[:16]
+    (folder / "manifest.json").write_text(json.dumps(manifest, indent=1))
+    shutil.copyfile(probe_script.__file__, folder / "probe.py")
+    return manifest
+
+
+def write_bundle(out: Path, **kwargs) -> dict:
+    """The bundle as one gzip-compressed tar (``tar xf`` unpacks it); written whole or not at all."""
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(prefix="explorer-bundle-") as tmp:
+        manifest = write_bundle_dir(Path(tmp), **kwargs)
+        part = out.with_name(f".{out.name}.part")
+        try:
+            with tarfile.open(part, "w:gz") as tar:
+                for name in sorted(os.listdir(tmp)):
+                    tar.add(os.path.join(tmp, name), arcname=name)
+            os.replace(part, out)
+        except OSError as exc:
+            part.unlink(missing_ok=True)
+            raise UserError(f"{out}: cannot write the bundle ({exc.strerror})") from None
+    return manifest

@@ -1,0 +1,626 @@
+"""The device probe: times a calibration bundle's ONNX graphs and samples the power sensors Linux
+exposes, with nothing but Python 3, numpy and onnxruntime.
+
+This file is copied verbatim into every bundle as ``probe.py`` (``explorer calibrate --bundle``), so
+it imports nothing from the package; ``explorer calibrate`` runs the same functions in-process, so a
+profile fitted from a probe run and one calibrated directly share one measurement path.
+
+    tar xf probe.tar && python probe.py --out results.json     # on the device
+    explorer calibrate --fit results.json --out myboard.yaml   # anywhere
+
+Results are written atomically after every graph: an interrupted probe, run again with the same
+``--out``, keeps what it had measured and measures only the rest.
+"""
+
+from __future__ import annotations
+
+import argparse
+import glob
+import json
+import os
+import platform
+import re
+import shutil
+import statistics
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Callable, Iterable, Sequence
+
+try:
+    import numpy as np
+except ImportError:  # main() says what to install, in one line
+    np = None
+
+BUNDLE_FORMAT = "explorer-probe-bundle"
+RESULTS_FORMAT = "explorer-probe-results"
+VERSION = 1                       # of both the bundle layout and the results file
+DEFAULT_PROVIDER = "CPUExecutionProvider"
+WARMUP = 3
+
+
+class ProbeError(Exception):
+    """A mistake the user can fix: printed as one line, exit status 2."""
+
+
+# -- sessions and timing -------------------------------------------------------------------------
+def default_threads() -> int:
+    return max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1)
+
+
+def check_provider(provider: str) -> None:
+    import onnxruntime as ort
+    have = ort.get_available_providers()
+    if provider not in have:
+        raise ProbeError(f"execution provider {provider} is not in this onnxruntime {ort.__version__} "
+                         f"(it has {', '.join(have)}); install the onnxruntime build that has it, or pick one of those")
+
+
+def session(model: "bytes | str | Path", threads: int | None = None, provider: str = DEFAULT_PROVIDER):
+    """An onnxruntime session as every measurement and the runtime use it: ``threads`` intra-op
+    threads, full graph optimisation, ``provider`` first (the CPU one takes what it cannot run)."""
+    import onnxruntime as ort
+    opts = ort.SessionOptions()
+    opts.intra_op_num_threads = threads or default_threads()
+    opts.inter_op_num_threads = 1
+    opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    opts.log_severity_level = 3
+    # Stages run one after another in separate sessions: threads spinning after one stage would
+    # steal the cores from the next.
+    opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
+    providers = [provider] + ([DEFAULT_PROVIDER] if provider != DEFAULT_PROVIDER else [])
+    return ort.InferenceSession(str(model) if isinstance(model, Path) else model, opts, providers=providers)
+
+
+def time_call(fn: Callable[[], object], warmup: int = WARMUP, repeats: int = 15) -> float:
+    """Median wall time of ``fn`` in ms after ``warmup`` calls."""
+    for _ in range(warmup):
+        fn()
+    samples = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        samples.append((time.perf_counter() - t0) * 1000.0)
+    return statistics.median(samples)
+
+
+# -- power sensors -------------------------------------------------------------------------------
+def _read_number(path: str) -> float:
+    with open(path) as f:
+        return float(f.read().strip())
+
+
+def _read_text(path: str, default: str = "") -> str:
+    try:
+        with open(path) as f:
+            return f.read().strip().strip("\x00")
+    except OSError:
+        return default
+
+
+def _is_input_rail(label: str) -> bool:
+    """The board's input rail (VDD_IN on TX2/Orin, POM_5V_IN on Nano) already includes every other
+    rail: summing it with them would count the SoC twice."""
+    up = label.upper()
+    return up == "IN" or up.endswith("_IN")
+
+
+def _pick_rails(rails: list[tuple[str, object]]) -> list[tuple[str, object]]:
+    inputs = [r for r in rails if _is_input_rail(r[0])]
+    return inputs or rails
+
+
+class PowerSensor:
+    """A readable power source. ``kind`` 'power': ``read()`` is watts now; 'energy': ``read()`` is a
+    counter and ``joules(a, b)`` the energy between two readings."""
+
+    kind = "power"
+    name = "sensor"
+    what = ""
+    interval_s = 0.02   # between samples while sampling in the background
+
+    def read(self):  # pragma: no cover - interface
+        raise NotImplementedError
+
+    def joules(self, a, b) -> float:  # pragma: no cover - energy counters only
+        raise NotImplementedError
+
+    def describe(self) -> dict:
+        return {"sensor": self.name, "kind": self.kind, "what": self.what}
+
+
+class Ina3221Hwmon(PowerSensor):
+    """Jetson INA3221 through hwmon: ``in{N}_input`` bus millivolts, ``curr{N}_input`` milliamperes."""
+
+    name = "ina3221-hwmon"
+
+    def __init__(self, channels: list[tuple[str, tuple[str, str]]]) -> None:
+        self.channels = channels
+        self.what = "rails " + ", ".join(label for label, _ in channels)
+
+    def read(self) -> float:
+        return sum(_read_number(v) * _read_number(c) for _, (v, c) in self.channels) / 1e6
+
+    @classmethod
+    def find(cls, root: str) -> "Ina3221Hwmon | None":
+        rails = []
+        for dev in sorted(glob.glob(os.path.join(root, "sys/class/hwmon/hwmon*"))):
+            if _read_text(os.path.join(dev, "name")) != "ina3221":
+                continue
+            for volt in sorted(glob.glob(os.path.join(dev, "in[0-9]*_input"))):
+                n = re.fullmatch(r"in(\d+)_input", os.path.basename(volt)).group(1)
+                curr = os.path.join(dev, f"curr{n}_input")
+                if os.path.isfile(curr) and _readable(volt) and _readable(curr):
+                    label = _read_text(os.path.join(dev, f"in{n}_label"), f"{os.path.basename(dev)}/in{n}")
+                    rails.append((label, (volt, curr)))
+        return cls(_pick_rails(rails)) if rails else None
+
+
+class Ina3221Iio(PowerSensor):
+    """Older Jetson kernels (TX1/TX2, L4T 28-32): the ina3221x iio driver's ``in_power{N}_input``
+    in milliwatts, rail names in ``rail_name_{N}``."""
+
+    name = "ina3221-iio"
+
+    def __init__(self, channels: list[tuple[str, str]]) -> None:
+        self.channels = channels
+        self.what = "rails " + ", ".join(label for label, _ in channels)
+
+    def read(self) -> float:
+        return sum(_read_number(p) for _, p in self.channels) / 1e3
+
+    @classmethod
+    def find(cls, root: str) -> "Ina3221Iio | None":
+        rails, seen = [], set()
+        patterns = ("sys/bus/i2c/drivers/ina3221x/*/iio:device*", "sys/bus/iio/devices/iio:device*")
+        for dev in sorted(d for pat in patterns for d in glob.glob(os.path.join(root, pat))):
+            real = os.path.realpath(dev)
+            if real in seen:
+                continue
+            seen.add(real)
+            for p in sorted(glob.glob(os.path.join(dev, "in_power[0-9]*_input"))):
+                n = re.fullmatch(r"in_power(\d+)_input", os.path.basename(p)).group(1)
+                if _readable(p):
+                    rails.append((_read_text(os.path.join(dev, f"rail_name_{n}"), f"power{n}"), p))
+        return cls(_pick_rails(rails)) if rails else None
+
+
+class HwmonPower(PowerSensor):
+    """Any other hwmon device with ``power{N}_input`` (microwatts), summed."""
+
+    name = "hwmon-power"
+
+    def __init__(self, files: list[tuple[str, str]]) -> None:
+        self.files = files
+        self.what = ", ".join(label for label, _ in files)
+
+    def read(self) -> float:
+        return sum(_read_number(p) for _, p in self.files) / 1e6
+
+    @classmethod
+    def find(cls, root: str) -> "HwmonPower | None":
+        files = []
+        for dev in sorted(glob.glob(os.path.join(root, "sys/class/hwmon/hwmon*"))):
+            name = _read_text(os.path.join(dev, "name"), os.path.basename(dev))
+            if name == "ina3221":
+                continue
+            for p in sorted(glob.glob(os.path.join(dev, "power[0-9]*_input"))):
+                if _readable(p):
+                    files.append((f"{name}/{os.path.basename(p)}", p))
+        return cls(files) if files else None
+
+
+class Rapl(PowerSensor):
+    """Intel/AMD RAPL through powercap: top-level zones' ``energy_uj`` counters (sub-zones are
+    inside them), each wrapping at its ``max_energy_range_uj``."""
+
+    name = "rapl"
+    kind = "energy"
+
+    def __init__(self, zones: list[tuple[str, str, float]]) -> None:
+        self.zones = zones
+        self.what = "zones " + ", ".join(label for label, _, _ in zones)
+
+    def read(self) -> list[float]:
+        return [_read_number(p) for _, p, _ in self.zones]
+
+    def joules(self, a: Sequence[float], b: Sequence[float]) -> float:
+        total = 0.0
+        for (_, _, wrap), x, y in zip(self.zones, a, b):
+            d = y - x
+            if d < 0:  # the counter wrapped once (a window far shorter than a wrap period)
+                d += wrap
+            total += d
+        return total / 1e6
+
+    @classmethod
+    def find(cls, root: str) -> "Rapl | None":
+        zones = []
+        for z in sorted(glob.glob(os.path.join(root, "sys/class/powercap/*"))):
+            base = os.path.basename(z)
+            # intel-rapl:0 is a package, intel-rapl:0:0 a part of it; the mmio zone mirrors a package
+            if base.count(":") != 1 or "mmio" in base:
+                continue
+            e, m = os.path.join(z, "energy_uj"), os.path.join(z, "max_energy_range_uj")
+            if os.path.isfile(e) and _readable(e):
+                wrap = _read_number(m) if os.path.isfile(m) and _readable(m) else 2.0 ** 32
+                zones.append((_read_text(os.path.join(z, "name"), base), e, wrap))
+        return cls(zones) if zones else None
+
+
+_PMIC_LINE = re.compile(r"^\s*(\S+)_([AV])\s+(?:current|volt)\(\d+\)=\s*([-+0-9.eE]+)\s*[AV]\s*$")
+
+
+def parse_pmic_adc(text: str) -> float:
+    """Watts from ``vcgencmd pmic_read_adc`` (Raspberry Pi 5): every rail with both a current
+    (``NAME_A current(i)=...A``) and a voltage (``NAME_V volt(j)=...V``) line, current x voltage."""
+    amps, volts = {}, {}
+    for line in text.splitlines():
+        m = _PMIC_LINE.match(line)
+        if m:
+            (amps if m.group(2) == "A" else volts)[m.group(1)] = float(m.group(3))
+    rails = set(amps) & set(volts)
+    if not rails:
+        raise ValueError("no rail with both a current and a voltage")
+    return sum(amps[r] * volts[r] for r in rails)
+
+
+class RpiPmic(PowerSensor):
+    """Raspberry Pi 5's PMIC through ``vcgencmd pmic_read_adc`` (each reading starts the command)."""
+
+    name = "rpi5-pmic"
+    interval_s = 0.25   # every reading starts a process: sample rarely, so it does not load the CPU
+
+    def __init__(self, command: str) -> None:
+        self.command = command
+        self.what = f"{command} pmic_read_adc, sum of rail current x voltage"
+
+    def read(self) -> float:
+        out = subprocess.run([self.command, "pmic_read_adc"], capture_output=True, text=True, timeout=5,
+                             check=True).stdout
+        return parse_pmic_adc(out)
+
+    @classmethod
+    def find(cls, command: str) -> "RpiPmic | None":
+        exe = shutil.which(command)
+        if exe is None:
+            return None
+        sensor = cls(exe)
+        try:
+            sensor.read()
+        except (OSError, ValueError, subprocess.SubprocessError):
+            return None
+        return sensor
+
+
+def _readable(path: str) -> bool:
+    try:
+        _read_number(path)
+        return True
+    except (OSError, ValueError):
+        return False
+
+
+def find_sensor(root: str = "/", vcgencmd: str = "vcgencmd") -> PowerSensor | None:
+    """The first readable power source, board-level ones first (an INA3221 input rail or the Pi's
+    PMIC sees the whole board; RAPL sees the CPU package only)."""
+    for found in (lambda: Ina3221Hwmon.find(root), lambda: Ina3221Iio.find(root), lambda: RpiPmic.find(vcgencmd),
+                  lambda: HwmonPower.find(root), lambda: Rapl.find(root)):
+        sensor = found()
+        if sensor is not None:
+            return sensor
+    return None
+
+
+class PowerWindow:
+    """Mean power (W) over a ``with`` block: energy counters read at both ends, instantaneous
+    sensors sampled every ``interval_s`` by a background thread (and once at each end)."""
+
+    def __init__(self, sensor: PowerSensor, interval_s: float | None = None) -> None:
+        self.sensor, self.interval_s = sensor, interval_s or sensor.interval_s
+        self.watts = float("nan")
+        self.seconds = 0.0
+        self.samples = 0
+
+    def __enter__(self) -> "PowerWindow":
+        self._stop = threading.Event()
+        self._values: list[float] = []
+        if self.sensor.kind == "energy":
+            self._start = self.sensor.read()
+        else:
+            self._values.append(self.sensor.read())
+            self._thread = threading.Thread(target=self._sample, daemon=True)
+            self._thread.start()
+        self._t0 = time.perf_counter()
+        return self
+
+    def _sample(self) -> None:
+        while not self._stop.wait(self.interval_s):
+            self._values.append(self.sensor.read())
+
+    def __exit__(self, *exc) -> None:
+        self.seconds = time.perf_counter() - self._t0
+        if self.sensor.kind == "energy":
+            self.watts = self.sensor.joules(self._start, self.sensor.read()) / max(self.seconds, 1e-9)
+            self.samples = 2
+        else:
+            self._stop.set()
+            self._thread.join()
+            self._values.append(self.sensor.read())
+            self.watts = float(np.mean(self._values))
+            self.samples = len(self._values)
+
+
+def idle_power(sensor: PowerSensor, seconds: float) -> float:
+    with PowerWindow(sensor) as w:
+        time.sleep(seconds)
+    return w.watts
+
+
+def inference_energy(sensor: PowerSensor, run: Callable[[], object], idle_w: float, min_seconds: float,
+                     min_runs: int = 3) -> dict:
+    """Runs ``run`` back to back for at least ``min_seconds`` while sampling power; the energy of
+    one run is (mean power - idle power) x (window / runs)."""
+    run()
+    n = 0
+    with PowerWindow(sensor) as w:
+        t0 = time.perf_counter()
+        while n < min_runs or time.perf_counter() - t0 < min_seconds:
+            run()
+            n += 1
+    per_run_s = w.seconds / n
+    return {"ms": per_run_s * 1000.0, "j": max(w.watts - idle_w, 0.0) * per_run_s, "watts": w.watts,
+            "runs": n, "samples": w.samples}
+
+
+# -- device identity -----------------------------------------------------------------------------
+def device_identity(provider: str, threads: int, root: str = "/") -> dict:
+    import onnxruntime as ort
+    cpuinfo = _read_text(os.path.join(root, "proc/cpuinfo"))
+    cpu = ""
+    for key in ("model name", "Model", "Hardware", "Processor", "cpu model"):
+        m = re.search(rf"^{key}\s*:\s*(.+)$", cpuinfo, re.MULTILINE)
+        if m:
+            cpu = m.group(1).strip()
+            break
+    return {"host": platform.node(), "board": _read_text(os.path.join(root, "proc/device-tree/model")),
+            "cpu": cpu or platform.processor() or platform.machine(), "machine": platform.machine(),
+            "cores": os.cpu_count(), "system": f"{platform.system()} {platform.release()}",
+            "python": platform.python_version(), "numpy": np.__version__, "onnxruntime": ort.__version__,
+            "provider": provider, "threads": threads}
+
+
+# -- results -------------------------------------------------------------------------------------
+def load_manifest(bundle_dir: Path) -> dict:
+    path = Path(bundle_dir) / "manifest.json"
+    try:
+        manifest = json.loads(path.read_text())
+    except OSError:
+        raise ProbeError(f"{path}: no bundle manifest here (unpack the bundle and run probe.py inside it, "
+                         "or pass --bundle DIR)") from None
+    except json.JSONDecodeError:
+        raise ProbeError(f"{path}: the bundle manifest is not valid JSON (unpack the bundle again)") from None
+    if manifest.get("format") != BUNDLE_FORMAT or manifest.get("version") != VERSION:
+        raise ProbeError(f"{path}: bundle format {manifest.get('format')} v{manifest.get('version')}, this probe "
+                         f"reads {BUNDLE_FORMAT} v{VERSION}: use the probe.py that came in the bundle")
+    return manifest
+
+
+def read_results(path: Path) -> dict:
+    """A results file, checked: whole JSON, this format and version."""
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text())
+    except OSError as exc:
+        raise ProbeError(f"{path}: cannot read results ({exc.strerror})") from None
+    except (json.JSONDecodeError, UnicodeDecodeError):
+        raise ProbeError(f"{path}: not a whole results file (truncated or corrupt JSON): run the probe again "
+                         "with another --out") from None
+    if not isinstance(data, dict) or data.get("format") != RESULTS_FORMAT:
+        raise ProbeError(f"{path}: not a probe results file (write one with `python probe.py --out FILE`)")
+    if data.get("version") != VERSION:
+        raise ProbeError(f"{path}: results of probe format v{data.get('version')}, this version reads v{VERSION}: "
+                         "make a new bundle with `explorer calibrate --bundle` and probe again")
+    for key in ("bundle", "device", "conditions", "layers", "stages"):
+        if key not in data:
+            raise ProbeError(f"{path}: results file lacks '{key}' (truncated or edited): run the probe again")
+    return data
+
+
+def write_atomically(path: Path, data: dict) -> None:
+    """Whole file or the previous one, never half of one: an interrupt loses at most one graph."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.tmp")
+    with open(tmp, "w") as f:
+        json.dump(data, f, indent=1)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+def _random_feeds(inputs: Iterable[dict], rng: np.random.Generator) -> dict[str, np.ndarray]:
+    return {i["name"]: rng.random(tuple(i["shape"]), dtype=np.float32) for i in inputs}
+
+
+def _candidate_inputs(manifest: dict, rng: np.random.Generator, cand: dict | None = None) -> dict[str, np.ndarray]:
+    h, w = (cand or {}).get("input_size") or manifest["input_size"]
+    return {"image": rng.random((1, 3, h, w), dtype=np.float32),
+            "scan": rng.random((1, w), dtype=np.float32) * 5 + 0.5}
+
+
+def schedule(layers: list[dict], cands: list[dict]) -> list[tuple[str, dict]]:
+    """Layer graphs with the candidates spread evenly among them: a board that heats up and
+    throttles (or a machine whose load drifts) then slows both kinds alike, and the fit, which
+    reads them together, does not mistake the drift for a difference between them."""
+    order: list[tuple[str, dict]] = [("layer", layer) for layer in layers]
+    for j, cand in reversed(list(enumerate(cands))):
+        order.insert(round((j + 0.5) * len(layers) / len(cands)), ("candidate", cand))
+    return order
+
+
+def run_probe(bundle_dir: "str | Path", out: "str | Path", provider: str = DEFAULT_PROVIDER,
+              threads: int | None = None, repeats: int | None = None, energy: bool = True,
+              root: str = "/", vcgencmd: str = "vcgencmd", idle_s: float = 2.0, window_s: float = 1.0,
+              progress: Callable[[int, int, str], None] | None = None,
+              log: Callable[[str], None] = lambda s: None) -> dict:
+    """Times every graph of the bundle (single layers, then each candidate's stages in order, each
+    fed by the one before), then, where a power sensor is readable, the energy of whole inferences.
+    Returns the results, also written (atomically, after every graph) to ``out``."""
+    bundle_dir, out = Path(bundle_dir), Path(out)
+    manifest = load_manifest(bundle_dir)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    check_provider(provider)
+    threads = threads or default_threads()
+    repeats = repeats or int(manifest["repeats"])
+    cond = {"provider": provider, "threads": threads, "repeats": repeats, "warmup": WARMUP, "statistic": "median"}
+    if out.exists():
+        res = read_results(out)
+        if res["bundle"].get("id") != manifest["id"]:
+            raise ProbeError(f"{out}: results of another bundle ({res['bundle'].get('id')}, this one is "
+                             f"{manifest['id']}): give another --out, or delete it to start over")
+        if res["conditions"] != cond:
+            raise ProbeError(f"{out}: measured with {res['conditions']}, now asked for {cond}: give another "
+                             "--out, or the same options as before to resume")
+        log(f"resuming {out}: {len(res['layers'])} layer graphs and "
+            f"{sum(len(v) for v in res['stages'].values())} stage graphs already measured")
+    else:
+        res = {"format": RESULTS_FORMAT, "version": VERSION, "bundle": manifest,
+               "device": device_identity(provider, threads, root), "conditions": cond,
+               "layers": {}, "stages": {}, "energy": None}
+    layers, cands = manifest["layers"], manifest["candidates"]
+    total = len(layers) + sum(len(c["graphs"]) for c in cands)
+    done = 0
+
+    def tick(what: str) -> None:
+        nonlocal done
+        done += 1
+        if progress:
+            progress(done, total, what)
+
+    rng = np.random.default_rng(0)
+    for kind, item in schedule(layers, cands):
+        if kind == "layer":
+            if item["id"] not in res["layers"]:
+                sess = session(bundle_dir / item["file"], threads, provider)
+                feeds = _random_feeds(item["inputs"], rng)
+                res["layers"][item["id"]] = time_call(lambda: sess.run(None, feeds), WARMUP, repeats)
+                write_atomically(out, res)
+            tick("layers")
+            continue
+        kept = res["stages"].setdefault(item["key"], {})
+        if all(g["stage"] in kept for g in item["graphs"]):
+            for _ in item["graphs"]:
+                tick("stages")
+            continue
+        env = _candidate_inputs(manifest, rng, item)
+        for g in item["graphs"]:
+            sess = session(bundle_dir / g["file"], threads, provider)
+            names = [i.name for i in sess.get_inputs()]
+            feeds = {n: env[n] for n in names}
+            outs = sess.run(None, feeds)   # what later stages read (also when this one was kept)
+            if g["stage"] not in kept:
+                kept[g["stage"]] = time_call(lambda: sess.run(None, feeds), WARMUP, repeats)
+                write_atomically(out, res)
+            env.update({o.name: v for o, v in zip(sess.get_outputs(), outs)})
+            tick("stages")
+    if energy:
+        _probe_energy(res, manifest, bundle_dir, out, provider, threads, root, vcgencmd, idle_s, window_s,
+                      progress, log)
+    write_atomically(out, res)
+    return res
+
+
+def _probe_energy(res: dict, manifest: dict, bundle_dir: Path, out: Path, provider: str, threads: int,
+                  root: str, vcgencmd: str, idle_s: float, window_s: float,
+                  progress: Callable[[int, int, str], None] | None, log: Callable[[str], None]) -> None:
+    sensor = find_sensor(root, vcgencmd)
+    if sensor is None:
+        res["energy"] = {"sensor": None, "note": "no readable power sensor (INA3221 hwmon/iio, Raspberry Pi 5 "
+                         "PMIC, hwmon power*_input, RAPL energy_uj; RAPL needs root on most kernels): "
+                         "energy not measured"}
+        log(res["energy"]["note"])
+        return
+    e = res["energy"] if res.get("energy") and res["energy"].get("sensor") else None
+    if e is None:
+        log(f"power sensor: {sensor.name} ({sensor.what}); idle power for {idle_s:g} s")
+        e = {**sensor.describe(), "idle_w": idle_power(sensor, idle_s), "idle_s": idle_s, "window_s": window_s,
+             "inferences": {}}
+        res["energy"] = e
+        write_atomically(out, res)
+    cands = manifest["candidates"]
+    rng = np.random.default_rng(1)
+    for i, cand in enumerate(cands):
+        if cand["key"] not in e["inferences"]:
+            sessions = [session(bundle_dir / g["file"], threads, provider) for g in cand["graphs"]]
+            io = [([x.name for x in s.get_inputs()], [x.name for x in s.get_outputs()]) for s in sessions]
+            start = _candidate_inputs(manifest, rng, cand)
+
+            def inference() -> None:
+                env = dict(start)
+                for s, (ins, outs) in zip(sessions, io):
+                    env.update(zip(outs, s.run(outs, {n: env[n] for n in ins})))
+
+            e["inferences"][cand["key"]] = inference_energy(sensor, inference, e["idle_w"], window_s)
+            write_atomically(out, res)
+        if progress:
+            progress(i + 1, len(cands), "energy")
+
+
+# -- command line --------------------------------------------------------------------------------
+def main(argv: Sequence[str] | None = None) -> int:
+    here = Path(__file__).resolve().parent
+    ap = argparse.ArgumentParser(prog="probe.py", description="Time this bundle's ONNX graphs on this device "
+                                 "(and sample its power sensors); fit the results anywhere with "
+                                 "`explorer calibrate --fit RESULTS --out PROFILE.yaml`.")
+    ap.add_argument("--out", required=True, help="results JSON to write (an existing one is resumed)")
+    ap.add_argument("--bundle", default=str(here), help="unpacked bundle folder (default: this file's)")
+    ap.add_argument("--provider", default=DEFAULT_PROVIDER,
+                    help="onnxruntime execution provider (default CPUExecutionProvider; e.g. CUDAExecutionProvider, "
+                    "TensorrtExecutionProvider, OpenVINOExecutionProvider, XnnpackExecutionProvider)")
+    ap.add_argument("--threads", type=int, default=None, help="intra-op threads (default: all cores)")
+    ap.add_argument("--repeats", type=int, default=None, help="timed runs per graph (default: the bundle's)")
+    ap.add_argument("--no-energy", dest="energy", action="store_false", help="do not sample power sensors")
+    ap.add_argument("--idle", type=float, default=2.0, help="seconds of idle power measured first (default 2)")
+    ap.add_argument("--window", type=float, default=1.0, help="seconds of back-to-back inferences per "
+                    "energy measurement (default 1)")
+    ap.add_argument("--sysfs-root", default="/", help="where /sys and /proc are (default /; for tests)")
+    ap.add_argument("--vcgencmd", default="vcgencmd", help="the Raspberry Pi's vcgencmd (default: on PATH)")
+    args = ap.parse_args(argv)
+    try:
+        import onnxruntime  # noqa: F401  (checked here: one line, not a traceback, when it is missing)
+        if np is None:
+            raise ImportError("numpy")
+    except ImportError:
+        print("probe.py: error: needs onnxruntime and numpy: `python3 -m pip install onnxruntime numpy` "
+              "(or your board's onnxruntime build)", file=sys.stderr)
+        return 2
+    last = [0.0]
+
+    def progress(i: int, n: int, what: str) -> None:
+        now = time.monotonic()
+        if i == n or now - last[0] > 2.0:
+            last[0] = now
+            print(f"  {what}: {i}/{n}", file=sys.stderr, flush=True)
+
+    try:
+        res = run_probe(args.bundle, args.out, args.provider, args.threads, args.repeats, args.energy,
+                        args.sysfs_root, args.vcgencmd, args.idle, args.window, progress,
+                        log=lambda s: print(s, file=sys.stderr, flush=True))
+    except ProbeError as exc:
+        print(f"probe.py: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"probe.py: interrupted; what was measured is in {args.out}: run the same command to go on",
+              file=sys.stderr)
+        return 130
+    d = res["device"]
+    print(f"wrote {args.out}: {len(res['layers'])} layer graphs, "
+          f"{sum(len(v) for v in res['stages'].values())} stage graphs on {d['cpu']} ({d['provider']}, "
+          f"{d['threads']} threads); fit it with `explorer calibrate --fit {args.out} --out myboard.yaml`")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,253 @@
+"""The calibration probe: bundle, torch-free probe, power sensors (fake sysfs trees), resume, fit."""
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tarfile
+import time
+from pathlib import Path
+
+import pytest
+import yaml
+
+from explorer.cost import probe_script as probe
+from explorer.cost.calibrate import fit_energy, fit_results
+
+TINY = dict(scale=0.05, n_stage=1, repeats=2)
+
+
+@pytest.fixture(scope="module")
+def bundle_tar(tmp_path_factory) -> Path:
+    from explorer.cost.bundle import write_bundle
+    out = tmp_path_factory.mktemp("bundle") / "probe.tar"
+    write_bundle(out, **TINY)
+    return out
+
+
+@pytest.fixture
+def bundle_dir(bundle_tar, tmp_path) -> Path:
+    folder = tmp_path / "unpacked"
+    with tarfile.open(bundle_tar) as tar:
+        tar.extractall(folder)
+    return folder
+
+
+def _write(root: Path, rel: str, value) -> None:
+    p = root / rel
+    p.parent.mkdir(parents=True, exist_ok=True)
+    p.write_text(f"{value}\n")
+
+
+# -- sensors -------------------------------------------------------------------------------------
+def test_ina3221_hwmon_reads_the_input_rail_only(tmp_path):
+    dev = "sys/class/hwmon/hwmon2"
+    _write(tmp_path, f"{dev}/name", "ina3221")
+    for n, label, mv, ma in ((1, "VDD_IN", 5000, 2000), (2, "VDD_SYS_GPU", 5000, 500), (3, "VDD_SYS_CPU", 5000, 300)):
+        _write(tmp_path, f"{dev}/in{n}_label", label)
+        _write(tmp_path, f"{dev}/in{n}_input", mv)
+        _write(tmp_path, f"{dev}/curr{n}_input", ma)
+    _write(tmp_path, f"{dev}/in4_input", 12)   # a shunt voltage: no current beside it
+    sensor = probe.find_sensor(str(tmp_path), vcgencmd=str(tmp_path / "no-vcgencmd"))
+    assert sensor.name == "ina3221-hwmon" and sensor.read() == pytest.approx(10.0)
+    (tmp_path / f"{dev}/in1_label").write_text("VDD_CPU_GPU_CV\n")  # no input rail: every rail, summed
+    assert probe.find_sensor(str(tmp_path), "none").read() == pytest.approx(10.0 + 2.5 + 1.5)
+
+
+def test_ina3221_iio_hwmon_power_and_none(tmp_path):
+    assert probe.find_sensor(str(tmp_path), "none") is None
+    _write(tmp_path, "sys/class/hwmon/hwmon0/name", "amdgpu")
+    _write(tmp_path, "sys/class/hwmon/hwmon0/power1_input", 12_500_000)   # microwatts
+    assert probe.find_sensor(str(tmp_path), "none").read() == pytest.approx(12.5)
+    iio = "sys/bus/i2c/drivers/ina3221x/0-0040/iio:device0"
+    for n, rail, mw in ((0, "VDD_SYS_GPU", 900), (1, "VDD_IN", 4200)):
+        _write(tmp_path, f"{iio}/rail_name_{n}", rail)
+        _write(tmp_path, f"{iio}/in_power{n}_input", mw)
+    sensor = probe.find_sensor(str(tmp_path), "none")   # the board's rails before a generic hwmon
+    assert sensor.name == "ina3221-iio" and sensor.read() == pytest.approx(4.2)
+
+
+def test_rapl_counts_packages_and_handles_wraparound(tmp_path):
+    wrap = 262_143_328_850
+    for zone in ("intel-rapl:0", "intel-rapl:1"):
+        _write(tmp_path, f"sys/class/powercap/{zone}/name", "package-" + zone[-1])
+        _write(tmp_path, f"sys/class/powercap/{zone}/max_energy_range_uj", wrap)
+        _write(tmp_path, f"sys/class/powercap/{zone}/energy_uj", wrap - 500_000)
+    _write(tmp_path, "sys/class/powercap/intel-rapl:0:0/energy_uj", 5)    # core: inside package 0
+    sensor = probe.find_sensor(str(tmp_path), "none")
+    assert sensor.name == "rapl" and len(sensor.zones) == 2
+    with probe.PowerWindow(sensor) as w:
+        time.sleep(0.05)
+        _write(tmp_path, "sys/class/powercap/intel-rapl:0/energy_uj", 1_500_000)   # wrapped: +2 J
+        _write(tmp_path, "sys/class/powercap/intel-rapl:1/energy_uj", wrap - 100_000)  # +0.4 J
+    assert w.watts * w.seconds == pytest.approx(2.4)
+
+
+PMIC = """\
+     3V7_WL_SW_A current(0)=0.10000000A
+       3V3_SYS_A current(1)=0.50000000A
+        DDR_VDD2_A current(4)=0.02000000A
+     3V7_WL_SW_V volt(8)=3.70000000V
+       3V3_SYS_V volt(9)=3.30000000V
+        EXT5V_V volt(24)=5.14804000V
+"""
+
+
+def test_rpi5_pmic_through_an_injected_vcgencmd(tmp_path):
+    assert probe.parse_pmic_adc(PMIC) == pytest.approx(0.1 * 3.7 + 0.5 * 3.3)
+    script = tmp_path / "vcgencmd"
+    script.write_text(f"#!/bin/sh\ncat <<'EOF'\n{PMIC}EOF\n")
+    script.chmod(0o755)
+    sensor = probe.find_sensor(str(tmp_path), str(script))
+    assert sensor.name == "rpi5-pmic" and sensor.read() == pytest.approx(2.02)
+    with pytest.raises(ValueError):
+        probe.parse_pmic_adc("error=1 error_msg=\"Command not registered\"")
+
+
+def test_energy_per_inference_subtracts_idle_power(tmp_path):
+    dev = "sys/class/hwmon/hwmon0"
+    _write(tmp_path, f"{dev}/name", "ina3221")
+    _write(tmp_path, f"{dev}/in1_label", "VDD_IN")
+    _write(tmp_path, f"{dev}/in1_input", 5000)
+    _write(tmp_path, f"{dev}/curr1_input", 400)          # idle: 2 W
+    sensor = probe.find_sensor(str(tmp_path), "none")
+    idle = probe.idle_power(sensor, 0.05)
+    assert idle == pytest.approx(2.0)
+    _write(tmp_path, f"{dev}/curr1_input", 1400)         # busy: 7 W
+    r = probe.inference_energy(sensor, lambda: time.sleep(0.01), idle, min_seconds=0.1)
+    assert r["watts"] == pytest.approx(7.0) and r["runs"] >= 3
+    assert r["j"] == pytest.approx(5.0 * r["ms"] / 1000.0)
+
+
+def test_energy_fit_recovers_fixed_energy_and_power():
+    runs = {f"c{i}": {"ms": ms, "j": 0.05 + 3.0 * ms / 1000.0} for i, ms in enumerate((5.0, 12.0, 30.0))}
+    fixed, power, prov = fit_energy({"sensor": "rapl", "kind": "energy", "what": "zones package-0",
+                                     "idle_w": 4.0, "inferences": runs})
+    assert fixed == pytest.approx(0.05) and power == pytest.approx(3.0) and prov["energy"] == "measured"
+    fixed, power, prov = fit_energy({"sensor": None, "note": "no readable power sensor"})
+    assert (fixed, power, prov["energy"]) == (0.0, 0.0, "not measured") and "no readable" in prov["energy_note"]
+
+
+# -- probe, resume, fit ----------------------------------------------------------------------------
+def test_interrupted_probe_resumes_without_measuring_again(bundle_dir, tmp_path, monkeypatch):
+    out = tmp_path / "results.json"
+    seen = []
+
+    def stop_after_five(i, n, what):
+        seen.append(i)
+        if i == 5:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        probe.run_probe(bundle_dir, out, repeats=2, energy=False, progress=stop_after_five)
+    kept = json.loads(out.read_text())
+    assert len(kept["layers"]) == 5
+    calls = []
+    real = probe.time_call
+    monkeypatch.setattr(probe, "time_call", lambda *a, **k: calls.append(1) or real(*a, **k))
+    res = probe.run_probe(bundle_dir, out, repeats=2, energy=True, root=str(tmp_path), vcgencmd="none")
+    total = len(res["bundle"]["layers"]) + sum(len(c["graphs"]) for c in res["bundle"]["candidates"])
+    assert len(calls) == total - 5
+    assert all(res["layers"][k] == v for k, v in kept["layers"].items())
+    assert res["energy"]["sensor"] is None and "no readable power sensor" in res["energy"]["note"]
+    calls.clear()
+    probe.run_probe(bundle_dir, out, repeats=2, energy=False)    # finished: nothing measured again
+    assert calls == []
+    prof = fit_results(res, name="box")
+    assert prof.latency_basis == "measured" and prof.energy_basis == "none"
+    assert prof.provenance["provider"] == "CPUExecutionProvider" and prof.active_power_w == 0.0
+    assert prof.provenance["fit"][0]["count"] == len(res["bundle"]["layers"])
+
+
+def test_probe_with_a_power_sensor_writes_measured_energy(bundle_dir, tmp_path):
+    _write(tmp_path, "sys/class/hwmon/hwmon0/name", "acpi_power")
+    _write(tmp_path, "sys/class/hwmon/hwmon0/power1_input", 6_000_000)
+    res = probe.run_probe(bundle_dir, tmp_path / "r.json", repeats=2, root=str(tmp_path), idle_s=0.05,
+                          window_s=0.05)
+    e = res["energy"]
+    assert e["sensor"] == "hwmon-power" and e["idle_w"] == pytest.approx(6.0)
+    assert set(e["inferences"]) == {c["key"] for c in res["bundle"]["candidates"]}
+    prof = fit_results(res)
+    assert prof.provenance["energy"] == "measured" and prof.energy_basis == "measured"
+    assert prof.provenance["energy_sensor"]["sensor"] == "hwmon-power"
+
+
+def test_foreign_or_truncated_results_are_one_line_exit_2(bundle_dir, tmp_path, run_cli):
+    out = tmp_path / "r.json"
+    probe.run_probe(bundle_dir, out, repeats=2, energy=False)
+    text = out.read_text()
+    (tmp_path / "cut.json").write_text(text[: len(text) // 2])
+    code, _, err = run_cli("calibrate", "--fit", tmp_path / "cut.json", "--out", tmp_path / "p.yaml")
+    assert code == 2 and "truncated" in err and len(err.strip().splitlines()) == 1
+    old = json.loads(text)
+    old["version"] = 0
+    (tmp_path / "old.json").write_text(json.dumps(old))
+    code, _, err = run_cli("calibrate", "--fit", tmp_path / "old.json", "--out", tmp_path / "p.yaml")
+    assert code == 2 and "format v0" in err and len(err.strip().splitlines()) == 1
+    other = dict(old, version=probe.VERSION, bundle=dict(old["bundle"], id="0123456789abcdef"))
+    (tmp_path / "other.json").write_text(json.dumps(other))
+    assert probe.main(["--bundle", str(bundle_dir), "--out", str(tmp_path / "other.json"), "--no-energy"]) == 2
+    assert probe.main(["--bundle", str(bundle_dir), "--out", str(tmp_path / "x.json"),
+                       "--provider", "NoSuchExecutionProvider"]) == 2
+    code, _, err = run_cli("calibrate", "--fit", out, "--out", tmp_path / "p.yaml")
+    assert code == 0, err
+    data = yaml.safe_load((tmp_path / "p.yaml").read_text())
+    assert data["provenance"]["latency"] == "measured" and data["provenance"]["conditions"]["bundle"]
+
+
+def test_unknown_provider_is_one_line_exit_2(run_cli, tmp_path):
+    for args in (("calibrate", "--out", tmp_path / "p.yaml"), ("run", tmp_path, "--image", "x.png",
+                                                                 "--scan", "s.csv", "--deadline", "5ms")):
+        code, _, err = run_cli(*args, "--provider", "NoSuchExecutionProvider")
+        assert code == 2 and "NoSuchExecutionProvider" in err and len(err.strip().splitlines()) == 1
+
+
+def test_devices_say_what_each_profile_rests_on(run_cli):
+    code, out, _ = run_cli("devices", "--json")
+    rows = {r["name"]: r for r in json.loads(out)}
+    assert code == 0
+    assert (rows["tx2"]["latency"], rows["tx2"]["energy"]) == ("published", "published")
+    assert (rows["tx2-cpu"]["energy"], rows["orin-nano"]["latency"]) == ("none", "estimate")
+
+
+# -- the probe where only numpy and onnxruntime exist ----------------------------------------------
+def _bare_venv(where: Path) -> Path:
+    """A venv with numpy and onnxruntime only (the versions installed here, from pip's usual
+    sources); skips the test when pip cannot install them."""
+    import numpy
+    import onnxruntime
+    subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(where)], check=True)
+    py = where / "bin" / "python"
+    pip = subprocess.run([sys.executable, "-m", "pip", "--python", str(py), "install", "--quiet",
+                          "--disable-pip-version-check", f"numpy=={numpy.__version__}",
+                          f"onnxruntime=={onnxruntime.__version__}"], capture_output=True, text=True)
+    if pip.returncode != 0:
+        pytest.skip(f"could not install numpy and onnxruntime into a fresh venv: {pip.stderr.strip()[-200:]}")
+    return py
+
+
+@pytest.mark.slow
+def test_probe_runs_with_only_numpy_and_onnxruntime(bundle_tar, tmp_path, run_cli):
+    py = _bare_venv(tmp_path / "venv")
+    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "PYTHONHOME", "VIRTUAL_ENV")}
+    torch = subprocess.run([str(py), "-c", "import torch"], capture_output=True, env=env)
+    assert torch.returncode != 0, "the bare venv must not see torch"
+    device = tmp_path / "device"
+    device.mkdir()
+    shutil.copy(bundle_tar, device)
+    subprocess.run(["tar", "xf", bundle_tar.name], cwd=device, check=True)
+    assert (device / "probe.py").read_text() == Path(probe.__file__).read_text()
+    sysfs = tmp_path / "fake-sysfs"
+    _write(sysfs, "sys/class/powercap/intel-rapl:0/energy_uj", 1000)
+    run = subprocess.run([str(py), "probe.py", "--out", "results.json", "--sysfs-root", str(sysfs),
+                          "--idle", "0.05", "--window", "0.05"], cwd=device, capture_output=True, text=True,
+                         env=env, timeout=120)
+    assert run.returncode == 0, run.stderr
+    res = json.loads((device / "results.json").read_text())
+    assert res["device"]["onnxruntime"] and res["device"]["provider"] == "CPUExecutionProvider"
+    assert res["energy"]["sensor"] == "rapl" and len(res["layers"]) == len(res["bundle"]["layers"])
+    code, _, err = run_cli("calibrate", "--fit", device / "results.json", "--out", tmp_path / "board.yaml")
+    assert code == 0, err
+    code, out, _ = run_cli("profile", "paper", "--device", tmp_path / "board.yaml", "--json")
+    assert code == 0 and json.loads(out)["paths"][1]["latency_ms"] > 0
