@@ -1,0 +1,138 @@
+"""The supernet evaluator: training time and peak memory, candidates evaluated per 10 minutes, and
+rank fidelity against stand-alone training with a 4x longer recipe (proxy's tau beside it).
+
+    ANYTIME_EXPLORER_CACHE=... .venv/bin/python benchmarks/bench_supernet.py [--candidates 16]
+
+Stand-alone results are cached in reports/bench/ (benchmarks/_labels.py): a rerun only pays for the
+supernet side. The supernet is the one `explorer search` uses by default (trained here if missing).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import random
+import resource
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import torch
+from scipy.stats import kendalltau
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _labels import recipe, score, standalone  # noqa: E402
+
+from explorer.anytime import anytime_loss  # noqa: E402
+from explorer.cost import candidate_cost, get_device  # noqa: E402
+from explorer.data import open_dataset  # noqa: E402
+from explorer.evaluators import SupernetEvaluator  # noqa: E402
+from explorer.search import SearchConfig  # noqa: E402
+from explorer.space import (SearchSpace, fastdepth_candidate, paper_candidate,  # noqa: E402
+                            paper_nee_candidate)
+from explorer.supernet import default_path, read_supernet, train_supernet  # noqa: E402
+
+BUDGET = "time:uniform:33ms"
+
+
+def label_candidates(space: SearchSpace, n: int) -> list:
+    """The three baselines and ``n`` random candidates of the default space as it was before the
+    widening (a subspace of today's: every candidate there is one here too)."""
+    old = SearchSpace.from_dict({**_yaml(space.source), "image_encoder": {"blocks": [6, 7, 9],
+                                 "width_mult": [0.5, 0.75, 1.0]},
+                                 "lidar_encoder": {"depth": [4, 5], "width": [8, 16]},
+                                 "exits": {"optional": [0, 1, 2, 3], "head_depth": [1, 2], "head_width": [32]}})
+    return [paper_candidate(), paper_nee_candidate(), fastdepth_candidate()] + \
+        random.Random(15).sample(list(old.enumerate()), n)
+
+
+def _yaml(path):
+    import yaml
+    return yaml.safe_load(Path(path).read_text())
+
+
+def peak_memory_of_training(steps: int) -> tuple[float, float]:
+    """(seconds per step, peak RSS in MiB) of a fresh process training the supernet ``steps`` steps."""
+    code = ("import time, torch, tempfile; from explorer.space import SearchSpace; "
+            "from explorer.supernet import SupernetRecipe, train_supernet; "
+            f"r = SupernetRecipe(steps={steps}); t = time.perf_counter(); "
+            "train_supernet(SearchSpace.from_yaml('anytime_depth'), 'synthetic', r, "
+            "tempfile.mkdtemp() + '/s.pt'); print((time.perf_counter() - t) / r.steps)")
+    before = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    peak = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+    return float(out.stdout.strip().splitlines()[-1]), max(peak, before) / 1024
+
+
+if __name__ == "__main__":
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--candidates", type=int, default=16, help="random default-space candidates (plus 3 baselines)")
+    ap.add_argument("--throughput", type=int, default=20, help="candidates per throughput repetition")
+    ap.add_argument("--val-limit", type=int, default=96, help="validation frames per candidate, as in a search")
+    args = ap.parse_args()
+    torch.set_num_threads(2)
+    space = SearchSpace.from_yaml("anytime_depth")
+    cfg = SearchConfig(study="bench")
+    sn_recipe = cfg.supernet_recipe()
+    file = default_path(space, cfg.data, sn_recipe)
+    if not file.is_file() or not read_supernet(file).get("complete"):
+        print(f"training the supernet ({sn_recipe.steps} steps) into {file}", flush=True)
+        train_supernet(space, cfg.data, sn_recipe, file)
+    state = read_supernet(file)
+    print(f"supernet {file.name}: {state['step']} steps ({sn_recipe.random_subnets} random subnets + largest + "
+          f"smallest per step, batch {sn_recipe.batch_size} at {sn_recipe.input_size[0]}x{sn_recipe.input_size[1]}), "
+          f"trained in {state['seconds'] / 60:.1f} min (as recorded in the file)")
+
+    # -- training: time per step and peak memory, 3 fresh processes -------------------------------
+    reps = [peak_memory_of_training(10) for _ in range(3)]
+    for i, (s, mb) in enumerate(reps, 1):
+        print(f"  supernet training rep {i}: {s:.2f} s/step, peak RSS {mb:.0f} MiB")
+    per_step = statistics.median(r[0] for r in reps)
+    print(f"supernet training: median {per_step:.2f} s/step -> {per_step * sn_recipe.steps / 60:.1f} min for "
+          f"{sn_recipe.steps} steps; peak RSS {max(r[1] for r in reps):.0f} MiB")
+
+    # -- throughput: candidates fully evaluated per 10 minutes ------------------------------------
+    size = sn_recipe.input_size
+    calib = open_dataset(cfg.data, "train", size, train_augment=False)
+    val = open_dataset(cfg.data, "val", size, train_augment=False)
+    evaluator = SupernetEvaluator(file, space, calib, val, torch.device("cpu"), val_limit=args.val_limit)
+    tx2 = get_device("tx2")
+    rates = []
+    for rep in range(3):
+        cands = space.random_candidates(args.throughput, seed=100 + rep)
+        t0 = time.perf_counter()
+        for c in cands:
+            m = evaluator(c).metrics
+            anytime_loss(candidate_cost(c).path_costs(tx2, "time"), list(m["rmse"]), BUDGET)
+        per = (time.perf_counter() - t0) / len(cands)
+        rates.append(600 / per)
+        print(f"  throughput rep {rep + 1}: {per:.2f} s per candidate (extract, BN recalibration, "
+              f"{args.val_limit} validation frames, costing) -> {600 / per:,.0f} per 10 min")
+    print(f"throughput: median {statistics.median(rates):,.0f} candidates per 10 minutes")
+
+    # -- fidelity: supernet and proxy against stand-alone training 4x longer than the proxy --------
+    full = SupernetEvaluator(file, space, calib, val, torch.device("cpu"), val_limit=None)
+    proxy_cfg, long_cfg = recipe(150), recipe(600)
+    rows = []
+    for c in label_candidates(space, args.candidates):
+        long = score(standalone(c, long_cfg))
+        prox = score(standalone(c, proxy_cfg))
+        est = None
+        if space.contains(c):
+            m = full(c).metrics
+            est = anytime_loss(candidate_cost(c).path_costs(tx2, "time"), list(m["rmse"]), BUDGET)
+        rows.append((c, est, prox, long))
+        print(f"  {c.key}: supernet {'   n/a' if est is None else f'{est:.4f}'}  proxy {prox:.4f}  "
+              f"stand-alone x4 {long:.4f}  {c.describe()[:90]}")
+    both = [r for r in rows if r[1] is not None]
+    tau_s = kendalltau([r[1] for r in both], [r[3] for r in both]).statistic
+    tau_p = kendalltau([r[2] for r in both], [r[3] for r in both]).statistic
+    tau_p_all = kendalltau([r[2] for r in rows], [r[3] for r in rows]).statistic
+    print(f"rank fidelity vs stand-alone {long_cfg.steps} steps (tx2, {BUDGET}), {len(both)} candidates in the "
+          f"space: supernet Kendall tau {tau_s:.2f}; proxy ({proxy_cfg.steps} steps) {tau_p:.2f} "
+          f"(proxy over all {len(rows)} incl. FastDepth: {tau_p_all:.2f})")
+    out = Path(__file__).resolve().parents[1] / "reports" / "bench" / "supernet.json"
+    out.write_text(json.dumps({"tau_supernet": tau_s, "tau_proxy": tau_p, "rates": rates, "per_step": per_step,
+                               "rows": [(c.key, e, p, l) for c, e, p, l in rows]}, indent=1))
