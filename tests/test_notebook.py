@@ -11,7 +11,8 @@ NOTEBOOK = Path(__file__).resolve().parents[1] / "notebooks" / "analysis.ipynb"
 
 def test_analysis_notebook_runs_on_a_tiny_study(tmp_path, monkeypatch):
     search(SearchConfig(study="nb", space="tiny", data=TINY_DATA, train_size=(32, 32), input_size=(64, 64),
-                        train_steps=4, batch_size=8, val_limit=8), n_trials=5, timeout_s=None, reports=tmp_path)
+                        train_steps=4, batch_size=8, val_limit=8, supernet_steps=4, finalists=1,
+                        finalist_steps=4), n_trials=5, timeout_s=None, reports=tmp_path)
     monkeypatch.setenv("EXPLORER_STUDY", "nb")
     monkeypatch.setenv("EXPLORER_REPORTS", str(tmp_path))
     monkeypatch.setenv("MPLBACKEND", "Agg")

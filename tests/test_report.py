@@ -8,8 +8,9 @@ from explorer.report import write_report
 from explorer.search import SearchConfig, search
 from conftest import TINY_DATA
 
+# the whole default flow at toy size: supernet estimates, then finalists and baselines retrained
 TINY = dict(space="tiny", data=TINY_DATA, train_size=(32, 32), input_size=(64, 64), train_steps=6,
-            batch_size=8, val_limit=8)
+            batch_size=8, val_limit=8, supernet_steps=4, finalists=2, finalist_steps=6)
 
 
 @pytest.fixture(scope="module")
@@ -37,6 +38,9 @@ def test_report_holds_the_tables(study_with_everything):
     assert html.count("data:image/png;base64,") >= 4
     assert "http://" not in html and "https://" not in html  # opens offline
     assert "FAIL" in html and "PRUNED" in html
+    # the finalists: every retrained one beside its estimate, and the winner is a retrained one
+    assert 'id="finalists-table"' in html and "(retrained)" in html
+    assert "has no search estimate" in html     # the baselines outside the tiny space say why
 
 
 def test_report_escapes_user_strings(tmp_path):
@@ -57,7 +61,7 @@ def test_report_costs_the_reference_networks_on_every_device(tmp_path):
 
 
 def test_single_trial_study_reports(tmp_path):
-    out = search(SearchConfig(study="one", baselines=False, **TINY), n_trials=1, timeout_s=None, reports=tmp_path)
+    out = search(SearchConfig(study="one", baselines=False, **{**TINY, "finalists": 0}), n_trials=1, timeout_s=None, reports=tmp_path)
     assert write_report(out.study, tmp_path / "one").is_file()
 
 

@@ -1,0 +1,74 @@
+import optuna
+import pytest
+import torch
+
+from conftest import TINY_DATA
+from explorer.finalists import finalist_trials, retrain_finalists
+from explorer.results import baseline_trial, best_trial, finalists_frame, is_retrained, winner
+from explorer.search import SearchConfig, search
+from explorer.space import Candidate
+from explorer.train import evaluate, save_checkpoint
+
+CFG = SearchConfig(study="fin", space="tiny", data=TINY_DATA, train_size=(32, 32), input_size=(64, 64), batch_size=8,
+                   val_limit=8, supernet_steps=4, finalists=2, finalist_steps=5)
+
+
+@pytest.fixture(scope="module")
+def finished(tmp_path_factory):
+    reports = tmp_path_factory.mktemp("fin")
+    return search(CFG, n_trials=6, timeout_s=None, reports=reports), reports
+
+
+def test_best_candidates_and_baselines_are_retrained(finished):
+    out, _ = finished
+    fin = finalist_trials(out.study)
+    labels = sorted(t.user_attrs.get("baseline", "") for t in fin)
+    assert labels == ["", "", "fastdepth", "paper", "paper-nee"]
+    picked = {t.user_attrs["candidate_key"] for t in fin if not t.user_attrs.get("baseline")}
+    estimates = sorted((t for t in out.study.trials if t.state == optuna.trial.TrialState.COMPLETE
+                        and not is_retrained(t) and not t.user_attrs.get("baseline")), key=lambda t: t.values[0])
+    top = list(dict.fromkeys(t.user_attrs["candidate_key"] for t in estimates))[:2]
+    assert picked == set(top)                                   # the two best distinct estimates
+    for t in fin:
+        assert t.user_attrs["train"]["steps"] == 5 and "weights_artifact" in t.user_attrs
+        assert t.params == {}                                    # samplers never learn from them
+    win = winner(out.study)
+    assert is_retrained(win) and win.values[0] == min(t.values[0] for t in fin if not t.user_attrs.get("baseline"))
+    assert best_trial(out.study) is not None and not is_retrained(best_trial(out.study))
+    assert baseline_trial(out.study, "paper", retrained=True) is not None
+    frame = finalists_frame(out.study)
+    assert len(frame) == 5 and frame["estimated"].notna().sum() == 2   # baselines outside the space: no estimate
+
+
+def test_a_finished_finalist_is_never_redone(finished):
+    out, reports = finished
+    before = len(out.study.trials)
+    again = search(CFG, n_trials=6, timeout_s=None, reports=reports)
+    assert len(again.study.trials) == before
+
+
+def test_an_interrupted_retraining_resumes_from_its_checkpoint(finished, tmp_path):
+    import dataclasses
+    from explorer.data import open_dataset
+    from explorer.model import build_network
+    out, _ = finished
+    cfg = dataclasses.replace(CFG, study="fin2", baselines=False, finalists=1)
+    fresh = optuna.create_study(study_name="fin2", storage=optuna.storages.InMemoryStorage())
+    fresh.set_user_attr("config", cfg.to_dict())
+    for t in out.study.trials:
+        if t.state == optuna.trial.TrialState.COMPLETE and not is_retrained(t):
+            fresh.add_trial(t)
+    cand = Candidate.from_dict(best_trial(fresh).user_attrs["candidate"])
+    # a kill after the last step, before its trial was stored: the checkpoint holds finished weights
+    recipe = cfg.finalist_config()
+    torch.manual_seed(123)
+    net = build_network(cand)
+    ckpt = tmp_path / "fin2" / "finalists" / f"{cand.key}.pt"
+    save_checkpoint(ckpt, net, recipe, recipe.steps, torch.optim.AdamW(net.parameters()))
+    expected = evaluate(net, open_dataset(TINY_DATA, "val", (32, 32), train_augment=False), limit=8)
+    retrain_finalists(fresh, cfg, tmp_path)
+    done = finalist_trials(fresh)
+    assert [t.user_attrs["candidate_key"] for t in done] == [cand.key]
+    # nothing was trained again: the metrics are those of the checkpoint's weights
+    assert done[0].user_attrs["path_metrics"][-1]["rmse"] == pytest.approx(expected["rmse"].iloc[-1], rel=1e-5)
+    assert not ckpt.exists()                                     # removed once its trial is stored
