@@ -57,6 +57,7 @@ class SearchConfig:
     pruning: bool = True
     keep_weights: bool = True
     accelerator: str = "auto"
+    supervision: str = "supervised"              # supervised | self | mixed (see explorer.selfsup)
 
     def to_dict(self) -> dict:
         d = dataclasses.asdict(self)
@@ -75,7 +76,7 @@ class SearchConfig:
     def train_config(self) -> TrainConfig:
         return dataclasses.replace(PROXY, steps=self.train_steps, batch_size=self.batch_size,
                                    input_size=self.train_size, lr=self.lr, lr_end=self.lr / 10,
-                                   seed=self.seed,
+                                   seed=self.seed, supervision=self.supervision,
                                    eval_every=max(2 * self.train_steps // 3, 1) if self.pruning else 0)
 
     def validate(self) -> None:
@@ -95,10 +96,11 @@ class SearchConfig:
                 raise UserError(f"{name} {size}: give HxW, e.g. 224x224")
         if self.train_steps < 1:
             raise UserError("--train-steps must be at least 1")
+        self.train_config().validate()
 
     # settings that change what a trial's value means: a resumed study must keep them
     IDENTITY = ("space", "device", "budgets", "data", "objectives", "metric", "input_size", "train_size",
-                "train_steps", "batch_size", "lr")
+                "train_steps", "batch_size", "lr", "supervision")
 
 
 def _json_safe(x):

@@ -116,6 +116,18 @@ def _training_loss(cfg: TrainConfig, selfsup, outs: list[torch.Tensor], batch: d
     return loss, per_exit
 
 
+def check_data_for(cfg: TrainConfig, dataset) -> None:
+    """Self-supervision needs sequences, and ``poses="given"`` needs sequences with poses."""
+    if cfg.supervision == "supervised":
+        return
+    if not getattr(dataset, "sequence", False):
+        raise UserError(f"--supervision {cfg.supervision} needs sequence data (synthetic-seq, "
+                        "kitti-seq:DRIVE or frames:FOLDER), not single frames")
+    if cfg.poses == "given" and len(dataset) and not dataset[0]["pose_known"]:
+        raise UserError("--poses given: this data has no poses (KITTI needs oxts/ and calib_imu_to_velo.txt, "
+                        "a folder poses.txt); use --poses net")
+
+
 def _batch_row(batch: dict) -> int:
     rows = batch["scan_row"]
     return int(torch.as_tensor(rows).float().median().item())
@@ -262,9 +274,7 @@ def train(net: AnytimeDepthNet, train_set, val_set, cfg: TrainConfig = PROXY,
     selfsup = None
     if cfg.supervision != "supervised":
         from explorer.selfsup import SelfSupervisedLoss
-        if not getattr(train_set, "sequence", False):
-            raise UserError(f"--supervision {cfg.supervision} needs sequence data (synthetic-seq, "
-                            "kitti-seq:DRIVE or frames:FOLDER), not single frames")
+        check_data_for(cfg, train_set)
         selfsup = SelfSupervisedLoss(cfg.poses, cfg.scan_loss).to(device)
         params += [p for p in selfsup.parameters() if p.requires_grad]
     if cfg.optimizer == "sgd":
