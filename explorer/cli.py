@@ -519,7 +519,8 @@ def build_parser() -> argparse.ArgumentParser:
     sp = add("data", None, "inspect a data set")
     dsub = sp.add_subparsers(dest="sub", required=True, parser_class=_Parser, metavar="SUBCOMMAND")
     s = dsub.add_parser("inspect", help="frames, shapes, depth range and path 0's metrics")
-    s.add_argument("--data", default="synthetic", help="synthetic | nyu:PATH | kitti:PATH")
+    s.add_argument("--data", default="synthetic", help="synthetic | nyu:PATH | kitti:PATH | synthetic-seq | "
+                   "kitti-seq:DRIVE | frames:FOLDER")
     s.add_argument("--split", default="val", choices=["train", "val"])
     s.add_argument("--input", type=_size, default=(224, 224))
     s.add_argument("--limit", type=int, default=None, help="inspect at most this many frames")

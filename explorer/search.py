@@ -97,6 +97,10 @@ class SearchConfig:
         if self.train_steps < 1:
             raise UserError("--train-steps must be at least 1")
         self.train_config().validate()
+        from explorer.data import parse_data_spec
+        if self.supervision != "supervised" and not parse_data_spec(self.data).is_sequence:
+            raise UserError(f"--supervision {self.supervision} needs sequence data (--data synthetic-seq, "
+                            "kitti-seq:DRIVE or frames:FOLDER)")
 
     # settings that change what a trial's value means: a resumed study must keep them
     IDENTITY = ("space", "device", "budgets", "data", "objectives", "metric", "input_size", "train_size",

@@ -104,6 +104,8 @@ def test_supervision_is_part_of_a_studys_identity(tmp_path):
         create_or_resume(SearchConfig(study="s", space="tiny", data=SEQ, baselines=False), storage)
     with pytest.raises(UserError, match="supervision 'weak'"):
         SearchConfig(study="t", space="tiny", supervision="weak").validate()
+    with pytest.raises(UserError, match="needs sequence data"):
+        SearchConfig(study="t", space="tiny", supervision="self").validate()
 
 
 def test_cli_train_and_evaluate_self_supervised(run_cli, tmp_path):
@@ -127,3 +129,15 @@ def test_cli_train_and_evaluate_self_supervised(run_cli, tmp_path):
     assert code == 0 and json.loads(out)["median_scaling"] is True
     code, _, err = run_cli("train", cfile, "--supervision", "self", "--data", "synthetic:48:16", "--steps", "1")
     assert code == 2 and "needs sequence data" in err and len(err.strip().splitlines()) == 1
+
+
+def test_cli_search_self_supervised_and_its_report(run_cli, tmp_path):
+    code, out, err = run_cli("search", "--study", "ss", "--space", "tiny", "--data", SEQ, "--supervision", "self",
+                             "--train-size", "32x32", "--input-size", "64x64", "--train-steps", "2",
+                             "--batch-size", "4", "--trials", "1", "--timeout", "0", "--no-baselines",
+                             "--reports", tmp_path)
+    assert code == 0, err
+    study = optuna.load_study(study_name="ss", storage=f"sqlite:///{tmp_path / 'ss' / 'study.db'}")
+    assert study.user_attrs["config"]["supervision"] == "self"
+    assert any(t.state == optuna.trial.TrialState.COMPLETE for t in study.trials)
+    assert "self supervision" in (tmp_path / "ss" / "report.html").read_text()
