@@ -308,7 +308,7 @@ def cmd_train(args) -> None:
     from explorer._console import console, print_frame, progress
     from explorer.data import open_dataset
     from explorer.model import build_network
-    from explorer.train import RECIPES, load_encoder_weights, resolve_device, train
+    from explorer.train import RECIPES, check_data_for, load_encoder_weights, resolve_device, train
     candidate = _candidates_of(args.candidate)
     if len(candidate) != 1:
         raise UserError(f"{args.candidate} holds {len(candidate)} candidates: train takes one")
@@ -317,10 +317,16 @@ def cmd_train(args) -> None:
     changes = {k: v for k, v in (("steps", args.steps), ("batch_size", args.batch_size),
                                  ("input_size", args.input_size), ("lr", args.lr), ("seed", args.seed))
                if v is not None}
-    cfg = dataclasses.replace(cfg, **changes)
+    cfg = dataclasses.replace(cfg, **changes, supervision=args.supervision, poses=args.poses,
+                              scan_loss=not args.no_scan_loss)
+    cfg.validate()
     device = resolve_device(args.accelerator)
-    train_set = open_dataset(args.data, "train", cfg.input_size, seed=cfg.seed)
+    with progress(transient=True) as bar:
+        task = bar.add_task("generating synthetic scenes (once, then cached)", total=None, status="")
+        train_set = open_dataset(args.data, "train", cfg.input_size, seed=cfg.seed,
+                                 progress=lambda i, n: bar.update(task, completed=i, total=n))
     val_set = open_dataset(args.data, "val", cfg.input_size, train_augment=False)
+    check_data_for(cfg, train_set)
     import torch
     torch.manual_seed(cfg.seed)
     net = build_network(candidate)
@@ -329,23 +335,26 @@ def cmd_train(args) -> None:
         console.print(f"loaded {n} encoder tensors from {args.encoder_weights}")
     out = Path(args.out or f"reports/checkpoints/{candidate.key}.pt")
     with progress() as bar:
-        task = bar.add_task("training", total=cfg.steps, status="")
+        task = bar.add_task(f"training ({cfg.supervision})", total=cfg.steps, status="")
         result = train(net, train_set, val_set, cfg, device, checkpoint=out,
                        progress=lambda s, n, r: bar.update(task, completed=s, status=f"loss {r['loss']:.3f}"))
     console.print(f"saved {out} ({result.steps} steps, {result.images_per_second:.1f} images/s)")
-    print_frame(result.metrics, "validation, per path")
+    print_frame(result.metrics, "validation, per path" + ("" if cfg.metric else " (median-scaled: no scan term)"))
 
 
 def cmd_evaluate(args) -> None:
     from explorer._console import print_frame, print_json
     from explorer.data import open_dataset
-    from explorer.train import evaluate, network_from_checkpoint
+    from explorer.train import TrainConfig, evaluate, network_from_checkpoint
     net, state = network_from_checkpoint(args.checkpoint)
-    size = args.input or tuple(state["train_config"]["input_size"])
+    recipe = TrainConfig.from_dict(state["train_config"])
+    size = args.input or recipe.input_size
     ds = open_dataset(args.data, args.split, size, train_augment=False)
-    frame = evaluate(net, ds, limit=args.limit)
+    # a depth known only up to scale (self-supervised without the scan term) is median-scaled
+    frame = evaluate(net, ds, limit=args.limit, median_scaling=not recipe.metric)
     if args.json:
         print_json({"checkpoint": args.checkpoint, "data": str(ds.name), "input_size": list(size),
+                    "supervision": recipe.supervision, "median_scaling": not recipe.metric,
                     "paths": frame.to_dict("records")})
     else:
         print_frame(frame[["path", "rmse", "mae", "rel", "delta1", "delta2", "delta3"]],
@@ -369,7 +378,8 @@ def cmd_search(args) -> None:
         pruning=not args.no_pruning, keep_weights=not args.no_weights, accelerator=args.accelerator,
         evaluator=args.evaluator, supernet=args.supernet, supernet_steps=args.supernet_steps,
         finalists=args.finalists, finalist_steps=args.finalist_steps,
-        max_retries=args.max_retries)
+        max_retries=args.max_retries,
+        supervision=args.supervision)
     cfg.validate()
     reports = Path(args.reports)
     timeout = None if args.timeout == 0 else args.timeout
@@ -592,6 +602,13 @@ def cmd_curve(args) -> None:
 
 
 # -- parser ---------------------------------------------------------------------------------------
+def _add_supervision(s: argparse.ArgumentParser) -> None:
+    s.add_argument("--supervision", default="supervised", choices=["supervised", "self", "mixed"],
+                   help="supervised: L1 on dense depth (default); self: photometric reprojection between "
+                   "neighbouring frames plus the scan row for metric scale (needs sequence data: "
+                   "synthetic-seq, kitti-seq:DRIVE, frames:FOLDER); mixed: both where labels exist")
+
+
 def build_parser() -> argparse.ArgumentParser:
     from explorer import __version__
     p = _Parser(prog="explorer", description="Hardware-aware design-space explorer for anytime depth estimation "
@@ -660,7 +677,8 @@ def build_parser() -> argparse.ArgumentParser:
     sp = add("data", None, "inspect a data set")
     dsub = sp.add_subparsers(dest="sub", required=True, parser_class=_Parser, metavar="SUBCOMMAND")
     s = dsub.add_parser("inspect", help="frames, shapes, depth range and path 0's metrics")
-    s.add_argument("--data", default="synthetic", help="synthetic | nyu:PATH | kitti:PATH")
+    s.add_argument("--data", default="synthetic", help="synthetic | nyu:PATH | kitti:PATH | synthetic-seq | "
+                   "kitti-seq:DRIVE | frames:FOLDER")
     s.add_argument("--split", default="val", choices=["train", "val"])
     s.add_argument("--input-size", "--input", dest="input", type=_size, default=(224, 224))
     s.add_argument("--limit", type=int, default=None, help="inspect at most this many frames")
@@ -679,6 +697,13 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--encoder-weights", help="MobileNet v1 state dict file to start the encoder from")
     s.add_argument("--accelerator", default="auto", choices=["auto", "cpu", "cuda"])
     s.add_argument("--out", help="checkpoint path (resumes if it exists)")
+    _add_supervision(s)
+    s.add_argument("--poses", default="net", choices=["net", "given"],
+                   help="self-supervision's camera motion: a pose network trained jointly (default), or "
+                   "the data's own poses (synthetic-seq, KITTI oxts, a folder's poses.txt)")
+    s.add_argument("--no-scan-loss", action="store_true",
+                   help="self-supervision without the L1 term on the scan row: depth only up to scale, "
+                   "evaluated with median scaling")
 
     s = add("evaluate", cmd_evaluate, "per-path metrics of a checkpoint on a data set")
     s.add_argument("checkpoint")
@@ -728,6 +753,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--no-pruning", action="store_true")
     s.add_argument("--no-weights", action="store_true", help="do not keep trained weights as artifacts")
     s.add_argument("--no-report", dest="report", action="store_false", help="skip the HTML report")
+    _add_supervision(s)
     s.add_argument("--reports", **reports)
 
     sp = add("supernet", None, "train or inspect the weight-sharing supernet of a space")

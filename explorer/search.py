@@ -73,6 +73,7 @@ class SearchConfig:
     finalists: int = 3                           # retrained stand-alone at the end (0 = none)
     finalist_steps: int = 300
     max_retries: int = 2          # an interrupted trial (killed, Ctrl-C, lost worker) is tried again
+    supervision: str = "supervised"              # supervised | self | mixed (see explorer.selfsup)
 
     def to_dict(self) -> dict:
         d = dataclasses.asdict(self)
@@ -91,7 +92,7 @@ class SearchConfig:
     def train_config(self) -> TrainConfig:
         return dataclasses.replace(PROXY, steps=self.train_steps, batch_size=self.batch_size,
                                    input_size=self.train_size, lr=self.lr, lr_end=self.lr / 10,
-                                   seed=self.seed,
+                                   seed=self.seed, supervision=self.supervision,
                                    eval_every=max(2 * self.train_steps // 3, 1) if self.pruning else 0)
 
     def finalist_config(self, seed: int | None = None) -> TrainConfig:
@@ -129,15 +130,23 @@ class SearchConfig:
             raise UserError("--finalists must be 0 (none) or more")
         if self.max_retries < 0:
             raise UserError("--max-retries must be 0 or more")
+        self.train_config().validate()
+        from explorer.data import parse_data_spec
+        if self.supervision != "supervised" and not parse_data_spec(self.data).is_sequence:
+            raise UserError(f"--supervision {self.supervision} needs sequence data (--data synthetic-seq, "
+                            "kitti-seq:DRIVE or frames:FOLDER)")
+        if self.supervision != "supervised" and self.evaluator == "supernet":
+            raise UserError(f"--supervision {self.supervision}: the supernet is trained with dense labels; "
+                            "add --evaluator proxy to search with self-supervised training")
 
     # settings that change what a trial's value means: a resumed study must keep them
     IDENTITY = ("space", "device", "budgets", "data", "objectives", "metric", "input_size", "train_size",
-                "train_steps", "batch_size", "lr", "evaluator", "supernet_steps")
+                "train_steps", "batch_size", "lr", "evaluator", "supernet_steps", "supervision")
 
     @classmethod
     def defaults_of_older_studies(cls) -> dict:
         """Settings a study made before they existed was run with."""
-        return {"evaluator": "proxy", "finalists": 0}
+        return {"evaluator": "proxy", "finalists": 0, "supervision": "supervised"}
 
 
 def _json_safe(x):

@@ -14,7 +14,7 @@ import torch
 from torch.utils.data import DataLoader
 
 from explorer.errors import UserError
-from explorer.metrics import MetricAverager, batch_depth_metrics
+from explorer.metrics import MetricAverager, batch_depth_metrics, depth_metrics
 from explorer.model import AnytimeDepthNet, build_network
 from explorer.space import Candidate
 
@@ -22,8 +22,11 @@ from explorer.space import Candidate
 @dataclass(frozen=True)
 class TrainConfig:
     """SGD with polynomial decay from ``lr`` to ``lr_end`` (the paper: 0.05 -> 0.02, weight decay
-    1e-4, batch 96, fp16), or AdamW for the proxy recipe. ``exit_weights`` weigh the exits' L1
-    losses (None = equal)."""
+    1e-4, batch 96, fp16), or AdamW for the proxy recipe. ``exit_weights`` weigh the exits' losses
+    (None = equal). ``supervision``: "supervised" (L1 on dense depth), "self" (photometric
+    reprojection between neighbouring frames, :mod:`explorer.selfsup`; needs sequence data) or
+    "mixed" (both); ``poses``: "net" (a pose network trained jointly) or "given" (the data's);
+    ``scan_loss``: an L1 term on the scan row that gives self-supervision metric scale."""
 
     steps: int = 300
     batch_size: int = 16
@@ -37,6 +40,21 @@ class TrainConfig:
     amp: bool = True                  # mixed precision where the hardware has it (CUDA)
     seed: int = 0
     eval_every: int = 0               # 0 = only at the end
+    supervision: str = "supervised"
+    poses: str = "net"
+    scan_loss: bool = True
+
+    @property
+    def metric(self) -> bool:
+        """Whether the trained depth is in metres; if not, evaluation median-scales it."""
+        return self.supervision != "self" or self.scan_loss or self.poses == "given"
+
+    def validate(self) -> None:
+        from explorer.selfsup import POSE_SOURCES, SUPERVISIONS
+        if self.supervision not in SUPERVISIONS:
+            raise UserError(f"supervision '{self.supervision}': use one of {', '.join(SUPERVISIONS)}")
+        if self.poses not in POSE_SOURCES:
+            raise UserError(f"poses '{self.poses}': use one of {', '.join(POSE_SOURCES)}")
 
     def to_dict(self) -> dict:
         d = dataclasses.asdict(self)
@@ -84,20 +102,53 @@ def multi_exit_loss(outputs: list[torch.Tensor], target: torch.Tensor,
     return total, [float(l.detach()) for l in losses]
 
 
+def _training_loss(cfg: TrainConfig, selfsup, outs: list[torch.Tensor], batch: dict, device: torch.device
+                   ) -> tuple[torch.Tensor, list[float]]:
+    outs = [o.float() for o in outs]
+    if selfsup is None:
+        return multi_exit_loss(outs, batch["depth"].to(device), cfg.exit_weights)
+    keys = ("image", "sources", "K", "pose", "pose_known", "scan")
+    on_device = {k: torch.as_tensor(batch[k]).to(device) for k in keys}
+    loss, per_exit = selfsup(outs, on_device, _batch_row(batch), cfg.exit_weights)
+    if cfg.supervision == "mixed" and bool((batch["depth"] > 0).any()):
+        dense, dense_exit = multi_exit_loss(outs, batch["depth"].to(device), cfg.exit_weights)
+        loss, per_exit = loss + dense, [a + b for a, b in zip(per_exit, dense_exit)]
+    return loss, per_exit
+
+
+def check_data_for(cfg: TrainConfig, dataset) -> None:
+    """Self-supervision needs sequences, and ``poses="given"`` needs sequences with poses."""
+    if cfg.supervision == "supervised":
+        return
+    if not getattr(dataset, "sequence", False):
+        raise UserError(f"--supervision {cfg.supervision} needs sequence data (synthetic-seq, "
+                        "kitti-seq:DRIVE or frames:FOLDER), not single frames")
+    if cfg.poses == "given" and len(dataset) and not dataset[0]["pose_known"]:
+        raise UserError("--poses given: this data has no poses (KITTI needs oxts/ and calib_imu_to_velo.txt, "
+                        "a folder poses.txt); use --poses net")
+
+
 def _batch_row(batch: dict) -> int:
     rows = batch["scan_row"]
     return int(torch.as_tensor(rows).float().median().item())
 
 
 def evaluate(net: AnytimeDepthNet, dataset, batch_size: int = 8, device: torch.device | None = None,
-             limit: int | None = None) -> pd.DataFrame:
+             limit: int | None = None, median_scaling: bool = False) -> pd.DataFrame:
     """Per-path metrics (averaged per image, FastDepth's convention): one row per path. ``dataset``
-    is a data set, or a list of ready batches (dicts of batched tensors)."""
+    is a data set, or a list of ready batches (dicts of batched tensors).
+
+    On sequence data, MonoDepth2's conventions: predictions clamped to [1e-3, cap] and ground truth
+    beyond the data's cap (10 m synthetic, 80 m KITTI) ignored (the Garg crop is already in KITTI
+    sequences' ground truth). ``median_scaling`` (for a depth known only up to scale) multiplies
+    each network path by median(ground truth) / median(prediction) per image; path 0, the scan
+    itself, is metric and is never scaled."""
     if isinstance(dataset, list):
         batches = dataset
     else:
         batches = DataLoader(dataset, batch_size=batch_size, shuffle=False)
     device = device or next(net.parameters()).device
+    cap = getattr(dataset, "max_depth", None) if getattr(dataset, "sequence", False) else None
     net.eval()
     averagers = [MetricAverager() for _ in range(net.candidate.num_paths)]
     seen = 0
@@ -105,14 +156,33 @@ def evaluate(net: AnytimeDepthNet, dataset, batch_size: int = 8, device: torch.d
         for batch in batches:
             outs = net(batch["image"].to(device), batch["scan"].to(device), _batch_row(batch))
             target = batch["depth"]
+            if cap is not None:
+                target = torch.where(target <= cap, target, torch.zeros_like(target))
             for p, out in enumerate(outs):
-                for m in batch_depth_metrics(out.float().cpu(), target):
-                    averagers[p].add(m)
+                out = out.float().cpu()
+                if cap is None and not (p > 0 and median_scaling):
+                    for m in batch_depth_metrics(out, target):
+                        averagers[p].add(m)
+                    continue
+                for i in range(out.shape[0]):
+                    pred = out[i]
+                    if p > 0 and median_scaling:
+                        pred = pred * _median_ratio(pred, target[i])
+                    if cap is not None:
+                        pred = pred.clamp(1e-3, cap)
+                    averagers[p].add(depth_metrics(pred, target[i]))
             seen += target.shape[0]
             if limit and seen >= limit:
                 break
     rows = [{"path": p, **a.result()} for p, a in enumerate(averagers)]
     return pd.DataFrame(rows)
+
+
+def _median_ratio(pred: torch.Tensor, target: torch.Tensor) -> float:
+    valid = target > 0
+    if not bool(valid.any()):
+        return 1.0
+    return float(target[valid].median() / pred[valid].median().clamp(min=1e-6))
 
 
 @dataclass
@@ -205,9 +275,16 @@ def train(net: AnytimeDepthNet, train_set, val_set, cfg: TrainConfig = PROXY,
     at each evaluation (``cfg.eval_every``) and may raise :class:`Pruned`. With ``checkpoint`` the
     state is saved every ``checkpoint_every`` steps and training resumes from it."""
     device = device or torch.device("cpu")
+    cfg.validate()
     torch.manual_seed(cfg.seed)
     net.to(device)
     params = [p for p in net.parameters() if p.requires_grad]
+    selfsup = None
+    if cfg.supervision != "supervised":
+        from explorer.selfsup import SelfSupervisedLoss
+        check_data_for(cfg, train_set)
+        selfsup = SelfSupervisedLoss(cfg.poses, cfg.scan_loss).to(device)
+        params += [p for p in selfsup.parameters() if p.requires_grad]
     if cfg.optimizer == "sgd":
         opt = torch.optim.SGD(params, lr=cfg.lr, momentum=cfg.momentum, weight_decay=cfg.weight_decay)
     elif cfg.optimizer == "adamw":
@@ -221,6 +298,8 @@ def train(net: AnytimeDepthNet, train_set, val_set, cfg: TrainConfig = PROXY,
         state = load_checkpoint(checkpoint, device)
         if state["candidate"] == net.candidate.to_dict() and state.get("optimizer"):
             net.load_state_dict(state["state_dict"])
+            if selfsup is not None and state.get("selfsup"):
+                selfsup.load_state_dict(state["selfsup"])
             opt.load_state_dict(state["optimizer"])
             start = int(state["step"])
     gen = torch.Generator().manual_seed(cfg.seed)
@@ -228,6 +307,8 @@ def train(net: AnytimeDepthNet, train_set, val_set, cfg: TrainConfig = PROXY,
     if len(loader) == 0:
         loader = DataLoader(train_set, batch_size=len(train_set), shuffle=True, generator=gen)
     history: list[dict] = []
+    # the pose network travels with the checkpoint so that a resumed run continues it
+    extra = {"selfsup": selfsup.state_dict()} if selfsup is not None else None
     step, seen, t0 = start, 0, time.perf_counter()
     epoch = 0
     while step < cfg.steps:
@@ -239,10 +320,10 @@ def train(net: AnytimeDepthNet, train_set, val_set, cfg: TrainConfig = PROXY,
             net.train()
             for g in opt.param_groups:
                 g["lr"] = _lr_at(cfg, step)
-            image, target = batch["image"].to(device), batch["depth"].to(device)
+            image = batch["image"].to(device)
             with torch.autocast(device.type, dtype=torch.float16, enabled=use_amp):
                 outs = net(image, batch["scan"].to(device), _batch_row(batch))
-                loss, per_exit = multi_exit_loss([o.float() for o in outs], target, cfg.exit_weights)
+                loss, per_exit = _training_loss(cfg, selfsup, outs, batch, device)
             if not torch.isfinite(loss):
                 raise FloatingPointError(f"training loss became {float(loss)} at step {step}")
             opt.zero_grad(set_to_none=True)
@@ -256,12 +337,12 @@ def train(net: AnytimeDepthNet, train_set, val_set, cfg: TrainConfig = PROXY,
             if progress:
                 progress(step, cfg.steps, record)
             if checkpoint is not None and step % checkpoint_every == 0:
-                save_checkpoint(checkpoint, net, cfg, step, opt)
+                save_checkpoint(checkpoint, net, cfg, step, opt, extra)
             if report and cfg.eval_every and step % cfg.eval_every == 0 and step < cfg.steps:
-                report(step, evaluate(net, val_set, device=device, limit=val_limit))
+                report(step, evaluate(net, val_set, device=device, limit=val_limit, median_scaling=not cfg.metric))
         epoch += 1
     seconds = time.perf_counter() - t0
-    metrics = evaluate(net, val_set, device=device, limit=val_limit)
+    metrics = evaluate(net, val_set, device=device, limit=val_limit, median_scaling=not cfg.metric)
     if checkpoint is not None:
-        save_checkpoint(checkpoint, net, cfg, step, opt)
+        save_checkpoint(checkpoint, net, cfg, step, opt, extra)
     return TrainResult(metrics, history, seconds, seen / seconds if seconds > 0 else 0.0, step)

@@ -1,6 +1,8 @@
 """Data sets named by specs: ``synthetic[:TRAIN[:VAL]]`` (generated, the default), ``nyu:PATH``
 (Ma et al.'s h5 folder, or a CSV of RGB / 16-bit depth PNG pairs), ``kitti:PATH`` (Ma et al.'s h5
-folder, or raw frames: image_2/, velodyne/, calib/).
+folder, or raw frames: image_2/, velodyne/, calib/), and sequences for self-supervised training
+(:mod:`explorer.data.sequences`): ``synthetic-seq[:TRAIN[:VAL]]``, ``kitti-seq:DRIVE``,
+``frames:FOLDER``.
 
 Every item is a dict: ``image`` (3, H, W) float in [0, 1], ``depth`` (1, H, W) metres (0 = unknown),
 ``scan`` (W,) metres (0 = no return) and ``scan_row``, at the network's input size.
@@ -25,19 +27,27 @@ from explorer.errors import UserError
 __all__ = ["DataSpec", "DepthDataset", "ScanConfig", "SyntheticConfig", "open_dataset", "parse_data_spec",
            "scan_from_image", "simulate_scan"]
 
-SPEC_HELP = "data specs: synthetic, synthetic:TRAIN:VAL, nyu:PATH (h5 folder or CSV), kitti:PATH"
+SPEC_HELP = ("data specs: synthetic, synthetic:TRAIN:VAL, nyu:PATH (h5 folder or CSV), kitti:PATH; "
+             "sequences: synthetic-seq[:TRAIN:VAL], kitti-seq:DRIVE, frames:FOLDER")
+SEQUENCE_KINDS = ("synthetic-seq", "kitti-seq", "frames")
+_GENERATED_DEFAULTS = {"synthetic": (2000, 200), "synthetic-seq": (1200, 120)}
 
 
 @dataclass(frozen=True)
 class DataSpec:
-    kind: str          # synthetic | nyu | kitti
+    kind: str          # synthetic | nyu | kitti | synthetic-seq | kitti-seq | frames
     path: str = ""
     train: int = 2000
     val: int = 200
 
+    @property
+    def is_sequence(self) -> bool:
+        return self.kind in SEQUENCE_KINDS
+
     def __str__(self) -> str:
-        if self.kind == "synthetic":
-            return "synthetic" if (self.train, self.val) == (2000, 200) else f"synthetic:{self.train}:{self.val}"
+        if self.kind in _GENERATED_DEFAULTS:
+            default = (self.train, self.val) == _GENERATED_DEFAULTS[self.kind]
+            return self.kind if default else f"{self.kind}:{self.train}:{self.val}"
         return f"{self.kind}:{self.path}"
 
 
@@ -46,18 +56,18 @@ def parse_data_spec(spec: str | DataSpec) -> DataSpec:
         return spec
     kind, _, rest = str(spec).partition(":")
     kind = kind.lower()
-    if kind == "synthetic":
+    if kind in _GENERATED_DEFAULTS:
         parts = [p for p in rest.split(":") if p] if rest else []
         try:
             nums = [int(p) for p in parts]
         except ValueError:
-            raise UserError(f"data '{spec}': synthetic takes frame counts, e.g. synthetic:2000:200") from None
-        train = nums[0] if nums else 2000
+            raise UserError(f"data '{spec}': {kind} takes frame counts, e.g. {kind}:2000:200") from None
+        train = nums[0] if nums else _GENERATED_DEFAULTS[kind][0]
         val = nums[1] if len(nums) > 1 else max(train // 10, 4)
         if train < 1 or val < 1:
             raise UserError(f"data '{spec}': frame counts must be positive")
-        return DataSpec("synthetic", "", train, val)
-    if kind in ("nyu", "kitti"):
+        return DataSpec(kind, "", train, val)
+    if kind in ("nyu", "kitti", "kitti-seq", "frames"):
         if not rest:
             raise UserError(f"data '{spec}': give a path, e.g. {kind}:/data/{kind}")
         if not Path(rest).exists():
@@ -141,10 +151,13 @@ class DepthDataset(Dataset):
 def open_dataset(spec: str | DataSpec, split: str, input_size: tuple[int, int] = (224, 224),
                  train_augment: bool | None = None, scan: ScanConfig = ScanConfig(), seed: int = 0,
                  progress: Callable[[int, int], None] | None = None) -> DepthDataset:
-    """The ``split`` ('train' or 'val') of a data set at the network's input size."""
+    """The ``split`` ('train' or 'val') of a data set at the network's input size (a
+    :class:`~explorer.data.sequences.SequenceDataset` for sequence specs)."""
     ds = parse_data_spec(spec)
     if split not in ("train", "val"):
         raise UserError(f"split must be 'train' or 'val', got {split!r}")
+    if ds.is_sequence:
+        return _open_sequences(ds, split, input_size, scan, seed, progress)
     augment = (split == "train") if train_augment is None else train_augment
     if ds.kind == "synthetic":
         cfg = SyntheticConfig(train=ds.train, val=ds.val)
@@ -160,3 +173,19 @@ def open_dataset(spec: str | DataSpec, split: str, input_size: tuple[int, int] =
     if scan.max_range == ScanConfig().max_range and ds.kind == "kitti":
         scan = ScanConfig(row=scan.row, points=scan.points, max_range=80.0, dropout=scan.dropout, noise=scan.noise)
     return DepthDataset(frames, ds.kind, input_size, augment, scan, seed, str(ds))
+
+
+def _open_sequences(ds: DataSpec, split: str, input_size: tuple[int, int], scan: ScanConfig, seed: int,
+                    progress: Callable[[int, int], None] | None):
+    from explorer.data import sequences as S
+    from explorer.data.sequence_readers import FrameFolder, KittiDrive
+    if ds.kind == "synthetic-seq":
+        path = S.ensure_synthetic_sequences(S.SyntheticSequenceConfig(train=ds.train, val=ds.val), progress)
+        source = S.SyntheticSequences(path, split)
+    elif ds.kind == "kitti-seq":
+        source = KittiDrive(Path(ds.path), split)
+        if scan.max_range == ScanConfig().max_range:
+            scan = ScanConfig(row=scan.row, points=scan.points, max_range=80.0, dropout=scan.dropout, noise=scan.noise)
+    else:
+        source = FrameFolder(Path(ds.path), split)
+    return S.SequenceDataset(source, input_size, scan, seed, str(ds))

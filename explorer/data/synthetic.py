@@ -53,6 +53,24 @@ def _camera_rays(h: int, w: int, yaw: float, pitch: float) -> np.ndarray:
     return (x.reshape(-1, 1) * right + y.reshape(-1, 1) * up + fwd).astype(np.float64)
 
 
+def camera_to_world(cam: np.ndarray, yaw: float, pitch: float) -> np.ndarray:
+    """4x4 pose of the camera that :func:`_camera_rays` describes, in the computer-vision convention
+    (x right, y down, z forward), mapping camera coordinates to world coordinates."""
+    fwd = np.array([np.cos(pitch) * np.sin(yaw), np.cos(pitch) * np.cos(yaw), np.sin(pitch)])
+    right = np.array([np.cos(yaw), -np.sin(yaw), 0.0])
+    up = np.cross(right, fwd)
+    pose = np.eye(4)
+    pose[:3, :3] = np.stack([right, -up, fwd], axis=1)
+    pose[:3, 3] = cam
+    return pose
+
+
+def intrinsics(h: int, w: int) -> np.ndarray:
+    """3x3 intrinsics of the rendered camera in pixel-index coordinates (pixel j's centre is at j)."""
+    f = (w / 2) / np.tan(np.radians(HFOV_DEG) / 2)
+    return np.array([[f, 0.0, w / 2 - 0.5], [0.0, f, h / 2 - 0.5], [0.0, 0.0, 1.0]])
+
+
 def _hash_noise(p: np.ndarray, scale: float, seed: int) -> np.ndarray:
     """Cheap smooth-ish procedural noise in [0, 1] from world coordinates."""
     q = p * scale
@@ -60,11 +78,61 @@ def _hash_noise(p: np.ndarray, scale: float, seed: int) -> np.ndarray:
     return 0.5 + 0.25 * s
 
 
-def render_scene(rng: np.random.Generator, h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
-    """(rgb uint8 (H, W, 3), depth float32 (H, W) metres) of one random room."""
+@dataclass(frozen=True)
+class Room:
+    """One random room: its size, materials, objects and light, and the camera pose it was drawn with
+    (``cam`` position, ``yaw``, ``pitch``; a sequence moves the camera away from it)."""
+
+    size: tuple[float, float, float]
+    cam: np.ndarray
+    yaw: float
+    pitch: float
+    colours: dict
+    objects: tuple
+    light: np.ndarray
+    power: float
+
+
+def sample_room(rng: np.random.Generator) -> Room:
+    """Draws a room (the draw order is part of the data: cached files and seeds depend on it)."""
     lx, ly, lz = rng.uniform(3.0, 8.0), rng.uniform(3.0, 8.0), rng.uniform(2.4, 3.2)
     cam = np.array([rng.uniform(0.6, lx - 0.6), rng.uniform(0.6, ly - 0.6), rng.uniform(0.8, 1.6)])
     yaw, pitch = rng.uniform(0, 2 * np.pi), np.radians(rng.uniform(-20, 8))
+    colours = {0: rng.uniform(0.5, 0.9, 3), 1: rng.uniform(0.5, 0.9, 3), 2: rng.uniform(0.5, 0.9, 3),
+               3: rng.uniform(0.5, 0.9, 3), 4: rng.uniform(0.25, 0.6, 3), 5: np.full(3, rng.uniform(0.8, 0.95))}
+    # objects standing on the floor, not too close to the camera
+    objects = []
+    for _ in range(rng.integers(4, 10)):
+        kind = rng.choice(["box", "box", "cylinder", "sphere"])
+        c = np.array([rng.uniform(0.3, lx - 0.3), rng.uniform(0.3, ly - 0.3)])
+        if np.linalg.norm(c - cam[:2]) < 1.0:
+            continue
+        mat = 6 + len(objects)
+        colours[mat] = rng.uniform(0.1, 0.95, 3)
+        if kind == "box":
+            half = np.array([rng.uniform(0.15, 0.8), rng.uniform(0.15, 0.8)])
+            params = (half, rng.uniform(0.3, 2.0))
+        elif kind == "cylinder":
+            params = (rng.uniform(0.1, 0.5), rng.uniform(0.4, 1.8))
+        else:
+            params = (rng.uniform(0.15, 0.6),)
+        objects.append((str(kind), c, mat, params))
+    light = np.array([rng.uniform(0.5, lx - 0.5), rng.uniform(0.5, ly - 0.5), lz - 0.05])
+    power = rng.uniform(6.0, 12.0)
+    return Room((lx, ly, lz), cam, float(yaw), float(pitch), colours, tuple(objects), light, float(power))
+
+
+def render_scene(rng: np.random.Generator, h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
+    """(rgb uint8 (H, W, 3), depth float32 (H, W) metres) of one random room."""
+    room = sample_room(rng)
+    return render_room(room, room.cam, room.yaw, room.pitch, h, w, rng)
+
+
+def render_room(room: Room, cam: np.ndarray, yaw: float, pitch: float, h: int, w: int,
+                noise_rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """(rgb uint8 (H, W, 3), depth float32 (H, W) metres) of ``room`` seen from camera position
+    ``cam`` looking along ``yaw``/``pitch``; ``noise_rng`` draws the sensor noise."""
+    lx, ly, lz = room.size
     d = _camera_rays(h, w, yaw, pitch)
     n = d.shape[0]
     t_best = np.full(n, np.inf)
@@ -89,23 +157,13 @@ def render_scene(rng: np.random.Generator, h: int, w: int) -> tuple[np.ndarray, 
                 sel = mat == m
                 tt = np.where(sel, t, np.inf)
                 take(tt, nrm, int(m))
-    colours = {0: rng.uniform(0.5, 0.9, 3), 1: rng.uniform(0.5, 0.9, 3), 2: rng.uniform(0.5, 0.9, 3),
-               3: rng.uniform(0.5, 0.9, 3), 4: rng.uniform(0.25, 0.6, 3), 5: np.full(3, rng.uniform(0.8, 0.95))}
-    # objects standing on the floor, not too close to the camera
-    objects = 0
-    for _ in range(rng.integers(4, 10)):
-        kind = rng.choice(["box", "box", "cylinder", "sphere"])
-        c = np.array([rng.uniform(0.3, lx - 0.3), rng.uniform(0.3, ly - 0.3)])
-        if np.linalg.norm(c - cam[:2]) < 1.0:
-            continue
-        mat = 6 + objects
-        colours[mat] = rng.uniform(0.1, 0.95, 3)
-        objects += 1
+    colours = room.colours
+    for kind, c, mat, params in room.objects:
         with np.errstate(divide="ignore", invalid="ignore"):
             if kind == "box":
-                half = np.array([rng.uniform(0.15, 0.8), rng.uniform(0.15, 0.8)])
+                half, top = params
                 lo = np.array([c[0] - half[0], c[1] - half[1], 0.0])
-                hi = np.array([c[0] + half[0], c[1] + half[1], rng.uniform(0.3, 2.0)])
+                hi = np.array([c[0] + half[0], c[1] + half[1], top])
                 t1, t2 = (lo - cam) / d, (hi - cam) / d
                 tmin, tmax = np.minimum(t1, t2), np.maximum(t1, t2)
                 t_near, axis = tmin.max(axis=1), tmin.argmax(axis=1)
@@ -114,7 +172,7 @@ def render_scene(rng: np.random.Generator, h: int, w: int) -> tuple[np.ndarray, 
                 nrm[np.arange(n), axis] = -np.sign(d[np.arange(n), axis])
                 take(t, nrm, mat)
             elif kind == "cylinder":
-                r, top = rng.uniform(0.1, 0.5), rng.uniform(0.4, 1.8)
+                r, top = params
                 oc = cam[:2] - c
                 a = (d[:, :2] ** 2).sum(1)
                 b = 2 * (d[:, :2] * oc).sum(1)
@@ -131,7 +189,7 @@ def render_scene(rng: np.random.Generator, h: int, w: int) -> tuple[np.ndarray, 
                 tc = np.where(((pc - c) ** 2).sum(1) <= r * r, tc, np.inf)
                 take(tc, np.array([0.0, 0.0, 1.0]), mat)
             else:
-                r = rng.uniform(0.15, 0.6)
+                (r,) = params
                 centre = np.array([c[0], c[1], r])
                 oc = cam - centre
                 b = 2 * (d * oc).sum(1)
@@ -156,14 +214,14 @@ def render_scene(rng: np.random.Generator, h: int, w: int) -> tuple[np.ndarray, 
     checker = (np.floor(p[:, 0] / 0.15) + np.floor(p[:, 1] / 0.15) + np.floor(p[:, 2] / 0.15)) % 2
     tex[objs] = 0.8 + 0.2 * checker[objs]
     # Lambertian shading from a ceiling light, with inverse-square falloff and ambient light
-    light = np.array([rng.uniform(0.5, lx - 0.5), rng.uniform(0.5, ly - 0.5), lz - 0.05])
+    light = room.light
     to_light = light - p
     dist = np.linalg.norm(to_light, axis=1, keepdims=True)
     lambert = np.clip((normal * to_light / np.maximum(dist, 1e-6)).sum(1), 0, 1)
-    power = rng.uniform(6.0, 12.0)
+    power = room.power
     shade = 0.25 + 0.75 * np.clip(power * lambert / (1.0 + dist[:, 0] ** 2), 0, 1.3)
     rgb = albedo * (tex * shade)[:, None]
-    rgb += rng.normal(0, 0.01, rgb.shape)
+    rgb += noise_rng.normal(0, 0.01, rgb.shape)
     rgb = (np.clip(rgb, 0, 1) * 255).astype(np.uint8).reshape(h, w, 3)
     depth = np.clip(depth, 0, MAX_DEPTH).astype(np.float32).reshape(h, w)
     depth[~np.isfinite(depth)] = MAX_DEPTH

@@ -1,0 +1,262 @@
+"""Readers of real image sequences: a KITTI raw drive and a plain folder of consecutive frames.
+
+Both check their layout when opened (missing folders, files, neighbours, intrinsics, frames of
+different sizes), so a malformed sequence is one clear error before any training starts. The last
+tenth of the targets (at least one) is the validation split, the rest the training split.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+from PIL import Image
+
+from explorer.data.readers import ring_mask, sparse_depth
+from explorer.data.sequences import SequenceSample
+from explorer.errors import UserError
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
+
+
+def _split_targets(count: int, split: str) -> range:
+    """Targets are frames 1..count-2 (each needs both neighbours); val is the last tenth."""
+    targets = range(1, count - 1)
+    n_val = max(len(targets) // 10, 1)
+    return targets[-n_val:] if split == "val" else targets[:-n_val] or targets
+
+
+def _check_consecutive(paths: list[Path], where: Path) -> None:
+    """Frames named by numbers must follow each other: a gap means a target lost a neighbour."""
+    numbers = []
+    for p in paths:
+        m = re.search(r"(\d+)$", p.stem)
+        if m is None:
+            return  # names without numbers: the sorted order is the sequence
+        numbers.append(int(m.group(1)))
+    for a, b, p in zip(numbers, numbers[1:], paths[1:]):
+        if b != a + 1:
+            raise UserError(f"{where}: frame {a + 1} is missing before {p.name} (the sequence must be "
+                            "consecutive: every target needs its neighbours t-1 and t+1)")
+
+
+def _check_sizes(paths: list[Path]) -> tuple[int, int]:
+    sizes = {}
+    for p in paths:
+        try:
+            with Image.open(p) as im:
+                sizes.setdefault(im.size, p)
+        except OSError as exc:
+            raise UserError(f"{p}: unreadable image ({exc})") from None
+    if len(sizes) > 1:
+        (a, pa), (b, pb) = list(sizes.items())[:2]
+        raise UserError(f"frames differ in size: {pa.name} is {a[0]}x{a[1]}, {pb.name} is {b[0]}x{b[1]} "
+                        "(a sequence must have one image size)")
+    w, h = next(iter(sizes))
+    return h, w
+
+
+def _rgb(path: Path) -> np.ndarray:
+    try:
+        return np.asarray(Image.open(path).convert("RGB"))
+    except OSError as exc:
+        raise UserError(f"{path}: unreadable image ({exc})") from None
+
+
+def read_intrinsics(path: Path) -> np.ndarray:
+    """A 3x3 matrix (9 numbers) or ``fx fy cx cy`` (4 numbers), in pixels of the frames."""
+    if not path.is_file():
+        raise UserError(f"{path.parent}: missing intrinsics.txt (write fx fy cx cy, or the 3x3 matrix K)")
+    try:
+        values = [float(x) for x in path.read_text().replace(",", " ").split()]
+    except ValueError:
+        raise UserError(f"{path}: intrinsics must be numbers (fx fy cx cy, or the 9 entries of K)") from None
+    if len(values) == 4:
+        fx, fy, cx, cy = values
+        return np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]], dtype=np.float64)
+    if len(values) == 9:
+        return np.array(values, dtype=np.float64).reshape(3, 3)
+    raise UserError(f"{path}: {len(values)} numbers; give fx fy cx cy, or the 9 entries of K")
+
+
+# -- a plain folder -------------------------------------------------------------------------------
+class FrameFolder:
+    """``FOLDER/*.png|jpg`` consecutive frames (sorted by name) and ``FOLDER/intrinsics.txt``.
+    Optional: ``FOLDER/depth/<name>.png`` 16-bit millimetres (evaluation, and the simulated scan's
+    row) and ``FOLDER/poses.txt`` (one line per frame: the 12 numbers of a 3x4 camera-to-world
+    matrix, KITTI odometry's format)."""
+
+    kind = "frames"
+    max_depth = 10.0
+
+    def __init__(self, root: Path, split: str) -> None:
+        self.root = root
+        self.paths = sorted(p for p in root.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+        if len(self.paths) < 3:
+            raise UserError(f"{root}: {len(self.paths)} frame(s); a sequence needs at least 3 consecutive images")
+        self.K = read_intrinsics(root / "intrinsics.txt")
+        _check_consecutive(self.paths, root)
+        self.shape = _check_sizes(self.paths)
+        self.poses = self._read_poses(root / "poses.txt")
+        self.targets = _split_targets(len(self.paths), split)
+
+    def _read_poses(self, path: Path) -> list[np.ndarray] | None:
+        if not path.is_file():
+            return None
+        rows = [line.split() for line in path.read_text().splitlines() if line.strip()]
+        if len(rows) != len(self.paths) or any(len(r) != 12 for r in rows):
+            raise UserError(f"{path}: needs one line of 12 numbers per frame ({len(self.paths)} frames)")
+        poses = []
+        for r in rows:
+            m = np.eye(4)
+            m[:3, :4] = np.array([float(x) for x in r]).reshape(3, 4)
+            poses.append(m)
+        return poses
+
+    def __len__(self) -> int:
+        return len(self.targets)
+
+    def __getitem__(self, i: int) -> SequenceSample:
+        t = self.targets[i]
+        frames = [_rgb(self.paths[t + d]) for d in (-1, 0, 1)]
+        depth_path = self.root / "depth" / f"{self.paths[t].stem}.png"
+        depth = np.zeros(self.shape, np.float32)
+        if depth_path.is_file():
+            depth = np.asarray(Image.open(depth_path)).astype(np.float32) / 1000.0
+            if depth.shape != self.shape:
+                raise UserError(f"{depth_path}: {depth.shape} differs from the frames' {self.shape}")
+        poses = [self.poses[t + d] for d in (-1, 0, 1)] if self.poses else None
+        return SequenceSample(frames, depth, self.K, poses, None, self.paths[t].stem)
+
+
+# -- a KITTI raw drive ----------------------------------------------------------------------------
+def _read_kv(path: Path) -> dict[str, np.ndarray]:
+    out = {}
+    for line in path.read_text().splitlines():
+        k, sep, v = line.partition(":")
+        if not sep:
+            continue
+        try:
+            out[k.strip()] = np.array([float(x) for x in v.split()])
+        except ValueError:
+            continue  # e.g. calib_time: a date
+    return out
+
+
+def _rigid(values: dict[str, np.ndarray], path: Path) -> np.ndarray:
+    if "R" not in values or "T" not in values:
+        raise UserError(f"{path}: calibration lacks R or T")
+    m = np.eye(4)
+    m[:3, :3], m[:3, 3] = values["R"].reshape(3, 3), values["T"]
+    return m
+
+
+def oxts_pose(packet: np.ndarray, scale: float) -> np.ndarray:
+    """IMU-to-world 4x4 from one OXTS packet (lat, lon, alt, roll, pitch, yaw, ...): Mercator
+    coordinates in metres, as KITTI's devkit computes them."""
+    lat, lon, alt, roll, pitch, yaw = packet[:6]
+    r_earth = 6378137.0
+    tx = scale * lon * np.pi * r_earth / 180.0
+    ty = scale * r_earth * np.log(np.tan((90.0 + lat) * np.pi / 360.0))
+    cx, sx, cy, sy, cz, sz = np.cos(roll), np.sin(roll), np.cos(pitch), np.sin(pitch), np.cos(yaw), np.sin(yaw)
+    rx = np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]])
+    ry = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
+    rz = np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]])
+    m = np.eye(4)
+    m[:3, :3], m[:3, 3] = rz @ ry @ rx, (tx, ty, alt)
+    return m
+
+
+class KittiDrive:
+    """A KITTI raw drive: ``DRIVE/image_02/data/*.png``, ``DRIVE/velodyne_points/data/*.bin``,
+    optional ``DRIVE/oxts/data/*.txt``; ``calib_cam_to_cam.txt`` and ``calib_velo_to_cam.txt`` (and
+    ``calib_imu_to_velo.txt`` for poses) in DRIVE or its parent (the date folder). Ground truth is
+    the projected point cloud; the 2D LiDAR is the laser ring nearest ``elevation_deg``."""
+
+    kind = "kitti"
+    max_depth = 80.0
+
+    def __init__(self, root: Path, split: str, elevation_deg: float = 0.0) -> None:
+        self.root, self.elevation = root, elevation_deg
+        images = root / "image_02" / "data"
+        if not images.is_dir():
+            raise UserError(f"{root}: missing image_02/data/ (expected a KITTI raw drive folder)")
+        self.paths = sorted(p for p in images.iterdir() if p.suffix.lower() == ".png")
+        if len(self.paths) < 3:
+            raise UserError(f"{images}: {len(self.paths)} frame(s); a sequence needs at least 3")
+        _check_consecutive(self.paths, images)
+        velo = root / "velodyne_points" / "data"
+        missing = [p.stem for p in self.paths if not (velo / f"{p.stem}.bin").is_file()]
+        if missing:
+            raise UserError(f"{velo}: no point cloud for frame {missing[0]} (every frame needs its .bin)")
+        self.shape = _check_sizes(self.paths)
+        cam_file, velo_file = self._calib("calib_cam_to_cam.txt"), self._calib("calib_velo_to_cam.txt")
+        cam = _read_kv(cam_file)
+        for k in ("P_rect_02", "R_rect_00"):
+            if k not in cam:
+                raise UserError(f"{cam_file}: calibration lacks {k}")
+        p2 = cam["P_rect_02"].reshape(3, 4)
+        self.K = p2[:, :3].copy()
+        # rectified camera 2 from the velodyne: R_rect_00, then camera 2's offset along x
+        rect = np.eye(4)
+        rect[:3, :3] = cam["R_rect_00"].reshape(3, 3)
+        offset = np.eye(4)
+        offset[0, 3] = p2[0, 3] / p2[0, 0]
+        self.cam_from_velo = offset @ rect @ _rigid(_read_kv(velo_file), velo_file)
+        self.poses = self._oxts_poses()
+        self.targets = _split_targets(len(self.paths), split)
+
+    def _calib(self, name: str) -> Path:
+        for folder in (self.root, self.root.parent):
+            if (folder / name).is_file():
+                return folder / name
+        raise UserError(f"{self.root}: missing {name} (in the drive folder or its parent)")
+
+    def _oxts_poses(self) -> list[np.ndarray] | None:
+        oxts = self.root / "oxts" / "data"
+        imu_file = next((f / "calib_imu_to_velo.txt" for f in (self.root, self.root.parent)
+                         if (f / "calib_imu_to_velo.txt").is_file()), None)
+        if not oxts.is_dir() or imu_file is None:
+            return None
+        files = [oxts / f"{p.stem}.txt" for p in self.paths]
+        if not all(f.is_file() for f in files):
+            return None
+        packets = []
+        for f in files:
+            try:
+                packets.append(np.array([float(x) for x in f.read_text().split()]))
+            except ValueError:
+                raise UserError(f"{f}: malformed OXTS packet (expected numbers)") from None
+        if any(len(p) < 6 for p in packets):
+            raise UserError(f"{oxts}: an OXTS packet has fewer than 6 values (lat lon alt roll pitch yaw)")
+        scale = np.cos(packets[0][0] * np.pi / 180.0)
+        cam_from_imu = self.cam_from_velo @ _rigid(_read_kv(imu_file), imu_file)
+        imu_from_cam = np.linalg.inv(cam_from_imu)
+        return [oxts_pose(p, scale) @ imu_from_cam for p in packets]
+
+    def __len__(self) -> int:
+        return len(self.targets)
+
+    def _project(self, points: np.ndarray) -> np.ndarray:
+        cam = self.cam_from_velo @ np.c_[points[:, :3], np.ones(len(points))].T
+        front = cam[2] > 0.5
+        img = self.K @ cam[:3, front]
+        u, v, z = img[0] / img[2], img[1] / img[2], cam[2, front]
+        h, w = self.shape
+        inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
+        return sparse_depth(np.round(u[inside]).astype(int).clip(0, w - 1),
+                            np.round(v[inside]).astype(int).clip(0, h - 1), z[inside], self.shape)
+
+    def __getitem__(self, i: int) -> SequenceSample:
+        t = self.targets[i]
+        frames = [_rgb(self.paths[t + d]) for d in (-1, 0, 1)]
+        velo = self.root / "velodyne_points" / "data" / f"{self.paths[t].stem}.bin"
+        raw = np.fromfile(velo, dtype=np.float32)
+        if raw.size % 4:
+            raise UserError(f"{velo}: size is not a multiple of 4 floats (x, y, z, reflectance)")
+        points = raw.reshape(-1, 4)
+        depth = self._project(points)
+        scan_image = self._project(points[ring_mask(points, self.elevation)]) if len(points) else None
+        poses = [self.poses[t + d] for d in (-1, 0, 1)] if self.poses else None
+        return SequenceSample(frames, depth, self.K, poses, scan_image, self.paths[t].stem)

@@ -1,0 +1,122 @@
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+from explorer.data import open_dataset, parse_data_spec
+from explorer.data.sequences import TARGETS_PER_CLIP, scale_intrinsics
+
+SEQ = "synthetic-seq:6:3"
+
+
+def _png(path, h=40, w=120, seed=0):
+    path.parent.mkdir(parents=True, exist_ok=True)
+    Image.fromarray(np.random.default_rng(seed).integers(0, 255, (h, w, 3), dtype=np.uint8)).save(path)
+
+
+def _folder(root, n=4, sizes=None):
+    for i in range(n):
+        h, w = (sizes or {}).get(i, (40, 60))
+        _png(root / f"frame_{i:04d}.png", h, w, i)
+    (root / "intrinsics.txt").write_text("50 50 30 20\n")
+    return root
+
+
+def _drive(root, n=4):
+    """A tiny KITTI raw drive: a wall 10 m ahead, the car moving 1 m forward per frame."""
+    date = root / "2011_09_26"
+    drive = date / "2011_09_26_drive_0001_sync"
+    (date).mkdir(parents=True)
+    (date / "calib_cam_to_cam.txt").write_text(
+        "calib_time: 09-Jan-2012 13:57:47\nP_rect_02: 50 0 60 0 0 50 20 0 0 0 1 0\nR_rect_00: 1 0 0 0 1 0 0 0 1\n")
+    (date / "calib_velo_to_cam.txt").write_text("R: 0 -1 0 0 0 -1 1 0 0\nT: 0 0 0\n")
+    (date / "calib_imu_to_velo.txt").write_text("R: 1 0 0 0 1 0 0 0 1\nT: 0 0 0\n")
+    y, z = np.meshgrid(np.linspace(-6, 6, 121), np.linspace(-1, 1, 21))
+    wall = np.c_[np.full(y.size, 10.0), y.ravel(), z.ravel(), np.zeros(y.size)].astype(np.float32)
+    lat = 49.0
+    metre = 1.0 / (np.cos(np.radians(lat)) * np.pi * 6378137.0 / 180.0)  # degrees of longitude per metre
+    for i in range(n):
+        _png(drive / "image_02" / "data" / f"{i:010d}.png", seed=i)
+        (drive / "velodyne_points" / "data").mkdir(parents=True, exist_ok=True)
+        wall.tofile(drive / "velodyne_points" / "data" / f"{i:010d}.bin")
+        (drive / "oxts" / "data").mkdir(parents=True, exist_ok=True)
+        (drive / "oxts" / "data" / f"{i:010d}.txt").write_text(f"{lat} {8.0 + i * metre} 110 0 0 0\n")
+    return drive
+
+
+def test_synthetic_sequence_items_are_consistent():
+    ds = open_dataset(SEQ, "train", (32, 48))
+    assert len(ds) == 6 and ds.max_depth == 10.0 and str(parse_data_spec(SEQ)) == SEQ
+    item = ds[1]
+    assert item["image"].shape == (3, 32, 48) and item["sources"].shape == (2, 3, 32, 48)
+    assert item["depth"].shape == (1, 32, 48) and torch.allclose(item["scan"], item["depth"][0, 16])
+    assert item["pose_known"] and item["pose"].shape == (2, 4, 4)
+    step = item["pose"][:, :3, 3].norm(dim=1)
+    assert 0.02 < float(step[0]) < 0.31 and torch.allclose(step[0], step[1], atol=1e-4)  # smooth motion
+    # neighbouring targets of one clip share frames: t+1 of target k is target k+1
+    assert torch.equal(ds[0]["sources"][1], ds[1]["image"]) and TARGETS_PER_CLIP == 3
+    assert not torch.equal(ds[0]["image"], ds[1]["image"])
+
+
+def test_intrinsics_follow_crop_and_resize():
+    K = np.array([[100.0, 0, 49.5], [0, 100.0, 24.5], [0, 0, 1]])
+    half = scale_intrinsics(K, (0, 0, 50, 100), (25, 50))
+    assert half[0, 0] == 50 and half[0, 2] == pytest.approx(24.5) and half[1, 2] == pytest.approx(12)
+    cropped = scale_intrinsics(K, (10, 20, 40, 80), (40, 80))
+    assert cropped[0, 2] == pytest.approx(29.5) and cropped[1, 2] == pytest.approx(14.5)
+
+
+def test_frame_folder(tmp_path):
+    root = _folder(tmp_path / "f", n=12)
+    train, val = open_dataset(f"frames:{root}", "train", (32, 48)), open_dataset(f"frames:{root}", "val", (32, 48))
+    assert len(train) == 9 and len(val) == 1
+    item = train[0]
+    assert item["sources"].shape == (2, 3, 32, 48) and not item["pose_known"]
+    assert float(item["K"][0, 0]) == pytest.approx(50 * 48 / 60)
+
+
+def test_kitti_drive_with_oxts_poses(tmp_path):
+    drive = _drive(tmp_path)
+    ds = open_dataset(f"kitti-seq:{drive}", "train", (32, 96))
+    item = ds[0]
+    assert item["pose_known"] and ds.max_depth == 80.0
+    # the car moved 1 m forward: the previous camera is 1 m behind the target (z), the next 1 m ahead
+    assert torch.allclose(item["pose"][0, :3, 3], torch.tensor([0.0, 0.0, 1.0]), atol=0.02)
+    assert torch.allclose(item["pose"][1, :3, 3], torch.tensor([0.0, 0.0, -1.0]), atol=0.02)
+    valid = item["depth"][item["depth"] > 0]
+    assert valid.numel() and torch.allclose(valid, torch.tensor(10.0), atol=0.01)
+    assert (item["scan"] > 0).any() and torch.allclose(item["scan"][item["scan"] > 0], torch.tensor(10.0), atol=0.01)
+    # the Garg crop: no ground truth in the top rows
+    assert not (item["depth"][0, :10] > 0).any()
+
+
+def test_real_kitti_mini_is_not_a_sequence(shared_data, run_cli):
+    # kitti-mini holds 3 unrelated object-detection frames: no drive layout, one clear line
+    code, _, err = run_cli("data", "inspect", "--data", f"kitti-seq:{shared_data / 'kitti-mini'}")
+    assert code == 2 and "image_02/data" in err and len(err.strip().splitlines()) == 1
+
+
+@pytest.mark.parametrize("damage, message", [
+    ("gap", "frame 2 is missing"),
+    ("intrinsics", "missing intrinsics.txt"),
+    ("sizes", "differ in size"),
+    ("velodyne", "no point cloud for frame"),
+    ("few", "at least 3"),
+])
+def test_malformed_sequences_are_one_line_exit_2(tmp_path, run_cli, damage, message):
+    if damage == "velodyne":
+        drive = _drive(tmp_path)
+        (drive / "velodyne_points" / "data" / "0000000002.bin").unlink()
+        spec = f"kitti-seq:{drive}"
+    else:
+        root = _folder(tmp_path / "f", n=2 if damage == "few" else 5,
+                       sizes={3: (40, 64)} if damage == "sizes" else None)
+        if damage == "gap":
+            (root / "frame_0002.png").unlink()
+        if damage == "intrinsics":
+            (root / "intrinsics.txt").unlink()
+        spec = f"frames:{root}"
+    code, _, err = run_cli("train", "paper", "--supervision", "self", "--data", spec, "--steps", "1",
+                           "--out", tmp_path / "x.pt")
+    assert code == 2 and message in err, err
+    assert len(err.strip().splitlines()) == 1 and "Traceback" not in err
