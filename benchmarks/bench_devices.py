@@ -7,7 +7,6 @@ and compare with measurement.
 """
 
 import argparse
-import random
 import time
 from pathlib import Path
 

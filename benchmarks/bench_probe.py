@@ -7,7 +7,6 @@
 """
 
 import argparse
-import random
 import statistics
 import subprocess
 import sys

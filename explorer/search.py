@@ -33,7 +33,7 @@ from explorer.space import (Candidate, SearchSpace, fastdepth_candidate, paper_c
 from explorer.evaluators import EVALUATORS, ProxyEvaluator, SupernetEvaluator
 from explorer.retry import StopAfterTrials, counted_trials, guarded, resume_interrupted, set_objective_names
 from explorer.storage import REPORTS_DIR, open_storage, study_dir
-from explorer.train import PROXY, Pruned, TrainConfig, resolve_device, train
+from explorer.train import PROXY, Pruned, TrainConfig, resolve_device
 
 BASELINES: dict[str, Callable[[], Candidate]] = {
     "paper": paper_candidate, "paper-nee": paper_nee_candidate, "fastdepth": fastdepth_candidate}

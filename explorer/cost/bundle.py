@@ -14,7 +14,6 @@ import datetime
 import hashlib
 import json
 import os
-import random
 import shutil
 import tarfile
 import tempfile

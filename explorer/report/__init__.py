@@ -27,7 +27,7 @@ from explorer import __version__  # noqa: E402
 from explorer.anytime import anytime_curve, parse_budget  # noqa: E402
 from explorer.cost.devices import DeviceProfile, get_device  # noqa: E402
 from explorer.errors import UserError  # noqa: E402
-from explorer.results import (BASELINE_LABELS, baseline_trial, best_trial, finalists_frame,  # noqa: E402
+from explorer.results import (BASELINE_LABELS, baseline_trial, finalists_frame,  # noqa: E402
                               is_retrained, missing_baselines, path_table, scored_trials, trial_anytime_loss,
                               trial_losses, trial_path_costs, trials_frame, winner)
 from explorer.space import Candidate  # noqa: E402

@@ -1,0 +1,58 @@
+"""The ``explorer`` command line, one module per command group. Every mistake a user can make is one
+line on stderr, exit 2."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import warnings
+from typing import Sequence
+
+from explorer.cli import deploy, devices, inspect, study, training
+from explorer.cli._common import _Parser
+from explorer.cli.study import _print_outcome  # noqa: F401  (the closing summary, for tests and notebooks)
+from explorer.errors import UserError
+
+GROUPS = (inspect, devices, training, study, deploy)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from explorer import __version__
+    p = _Parser(prog="explorer", description="Hardware-aware design-space explorer for anytime depth estimation "
+                "(camera + 2D LiDAR): search early-exit networks for the lowest anytime loss on a device.")
+    p.add_argument("--version", action="version", version=f"anytime-explorer {__version__}")
+    sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser, metavar="COMMAND")
+
+    def add(name, fn, help_):
+        sp = sub.add_parser(name, help=help_, description=help_)
+        sp.set_defaults(fn=fn)
+        return sp
+
+    reports = dict(default="reports", help="where studies live (default: reports/)")
+
+    for group in GROUPS:
+        group.register(sub, add, reports)
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    warnings.filterwarnings("ignore", category=UserWarning, module="torch")
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.command == "devices" and args.action == "show" and not args.name:
+        parser.error("devices show needs a NAME")
+    if args.command == "devices" and args.name and not args.action:
+        args.name, args.action = args.name, "show"
+    try:
+        args.fn(args)
+    except UserError as exc:
+        sys.stderr.write(f"explorer: error: {exc}\n")
+        return 2
+    except KeyboardInterrupt:
+        sys.stderr.write("explorer: interrupted; finished trials and checkpoints are kept\n")
+        return 130
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

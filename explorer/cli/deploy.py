@@ -1,0 +1,84 @@
+"""``explorer export``, ``run`` and ``curve``: a trained candidate as ONNX stages, run under deadlines."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from explorer.errors import UserError
+from explorer.cli._common import _size, _ms
+
+
+def cmd_export(args) -> None:
+    from explorer._console import console
+    from explorer.deploy import export_from_checkpoint, export_from_study
+    if bool(args.study) == bool(args.checkpoint):
+        raise UserError("give either --study S (optionally --trial N) or --checkpoint FILE")
+    if args.study:
+        manifest = export_from_study(args.study, args.trial, Path(args.out), args.storage,
+                                     Path(args.reports), args.input, args.device)
+    else:
+        manifest = export_from_checkpoint(Path(args.checkpoint), Path(args.out), args.input, args.device)
+    console.print(f"exported {len(manifest['stages'])} stage graphs to {args.out} "
+                  f"(max |onnx - torch| {manifest['verification']['max_abs_diff']:.2e})")
+
+
+def cmd_run(args) -> None:
+    from explorer._console import console, print_json
+    from explorer.runtime import run_files
+    res = run_files(Path(args.model), Path(args.image), Path(args.scan), args.deadline,
+                    Path(args.out) if args.out else None, args.threads, args.provider)
+    if args.json:
+        print_json(res)
+        return
+    console.print(f"returned path {res['path']} (ready at {res['ready_ms']:.2f} ms, deadline {args.deadline:g} ms); "
+                  f"{res['completed_paths']} path(s) completed" + (f"; wrote {args.out}" if args.out else ""))
+
+
+def cmd_curve(args) -> None:
+    from explorer._console import console, print_json, progress
+    from explorer.runtime import curve_check
+    with progress(transient=True) as bar:
+        task = bar.add_task("deadlines", total=args.deadlines, status="")
+        res = curve_check(Path(args.model), args.data, args.device, args.frames, args.deadlines,
+                          progress=lambda i, n: bar.update(task, completed=i), provider=args.provider)
+    if args.json:
+        print_json(res)
+        return
+    m, p = res["measured_anytime_loss"], res["predicted_anytime_loss"]
+    console.print(f"anytime loss U(0, {res['b_max_ms']:.1f} ms) on this machine: measured {m:.4f}, predicted by "
+                  f"{res['device']} {p:.4f} ({m / p - 1:+.1%}); written to {Path(args.model) / 'anytime_curve.json'}")
+
+
+def register(sub, add, reports: dict) -> None:
+    """Adds this group's commands to the ``explorer`` parser."""
+    s = add("export", cmd_export, "export a trained candidate as ONNX stage graphs + manifest")
+    s.add_argument("--study")
+    s.add_argument("--trial", type=int, help="trial number (default: the best)")
+    s.add_argument("--checkpoint", help="export a checkpoint instead of a study trial")
+    s.add_argument("--storage")
+    s.add_argument("--out", required=True)
+    s.add_argument("--input-size", "--input", dest="input", type=_size, default=None,
+                   help="input HxW (default: the study's input size)")
+    s.add_argument("--device", action="append", help="devices whose expected costs go in the manifest")
+    s.add_argument("--reports", **reports)
+
+    s = add("run", cmd_run, "run an exported model under a deadline and return the best depth map")
+    s.add_argument("model", help="folder written by explorer export")
+    s.add_argument("--image", required=True)
+    s.add_argument("--scan", required=True, help=".csv or .npy: one depth (m) per image column, 0 = none")
+    s.add_argument("--deadline", type=_ms, required=True, help="e.g. 8ms")
+    s.add_argument("--out", help="write the depth map (.png 16-bit mm, or .npy metres)")
+    s.add_argument("--threads", type=int, default=None)
+    s.add_argument("--provider", default="CPUExecutionProvider", help="onnxruntime execution provider "
+                   "(default CPUExecutionProvider)")
+    s.add_argument("--json", action="store_true")
+
+    s = add("curve", cmd_curve, "measure an exported model's anytime curve here and compare with the prediction")
+    s.add_argument("model", help="folder written by explorer export")
+    s.add_argument("--data", default="synthetic", help="frames to measure on (validation split)")
+    s.add_argument("--device", help="host profile from explorer calibrate (default: calibrate now)")
+    s.add_argument("--frames", type=int, default=16)
+    s.add_argument("--deadlines", type=int, default=40)
+    s.add_argument("--provider", default="CPUExecutionProvider", help="onnxruntime execution provider "
+                   "(default CPUExecutionProvider)")
+    s.add_argument("--json", action="store_true")

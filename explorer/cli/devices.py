@@ -1,0 +1,106 @@
+"""``explorer devices`` and ``calibrate``: device profiles, and measuring a machine to make one."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from explorer.errors import UserError
+
+
+def cmd_devices(args) -> None:
+    from explorer._console import console, print_json
+    from explorer.cost.devices import available_devices, get_device
+    if args.name:
+        p = get_device(args.name)
+        if args.json:
+            print_json(p.to_dict())
+        else:
+            console.print(p.to_yaml(), markup=False, highlight=False)
+        return
+    rows = []
+    for name in available_devices():
+        p = get_device(name)
+        fits = p.provenance.get("fit") or []
+        err = fits[0].get("median_abs_error") if fits and "median_abs_error" in fits[0] else None
+        rows.append({"name": name, "calibrated": p.calibrated, "latency": p.latency_basis,
+                     "energy": p.energy_basis, "description": p.description, "fit_median_error": err})
+    if args.json:
+        print_json(rows)
+        return
+    console.print(f"  {'name':12s} {'latency':9s} {'energy':9s} description")
+    for r in rows:
+        err = f"  (fit error {r['fit_median_error']:.1%})" if r["fit_median_error"] is not None else ""
+        console.print(f"  {r['name']:12s} {r['latency']:9s} {r['energy']:9s} {r['description']}{err}")
+    console.print("  (measured: on the device; published: fitted to published figures; estimate: scaled from "
+                  "another profile; none: not modelled)")
+    console.print("  (any profile YAML file works too: --device ./mybox.yaml; make one with explorer calibrate)")
+
+
+def cmd_calibrate(args) -> None:
+    from explorer._console import console, progress
+    from explorer.cost.calibrate import calibrate, fit_results, read_results
+    if args.bundle and args.fit:
+        raise UserError("--bundle writes graphs for a device, --fit reads what the probe measured there: give one")
+    if args.bundle:
+        from explorer.cost.bundle import write_bundle
+        bundle = Path(args.bundle)
+        if bundle.exists() and not args.force:
+            raise UserError(f"{bundle} exists: pass --force to overwrite it")
+        with progress() as bar:
+            task = bar.add_task("exporting graphs", total=None, status="")
+            manifest = write_bundle(bundle, scale=0.35 if args.quick else 1.0, repeats=args.repeats,
+                                    progress=lambda i, n: bar.update(task, completed=i, total=n))
+        console.print(f"wrote {bundle} ({bundle.stat().st_size / 1e6:.1f} MB, {len(manifest['layers'])} layer "
+                      f"graphs, {len(manifest['candidates'])} candidates' stages, bundle {manifest['id']}); on the "
+                      f"device: tar xf {bundle.name} && python3 probe.py --out results.json")
+        return
+    if not args.out:
+        raise UserError("give --out PROFILE.yaml (or --bundle FILE to measure another device)")
+    out = Path(args.out)
+    if out.exists() and not args.force:
+        raise UserError(f"{out} exists: pass --force to overwrite it")
+    if args.fit:
+        prof = fit_results(read_results(args.fit), name=args.name or out.stem)
+    else:
+        from explorer.cost.probe_script import ProbeError, check_provider
+        try:
+            check_provider(args.provider)  # before the progress bar: one line, nothing else
+        except ProbeError as exc:
+            raise UserError(str(exc)) from None
+        with progress() as bar:
+            task = bar.add_task("measuring layers", total=None, status="")
+            prof = calibrate(threads=args.threads, repeats=args.repeats, scale=0.35 if args.quick else 1.0,
+                             name=args.name or out.stem, provider=args.provider, energy=args.energy,
+                             progress=lambda i, n: bar.update(task, completed=i, total=n),
+                             log=lambda s: bar.console.print(s))
+    out.parent.mkdir(parents=True, exist_ok=True)
+    how = f"from {args.fit}" if args.fit else "on this machine"
+    out.write_text(f"# Made by `explorer calibrate` {how}.\n" + prof.to_yaml())
+    console.print(f"wrote {out}")
+    for fit in prof.provenance["fit"]:
+        console.print(f"  fit on {fit['what']}: median error {fit['median_abs_error']:.1%}, "
+                      f"{fit['within_10pct']:.0%} within 10%")
+    console.print(f"  energy: {prof.provenance['energy_note']}")
+
+
+def register(sub, add, reports: dict) -> None:
+    """Adds this group's commands to the ``explorer`` parser."""
+    s = add("devices", cmd_devices, "list device profiles, or show one with its provenance")
+    s.add_argument("action", nargs="?", choices=["show"], help="show one profile")
+    s.add_argument("name", nargs="?", help="profile name or file")
+    s.add_argument("--json", action="store_true")
+
+    s = add("calibrate", cmd_calibrate, "measure this machine with onnxruntime and write a device profile; "
+            "or pack the measurement for another device (--bundle) and fit what it measured (--fit)")
+    s.add_argument("--out", help="profile YAML to write")
+    s.add_argument("--bundle", metavar="FILE.tar", help="write the graphs and probe.py (needs only python3, numpy "
+                   "and onnxruntime) for a device, instead of measuring here")
+    s.add_argument("--fit", metavar="RESULTS.json", help="fit --out to what probe.py measured on a device")
+    s.add_argument("--name", help="profile name (default: the file's stem)")
+    s.add_argument("--threads", type=int, default=None)
+    s.add_argument("--repeats", type=int, default=25)
+    s.add_argument("--provider", default="CPUExecutionProvider", help="onnxruntime execution provider "
+                   "(default CPUExecutionProvider; CUDA, TensorRT, OpenVINO, XNNPACK ones where installed)")
+    s.add_argument("--no-energy", dest="energy", action="store_false", help="do not sample power sensors")
+    s.add_argument("--quick", action="store_true", help="a third of the sweep (for a first look)")
+    s.add_argument("--force", action="store_true", help="overwrite --out or --bundle")

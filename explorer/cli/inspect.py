@@ -1,0 +1,226 @@
+"""``explorer space``, ``profile``, ``anytime``, ``enumerate``, ``data``: look at spaces, candidates,
+costs and data without training anything."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+from explorer.errors import UserError
+from explorer.cli._common import _Parser, _size
+
+
+def cmd_space_show(args) -> None:
+    from explorer._console import console, print_json
+    from explorer.space import SearchSpace
+    space = SearchSpace.from_yaml(args.space)
+    dims = space.dimensions()
+    if args.json:
+        print_json({"name": space.name, "size": space.size, "source": space.source,
+                    "dimensions": {k: list(v) for k, v in dims.items()},
+                    "required_exits": list(space.required_exits)})
+        return
+    console.print(f"[bold]{space.name}[/bold]  ({space.source})  {space.description}")
+    console.print(f"candidates: [bold]{space.size:,}[/bold]")
+    for k, v in dims.items():
+        console.print(f"  {k:18s} {list(v)}")
+    if space.required_exits:
+        console.print(f"  {'required exits':18s} {list(space.required_exits)}")
+
+
+def _candidates_of(path: str) -> list:
+    """A candidate file, or every candidate of a (small) space."""
+    from explorer.space import Candidate, SearchSpace, resolve_space_path, _load_yaml
+    p = resolve_space_path(path) if not Path(path).is_file() else Path(path)
+    data = _load_yaml(p)
+    if isinstance(data, dict) and "candidate" in data:
+        return [Candidate.from_dict(data["candidate"], str(p))]
+    space = SearchSpace.from_yaml(p)
+    if space.size > 16:
+        raise UserError(f"{p} has {space.size:,} candidates: profile takes a candidate file or a space of "
+                        "at most 16 (use `explorer enumerate` for whole spaces)")
+    return list(space.enumerate())
+
+
+def _profile_reference(args, device) -> None:
+    from explorer._console import console, print_frame, print_json
+    from explorer.cost import profile_reference
+    from explorer.model.reference import get_reference
+    ref = get_reference(args.target)
+    if args.measure:
+        raise UserError("--measure works on candidates only; reference networks are costed, not measured")
+    frame = profile_reference(ref.name, args.input, device)
+    if args.json:
+        published = ref.paper.__dict__ if ref.paper else None
+        print_json({"reference": ref.name, "description": ref.description, "input_size": list(args.input),
+                    "paths": frame.to_dict("records"), "published": published})
+        return
+    console.print(f"[bold]{ref.name}[/bold]  {ref.description}")
+    print_frame(frame, f"at {args.input[0]}x{args.input[1]}" + (f" on {device.name}" if device else ""))
+
+
+def cmd_profile(args) -> None:
+    from explorer._console import console, print_frame, print_json
+    from explorer.cost import get_device, profile_candidate
+    from explorer.space import SPACES_DIR
+    out = []
+    device = get_device(args.device) if args.device else None
+    looks_like_file = args.target.endswith((".yaml", ".yml")) or "/" in args.target
+    if not looks_like_file and not Path(args.target).is_file() and not (SPACES_DIR / f"{args.target}.yaml").is_file():
+        return _profile_reference(args, device)   # a reference network, or one line naming them
+    for cand in _candidates_of(args.target):
+        frame = profile_candidate(cand, args.input, device)
+        entry = {"candidate": cand.to_dict(), "key": cand.key, "input_size": list(args.input),
+                 "paths": frame.to_dict("records")}
+        if args.measure:
+            from explorer.cost.measure import measure_candidate
+            m = measure_candidate(cand, args.input, threads=args.threads, repeats=args.repeats)
+            frame["measured_ms"] = m.path_ms
+            frame.loc[0, "measured_ms"] = 0.0
+            entry["paths"] = frame.to_dict("records")
+            entry["measured"] = {"stage_ms": m.stage_ms, "whole_graph_ms": m.whole_ms,
+                                 "staged_total_ms": m.staged_total_ms, "staging_overhead": m.staging_overhead,
+                                 "path0_ms": m.path_ms[0], "conditions": m.conditions}
+        out.append(entry)
+        if not args.json:
+            console.print(f"[bold]{cand.key}[/bold]  {cand.describe()}")
+            title = f"per path at {args.input[0]}x{args.input[1]}" + (f" on {device.name}" if device else "")
+            print_frame(frame, title)
+            if args.measure:
+                console.print(f"whole graph {m.whole_ms:.3f} ms, sum of stages {m.staged_total_ms:.3f} ms "
+                              f"({m.staging_overhead:+.1%}); onnxruntime {m.conditions['onnxruntime']}, "
+                              f"{m.conditions['threads']} threads, median of {m.conditions['repeats']}")
+    if args.json:
+        print_json(out[0] if len(out) == 1 else out)
+
+
+def cmd_anytime(args) -> None:
+    from explorer._console import console, print_json
+    from explorer.anytime import anytime_loss, interval_probabilities, parse_budget
+    if not args.path:
+        raise UserError("give at least one --path COST:LOSS (path 0 is added with cost 0 if missing)")
+    pairs = []
+    for text in args.path:
+        try:
+            c, l = text.split(":")
+            pairs.append((float(c), float(l)))
+        except ValueError:
+            raise UserError(f"--path {text!r} is not COST:LOSS (e.g. 6.4:0.465)") from None
+    pairs.sort()
+    costs, losses = [p[0] for p in pairs], [p[1] for p in pairs]
+    dist = parse_budget(args.budget)
+    value = anytime_loss(costs, losses, dist)
+    weights = interval_probabilities(costs, dist)
+    if args.json:
+        print_json({"budget": dist.spec, "anytime_loss": value, "costs": costs, "losses": losses,
+                    "weights": list(weights)})
+        return
+    console.print(f"anytime loss for {dist.spec}: [bold]{value:.4f}[/bold]")
+    for c, l, w in zip(costs, losses, weights):
+        console.print(f"  path at {c:g} {dist.unit}: loss {l:g}, P(output) = {w:.4f}")
+
+
+def cmd_enumerate(args) -> None:
+    from explorer._console import console, print_frame, progress
+    from explorer.enumerate import enumerate_space
+    from explorer.space import SearchSpace
+    space = SearchSpace.from_yaml(args.space)
+    t0 = time.perf_counter()
+    with progress(transient=True) as bar:
+        task = bar.add_task(f"costing {space.name}", total=space.size, status="")
+        frame = enumerate_space(space, args.device, args.budget, args.input,
+                                progress=lambda i, n: bar.update(task, completed=i))
+    dt = time.perf_counter() - t0
+    if args.csv:
+        Path(args.csv).parent.mkdir(parents=True, exist_ok=True)
+        frame.to_csv(args.csv, index=False)
+        console.print(f"wrote {len(frame):,} candidates to {args.csv}")
+    console.print(f"{len(frame):,} candidates costed in {dt:.1f} s ({len(frame) / dt:,.0f}/s)")
+    cols = ["key", "params", "macs", "paths", "first_exit_ms", "last_exit_ms", "p_path0"]
+    print_frame(frame.nsmallest(10, "p_path0")[cols], "fewest halts left to path 0")
+
+
+def cmd_data_inspect(args) -> None:
+    import numpy as np
+    from explorer._console import console, print_json, progress
+    from explorer.data import open_dataset
+    from explorer.metrics import MetricAverager, depth_metrics
+    from explorer.model import interpolate_scan
+    with progress(transient=True) as bar:
+        task = bar.add_task("generating synthetic scenes", total=None, status="")
+        ds = open_dataset(args.data, args.split, args.input, train_augment=False,
+                          progress=lambda i, n: bar.update(task, completed=i, total=n))
+    n = len(ds) if not args.limit else min(args.limit, len(ds))
+    if n == 0:
+        raise UserError(f"data {args.data}: the {args.split} split is empty")
+    avg, dmin, dmax, valid, scan_valid = MetricAverager(), np.inf, 0.0, [], []
+    for i in range(n):
+        item = ds[i]
+        d = item["depth"]
+        pos = d[d > 0]
+        if pos.numel():
+            dmin, dmax = min(dmin, float(pos.min())), max(dmax, float(pos.max()))
+        valid.append(float((d > 0).float().mean()))
+        scan_valid.append(float((item["scan"] > 0).float().mean()))
+        p0 = interpolate_scan(item["scan"][None], d.shape[1])[0]
+        avg.add(depth_metrics(p0, d))
+    res = {"data": str(ds.name), "split": args.split, "frames": len(ds), "inspected": n,
+           "input_size": list(args.input), "image_shape": list(item["image"].shape),
+           "depth_range_m": [dmin, dmax], "valid_depth_fraction": float(np.mean(valid)),
+           "scan_return_fraction": float(np.mean(scan_valid)), "scan_row": item["scan_row"],
+           "path0": avg.result()}
+    if args.json:
+        print_json(res)
+        return
+    console.print(f"[bold]{res['data']}[/bold] {args.split}: {len(ds)} frames (inspected {n}) at "
+                  f"{args.input[0]}x{args.input[1]}")
+    console.print(f"  depth {dmin:.2f}-{dmax:.2f} m, {res['valid_depth_fraction']:.1%} of pixels valid; "
+                  f"scan row {res['scan_row']}, {res['scan_return_fraction']:.1%} of columns with a return")
+    p0 = res["path0"]
+    console.print(f"  path 0 (scan, nearest): RMSE {p0['rmse']:.3f} m, REL {p0['rel']:.3f}, "
+                  f"delta1 {p0['delta1']:.3f}")
+
+
+def register(sub, add, reports: dict) -> None:
+    """Adds this group's commands to the ``explorer`` parser."""
+    sp = add("space", None, "inspect a search space")
+    ssub = sp.add_subparsers(dest="sub", required=True, parser_class=_Parser, metavar="SUBCOMMAND")
+    s = ssub.add_parser("show", help="size, dimensions and choices of a space")
+    s.add_argument("space", help="YAML file or shipped name (anytime_depth, paper, tiny)")
+    s.add_argument("--json", action="store_true")
+    s.set_defaults(fn=cmd_space_show)
+
+    s = add("profile", cmd_profile, "per-path parameters, MACs, latency and energy of a candidate "
+            "or of one of the paper's reference networks")
+    s.add_argument("target", help="candidate YAML, a space of at most 16 candidates (e.g. paper), or a reference "
+                   "network: fastdepth, fastdepth-pruned, s2d-resnet50, s2d-resnet18, monodepth2-resnet18, ...")
+    s.add_argument("--input-size", "--input", dest="input", type=_size, default=(224, 224),
+                   help="input HxW (default 224x224)")
+    s.add_argument("--device", help="device profile name or YAML file")
+    s.add_argument("--measure", action="store_true", help="also measure on this machine with onnxruntime")
+    s.add_argument("--threads", type=int, default=None, help="onnxruntime threads (default: all cores)")
+    s.add_argument("--repeats", type=int, default=20)
+    s.add_argument("--json", action="store_true")
+
+    s = add("anytime", cmd_anytime, "anytime loss (Eq. 1) of given per-path costs and losses")
+    s.add_argument("--path", action="append", metavar="COST:LOSS", help="a path's cost (ms or J) and loss; repeat")
+    s.add_argument("--budget", required=True, help="e.g. time:uniform:33ms, energy:uniform:0.5J")
+    s.add_argument("--json", action="store_true")
+
+    s = add("enumerate", cmd_enumerate, "cost every candidate of a space (no training)")
+    s.add_argument("--space", default="anytime_depth")
+    s.add_argument("--device", default="tx2")
+    s.add_argument("--budget", default="time:uniform:33ms")
+    s.add_argument("--input-size", "--input", dest="input", type=_size, default=(224, 224))
+    s.add_argument("--csv", help="write the table here")
+
+    sp = add("data", None, "inspect a data set")
+    dsub = sp.add_subparsers(dest="sub", required=True, parser_class=_Parser, metavar="SUBCOMMAND")
+    s = dsub.add_parser("inspect", help="frames, shapes, depth range and path 0's metrics")
+    s.add_argument("--data", default="synthetic", help="synthetic | nyu:PATH | kitti:PATH | synthetic-seq | "
+                   "kitti-seq:DRIVE | frames:FOLDER")
+    s.add_argument("--split", default="val", choices=["train", "val"])
+    s.add_argument("--input-size", "--input", dest="input", type=_size, default=(224, 224))
+    s.add_argument("--limit", type=int, default=None, help="inspect at most this many frames")
+    s.add_argument("--json", action="store_true")
+    s.set_defaults(fn=cmd_data_inspect)

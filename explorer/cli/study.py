@@ -1,0 +1,232 @@
+"""``explorer search``, ``rescore`` and ``report``: running a study and reading it."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+from explorer.errors import UserError
+from explorer.cli._common import _size, _count, _ms, _duration_s, _add_supervision
+
+
+def cmd_search(args) -> None:
+    import optuna
+    from explorer._console import err_console, progress
+    from explorer.search import SearchConfig, search
+    from explorer.space import SearchSpace
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    space_name = SearchSpace.from_yaml(args.space).name
+    study = args.study or f"{Path(str(args.device)).stem}-{space_name}"
+    cfg = SearchConfig(
+        study=study, space=args.space, device=args.device, budgets=tuple(args.budget or ["time:uniform:33ms"]),
+        data=args.data, objectives=tuple(args.objectives.split(",")), metric=args.metric,
+        input_size=args.input_size, train_size=args.train_size, train_steps=args.train_steps,
+        batch_size=args.batch_size, seed=args.seed, max_params=args.max_params,
+        max_first_exit_ms=args.max_first_exit, baselines=not args.no_baselines,
+        pruning=not args.no_pruning, keep_weights=not args.no_weights, accelerator=args.accelerator,
+        evaluator=args.evaluator, supernet=args.supernet, supernet_steps=args.supernet_steps,
+        finalists=args.finalists, finalist_steps=args.finalist_steps,
+        max_retries=args.max_retries,
+        supervision=args.supervision)
+    cfg.validate()
+    reports = Path(args.reports)
+    timeout = None if args.timeout == 0 else args.timeout
+    total = args.trials
+    t0 = time.time()
+    with progress(transient=True) as bar:
+        task = bar.add_task(f"search {study}", total=total, status="starting (data, baselines)")
+        phases: dict = {}
+
+        def supernet(step: int, steps: int, record: dict) -> None:
+            if "supernet" not in phases:
+                phases["supernet"] = bar.add_task("supernet (once per space, data, recipe)", total=steps, status="")
+            bar.update(phases["supernet"], completed=step, status=f"largest {record['largest']:.3f}, "
+                       f"smallest {record['smallest']:.3f}")
+
+        def finalist(i: int, n: int, what: str) -> None:
+            if "finalists" not in phases:
+                phases["finalists"] = bar.add_task("finalists (retraining)", total=n, status="")
+            bar.update(phases["finalists"], completed=i, status=what)
+
+        def show(study_obj, trial=None) -> None:
+            nonlocal t0
+            if "search_start" not in phases:
+                phases["search_start"], t0 = True, time.time()
+            from explorer.retry import counted_trials
+            complete = study_obj.get_trials(deepcopy=False, states=(optuna.trial.TrialState.COMPLETE,))
+            complete = [t for t in complete if t.values]
+            best = min((t.values[0] for t in complete), default=float("nan"))
+            last = f"trial {trial.number} {trial.state.name.lower()}" + (
+                f" {trial.values[0]:.4f}" if trial is not None and trial.values else "") if trial else ""
+            left = "" if timeout is None else f", {max(timeout - (time.time() - t0), 0) / 60:.1f} min left"
+            bar.update(task, completed=counted_trials(study_obj), status=f"{last}  best {best:.4f}{left}")
+
+        def data(i: int, n: int) -> None:
+            bar.update(task, status=f"generating synthetic scenes {i}/{n} (once, then cached)")
+
+        outcome = search(cfg, storage_url=args.storage, workers=args.workers, n_trials=total,
+                         timeout_s=timeout, reports=reports, on_trial=show, on_poll=show, on_data=data,
+                         on_supernet=supernet, on_finalist=finalist)
+    if outcome.interrupted_failed:
+        err_console.print(f"marked {outcome.interrupted_failed} interrupted trial(s) as failed")
+    _print_retries(outcome, cfg)
+    _print_outcome(outcome.study, cfg, outcome.storage_url, reports, args.report)
+
+
+def _print_retries(outcome, cfg) -> None:
+    from explorer._console import err_console
+    from explorer.results import BASELINE_LABELS
+    trials = {t.number: t for t in outcome.study.get_trials(deepcopy=False)}
+    def what(n: int) -> str:
+        b = trials[n].user_attrs.get("baseline") if n in trials else None
+        return f"trial {n}" + (f" ({BASELINE_LABELS.get(b, b)})" if b else "")
+    for old, new in outcome.retried.items():
+        err_console.print(f"{what(old)} was interrupted: tried again as trial {new}")
+    for old in outcome.not_retried:
+        err_console.print(f"{what(old)} was interrupted and is not tried again (--max-retries {cfg.max_retries} "
+                          "reached)")
+
+
+def _print_outcome(study, cfg, storage_url: str, reports: Path, write_report: bool) -> None:
+    import optuna
+    from explorer._console import console, print_frame
+    from explorer.cost import get_device
+    from explorer.results import (baseline_trial, best_trial, finalists_frame, is_retrained, missing_baselines,
+                                  path_table, winner)
+    from explorer.space import Candidate
+    states = [t.state for t in study.get_trials(deepcopy=False)]
+    count = {s.name.lower(): states.count(s) for s in optuna.trial.TrialState if states.count(s)}
+    console.print(f"study [bold]{cfg.study}[/bold]: " + ", ".join(f"{v} {k}" for k, v in count.items()))
+    best, estimate = winner(study), best_trial(study)
+    if best is None:
+        console.print("no candidate trial completed yet: run longer (--timeout / --trials)")
+    else:
+        retrained = is_retrained(best)
+        cand = Candidate.from_dict(best.user_attrs["candidate"])
+        how = "retrained" if retrained else f"estimated ({(best.user_attrs.get('evaluator') or {}).get('evaluator', 'proxy')})"
+        console.print(f"winner: trial {best.number} ({cand.key}) anytime loss [bold]{best.values[0]:.4f}[/bold] "
+                      f"{how}, for {cfg.budgets[0]} on {cfg.device}")
+        console.print(f"  {cand.describe()}")
+        print_frame(path_table(best, [get_device(cfg.device)]), "winner, per path")
+        fin = finalists_frame(study)
+        if not fin.empty:
+            cols = ["model", "candidate_key", "estimated", "retrained", "estimated_rank", "retrained_rank"]
+            print_frame(fin[cols], f"finalists: search estimate vs retrained ({cfg.finalist_steps} steps)")
+        paper = baseline_trial(study, "paper", retrained=retrained)
+        if paper is not None:
+            kind = "retrained " if retrained else ""
+            console.print(f"ratio to the {kind}paper-design baseline ({paper.values[0]:.4f}): "
+                          f"[bold]{best.values[0] / paper.values[0]:.3f}[/bold]")
+        if retrained and estimate is not None and estimate.number != best.user_attrs["finalist"].get("estimate_trial"):
+            console.print(f"  (the search's best estimate was trial {estimate.number}; retraining ranked another first)")
+    # a missing comparison is said, with why, never dropped silently
+    missing = missing_baselines(study)
+    if missing and all("--no-baselines" in m["why"] for m in missing):
+        console.print("no baselines (the study was created with --no-baselines): no ratio to the paper design")
+    else:
+        for m in missing:
+            lead = "no ratio to the paper-design baseline:" if m["name"] == "paper" and best is not None \
+                else f"baseline {m['label']} missing:"
+            console.print(f"{lead} {m['why']}", markup=False, highlight=False)
+    console.print(f"study: {storage_url}")
+    if write_report:
+        try:
+            from explorer.report import write_report as _write
+        except ImportError:
+            return
+        path = _write(study, out_dir=reports / cfg.study)
+        console.print(f"report: {path}")
+
+
+def cmd_rescore(args) -> None:
+    from explorer._console import print_frame, print_json
+    from explorer.results import rescore
+    from explorer.storage import load_study
+    study = load_study(args.study, args.storage, Path(args.reports))
+    frame = rescore(study, args.device, args.budget, args.metric)
+    if frame.empty:
+        raise UserError(f"study '{args.study}' has no completed trial to re-score yet")
+    if args.csv:
+        frame.to_csv(args.csv, index=False)
+    if args.json:
+        print_json(frame.to_dict("records"))
+    else:
+        print_frame(frame.head(args.top), f"{args.study} re-scored for {args.device} (sorted by {args.budget[0]})")
+
+
+def cmd_report(args) -> None:
+    from explorer._console import console
+    from explorer.report import write_report
+    from explorer.storage import load_study
+    study = load_study(args.study, args.storage, Path(args.reports))
+    out = Path(args.out) if args.out else Path(args.reports) / args.study
+    path = write_report(study, out_dir=out, devices=args.device, budgets=args.budget, data=args.data,
+                        curve=Path(args.curve) if args.curve else None)
+    console.print(f"report: {path}")
+
+
+def register(sub, add, reports: dict) -> None:
+    """Adds this group's commands to the ``explorer`` parser."""
+    s = add("search", cmd_search, "search the space for the lowest anytime loss on a device")
+    s.add_argument("--device", default="tx2", help="profile name or YAML (default tx2)")
+    s.add_argument("--space", default="anytime_depth")
+    s.add_argument("--budget", action="append", help="repeatable; the first is the objective "
+                   "(default time:uniform:33ms)")
+    s.add_argument("--data", default="synthetic")
+    s.add_argument("--study", help="study name (default DEVICE-SPACE); the same name resumes")
+    s.add_argument("--storage", help="Optuna storage URL (default reports/<study>/study.db; "
+                   "postgresql://... for several machines)")
+    s.add_argument("--workers", type=int, default=1, help="processes on this machine (journal storage)")
+    s.add_argument("--timeout", type=_duration_s, default=300.0, help="stop sampling after this long (default 5m; "
+                   "0 = none; the supernet's training and the finalists come on top)")
+    s.add_argument("--trials", type=int, default=None, help="stop after this many finished trials")
+    s.add_argument("--objectives", default="anytime_loss", help="e.g. anytime_loss,params (NSGA-II)")
+    s.add_argument("--metric", default="rmse", choices=["rmse", "mae", "rel"])
+    s.add_argument("--max-params", type=_count, help="reject candidates above this, e.g. 2.5M")
+    s.add_argument("--max-first-exit", type=_ms, help="reject candidates whose first exit is later, e.g. 10ms")
+    s.add_argument("--evaluator", default="supernet", choices=["supernet", "proxy"],
+                   help="how a candidate's accuracy is estimated: its slice of the space's supernet (trained "
+                   "once, then ~1 s a candidate; default) or proxy training alone (~20 s a candidate)")
+    s.add_argument("--supernet", help="supernet file (default: the one cached for space, data and recipe, "
+                   "trained first if missing)")
+    s.add_argument("--supernet-steps", type=int, default=1000, help="supernet training steps (default 1000)")
+    s.add_argument("--finalists", type=int, default=3, help="best distinct candidates retrained stand-alone "
+                   "at the end, next to the baselines (default 3; 0 = none)")
+    s.add_argument("--finalist-steps", type=int, default=300, help="steps of the finalists' longer recipe "
+                   "(default 300)")
+    s.add_argument("--train-steps", type=int, default=150, help="proxy recipe steps (default 150)")
+    s.add_argument("--train-size", type=_size, default=(64, 64), help="training resolution (default 64x64)")
+    s.add_argument("--batch-size", type=int, default=16)
+    s.add_argument("--input-size", "--input", type=_size, default=(224, 224),
+                   help="deployment resolution for costs (default 224x224)")
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--accelerator", default="auto", choices=["auto", "cpu", "cuda"])
+    s.add_argument("--no-baselines", action="store_true")
+    s.add_argument("--max-retries", type=int, default=2, help="try an interrupted trial (killed, Ctrl-C, "
+                   "lost worker) again at most this many times (default 2); a trial that fails is not")
+    s.add_argument("--no-pruning", action="store_true")
+    s.add_argument("--no-weights", action="store_true", help="do not keep trained weights as artifacts")
+    s.add_argument("--no-report", dest="report", action="store_false", help="skip the HTML report")
+    _add_supervision(s)
+    s.add_argument("--reports", **reports)
+
+    s = add("rescore", cmd_rescore, "rank a finished study's trials for another device or budget")
+    s.add_argument("--study", required=True)
+    s.add_argument("--storage")
+    s.add_argument("--device", required=True)
+    s.add_argument("--budget", action="append", required=True)
+    s.add_argument("--metric", default="rmse", choices=["rmse", "mae", "rel"])
+    s.add_argument("--top", type=int, default=15)
+    s.add_argument("--csv")
+    s.add_argument("--json", action="store_true")
+    s.add_argument("--reports", **reports)
+
+    s = add("report", cmd_report, "write a study's self-contained HTML report")
+    s.add_argument("--study", required=True)
+    s.add_argument("--storage")
+    s.add_argument("--device", action="append", help="devices for the tables (default: the study's)")
+    s.add_argument("--budget", action="append", help="budgets for the tables (default: a standard set)")
+    s.add_argument("--data", help="data set for the depth-map figure (default: the study's)")
+    s.add_argument("--out", help="folder (default reports/<study>/)")
+    s.add_argument("--curve", help="anytime_curve.json from explorer curve (default: OUT/export/ if there)")
+    s.add_argument("--reports", **reports)

@@ -1,0 +1,169 @@
+"""``explorer train``, ``evaluate`` and ``supernet``: training one candidate, or the space's supernet."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from explorer.errors import UserError
+from explorer.cli.inspect import _candidates_of
+from explorer.cli._common import _Parser, _size, _add_supervision
+
+
+def cmd_train(args) -> None:
+    import dataclasses
+    from explorer._console import console, print_frame, progress
+    from explorer.data import open_dataset
+    from explorer.model import build_network
+    from explorer.train import RECIPES, check_data_for, load_encoder_weights, resolve_device, train
+    candidate = _candidates_of(args.candidate)
+    if len(candidate) != 1:
+        raise UserError(f"{args.candidate} holds {len(candidate)} candidates: train takes one")
+    candidate = candidate[0]
+    cfg = RECIPES[args.recipe]
+    changes = {k: v for k, v in (("steps", args.steps), ("batch_size", args.batch_size),
+                                 ("input_size", args.input_size), ("lr", args.lr), ("seed", args.seed))
+               if v is not None}
+    cfg = dataclasses.replace(cfg, **changes, supervision=args.supervision, poses=args.poses,
+                              scan_loss=not args.no_scan_loss)
+    cfg.validate()
+    device = resolve_device(args.accelerator)
+    with progress(transient=True) as bar:
+        task = bar.add_task("generating synthetic scenes (once, then cached)", total=None, status="")
+        train_set = open_dataset(args.data, "train", cfg.input_size, seed=cfg.seed,
+                                 progress=lambda i, n: bar.update(task, completed=i, total=n))
+    val_set = open_dataset(args.data, "val", cfg.input_size, train_augment=False)
+    check_data_for(cfg, train_set)
+    import torch
+    torch.manual_seed(cfg.seed)
+    net = build_network(candidate)
+    if args.encoder_weights:
+        n = load_encoder_weights(net, args.encoder_weights)
+        console.print(f"loaded {n} encoder tensors from {args.encoder_weights}")
+    out = Path(args.out or f"reports/checkpoints/{candidate.key}.pt")
+    with progress() as bar:
+        task = bar.add_task(f"training ({cfg.supervision})", total=cfg.steps, status="")
+        result = train(net, train_set, val_set, cfg, device, checkpoint=out,
+                       progress=lambda s, n, r: bar.update(task, completed=s, status=f"loss {r['loss']:.3f}"))
+    console.print(f"saved {out} ({result.steps} steps, {result.images_per_second:.1f} images/s)")
+    print_frame(result.metrics, "validation, per path" + ("" if cfg.metric else " (median-scaled: no scan term)"))
+
+
+def cmd_evaluate(args) -> None:
+    from explorer._console import print_frame, print_json
+    from explorer.data import open_dataset
+    from explorer.train import TrainConfig, evaluate, network_from_checkpoint
+    net, state = network_from_checkpoint(args.checkpoint)
+    recipe = TrainConfig.from_dict(state["train_config"])
+    size = args.input or recipe.input_size
+    ds = open_dataset(args.data, args.split, size, train_augment=False)
+    # a depth known only up to scale (self-supervised without the scan term) is median-scaled
+    frame = evaluate(net, ds, limit=args.limit, median_scaling=not recipe.metric)
+    if args.json:
+        print_json({"checkpoint": args.checkpoint, "data": str(ds.name), "input_size": list(size),
+                    "supervision": recipe.supervision, "median_scaling": not recipe.metric,
+                    "paths": frame.to_dict("records")})
+    else:
+        print_frame(frame[["path", "rmse", "mae", "rel", "delta1", "delta2", "delta3"]],
+                    f"{args.checkpoint} on {ds.name} ({args.split}) at {size[0]}x{size[1]}")
+
+
+def cmd_supernet_train(args) -> None:
+    from explorer._console import console, progress
+    from explorer.space import SearchSpace
+    from explorer.supernet import SupernetRecipe, default_path, train_supernet
+    from explorer.supernet.train import read
+    from explorer.train import resolve_device
+    space = SearchSpace.from_yaml(args.space)
+    if args.steps < 1 or args.random_subnets < 0 or args.micro_batches < 1 or args.batch_size < 1:
+        raise UserError("--steps, --batch-size and --micro-batches must be at least 1, --random-subnets at least 0")
+    recipe = SupernetRecipe(steps=args.steps, batch_size=args.batch_size, input_size=args.input_size, lr=args.lr,
+                            lr_end=args.lr / 10, random_subnets=args.random_subnets,
+                            micro_batches=args.micro_batches, seed=args.seed)
+    out = Path(args.out) if args.out else default_path(space, args.data, recipe)
+    with progress() as bar:
+        task = bar.add_task("supernet", total=recipe.steps, status="")
+        data = bar.add_task("data", total=None, status="", visible=False)
+        path = train_supernet(
+            space, args.data, recipe, out, resolve_device(args.accelerator),
+            progress=lambda s, n, r: bar.update(task, completed=s, status=f"largest {r['largest']:.3f}, "
+                                                f"smallest {r['smallest']:.3f}, random {r['random']:.3f}"),
+            data_progress=lambda i, n: bar.update(data, completed=i, total=n, visible=True,
+                                                  description="generating synthetic scenes (once)"),
+            checkpoint_every=max(args.checkpoint_every, 1), max_steps=args.max_steps)
+    state = read(path)
+    console.print(f"supernet of {space.name}: {path} (step {state['step']}/{recipe.steps}, "
+                  f"{state['seconds'] / 60:.1f} min of training)")
+
+
+def cmd_supernet_show(args) -> None:
+    from explorer._console import console, print_json
+    from explorer.supernet.train import read
+    state = read(args.file)
+    info = {k: state[k] for k in ("space_name", "space_key", "data", "recipe", "step", "complete", "seconds")}
+    info["last"] = state["history"][-1] if state.get("history") else None
+    if args.json:
+        print_json(info)
+        return
+    console.print(f"{args.file}: space {info['space_name']} ({info['space_key']}), data {info['data']}, "
+                  f"step {info['step']}/{info['recipe']['steps']}{' (complete)' if info['complete'] else ''}, "
+                  f"{info['seconds'] / 60:.1f} min")
+    console.print(f"  recipe: {info['recipe']}")
+
+
+def register(sub, add, reports: dict) -> None:
+    """Adds this group's commands to the ``explorer`` parser."""
+    s = add("train", cmd_train, "train a candidate (all exits) and save a checkpoint")
+    s.add_argument("candidate", help="candidate YAML or one-point space (e.g. paper)")
+    s.add_argument("--data", default="synthetic")
+    s.add_argument("--recipe", default="proxy", choices=["proxy", "paper"])
+    s.add_argument("--steps", type=int)
+    s.add_argument("--batch-size", type=int)
+    s.add_argument("--input-size", type=_size)
+    s.add_argument("--lr", type=float)
+    s.add_argument("--seed", type=int)
+    s.add_argument("--encoder-weights", help="MobileNet v1 state dict file to start the encoder from")
+    s.add_argument("--accelerator", default="auto", choices=["auto", "cpu", "cuda"])
+    s.add_argument("--out", help="checkpoint path (resumes if it exists)")
+    _add_supervision(s)
+    s.add_argument("--poses", default="net", choices=["net", "given"],
+                   help="self-supervision's camera motion: a pose network trained jointly (default), or "
+                   "the data's own poses (synthetic-seq, KITTI oxts, a folder's poses.txt)")
+    s.add_argument("--no-scan-loss", action="store_true",
+                   help="self-supervision without the L1 term on the scan row: depth only up to scale, "
+                   "evaluated with median scaling")
+
+    s = add("evaluate", cmd_evaluate, "per-path metrics of a checkpoint on a data set")
+    s.add_argument("checkpoint")
+    s.add_argument("--data", default="synthetic")
+    s.add_argument("--split", default="val", choices=["train", "val"])
+    s.add_argument("--input-size", "--input", dest="input", type=_size, help="input HxW (default: the training size)")
+    s.add_argument("--limit", type=int)
+    s.add_argument("--json", action="store_true")
+
+    sp = add("supernet", None, "train or inspect the weight-sharing supernet of a space")
+    nsub = sp.add_subparsers(dest="sub", required=True, parser_class=_Parser, metavar="SUBCOMMAND")
+    s = nsub.add_parser("train", help="train (or resume) a supernet: sandwich rule, in-place distillation",
+                        description="Train the supernet of a space once; every study on that space, data and "
+                        "recipe reuses it. Resumes after a kill. Data parallel under torchrun "
+                        "(torchrun --nproc_per_node N -m explorer supernet train ...).")
+    s.add_argument("--space", default="anytime_depth")
+    s.add_argument("--data", default="synthetic")
+    s.add_argument("--steps", type=int, default=1000)
+    s.add_argument("--input-size", "--input", dest="input_size", type=_size, default=(64, 64),
+                   help="training resolution (default 64x64)")
+    s.add_argument("--batch-size", type=int, default=16, help="global batch (over all processes)")
+    s.add_argument("--lr", type=float, default=2e-3)
+    s.add_argument("--random-subnets", type=int, default=2, help="random subnets per step besides the largest "
+                   "and the smallest (default 2)")
+    s.add_argument("--micro-batches", type=int, default=1, help="split each process's batch (gradient "
+                   "accumulation; BatchNorm statistics per micro-batch)")
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--accelerator", default="auto", choices=["auto", "cpu", "cuda"])
+    s.add_argument("--out", help="file (default: the cache, where searches find it)")
+    s.add_argument("--checkpoint-every", type=int, default=100, help="steps between checkpoints (default 100)")
+    s.add_argument("--max-steps", type=int, help="stop after this many steps in this run (resume later)")
+    s.set_defaults(fn=cmd_supernet_train)
+    s = nsub.add_parser("show", help="what a supernet file holds: space, data, recipe, progress")
+    s.add_argument("file")
+    s.add_argument("--json", action="store_true")
+    s.set_defaults(fn=cmd_supernet_show)
