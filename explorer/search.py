@@ -69,7 +69,7 @@ class SearchConfig:
     accelerator: str = "auto"
     evaluator: str = "supernet"
     supernet: str | None = None                  # a supernet file (default: the cached one)
-    supernet_steps: int = 1000
+    supernet_steps: int = 400
     finalists: int = 3                           # retrained stand-alone at the end (0 = none)
     finalist_steps: int = 300
     max_retries: int = 2          # an interrupted trial (killed, Ctrl-C, lost worker) is tried again

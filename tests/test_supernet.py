@@ -205,8 +205,9 @@ def test_two_gloo_processes_match_one_process(tmp_path):
     b = torch.load(tmp_path / "one.pt", weights_only=True)["state_dict"]
     params = [k for k in a if not k.endswith(("running_mean", "running_var", "num_batches_tracked"))]
     diff = torch.cat([(a[k] - b[k]).abs().flatten() for k in params])
-    # summation order differs; Adam turns the rare near-zero gradient into up to lr-sized noise
-    assert float(diff.median()) < 1e-7 and float(diff.max()) < 1e-3
+    # summation order differs, and Adam turns the rare near-zero gradient into up to lr-sized noise
+    # per step; processes that did not share their gradients would differ almost everywhere
+    assert float((diff > 1e-5).float().mean()) < 1e-3 and float(diff.max()) < 3 * 3 * 2e-3
     moved = torch.load(tmp_path / "one.pt", weights_only=True)
     assert moved["step"] == 3
 

@@ -177,7 +177,7 @@ def register(sub, add, reports: dict) -> None:
     s.add_argument("--storage", help="Optuna storage URL (default reports/<study>/study.db; "
                    "postgresql://... for several machines)")
     s.add_argument("--workers", type=int, default=1, help="processes on this machine (journal storage)")
-    s.add_argument("--timeout", type=_duration_s, default=300.0, help="stop sampling after this long (default 5m; "
+    s.add_argument("--timeout", type=_duration_s, default=240.0, help="stop sampling after this long (default 4m; "
                    "0 = none; the supernet's training and the finalists come on top)")
     s.add_argument("--trials", type=int, default=None, help="stop after this many finished trials")
     s.add_argument("--objectives", default="anytime_loss", help="e.g. anytime_loss,params (NSGA-II)")
@@ -189,7 +189,7 @@ def register(sub, add, reports: dict) -> None:
                    "once, then ~1 s a candidate; default) or proxy training alone (~20 s a candidate)")
     s.add_argument("--supernet", help="supernet file (default: the one cached for space, data and recipe, "
                    "trained first if missing)")
-    s.add_argument("--supernet-steps", type=int, default=1000, help="supernet training steps (default 1000)")
+    s.add_argument("--supernet-steps", type=int, default=400, help="supernet training steps (default 400)")
     s.add_argument("--finalists", type=int, default=3, help="best distinct candidates retrained stand-alone "
                    "at the end, next to the baselines (default 3; 0 = none)")
     s.add_argument("--finalist-steps", type=int, default=300, help="steps of the finalists' longer recipe "

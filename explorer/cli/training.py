@@ -148,13 +148,13 @@ def register(sub, add, reports: dict) -> None:
                         "(torchrun --nproc_per_node N -m explorer supernet train ...).")
     s.add_argument("--space", default="anytime_depth")
     s.add_argument("--data", default="synthetic")
-    s.add_argument("--steps", type=int, default=1000)
+    s.add_argument("--steps", type=int, default=400, help="training steps (default 400, what a search uses)")
     s.add_argument("--input-size", "--input", dest="input_size", type=_size, default=(64, 64),
                    help="training resolution (default 64x64)")
     s.add_argument("--batch-size", type=int, default=16, help="global batch (over all processes)")
     s.add_argument("--lr", type=float, default=2e-3)
-    s.add_argument("--random-subnets", type=int, default=2, help="random subnets per step besides the largest "
-                   "and the smallest (default 2)")
+    s.add_argument("--random-subnets", type=int, default=1, help="random subnets per step besides the largest "
+                   "and the smallest (default 1)")
     s.add_argument("--micro-batches", type=int, default=1, help="split each process's batch (gradient "
                    "accumulation; BatchNorm statistics per micro-batch)")
     s.add_argument("--seed", type=int, default=0)

@@ -39,13 +39,13 @@ FORMAT = "anytime-explorer-supernet/1"
 class SupernetRecipe:
     """AdamW with polynomial decay, batch ``batch_size`` per step (global, over all processes)."""
 
-    steps: int = 1500
+    steps: int = 400
     batch_size: int = 16
     input_size: tuple[int, int] = (64, 64)
     lr: float = 2e-3
     lr_end: float = 2e-4
     weight_decay: float = 1e-4
-    random_subnets: int = 2          # besides the largest and the smallest, per step
+    random_subnets: int = 1          # besides the largest and the smallest, per step
     distill: float = 0.5             # weight of the largest subnet's output in the others' loss
     micro_batches: int = 1           # per process; BatchNorm statistics are per micro-batch
     seed: int = 0
