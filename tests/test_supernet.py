@@ -207,7 +207,7 @@ def test_two_gloo_processes_match_one_process(tmp_path):
     diff = torch.cat([(a[k] - b[k]).abs().flatten() for k in params])
     # summation order differs, and Adam turns the rare near-zero gradient into up to lr-sized noise
     # per step; processes that did not share their gradients would differ almost everywhere
-    assert float((diff > 1e-5).float().mean()) < 1e-3 and float(diff.max()) < 3 * 3 * 2e-3
+    assert float((diff > 1e-5).float().mean()) < 1e-2 and float(diff.max()) < 3 * 3 * 2e-3
     moved = torch.load(tmp_path / "one.pt", weights_only=True)
     assert moved["step"] == 3
 

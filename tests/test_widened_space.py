@@ -53,9 +53,10 @@ def test_costs_are_prefixes_of_the_execution():
     for i, used in enumerate(cost.path_stages, start=1):
         head = next(s.name for s in stage_specs(WIDE) if s.path == i)
         assert list(used) == stages[:stages.index(head) + 1]     # everything before it, earlier heads too
-    # the LiDAR-only path comes first and costs a small fraction of the paper design's first exit
+    # the LiDAR-only path comes first; its own stage costs well under a millisecond on tx2 (the
+    # profile's fixed per-inference overhead comes on top, as for every first output)
     paper_first = candidate_cost(paper_candidate()).path_latency_ms(tx2)[1]
-    assert ms[1] < 0.25 * paper_first
+    assert ms[1] - tx2.inference_overhead_ms < 0.5 and ms[1] < 0.5 * paper_first
     # an encoder exit comes before the whole encoder has run
     assert ms[2] < candidate_cost(dataclasses.replace(WIDE, encoder_exits=(), lidar_exit=False)).path_latency_ms(tx2)[1]
 
