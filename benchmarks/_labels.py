@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 import time
 from pathlib import Path
 
@@ -18,7 +19,7 @@ from explorer.model import build_network
 from explorer.space import Candidate
 from explorer.train import TrainConfig, train
 
-CACHE_DIR = Path(__file__).resolve().parents[1] / "reports" / "bench"
+CACHE_DIR = Path(os.environ.get("ANYTIME_BENCH_CACHE") or Path(__file__).resolve().parents[1] / "reports" / "bench")
 BUDGET = "time:uniform:33ms"
 
 

@@ -67,7 +67,7 @@ class SearchConfig:
     pruning: bool = True
     keep_weights: bool = True
     accelerator: str = "auto"
-    evaluator: str = "supernet"
+    evaluator: str = "proxy"                     # supernet: not the default until it ranks as well
     supernet: str | None = None                  # a supernet file (default: the cached one)
     supernet_steps: int = 400
     finalists: int = 3                           # retrained stand-alone at the end (0 = none)
@@ -124,6 +124,8 @@ class SearchConfig:
             raise UserError("--train-steps must be at least 1")
         if self.evaluator not in EVALUATORS:
             raise UserError(f"--evaluator {self.evaluator}: use one of {list(EVALUATORS)}")
+        if self.supernet and self.evaluator != "supernet":
+            raise UserError("--supernet FILE is read by the supernet evaluator only: add --evaluator supernet")
         if self.supernet_steps < 1 or self.finalist_steps < 1:
             raise UserError("--supernet-steps and --finalist-steps must be at least 1")
         if self.finalists < 0:

@@ -10,7 +10,7 @@ from explorer.space import Candidate
 from explorer.train import evaluate, save_checkpoint
 
 CFG = SearchConfig(study="fin", space="tiny", data=TINY_DATA, train_size=(32, 32), input_size=(64, 64), batch_size=8,
-                   val_limit=8, supernet_steps=4, finalists=2, finalist_steps=5)
+                   val_limit=8, evaluator="supernet", supernet_steps=4, finalists=2, finalist_steps=5)
 
 
 @pytest.fixture(scope="module")

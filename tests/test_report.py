@@ -10,7 +10,7 @@ from conftest import TINY_DATA
 
 # the whole default flow at toy size: supernet estimates, then finalists and baselines retrained
 TINY = dict(space="tiny", data=TINY_DATA, train_size=(32, 32), input_size=(64, 64), train_steps=6,
-            batch_size=8, val_limit=8, supernet_steps=4, finalists=2, finalist_steps=6)
+            batch_size=8, val_limit=8, evaluator="supernet", supernet_steps=4, finalists=2, finalist_steps=6)
 
 
 @pytest.fixture(scope="module")

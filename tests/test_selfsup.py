@@ -107,7 +107,7 @@ def test_supervision_is_part_of_a_studys_identity(tmp_path):
     with pytest.raises(UserError, match="needs sequence data"):
         SearchConfig(study="t", space="tiny", supervision="self").validate()
     with pytest.raises(UserError, match="--evaluator proxy"):   # the supernet is trained with labels
-        SearchConfig(study="t", space="tiny", data=SEQ, supervision="self").validate()
+        SearchConfig(study="t", space="tiny", data=SEQ, supervision="self", evaluator="supernet").validate()
 
 
 def test_cli_train_and_evaluate_self_supervised(run_cli, tmp_path):

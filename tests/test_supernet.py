@@ -159,16 +159,18 @@ def test_kill_9_then_resume_training(tmp_path):
 def test_supernet_files_that_do_not_fit_are_one_line_exit_2(tmp_path, run_cli):
     space = SearchSpace.from_yaml("tiny")
     file = train_supernet(space, TINY_DATA, RECIPE, tmp_path / "tiny.pt")
-    code, _, err = run_cli("search", "--space", "paper", "--data", TINY_DATA, "--supernet", file,
+    code, _, err = run_cli("search", "--space", "paper", "--data", TINY_DATA, "--evaluator", "supernet", "--supernet", file,
                            "--reports", tmp_path, "--trials", "1")
     assert code == 2 and "trained for space 'tiny'" in err and len(err.strip().splitlines()) == 1
     bad = tmp_path / "bad.pt"
     bad.write_bytes(file.read_bytes()[:1000])
-    code, _, err = run_cli("search", "--space", "tiny", "--data", TINY_DATA, "--supernet", bad,
+    code, _, err = run_cli("search", "--space", "tiny", "--data", TINY_DATA, "--evaluator", "supernet", "--supernet", bad,
                            "--reports", tmp_path, "--trials", "1")
     assert code == 2 and "unreadable" in err and len(err.strip().splitlines()) == 1
     code, _, err = run_cli("supernet", "show", bad)
     assert code == 2
+    code, _, err = run_cli("search", "--space", "tiny", "--supernet", file, "--reports", tmp_path)
+    assert code == 2 and "--evaluator supernet" in err
     with pytest.raises(UserError):
         load_supernet(tmp_path / "absent.pt")
 
@@ -176,7 +178,7 @@ def test_supernet_files_that_do_not_fit_are_one_line_exit_2(tmp_path, run_cli):
 def test_short_supernet_search_on_the_default_space(tmp_path):
     from explorer.search import SearchConfig, search
     cfg = SearchConfig(study="sn", data=TINY_DATA, train_size=(32, 32), batch_size=8, val_limit=16,
-                       supernet_steps=3, finalists=0, keep_weights=False)
+                       evaluator="supernet", supernet_steps=3, finalists=0, keep_weights=False)
     out = search(cfg, n_trials=40, timeout_s=None, reports=tmp_path)
     done = [t for t in out.study.get_trials() if t.state == optuna.trial.TrialState.COMPLETE]
     assert all(t.user_attrs["evaluator"]["evaluator"] == "supernet" for t in done)

@@ -177,16 +177,17 @@ def register(sub, add, reports: dict) -> None:
     s.add_argument("--storage", help="Optuna storage URL (default reports/<study>/study.db; "
                    "postgresql://... for several machines)")
     s.add_argument("--workers", type=int, default=1, help="processes on this machine (journal storage)")
-    s.add_argument("--timeout", type=_duration_s, default=240.0, help="stop sampling after this long (default 4m; "
+    s.add_argument("--timeout", type=_duration_s, default=480.0, help="stop sampling after this long (default 8m; "
                    "0 = none; the supernet's training and the finalists come on top)")
     s.add_argument("--trials", type=int, default=None, help="stop after this many finished trials")
     s.add_argument("--objectives", default="anytime_loss", help="e.g. anytime_loss,params (NSGA-II)")
     s.add_argument("--metric", default="rmse", choices=["rmse", "mae", "rel"])
     s.add_argument("--max-params", type=_count, help="reject candidates above this, e.g. 2.5M")
     s.add_argument("--max-first-exit", type=_ms, help="reject candidates whose first exit is later, e.g. 10ms")
-    s.add_argument("--evaluator", default="supernet", choices=["supernet", "proxy"],
-                   help="how a candidate's accuracy is estimated: its slice of the space's supernet (trained "
-                   "once, then ~1 s a candidate; default) or proxy training alone (~20 s a candidate)")
+    s.add_argument("--evaluator", default="proxy", choices=["proxy", "supernet"],
+                   help="how a candidate's accuracy is estimated: proxy training alone (~20 s a candidate; "
+                   "default) or its slice of the space's supernet (trained once, then ~1 s a candidate; it "
+                   "ranks worse than the proxy so far: see README)")
     s.add_argument("--supernet", help="supernet file (default: the one cached for space, data and recipe, "
                    "trained first if missing)")
     s.add_argument("--supernet-steps", type=int, default=400, help="supernet training steps (default 400)")
