@@ -86,7 +86,7 @@ if __name__ == "__main__":
           f"trained in {state['seconds'] / 60:.1f} min (as recorded in the file)")
 
     # -- training: time per step and peak memory, 3 fresh processes -------------------------------
-    reps = [peak_memory_of_training(10) for _ in range(3)]
+    reps = [peak_memory_of_training(5) for _ in range(3)]
     for i, (s, mb) in enumerate(reps, 1):
         print(f"  supernet training rep {i}: {s:.2f} s/step, peak RSS {mb:.0f} MiB")
     per_step = statistics.median(r[0] for r in reps)
