@@ -28,6 +28,10 @@ def recipe(steps: int, size=(64, 64), seed: int = 0) -> TrainConfig:
     return TrainConfig(steps=steps, batch_size=16, input_size=tuple(size), lr=2e-3, lr_end=2e-4, seed=seed)
 
 
+#: TrainConfig fields added after results were first cached: left out of the key at these values
+_LATER_DEFAULTS = {"supervision": "supervised", "poses": "net", "scan_loss": True}
+
+
 def _cache(steps: int) -> Path:
     return CACHE_DIR / f"standalone-{steps}.json"
 
@@ -40,7 +44,8 @@ def _load(steps: int) -> dict:
 def standalone(candidate: Candidate, cfg: TrainConfig, data: str = "synthetic", device: str = "tx2",
                val_limit: int | None = None) -> dict:
     """Per-path RMSE and the anytime loss (tx2, U(0, 33 ms)) of ``candidate`` trained alone with ``cfg``."""
-    key = f"{candidate.key}|{data}|{json.dumps(cfg.to_dict(), sort_keys=True)}|{val_limit}"
+    recipe_dict = {k: v for k, v in cfg.to_dict().items() if k not in _LATER_DEFAULTS or v != _LATER_DEFAULTS[k]}
+    key = f"{candidate.key}|{data}|{json.dumps(recipe_dict, sort_keys=True)}|{val_limit}"
     cache = _load(cfg.steps)
     if key in cache:
         return cache[key]

@@ -71,6 +71,7 @@ if __name__ == "__main__":
     ap.add_argument("--candidates", type=int, default=16, help="random default-space candidates (plus 3 baselines)")
     ap.add_argument("--throughput", type=int, default=20, help="candidates per throughput repetition")
     ap.add_argument("--val-limit", type=int, default=96, help="validation frames per candidate, as in a search")
+    ap.add_argument("--fidelity-only", action="store_true", help="skip the training and throughput timings")
     args = ap.parse_args()
     torch.set_num_threads(2)
     space = SearchSpace.from_yaml("anytime_depth")
@@ -86,12 +87,13 @@ if __name__ == "__main__":
           f"trained in {state['seconds'] / 60:.1f} min (as recorded in the file)")
 
     # -- training: time per step and peak memory, 3 fresh processes -------------------------------
-    reps = [peak_memory_of_training(5) for _ in range(3)]
+    reps = [] if args.fidelity_only else [peak_memory_of_training(5) for _ in range(3)]
     for i, (s, mb) in enumerate(reps, 1):
         print(f"  supernet training rep {i}: {s:.2f} s/step, peak RSS {mb:.0f} MiB")
-    per_step = statistics.median(r[0] for r in reps)
-    print(f"supernet training: median {per_step:.2f} s/step -> {per_step * sn_recipe.steps / 60:.1f} min for "
-          f"{sn_recipe.steps} steps; peak RSS {max(r[1] for r in reps):.0f} MiB")
+    per_step = statistics.median(r[0] for r in reps) if reps else float("nan")
+    if reps:
+        print(f"supernet training: median {per_step:.2f} s/step -> {per_step * sn_recipe.steps / 60:.1f} min for "
+              f"{sn_recipe.steps} steps; peak RSS {max(r[1] for r in reps):.0f} MiB")
 
     # -- throughput: candidates fully evaluated per 10 minutes ------------------------------------
     size = sn_recipe.input_size
@@ -100,7 +102,7 @@ if __name__ == "__main__":
     evaluator = SupernetEvaluator(file, space, calib, val, torch.device("cpu"), val_limit=args.val_limit)
     tx2 = get_device("tx2")
     rates = []
-    for rep in range(3):
+    for rep in range(0 if args.fidelity_only else 3):
         cands = space.random_candidates(args.throughput, seed=100 + rep)
         t0 = time.perf_counter()
         for c in cands:
@@ -110,7 +112,8 @@ if __name__ == "__main__":
         rates.append(600 / per)
         print(f"  throughput rep {rep + 1}: {per:.2f} s per candidate (extract, BN recalibration, "
               f"{args.val_limit} validation frames, costing) -> {600 / per:,.0f} per 10 min")
-    print(f"throughput: median {statistics.median(rates):,.0f} candidates per 10 minutes")
+    if rates:
+        print(f"throughput: median {statistics.median(rates):,.0f} candidates per 10 minutes")
 
     # -- fidelity: supernet and proxy against stand-alone training 4x longer than the proxy --------
     full = SupernetEvaluator(file, space, calib, val, torch.device("cpu"), val_limit=None)
