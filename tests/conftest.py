@@ -5,6 +5,19 @@ import pytest
 
 SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 TINY_DATA = "synthetic:48:16"
+POSTGRES = "postgresql://postgres@127.0.0.1:5432/test"
+
+
+def _postgres_ok() -> bool:
+    try:
+        import psycopg2
+        psycopg2.connect(POSTGRES, connect_timeout=3).close()
+        return True
+    except Exception:
+        return False
+
+
+needs_postgres = pytest.mark.skipif(not _postgres_ok(), reason="PostgreSQL at 127.0.0.1:5432 is not reachable")
 
 
 def pytest_configure(config):

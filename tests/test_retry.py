@@ -18,7 +18,7 @@ from explorer.results import missing_baselines, trials_frame
 from explorer.retry import (CTRL_C, RetryStaleTrials, counted_trials, enqueue_retry, guarded,
                             interrupted_trials, needs_run, tracked_work)
 from explorer.search import SearchConfig, objective_names, search
-from conftest import TINY_DATA
+from conftest import POSTGRES, TINY_DATA, needs_postgres
 
 # proxy evaluator: the tiny space does not hold the paper design, so only proxy training runs it as a trial
 TINY = dict(space="tiny", data=TINY_DATA, train_size=(32, 32), input_size=(64, 64), train_steps=6,
@@ -26,7 +26,6 @@ TINY = dict(space="tiny", data=TINY_DATA, train_size=(32, 32), input_size=(64, 6
 CLI_TINY = ["--space", "tiny", "--data", TINY_DATA, "--train-size", "32x32", "--input-size", "64x64",
             "--train-steps", "6", "--batch-size", "8", "--no-report", "--timeout", "0", "--evaluator", "proxy",
             "--finalists", "0"]
-POSTGRES = "postgresql://postgres@127.0.0.1:5432/test"
 
 
 def _explorer(*args, env=None, **kw):
@@ -255,16 +254,7 @@ def test_tracked_work_redoes_interrupted_work_only():
     assert store["finalist:5"]["attempts"] == 2
 
 
-def _postgres_ok() -> bool:
-    try:
-        import psycopg2
-        psycopg2.connect(POSTGRES, connect_timeout=3).close()
-        return True
-    except Exception:
-        return False
-
-
-@pytest.mark.skipif(not _postgres_ok(), reason="PostgreSQL at 127.0.0.1:5432 is not reachable")
+@needs_postgres
 def test_postgres_worker_killed_another_retries_after_grace_period(tmp_path):
     from explorer.storage import open_storage
     name = f"hb-{uuid.uuid4().hex[:8]}"

@@ -16,7 +16,7 @@ from explorer.errors import UserError
 from explorer.results import rescore, scored_trials, trials_frame
 from explorer.search import SearchConfig, search
 from explorer.space import Candidate
-from conftest import TINY_DATA
+from conftest import POSTGRES, TINY_DATA, needs_postgres
 
 # These tests exercise storage, workers and resume with the proxy evaluator (tests/test_supernet.py
 # covers the supernet evaluator, tests/test_finalists.py the end of a study).
@@ -142,19 +142,9 @@ def test_kill_9_then_resume(tmp_path):
     assert [t.user_attrs.get("retry_of") for t in study.trials].count(len(before) - 1) == 1  # tried again
 
 
-POSTGRES = "postgresql://postgres@127.0.0.1:5432/test"
 
 
-def _postgres_ok() -> bool:
-    try:
-        import psycopg2
-        psycopg2.connect(POSTGRES, connect_timeout=3).close()
-        return True
-    except Exception:
-        return False
-
-
-@pytest.mark.skipif(not _postgres_ok(), reason="PostgreSQL at 127.0.0.1:5432 is not reachable")
+@needs_postgres
 def test_three_workers_on_postgres(tmp_path):
     study = f"pg-{uuid.uuid4().hex[:8]}"
     total = 9

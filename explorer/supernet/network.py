@@ -39,34 +39,29 @@ def space_key(space: SearchSpace) -> str:
     return hashlib.sha1(text.encode()).hexdigest()[:10]
 
 
-def largest_candidate(space: SearchSpace, head_depth: int | None = None) -> Candidate:
-    """The biggest network of ``space`` with every exit it allows."""
-    depth = max(space.head_depth) if head_depth is None else head_depth
-    ecu = True in space.ecu
+def _extreme_candidate(space: SearchSpace, pick, head_depth: int | None) -> Candidate:
+    """Every dimension at ``pick`` (max or min) of its choices, with every exit the space allows
+    (heads cost nothing to train along, and every head trains every step)."""
+    depth = pick(space.head_depth) if head_depth is None else head_depth
     last = len(space.decoder_widths)
     return Candidate(
-        encoder_blocks=max(space.encoder_blocks), width_mult=max(space.width_mult), ecu=ecu,
-        lidar_depth=max(space.lidar_depth), lidar_width=max(space.lidar_width), ecu_band=max(space.ecu_band),
-        ecu_width=max(space.ecu_width), decoder_widths=tuple(max(c) for c in space.decoder_widths),
+        encoder_blocks=pick(space.encoder_blocks), width_mult=pick(space.width_mult), ecu=pick(space.ecu),
+        lidar_depth=pick(space.lidar_depth), lidar_width=pick(space.lidar_width), ecu_band=pick(space.ecu_band),
+        ecu_width=pick(space.ecu_width), decoder_widths=tuple(pick(c) for c in space.decoder_widths),
         exits=tuple(sorted(set(space.optional_exits) | set(space.required_exits))) + (last,),
-        head_depth=depth, head_width=max(space.head_width) if depth == 2 else 0,
+        head_depth=depth, head_width=pick(space.head_width) if depth == 2 else 0,
         encoder_exits=space.optional_encoder_exits, lidar_exit=True in space.lidar_exit,
-        lidar_first=True in space.lidar_first)
+        lidar_first=pick(space.lidar_first))
+
+
+def largest_candidate(space: SearchSpace, head_depth: int | None = None) -> Candidate:
+    """The biggest network of ``space`` with every exit it allows."""
+    return _extreme_candidate(space, max, head_depth)
 
 
 def smallest_candidate(space: SearchSpace, head_depth: int | None = None) -> Candidate:
-    """The smallest backbone of ``space``, with every exit (heads cost nothing to train along)."""
-    depth = min(space.head_depth) if head_depth is None else head_depth
-    ecu = False not in space.ecu
-    last = len(space.decoder_widths)
-    return Candidate(
-        encoder_blocks=min(space.encoder_blocks), width_mult=min(space.width_mult), ecu=ecu,
-        lidar_depth=min(space.lidar_depth), lidar_width=min(space.lidar_width), ecu_band=min(space.ecu_band),
-        ecu_width=min(space.ecu_width), decoder_widths=tuple(min(c) for c in space.decoder_widths),
-        exits=tuple(sorted(set(space.optional_exits) | set(space.required_exits))) + (last,),
-        head_depth=depth, head_width=min(space.head_width) if depth == 2 else 0,
-        encoder_exits=space.optional_encoder_exits, lidar_exit=True in space.lidar_exit,
-        lidar_first=False not in space.lidar_first)
+    """The smallest backbone of ``space``, with every exit."""
+    return _extreme_candidate(space, min, head_depth)
 
 
 def random_training_subnet(space: SearchSpace, rng: random.Random) -> Candidate:
