@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import random
 import resource
 import statistics
 import subprocess
@@ -38,19 +37,9 @@ BUDGET = "time:uniform:33ms"
 
 
 def label_candidates(space: SearchSpace, n: int) -> list:
-    """The three baselines and ``n`` random candidates of the default space as it was before the
-    widening (a subspace of today's: every candidate there is one here too)."""
-    old = SearchSpace.from_dict({**_yaml(space.source), "image_encoder": {"blocks": [6, 7, 9],
-                                 "width_mult": [0.5, 0.75, 1.0]},
-                                 "lidar_encoder": {"depth": [4, 5], "width": [8, 16]},
-                                 "exits": {"optional": [0, 1, 2, 3], "head_depth": [1, 2], "head_width": [32]}})
-    return [paper_candidate(), paper_nee_candidate(), fastdepth_candidate()] + \
-        random.Random(15).sample(list(old.enumerate()), n)
-
-
-def _yaml(path):
-    import yaml
-    return yaml.safe_load(Path(path).read_text())
+    """The three baselines and ``n`` random candidates of the default space (FastDepth-like lies
+    outside it: the supernet cannot estimate it, the proxy can)."""
+    return [paper_candidate(), paper_nee_candidate(), fastdepth_candidate()] + space.random_candidates(n, seed=15)
 
 
 def peak_memory_of_training(steps: int) -> tuple[float, float]:
@@ -116,7 +105,8 @@ if __name__ == "__main__":
         print(f"throughput: median {statistics.median(rates):,.0f} candidates per 10 minutes")
 
     # -- fidelity: supernet and proxy against stand-alone training 4x longer than the proxy --------
-    full = SupernetEvaluator(file, space, calib, val, torch.device("cpu"), val_limit=None)
+    # the supernet side exactly as a search evaluates (its validation frames, BatchNorm recalibration)
+    full = SupernetEvaluator(file, space, calib, val, torch.device("cpu"), val_limit=cfg.val_limit)
     proxy_cfg, long_cfg = recipe(150), recipe(600)
     rows = []
     for c in label_candidates(space, args.candidates):

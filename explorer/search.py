@@ -67,13 +67,17 @@ class SearchConfig:
     pruning: bool = True
     keep_weights: bool = True
     accelerator: str = "auto"
-    evaluator: str = "proxy"                     # supernet: not the default until it ranks as well
+    evaluator: str = "auto"                      # supernet for dense labels, proxy for self-supervision
     supernet: str | None = None                  # a supernet file (default: the cached one)
-    supernet_steps: int = 400
+    supernet_steps: int = 600
     finalists: int = 3                           # retrained stand-alone at the end (0 = none)
     finalist_steps: int = 300
     max_retries: int = 2          # an interrupted trial (killed, Ctrl-C, lost worker) is tried again
     supervision: str = "supervised"              # supervised | self | mixed (see explorer.selfsup)
+
+    def __post_init__(self) -> None:
+        if self.evaluator == "auto":  # the supernet is trained with dense labels; self-supervision trains alone
+            object.__setattr__(self, "evaluator", "supernet" if self.supervision == "supervised" else "proxy")
 
     def to_dict(self) -> dict:
         d = dataclasses.asdict(self)
@@ -125,7 +129,8 @@ class SearchConfig:
         if self.evaluator not in EVALUATORS:
             raise UserError(f"--evaluator {self.evaluator}: use one of {list(EVALUATORS)}")
         if self.supernet and self.evaluator != "supernet":
-            raise UserError("--supernet FILE is read by the supernet evaluator only: add --evaluator supernet")
+            raise UserError("--supernet FILE is read by the supernet evaluator only: drop --evaluator proxy "
+                            "(or give --evaluator supernet)")
         if self.supernet_steps < 1 or self.finalist_steps < 1:
             raise UserError("--supernet-steps and --finalist-steps must be at least 1")
         if self.finalists < 0:

@@ -106,7 +106,10 @@ def test_supervision_is_part_of_a_studys_identity(tmp_path):
         SearchConfig(study="t", space="tiny", supervision="weak").validate()
     with pytest.raises(UserError, match="needs sequence data"):
         SearchConfig(study="t", space="tiny", supervision="self").validate()
-    with pytest.raises(UserError, match="--evaluator proxy"):   # the supernet is trained with labels
+    # the supernet (the default with dense labels) is trained with labels: self-supervision trains alone
+    assert SearchConfig(study="t", data=SEQ, supervision="self").evaluator == "proxy"
+    assert SearchConfig(study="t").evaluator == "supernet"
+    with pytest.raises(UserError, match="--evaluator proxy"):
         SearchConfig(study="t", space="tiny", data=SEQ, supervision="self", evaluator="supernet").validate()
 
 

@@ -184,13 +184,13 @@ def register(sub, add, reports: dict) -> None:
     s.add_argument("--metric", default="rmse", choices=["rmse", "mae", "rel"])
     s.add_argument("--max-params", type=_count, help="reject candidates above this, e.g. 2.5M")
     s.add_argument("--max-first-exit", type=_ms, help="reject candidates whose first exit is later, e.g. 10ms")
-    s.add_argument("--evaluator", default="proxy", choices=["proxy", "supernet"],
-                   help="how a candidate's accuracy is estimated: proxy training alone (~20 s a candidate; "
-                   "default) or its slice of the space's supernet (trained once, then ~1 s a candidate; it "
-                   "ranks worse than the proxy so far: see README)")
+    s.add_argument("--evaluator", default="auto", choices=["auto", "supernet", "proxy"],
+                   help="how a candidate's accuracy is estimated: its slice of the space's supernet (trained "
+                   "once, then under a second a candidate) or proxy training alone (~20 s a candidate). "
+                   "auto (default): supernet with dense labels, proxy with --supervision self/mixed")
     s.add_argument("--supernet", help="supernet file (default: the one cached for space, data and recipe, "
                    "trained first if missing)")
-    s.add_argument("--supernet-steps", type=int, default=400, help="supernet training steps (default 400)")
+    s.add_argument("--supernet-steps", type=int, default=600, help="supernet training steps (default 600)")
     s.add_argument("--finalists", type=int, default=3, help="best distinct candidates retrained stand-alone "
                    "at the end, next to the baselines (default 3; 0 = none)")
     s.add_argument("--finalist-steps", type=int, default=300, help="steps of the finalists' longer recipe "

@@ -148,7 +148,7 @@ def register(sub, add, reports: dict) -> None:
                         "(torchrun --nproc_per_node N -m explorer supernet train ...).")
     s.add_argument("--space", default="anytime_depth")
     s.add_argument("--data", default="synthetic")
-    s.add_argument("--steps", type=int, default=400, help="training steps (default 400, what a search uses)")
+    s.add_argument("--steps", type=int, default=600, help="training steps (default 600, what a search uses)")
     s.add_argument("--input-size", "--input", dest="input_size", type=_size, default=(64, 64),
                    help="training resolution (default 64x64)")
     s.add_argument("--batch-size", type=int, default=16, help="global batch (over all processes)")

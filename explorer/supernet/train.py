@@ -39,7 +39,7 @@ FORMAT = "anytime-explorer-supernet/1"
 class SupernetRecipe:
     """AdamW with polynomial decay, batch ``batch_size`` per step (global, over all processes)."""
 
-    steps: int = 400
+    steps: int = 600
     batch_size: int = 16
     input_size: tuple[int, int] = (64, 64)
     lr: float = 2e-3
