@@ -19,7 +19,7 @@ import torch
 
 from explorer.model import AnytimeDepthNet, build_network
 from explorer.space import Candidate
-from explorer.train import TrainConfig, _batch_row, evaluate, train
+from explorer.train import TrainConfig, _batch_row, evaluate, image_batch, train
 
 EVALUATORS = ("supernet", "proxy")
 
@@ -73,7 +73,7 @@ def recalibrate_batchnorm(net: torch.nn.Module, batches: list[dict]) -> None:
             h.resize.factor = 1
         with torch.no_grad():
             for b in batches:
-                net(b["image"].to(device), b["scan"].to(device), _batch_row(b))
+                net(image_batch(b, device), b["scan"].to(device), _batch_row(b))
     finally:
         for h, f in zip(heads, factors):
             h.resize.factor = f
@@ -108,9 +108,10 @@ class SupernetEvaluator:
     def __call__(self, candidate: Candidate, checkpoint: Path | None = None,
                  report: Callable | None = None) -> Evaluation:
         t0 = time.perf_counter()
-        net = self.supernet.extract(candidate)
+        net = self.supernet.extract(candidate).to(memory_format=torch.channels_last)  # see train.image_batch
         recalibrate_batchnorm(net, self.calibration)
         metrics = evaluate(net, self.validation, device=self.device)
+        net.to(memory_format=torch.contiguous_format)
         info = {"evaluator": self.name, "seconds": time.perf_counter() - t0, "supernet": str(self.file),
                 "supernet_key": self.key}
         return Evaluation(metrics, info, net)

@@ -128,6 +128,13 @@ def check_data_for(cfg: TrainConfig, dataset) -> None:
                         "a folder poses.txt); use --poses net")
 
 
+def image_batch(batch: dict, device: torch.device | None) -> torch.Tensor:
+    """The batch's images on ``device`` in channels-last order: convolutions run 1.5x (a candidate's
+    training step) to 1.9x (the supernet's) faster so on this CPU (oneDNN), as on GPUs; values are
+    unchanged (benchmarks/bench_data_train.py)."""
+    return batch["image"].to(device).contiguous(memory_format=torch.channels_last)
+
+
 def _batch_row(batch: dict) -> int:
     rows = batch["scan_row"]
     return int(torch.as_tensor(rows).float().median().item())
@@ -154,7 +161,7 @@ def evaluate(net: AnytimeDepthNet, dataset, batch_size: int = 8, device: torch.d
     seen = 0
     with torch.no_grad():
         for batch in batches:
-            outs = net(batch["image"].to(device), batch["scan"].to(device), _batch_row(batch))
+            outs = net(image_batch(batch, device), batch["scan"].to(device), _batch_row(batch))
             target = batch["depth"]
             if cap is not None:
                 target = torch.where(target <= cap, target, torch.zeros_like(target))
@@ -277,7 +284,7 @@ def train(net: AnytimeDepthNet, train_set, val_set, cfg: TrainConfig = PROXY,
     device = device or torch.device("cpu")
     cfg.validate()
     torch.manual_seed(cfg.seed)
-    net.to(device)
+    net.to(device=device, memory_format=torch.channels_last)   # see image_batch
     params = [p for p in net.parameters() if p.requires_grad]
     selfsup = None
     if cfg.supervision != "supervised":
@@ -320,7 +327,7 @@ def train(net: AnytimeDepthNet, train_set, val_set, cfg: TrainConfig = PROXY,
             net.train()
             for g in opt.param_groups:
                 g["lr"] = _lr_at(cfg, step)
-            image = batch["image"].to(device)
+            image = image_batch(batch, device)
             with torch.autocast(device.type, dtype=torch.float16, enabled=use_amp):
                 outs = net(image, batch["scan"].to(device), _batch_row(batch))
                 loss, per_exit = _training_loss(cfg, selfsup, outs, batch, device)
@@ -345,4 +352,5 @@ def train(net: AnytimeDepthNet, train_set, val_set, cfg: TrainConfig = PROXY,
     metrics = evaluate(net, val_set, device=device, limit=val_limit, median_scaling=not cfg.metric)
     if checkpoint is not None:
         save_checkpoint(checkpoint, net, cfg, step, opt, extra)
+    net.to(memory_format=torch.contiguous_format)  # hand back an ordinary module (export, runtime)
     return TrainResult(metrics, history, seconds, seen / seconds if seconds > 0 else 0.0, step)

@@ -182,7 +182,7 @@ def train_supernet(space: SearchSpace, data: str, recipe: SupernetRecipe = Super
         raise UserError(f"--batch-size {recipe.batch_size} must divide by processes x micro-batches "
                         f"({world} x {recipe.micro_batches})")
     torch.manual_seed(recipe.seed)  # every process starts from the same weights
-    net = Supernet(space).to(device)
+    net = Supernet(space).to(device=device, memory_format=torch.channels_last)  # see train.image_batch
     opt = torch.optim.AdamW(net.parameters(), lr=recipe.lr, weight_decay=recipe.weight_decay)
     step, history, seconds = 0, [], 0.0
     if out.is_file():
@@ -224,6 +224,7 @@ def train_supernet(space: SearchSpace, data: str, recipe: SupernetRecipe = Super
             opt.zero_grad(set_to_none=True)
             lo = rank * per_rank
             image, scan, depth = (batch[k][lo:lo + per_rank].to(device) for k in ("image", "scan", "depth"))
+            image = image.contiguous(memory_format=torch.channels_last)
             row = _batch_row(batch)
             losses = [0.0] * len(subnets)
             for chunk in range(recipe.micro_batches):
