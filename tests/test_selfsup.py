@@ -101,7 +101,7 @@ def test_supervision_is_part_of_a_studys_identity(tmp_path):
     assert SearchConfig.from_dict(optuna.load_study(study_name="s", storage=storage).user_attrs["config"]).supervision == "self"
     assert cfg.train_config().supervision == "self"
     with pytest.raises(UserError, match="supervision='self'"):
-        create_or_resume(SearchConfig(study="s", space="tiny", data=SEQ, baselines=False), storage)
+        create_or_resume(SearchConfig(study="s", space="tiny", data=SEQ, baselines=False, evaluator="proxy"), storage)
     with pytest.raises(UserError, match="supervision 'weak'"):
         SearchConfig(study="t", space="tiny", supervision="weak").validate()
     with pytest.raises(UserError, match="needs sequence data"):
