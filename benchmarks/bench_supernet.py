@@ -43,12 +43,14 @@ def label_candidates(space: SearchSpace, n: int) -> list:
 
 
 def peak_memory_of_training(steps: int) -> tuple[float, float]:
-    """(seconds per step, peak RSS in MiB) of a fresh process training the supernet ``steps`` steps."""
+    """(seconds per step after the first two, peak RSS in MiB) of a fresh process training the supernet
+    ``steps`` steps (start-up, data loading and the first steps' warm-up are left out of the time)."""
     code = ("import time, torch, tempfile; from explorer.space import SearchSpace; "
             "from explorer.supernet import SupernetRecipe, train_supernet; "
-            f"r = SupernetRecipe(steps={steps}); t = time.perf_counter(); "
-            "train_supernet(SearchSpace.from_yaml('anytime_depth'), 'synthetic', r, "
-            "tempfile.mkdtemp() + '/s.pt'); print((time.perf_counter() - t) / r.steps)")
+            f"r = SupernetRecipe(steps={steps}); t = {{}}; "
+            "train_supernet(SearchSpace.from_yaml('anytime_depth'), 'synthetic', r, tempfile.mkdtemp() + '/s.pt', "
+            "progress=lambda s, n, rec: t.setdefault(s, time.perf_counter())); "
+            "print((t[r.steps] - t[2]) / (r.steps - 2))")
     before = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     peak = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
@@ -76,7 +78,7 @@ if __name__ == "__main__":
           f"trained in {state['seconds'] / 60:.1f} min (as recorded in the file)")
 
     # -- training: time per step and peak memory, 3 fresh processes -------------------------------
-    reps = [] if args.fidelity_only else [peak_memory_of_training(5) for _ in range(3)]
+    reps = [] if args.fidelity_only else [peak_memory_of_training(12) for _ in range(3)]
     for i, (s, mb) in enumerate(reps, 1):
         print(f"  supernet training rep {i}: {s:.2f} s/step, peak RSS {mb:.0f} MiB")
     per_step = statistics.median(r[0] for r in reps) if reps else float("nan")
