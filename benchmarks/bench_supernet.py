@@ -63,6 +63,8 @@ if __name__ == "__main__":
     ap.add_argument("--throughput", type=int, default=20, help="candidates per throughput repetition")
     ap.add_argument("--val-limit", type=int, default=96, help="validation frames per candidate, as in a search")
     ap.add_argument("--fidelity-only", action="store_true", help="skip the training and throughput timings")
+    ap.add_argument("--calibration-sweep", default="", help="also the supernet's tau with these BatchNorm "
+                    "calibration frame counts, e.g. 16,64,256,1024 (the search uses 256)")
     args = ap.parse_args()
     torch.set_num_threads(2)
     space = SearchSpace.from_yaml("anytime_depth")
@@ -128,6 +130,13 @@ if __name__ == "__main__":
     print(f"rank fidelity vs stand-alone {long_cfg.steps} steps (tx2, {BUDGET}), {len(both)} candidates in the "
           f"space: supernet Kendall tau {tau_s:.2f}; proxy ({proxy_cfg.steps} steps) {tau_p:.2f} "
           f"(proxy over all {len(rows)} incl. FastDepth: {tau_p_all:.2f})")
+    for n in [int(x) for x in args.calibration_sweep.split(",") if x]:
+        sweep = SupernetEvaluator(file, space, calib, val, torch.device("cpu"), val_limit=cfg.val_limit,
+                                  calibration_images=n)
+        est = [anytime_loss(candidate_cost(c).path_costs(tx2, "time"), list(sweep(c).metrics["rmse"]), BUDGET)
+               for c, *_ in both]
+        print(f"  BatchNorm calibrated on {n} frames: supernet Kendall tau "
+              f"{kendalltau(est, [r[3] for r in both]).statistic:.2f}")
     out = Path(__file__).resolve().parents[1] / "reports" / "bench" / "supernet.json"
     out.write_text(json.dumps({"tau_supernet": tau_s, "tau_proxy": tau_p, "rates": rates, "per_step": per_step,
                                "rows": [(c.key, e, p, l) for c, e, p, l in rows]}, indent=1))
