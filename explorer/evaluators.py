@@ -63,7 +63,7 @@ def recalibrate_batchnorm(net: torch.nn.Module, batches: list[dict]) -> None:
     for m in norms:
         m.reset_running_stats()
         m.momentum = None  # cumulative average
-    # the exits' outputs are thrown away here: skip their resize to full resolution (a fifth of the time)
+    # the exits' outputs are thrown away here: skip their resize to full resolution
     heads = [m for m in net.modules() if isinstance(m, ExitHead)]
     factors = [h.resize.factor for h in heads]
     device = next(net.parameters()).device

@@ -129,9 +129,8 @@ def check_data_for(cfg: TrainConfig, dataset) -> None:
 
 
 def image_batch(batch: dict, device: torch.device | None) -> torch.Tensor:
-    """The batch's images on ``device`` in channels-last order: convolutions run 1.5x (a candidate's
-    training step) to 1.9x (the supernet's) faster so on this CPU (oneDNN), as on GPUs; values are
-    unchanged (benchmarks/bench_data_train.py)."""
+    """The batch's images on ``device`` in channels-last order: convolutions (oneDNN on CPUs, cuDNN on
+    GPUs) run faster so, with the same values (benchmarks/bench_layout.py measures both)."""
     return batch["image"].to(device).contiguous(memory_format=torch.channels_last)
 
 
