@@ -63,6 +63,7 @@ if __name__ == "__main__":
     ap.add_argument("--throughput", type=int, default=20, help="candidates per throughput repetition")
     ap.add_argument("--val-limit", type=int, default=96, help="validation frames per candidate, as in a search")
     ap.add_argument("--fidelity-only", action="store_true", help="skip the training and throughput timings")
+    ap.add_argument("--skip-fidelity", action="store_true", help="only the training and throughput timings")
     ap.add_argument("--calibration-sweep", default="", help="also the supernet's tau with these BatchNorm "
                     "calibration frame counts, e.g. 16,64,256,1024 (the search uses 256)")
     args = ap.parse_args()
@@ -92,21 +93,35 @@ if __name__ == "__main__":
     size = sn_recipe.input_size
     calib = open_dataset(cfg.data, "train", size, train_augment=False)
     val = open_dataset(cfg.data, "val", size, train_augment=False)
-    evaluator = SupernetEvaluator(file, space, calib, val, torch.device("cpu"), val_limit=args.val_limit)
+    # candidates of one width share its encoder's run (SupernetEvaluator(share_encoder=True), the
+    # default); each repetition times the same candidates with and without, interleaved
+    evaluators = {shared: SupernetEvaluator(file, space, calib, val, torch.device("cpu"), val_limit=args.val_limit,
+                                            share_encoder=shared) for shared in (True, False)}
     tx2 = get_device("tx2")
-    rates = []
+    if not args.fidelity_only:
+        t0 = time.perf_counter()
+        for w in space.width_mult:
+            evaluators[True]._shared_encoder(w)
+        print(f"  shared encoders of widths {space.width_mult} on {len(evaluators[True].calibration)} calibration "
+              f"+ {len(evaluators[True].validation)} validation batches: {time.perf_counter() - t0:.1f} s, once per search")
+    rates: dict[bool, list[float]] = {True: [], False: []}
     for rep in range(0 if args.fidelity_only else 3):
         cands = space.random_candidates(args.throughput, seed=100 + rep)
-        t0 = time.perf_counter()
-        for c in cands:
-            m = evaluator(c).metrics
-            anytime_loss(candidate_cost(c).path_costs(tx2, "time"), list(m["rmse"]), BUDGET)
-        per = (time.perf_counter() - t0) / len(cands)
-        rates.append(600 / per)
-        print(f"  throughput rep {rep + 1}: {per:.2f} s per candidate (extract, BN recalibration, "
-              f"{args.val_limit} validation frames, costing) -> {600 / per:,.0f} per 10 min")
-    if rates:
-        print(f"throughput: median {statistics.median(rates):,.0f} candidates per 10 minutes")
+        for shared, evaluator in evaluators.items():
+            t0 = time.perf_counter()
+            for c in cands:
+                m = evaluator(c).metrics
+                anytime_loss(candidate_cost(c).path_costs(tx2, "time"), list(m["rmse"]), BUDGET)
+            per = (time.perf_counter() - t0) / len(cands)
+            rates[shared].append(600 / per)
+            print(f"  throughput rep {rep + 1}, encoder {'shared' if shared else 'per candidate'}: {per:.2f} s per "
+                  f"candidate (extract, BN recalibration, {args.val_limit} validation frames, costing) -> "
+                  f"{600 / per:,.0f} per 10 min")
+    if rates[True]:
+        print(f"throughput: median {statistics.median(rates[True]):,.0f} candidates per 10 minutes with the shared "
+              f"encoder (the search's), {statistics.median(rates[False]):,.0f} without")
+    if args.skip_fidelity:
+        sys.exit(0)
 
     # -- fidelity: supernet and proxy against stand-alone training 4x longer than the proxy --------
     # the supernet side exactly as a search evaluates (its validation frames, BatchNorm recalibration)
@@ -138,5 +153,5 @@ if __name__ == "__main__":
         print(f"  BatchNorm calibrated on {n} frames: supernet Kendall tau "
               f"{kendalltau(est, [r[3] for r in both]).statistic:.2f}")
     out = Path(__file__).resolve().parents[1] / "reports" / "bench" / "supernet.json"
-    out.write_text(json.dumps({"tau_supernet": tau_s, "tau_proxy": tau_p, "rates": rates, "per_step": per_step,
+    out.write_text(json.dumps({"tau_supernet": tau_s, "tau_proxy": tau_p, "rates": rates[True], "rates_unshared": rates[False], "per_step": per_step,
                                "rows": [(c.key, e, p, l) for c, e, p, l in rows]}, indent=1))

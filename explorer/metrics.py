@@ -45,10 +45,8 @@ def batch_depth_metrics(pred: torch.Tensor, target: torch.Tensor) -> list[dict[s
     values = {"rmse": torch.sqrt((err ** 2).sum(1) / n), "mae": err.sum(1) / n, "rel": (err / safe_t).sum(1) / n}
     for k in (1, 2, 3):
         values[f"delta{k}"] = ((ratio < 1.25 ** k) & valid).sum(1).double() / n
-    rows = []
-    for i in range(p.shape[0]):
-        rows.append({m: (float(values[m][i]) if n[i] > 0 else float("nan")) for m in METRICS})
-    return rows
+    columns = {m: values[m].tolist() for m in METRICS}   # one conversion, not one per value
+    return [{m: (columns[m][i] if ok else float("nan")) for m in METRICS} for i, ok in enumerate((n > 0).tolist())]
 
 
 def batch_metrics(pred: torch.Tensor, target: torch.Tensor) -> list[dict[str, float]]:

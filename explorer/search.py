@@ -12,6 +12,7 @@ with a longer recipe (the finalists): the winner a user reads about is always a 
 from __future__ import annotations
 
 import dataclasses
+import gc
 import json
 import math
 import os
@@ -396,6 +397,9 @@ def _optimize(study: optuna.Study, objective: Objective, n_trials: int | None, d
     timeout = None if deadline is None else max(deadline - time.time(), 0.0)
     if timeout is not None and timeout <= 0:
         return
+    # everything loaded so far (torch, data, the evaluator's batches) lives as long as the worker:
+    # frozen, the collection after each trial skips it (0.1-0.25 s a trial otherwise)
+    gc.freeze()
     study.optimize(guarded(objective, objective.config.max_retries), timeout=timeout, callbacks=cbs,
                    catch=(Exception,), gc_after_trial=True)
 

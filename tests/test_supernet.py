@@ -13,7 +13,7 @@ import torch
 from conftest import TINY_DATA
 from explorer.data import open_dataset
 from explorer.errors import UserError
-from explorer.evaluators import recalibrate_batchnorm
+from explorer.evaluators import SupernetEvaluator, recalibrate_batchnorm
 from explorer.space import SearchSpace
 from explorer.supernet import (Supernet, SupernetRecipe, largest_candidate, load_supernet, random_training_subnet,
                                train_supernet)
@@ -98,6 +98,32 @@ def test_batchnorm_recalibration_changes_only_running_statistics(default_space):
     assert not sub.training
     with torch.no_grad():   # the exits' resize, skipped while recalibrating, is back
         assert all(o.shape[-2:] == (32, 32) for o in sub(image, scan))
+
+
+def test_shared_encoder_features_give_the_same_evaluation(tmp_path):
+    """Candidates of one width reuse that width's encoder run: same statistics, same metrics as
+    running each candidate's own encoder; an encoder exit and every width covered."""
+    space = SearchSpace.from_dict({
+        "image_encoder": {"blocks": [4, 5], "width_mult": [0.25, 0.5], "exits": [3]},
+        "lidar_encoder": {"depth": [4], "width": [8], "first": [False, True]},
+        "ecu": {"enabled": [False, True], "band": [1], "width": [16]},
+        "decoder": {"widths": [[32], [16], [8]]},
+        "exits": {"optional": [0, 2], "head_depth": [1, 2], "head_width": [8]}})
+    file = train_supernet(space, TINY_DATA, SupernetRecipe(steps=3, batch_size=8, input_size=(32, 32)),
+                          tmp_path / "s.pt")
+    train = open_dataset(TINY_DATA, "train", (32, 32), train_augment=False)
+    val = open_dataset(TINY_DATA, "val", (32, 32))
+    args = (file, space, train, val, torch.device("cpu"))
+    shared = SupernetEvaluator(*args, calibration_images=16, batch_size=8)
+    alone = SupernetEvaluator(*args, calibration_images=16, batch_size=8, share_encoder=False)
+    candidates = random.Random(5).sample(list(space.enumerate()), 6)
+    assert {c.width_mult for c in candidates} == {0.25, 0.5} and any(c.encoder_exits for c in candidates)
+    for cand in candidates:
+        a, b = shared(cand), alone(cand)
+        assert all(torch.allclose(x, y, atol=1e-5) for x, y in zip(a.network.state_dict().values(),
+                                                                   b.network.state_dict().values())), cand
+        assert (a.metrics["rmse"] - b.metrics["rmse"]).abs().max() < 1e-4, cand
+    assert sorted(shared._encoders) == [0.25, 0.5]
 
 
 def test_a_few_steps_lower_every_exit_loss_of_random_subnets(tmp_path):

@@ -46,6 +46,13 @@ class ImageEncoderConfig:
                 s *= 2
         return sorted(strides)
 
+    def output_blocks(self) -> tuple[int, ...]:
+        """For each output of the segment (its feature, then its skips by decreasing stride), how
+        many encoder blocks precede it: the key into :meth:`ImageEncoder.block_features`."""
+        taken = [i for i in range(self.start, self.blocks)
+                 if MOBILENET_V1_BLOCKS[i][2] == 2 and (i > self.start or self.start == 0)]
+        return (self.blocks, *sorted(taken, reverse=True))
+
     def in_channels(self) -> int:
         return 3 if self.start == 0 else scaled(MOBILENET_V1_BLOCKS[self.start - 1][1], self.width_mult)
 
@@ -84,3 +91,16 @@ class ImageEncoder(nn.Module):
                 stride *= 2
             x = block(x)
         return (x, *(skips[s] for s in sorted(skips, reverse=True)))
+
+    def block_features(self, x: torch.Tensor, keep: set[int]) -> dict[int, torch.Tensor]:
+        """The whole encoder's feature after each number of blocks in ``keep`` (0 = after conv0):
+        every output of every segment of this width is one of these (``output_blocks``)."""
+        if self.config.start != 0:
+            raise ValueError("block features are taken from a whole encoder (start 0)")
+        x = self.conv0(self.normalize(x))
+        features = {0: x} if 0 in keep else {}
+        for i, block in enumerate(self.blocks, start=1):
+            x = block(x)
+            if i in keep:
+                features[i] = x
+        return features

@@ -21,7 +21,8 @@ from torch import nn
 from torch.func import functional_call
 
 from explorer.model import AnytimeDepthNet, build_network, stage_specs
-from explorer.model.image_encoder import ImageEncoderConfig
+from explorer.model.image_encoder import ImageEncoder, ImageEncoderConfig
+from explorer.model.network import StageSpec
 from explorer.space import Candidate, SearchSpace
 from explorer.supernet._slicing import slice_of, slot_of, super_name
 
@@ -142,3 +143,15 @@ class Supernet(nn.Module):
         state = net.state_dict()
         net.load_state_dict({k: tensors[k].detach().clone() for k in state})
         return net.to(next(self.parameters()).device)
+
+    def extract_encoder(self, width_mult: float) -> ImageEncoder:
+        """The whole image encoder (the space's deepest) at ``width_mult``, carrying copies of its
+        slices: every candidate of that width runs a prefix of it, split at its exits."""
+        if width_mult not in self.space.width_mult:
+            raise ValueError(f"width {width_mult} is not one of the space's {self.space.width_mult}")
+        spec = StageSpec("image_encoder", ImageEncoderConfig(self.largest.encoder_blocks, width_mult), ("image",), ("enc",))
+        encoder = spec.config.build()
+        full = {**dict(self.slots.named_parameters()), **dict(self.slots.named_buffers())}
+        encoder.load_state_dict({local: slice_of(spec, local, full[super_name(spec, local)], t.shape).detach().clone()
+                                 for local, t in encoder.state_dict().items()})
+        return encoder.to(next(self.parameters()).device)
