@@ -63,6 +63,9 @@ if __name__ == "__main__":
     ap.add_argument("--throughput", type=int, default=20, help="candidates per throughput repetition")
     ap.add_argument("--val-limit", type=int, default=96, help="validation frames per candidate, as in a search")
     ap.add_argument("--fidelity-only", action="store_true", help="skip the training and throughput timings")
+    ap.add_argument("--replay", default="", help="time the candidates of this study.db (a search's own sequence) "
+                    "instead of random ones")
+    ap.add_argument("--memo-gib", type=float, default=None, help="stage memo size of the stagewise evaluator")
     ap.add_argument("--skip-fidelity", action="store_true", help="only the training and throughput timings")
     ap.add_argument("--calibration-sweep", default="", help="also the supernet's tau with these BatchNorm "
                     "calibration frame counts, e.g. 16,64,256,1024 (the search uses 256)")
@@ -93,20 +96,36 @@ if __name__ == "__main__":
     size = sn_recipe.input_size
     calib = open_dataset(cfg.data, "train", size, train_augment=False)
     val = open_dataset(cfg.data, "val", size, train_augment=False)
-    # candidates of one width share its encoder's run (SupernetEvaluator(share_encoder=True), the
-    # default); each repetition times the same candidates with and without, interleaved
+    # stage by stage, candidates share the stages they have in common (SupernetEvaluator(stagewise=True),
+    # what a search uses); each repetition times the same candidates both ways, interleaved. Random
+    # candidates share less than a search's, whose sampler keeps varying its best ones.
+    memo = {} if args.memo_gib is None else {"memo_bytes": int(args.memo_gib * 2 ** 30)}
     evaluators = {shared: SupernetEvaluator(file, space, calib, val, torch.device("cpu"), val_limit=args.val_limit,
-                                            share_encoder=shared) for shared in (True, False)}
+                                            stagewise=shared, **memo) for shared in (True, False)}
     tx2 = get_device("tx2")
     if not args.fidelity_only:
         t0 = time.perf_counter()
         for w in space.width_mult:
-            evaluators[True]._shared_encoder(w)
+            evaluators[True].shared_encoder(w)
         print(f"  shared encoders of widths {space.width_mult} on {len(evaluators[True].calibration)} calibration "
               f"+ {len(evaluators[True].validation)} validation batches: {time.perf_counter() - t0:.1f} s, once per search")
     rates: dict[bool, list[float]] = {True: [], False: []}
+    replay = []
+    if args.replay:   # a finished study's candidates, in the order its sampler proposed them
+        import optuna
+        from explorer.space import Candidate
+        storage = f"sqlite:///{Path(args.replay).resolve()}"
+        study = optuna.load_study(study_name=optuna.get_all_study_names(storage)[0], storage=storage)
+        replay = [Candidate.from_dict(t.user_attrs["candidate"]) for t in study.trials
+                  if "candidate" in t.user_attrs and not t.user_attrs.get("baseline") and "duplicate_of" not in t.user_attrs]
+        replay = [c for c in replay if space.contains(c)]
+        print(f"  replaying {len(replay)} distinct candidates of {args.replay} in their order, in 3 slices")
     for rep in range(0 if args.fidelity_only else 3):
-        cands = space.random_candidates(args.throughput, seed=100 + rep)
+        if replay:
+            n = len(replay) // 3
+            cands = replay[rep * n:(rep + 1) * n]
+        else:
+            cands = space.random_candidates(args.throughput, seed=100 + rep)
         for shared, evaluator in evaluators.items():
             t0 = time.perf_counter()
             for c in cands:
@@ -114,12 +133,14 @@ if __name__ == "__main__":
                 anytime_loss(candidate_cost(c).path_costs(tx2, "time"), list(m["rmse"]), BUDGET)
             per = (time.perf_counter() - t0) / len(cands)
             rates[shared].append(600 / per)
-            print(f"  throughput rep {rep + 1}, encoder {'shared' if shared else 'per candidate'}: {per:.2f} s per "
+            print(f"  throughput rep {rep + 1}, {'stagewise' if shared else 'whole    '}: {per:.2f} s per "
                   f"candidate (extract, BN recalibration, {args.val_limit} validation frames, costing) -> "
                   f"{600 / per:,.0f} per 10 min")
     if rates[True]:
-        print(f"throughput: median {statistics.median(rates[True]):,.0f} candidates per 10 minutes with the shared "
-              f"encoder (the search's), {statistics.median(rates[False]):,.0f} without")
+        memo = evaluators[True].memo
+        print(f"throughput: median {statistics.median(rates[True]):,.0f} candidates per 10 minutes stage by stage "
+              f"(the search's; {memo.hits} of {memo.hits + memo.misses} stages found evaluated, "
+              f"{memo.nbytes / 2 ** 20:.0f} MiB kept), {statistics.median(rates[False]):,.0f} whole")
     if args.skip_fidelity:
         sys.exit(0)
 

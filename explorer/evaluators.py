@@ -56,13 +56,9 @@ class ProxyEvaluator:
 
 def recalibrate_batchnorm(net: torch.nn.Module, batches: list[dict]) -> None:
     """Re-estimates every BatchNorm's running statistics as the plain average over ``batches`` (the
-    supernet's statistics mix many subnets); weights are left untouched. Batches that carry
-    ``encoder_features`` leave the image encoder's statistics alone (they came with the features)."""
+    supernet's statistics mix many subnets); weights are left untouched."""
     from explorer.model.exits import ExitHead
-    from explorer.model.image_encoder import ImageEncoder
-    shared = {id(m) for e in net.modules() if isinstance(e, ImageEncoder) for m in e.modules()} \
-        if batches and "encoder_features" in batches[0] else set()
-    norms = [m for m in net.modules() if isinstance(m, torch.nn.modules.batchnorm._BatchNorm) and id(m) not in shared]
+    norms = [m for m in net.modules() if isinstance(m, torch.nn.modules.batchnorm._BatchNorm)]
     momenta = [m.momentum for m in norms]
     for m in norms:
         m.reset_running_stats()
@@ -77,8 +73,7 @@ def recalibrate_batchnorm(net: torch.nn.Module, batches: list[dict]) -> None:
             h.resize.factor = 1
         with torch.no_grad():
             for b in batches:
-                net(image_batch(b, device), b["scan"].to(device), _batch_row(b),
-                    encoder_features=b.get("encoder_features"))
+                net(image_batch(b, device), b["scan"].to(device), _batch_row(b))
     finally:
         for h, f in zip(heads, factors):
             h.resize.factor = f
@@ -97,16 +92,17 @@ def _batches(dataset, count: int, batch_size: int) -> list[dict]:
 class SupernetEvaluator:
     """A candidate's slice of a trained supernet, BatchNorm recalibrated, evaluated.
 
-    Candidates of one width share their image encoder's work (``share_encoder``): a block's
-    recalibrated statistics and outputs depend only on the blocks before it, so the whole encoder
-    of each width runs once over the calibration and validation frames and every candidate of that
-    width reads its features (and statistics) from there; only its LiDAR, ECU and decoder run."""
+    ``stagewise`` (the default) evaluates stage by stage and keeps each stage's results for the
+    candidates that share it (:mod:`explorer._stagewise`: the image encoder per width, decoder
+    stages and exit heads by what they read, up to ``memo_bytes`` of kept outputs); the result is
+    the same as recalibrating and evaluating each candidate whole (``stagewise=False``)."""
 
     name = "supernet"
 
     def __init__(self, supernet_file: str | Path, space, train_set, val_set, device: torch.device,
                  val_limit: int | None = None, calibration_images: int = 256, batch_size: int = 32,
-                 share_encoder: bool = True) -> None:
+                 stagewise: bool = True, memo_bytes: int = 2 * 2 ** 30) -> None:
+        from explorer._stagewise import Frames, StageMemo
         from explorer.supernet import load_supernet
         self.file = Path(supernet_file)
         self.supernet, state = load_supernet(self.file, space)
@@ -115,67 +111,31 @@ class SupernetEvaluator:
         self.device = device
         self.calibration = _batches(train_set, calibration_images, batch_size)
         self.validation = _batches(val_set, val_limit or len(val_set), batch_size)
-        self.share_encoder = share_encoder
-        self._encoders: dict[float, _SharedEncoder] = {}
+        self.stagewise = stagewise
+        if stagewise:
+            self._frames = Frames.of(self.calibration, device), Frames.of(self.validation, device)
+            self.memo = StageMemo(memo_bytes)
+        self._encoders: dict = {}
 
     def __call__(self, candidate: Candidate, checkpoint: Path | None = None,
                  report: Callable | None = None) -> Evaluation:
+        from explorer._stagewise import evaluate_stagewise
         t0 = time.perf_counter()
         net = self.supernet.extract(candidate).to(memory_format=torch.channels_last)  # see train.image_batch
-        calibration, validation = self.calibration, self.validation
-        if self.share_encoder:
-            shared = self._shared_encoder(candidate.width_mult)
-            shared.load_statistics(net)
-            calibration, validation = shared.calibration, shared.validation
-        recalibrate_batchnorm(net, calibration)
-        metrics = evaluate(net, validation, device=self.device)
+        if self.stagewise:
+            metrics = evaluate_stagewise(net, self.shared_encoder(candidate.width_mult), *self._frames, self.memo)
+        else:
+            recalibrate_batchnorm(net, self.calibration)
+            metrics = evaluate(net, self.validation, device=self.device)
         net.to(memory_format=torch.contiguous_format)
         info = {"evaluator": self.name, "seconds": time.perf_counter() - t0, "supernet": str(self.file),
                 "supernet_key": self.key}
         return Evaluation(metrics, info, net)
 
-    def _shared_encoder(self, width_mult: float) -> "_SharedEncoder":
+    def shared_encoder(self, width_mult: float):
+        """The image encoder of ``width_mult``, recalibrated, with its features (made on first use)."""
+        from explorer._stagewise import SharedEncoder, feature_blocks
         if width_mult not in self._encoders:
             encoder = self.supernet.extract_encoder(width_mult).to(memory_format=torch.channels_last)
-            self._encoders[width_mult] = _SharedEncoder(encoder, _feature_blocks(self.supernet.space),
-                                                        self.calibration, self.validation, self.device)
+            self._encoders[width_mult] = SharedEncoder(encoder, feature_blocks(self.supernet.space), *self._frames)
         return self._encoders[width_mult]
-
-
-def _feature_blocks(space) -> set[int]:
-    """Every block count at which some candidate of ``space`` reads the image encoder: its ends
-    (truncation, encoder exits) and the skips before stride-2 blocks."""
-    from explorer.space import MOBILENET_V1_BLOCKS
-    deepest = max(space.encoder_blocks)
-    skips = {i for i in range(deepest) if MOBILENET_V1_BLOCKS[i][2] == 2}
-    return set(space.encoder_blocks) | set(space.optional_encoder_exits) | skips
-
-
-class _SharedEncoder:
-    """One width's whole image encoder, recalibrated once, and its features on the calibration
-    (training mode: batch statistics, as recalibration sees them) and validation frames."""
-
-    def __init__(self, encoder, blocks: set[int], calibration: list[dict], validation: list[dict],
-                 device: torch.device) -> None:
-        norms = [m for m in encoder.modules() if isinstance(m, torch.nn.modules.batchnorm._BatchNorm)]
-        for m in norms:
-            m.reset_running_stats()
-            m.momentum = None
-        with torch.no_grad():
-            encoder.train()
-            self.calibration = [dict(b, encoder_features=encoder.block_features(image_batch(b, device), blocks))
-                                for b in calibration]
-            encoder.eval()
-            self.validation = [dict(b, encoder_features=encoder.block_features(image_batch(b, device), blocks))
-                               for b in validation]
-        self.statistics = dict(encoder.named_buffers())
-
-    def load_statistics(self, net: AnytimeDepthNet) -> None:
-        """Copies the recalibrated statistics into ``net``'s image encoder stages."""
-        from explorer.model.image_encoder import ImageEncoderConfig
-        from explorer.supernet._slicing import super_name
-        with torch.no_grad():
-            for spec in net.specs:
-                if isinstance(spec.config, ImageEncoderConfig):
-                    for local, buffer in net.stages[spec.name].named_buffers():
-                        buffer.copy_(self.statistics[super_name(spec, local).removeprefix("image_encoder.")])

@@ -142,8 +142,7 @@ def _batch_row(batch: dict) -> int:
 def evaluate(net: AnytimeDepthNet, dataset, batch_size: int = 8, device: torch.device | None = None,
              limit: int | None = None, median_scaling: bool = False) -> pd.DataFrame:
     """Per-path metrics (averaged per image, FastDepth's convention): one row per path. ``dataset``
-    is a data set, or a list of ready batches (dicts of batched tensors; one may carry the image
-    encoder's output as ``encoder_features``, see :meth:`AnytimeDepthNet.forward`).
+    is a data set, or a list of ready batches (dicts of batched tensors).
 
     On sequence data, MonoDepth2's conventions: predictions clamped to [1e-3, cap] and ground truth
     beyond the data's cap (10 m synthetic, 80 m KITTI) ignored (the Garg crop is already in KITTI
@@ -161,8 +160,7 @@ def evaluate(net: AnytimeDepthNet, dataset, batch_size: int = 8, device: torch.d
     seen = 0
     with torch.no_grad():
         for batch in batches:
-            outs = net(image_batch(batch, device), batch["scan"].to(device), _batch_row(batch),
-                       encoder_features=batch.get("encoder_features"))
+            outs = net(image_batch(batch, device), batch["scan"].to(device), _batch_row(batch))
             target = batch["depth"]
             if cap is not None:
                 target = torch.where(target <= cap, target, torch.zeros_like(target))

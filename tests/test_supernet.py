@@ -1,3 +1,4 @@
+import dataclasses
 import os
 import random
 import signal
@@ -13,6 +14,7 @@ import torch
 from conftest import TINY_DATA
 from explorer.data import open_dataset
 from explorer.errors import UserError
+from explorer._stagewise import StageMemo, _StageResult
 from explorer.evaluators import SupernetEvaluator, recalibrate_batchnorm
 from explorer.space import SearchSpace
 from explorer.supernet import (Supernet, SupernetRecipe, largest_candidate, load_supernet, random_training_subnet,
@@ -107,7 +109,7 @@ def test_shared_encoder_features_give_the_same_evaluation(tmp_path):
         "image_encoder": {"blocks": [4, 5], "width_mult": [0.25, 0.5], "exits": [3]},
         "lidar_encoder": {"depth": [4], "width": [8], "first": [False, True]},
         "ecu": {"enabled": [False, True], "band": [1], "width": [16]},
-        "decoder": {"widths": [[32], [16], [8]]},
+        "decoder": {"widths": [[32, 24], [16], [8, 4]]},
         "exits": {"optional": [0, 2], "head_depth": [1, 2], "head_width": [8]}})
     file = train_supernet(space, TINY_DATA, SupernetRecipe(steps=3, batch_size=8, input_size=(32, 32)),
                           tmp_path / "s.pt")
@@ -115,15 +117,32 @@ def test_shared_encoder_features_give_the_same_evaluation(tmp_path):
     val = open_dataset(TINY_DATA, "val", (32, 32))
     args = (file, space, train, val, torch.device("cpu"))
     shared = SupernetEvaluator(*args, calibration_images=16, batch_size=8)
-    alone = SupernetEvaluator(*args, calibration_images=16, batch_size=8, share_encoder=False)
+    alone = SupernetEvaluator(*args, calibration_images=16, batch_size=8, stagewise=False)
     candidates = random.Random(5).sample(list(space.enumerate()), 6)
+    # and neighbours of the first: only the last decoder stage, or only the head depth, differs
+    first = candidates[0]
+    candidates += [dataclasses.replace(first, decoder_widths=first.decoder_widths[:-1] + (12 - first.decoder_widths[-1],)),
+                   dataclasses.replace(first, head_depth=3 - first.head_depth, head_width=8 if first.head_depth == 1 else 0),
+                   first]
     assert {c.width_mult for c in candidates} == {0.25, 0.5} and any(c.encoder_exits for c in candidates)
     for cand in candidates:
         a, b = shared(cand), alone(cand)
         assert all(torch.allclose(x, y, atol=1e-5) for x, y in zip(a.network.state_dict().values(),
                                                                    b.network.state_dict().values())), cand
+        assert list(a.metrics.columns) == list(b.metrics.columns) and list(a.metrics["path"]) == list(b.metrics["path"])
         assert (a.metrics["rmse"] - b.metrics["rmse"]).abs().max() < 1e-4, cand
     assert sorted(shared._encoders) == [0.25, 0.5]
+    assert shared.memo.hits >= 2 * len(shared.supernet.extract(first).specs) - 4   # the repeat and its neighbours
+
+
+def test_stage_memo_keeps_to_its_size():
+    memo = StageMemo(max_bytes=100)
+    for k in range(5):
+        memo.put(k, _StageResult({}, [], [], nbytes=40))
+    assert list(memo.entries) == [3, 4] and memo.nbytes == 80
+    assert memo.get(3) is not None and memo.get(0) is None
+    memo.put(9, _StageResult({}, [], [], nbytes=400))      # larger than the whole memo: not kept
+    assert 9 not in memo.entries
 
 
 def test_a_few_steps_lower_every_exit_loss_of_random_subnets(tmp_path):

@@ -177,7 +177,7 @@ def register(sub, add, reports: dict) -> None:
     s.add_argument("--storage", help="Optuna storage URL (default reports/<study>/study.db; "
                    "postgresql://... for several machines)")
     s.add_argument("--workers", type=int, default=1, help="processes on this machine (journal storage)")
-    s.add_argument("--timeout", type=_duration_s, default=240.0, help="stop sampling after this long (default 4m: "
+    s.add_argument("--timeout", type=_duration_s, default=180.0, help="stop sampling after this long (default 3m: "
                    "a few hundred supernet estimates; 0 = none; the supernet's training and the finalists come "
                    "on top)")
     s.add_argument("--trials", type=int, default=None, help="stop after this many finished trials")

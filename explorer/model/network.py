@@ -137,20 +137,14 @@ class AnytimeDepthNet(nn.Module):
         outs = out if isinstance(out, tuple) else (out,)
         env.update(zip(spec.outputs, outs))
 
-    def forward(self, image: torch.Tensor, scan: torch.Tensor, scan_row: int | None = None,
-                encoder_features: dict[int, torch.Tensor] | None = None) -> list[torch.Tensor]:
-        """``encoder_features`` (block count -> feature, :meth:`ImageEncoder.block_features` of an
-        encoder of this width and weights) replaces running the image encoder: candidates that share
-        an encoder share its work (the supernet evaluator)."""
+    def forward(self, image: torch.Tensor, scan: torch.Tensor,
+                scan_row: int | None = None) -> list[torch.Tensor]:
         self.check_input(image, scan)
         scan_row = image.shape[2] // 2 if scan_row is None else int(scan_row)
         env: dict[str, torch.Tensor] = {"image": image, "scan": scan}
         depths = [interpolate_scan(scan, image.shape[2])]
         for spec in self.specs:
-            if encoder_features is not None and isinstance(spec.config, ImageEncoderConfig):
-                env.update((name, encoder_features[b]) for name, b in zip(spec.outputs, spec.config.output_blocks()))
-            else:
-                self.run_stage(spec, env, scan_row)
+            self.run_stage(spec, env, scan_row)
             if spec.path is not None:
                 depths.append(env[spec.outputs[0]])
         return depths
