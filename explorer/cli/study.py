@@ -177,8 +177,8 @@ def register(sub, add, reports: dict) -> None:
     s.add_argument("--storage", help="Optuna storage URL (default reports/<study>/study.db; "
                    "postgresql://... for several machines)")
     s.add_argument("--workers", type=int, default=1, help="processes on this machine (journal storage)")
-    s.add_argument("--timeout", type=_duration_s, default=180.0, help="stop sampling after this long (default 3m: "
-                   "a few hundred supernet estimates; 0 = none; the supernet's training and the finalists come "
+    s.add_argument("--timeout", type=_duration_s, default=180.0, help="stop sampling after this long (default 3m: 100-300 "
+                   "supernet estimates, by the machine; 0 = none; the supernet's training and the finalists come "
                    "on top)")
     s.add_argument("--trials", type=int, default=None, help="stop after this many finished trials")
     s.add_argument("--objectives", default="anytime_loss", help="e.g. anytime_loss,params (NSGA-II)")
