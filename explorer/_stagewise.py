@@ -17,6 +17,7 @@ any candidate reads, so encoder segments split differently by encoder exits stil
 from __future__ import annotations
 
 from collections import OrderedDict
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Hashable
 
@@ -32,6 +33,32 @@ from explorer.space import MOBILENET_V1_BLOCKS
 
 def _norms(module: torch.nn.Module) -> list[torch.nn.modules.batchnorm._BatchNorm]:
     return [m for m in module.modules() if isinstance(m, torch.nn.modules.batchnorm._BatchNorm)]
+
+
+@contextmanager
+def recalibrating(module: torch.nn.Module):
+    """Training mode without gradients, every BatchNorm of ``module`` reset to average its statistics
+    over the batches run inside (cumulatively), exit heads' resize skipped (their outputs are thrown
+    away); eval mode after."""
+    norms = _norms(module)
+    momenta = [m.momentum for m in norms]
+    heads = [m for m in module.modules() if isinstance(m, ExitHead)]
+    factors = [h.resize.factor for h in heads]
+    for m in norms:
+        m.reset_running_stats()
+        m.momentum = None
+    module.train()
+    try:
+        for h in heads:
+            h.resize.factor = 1
+        with torch.no_grad():
+            yield
+    finally:
+        for h, f in zip(heads, factors):
+            h.resize.factor = f
+        for m, momentum in zip(norms, momenta):
+            m.momentum = momentum
+        module.eval()
 
 
 def feature_blocks(space) -> set[int]:
@@ -65,13 +92,9 @@ class SharedEncoder:
 
     def __init__(self, encoder: ImageEncoder, blocks: set[int], calibration: Frames, validation: Frames) -> None:
         self.width_mult = encoder.config.width_mult
-        for m in _norms(encoder):
-            m.reset_running_stats()
-            m.momentum = None    # cumulative average over the batches
-        with torch.no_grad():
-            encoder.train()
+        with recalibrating(encoder):
             self.calibration = [encoder.block_features(x, blocks) for x in calibration.images]
-            encoder.eval()
+        with torch.no_grad():
             self.validation = [encoder.block_features(x, blocks) for x in validation.images]
         self.statistics = {k: v.clone() for k, v in encoder.named_buffers()}
 
@@ -139,7 +162,6 @@ def _run_stage(net: AnytimeDepthNet, spec, calibration: list[dict], validation: 
                cal_frames: Frames, val_frames: Frames) -> _StageResult:
     """Recalibrates the stage's statistics on the calibration inputs, then runs the validation ones."""
     module = net.stages[spec.name]
-    norms = _norms(module)
 
     def call(env: dict, row: int):
         args = [env[n] for n in spec.inputs] + ([row] if spec.uses_scan_row else [])
@@ -148,25 +170,12 @@ def _run_stage(net: AnytimeDepthNet, spec, calibration: list[dict], validation: 
 
     exit_stage = spec.path is not None
     cal_outs = None
+    # an exit's outputs feed nothing: without statistics to recalibrate it need not run here
+    if _norms(module) or not exit_stage:
+        with recalibrating(module):
+            cal_outs = [call(env, row) for env, row in zip(calibration, cal_frames.rows)]
+    module.eval()
     with torch.no_grad():
-        # an exit's outputs feed nothing: without statistics to recalibrate it need not run here
-        if norms or not exit_stage:
-            momenta = [m.momentum for m in norms]
-            for m in norms:
-                m.reset_running_stats()
-                m.momentum = None
-            factor = module.resize.factor if isinstance(module, ExitHead) else None
-            module.train()
-            try:
-                if factor is not None:
-                    module.resize.factor = 1    # the output is thrown away: skip the resize
-                cal_outs = [call(env, row) for env, row in zip(calibration, cal_frames.rows)]
-            finally:
-                if factor is not None:
-                    module.resize.factor = factor
-                for m, momentum in zip(norms, momenta):
-                    m.momentum = momentum
-        module.eval()
         val_outs = [call(env, row) for env, row in zip(validation, val_frames.rows)]
     statistics = {k: v.clone() for k, v in module.named_buffers()}
     if exit_stage:

@@ -57,29 +57,11 @@ class ProxyEvaluator:
 def recalibrate_batchnorm(net: torch.nn.Module, batches: list[dict]) -> None:
     """Re-estimates every BatchNorm's running statistics as the plain average over ``batches`` (the
     supernet's statistics mix many subnets); weights are left untouched."""
-    from explorer.model.exits import ExitHead
-    norms = [m for m in net.modules() if isinstance(m, torch.nn.modules.batchnorm._BatchNorm)]
-    momenta = [m.momentum for m in norms]
-    for m in norms:
-        m.reset_running_stats()
-        m.momentum = None  # cumulative average
-    # the exits' outputs are thrown away here: skip their resize to full resolution
-    heads = [m for m in net.modules() if isinstance(m, ExitHead)]
-    factors = [h.resize.factor for h in heads]
+    from explorer._stagewise import recalibrating
     device = next(net.parameters()).device
-    net.train()
-    try:
-        for h in heads:
-            h.resize.factor = 1
-        with torch.no_grad():
-            for b in batches:
-                net(image_batch(b, device), b["scan"].to(device), _batch_row(b))
-    finally:
-        for h, f in zip(heads, factors):
-            h.resize.factor = f
-        for m, momentum in zip(norms, momenta):
-            m.momentum = momentum
-    net.eval()
+    with recalibrating(net):
+        for b in batches:
+            net(image_batch(b, device), b["scan"].to(device), _batch_row(b))
 
 
 def _batches(dataset, count: int, batch_size: int) -> list[dict]:
