@@ -32,6 +32,7 @@ from explorer.results import compact_workloads
 from explorer.space import (Candidate, SearchSpace, fastdepth_candidate, paper_candidate,
                             paper_nee_candidate)
 from explorer.evaluators import EVALUATORS, ProxyEvaluator, SupernetEvaluator
+from explorer.planning import Plan, TimeLimit
 from explorer.retry import StopAfterTrials, counted_trials, guarded, resume_interrupted, set_objective_names
 from explorer.storage import REPORTS_DIR, open_storage, study_dir
 from explorer.train import PROXY, Pruned, TrainConfig, resolve_device
@@ -371,6 +372,8 @@ class SearchOutcome:
     interrupted_failed: int = 0
     retried: dict[int, int] = dataclasses.field(default_factory=dict)   # interrupted trial -> its retry
     not_retried: list[int] = dataclasses.field(default_factory=list)    # interrupted past --max-retries
+    config: SearchConfig | None = None     # as run: a --time-limit plan may have sized its steps
+    plan: "Plan | None" = None
 
 
 def run_worker(config_dict: dict, storage_url: str | None, n_trials: int | None, deadline: float | None,
@@ -420,20 +423,93 @@ def ensure_supernet(config: SearchConfig, progress: Callable[[int, int, dict], N
         progress=progress, data_progress=data_progress)
 
 
+def _existing_config(storage: optuna.storages.BaseStorage, name: str) -> dict | None:
+    try:
+        return optuna.load_study(study_name=name, storage=storage).user_attrs.get("config")
+    except KeyError:
+        return None
+
+
+def _cached_supernet_steps(config: SearchConfig) -> list[int]:
+    """Step counts of the finished supernets cached for this space, data and recipe (steps aside)."""
+    from explorer.planning import MAX_SUPERNET_STEPS, STEP_GRID
+    from explorer.supernet import default_path, read_supernet
+    space = SearchSpace.from_yaml(config.space)
+    found = []
+    for steps in sorted({*range(STEP_GRID, MAX_SUPERNET_STEPS + 1, STEP_GRID), config.supernet_steps}):
+        path = default_path(space, config.data, dataclasses.replace(config.supernet_recipe(), steps=steps))
+        try:
+            if path.is_file() and read_supernet(path).get("complete"):
+                found.append(steps)
+        except UserError:
+            continue  # a broken file is trained again in its place
+    return found
+
+
+def plan_search(config: SearchConfig, storage: optuna.storages.BaseStorage, limit: "TimeLimit",
+                sampling_s: float | None, on_data: Callable[[int, int], None] | None = None):
+    """(config as it will run, plan, speeds): the data generated, the machine measured, the run sized
+    to what is left of ``limit`` (see explorer.planning)."""
+    from explorer import planning
+    from explorer.data import open_dataset
+    free = set(limit.free)
+    old = _existing_config(storage, config.study)
+    if old and "supernet_steps" in free and "supernet_steps" in old:
+        config = dataclasses.replace(config, supernet_steps=int(old["supernet_steps"]))  # the study's supernet
+        free.discard("supernet_steps")
+    train_set = open_dataset(config.data, "train", config.train_size, seed=config.seed, progress=on_data)
+    val_set = open_dataset(config.data, "val", config.train_size, train_augment=False)
+    trains_supernet = config.evaluator == "supernet" and not config.supernet
+    cached = _cached_supernet_steps(config) if trains_supernet else []
+    must_measure_supernet = trains_supernet and ("supernet_steps" in free or config.supernet_steps not in cached)
+    speeds = planning.measure_speeds(config, train_set, val_set, resolve_device(config.accelerator),
+                                     supernet=must_measure_supernet)
+    trial_s = 0.0 if config.evaluator == "supernet" else planning.SAFETY * (
+        config.train_steps * speeds.retrain_step_s + speeds.retrain_eval_s)
+
+    def plan(steps: int, steps_free: bool, is_cached: bool):
+        return planning.plan_run(
+            limit.remaining(), limit.seconds, speeds, sampling_s=sampling_s, supernet_steps=steps,
+            supernet_free=steps_free, supernet_cached=is_cached or not trains_supernet,
+            finalists=config.finalists, finalists_free="finalists" in free, finalist_steps=config.finalist_steps,
+            finalist_steps_free="finalist_steps" in free,
+            baselines=len(BASELINES) if config.baselines else 0, trial_s=trial_s)
+
+    chosen = plan(config.supernet_steps, "supernet_steps" in free, config.supernet_steps in cached)
+    larger = [s for s in cached if s >= chosen.supernet_steps]
+    if "supernet_steps" in free and larger:  # a cached supernet at least as trained costs nothing
+        chosen = plan(max(larger), False, True)
+    config = dataclasses.replace(config, supernet_steps=chosen.supernet_steps, finalists=chosen.finalists,
+                                 finalist_steps=chosen.finalist_steps)
+    return config, chosen, speeds
+
+
 def search(config: SearchConfig, storage_url: str | None = None, workers: int = 1,
            n_trials: int | None = None, timeout_s: float | None = 600.0, reports: Path = REPORTS_DIR,
            on_trial: Callable[[optuna.Study, optuna.trial.FrozenTrial], None] | None = None,
            on_poll: Callable[[optuna.Study], None] | None = None,
            on_data: Callable[[int, int], None] | None = None,
            on_supernet: Callable[[int, int, dict], None] | None = None,
-           on_finalist: Callable[[int, int, str], None] | None = None) -> SearchOutcome:
+           on_finalist: Callable[[int, int, str], None] | None = None,
+           time_limit: "TimeLimit | None" = None,
+           on_plan: Callable[["Plan"], None] | None = None) -> SearchOutcome:
     """Runs (or resumes) the study until ``n_trials`` trials are done or ``timeout_s`` passes (the
-    supernet's training and the finalists' retraining are not counted), then retrains the finalists."""
+    supernet's training and the finalists' retraining are not counted), then retrains the finalists.
+    With ``time_limit`` the whole run is sized to it first (explorer.planning): ``timeout_s`` is then
+    the most sampling may take."""
     config.validate()
     if workers < 1:
         raise UserError("--workers must be at least 1")
     storage = open_storage(storage_url, config.study, workers, reports, max_retries=config.max_retries)
+    plan = speeds = None
+    if time_limit is not None:
+        config, plan, speeds = plan_search(config, storage, time_limit, timeout_s, on_data)
+        timeout_s = plan.sampling_s
+        if on_plan:
+            on_plan(plan)
     study = create_or_resume(config, storage)
+    if plan is not None:
+        study.set_user_attr("plan", plan.to_dict())
     # No worker of this run has started yet; on local storage nobody else can be running: its RUNNING
     # trials were interrupted (kill -9), and are tried again. RDB storage does this by heartbeat.
     failed, retried, not_retried = 0, {}, []
@@ -473,7 +549,17 @@ def search(config: SearchConfig, storage_url: str | None = None, workers: int = 
                 p.join(timeout=5)
                 if p.is_alive():
                     p.terminate()
+    if plan is not None and (config.finalists or config.baselines):
+        from explorer.finalists import finalist_trials
+        from explorer.planning import replan_finalists
+        done = [t.user_attrs["finalist"]["recipe"]["steps"] for t in finalist_trials(study)]
+        steps_free = "finalist_steps" in time_limit.free and not done   # a resumed study keeps its recipe
+        plan = replan_finalists(plan, time_limit.remaining(), speeds, len(BASELINES) if config.baselines else 0,
+                                steps_free=steps_free, finalists_free="finalists" in time_limit.free)
+        config = dataclasses.replace(config, finalists=plan.finalists,
+                                     finalist_steps=plan.finalist_steps if steps_free or not done else max(done))
+        study.set_user_attr("plan", plan.to_dict())
     if config.finalists:
         from explorer.finalists import retrain_finalists
         retrain_finalists(study, config, reports, progress=on_finalist)
-    return SearchOutcome(study, url, time.time() - t0, failed, retried, not_retried)
+    return SearchOutcome(study, url, time.time() - t0, failed, retried, not_retried, config, plan)

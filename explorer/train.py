@@ -331,7 +331,7 @@ def train(net: AnytimeDepthNet, train_set, val_set, cfg: TrainConfig = PROXY,
                 outs = net(image, batch["scan"].to(device), _batch_row(batch))
                 loss, per_exit = _training_loss(cfg, selfsup, outs, batch, device)
             if not torch.isfinite(loss):
-                raise FloatingPointError(f"training loss became {float(loss)} at step {step}")
+                raise FloatingPointError(f"training loss became {float(loss.detach())} at step {step}")
             opt.zero_grad(set_to_none=True)
             scaler.scale(loss).backward()
             scaler.step(opt)

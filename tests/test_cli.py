@@ -49,6 +49,7 @@ def test_anytime_calculator(run_cli):
     (("devices", "show", "tx9"), "unknown device"),
     (("search", "--device", "tx9"), "unknown device"),
     (("search", "--budget", "time:uniform:-1ms"), "quantity"),
+    (("search", "--time-limit", "-5m"), "--time-limit"),
     (("rescore", "--study", "nope", "--device", "rpi4", "--budget", "time:uniform:33ms"), "no study database"),
     (("report", "--study", "nope"), "no study database"),
     (("export", "--out", "x"), "either --study"),

@@ -72,3 +72,29 @@ def test_an_interrupted_retraining_resumes_from_its_checkpoint(finished, tmp_pat
     # nothing was trained again: the metrics are those of the checkpoint's weights
     assert done[0].user_attrs["path_metrics"][-1]["rmse"] == pytest.approx(expected["rmse"].iloc[-1], rel=1e-5)
     assert not ckpt.exists()                                     # removed once its trial is stored
+
+
+def test_a_time_limit_measures_the_machine_and_records_its_plan(tmp_path):
+    import dataclasses
+    from explorer.planning import TimeLimit
+    seen = []
+    limit = TimeLimit(600.0, free=frozenset({"finalists", "finalist_steps"}))
+    out = search(dataclasses.replace(CFG, study="roomy"), n_trials=3, timeout_s=None, reports=tmp_path,
+                 time_limit=limit, on_plan=seen.append)
+    plan = out.study.user_attrs["plan"]
+    assert len(seen) == 1 and plan["supernet_steps"] == CFG.supernet_steps and plan["sampling_s"] > 0
+    assert (out.config.finalists, out.config.finalist_steps) == (2, 5)      # time enough: as asked
+    assert len([t for t in finalist_trials(out.study) if not t.user_attrs.get("baseline")]) == 2
+    from explorer.report import write_report
+    html = write_report(out.study, out_dir=tmp_path / "report").read_text()
+    assert 'id="plan"' in html and "supernet 4 steps" in html and "2 finalist(s) retrained 5 steps" in html
+
+
+def test_a_time_limit_too_short_retrains_fewer_finalists_and_says_so(tmp_path):
+    import dataclasses
+    from explorer.planning import TimeLimit
+    out = search(dataclasses.replace(CFG, study="tight"), n_trials=3, timeout_s=None, reports=tmp_path,
+                 time_limit=TimeLimit(1.0, free=frozenset({"finalists", "finalist_steps"})))
+    assert out.config.finalists == 1 and out.config.finalist_steps == 5   # never more steps than asked
+    assert any("longer --time-limit" in c for c in out.study.user_attrs["plan"]["changes"])
+    assert len([t for t in finalist_trials(out.study) if not t.user_attrs.get("baseline")]) == 1

@@ -15,6 +15,8 @@ def cmd_search(args) -> None:
     from explorer.search import SearchConfig, search
     from explorer.space import SearchSpace
     optuna.logging.set_verbosity(optuna.logging.WARNING)
+    from explorer.planning import TimeLimit
+    started = time.time()  # the time limit counts from here: data generation is part of the run
     space_name = SearchSpace.from_yaml(args.space).name
     study = args.study or f"{Path(str(args.device)).stem}-{space_name}"
     cfg = SearchConfig(
@@ -24,13 +26,23 @@ def cmd_search(args) -> None:
         batch_size=args.batch_size, seed=args.seed, max_params=args.max_params,
         max_first_exit_ms=args.max_first_exit, baselines=not args.no_baselines,
         pruning=not args.no_pruning, keep_weights=not args.no_weights, accelerator=args.accelerator,
-        evaluator=args.evaluator, supernet=args.supernet, supernet_steps=args.supernet_steps,
-        finalists=args.finalists, finalist_steps=args.finalist_steps,
+        evaluator=args.evaluator, supernet=args.supernet,
+        supernet_steps=600 if args.supernet_steps is None else args.supernet_steps,
+        finalists=3 if args.finalists is None else args.finalists,
+        finalist_steps=300 if args.finalist_steps is None else args.finalist_steps,
         max_retries=args.max_retries,
         supervision=args.supervision)
     cfg.validate()
     reports = Path(args.reports)
-    timeout = None if args.timeout == 0 else args.timeout
+    if (args.time_limit or 0) < 0 or (args.timeout or 0) < 0:
+        raise UserError("--time-limit and --timeout must be 0 (none) or more, e.g. 15m")
+    # a sampling time the user asks for is not cut short by the default limit
+    time_limit = args.time_limit if args.time_limit is not None else (900.0 if args.timeout is None else 0.0)
+    timeout = 180.0 if args.timeout is None else (None if args.timeout == 0 else args.timeout)
+    limit = None
+    if time_limit:
+        free = {k for k in ("supernet_steps", "finalists", "finalist_steps") if getattr(args, k) is None}
+        limit = TimeLimit(time_limit, started, frozenset(free))
     total = args.trials
     t0 = time.time()
     with progress(transient=True) as bar:
@@ -64,9 +76,20 @@ def cmd_search(args) -> None:
         def data(i: int, n: int) -> None:
             bar.update(task, status=f"generating synthetic scenes {i}/{n} (once, then cached)")
 
+        def planned(plan) -> None:
+            nonlocal timeout
+            timeout = plan.sampling_s
+            err_console.print(plan.describe(), highlight=False)
+            for change in plan.changes:
+                err_console.print(f"  to fit: {change}", highlight=False)
+
+        if limit is not None:
+            bar.update(task, status="measuring this machine for --time-limit (a few training steps)")
+
         outcome = search(cfg, storage_url=args.storage, workers=args.workers, n_trials=total,
                          timeout_s=timeout, reports=reports, on_trial=show, on_poll=show, on_data=data,
-                         on_supernet=supernet, on_finalist=finalist)
+                         on_supernet=supernet, on_finalist=finalist, time_limit=limit, on_plan=planned)
+    cfg = outcome.config or cfg
     if outcome.interrupted_failed:
         err_console.print(f"marked {outcome.interrupted_failed} interrupted trial(s) as failed")
     _print_retries(outcome, cfg)
@@ -177,9 +200,12 @@ def register(sub, add, reports: dict) -> None:
     s.add_argument("--storage", help="Optuna storage URL (default reports/<study>/study.db; "
                    "postgresql://... for several machines)")
     s.add_argument("--workers", type=int, default=1, help="processes on this machine (journal storage)")
-    s.add_argument("--timeout", type=_duration_s, default=180.0, help="stop sampling after this long (default 3m: 100-300 "
-                   "supernet estimates, by the machine; 0 = none; the supernet's training and the finalists come "
-                   "on top)")
+    s.add_argument("--time-limit", type=_duration_s, default=None, help="wall clock for the whole run: data, "
+                   "supernet training, sampling, finalists (default 15m, none when --timeout is given; 0 = none). "
+                   "The machine is measured first (seconds); sampling, the supernet's steps, then the finalists "
+                   "shrink to fit where not given, and the plan is printed")
+    s.add_argument("--timeout", type=_duration_s, default=None, help="stop sampling after this long (default 3m: "
+                   "100-500 supernet estimates, by the machine; 0 = none)")
     s.add_argument("--trials", type=int, default=None, help="stop after this many finished trials")
     s.add_argument("--objectives", default="anytime_loss", help="e.g. anytime_loss,params (NSGA-II)")
     s.add_argument("--metric", default="rmse", choices=["rmse", "mae", "rel"])
@@ -191,11 +217,12 @@ def register(sub, add, reports: dict) -> None:
                    "auto (default): supernet with dense labels, proxy with --supervision self/mixed")
     s.add_argument("--supernet", help="supernet file (default: the one cached for space, data and recipe, "
                    "trained first if missing)")
-    s.add_argument("--supernet-steps", type=int, default=600, help="supernet training steps (default 600)")
-    s.add_argument("--finalists", type=int, default=3, help="best distinct candidates retrained stand-alone "
-                   "at the end, next to the baselines (default 3; 0 = none)")
-    s.add_argument("--finalist-steps", type=int, default=300, help="steps of the finalists' longer recipe "
-                   "(default 300)")
+    s.add_argument("--supernet-steps", type=int, default=None, help="supernet training steps (default: what "
+                   "--time-limit leaves, 300-1800, else 600; a resumed study keeps its own)")
+    s.add_argument("--finalists", type=int, default=None, help="best distinct candidates retrained stand-alone "
+                   "at the end, next to the baselines (default 3, fewer if --time-limit needs; 0 = none)")
+    s.add_argument("--finalist-steps", type=int, default=None, help="steps of the finalists' longer recipe "
+                   "(default 300, down to 150 if --time-limit needs)")
     s.add_argument("--train-steps", type=int, default=150, help="proxy recipe steps (default 150)")
     s.add_argument("--train-size", type=_size, default=(64, 64), help="training resolution (default 64x64)")
     s.add_argument("--batch-size", type=int, default=16)

@@ -190,7 +190,12 @@ def build_context(study: optuna.Study, devices: Sequence[str] | None = None,
                  if (t := baseline_trial(study, name, retrained=retrained))]
     ctx: dict = {"study": study.study_name, "config": cfg, "states": states, "versions": _versions(),
                  "generated": time.strftime("%Y-%m-%d %H:%M:%S"), "figures": {}, "notes": [],
-                 "evaluator": cfg.get("evaluator", "proxy"), "finalist_steps": cfg.get("finalist_steps")}
+                 "evaluator": cfg.get("evaluator", "proxy"), "finalist_steps": cfg.get("finalist_steps"),
+                 "plan": study.user_attrs.get("plan")}
+    from explorer.finalists import finalist_trials
+    recipes = sorted({t.user_attrs["finalist"]["recipe"]["steps"] for t in finalist_trials(study)})
+    if recipes:   # a --time-limit plan may have sized them after the study was created
+        ctx["finalist_steps"] = ", ".join(map(str, recipes))
     fin = finalists_frame(study)
     ctx["finalists"], ctx["finalists_tau"] = "", None
     if not fin.empty:

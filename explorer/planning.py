@@ -1,0 +1,209 @@
+"""A run's time limit: how ``explorer search --time-limit`` fits data generation, supernet training,
+sampling and the finalists' retraining into one wall-clock budget on whatever machine it runs on.
+
+The same search takes 9 minutes on one of these 2-core machines and 30 on another (3x slower
+steps, measured). So the run measures the machine first (a few training steps of the paper design
+and of the supernet, a few seconds), then sizes what may give, in this order:
+
+- sampling gets its ``--timeout`` (the settings a user did not give are the ones that give);
+- the finalists keep their recipe;
+- the supernet, when its steps are not given, gets what is left, between ``MIN_SUPERNET_STEPS`` and
+  ``MAX_SUPERNET_STEPS`` (rounded to ``STEP_GRID`` so that runs on one machine share the cached one).
+  The maximum is the default recipe's 600: a 1,500-step supernet did not find better candidates
+  (retrained ratio to the paper design 0.877 against 0.865, one study each), so a fast machine
+  finishes early rather than train longer.
+
+When that does not fit, sampling shrinks to ``MIN_SAMPLING_S``, then the supernet to its minimum,
+then the number of finalists to one, then the finalists' steps to the proxy's. What was changed is
+said to the user and stored on the study (``plan``). The finalists are re-planned before they start
+(sampling and the supernet may have run long).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from dataclasses import dataclass
+
+MIN_SAMPLING_S = 60.0
+MIN_SUPERNET_STEPS = 300
+MAX_SUPERNET_STEPS = 600
+STEP_GRID = 100
+MIN_FINALIST_STEPS = 150
+RESERVE_S = 20.0        # the report, the last costings, the process's exit
+SAFETY = 1.2            # measured step times are a few steps of a noisy machine
+FINALIST_SIZE = 1.3     # the finalists are larger than the paper design the step is measured on
+
+
+@dataclass(frozen=True)
+class Speeds:
+    """Seconds per step on this machine, measured a moment ago."""
+
+    retrain_step_s: float        # the paper design, the study's training recipe
+    retrain_eval_s: float        # its validation pass after training
+    supernet_step_s: float       # one sandwich step (0 when no supernet is trained)
+
+
+@dataclass(frozen=True)
+class Plan:
+    """What the run will do, and how long each part is expected to take."""
+
+    limit_s: float
+    supernet_steps: int
+    supernet_s: float            # 0 when the supernet is cached
+    sampling_s: float
+    finalists: int
+    finalist_steps: int
+    retrain_jobs: int            # finalists plus baselines
+    retrain_s: float
+    changes: tuple[str, ...] = ()
+
+    @property
+    def expected_s(self) -> float:
+        return self.supernet_s + self.sampling_s + self.retrain_s + RESERVE_S
+
+    def to_dict(self) -> dict:
+        return {**dataclasses.asdict(self), "changes": list(self.changes)}
+
+    def describe(self) -> str:
+        supernet = (f"supernet {self.supernet_steps} steps (~{self.supernet_s / 60:.1f} min)" if self.supernet_s
+                    else f"supernet {self.supernet_steps} steps (cached)")
+        retrain = (f"{self.finalists} finalist(s) and {self.retrain_jobs - self.finalists} baseline(s) retrained "
+                   f"{self.finalist_steps} steps (~{self.retrain_s / 60:.1f} min)" if self.retrain_jobs else
+                   "no retraining")
+        return (f"plan for --time-limit {self.limit_s / 60:g}m: {supernet}, sampling {self.sampling_s / 60:.1f} min, "
+                f"{retrain}")
+
+
+def retrain_seconds(speeds: Speeds, finalists: int, baselines: int, steps: int) -> float:
+    jobs = finalists * FINALIST_SIZE + baselines
+    return SAFETY * jobs * (steps * speeds.retrain_step_s + speeds.retrain_eval_s) if jobs else 0.0
+
+
+def plan_run(remaining_s: float, limit_s: float, speeds: Speeds, *, sampling_s: float | None,
+             supernet_steps: int, supernet_free: bool, supernet_cached: bool, finalists: int,
+             finalists_free: bool, finalist_steps: int, finalist_steps_free: bool, baselines: int,
+             trial_s: float = 0.0) -> Plan:
+    """Sizes the run to ``remaining_s`` seconds. ``*_free`` says which settings the user left to the plan;
+    ``sampling_s`` is the user's cap on sampling (None: none, the plan gives it what is left);
+    ``trial_s`` is how long a trial started just before the sampling deadline may run past it."""
+    changes: list[str] = []
+    baselines = baselines if finalists else 0   # the baselines are retrained beside finalists only
+    budget = remaining_s - RESERVE_S - trial_s
+    sampling_want = sampling_s if sampling_s is not None else math.inf
+    sampling_min = min(MIN_SAMPLING_S, sampling_want)
+
+    def supernet_cost(steps: int) -> float:
+        return 0.0 if supernet_cached else SAFETY * steps * speeds.supernet_step_s
+
+    def retrain(n: int, steps: int) -> float:
+        return retrain_seconds(speeds, n, baselines, steps)
+
+    if supernet_free and not supernet_cached and speeds.supernet_step_s > 0:
+        # what is left once sampling and the finalists have what they ask for
+        spare = budget - retrain(finalists, finalist_steps) - (sampling_want if math.isfinite(sampling_want)
+                                                                 else MIN_SAMPLING_S)
+        fit = int(spare / (SAFETY * speeds.supernet_step_s) // STEP_GRID * STEP_GRID)
+        chosen = max(MIN_SUPERNET_STEPS, min(MAX_SUPERNET_STEPS, fit))
+        if chosen != supernet_steps:
+            changes.append(f"supernet {chosen} steps ({speeds.supernet_step_s:.2f} s a step here)")
+        supernet_steps = chosen
+    left = budget - supernet_cost(supernet_steps) - retrain(finalists, finalist_steps)
+    if left < sampling_min and finalists_free and finalists > 1:
+        fewer = finalists
+        while fewer > 1 and budget - supernet_cost(supernet_steps) - retrain(fewer, finalist_steps) < sampling_min:
+            fewer -= 1
+        changes.append(f"{fewer} finalist(s) instead of {finalists}")
+        finalists = fewer
+        left = budget - supernet_cost(supernet_steps) - retrain(finalists, finalist_steps)
+    if left < sampling_min and finalist_steps_free and finalist_steps > MIN_FINALIST_STEPS:
+        per_step = retrain(finalists, finalist_steps) / max(finalist_steps, 1)
+        room = budget - supernet_cost(supernet_steps) - sampling_min
+        steps = max(MIN_FINALIST_STEPS, int(room / per_step) if per_step > 0 else finalist_steps)
+        steps = min(steps, finalist_steps)
+        if steps != finalist_steps:
+            changes.append(f"finalists retrained {steps} steps instead of {finalist_steps}")
+            finalist_steps = steps
+        left = budget - supernet_cost(supernet_steps) - retrain(finalists, finalist_steps)
+    sampling = max(min(sampling_want, left), sampling_min)
+    if math.isfinite(sampling_want) and sampling < sampling_want:
+        changes.append(f"sampling {sampling / 60:.1f} min instead of {sampling_want / 60:.1f}")
+    plan = Plan(limit_s=limit_s, supernet_steps=supernet_steps, supernet_s=supernet_cost(supernet_steps),
+                sampling_s=sampling, finalists=finalists, finalist_steps=finalist_steps,
+                retrain_jobs=finalists + baselines if (finalists or baselines) else 0,
+                retrain_s=retrain(finalists, finalist_steps), changes=tuple(changes))
+    if plan.expected_s > remaining_s + 1:
+        plan = dataclasses.replace(plan, changes=plan.changes + (
+            f"this machine needs about {plan.expected_s / 60:.0f} min even so: give a longer --time-limit",))
+    return plan
+
+
+def replan_finalists(plan: Plan, remaining_s: float, speeds: Speeds, baselines: int, steps_free: bool,
+                     finalists_free: bool) -> Plan:
+    """The finalists' part, sized again to the time really left when sampling has ended."""
+    finalists, steps, changes = plan.finalists, plan.finalist_steps, list(plan.changes)
+    budget = remaining_s - RESERVE_S
+    while finalists_free and finalists > 1 and retrain_seconds(speeds, finalists, baselines, steps) > budget:
+        finalists -= 1
+    if steps_free:
+        per_step = retrain_seconds(speeds, finalists, baselines, steps) / max(steps, 1)
+        if per_step > 0 and per_step * steps > budget:
+            steps = min(steps, max(MIN_FINALIST_STEPS, int(budget / per_step)))
+    if (finalists, steps) != (plan.finalists, plan.finalist_steps):
+        changes.append(f"finalists re-planned with {remaining_s / 60:.1f} min left: {finalists} retrained "
+                       f"{steps} steps")
+    return dataclasses.replace(plan, finalists=finalists, finalist_steps=steps,
+                               retrain_jobs=finalists + baselines if (finalists or baselines) else 0,
+                               retrain_s=retrain_seconds(speeds, finalists, baselines, steps),
+                               changes=tuple(changes))
+
+
+# -- measuring ------------------------------------------------------------------------------------
+def _seconds_per_step(marks: dict[int, float]) -> float:
+    steps = sorted(marks)
+    first, last = steps[1] if len(steps) > 2 else steps[0], steps[-1]
+    return (marks[last] - marks[first]) / max(last - first, 1)
+
+
+def measure_speeds(config, train_set, val_set, device, supernet: bool, steps: int = 4) -> Speeds:
+    """A few steps of the paper design with the study's recipe and, when one must be trained, of the
+    supernet with its recipe (on a throw-away file): seconds a step, the first step left out."""
+    import tempfile
+    from pathlib import Path
+    import torch
+    from explorer.model import build_network
+    from explorer.space import SearchSpace, paper_candidate
+    from explorer.train import train
+    marks: dict[int, float] = {}
+    recipe = dataclasses.replace(config.finalist_config(), steps=steps)
+    torch.manual_seed(0)
+    t0 = time.perf_counter()
+    result = train(build_network(paper_candidate()), train_set, val_set, recipe, device,
+                   progress=lambda s, n, r: marks.setdefault(s, time.perf_counter()),
+                   val_limit=config.val_limit)
+    retrain_step = _seconds_per_step(marks)
+    retrain_eval = max(time.perf_counter() - t0 - result.seconds, 0.0)
+    supernet_step = 0.0
+    if supernet:
+        from explorer.supernet import train_supernet
+        marks = {}
+        with tempfile.TemporaryDirectory() as tmp:
+            train_supernet(SearchSpace.from_yaml(config.space), config.data,
+                           dataclasses.replace(config.supernet_recipe(), steps=steps), Path(tmp) / "probe.pt",
+                           device, progress=lambda s, n, r: marks.setdefault(s, time.perf_counter()))
+        supernet_step = _seconds_per_step(marks)
+    return Speeds(retrain_step, retrain_eval, supernet_step)
+
+
+@dataclass(frozen=True)
+class TimeLimit:
+    """``--time-limit``: the wall-clock seconds of the whole run, counted from ``started``; ``free`` names
+    the settings the user left to the plan (``supernet_steps``, ``finalists``, ``finalist_steps``)."""
+
+    seconds: float
+    started: float = dataclasses.field(default_factory=time.time)
+    free: frozenset[str] = frozenset({"supernet_steps", "finalists", "finalist_steps"})
+
+    def remaining(self) -> float:
+        return self.started + self.seconds - time.time()

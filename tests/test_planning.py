@@ -1,0 +1,82 @@
+"""--time-limit: the plan sizes what the user left free, in the documented order, and says what it changed."""
+
+import dataclasses
+import math
+
+from explorer import planning
+from explorer.planning import Speeds, plan_run, replan_finalists
+
+FAST = Speeds(retrain_step_s=0.06, retrain_eval_s=0.5, supernet_step_s=0.2)
+SLOW = Speeds(retrain_step_s=0.4, retrain_eval_s=3.0, supernet_step_s=1.1)
+FREE = dict(supernet_free=True, finalists_free=True, finalist_steps_free=True)
+
+
+def plan(speeds, remaining=14 * 60, sampling=180.0, cached=False, **kw):
+    args = dict(sampling_s=sampling, supernet_steps=600, supernet_cached=cached, finalists=3, finalist_steps=300,
+                baselines=3, **FREE)
+    args.update(kw)
+    return plan_run(remaining, 15 * 60, speeds, **args)
+
+
+def test_a_fast_machine_keeps_every_setting_and_finishes_early():
+    p = plan(FAST)
+    assert (p.supernet_steps, p.sampling_s, p.finalists, p.finalist_steps) == (600, 180.0, 3, 300)
+    assert p.expected_s < 10 * 60 and p.changes == ()
+
+
+def test_a_middling_machine_trains_a_shorter_supernet_on_the_step_grid():
+    p = plan(dataclasses.replace(SLOW, supernet_step_s=0.9, retrain_step_s=0.1), remaining=16 * 60)
+    assert planning.MIN_SUPERNET_STEPS < p.supernet_steps < 600 and p.supernet_steps % planning.STEP_GRID == 0
+    assert (p.sampling_s, p.finalists, p.finalist_steps) == (180.0, 3, 300)
+    assert p.expected_s <= 16 * 60 and any("supernet" in c for c in p.changes)
+
+
+def test_a_slow_machine_shrinks_sampling_then_the_supernet_then_the_finalists():
+    p = plan(SLOW)
+    assert p.supernet_steps == planning.MIN_SUPERNET_STEPS
+    assert p.sampling_s == planning.MIN_SAMPLING_S
+    assert p.finalists < 3 or p.finalist_steps < 300
+    assert p.finalist_steps >= planning.MIN_FINALIST_STEPS
+    assert p.expected_s <= 14 * 60 + 1 or any("longer --time-limit" in c for c in p.changes)
+    # with more time the same machine keeps more of what was asked
+    roomy = plan(SLOW, remaining=40 * 60)
+    assert (roomy.finalists, roomy.finalist_steps) == (3, 300) and roomy.sampling_s == 180.0
+
+
+def test_settings_the_user_gave_are_never_changed():
+    p = plan(SLOW, supernet_free=False, finalists_free=False, finalist_steps_free=False)
+    assert (p.supernet_steps, p.finalists, p.finalist_steps) == (600, 3, 300)
+    assert p.sampling_s == planning.MIN_SAMPLING_S
+    assert any("longer --time-limit" in c for c in p.changes)
+
+
+def test_a_cached_supernet_costs_nothing_and_leaves_its_steps():
+    p = plan(SLOW, cached=True, supernet_free=False)
+    assert p.supernet_s == 0 and p.supernet_steps == 600
+    assert p.finalists + p.finalist_steps > plan(SLOW).finalists + plan(SLOW).finalist_steps
+
+
+def test_no_sampling_cap_gives_sampling_what_is_left():
+    p = plan(FAST, sampling=None, supernet_free=False)
+    assert math.isclose(p.expected_s, 14 * 60, rel_tol=1e-6)
+
+
+def test_a_trial_that_may_run_past_the_deadline_is_reserved():
+    a, b = plan(FAST, sampling=None, supernet_free=False), plan(FAST, sampling=None, supernet_free=False, trial_s=30)
+    assert math.isclose(a.sampling_s - b.sampling_s, 30)
+
+
+def test_finalists_are_replanned_to_the_time_really_left():
+    p = plan(FAST)
+    assert replan_finalists(p, 14 * 60, FAST, 3, True, True) == p      # plenty: unchanged
+    late = replan_finalists(p, 60, FAST, 3, True, True)
+    assert late.finalists == 1 and late.finalist_steps < 300 and late.retrain_s < p.retrain_s
+    assert "re-planned" in late.changes[-1]
+    fixed = replan_finalists(p, 60, FAST, 3, False, False)
+    assert (fixed.finalists, fixed.finalist_steps) == (3, 300)
+
+
+def test_the_plan_says_what_it_will_do():
+    text = plan(FAST).describe()
+    assert "supernet" in text and "sampling 3.0 min" in text and "3 finalist(s) and 3 baseline(s)" in text
+    assert dataclasses.asdict(plan(FAST))["limit_s"] == 900
