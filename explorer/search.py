@@ -502,6 +502,8 @@ def search(config: SearchConfig, storage_url: str | None = None, workers: int = 
         raise UserError("--workers must be at least 1")
     storage = open_storage(storage_url, config.study, workers, reports, max_retries=config.max_retries)
     plan = speeds = None
+    if config.supernet:
+        ensure_supernet(config)  # a foreign or corrupt file is one line before anything is measured
     if time_limit is not None:
         config, plan, speeds = plan_search(config, storage, time_limit, timeout_s, on_data)
         timeout_s = plan.sampling_s
