@@ -161,14 +161,18 @@ def replan_finalists(plan: Plan, remaining_s: float, speeds: Speeds, baselines: 
 
 # -- measuring ------------------------------------------------------------------------------------
 def _seconds_per_step(marks: dict[int, float]) -> float:
+    """The median step after the first two (in a fresh process they run 2x slower: allocation, first
+    kernels), from the times at which each step ended."""
+    import statistics
     steps = sorted(marks)
-    first, last = steps[1] if len(steps) > 2 else steps[0], steps[-1]
-    return (marks[last] - marks[first]) / max(last - first, 1)
+    times = [marks[b] - marks[a] for a, b in zip(steps, steps[1:]) if a >= 2] or \
+            [marks[b] - marks[a] for a, b in zip(steps, steps[1:])]
+    return statistics.median(times) if times else 0.0
 
 
-def measure_speeds(config, train_set, val_set, device, supernet: bool, steps: int = 4) -> Speeds:
+def measure_speeds(config, train_set, val_set, device, supernet: bool, steps: int = 6) -> Speeds:
     """A few steps of the paper design with the study's recipe and, when one must be trained, of the
-    supernet with its recipe (on a throw-away file): seconds a step, the first step left out."""
+    supernet with its recipe (on a throw-away file): the median seconds a step, warm-up left out."""
     import tempfile
     from pathlib import Path
     import torch

@@ -80,3 +80,10 @@ def test_the_plan_says_what_it_will_do():
     text = plan(FAST).describe()
     assert "supernet" in text and "sampling 3.0 min" in text and "3 finalist(s) and 3 baseline(s)" in text
     assert dataclasses.asdict(plan(FAST))["limit_s"] == 900
+
+
+def test_a_step_is_timed_after_the_warm_up():
+    # step 1 ends at 0 s, step 2 took 2 s (a fresh process), then 0.5 s each with one outlier
+    marks = {1: 0.0, 2: 2.0, 3: 2.5, 4: 3.0, 5: 4.5, 6: 5.0}
+    assert planning._seconds_per_step(marks) == 0.5
+    assert planning._seconds_per_step({1: 0.0, 2: 1.0}) == 1.0
