@@ -502,6 +502,7 @@ def search(config: SearchConfig, storage_url: str | None = None, workers: int = 
         raise UserError("--workers must be at least 1")
     storage = open_storage(storage_url, config.study, workers, reports, max_retries=config.max_retries)
     plan = speeds = None
+    sampling_cap = timeout_s
     if config.supernet:
         ensure_supernet(config)  # a foreign or corrupt file is one line before anything is measured
     if time_limit is not None:
@@ -524,6 +525,13 @@ def search(config: SearchConfig, storage_url: str | None = None, workers: int = 
     supernet = ensure_supernet(config, on_supernet, on_data)
     if supernet is not None:
         study.set_user_attr("supernet", str(supernet.resolve()))
+    if plan is not None:
+        from explorer.planning import replan_sampling
+        plan = replan_sampling(plan, time_limit.remaining(), sampling_cap)
+        timeout_s = plan.sampling_s
+        study.set_user_attr("plan", plan.to_dict())
+        if on_plan:
+            on_plan(plan)
     t0 = time.time()
     deadline = None if timeout_s is None else t0 + timeout_s
     if workers == 1:
@@ -561,6 +569,8 @@ def search(config: SearchConfig, storage_url: str | None = None, workers: int = 
         config = dataclasses.replace(config, finalists=plan.finalists,
                                      finalist_steps=plan.finalist_steps if steps_free or not done else max(done))
         study.set_user_attr("plan", plan.to_dict())
+        if on_plan:
+            on_plan(plan)
     if config.finalists:
         from explorer.finalists import retrain_finalists
         retrain_finalists(study, config, reports, progress=on_finalist)

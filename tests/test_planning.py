@@ -27,8 +27,16 @@ def test_a_fast_machine_keeps_every_setting_and_finishes_early():
 def test_a_middling_machine_trains_a_shorter_supernet_on_the_step_grid():
     p = plan(dataclasses.replace(SLOW, supernet_step_s=0.9, retrain_step_s=0.1), remaining=16 * 60)
     assert planning.MIN_SUPERNET_STEPS < p.supernet_steps < 600 and p.supernet_steps % planning.STEP_GRID == 0
-    assert (p.sampling_s, p.finalists, p.finalist_steps) == (180.0, 3, 300)
+    assert (p.finalists, p.finalist_steps) == (3, 300)
+    assert planning.MIN_SAMPLING_S <= p.sampling_s < 180.0          # sampling gave way first
     assert p.expected_s <= 16 * 60 and any("supernet" in c for c in p.changes)
+
+
+def test_sampling_gives_way_before_the_supernet():
+    speeds = dataclasses.replace(SLOW, supernet_step_s=0.5, retrain_step_s=0.05)
+    p = plan(speeds, remaining=10 * 60)
+    assert p.supernet_steps == 600 and planning.MIN_SAMPLING_S <= p.sampling_s < 180.0
+    assert any("sampling" in c for c in p.changes) and not any("supernet" in c for c in p.changes)
 
 
 def test_a_slow_machine_shrinks_sampling_then_the_supernet_then_the_finalists():
@@ -87,3 +95,12 @@ def test_a_step_is_timed_after_the_warm_up():
     marks = {1: 0.0, 2: 2.0, 3: 2.5, 4: 3.0, 5: 4.5, 6: 5.0}
     assert planning._seconds_per_step(marks) == 0.5
     assert planning._seconds_per_step({1: 0.0, 2: 1.0}) == 1.0
+
+
+def test_sampling_is_replanned_to_what_the_supernet_left():
+    p = plan(SLOW, remaining=14 * 60)
+    assert planning.replan_sampling(p, 14 * 60 - p.supernet_s, 180.0) == p        # on time: unchanged
+    early = planning.replan_sampling(p, 14 * 60 - p.supernet_s / 2, 180.0)         # the supernet ran 2x faster
+    assert early.sampling_s > p.sampling_s and early.sampling_s <= 180.0 and "re-planned" in early.changes[-1]
+    late = planning.replan_sampling(p, 60, 180.0)
+    assert late.sampling_s == planning.MIN_SAMPLING_S

@@ -76,12 +76,16 @@ def cmd_search(args) -> None:
         def data(i: int, n: int) -> None:
             bar.update(task, status=f"generating synthetic scenes {i}/{n} (once, then cached)")
 
-        def planned(plan) -> None:
+        said = {"plan": False, "changes": 0}
+
+        def planned(plan) -> None:  # called again when a later phase re-plans: only what is new is said
             nonlocal timeout
             timeout = plan.sampling_s
-            err_console.print(plan.describe(), highlight=False)
-            for change in plan.changes:
+            if not said["plan"]:
+                err_console.print(plan.describe(), highlight=False)
+            for change in plan.changes[said["changes"]:]:
                 err_console.print(f"  to fit: {change}", highlight=False)
+            said.update(plan=True, changes=len(plan.changes))
 
         if limit is not None:
             bar.update(task, status="measuring this machine for --time-limit (a few training steps)")
