@@ -82,7 +82,8 @@ def test_a_time_limit_measures_the_machine_and_records_its_plan(tmp_path):
     out = search(dataclasses.replace(CFG, study="roomy"), n_trials=3, timeout_s=None, reports=tmp_path,
                  time_limit=limit, on_plan=seen.append)
     plan = out.study.user_attrs["plan"]
-    assert len(seen) == 1 and plan["supernet_steps"] == CFG.supernet_steps and plan["sampling_s"] > 0
+    assert seen and seen[-1].to_dict() == plan      # told at the start and at each re-plan; the last one stored
+    assert plan["supernet_steps"] == CFG.supernet_steps and plan["sampling_s"] > 0
     assert (out.config.finalists, out.config.finalist_steps) == (2, 5)      # time enough: as asked
     assert len([t for t in finalist_trials(out.study) if not t.user_attrs.get("baseline")]) == 2
     from explorer.report import write_report
