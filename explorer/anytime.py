@@ -254,6 +254,22 @@ def interval_probabilities(costs: Sequence[float], budget: str | BudgetDistribut
     return np.diff(edges)
 
 
+def exit_loss_weights(costs: Sequence[float], budget: str | BudgetDistribution, floor: float = 0.25
+                      ) -> tuple[float, ...]:
+    """Training-loss weights for paths 1..K that follow each path's weight in the anytime loss
+    (:func:`interval_probabilities`), mixed with equal weights by ``floor`` so that a path the budget
+    rarely reaches still learns (another budget or device may reach it). They sum to 1."""
+    if not 0.0 <= floor <= 1.0:
+        raise UserError(f"exit weight floor must lie in [0, 1], got {floor}")
+    share = interval_probabilities(costs, budget)[1:]
+    k = len(share)
+    if k == 0:
+        return ()
+    total = share.sum()
+    share = share / total if total > 0 else np.full(k, 1.0 / k)
+    return tuple(float(w) for w in (1.0 - floor) * share + floor / k)
+
+
 def anytime_loss(costs: Sequence[float], losses: Sequence[float], budget: str | BudgetDistribution) -> float:
     """Expected loss when inference halts at a budget drawn from ``budget``.
 

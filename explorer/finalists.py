@@ -52,14 +52,14 @@ def choose_finalists(study: optuna.Study, count: int) -> list[optuna.trial.Froze
 def retrain_finalists(study: optuna.Study, config, reports: Path,
                       progress: Callable[[int, int, str], None] | None = None) -> list[optuna.trial.FrozenTrial]:
     """Retrains the finalists and the baselines (those not retrained yet with this recipe)."""
-    from explorer.search import BASELINES, Objective
+    from explorer.search import Objective, baseline_model
     recipe = config.finalist_config()
     jobs: list[tuple[Candidate, str, optuna.trial.FrozenTrial | None]] = []
     for t in choose_finalists(study, config.finalists):
         jobs.append((Candidate.from_dict(t.user_attrs["candidate"]), "", t))
     if config.baselines:
         estimated = {t.user_attrs.get("baseline"): t for t in estimate_trials(study) if t.user_attrs.get("baseline")}
-        jobs += [(make(), name, estimated.get(name)) for name, make in BASELINES.items()]
+        jobs += [(baseline_model(name), name, estimated.get(name)) for name in config.baselines]
     done = {(t.user_attrs["candidate_key"], t.user_attrs.get("baseline", "")) for t in finalist_trials(study)
             if t.user_attrs[FINALIST].get("recipe") == recipe.to_dict()}
     todo = [j for j in jobs if (j[0].key, j[1]) not in done]
@@ -89,12 +89,13 @@ def _retrain(study: optuna.Study, objective, candidate: Candidate, baseline: str
     from explorer.search import _json_safe
     from explorer.train import train
     from explorer.model import build_network
+    from explorer.model.reference import ReferenceDepthNet
     folder.mkdir(parents=True, exist_ok=True)
     checkpoint = folder / f"{candidate.key}.pt"     # a kill resumes from here
     holder = optuna.trial.FixedTrial({})           # collects user attrs like a live trial
     cost, pm, latency = objective.describe(holder, candidate)
     torch.manual_seed(recipe.seed)
-    net = build_network(candidate)
+    net = build_network(candidate) if isinstance(candidate, Candidate) else ReferenceDepthNet(candidate.name)
     result = train(net, objective.train_set, objective.val_set, recipe, objective.torch_device,
                    checkpoint=checkpoint, val_limit=objective.config.val_limit)
     path_metrics = _json_safe(result.metrics.drop(columns=["path"]).to_dict("records"))

@@ -78,20 +78,24 @@ class Plan:
                 f"{retrain}")
 
 
-def retrain_seconds(speeds: Speeds, finalists: int, baselines: int, steps: int) -> float:
+def retrain_seconds(speeds: Speeds, finalists: int, baselines: float, steps: int) -> float:
+    """``baselines`` counts paper designs' worth of training (a reference network counts more)."""
     jobs = finalists * FINALIST_SIZE + baselines
     return SAFETY * jobs * (steps * speeds.retrain_step_s + speeds.retrain_eval_s) if jobs else 0.0
 
 
 def plan_run(remaining_s: float, limit_s: float, speeds: Speeds, *, sampling_s: float | None,
              supernet_steps: int, supernet_free: bool, supernet_cached: bool, finalists: int,
-             finalists_free: bool, finalist_steps: int, finalist_steps_free: bool, baselines: int,
-             trial_s: float = 0.0) -> Plan:
+             finalists_free: bool, finalist_steps: int, finalist_steps_free: bool, baselines: float,
+             trial_s: float = 0.0, baseline_count: int | None = None) -> Plan:
     """Sizes the run to ``remaining_s`` seconds. ``*_free`` says which settings the user left to the plan;
     ``sampling_s`` is the user's cap on sampling (None: none, the plan gives it what is left);
-    ``trial_s`` is how long a trial started just before the sampling deadline may run past it."""
+    ``trial_s`` is how long a trial started just before the sampling deadline may run past it;
+    ``baselines`` is their training in paper designs' worth, ``baseline_count`` how many they are."""
     changes: list[str] = []
-    baselines = baselines if finalists else 0   # the baselines are retrained beside finalists only
+    baseline_count = round(baselines) if baseline_count is None else baseline_count
+    if not finalists:   # the baselines are retrained beside finalists only
+        baselines, baseline_count = 0, 0
     budget = remaining_s - RESERVE_S - trial_s
     sampling_want = sampling_s if sampling_s is not None else math.inf
     sampling_min = min(MIN_SAMPLING_S, sampling_want)
@@ -133,7 +137,7 @@ def plan_run(remaining_s: float, limit_s: float, speeds: Speeds, *, sampling_s: 
         changes.append(f"sampling {sampling / 60:.1f} min instead of {sampling_want / 60:.1f}")
     plan = Plan(limit_s=limit_s, supernet_steps=supernet_steps, supernet_s=supernet_cost(supernet_steps),
                 sampling_s=sampling, finalists=finalists, finalist_steps=finalist_steps,
-                retrain_jobs=finalists + baselines if (finalists or baselines) else 0,
+                retrain_jobs=finalists + baseline_count if (finalists or baseline_count) else 0,
                 retrain_s=retrain(finalists, finalist_steps), changes=tuple(changes), trial_s=trial_s)
     if plan.expected_s > remaining_s + 1:
         plan = dataclasses.replace(plan, changes=plan.changes + (
@@ -153,9 +157,10 @@ def replan_sampling(plan: Plan, remaining_s: float, sampling_s: float | None) ->
         f"sampling re-planned after the supernet, with {remaining_s / 60:.1f} min left: {sampling / 60:.1f} min",))
 
 
-def replan_finalists(plan: Plan, remaining_s: float, speeds: Speeds, baselines: int, steps_free: bool,
-                     finalists_free: bool) -> Plan:
+def replan_finalists(plan: Plan, remaining_s: float, speeds: Speeds, baselines: float, steps_free: bool,
+                     finalists_free: bool, baseline_count: int | None = None) -> Plan:
     """The finalists' part, sized again to the time really left when sampling has ended."""
+    baseline_count = round(baselines) if baseline_count is None else baseline_count
     finalists, steps, changes = plan.finalists, plan.finalist_steps, list(plan.changes)
     budget = remaining_s - RESERVE_S
     while finalists_free and finalists > 1 and retrain_seconds(speeds, finalists, baselines, steps) > budget:
@@ -168,7 +173,7 @@ def replan_finalists(plan: Plan, remaining_s: float, speeds: Speeds, baselines: 
         changes.append(f"finalists re-planned with {remaining_s / 60:.1f} min left: {finalists} retrained "
                        f"{steps} steps")
     return dataclasses.replace(plan, finalists=finalists, finalist_steps=steps,
-                               retrain_jobs=finalists + baselines if (finalists or baselines) else 0,
+                               retrain_jobs=finalists + baseline_count if (finalists or baseline_count) else 0,
                                retrain_s=retrain_seconds(speeds, finalists, baselines, steps),
                                changes=tuple(changes))
 

@@ -18,6 +18,21 @@ BASELINE_LABELS = {"paper": "paper design", "paper-nee": "paper design, no early
                    "fastdepth": "FastDepth-like"}
 
 
+def baseline_label(name: str) -> str:
+    """How summaries and reports name a baseline (a reference network by its own name)."""
+    return BASELINE_LABELS.get(name, name)
+
+
+def study_baselines(study: optuna.Study) -> list[str]:
+    """The baselines a study was created to compare against (--baselines), in order; for a study made
+    with --no-baselines, the default ones (so that summaries can say why they are missing)."""
+    from explorer.search import DEFAULT_BASELINES
+    chosen = study.user_attrs.get("config", {}).get("baselines", True)
+    if isinstance(chosen, bool) or not chosen:
+        return list(DEFAULT_BASELINES)
+    return list(chosen)
+
+
 def compact_workloads(cost) -> dict:
     """What re-costing on any profile needs: per layer (stage, kind, MACs, bytes, params)."""
     stages = list(dict.fromkeys(w.stage for w in cost.workloads))
@@ -71,6 +86,11 @@ def _reason(t: optuna.trial.FrozenTrial, interrupted: dict[int, str], retries: d
     return reason
 
 
+def _reference_description(name: str | None) -> str:
+    from explorer.model.reference import REFERENCES
+    return REFERENCES[name].description if name in REFERENCES else ""
+
+
 def trials_frame(study: optuna.Study) -> pd.DataFrame:
     """One row per trial: state, objective value(s), baseline tag, candidate, params, MACs,
     per-path metrics and costs as stored, every recorded budget's anytime loss, and why a trial
@@ -86,7 +106,8 @@ def trials_frame(study: optuna.Study) -> pd.DataFrame:
                "baseline": ua.get("baseline", ""),
                "evaluator": (ua.get("evaluator") or {}).get("evaluator", "proxy" if "train" in ua else ""),
                "candidate_key": ua.get("candidate_key", ""),
-               "architecture": Candidate.from_dict(ua["candidate"]).describe() if "candidate" in ua else "",
+               "architecture": (Candidate.from_dict(ua["candidate"]).describe() if "candidate" in ua
+                                else _reference_description(ua.get("reference"))),
                "params": (ua.get("params") or [np.nan])[-1],
                "macs": (ua.get("macs") or [np.nan])[-1],
                "paths": len(ua.get("path_metrics", [])) or np.nan,
@@ -160,7 +181,7 @@ def finalists_frame(study: optuna.Study) -> pd.DataFrame:
         if not is_retrained(t):
             continue
         fin = t.user_attrs["finalist"]
-        rows.append({"model": BASELINE_LABELS.get(t.user_attrs.get("baseline", ""), "") or "finalist",
+        rows.append({"model": baseline_label(t.user_attrs["baseline"]) if t.user_attrs.get("baseline") else "finalist",
                      "candidate_key": t.user_attrs["candidate_key"], "estimate_trial": fin.get("estimate_trial"),
                      "estimated": fin.get("estimated"), "retrained": t.values[0], "trial": t.number})
     frame = pd.DataFrame(rows)
@@ -180,9 +201,10 @@ def missing_baselines(study: optuna.Study) -> list[dict]:
     trials = study.get_trials(deepcopy=False)
     scored = {t.user_attrs.get("baseline") for t in scored_trials(study)}
     interrupted = interrupted_trials(study, trials)
-    with_baselines = study.user_attrs.get("config", {}).get("baselines", True)
+    with_baselines = bool(study.user_attrs.get("config", {}).get("baselines", True))
     out = []
-    for name, label in BASELINE_LABELS.items():
+    for name in study_baselines(study):
+        label = baseline_label(name)
         if name in scored:
             continue
         tagged = [t for t in trials if t.user_attrs.get("baseline") == name]

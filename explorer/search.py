@@ -26,7 +26,7 @@ import optuna
 
 from explorer import __version__
 from explorer.anytime import anytime_loss, parse_budget
-from explorer.cost import candidate_cost, get_device
+from explorer.cost import candidate_cost, get_device, model_cost
 from explorer.errors import UserError
 from explorer.results import compact_workloads
 from explorer.space import (Candidate, SearchSpace, fastdepth_candidate, paper_candidate,
@@ -39,6 +39,20 @@ from explorer.train import PROXY, Pruned, TrainConfig, resolve_device
 
 BASELINES: dict[str, Callable[[], Candidate]] = {
     "paper": paper_candidate, "paper-nee": paper_nee_candidate, "fastdepth": fastdepth_candidate}
+#: what a study compares against unless told otherwise (--baselines)
+DEFAULT_BASELINES = tuple(BASELINES)
+
+
+def baseline_model(name: str):
+    """The candidate, or the reference network (:class:`~explorer.model.reference.ReferenceModel`),
+    that the baseline ``name`` stands for."""
+    from explorer.model.reference import REFERENCES, ReferenceModel
+    if name in BASELINES:
+        return BASELINES[name]()
+    if name in REFERENCES:
+        return ReferenceModel(name)
+    raise UserError(f"unknown baseline '{name}': use {', '.join(BASELINES)} or a reference network "
+                    f"({', '.join(REFERENCES)})")
 OBJECTIVES = ("anytime_loss", "params", "macs", "first_exit_ms")
 
 
@@ -65,7 +79,7 @@ class SearchConfig:
     seed: int = 0
     max_params: float | None = None
     max_first_exit_ms: float | None = None
-    baselines: bool = True
+    baselines: tuple[str, ...] = DEFAULT_BASELINES   # () = none (--no-baselines)
     pruning: bool = True
     keep_weights: bool = True
     accelerator: str = "auto"
@@ -80,10 +94,15 @@ class SearchConfig:
     def __post_init__(self) -> None:
         if self.evaluator == "auto":  # the supernet is trained with dense labels; self-supervision trains alone
             object.__setattr__(self, "evaluator", "supernet" if self.supervision == "supervised" else "proxy")
+        # studies made before --baselines stored on (True) or off (False)
+        baselines = self.baselines
+        if isinstance(baselines, bool):
+            baselines = DEFAULT_BASELINES if baselines else ()
+        object.__setattr__(self, "baselines", tuple(baselines))
 
     def to_dict(self) -> dict:
         d = dataclasses.asdict(self)
-        for k in ("budgets", "objectives", "input_size", "train_size"):
+        for k in ("budgets", "objectives", "input_size", "train_size", "baselines"):
             d[k] = list(d[k])
         return d
 
@@ -139,6 +158,15 @@ class SearchConfig:
             raise UserError("--finalists must be 0 (none) or more")
         if self.max_retries < 0:
             raise UserError("--max-retries must be 0 or more")
+        if len(set(self.baselines)) != len(self.baselines):
+            raise UserError(f"--baselines {','.join(self.baselines)}: a baseline is named twice")
+        for name in self.baselines:
+            model = baseline_model(name)
+            if not isinstance(model, Candidate):
+                stride = model.stride
+                if self.train_size[0] % stride or self.train_size[1] % stride:
+                    raise UserError(f"--baselines {name} needs --train-size divisible by {stride}, got "
+                                    f"{self.train_size[0]}x{self.train_size[1]} (e.g. 64x64)")
         self.train_config().validate()
         from explorer.data import parse_data_spec
         if self.supervision != "supervised" and not parse_data_spec(self.data).is_sequence:
@@ -195,7 +223,7 @@ class Objective:
     def candidate_for(self, trial: optuna.Trial) -> tuple[Candidate, str]:
         baseline = trial.user_attrs.get("baseline", "")
         if baseline:
-            return BASELINES[baseline](), baseline
+            return baseline_model(baseline), baseline
         return self.space.sample(trial), ""
 
     def losses_for(self, cost, path_losses: list[float]) -> dict[str, float]:
@@ -204,12 +232,14 @@ class Objective:
             out[dist.spec] = anytime_loss(cost.path_costs(self.device_profile, dist.kind), path_losses, dist)
         return out
 
-    def describe(self, trial, candidate: Candidate):
-        """Costs every path of ``candidate`` and stores what re-scoring needs on ``trial``."""
-        cost = candidate_cost(candidate, self.config.input_size)
+    def describe(self, trial, candidate):
+        """Costs every path of ``candidate`` (or of a reference network) and stores what re-scoring
+        needs on ``trial``."""
+        cost = model_cost(candidate, self.config.input_size)
         pm = cost.path_params_macs()
         latency = cost.path_latency_ms(self.device_profile)
-        attrs = {"candidate": candidate.to_dict(), "candidate_key": candidate.key, "params": [p for p, _ in pm],
+        what = {"candidate": candidate.to_dict()} if isinstance(candidate, Candidate) else {"reference": candidate.name}
+        attrs = {**what, "candidate_key": candidate.key, "params": [p for p, _ in pm],
                  "macs": [m for _, m in pm], "latency_ms": latency,
                  "energy_j": cost.path_energy_j(self.device_profile), "workloads": compact_workloads(cost)}
         for k, v in attrs.items():
@@ -341,8 +371,13 @@ def create_or_resume(config: SearchConfig, storage: optuna.storages.BaseStorage)
         study.set_user_attr("created", time.strftime("%Y-%m-%d %H:%M:%S"))
         if config.baselines:
             skipped = {}
-            for name, make in BASELINES.items():
-                if config.evaluator == "supernet" and not space.contains(make()):
+            for name in config.baselines:
+                model = baseline_model(name)
+                if not isinstance(model, Candidate):
+                    skipped[name] = ("a reference network, outside every space: it is compared after retraining "
+                                     "(finalists) only")
+                    continue
+                if config.evaluator == "supernet" and not space.contains(model):
                     skipped[name] = (f"outside the space '{space.name}': the supernet cannot estimate it, so it "
                                      "is compared after retraining (finalists) only")
                     continue
@@ -446,6 +481,18 @@ def _cached_supernet_steps(config: SearchConfig) -> list[int]:
     return found
 
 
+def baseline_load(config: SearchConfig) -> float:
+    """The baselines' retraining in paper designs' worth, for the time plan: a candidate counts one (as
+    measured), a reference network by its MACs at the training size against the paper design's."""
+    paper = candidate_cost(paper_candidate(), config.train_size).path_params_macs()[-1][1]
+    load = 0.0
+    for name in config.baselines:
+        model = baseline_model(name)
+        load += 1.0 if isinstance(model, Candidate) else max(
+            1.0, model_cost(model, config.train_size).path_params_macs()[-1][1] / paper)
+    return load
+
+
 def plan_search(config: SearchConfig, storage: optuna.storages.BaseStorage, limit: "TimeLimit",
                 sampling_s: float | None, on_data: Callable[[int, int], None] | None = None):
     """(config as it will run, plan, speeds): the data generated, the machine measured, the run sized
@@ -474,7 +521,7 @@ def plan_search(config: SearchConfig, storage: optuna.storages.BaseStorage, limi
             supernet_free=steps_free, supernet_cached=is_cached or not trains_supernet,
             finalists=config.finalists, finalists_free="finalists" in free, finalist_steps=config.finalist_steps,
             finalist_steps_free="finalist_steps" in free,
-            baselines=len(BASELINES) if config.baselines else 0, trial_s=trial_s)
+            baselines=baseline_load(config), baseline_count=len(config.baselines), trial_s=trial_s)
 
     chosen = plan(config.supernet_steps, "supernet_steps" in free, config.supernet_steps in cached)
     larger = [s for s in cached if s >= chosen.supernet_steps]
@@ -565,8 +612,9 @@ def search(config: SearchConfig, storage_url: str | None = None, workers: int = 
         from explorer.planning import replan_finalists
         done = [t.user_attrs["finalist"]["recipe"]["steps"] for t in finalist_trials(study)]
         steps_free = "finalist_steps" in time_limit.free and not done   # a resumed study keeps its recipe
-        plan = replan_finalists(plan, time_limit.remaining(), speeds, len(BASELINES) if config.baselines else 0,
-                                steps_free=steps_free, finalists_free="finalists" in time_limit.free)
+        plan = replan_finalists(plan, time_limit.remaining(), speeds, baseline_load(config),
+                                steps_free=steps_free, finalists_free="finalists" in time_limit.free,
+                                baseline_count=len(config.baselines))
         config = dataclasses.replace(config, finalists=plan.finalists,
                                      finalist_steps=plan.finalist_steps if steps_free or not done else max(done))
         study.set_user_attr("plan", plan.to_dict())

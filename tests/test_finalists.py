@@ -99,3 +99,27 @@ def test_a_time_limit_too_short_retrains_fewer_finalists_and_says_so(tmp_path):
     assert out.config.finalists == 1 and out.config.finalist_steps == 5   # never more steps than asked
     assert any("longer --time-limit" in c for c in out.study.user_attrs["plan"]["changes"])
     assert len([t for t in finalist_trials(out.study) if not t.user_attrs.get("baseline")]) == 1
+
+
+def test_a_reference_network_joins_the_study_as_a_baseline(tmp_path):
+    import dataclasses
+    from explorer.cost import profile_reference
+    from explorer.report import write_report
+    from explorer.results import missing_baselines, rescore, trials_frame
+    cfg = dataclasses.replace(CFG, study="refs", baselines=("paper", "fastdepth-pruned"), finalists=1)
+    out = search(cfg, n_trials=3, timeout_s=None, reports=tmp_path)
+    study = out.study
+    assert "fastdepth-pruned" in study.user_attrs["baselines_not_estimated"]   # outside every space
+    ref = baseline_trial(study, "fastdepth-pruned", retrained=True)
+    assert ref is not None and ref.user_attrs["reference"] == "fastdepth-pruned" and "candidate" not in ref.user_attrs
+    assert len(ref.user_attrs["path_metrics"]) == 2                            # the scan, then the network
+    expected = profile_reference("fastdepth-pruned", (64, 64), "tx2")["latency_ms"].iloc[0]
+    assert ref.user_attrs["latency_ms"] == pytest.approx([0.0, expected])
+    assert {t.user_attrs.get("baseline", "") for t in finalist_trials(study)} == {"", "paper", "fastdepth-pruned"}
+    assert missing_baselines(study) == []                                    # paper-nee was not asked for
+    assert "FastDepth after NetAdapt" in trials_frame(study).set_index("number").loc[ref.number, "architecture"]
+    again = rescore(study, "rpi4", ["time:uniform:100ms"])
+    assert "fastdepth-pruned" in set(again["baseline"])
+    html = write_report(study, out_dir=tmp_path / "report").read_text()
+    table2 = html.split('<section id="table2">')[1].split("</section>")[0]
+    assert "fastdepth-pruned" in table2 and "paper design" in table2

@@ -111,3 +111,35 @@ def test_fit_reproduces_shipped_profiles(shared_data, tmp_path):
             for field, value in cost.items():
                 assert fitted["kinds"][kind][field] == pytest.approx(value, rel=1e-3), (name, kind, field)
         assert fitted["provenance"]["checks"] == shipped["provenance"]["checks"]
+
+
+@pytest.mark.parametrize("name", ["s2d-resnet18", "monodepth2-resnet18", "fastdepth-pruned"])
+def test_reference_trains_as_a_two_path_network(name):
+    from explorer.model.exits import interpolate_scan
+    from explorer.model.reference import ReferenceDepthNet
+    from explorer.train import multi_exit_loss
+    torch.manual_seed(0)
+    net = ReferenceDepthNet(name)
+    image, scan = torch.rand(2, 3, 64, 96), torch.rand(2, 96) * 5
+    outs = net(image, scan, 40)
+    assert [tuple(o.shape) for o in outs] == [(2, 1, 64, 96)] * 2 and net.candidate.num_paths == 2
+    assert torch.equal(outs[0], interpolate_scan(scan, 64))
+    if name.startswith("monodepth2"):   # disparity turned into depth within MonoDepth2's range
+        assert float(outs[1].min()) >= 0.1 - 1e-5 and float(outs[1].max()) <= 100 + 1e-3
+    loss, _ = multi_exit_loss(outs, torch.rand(2, 1, 64, 96) * 5)
+    loss.backward()
+    # MonoDepth2's coarser disparity heads (scales 1-3) serve its self-supervised loss, not the output
+    coarse = ("disp.1.", "disp.2.", "disp.3.")
+    assert all((p.grad is not None) != k.startswith(coarse) for k, p in net.network.named_parameters())
+
+
+def test_sparse_to_dense_sees_the_scan_on_its_row():
+    from explorer.model.reference import ReferenceDepthNet
+    net = ReferenceDepthNet("s2d-resnet18").eval()
+    seen = []
+    net.network.encoder.register_forward_pre_hook(lambda m, args: seen.append(args[0]))
+    scan = torch.arange(1, 97, dtype=torch.float32)[None]
+    with torch.no_grad():
+        net(torch.rand(1, 3, 64, 96), scan, 40)
+    sparse = seen[0][0, 3]
+    assert torch.equal(sparse[40], scan[0]) and float(sparse.abs().sum()) == float(scan.sum())

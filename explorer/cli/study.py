@@ -24,7 +24,7 @@ def cmd_search(args) -> None:
         data=args.data, objectives=tuple(args.objectives.split(",")), metric=args.metric,
         input_size=args.input_size, train_size=args.train_size, train_steps=args.train_steps,
         batch_size=args.batch_size, seed=args.seed, max_params=args.max_params,
-        max_first_exit_ms=args.max_first_exit, baselines=not args.no_baselines,
+        max_first_exit_ms=args.max_first_exit, baselines=_baselines(args),
         pruning=not args.no_pruning, keep_weights=not args.no_weights, accelerator=args.accelerator,
         evaluator=args.evaluator, supernet=args.supernet,
         supernet_steps=600 if args.supernet_steps is None else args.supernet_steps,
@@ -100,13 +100,27 @@ def cmd_search(args) -> None:
     _print_outcome(outcome.study, cfg, outcome.storage_url, reports, args.report)
 
 
+def _baselines(args) -> tuple[str, ...]:
+    from explorer.search import DEFAULT_BASELINES
+    if args.no_baselines:
+        if args.baselines:
+            raise UserError("give --baselines NAMES or --no-baselines, not both")
+        return ()
+    if args.baselines is None:
+        return DEFAULT_BASELINES
+    names = tuple(n.strip() for n in args.baselines.split(",") if n.strip())
+    if not names:
+        raise UserError("--baselines needs at least one name (or use --no-baselines)")
+    return names
+
+
 def _print_retries(outcome, cfg) -> None:
     from explorer._console import err_console
-    from explorer.results import BASELINE_LABELS
+    from explorer.results import baseline_label
     trials = {t.number: t for t in outcome.study.get_trials(deepcopy=False)}
     def what(n: int) -> str:
         b = trials[n].user_attrs.get("baseline") if n in trials else None
-        return f"trial {n}" + (f" ({BASELINE_LABELS.get(b, b)})" if b else "")
+        return f"trial {n}" + (f" ({baseline_label(b)})" if b else "")
     for old, new in outcome.retried.items():
         err_console.print(f"{what(old)} was interrupted: tried again as trial {new}")
     for old in outcome.not_retried:
@@ -234,7 +248,11 @@ def register(sub, add, reports: dict) -> None:
                    help="deployment resolution for costs (default 224x224)")
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--accelerator", default="auto", choices=["auto", "cpu", "cuda"])
-    s.add_argument("--no-baselines", action="store_true")
+    s.add_argument("--baselines", default=None, metavar="NAMES",
+                   help="what the study compares against, comma-separated: paper, paper-nee, fastdepth and the "
+                   "reference networks of `explorer profile --help` (s2d-resnet18, monodepth2-resnet18, ...), "
+                   "which are retrained with the finalists' recipe (default paper,paper-nee,fastdepth)")
+    s.add_argument("--no-baselines", action="store_true", help="compare against nothing (no ratio to the paper design)")
     s.add_argument("--max-retries", type=int, default=2, help="try an interrupted trial (killed, Ctrl-C, "
                    "lost worker) again at most this many times (default 2); a trial that fails is not")
     s.add_argument("--no-pruning", action="store_true")

@@ -15,8 +15,8 @@ from explorer.model.network import stage_specs
 from explorer.space import Candidate
 
 __all__ = ["CandidateCost", "DeviceProfile", "KINDS", "Workload", "available_devices",
-           "candidate_cost", "candidate_workloads", "get_device", "profile_candidate", "profile_reference",
-           "reference_table",
+           "candidate_cost", "candidate_workloads", "get_device", "model_cost", "profile_candidate", "profile_reference",
+           "reference_cost", "reference_table",
            "reference_workloads"]
 
 
@@ -70,6 +70,21 @@ def candidate_cost(candidate: Candidate, input_size: tuple[int, int] = (224, 224
             path_stages.append(tuple(done))
             exits.append(spec.name)
     return CandidateCost(candidate, tuple(input_size), tuple(workloads), tuple(path_stages), tuple(exits))
+
+
+def reference_cost(name: str, input_size: tuple[int, int] = (224, 224)) -> CandidateCost:
+    """A reference network (:mod:`explorer.model.reference`) costed as a candidate with one path
+    beside path 0: what a study needs to score it as a baseline."""
+    from explorer.model.reference import ReferenceModel
+    return CandidateCost(ReferenceModel(name), tuple(input_size), reference_workloads(name, tuple(input_size)),
+                         (("network",),), ("output",))
+
+
+def model_cost(model, input_size: tuple[int, int] = (224, 224)) -> CandidateCost:
+    """:func:`candidate_cost` for a candidate, :func:`reference_cost` for a reference network."""
+    if isinstance(model, Candidate):
+        return candidate_cost(model, input_size)
+    return reference_cost(model.name, input_size)
 
 
 def profile_candidate(candidate: Candidate, input_size: tuple[int, int] = (224, 224),

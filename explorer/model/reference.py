@@ -279,3 +279,60 @@ def get_reference(name: str) -> Reference:
     except KeyError:
         raise UserError(f"unknown reference network '{name}' (and no such candidate or space file): "
                         f"known are {', '.join(REFERENCES)}") from None
+
+
+# -- as a study's baseline -------------------------------------------------------------------------
+@dataclass(frozen=True)
+class ReferenceModel:
+    """A reference network in a study: what its trials and checkpoints record in place of a candidate."""
+
+    name: str
+    num_paths: int = 2    # path 0 (the scan) and the network's one output
+
+    @property
+    def key(self) -> str:
+        return f"ref-{self.name}"
+
+    def to_dict(self) -> dict:
+        return {"reference": self.name}
+
+    @property
+    def stride(self) -> int:
+        return get_reference(self.name).stride
+
+    def describe(self) -> str:
+        return get_reference(self.name).description
+
+
+class ReferenceDepthNet(nn.Module):
+    """A reference network trained and evaluated as a candidate is: ``forward(image, scan, scan_row)``
+    returns [path 0 (the scan, nearest column, as every candidate has), the network's depth]. The
+    sparse-to-dense networks take the scan as their sparse depth channel (on its row, zeros
+    elsewhere), as Ma & Karaman feed sampled LiDAR depth; MonoDepth2's full-resolution disparity
+    becomes depth as MonoDepth2 does (1 / disparity scaled to 0.1-100 m)."""
+
+    MIN_DEPTH, MAX_DEPTH = 0.1, 100.0
+
+    def __init__(self, name: str) -> None:
+        super().__init__()
+        ref = get_reference(name)
+        self.candidate = ReferenceModel(name)
+        self.in_channels = ref.in_channels
+        self.stride = ref.stride
+        self.network = ref.build()
+
+    def forward(self, image: torch.Tensor, scan: torch.Tensor, scan_row: int | None = None) -> list[torch.Tensor]:
+        from explorer.model.exits import interpolate_scan
+        n, _, h, w = image.shape
+        if h % self.stride or w % self.stride:
+            raise UserError(f"{self.candidate.name} needs an input divisible by {self.stride}, got {h}x{w}")
+        x = image
+        if self.in_channels == 4:
+            sparse = image.new_zeros(n, 1, h, w)
+            sparse[:, 0, h // 2 if scan_row is None else int(scan_row), :] = scan.to(image.dtype)
+            x = torch.cat([image, sparse], dim=1)
+        out = self.network(x)
+        if isinstance(out, tuple):
+            lo, hi = 1.0 / self.MAX_DEPTH, 1.0 / self.MIN_DEPTH
+            out = 1.0 / (lo + (hi - lo) * out[-1])
+        return [interpolate_scan(scan, h).to(out.dtype), out]

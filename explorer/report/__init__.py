@@ -27,14 +27,26 @@ from explorer import __version__  # noqa: E402
 from explorer.anytime import anytime_curve, parse_budget  # noqa: E402
 from explorer.cost.devices import DeviceProfile, get_device  # noqa: E402
 from explorer.errors import UserError  # noqa: E402
-from explorer.results import (BASELINE_LABELS, baseline_trial, finalists_frame,  # noqa: E402
-                              is_retrained, missing_baselines, path_table, scored_trials, trial_anytime_loss,
+from explorer.results import (baseline_label, baseline_trial, finalists_frame,  # noqa: E402
+                              is_retrained, missing_baselines, path_table, scored_trials, study_baselines,
+                              trial_anytime_loss,
                               trial_losses, trial_path_costs, trials_frame, winner)
 from explorer.space import Candidate  # noqa: E402
 
 TABLE2_BUDGETS = ("time:uniform:100ms", "time:uniform:50ms", "time:uniform:33ms",
                   "energy:uniform:0.5J", "energy:uniform:0.25J")
 COLOURS = {"best": "#d62728", "paper": "#1f77b4", "paper-nee": "#7f7f7f", "fastdepth": "#2ca02c"}
+
+#: reference networks a study compares against take these, in the order the study names them
+OTHER_COLOURS = ("#9467bd", "#8c564b", "#e377c2", "#bcbd22", "#17becf", "#ff7f0e")
+
+
+def _colour(baseline: str) -> str:
+    if baseline in COLOURS:
+        return COLOURS[baseline]
+    from explorer.model.reference import REFERENCES
+    names = list(REFERENCES)
+    return OTHER_COLOURS[names.index(baseline) % len(OTHER_COLOURS)] if baseline in names else "k"
 
 
 def _png(fig) -> str:
@@ -47,7 +59,7 @@ def _png(fig) -> str:
 def _label(t: optuna.trial.FrozenTrial, best: optuna.trial.FrozenTrial | None) -> str:
     b = t.user_attrs.get("baseline")
     if b:
-        return BASELINE_LABELS.get(b, b)
+        return baseline_label(b)
     return f"best (trial {t.number})" if best is not None and t.number == best.number else f"trial {t.number}"
 
 
@@ -90,8 +102,8 @@ def _pareto(frame: pd.DataFrame, xcol: str, xlabel: str) -> str:
         fx, fy = zip(*front)
         ax.step(fx, fy, where="post", color="#d62728", lw=1.5, label="Pareto front")
     for _, r in done[done["baseline"] != ""].iterrows():
-        ax.scatter([r[xcol]], [r["value"]], marker="*", s=120, color=COLOURS.get(r["baseline"], "k"),
-                   label=BASELINE_LABELS.get(r["baseline"], r["baseline"]), zorder=3)
+        ax.scatter([r[xcol]], [r["value"]], marker="*", s=120, color=_colour(r["baseline"]),
+                   label=baseline_label(r["baseline"]), zorder=3)
     ax.set_xscale("log")
     ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
     ax.set_xlabel(xlabel)
@@ -186,8 +198,7 @@ def build_context(study: optuna.Study, devices: Sequence[str] | None = None,
     scored = scored_trials(study)
     ranked = sorted([t for t in scored if not t.user_attrs.get("baseline") and is_retrained(t) == retrained],
                     key=lambda t: t.values[0])[:3]
-    baselines = [t for name in ("paper", "paper-nee", "fastdepth")
-                 if (t := baseline_trial(study, name, retrained=retrained))]
+    baselines = [t for name in study_baselines(study) if (t := baseline_trial(study, name, retrained=retrained))]
     ctx: dict = {"study": study.study_name, "config": cfg, "states": states, "versions": _versions(),
                  "generated": time.strftime("%Y-%m-%d %H:%M:%S"), "figures": {}, "notes": [],
                  "evaluator": cfg.get("evaluator", "proxy"), "finalist_steps": cfg.get("finalist_steps"),
@@ -205,7 +216,7 @@ def build_context(study: optuna.Study, devices: Sequence[str] | None = None,
             ctx["finalists_tau"] = float(kendalltau(both["estimated"], both["retrained"]).statistic)
         ctx["finalists"] = _frame_html(fin, "finalists-table")
     for name, why in (study.user_attrs.get("baselines_not_estimated") or {}).items():
-        ctx["notes"].append(f"Baseline {BASELINE_LABELS.get(name, name)} has no search estimate: {why}.")
+        ctx["notes"].append(f"Baseline {baseline_label(name)} has no search estimate: {why}.")
     starts = [t.datetime_start for t in study.trials if t.datetime_start]
     ends = [t.datetime_complete for t in study.trials if t.datetime_complete]
     ctx["wall_time"] = f"{(max(ends) - min(starts)).total_seconds() / 60:.1f} min" if starts and ends else "n/a"
@@ -242,7 +253,7 @@ def build_context(study: optuna.Study, devices: Sequence[str] | None = None,
     curve_rows = []
     if best is not None:
         curve_rows.append((_label(best, best), best, COLOURS["best"]))
-    curve_rows += [(_label(t, best), t, COLOURS[t.user_attrs["baseline"]]) for t in baselines]
+    curve_rows += [(_label(t, best), t, _colour(t.user_attrs["baseline"])) for t in baselines]
     if curve_rows:
         ctx["figures"]["curve_time"] = _step_curves(curve_rows, primary, next(
             (d.spec for d in dists if d.kind == "time"), "time:uniform:33ms"))
