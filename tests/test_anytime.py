@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from explorer.anytime import (TruncatedNormal, Uniform, anytime_curve, anytime_loss,
+from explorer.anytime import (TruncatedNormal, Uniform, anytime_curve, anytime_loss, exit_loss_weights,
                               parse_budget)
 from explorer.errors import UserError
 
@@ -21,6 +21,17 @@ def test_path_beyond_budget_never_counts():
 def test_single_path_network():
     assert anytime_loss([0, 6], [0.9, 0.4], "time:uniform:12ms") == pytest.approx((0.9 * 6 + 0.4 * 6) / 12)
     assert anytime_loss([0], [0.9], "time:uniform:12ms") == pytest.approx(0.9)
+
+
+def test_exit_loss_weights_follow_each_exit_share_of_the_anytime_loss():
+    # U(0, 10): path 1 holds on [2, 5), path 2 on [5, 10), path 3 (at 12 ms) never
+    assert exit_loss_weights([0, 2, 5, 12], "time:uniform:10ms", floor=0.0) == pytest.approx((3 / 8, 5 / 8, 0.0))
+    mixed = exit_loss_weights([0, 2, 5, 12], "time:uniform:10ms", floor=0.3)
+    assert mixed == pytest.approx((0.7 * 3 / 8 + 0.1, 0.7 * 5 / 8 + 0.1, 0.1)) and sum(mixed) == pytest.approx(1)
+    # no exit within the budget at all: equal weights
+    assert exit_loss_weights([0, 20, 30], "time:uniform:10ms") == pytest.approx((0.5, 0.5))
+    with pytest.raises(UserError, match="floor"):
+        exit_loss_weights([0, 2], "time:uniform:10ms", floor=1.5)
 
 
 def test_energy_and_units():

@@ -108,6 +108,22 @@ def test_data_inspect_train_evaluate(run_cli, tmp_path):
     assert code == 0, err
     code, out, _ = run_cli("evaluate", ckpt, "--data", TINY_DATA, "--json")
     assert code == 0 and len(json.loads(out)["paths"]) >= 2
+    # exits weighted by their share of the anytime loss: recorded in the checkpoint's recipe
+    import torch
+    from explorer.anytime import exit_loss_weights
+    from explorer.cost import candidate_cost, get_device
+    cand = SearchSpace.from_yaml("tiny").enumerate().__next__()
+    weighted = tmp_path / "w.pt"
+    code, _, err = run_cli("train", cfile, "--data", TINY_DATA, "--steps", "2", "--batch-size", "8",
+                           "--input-size", "32x32", "--exit-weights", "anytime", "--device", "rpi4",
+                           "--budget", "time:uniform:50ms", "--out", weighted)
+    assert code == 0, err
+    stored = torch.load(weighted, weights_only=True)["train_config"]["exit_weights"]
+    expected = exit_loss_weights(candidate_cost(cand).path_costs(get_device("rpi4"), "time"), "time:uniform:50ms")
+    assert stored == pytest.approx(list(expected)) and len(stored) == cand.num_paths - 1
+    code, _, err = run_cli("train", cfile, "--data", TINY_DATA, "--steps", "2", "--exit-weights", "1,2,3,4,5,6,7",
+                           "--out", tmp_path / "x.pt")
+    assert code == 2 and "one per exit" in err and not (tmp_path / "x.pt").exists()
 
 
 def test_search_rescore_report_export_cli(run_cli, tmp_path):

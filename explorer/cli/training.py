@@ -24,8 +24,11 @@ def cmd_train(args) -> None:
                                  ("input_size", args.input_size), ("lr", args.lr), ("seed", args.seed))
                if v is not None}
     cfg = dataclasses.replace(cfg, **changes, supervision=args.supervision, poses=args.poses,
-                              scan_loss=not args.no_scan_loss)
+                              scan_loss=not args.no_scan_loss,
+                              exit_weights=_exit_weights(args.exit_weights, candidate, args.device, args.budget))
     cfg.validate()
+    if cfg.exit_weights:
+        console.print("exit loss weights: " + " ".join(f"{w:.3f}" for w in cfg.exit_weights))
     device = resolve_device(args.accelerator)
     with progress(transient=True) as bar:
         task = bar.add_task("generating synthetic scenes (once, then cached)", total=None, status="")
@@ -46,6 +49,25 @@ def cmd_train(args) -> None:
                        progress=lambda s, n, r: bar.update(task, completed=s, status=f"loss {r['loss']:.3f}"))
     console.print(f"saved {out} ({result.steps} steps, {result.images_per_second:.1f} images/s)")
     print_frame(result.metrics, "validation, per path" + ("" if cfg.metric else " (median-scaled: no scan term)"))
+
+
+def _exit_weights(spec: str, candidate, device: str, budget: str) -> tuple[float, ...] | None:
+    exits = candidate.num_paths - 1
+    if spec == "equal":
+        return None
+    if spec == "anytime":
+        from explorer.anytime import exit_loss_weights, parse_budget
+        from explorer.cost import candidate_cost, get_device
+        dist = parse_budget(budget)
+        return exit_loss_weights(candidate_cost(candidate).path_costs(get_device(device), dist.kind), dist)
+    try:
+        weights = tuple(float(w) for w in spec.split(","))
+    except ValueError:
+        raise UserError(f"--exit-weights {spec}: use equal, anytime or one number per exit (W1,W2,...)") from None
+    if len(weights) != exits or min(weights) < 0 or sum(weights) <= 0:
+        raise UserError(f"--exit-weights {spec}: give {exits} non-negative numbers, one per exit of "
+                        f"{candidate.key}, not all 0")
+    return weights
 
 
 def cmd_evaluate(args) -> None:
@@ -122,6 +144,13 @@ def register(sub, add, reports: dict) -> None:
     s.add_argument("--lr", type=float)
     s.add_argument("--seed", type=int)
     s.add_argument("--encoder-weights", help="MobileNet v1 state dict file to start the encoder from")
+    s.add_argument("--exit-weights", default="equal", metavar="equal|anytime|W1,W2,...",
+                   help="weights of the exits' losses: equal (default), anytime (each exit's share of the "
+                   "anytime loss for --device and --budget, mixed 3:1 with equal weights so that every exit "
+                   "learns), or one number per exit")
+    s.add_argument("--device", default="tx2", help="device profile for --exit-weights anytime (default tx2)")
+    s.add_argument("--budget", default="time:uniform:33ms",
+                   help="budget distribution for --exit-weights anytime (default time:uniform:33ms)")
     s.add_argument("--accelerator", default="auto", choices=["auto", "cpu", "cuda"])
     s.add_argument("--out", help="checkpoint path (resumes if it exists)")
     _add_supervision(s)
