@@ -1,10 +1,12 @@
 """Deployment on this machine: staged execution against one whole graph, onnxruntime against
-PyTorch eager, and the measured anytime loss against the one the host profile predicts.
+PyTorch eager, int8 against fp32 (speed and each path's RMSE), and the measured anytime loss against
+the one the host profile predicts.
 
     .venv/bin/python benchmarks/bench_runtime.py [--frames 16] [--deadlines 40]
 """
 
 import argparse
+import shutil
 import statistics
 import tempfile
 from pathlib import Path
@@ -17,7 +19,7 @@ from explorer.cost import candidate_cost
 from explorer.cost.calibrate import calibrate
 from explorer.cost.measure import session, time_call
 from explorer.data import open_dataset
-from explorer.deploy import export_network
+from explorer.deploy import Quantization, export_network
 from explorer.metrics import MetricAverager, depth_metrics
 from explorer.model import build_network
 from explorer.onnx_stages import example_inputs, export_whole
@@ -30,7 +32,8 @@ if __name__ == "__main__":
     ap.add_argument("--frames", type=int, default=16)
     ap.add_argument("--deadlines", type=int, default=40)
     ap.add_argument("--train-steps", type=int, default=100)
-    ap.add_argument("--skip-anytime", action="store_true", help="only the staged and eager timings")
+    ap.add_argument("--skip-anytime", action="store_true", help="only the staged, eager and int8 timings")
+    ap.add_argument("--skip-int8", action="store_true", help="no int8 export and timing")
     args = ap.parse_args()
     size = (224, 224)
     cand = paper_candidate()
@@ -69,6 +72,23 @@ if __name__ == "__main__":
             eager = time_call(lambda: net(img, scan), 2, 20)
         print(f"PyTorch eager {eager:.2f} ms ({torch.get_num_threads()} threads) vs onnxruntime whole graph {w:.2f} ms: "
               f"{eager / w:.2f}x (goal >= 3x)")
+
+        if not args.skip_int8:
+            q8 = out.parent / (out.name + "-int8")
+            m = export_network(net, q8, size, quantization=Quantization(data="synthetic", max_degradation=1.0))
+            runner8 = AnytimeRunner(q8)
+            fp32_ms, int8_ms = [], []
+            for rep in range(5):  # interleaved
+                fp32_ms.append(time_call(lambda: runner.run(env["image"][0], env["scan"][0]), 2, 20))
+                int8_ms.append(time_call(lambda: runner8.run(env["image"][0], env["scan"][0]), 2, 20))
+                print(f"  rep {rep + 1}: staged fp32 {fp32_ms[-1]:.2f} ms, int8 {int8_ms[-1]:.2f} ms: "
+                      f"{fp32_ms[-1] / int8_ms[-1]:.2f}x")
+            f, i = statistics.median(fp32_ms), statistics.median(int8_ms)
+            deg = m["quantization"]["rmse_degradation"]
+            print(f"int8 (static QDQ) vs fp32, staged, medians of 5: {i:.2f} vs {f:.2f} ms, {f / i:.2f}x (goal >= 1.8x); "
+                  f"RMSE change per path on {m['quantization']['evaluation']['frames']} frames: "
+                  f"{' '.join(f'{100 * d:+.1f}%' for d in deg)} (goal: last path within 2%)")
+            shutil.rmtree(q8)
 
         if args.skip_anytime:
             raise SystemExit(0)

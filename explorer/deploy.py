@@ -5,8 +5,11 @@ an exit, path 0 on its own), plus a manifest. Verified against PyTorch at export
 from __future__ import annotations
 
 import json
+import shutil
+import tempfile
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 import torch
@@ -36,9 +39,48 @@ def verify(graphs, net: AnytimeDepthNet, input_size: tuple[int, int], scan_row: 
     return max(float(np.abs(outs[f"depth_{p}"] - r).max()) for p, r in enumerate(ref))
 
 
+@dataclass(frozen=True)
+class Quantization:
+    """What ``explorer export --quantize int8`` asks for (see :mod:`explorer.quantize`)."""
+
+    data: str = "synthetic"
+    calibration_frames: int = 32
+    eval_frames: int = 64
+    max_degradation: float = 0.03
+    force: bool = False
+
+
 def export_network(net: AnytimeDepthNet, out_dir: Path, input_size: tuple[int, int],
                    scan_row: int | None = None, path_metrics: list[dict] | None = None,
-                   devices: Sequence[str] = ("tx2", "rpi4"), source: dict | None = None) -> dict:
+                   devices: Sequence[str] = ("tx2", "rpi4"), source: dict | None = None,
+                   quantization: Quantization | None = None,
+                   progress: Callable[[str], None] | None = None) -> dict:
+    """Writes the stage graphs and the manifest to ``out_dir``. With ``quantization`` the graphs are
+    int8, built and measured in a scratch folder first: a refused quantization leaves ``out_dir`` as
+    it was."""
+    if quantization is None:
+        return _export_fp32(net, out_dir, input_size, scan_row, path_metrics, devices, source)
+    from explorer.quantize import quantize_export
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(dir=out_dir.parent, prefix=f".{out_dir.name}.") as tmp:
+        scratch = Path(tmp)
+        manifest = _export_fp32(net, scratch, input_size, scan_row, path_metrics, devices, source)
+        q = quantization
+        manifest.update(quantize_export(scratch, q.data, q.calibration_frames, q.eval_frames, q.max_degradation,
+                                        q.force, progress))
+        manifest["path_metrics_trained"] = manifest["path_metrics"]
+        manifest["path_metrics"] = manifest["path_metrics_int8"]
+        (scratch / MANIFEST).write_text(json.dumps(manifest, indent=2))
+        out_dir.mkdir(parents=True, exist_ok=True)
+        old = out_dir / MANIFEST
+        old.unlink(missing_ok=True)    # a half-replaced folder never passes for a complete export
+        for f in sorted(scratch.iterdir(), key=lambda f: f.name == MANIFEST):
+            shutil.move(str(f), out_dir / f.name)
+    return manifest
+
+
+def _export_fp32(net: AnytimeDepthNet, out_dir: Path, input_size: tuple[int, int], scan_row: int | None,
+                 path_metrics: list[dict] | None, devices: Sequence[str], source: dict | None) -> dict:
     h, w = input_size
     if h % net.stride or w % net.stride:
         raise UserError(f"input {h}x{w} does not divide by the encoder stride {net.stride}")
@@ -69,23 +111,26 @@ def export_network(net: AnytimeDepthNet, out_dir: Path, input_size: tuple[int, i
         "path_metrics": path_metrics or [], "expected_cost": expected,
         "params": [p for p, _ in cost.path_params_macs()], "macs": [m for _, m in cost.path_params_macs()],
         "verification": {"max_abs_diff": diff, "tolerance": TOLERANCE}, "source": source or {},
+        "precision": "fp32",
     }
     (out_dir / MANIFEST).write_text(json.dumps(manifest, indent=2))
     return manifest
 
 
 def export_from_checkpoint(ckpt: Path, out_dir: Path, input_size: tuple[int, int] | None = None,
-                           devices: Sequence[str] | None = None) -> dict:
+                           devices: Sequence[str] | None = None, quantization: Quantization | None = None,
+                           progress: Callable[[str], None] | None = None) -> dict:
     from explorer.train import network_from_checkpoint
     net, state = network_from_checkpoint(ckpt)
     size = tuple(input_size or state["train_config"]["input_size"])
     return export_network(net, out_dir, size, devices=devices or ("tx2", "rpi4"),
-                          source={"checkpoint": str(ckpt)})
+                          source={"checkpoint": str(ckpt)}, quantization=quantization, progress=progress)
 
 
 def export_from_study(study_name: str, trial_number: int | None, out_dir: Path, storage: str | None,
                       reports: Path, input_size: tuple[int, int] | None = None,
-                      devices: Sequence[str] | None = None) -> dict:
+                      devices: Sequence[str] | None = None, quantization: Quantization | None = None,
+                      progress: Callable[[str], None] | None = None) -> dict:
     from explorer.results import best_trial, scored_trials, trial_network, winner
     from explorer.storage import load_study
     study = load_study(study_name, storage, reports)
@@ -104,4 +149,5 @@ def export_from_study(study_name: str, trial_number: int | None, out_dir: Path, 
     size = tuple(input_size or cfg.get("input_size", (224, 224)))
     devs = list(devices or dict.fromkeys([cfg.get("device", "tx2"), "tx2", "rpi4"]))
     return export_network(net, out_dir, size, path_metrics=trial.user_attrs.get("path_metrics"), devices=devs,
-                          source={"study": study_name, "trial": trial.number, "objective": trial.values[0]})
+                          source={"study": study_name, "trial": trial.number, "objective": trial.values[0]},
+                          quantization=quantization, progress=progress)

@@ -272,6 +272,9 @@ def trial_network(study: optuna.Study, trial: optuna.trial.FrozenTrial):
     from optuna.artifacts import FileSystemArtifactStore, download_artifact
     from explorer.errors import UserError
     from explorer.train import network_from_checkpoint
+    if trial.user_attrs.get("reference"):
+        raise UserError(f"trial {trial.number} is the reference network {trial.user_attrs['reference']}, a baseline "
+                        "for comparison: export a candidate's trial")
     artifact = trial.user_attrs.get("weights_artifact")
     root = study.user_attrs.get("artifacts_dir")
     if not artifact and (trial.user_attrs.get("evaluator") or {}).get("evaluator") == "supernet":

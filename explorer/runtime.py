@@ -259,7 +259,8 @@ def curve_check(model_dir: Path, data: str, device: str | None = None, frames: i
             measured[k] += part[k]
         if progress:
             progress(i + 1, len(grid))
-    result = {"candidate_key": cand.key, "device": profile.name, "provider": provider, "frames": len(items), "b_max_ms": b_max,
+    result = {"candidate_key": cand.key, "device": profile.name, "provider": provider,
+              "precision": runner.manifest.get("precision", "fp32"), "frames": len(items), "b_max_ms": b_max,
               "path_losses": losses, "predicted_costs_ms": costs,
               "predicted_anytime_loss": anytime_loss(costs, losses, f"time:uniform:{b_max}ms"),
               "measured": measured, "measured_anytime_loss": float(np.mean(measured["loss"]))}

@@ -110,3 +110,74 @@ def test_measured_curve_next_to_prediction(exported):
     assert res["measured_anytime_loss"] > 0 and res["predicted_anytime_loss"] > 0
     assert (out / "anytime_curve.json").is_file()
     assert _measured_curve(out / "anytime_curve.json")
+
+
+@pytest.fixture(scope="module")
+def int8_export(tmp_path_factory):
+    from explorer.deploy import Quantization
+    from conftest import TINY_DATA
+    out = tmp_path_factory.mktemp("int8")
+    torch.manual_seed(0)
+    net = build_network(CAND)
+    m = export_network(net, out / "m", (32, 48), quantization=Quantization(
+        data=TINY_DATA, calibration_frames=4, eval_frames=6, max_degradation=10.0))
+    return out / "m", m
+
+
+def test_int8_export_records_every_path_before_and_after(int8_export):
+    import onnx
+    from conftest import TINY_DATA
+    from explorer.quantize import _frames, path_metrics
+    out, m = int8_export
+    assert m["precision"] == "int8" and json.loads((out / "manifest.json").read_text()) == m
+    assert all(s["file"].endswith(".int8.onnx") and (out / s["file"]).is_file() for s in m["stages"])
+    assert all(f.name.endswith(".int8.onnx") for f in out.glob("*.onnx"))   # no fp32 graph left beside them
+    ops = {n.op_type for s in m["stages"][1:] for n in onnx.load(str(out / s["file"])).graph.node}
+    assert {"QuantizeLinear", "DequantizeLinear"} <= ops
+    q = m["quantization"]
+    assert q["calibration"]["frames"] == 4 and q["evaluation"]["frames"] == 6
+    assert len(m["path_metrics_fp32"]) == len(m["path_metrics_int8"]) == len(q["rmse_degradation"]) == CAND.num_paths
+    assert m["path_metrics"] == m["path_metrics_int8"]
+    # what the manifest says is what the int8 graphs give, and path 0 (no weights) is untouched
+    again = path_metrics(out, _frames(TINY_DATA, (32, 48), 6, "val"))
+    assert [p["rmse"] for p in again] == pytest.approx([p["rmse"] for p in m["path_metrics_int8"]], rel=1e-5)
+    assert q["rmse_degradation"][0] == 0.0
+    for before, after, d in zip(m["path_metrics_fp32"], m["path_metrics_int8"], q["rmse_degradation"]):
+        assert d == pytest.approx(after["rmse"] / before["rmse"] - 1) and d <= q["max_degradation"]
+
+
+def test_int8_runs_under_deadlines(int8_export):
+    out, _ = int8_export
+    runner = AnytimeRunner(out)
+    img, scan = np.zeros((3, 32, 48), np.float32), np.ones(48, np.float32)
+    assert runner.run(img, scan, deadline_ms=0).path == 0
+    assert runner.run(img, scan, deadline_ms=10_000).path == CAND.num_paths - 1
+
+
+def test_int8_past_the_degradation_limit_is_refused_and_changes_nothing(exported, tmp_path, monkeypatch):
+    import shutil
+    import explorer.quantize as quantize
+    from conftest import TINY_DATA
+    from explorer.deploy import Quantization
+    from explorer.errors import UserError
+    out, net = exported
+    target = tmp_path / "kept"
+    shutil.copytree(out, target)
+    before = {f.name: f.read_bytes() for f in target.iterdir()}
+    measured = iter([[{"rmse": 1.0}] * CAND.num_paths, [{"rmse": 1.0}, *[{"rmse": 1.1}] * (CAND.num_paths - 1)]])
+    monkeypatch.setattr(quantize, "path_metrics", lambda *a: [{"path": p, **r} for p, r in enumerate(next(measured))])
+    with pytest.raises(UserError, match=r"path 1's RMSE by 10\.0% .*--force"):
+        export_network(net, target, (32, 48), quantization=Quantization(data=TINY_DATA, calibration_frames=2,
+                                                                         eval_frames=2, max_degradation=0.03))
+    assert {f.name: f.read_bytes() for f in target.iterdir()} == before      # the fp32 export is intact
+    assert [p.name for p in tmp_path.iterdir()] == ["kept"]                 # no scratch folder left
+
+
+def test_int8_cli_options(run_cli, tmp_path):
+    code, _, err = run_cli("export", "--checkpoint", "x.pt", "--out", tmp_path / "o", "--quantize", "int4")
+    assert code == 2 and "--quantize int4" in err
+    code, _, err = run_cli("export", "--checkpoint", "x.pt", "--out", tmp_path / "o", "--force")
+    assert code == 2 and "--quantize int8 only" in err
+    code, _, err = run_cli("export", "--checkpoint", "x.pt", "--out", tmp_path / "o", "--quantize", "int8",
+                           "--max-degradation", "lots")
+    assert code == 2 and "not a percentage" in err

@@ -2,24 +2,56 @@
 
 from __future__ import annotations
 
+import argparse
 from pathlib import Path
 
 from explorer.errors import UserError
 from explorer.cli._common import _size, _ms
 
 
+def _percent(text: str) -> float:
+    try:
+        value = float(text.strip().rstrip("%"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"'{text}' is not a percentage (e.g. 3 or 3%)") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"'{text}': must be 0 or more")
+    return value
+
+
 def cmd_export(args) -> None:
-    from explorer._console import console
-    from explorer.deploy import export_from_checkpoint, export_from_study
+    from explorer._console import console, err_console, print_frame
+    from explorer.deploy import Quantization, export_from_checkpoint, export_from_study
     if bool(args.study) == bool(args.checkpoint):
         raise UserError("give either --study S (optionally --trial N) or --checkpoint FILE")
+    if args.quantize not in ("none", "int8"):
+        raise UserError(f"--quantize {args.quantize}: use int8 (or none, the default: fp32)")
+    quant = None
+    if args.quantize == "int8":
+        quant = Quantization(data=args.data or "synthetic", calibration_frames=args.calibration_frames,
+                             eval_frames=args.eval_frames, max_degradation=args.max_degradation / 100,
+                             force=args.force)
+    elif args.force or args.data:
+        raise UserError("--data and --force are read by --quantize int8 only")
+    say = lambda msg: err_console.print(msg)  # noqa: E731
     if args.study:
         manifest = export_from_study(args.study, args.trial, Path(args.out), args.storage,
-                                     Path(args.reports), args.input, args.device)
+                                     Path(args.reports), args.input, args.device, quant, say)
     else:
-        manifest = export_from_checkpoint(Path(args.checkpoint), Path(args.out), args.input, args.device)
+        manifest = export_from_checkpoint(Path(args.checkpoint), Path(args.out), args.input, args.device, quant, say)
     console.print(f"exported {len(manifest['stages'])} stage graphs to {args.out} "
+                  f"(max |onnx - torch| {manifest['verification']['max_abs_diff']:.2e} before quantization)"
+                  if quant else f"exported {len(manifest['stages'])} stage graphs to {args.out} "
                   f"(max |onnx - torch| {manifest['verification']['max_abs_diff']:.2e})")
+    if quant:
+        import pandas as pd
+        q = manifest["quantization"]
+        frame = pd.DataFrame({"path": range(len(q["rmse_degradation"])),
+                              "fp32 rmse": [m["rmse"] for m in manifest["path_metrics_fp32"]],
+                              "int8 rmse": [m["rmse"] for m in manifest["path_metrics_int8"]],
+                              "change %": [100 * d for d in q["rmse_degradation"]]})
+        print_frame(frame, f"int8 vs fp32 on {q['evaluation']['frames']} validation frames of {q['evaluation']['data']}"
+                    + (" (--force: over --max-degradation)" if q["forced"] else ""))
 
 
 def cmd_run(args) -> None:
@@ -47,6 +79,9 @@ def cmd_curve(args) -> None:
     m, p = res["measured_anytime_loss"], res["predicted_anytime_loss"]
     console.print(f"anytime loss U(0, {res['b_max_ms']:.1f} ms) on this machine: measured {m:.4f}, predicted by "
                   f"{res['device']} {p:.4f} ({m / p - 1:+.1%}); written to {Path(args.model) / 'anytime_curve.json'}")
+    if res["precision"] != "fp32":
+        console.print(f"(the model is {res['precision']}; the profile prices fp32 layers, so the prediction is an "
+                      "fp32 one)")
 
 
 def register(sub, add, reports: dict) -> None:
@@ -60,6 +95,16 @@ def register(sub, add, reports: dict) -> None:
     s.add_argument("--input-size", "--input", dest="input", type=_size, default=None,
                    help="input HxW (default: the study's input size)")
     s.add_argument("--device", action="append", help="devices whose expected costs go in the manifest")
+    s.add_argument("--quantize", default="none", metavar="int8",
+                   help="int8: static quantization (onnxruntime QDQ) calibrated on --data; every path's metrics "
+                   "are measured again and written beside the fp32 ones")
+    s.add_argument("--data", help="frames to calibrate (train split) and check (val split) int8 on "
+                   "(default synthetic)")
+    s.add_argument("--calibration-frames", type=int, default=32, help="frames to calibrate on (default 32)")
+    s.add_argument("--eval-frames", type=int, default=64, help="validation frames to compare on (default 64)")
+    s.add_argument("--max-degradation", type=_percent, default=3.0, metavar="PCT",
+                   help="refuse int8 if a path's RMSE grows by more than this (default 3%%)")
+    s.add_argument("--force", action="store_true", help="export int8 even past --max-degradation")
     s.add_argument("--reports", **reports)
 
     s = add("run", cmd_run, "run an exported model under a deadline and return the best depth map")

@@ -1,0 +1,135 @@
+"""int8 deployment: an exported model's stage graphs quantized statically with onnxruntime
+(QDQ format: int8 weights per output channel, uint8 activations whose ranges are calibrated on
+frames of a data set), and every path's metrics measured again after quantization.
+
+Each stage graph is calibrated on the inputs it really receives: the float model runs the
+calibration frames and every stage's inputs are kept. Only convolutions and matrix products are
+quantized; resizes, additions and concatenations stay float between them (onnxruntime fuses the
+QDQ pairs around each convolution into one int8 kernel). Path 0 (the scan) has nothing to quantize.
+"""
+
+from __future__ import annotations
+
+import tempfile
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from explorer.errors import UserError
+
+PRECISIONS = ("fp32", "int8")
+QUANTIZED_OPS = ["Conv", "ConvTranspose", "MatMul", "Gemm"]
+#: a path may lose at most this fraction of its RMSE to quantization unless --force
+MAX_DEGRADATION = 0.03
+
+
+def _frames(data: str, input_size: tuple[int, int], count: int, split: str) -> list[dict]:
+    from explorer.data import open_dataset
+    ds = open_dataset(data, split, input_size, train_augment=False)
+    if len(ds) == 0:
+        raise UserError(f"--data {data}: its {split} split has no frames to quantize with")
+    step = max(len(ds) // count, 1)   # spread over the split, not its first scenes only
+    return [ds[i] for i in range(0, len(ds), step)[:count]]
+
+
+def stage_inputs(model_dir: Path, frames: list[dict]) -> list[list[dict[str, np.ndarray]]]:
+    """For each stage graph of an exported model, the inputs it receives on each frame."""
+    from explorer.runtime import AnytimeRunner
+    runner = AnytimeRunner(model_dir, warmup=False)
+    per_stage: list[list[dict[str, np.ndarray]]] = [[] for _ in runner.sessions]
+    for f in frames:
+        img, scan = runner.check(f["image"].numpy(), f["scan"].numpy())
+        env = {"image": img, "scan": scan}
+        for k, (_, sess, ins, outs) in enumerate(runner.sessions):
+            per_stage[k].append({n: env[n] for n in ins})
+            env.update(zip(outs, sess.run(outs, {n: env[n] for n in ins})))
+    return per_stage
+
+
+class _Feeds:
+    """onnxruntime.quantization's CalibrationDataReader over recorded stage inputs."""
+
+    def __init__(self, feeds: list[dict[str, np.ndarray]]) -> None:
+        self._it = iter(feeds)
+
+    def get_next(self):
+        return next(self._it, None)
+
+
+def quantize_graph(src: Path, dst: Path, feeds: list[dict[str, np.ndarray]]) -> bool:
+    """Writes ``src`` quantized to ``dst``; False (and a plain copy) when it has nothing to quantize."""
+    import onnx
+    from onnxruntime.quantization import CalibrationMethod, QuantFormat, QuantType, quantize_static
+    from onnxruntime.quantization.shape_inference import quant_pre_process
+    if not any(n.op_type in QUANTIZED_OPS for n in onnx.load(str(src)).graph.node):
+        dst.write_bytes(src.read_bytes())
+        return False
+    with tempfile.TemporaryDirectory() as tmp:
+        prepared = Path(tmp) / "prepared.onnx"
+        quant_pre_process(str(src), str(prepared), skip_symbolic_shape=True)
+        quantize_static(str(prepared), str(dst), _Feeds(feeds), quant_format=QuantFormat.QDQ,
+                        activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8, per_channel=True,
+                        op_types_to_quantize=QUANTIZED_OPS, calibrate_method=CalibrationMethod.MinMax)
+    return True
+
+
+def path_metrics(model_dir: Path, frames: list[dict]) -> list[dict[str, float]]:
+    """Per-path metrics (FastDepth's conventions) of an exported model on ``frames``."""
+    from explorer.metrics import MetricAverager, depth_metrics
+    from explorer.runtime import AnytimeRunner
+    runner = AnytimeRunner(model_dir, warmup=False)
+    averagers = [MetricAverager() for _ in range(runner.manifest["paths"])]
+    for f in frames:
+        for p, depth in enumerate(runner.depths(f["image"].numpy(), f["scan"].numpy())):
+            averagers[p].add(depth_metrics(depth, f["depth"][0].numpy()))
+    return [{"path": p, **a.result()} for p, a in enumerate(averagers)]
+
+
+def quantize_export(model_dir: Path, data: str, calibration_frames: int = 32, eval_frames: int = 64,
+                    max_degradation: float = MAX_DEGRADATION, force: bool = False,
+                    progress: Callable[[str], None] | None = None) -> dict:
+    """Turns the fp32 export in ``model_dir`` (a scratch folder) into an int8 one in place and returns
+    what the manifest records: per-path metrics before and after on ``eval_frames`` validation frames,
+    each path's RMSE degradation, the calibration. Refuses (UserError) when a path degrades by more than
+    ``max_degradation`` unless ``force``."""
+    import json
+    from explorer.runtime import MANIFEST
+    if calibration_frames < 1 or eval_frames < 1:
+        raise UserError("--calibration-frames and --eval-frames must be at least 1")
+    if not 0 <= max_degradation:
+        raise UserError(f"--max-degradation must be 0 or more, got {max_degradation}")
+    manifest = json.loads((model_dir / MANIFEST).read_text())
+    size = tuple(manifest["input_size"])
+    say = progress or (lambda _: None)
+    say(f"calibrating on {calibration_frames} training frames of {data}")
+    calib = stage_inputs(model_dir, _frames(data, size, calibration_frames, "train"))
+    evaluation = _frames(data, size, eval_frames, "val")
+    say(f"measuring the fp32 paths on {len(evaluation)} validation frames")
+    before = path_metrics(model_dir, evaluation)
+    quantized = []
+    for k, stage in enumerate(manifest["stages"]):
+        say(f"quantizing {stage['file']}")
+        src = model_dir / stage["file"]
+        dst = src.with_name(src.stem + ".int8.onnx")
+        if quantize_graph(src, dst, calib[k]):
+            quantized.append(stage["file"])
+        src.unlink()
+        stage["file"] = dst.name
+    (model_dir / MANIFEST).write_text(json.dumps(manifest, indent=2))
+    say(f"measuring the int8 paths on {len(evaluation)} validation frames")
+    after = path_metrics(model_dir, evaluation)
+    degradation = [a["rmse"] / b["rmse"] - 1 if b["rmse"] > 0 else 0.0 for a, b in zip(after, before)]
+    worst = int(np.argmax(degradation))
+    if degradation[worst] > max_degradation and not force:
+        raise UserError(f"int8 degrades path {worst}'s RMSE by {degradation[worst]:.1%} (> --max-degradation "
+                        f"{max_degradation:.0%}; {before[worst]['rmse']:.4f} -> {after[worst]['rmse']:.4f} m): "
+                        "not exported; keep fp32, calibrate on more frames, or add --force")
+    return {"precision": "int8", "stages": manifest["stages"], "path_metrics_fp32": before, "path_metrics_int8": after,
+            "quantization": {"method": "onnxruntime static QDQ: int8 weights per channel, uint8 activations "
+                                       "(MinMax calibration), ops " + ", ".join(QUANTIZED_OPS),
+                             "calibration": {"data": data, "split": "train", "frames": len(calib[0]) if calib else 0},
+                             "evaluation": {"data": data, "split": "val", "frames": len(evaluation)},
+                             "rmse_degradation": degradation, "max_degradation": max_degradation,
+                             "forced": bool(force and degradation[worst] > max_degradation),
+                             "quantized_graphs": quantized}}
