@@ -43,11 +43,11 @@ def scale_ratio(net, dataset) -> float:
     return statistics.median(ratios)
 
 
-def run(kind: str, seed: int, steps: int, batch: int, train_set, val_set) -> dict:
+def run(kind: str, seed: int, steps: int, batch: int, train_set, val_set, poses: str = "net") -> dict:
     supervision, scan_loss = {"supervised": ("supervised", True), "self+scan": ("self", True),
                               "self, no scan": ("self", False)}[kind]
     cfg = dataclasses.replace(PROXY, steps=steps, batch_size=batch, input_size=SIZE, seed=seed,
-                              supervision=supervision, scan_loss=scan_loss)
+                              supervision=supervision, scan_loss=scan_loss, poses=poses)
     torch.manual_seed(seed)
     net = build_network(paper_candidate())
     t0 = time.perf_counter()
@@ -72,6 +72,8 @@ if __name__ == "__main__":
     ap.add_argument("--val", type=int, default=48)
     ap.add_argument("--scan-weight", type=float, default=None,
                     help="weight of the scan term (default: explorer.selfsup.SCAN_WEIGHT)")
+    ap.add_argument("--poses", default="net", choices=["net", "given"],
+                    help="self-supervision's camera motion: the pose network (default) or the data's poses")
     ap.add_argument("--kinds", default="supervised,self+scan,noscan",
                     help="which trainings, comma-separated: supervised, self+scan, noscan (default all three)")
     args = ap.parse_args()
@@ -95,7 +97,7 @@ if __name__ == "__main__":
     results = {k: [] for k in kinds}
     for seed in range(args.seeds):
         for kind in kinds:  # interleaved: machine load drifts over the run
-            r = run(kind, seed, args.steps, args.batch, train_set, val_set)
+            r = run(kind, seed, args.steps, args.batch, train_set, val_set, args.poses)
             results[kind].append(r)
             extra = (f", scale gt/pred {r['scale_ratio']:.3f}, median-scaled RMSE "
                      f"{r['median_scaled_rmse'][-1]:.3f}") if "scale_ratio" in r else ""
