@@ -163,10 +163,10 @@ class SearchConfig:
         for name in self.baselines:
             model = baseline_model(name)
             if not isinstance(model, Candidate):
-                stride = model.stride
-                if self.train_size[0] % stride or self.train_size[1] % stride:
-                    raise UserError(f"--baselines {name} needs --train-size divisible by {stride}, got "
-                                    f"{self.train_size[0]}x{self.train_size[1]} (e.g. 64x64)")
+                h, w = self.train_size
+                if h % model.stride or w % model.stride or min(h, w) < model.min_side:
+                    raise UserError(f"--baselines {name} needs --train-size sides divisible by {model.stride} and "
+                                    f"at least {model.min_side}, got {h}x{w} (e.g. 64x64)")
         self.train_config().validate()
         from explorer.data import parse_data_spec
         if self.supervision != "supervised" and not parse_data_spec(self.data).is_sequence:

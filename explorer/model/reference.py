@@ -249,6 +249,7 @@ class Reference:
     in_channels: int
     paper: PaperFigure | None = None
     stride: int = 32
+    min_side: int = 32      # smallest input side it runs at (reflection padding needs 2 pixels at stride 32)
 
     def input_shape(self, input_size: tuple[int, int]) -> tuple[int, int, int, int]:
         return (1, self.in_channels, *input_size)
@@ -269,7 +270,7 @@ REFERENCES: dict[str, Reference] = {r.name: r for r in (
     Reference("s2d-resnet18-upproj", "sparse-to-dense, Ma & Karaman: RGB-D, ResNet-18, UpProj decoder",
               lambda: SparseToDense(18, "upproj"), 4),
     Reference("monodepth2-resnet18", "MonoDepth2 depth network (ResNet-18 + depth decoder, 4 disparity scales)",
-              MonoDepth2, 3, PaperFigure((192, 640), 77.26, 15.24, 8.051)),
+              MonoDepth2, 3, PaperFigure((192, 640), 77.26, 15.24, 8.051), min_side=64),
 )}
 
 
@@ -300,6 +301,10 @@ class ReferenceModel:
     def stride(self) -> int:
         return get_reference(self.name).stride
 
+    @property
+    def min_side(self) -> int:
+        return get_reference(self.name).min_side
+
     def describe(self) -> str:
         return get_reference(self.name).description
 
@@ -324,8 +329,9 @@ class ReferenceDepthNet(nn.Module):
     def forward(self, image: torch.Tensor, scan: torch.Tensor, scan_row: int | None = None) -> list[torch.Tensor]:
         from explorer.model.exits import interpolate_scan
         n, _, h, w = image.shape
-        if h % self.stride or w % self.stride:
-            raise UserError(f"{self.candidate.name} needs an input divisible by {self.stride}, got {h}x{w}")
+        if h % self.stride or w % self.stride or min(h, w) < self.candidate.min_side:
+            raise UserError(f"{self.candidate.name} needs sides divisible by {self.stride} and at least "
+                            f"{self.candidate.min_side}, got {h}x{w}")
         x = image
         if self.in_channels == 4:
             sparse = image.new_zeros(n, 1, h, w)
