@@ -44,6 +44,12 @@ class Speeds:
     retrain_step_s: float        # the paper design, the study's training recipe
     retrain_eval_s: float        # its validation pass after training
     supernet_step_s: float       # one sandwich step (0 when no supernet is trained)
+    reference_step_s: tuple[tuple[str, float], ...] = ()   # reference baselines, same recipe
+
+    def relative_training(self, reference: str) -> float | None:
+        """A reference network's training step over the paper design's, if it was measured."""
+        step = dict(self.reference_step_s).get(reference)
+        return step / self.retrain_step_s if step and self.retrain_step_s > 0 else None
 
 
 @dataclass(frozen=True)
@@ -189,9 +195,11 @@ def _seconds_per_step(marks: dict[int, float]) -> float:
     return statistics.median(times) if times else 0.0
 
 
-def measure_speeds(config, train_set, val_set, device, supernet: bool, steps: int = 6) -> Speeds:
-    """A few steps of the paper design with the study's recipe and, when one must be trained, of the
-    supernet with its recipe (on a throw-away file): the median seconds a step, warm-up left out."""
+def measure_speeds(config, train_set, val_set, device, supernet: bool, steps: int = 6,
+                   references: tuple[str, ...] = ()) -> Speeds:
+    """A few steps of the paper design with the study's recipe, of each reference network in
+    ``references`` (baselines) with the same recipe and, when one must be trained, of the supernet
+    with its recipe (on a throw-away file): the median seconds a step, warm-up left out."""
     import tempfile
     from pathlib import Path
     import torch
@@ -207,6 +215,14 @@ def measure_speeds(config, train_set, val_set, device, supernet: bool, steps: in
                    val_limit=config.val_limit)
     retrain_step = _seconds_per_step(marks)
     retrain_eval = max(time.perf_counter() - t0 - result.seconds, 0.0)
+    reference_steps = []
+    for name in references:
+        from explorer.model.reference import ReferenceDepthNet
+        marks = {}
+        torch.manual_seed(0)
+        train(ReferenceDepthNet(name), train_set, val_set, recipe, device, val_limit=1,
+              progress=lambda s, n, r: marks.setdefault(s, time.perf_counter()))
+        reference_steps.append((name, _seconds_per_step(marks)))
     supernet_step = 0.0
     if supernet:
         from explorer.supernet import train_supernet
@@ -216,7 +232,7 @@ def measure_speeds(config, train_set, val_set, device, supernet: bool, steps: in
                            dataclasses.replace(config.supernet_recipe(), steps=steps), Path(tmp) / "probe.pt",
                            device, progress=lambda s, n, r: marks.setdefault(s, time.perf_counter()))
         supernet_step = _seconds_per_step(marks)
-    return Speeds(retrain_step, retrain_eval, supernet_step)
+    return Speeds(retrain_step, retrain_eval, supernet_step, tuple(reference_steps))
 
 
 @dataclass(frozen=True)

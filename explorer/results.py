@@ -28,9 +28,10 @@ def study_baselines(study: optuna.Study) -> list[str]:
     with --no-baselines, the default ones (so that summaries can say why they are missing)."""
     from explorer.search import DEFAULT_BASELINES
     chosen = study.user_attrs.get("config", {}).get("baselines", True)
-    if isinstance(chosen, bool) or not chosen:
-        return list(DEFAULT_BASELINES)
-    return list(chosen)
+    names = list(DEFAULT_BASELINES) if isinstance(chosen, bool) or not chosen else list(chosen)
+    # a resumed run may have been given more (--baselines): they have trials of their own
+    tagged = (t.user_attrs.get("baseline") for t in study.get_trials(deepcopy=False))
+    return list(dict.fromkeys(names + [b for b in tagged if b]))
 
 
 def compact_workloads(cost) -> dict:

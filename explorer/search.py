@@ -481,14 +481,20 @@ def _cached_supernet_steps(config: SearchConfig) -> list[int]:
     return found
 
 
-def baseline_load(config: SearchConfig) -> float:
-    """The baselines' retraining in paper designs' worth, for the time plan: a candidate counts one (as
-    measured), a reference network by its MACs at the training size against the paper design's."""
+def baseline_load(config: SearchConfig, speeds=None) -> float:
+    """The baselines' retraining in paper designs' worth, for the time plan: a candidate counts one,
+    a reference network its measured training step over the paper design's (``speeds``), or without a
+    measurement its MACs at the training size over the paper design's (which over-counts the ResNets:
+    1.52x measured against 3.34x by MACs for S2D-ResNet-18, benchmarks/bench_baseline_training.py)."""
     paper = candidate_cost(paper_candidate(), config.train_size).path_params_macs()[-1][1]
     load = 0.0
     for name in config.baselines:
         model = baseline_model(name)
-        load += 1.0 if isinstance(model, Candidate) else max(
+        if isinstance(model, Candidate):
+            load += 1.0
+            continue
+        measured = speeds.relative_training(name) if speeds is not None else None
+        load += measured if measured is not None else max(
             1.0, model_cost(model, config.train_size).path_params_macs()[-1][1] / paper)
     return load
 
@@ -510,8 +516,10 @@ def plan_search(config: SearchConfig, storage: optuna.storages.BaseStorage, limi
     trains_supernet = config.evaluator == "supernet" and not config.supernet
     cached = _cached_supernet_steps(config) if trains_supernet else []
     must_measure_supernet = trains_supernet and ("supernet_steps" in free or config.supernet_steps not in cached)
+    references = tuple(n for n in config.baselines if not isinstance(baseline_model(n), Candidate)) \
+        if config.finalists else ()
     speeds = planning.measure_speeds(config, train_set, val_set, resolve_device(config.accelerator),
-                                     supernet=must_measure_supernet)
+                                     supernet=must_measure_supernet, references=references)
     trial_s = 0.0 if config.evaluator == "supernet" else planning.SAFETY * (
         config.train_steps * speeds.retrain_step_s + speeds.retrain_eval_s)
 
@@ -521,7 +529,7 @@ def plan_search(config: SearchConfig, storage: optuna.storages.BaseStorage, limi
             supernet_free=steps_free, supernet_cached=is_cached or not trains_supernet,
             finalists=config.finalists, finalists_free="finalists" in free, finalist_steps=config.finalist_steps,
             finalist_steps_free="finalist_steps" in free,
-            baselines=baseline_load(config), baseline_count=len(config.baselines), trial_s=trial_s)
+            baselines=baseline_load(config, speeds), baseline_count=len(config.baselines), trial_s=trial_s)
 
     chosen = plan(config.supernet_steps, "supernet_steps" in free, config.supernet_steps in cached)
     larger = [s for s in cached if s >= chosen.supernet_steps]
@@ -612,7 +620,7 @@ def search(config: SearchConfig, storage_url: str | None = None, workers: int = 
         from explorer.planning import replan_finalists
         done = [t.user_attrs["finalist"]["recipe"]["steps"] for t in finalist_trials(study)]
         steps_free = "finalist_steps" in time_limit.free and not done   # a resumed study keeps its recipe
-        plan = replan_finalists(plan, time_limit.remaining(), speeds, baseline_load(config),
+        plan = replan_finalists(plan, time_limit.remaining(), speeds, baseline_load(config, speeds),
                                 steps_free=steps_free, finalists_free="finalists" in time_limit.free,
                                 baseline_count=len(config.baselines))
         config = dataclasses.replace(config, finalists=plan.finalists,

@@ -3,6 +3,8 @@
 import dataclasses
 import math
 
+import pytest
+
 from explorer import planning
 from explorer.planning import Speeds, plan_run, replan_finalists
 
@@ -104,3 +106,27 @@ def test_sampling_is_replanned_to_what_the_supernet_left():
     assert early.sampling_s > p.sampling_s and early.sampling_s <= 180.0 and "re-planned" in early.changes[-1]
     late = planning.replan_sampling(p, 60, 180.0)
     assert late.sampling_s == planning.MIN_SAMPLING_S
+
+
+def test_reference_baselines_are_planned_by_their_measured_training_step():
+    from explorer.search import SearchConfig, baseline_load
+    cfg = SearchConfig(study="x", baselines=("paper", "s2d-resnet18"))
+    measured = Speeds(0.1, 1.0, 0.2, reference_step_s=(("s2d-resnet18", 0.15),))
+    assert baseline_load(cfg, measured) == pytest.approx(1.0 + 1.5)
+    by_macs = baseline_load(cfg)                     # no measurement: its MACs over the paper design's
+    assert by_macs > 2.0 and baseline_load(SearchConfig(study="x")) == 3.0
+
+
+def test_the_machine_is_measured_for_each_reference_baseline():
+    import torch
+    from conftest import TINY_DATA
+    from explorer.data import open_dataset
+    from explorer.search import SearchConfig
+    cfg = SearchConfig(study="x", space="tiny", data=TINY_DATA, train_size=(32, 32), batch_size=4, val_limit=4)
+    tr = open_dataset(TINY_DATA, "train", (32, 32))
+    va = open_dataset(TINY_DATA, "val", (32, 32), train_augment=False)
+    speeds = planning.measure_speeds(cfg, tr, va, torch.device("cpu"), supernet=False, steps=4,
+                                     references=("fastdepth-pruned",))
+    assert [name for name, _ in speeds.reference_step_s] == ["fastdepth-pruned"]
+    assert speeds.reference_step_s[0][1] > 0 and speeds.relative_training("fastdepth-pruned") > 0
+    assert speeds.relative_training("s2d-resnet18") is None and speeds.supernet_step_s == 0
