@@ -1,6 +1,7 @@
 """Thread pools for the staged runtime (issue 11): the paper design's stage graphs chained, and its
 whole graph, with one intra-op pool per session (spinning off, what explorer.runtime does), a pool
-per session with spinning on, and onnxruntime's global thread pool shared by every session. A
+per session with spinning on, onnxruntime's global thread pool shared by every session, and a pool
+per session without the NCHWc layout transforms (what the stage boundaries cost them). A
 process can use the global pool only for all its sessions, so each variant runs in its own fresh
 process (staged and whole interleaved call by call), alternating, --reps times; every repetition
 and the medians are printed, with the staged overhead over the whole graph per variant.
@@ -19,7 +20,7 @@ import tempfile
 import time
 from pathlib import Path
 
-VARIANTS = ("per-session", "per-session-spinning", "global")
+VARIANTS = ("per-session", "per-session-spinning", "global", "per-session-no-layout")
 
 
 def _chain_ms(model_dir: Path, variant: str, threads: int) -> tuple[float, float]:
@@ -32,7 +33,9 @@ def _chain_ms(model_dir: Path, variant: str, threads: int) -> tuple[float, float
     sessions = []
     for file in [stage["file"] for stage in manifest["stages"]] + ["whole.onnx"]:
         opts = ort.SessionOptions()
-        opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+        # no-layout: without the NCHWc layout transforms (ENABLE_EXTENDED), what stage boundaries cost them
+        opts.graph_optimization_level = (ort.GraphOptimizationLevel.ORT_ENABLE_EXTENDED if "no-layout" in variant
+                                         else ort.GraphOptimizationLevel.ORT_ENABLE_ALL)
         opts.log_severity_level = 3
         if variant == "global":
             opts.use_per_session_threads = False
@@ -69,6 +72,7 @@ if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--reps", type=int, default=3)
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--variants", default=",".join(VARIANTS), help=f"comma-separated, of {', '.join(VARIANTS)}")
     ap.add_argument("--child", nargs=2, metavar=("DIR", "VARIANT"), help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.child:
@@ -78,23 +82,24 @@ if __name__ == "__main__":
     from explorer.model import build_network
     from explorer.onnx_stages import export_whole
     from explorer.space import paper_candidate
-    staged: dict[str, list[float]] = {v: [] for v in VARIANTS}
-    whole: dict[str, list[float]] = {v: [] for v in VARIANTS}
+    variants = [v for v in args.variants.split(",") if v in VARIANTS]
+    staged: dict[str, list[float]] = {v: [] for v in variants}
+    whole: dict[str, list[float]] = {v: [] for v in variants}
     with tempfile.TemporaryDirectory() as tmp:
         net = build_network(paper_candidate())
         export_network(net, Path(tmp), (224, 224), devices=("tx2",))
         (Path(tmp) / "whole.onnx").write_bytes(export_whole(net, (224, 224)))
         for rep in range(args.reps):
-            for variant in VARIANTS:   # alternating fresh processes
+            for variant in variants:   # alternating fresh processes
                 out = subprocess.run([sys.executable, __file__, "--threads", str(args.threads), "--child", tmp,
                                       variant], capture_output=True, text=True, check=True)
                 s, w = (float(x) for x in out.stdout.strip().splitlines()[-1].split())
                 staged[variant].append(s)
                 whole[variant].append(w)
             print(f"rep {rep + 1}: " + ", ".join(f"{v} staged {staged[v][-1]:.2f} / whole {whole[v][-1]:.2f} ms "
-                                                 f"({staged[v][-1] / whole[v][-1] - 1:+.1%})" for v in VARIANTS),
+                                                 f"({staged[v][-1] / whole[v][-1] - 1:+.1%})" for v in variants),
                   flush=True)
     med = statistics.median
     print(f"medians ({args.threads} threads, paper design at 224x224): " + ", ".join(
         f"{v} staged {med(staged[v]):.2f} / whole {med(whole[v]):.2f} ms, overhead "
-        f"{med(s / w for s, w in zip(staged[v], whole[v])) - 1:+.1%}" for v in VARIANTS))
+        f"{med(s / w for s, w in zip(staged[v], whole[v])) - 1:+.1%}" for v in variants))
