@@ -146,12 +146,17 @@ def test_int8_export_records_every_path_before_and_after(int8_export):
         assert d == pytest.approx(after["rmse"] / before["rmse"] - 1) and d <= q["max_degradation"]
 
 
-def test_int8_runs_under_deadlines(int8_export):
+def test_int8_runs_under_deadlines(int8_export, run_cli):
+    from conftest import TINY_DATA
     out, _ = int8_export
     runner = AnytimeRunner(out)
     img, scan = np.zeros((3, 32, 48), np.float32), np.ones(48, np.float32)
     assert runner.run(img, scan, deadline_ms=0).path == 0
     assert runner.run(img, scan, deadline_ms=10_000).path == CAND.num_paths - 1
+    code, text, err = run_cli("curve", out, "--data", TINY_DATA, "--device", "tx2-cpu", "--frames", "2",
+                              "--deadlines", "3")
+    assert code == 0, err
+    assert "the model is int8" in text and json.loads((out / "anytime_curve.json").read_text())["precision"] == "int8"
 
 
 def test_int8_past_the_degradation_limit_is_refused_and_changes_nothing(exported, tmp_path, monkeypatch):
