@@ -19,6 +19,7 @@ from explorer.cost import candidate_cost, get_device
 from explorer.errors import UserError
 from explorer.model import AnytimeDepthNet
 from explorer.onnx_stages import OPSET, example_inputs, export_segments
+from explorer.quantize import MAX_DEGRADATION
 
 TOLERANCE = 1e-4
 MANIFEST = "manifest.json"
@@ -46,7 +47,7 @@ class Quantization:
     data: str = "synthetic"
     calibration_frames: int = 32
     eval_frames: int = 64
-    max_degradation: float = 0.03
+    max_degradation: float = MAX_DEGRADATION
     force: bool = False
 
 
@@ -60,7 +61,7 @@ def export_network(net: AnytimeDepthNet, out_dir: Path, input_size: tuple[int, i
     it was."""
     if quantization is None:
         return _export_fp32(net, out_dir, input_size, scan_row, path_metrics, devices, source)
-    from explorer.quantize import quantize_export
+    from explorer.quantize import quantize_export  # onnxruntime.quantization: only when asked for
     out_dir.parent.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(dir=out_dir.parent, prefix=f".{out_dir.name}.") as tmp:
         scratch = Path(tmp)

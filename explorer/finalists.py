@@ -88,14 +88,13 @@ def _retrain(study: optuna.Study, objective, candidate: Candidate, baseline: str
     import torch
     from explorer.search import _json_safe
     from explorer.train import train
-    from explorer.model import build_network
-    from explorer.model.reference import ReferenceDepthNet
+    from explorer.model import build_model
     folder.mkdir(parents=True, exist_ok=True)
     checkpoint = folder / f"{candidate.key}.pt"     # a kill resumes from here
     holder = optuna.trial.FixedTrial({})           # collects user attrs like a live trial
     cost, pm, latency = objective.describe(holder, candidate)
     torch.manual_seed(recipe.seed)
-    net = build_network(candidate) if isinstance(candidate, Candidate) else ReferenceDepthNet(candidate.name)
+    net = build_model(candidate)
     result = train(net, objective.train_set, objective.val_set, recipe, objective.torch_device,
                    checkpoint=checkpoint, val_limit=objective.config.val_limit)
     path_metrics = _json_safe(result.metrics.drop(columns=["path"]).to_dict("records"))

@@ -18,7 +18,6 @@ import numpy as np
 
 from explorer.errors import UserError
 
-PRECISIONS = ("fp32", "int8")
 QUANTIZED_OPS = ["Conv", "ConvTranspose", "MatMul", "Gemm"]
 #: a path may lose at most this fraction of its RMSE to quantization unless --force
 MAX_DEGRADATION = 0.03
@@ -75,15 +74,9 @@ def quantize_graph(src: Path, dst: Path, feeds: list[dict[str, np.ndarray]]) -> 
 
 
 def path_metrics(model_dir: Path, frames: list[dict]) -> list[dict[str, float]]:
-    """Per-path metrics (FastDepth's conventions) of an exported model on ``frames``."""
-    from explorer.metrics import MetricAverager, depth_metrics
-    from explorer.runtime import AnytimeRunner
-    runner = AnytimeRunner(model_dir, warmup=False)
-    averagers = [MetricAverager() for _ in range(runner.manifest["paths"])]
-    for f in frames:
-        for p, depth in enumerate(runner.depths(f["image"].numpy(), f["scan"].numpy())):
-            averagers[p].add(depth_metrics(depth, f["depth"][0].numpy()))
-    return [{"path": p, **a.result()} for p, a in enumerate(averagers)]
+    """Per-path metrics of the export in ``model_dir`` as its graphs stand now (fp32 or int8)."""
+    from explorer import runtime
+    return runtime.path_metrics(runtime.AnytimeRunner(model_dir, warmup=False), frames)
 
 
 def quantize_export(model_dir: Path, data: str, calibration_frames: int = 32, eval_frames: int = 64,

@@ -222,6 +222,16 @@ def measured_anytime(runner: AnytimeRunner, frames: list[dict], deadlines_ms: np
             "anytime_loss": float(np.mean(per_deadline))}
 
 
+def path_metrics(runner: AnytimeRunner, frames: list[dict]) -> list[dict[str, float]]:
+    """Per-path metrics (FastDepth's conventions) of an exported model on ``frames`` (data set items)."""
+    from explorer.metrics import MetricAverager, depth_metrics
+    averagers = [MetricAverager() for _ in range(runner.manifest["paths"])]
+    for f in frames:
+        for p, depth in enumerate(runner.depths(f["image"].numpy(), f["scan"].numpy())):
+            averagers[p].add(depth_metrics(depth, f["depth"][0].numpy()))
+    return [{"path": p, **a.result()} for p, a in enumerate(averagers)]
+
+
 def curve_check(model_dir: Path, data: str, device: str | None = None, frames: int = 16,
                 deadlines: int = 40, progress: Callable[[int, int], None] | None = None,
                 provider: str = "CPUExecutionProvider") -> dict:
@@ -237,17 +247,12 @@ def curve_check(model_dir: Path, data: str, device: str | None = None, frames: i
     from explorer.cost import candidate_cost, get_device
     from explorer.cost.calibrate import calibrate
     from explorer.data import open_dataset
-    from explorer.metrics import MetricAverager, depth_metrics
     from explorer.space import Candidate
     runner = AnytimeRunner(model_dir, provider=provider)
     cand = Candidate.from_dict(runner.manifest["candidate"])
     ds = open_dataset(data, "val", runner.input_size, train_augment=False)
     items = [ds[i] for i in range(min(frames, len(ds)))]
-    per_path = [MetricAverager() for _ in range(cand.num_paths)]
-    for it in items:
-        for p, depth in enumerate(runner.depths(it["image"].numpy(), it["scan"].numpy())):
-            per_path[p].add(depth_metrics(depth, it["depth"][0].numpy()))
-    losses = [a.result()["rmse"] for a in per_path]
+    losses = [m["rmse"] for m in path_metrics(runner, items)]
     profile = get_device(device) if device else calibrate(scale=0.5, provider=provider)
     costs = candidate_cost(cand, runner.input_size).path_latency_ms(profile)
     b_max = 1.25 * costs[-1]

@@ -39,10 +39,8 @@ def cmd_export(args) -> None:
                                      Path(args.reports), args.input, args.device, quant, say)
     else:
         manifest = export_from_checkpoint(Path(args.checkpoint), Path(args.out), args.input, args.device, quant, say)
-    console.print(f"exported {len(manifest['stages'])} stage graphs to {args.out} "
-                  f"(max |onnx - torch| {manifest['verification']['max_abs_diff']:.2e} before quantization)"
-                  if quant else f"exported {len(manifest['stages'])} stage graphs to {args.out} "
-                  f"(max |onnx - torch| {manifest['verification']['max_abs_diff']:.2e})")
+    console.print(f"exported {len(manifest['stages'])} stage graphs to {args.out} (max |onnx - torch| "
+                  f"{manifest['verification']['max_abs_diff']:.2e}{' before quantization' if quant else ''})")
     if quant:
         import pandas as pd
         q = manifest["quantization"]

@@ -3,4 +3,11 @@
 from explorer.model.exits import interpolate_scan
 from explorer.model.network import AnytimeDepthNet, StageSpec, build_network, stage_specs
 
-__all__ = ["AnytimeDepthNet", "StageSpec", "build_network", "interpolate_scan", "stage_specs"]
+__all__ = ["AnytimeDepthNet", "StageSpec", "build_model", "build_network", "interpolate_scan", "stage_specs"]
+
+
+def build_model(model):
+    """The network for a candidate (:func:`build_network`) or for a reference network's
+    :class:`~explorer.model.reference.ReferenceModel` (a two-path ``ReferenceDepthNet``)."""
+    from explorer.model.reference import ReferenceDepthNet, ReferenceModel
+    return ReferenceDepthNet(model.name) if isinstance(model, ReferenceModel) else build_network(model)

@@ -37,7 +37,7 @@ TABLE2_BUDGETS = ("time:uniform:100ms", "time:uniform:50ms", "time:uniform:33ms"
                   "energy:uniform:0.5J", "energy:uniform:0.25J")
 COLOURS = {"best": "#d62728", "paper": "#1f77b4", "paper-nee": "#7f7f7f", "fastdepth": "#2ca02c"}
 
-#: reference networks a study compares against take these, in the order the study names them
+#: reference networks a study compares against: one colour each, by their place in REFERENCES
 OTHER_COLOURS = ("#9467bd", "#8c564b", "#e377c2", "#bcbd22", "#17becf", "#ff7f0e")
 
 
