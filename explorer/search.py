@@ -485,7 +485,7 @@ def baseline_load(config: SearchConfig, speeds=None) -> float:
     """The baselines' retraining in paper designs' worth, for the time plan: a candidate counts one,
     a reference network its measured training step over the paper design's (``speeds``), or without a
     measurement its MACs at the training size over the paper design's (which over-counts the ResNets:
-    1.52x measured against 3.34x by MACs for S2D-ResNet-18, benchmarks/bench_baseline_training.py)."""
+    about 1.5x measured against 3.34x by MACs for S2D-ResNet-18, benchmarks/bench_baseline_training.py)."""
     paper = candidate_cost(paper_candidate(), config.train_size).path_params_macs()[-1][1]
     load = 0.0
     for name in config.baselines:
