@@ -17,6 +17,7 @@ from explorer.cost.calibrate import calibrate
 from explorer.cost.fit import (PAPER_RPI4_TABLE2, PAPER_TX2_PATHS_MS, TX2_REFERENCES, Observation, errors,
                                kernel_workloads, rpi4_table2)
 from explorer.cost.measure import measure_candidate
+from explorer.cost.peak import host_peak
 from explorer.model.reference import REFERENCES
 from explorer.space import SearchSpace, paper_candidate
 
@@ -62,18 +63,23 @@ def host(n: int, seed: int, scale: float, reps: int = 3) -> None:
           f"{prof.provenance['conditions']['threads']} threads, onnxruntime {prof.provenance['conditions']['onnxruntime']}")
     for fit in prof.provenance["fit"]:
         print(f"  fit on {fit['what']}: median |error| {fit['median_abs_error']:.1%}")
+    peak = host_peak()
+    print(f"  this machine's peak: {peak.describe()}")
     medians: dict = {size: [] for size in HOST_SIZES}
     for rep in range(1, reps + 1):
         for size in HOST_SIZES:
-            errs = []
+            errs, fractions = [], []
             for c in cands:
                 m = measure_candidate(c, size, repeats=20)
-                pred = candidate_cost(c, size).path_latency_ms(prof)
+                cost = candidate_cost(c, size)
+                pred = cost.path_latency_ms(prof)
                 errs += [p / q - 1 for p, q in zip(pred[1:], m.path_ms[1:])]
+                fractions.append(peak.fraction(cost.path_params_macs()[-1][1], m.whole_ms))
             a = np.abs(errs)
             medians[size].append(float(np.median(a)))
             print(f"  rep {rep} {size[0]}x{size[1]}: {n} held-out candidates, {len(a)} paths, median |error| "
-                  f"{np.median(a):.1%}, within 10%: {(a <= 0.1).mean():.0%}, median signed {np.median(errs):+.1%}")
+                  f"{np.median(a):.1%}, within 10%: {(a <= 0.1).mean():.0%}, median signed {np.median(errs):+.1%}; "
+                  f"whole graphs at {' '.join(f'{f:.0%}' for f in fractions)} of fp32 peak")
     for size, ms in medians.items():
         print(f"host {size[0]}x{size[1]}: median per-path |error| over {reps} repetitions "
               f"{' '.join(f'{x:.1%}' for x in ms)} -> median {np.median(ms):.1%} (target <= 5%)")

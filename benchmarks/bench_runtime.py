@@ -18,6 +18,7 @@ from explorer.anytime import anytime_loss
 from explorer.cost import candidate_cost
 from explorer.cost.calibrate import calibrate
 from explorer.cost.measure import session, time_call
+from explorer.cost.peak import host_peak
 from explorer.data import open_dataset
 from explorer.deploy import Quantization, export_network
 from explorer.metrics import MetricAverager, depth_metrics
@@ -70,6 +71,11 @@ if __name__ == "__main__":
         img, scan = torch.from_numpy(env["image"]), torch.from_numpy(env["scan"])
         with torch.no_grad():
             eager = time_call(lambda: net(img, scan), 2, 20)
+        peak = host_peak()
+        macs = candidate_cost(cand, size).path_params_macs()[-1][1]
+        print(f"this machine's peak: {peak.describe()}")
+        print(f"whole graph: {macs / 1e9:.3f} GMAC in {w:.2f} ms = {macs / (w * 1e6):.1f} GMAC/s, "
+              f"{peak.fraction(macs, w):.0%} of fp32 peak (goal >= 50%)")
         print(f"PyTorch eager {eager:.2f} ms ({torch.get_num_threads()} threads) vs onnxruntime whole graph {w:.2f} ms: "
               f"{eager / w:.2f}x (goal >= 3x)")
 
@@ -88,6 +94,7 @@ if __name__ == "__main__":
             print(f"int8 (static QDQ) vs fp32, staged, medians of 5: {i:.2f} vs {f:.2f} ms, {f / i:.2f}x (goal >= 1.8x); "
                   f"RMSE change per path on {m['quantization']['evaluation']['frames']} frames: "
                   f"{' '.join(f'{100 * d:+.1f}%' for d in deg)} (goal: last path within 2%)")
+            print(f"int8 staged: {macs / (i * 1e6):.1f} GMAC/s, {peak.fraction(macs, i, 'int8'):.0%} of int8 peak")
             shutil.rmtree(q8)
 
         if args.skip_anytime:

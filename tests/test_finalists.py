@@ -3,7 +3,7 @@ import pytest
 import torch
 
 from conftest import TINY_DATA
-from explorer.finalists import finalist_trials, retrain_finalists
+from explorer.finalists import choose_finalists, finalist_trials, retrain_finalists
 from explorer.results import baseline_trial, best_trial, finalists_frame, is_retrained, winner
 from explorer.search import SearchConfig, search
 from explorer.space import Candidate
@@ -27,8 +27,11 @@ def test_best_candidates_and_baselines_are_retrained(finished):
     picked = {t.user_attrs["candidate_key"] for t in fin if not t.user_attrs.get("baseline")}
     estimates = sorted((t for t in out.study.trials if t.state == optuna.trial.TrialState.COMPLETE
                         and not is_retrained(t) and not t.user_attrs.get("baseline")), key=lambda t: t.values[0])
-    top = list(dict.fromkeys(t.user_attrs["candidate_key"] for t in estimates))[:2]
-    assert picked == set(top)                                   # the two best distinct estimates
+    first = estimates[0]
+    other = [t for t in estimates if t.user_attrs["candidate"]["encoder_blocks"] != first.user_attrs["candidate"]["encoder_blocks"]]
+    runner_up = other[0] if other else next(t for t in estimates if t.user_attrs["candidate_key"] != first.user_attrs["candidate_key"])
+    # the best estimate, then the best of the other encoder
+    assert picked == {first.user_attrs["candidate_key"], runner_up.user_attrs["candidate_key"]}
     for t in fin:
         assert t.user_attrs["train"]["steps"] == 5 and "weights_artifact" in t.user_attrs
         assert t.params == {}                                    # samplers never learn from them
@@ -38,6 +41,28 @@ def test_best_candidates_and_baselines_are_retrained(finished):
     assert baseline_trial(out.study, "paper", retrained=True) is not None
     frame = finalists_frame(out.study)
     assert len(frame) == 5 and frame["estimated"].notna().sum() == 2   # baselines outside the space: no estimate
+
+
+def test_finalists_spread_over_image_encoders():
+    study = optuna.create_study(storage=optuna.storages.InMemoryStorage())
+
+    def add(value, blocks, width, key, baseline=None):
+        cand = {"encoder_blocks": blocks, "width_mult": width}
+        attrs = {"candidate": cand, "candidate_key": key, "path_metrics": [], "workloads": []}
+        study.add_trial(optuna.trial.create_trial(values=[value], user_attrs={**attrs, **({"baseline": baseline} if baseline else {})}))
+
+    add(0.29, 9, 1.0, "paper", baseline="paper")   # baselines are never finalists
+    add(0.30, 9, 1.0, "a")
+    add(0.30, 9, 1.0, "a")                          # a repeated candidate counts once
+    add(0.301, 9, 1.0, "b")
+    add(0.31, 7, 1.0, "c")
+    add(0.32, 6, 1.0, "d")
+    add(0.33, 6, 0.5, "e")
+    keys = lambda n: [t.user_attrs["candidate_key"] for t in choose_finalists(study, n)]
+    assert keys(1) == ["a"]
+    assert keys(3) == ["a", "c", "d"]               # one per encoder before a second of any
+    assert keys(5) == ["a", "c", "d", "e", "b"]     # then the next best, whatever the encoder
+    assert keys(9) == ["a", "c", "d", "e", "b"]
 
 
 def test_a_finished_finalist_is_never_redone(finished):

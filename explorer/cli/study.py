@@ -237,8 +237,8 @@ def register(sub, add, reports: dict) -> None:
                    "trained first if missing)")
     s.add_argument("--supernet-steps", type=int, default=None, help="supernet training steps (default: what "
                    "--time-limit leaves, 300-1800, else 600; a resumed study keeps its own)")
-    s.add_argument("--finalists", type=int, default=None, help="best distinct candidates retrained stand-alone "
-                   "at the end, next to the baselines (default 3, fewer if --time-limit needs; 0 = none)")
+    s.add_argument("--finalists", type=int, default=None, help="best candidates (one per image encoder first) "
+                   "retrained stand-alone at the end, next to the baselines (default 3, fewer if --time-limit needs; 0 = none)")
     s.add_argument("--finalist-steps", type=int, default=None, help="steps of the finalists' longer recipe "
                    "(default 300, down to 150 if --time-limit needs)")
     s.add_argument("--train-steps", type=int, default=150, help="proxy recipe steps (default 150)")

@@ -6,6 +6,7 @@ import os
 from dataclasses import dataclass, field
 
 from explorer.cost import probe_script as _probe
+from explorer.cost.peak import host_peak
 from explorer.cost.probe_script import DEFAULT_PROVIDER, ProbeError, check_provider, default_threads, time_call
 from explorer.errors import UserError
 from explorer.model.network import AnytimeDepthNet, build_network
@@ -31,7 +32,8 @@ def conditions(threads: int | None = None, repeats: int = 15, warmup: int = 3,
     return {"onnxruntime": ort.__version__, "provider": provider, "threads": threads or default_threads(),
             "repeats": repeats,
             "warmup": warmup, "statistic": "median", "machine": platform.machine(),
-            "processor": platform.processor() or platform.machine(), "cores": os.cpu_count()}
+            "processor": platform.processor() or platform.machine(), "cores": os.cpu_count(),
+            "peak": host_peak().to_dict()}
 
 
 @dataclass
