@@ -101,6 +101,8 @@ def _export_fp32(net: AnytimeDepthNet, out_dir: Path, input_size: tuple[int, int
     expected = {}
     for d in devices:
         prof = get_device(d)
+        if cost.precision not in prof.precisions:
+            continue      # this profile cannot price the candidate's precision
         expected[prof.name] = {"latency_ms": cost.path_latency_ms(prof), "energy_j": cost.path_energy_j(prof),
                                "calibrated": prof.calibrated}
     manifest = {
@@ -128,9 +130,13 @@ def export_from_checkpoint(ckpt: Path, out_dir: Path, input_size: tuple[int, int
                           source={"checkpoint": str(ckpt)}, quantization=quantization, progress=progress)
 
 
+#: ``export_from_study(quantization=AS_SEARCHED)``: int8 if the trial's candidate was searched as int8
+AS_SEARCHED = "as-searched"
+
+
 def export_from_study(study_name: str, trial_number: int | None, out_dir: Path, storage: str | None,
                       reports: Path, input_size: tuple[int, int] | None = None,
-                      devices: Sequence[str] | None = None, quantization: Quantization | None = None,
+                      devices: Sequence[str] | None = None, quantization: Quantization | str | None = None,
                       progress: Callable[[str], None] | None = None) -> dict:
     from explorer.results import best_trial, scored_trials, trial_network, winner
     from explorer.storage import load_study
@@ -147,6 +153,8 @@ def export_from_study(study_name: str, trial_number: int | None, out_dir: Path, 
         trial = trials[trial_number]
     net = trial_network(study, trial)
     cfg = study.user_attrs.get("config", {})
+    if quantization == AS_SEARCHED:   # an int8 candidate was costed and measured as int8: export it so
+        quantization = Quantization(data=cfg.get("data", "synthetic")) if net.candidate.precision == "int8" else None
     size = tuple(input_size or cfg.get("input_size", (224, 224)))
     devs = list(devices or dict.fromkeys([cfg.get("device", "tx2"), "tx2", "rpi4"]))
     return export_network(net, out_dir, size, path_metrics=trial.user_attrs.get("path_metrics"), devices=devs,

@@ -126,3 +126,23 @@ def quantize_export(model_dir: Path, data: str, calibration_frames: int = 32, ev
                              "rmse_degradation": degradation, "max_degradation": max_degradation,
                              "forced": bool(force and degradation[worst] > max_degradation),
                              "quantized_graphs": quantized}}
+
+
+def quantization_effect(net, input_size: tuple[int, int], data: str, calibration_frames: int = 16,
+                        eval_frames: int = 32) -> dict:
+    """How quantizing ``net``'s stage graphs to int8 changes each path's metrics, measured with
+    onnxruntime on ``eval_frames`` validation frames of ``data`` (fp32 and int8 graphs alike): per
+    path, each metric's int8 / fp32 ratio, and both sets of metrics. What a search applies to an int8
+    candidate's estimate, so that it is compared with fp32 ones on the same frames."""
+    import math
+    from explorer.deploy import Quantization, export_network
+    with tempfile.TemporaryDirectory(prefix="explorer-int8-") as tmp:
+        m = export_network(net, Path(tmp) / "model", input_size, devices=(),
+                           quantization=Quantization(data=data, calibration_frames=calibration_frames,
+                                                     eval_frames=eval_frames, max_degradation=math.inf, force=True))
+    before, after = m["path_metrics_fp32"], m["path_metrics_int8"]
+    ratios = [{k: (a[k] / b[k] if b[k] else 1.0) for k in b if isinstance(b[k], (int, float))}
+              for a, b in zip(after, before)]
+    return {"ratios": ratios, "path_metrics_fp32": before, "path_metrics_int8": after,
+            "rmse_degradation": m["quantization"]["rmse_degradation"],
+            "frames": m["quantization"]["evaluation"]["frames"]}

@@ -53,7 +53,8 @@ def expand_workloads(compact: dict) -> tuple[list[Workload], list[list[str]]]:
 def trial_path_costs(trial: optuna.trial.FrozenTrial, device: DeviceProfile, kind: str) -> list[float]:
     """Per-path cost (path 0 included) of a stored trial on ``device``: ms for time, J for energy."""
     wl, path_stages = expand_workloads(trial.user_attrs["workloads"])
-    ms = [0.0] + path_latencies_ms(device, wl, path_stages)
+    precision = (trial.user_attrs.get("candidate") or {}).get("precision", "fp32")
+    ms = [0.0] + path_latencies_ms(device.at_precision(precision), wl, path_stages)
     if kind == "time":
         return ms
     return [float(device.energy_j(t)) for t in ms]

@@ -168,6 +168,11 @@ class SearchConfig:
                     raise UserError(f"--baselines {name} needs --train-size sides divisible by {model.stride} and "
                                     f"at least {model.min_side}, got {h}x{w} (e.g. 64x64)")
         self.train_config().validate()
+        space = SearchSpace.from_yaml(self.space)
+        if "int8" in space.precision and "int8" not in get_device(self.device).precisions:
+            raise UserError(f"the space {space.name} lists precision int8, but the {self.device} profile prices no "
+                            "int8 graphs: give --device a profile that does (`explorer calibrate --out mybox.yaml` "
+                            "times int8 layers) or keep the space's precision at fp32")
         from explorer.data import parse_data_spec
         if self.supervision != "supervised" and not parse_data_spec(self.data).is_sequence:
             raise UserError(f"--supervision {self.supervision} needs sequence data (--data synthetic-seq, "
@@ -271,7 +276,8 @@ class Objective:
             done = self._finished_twin(trial, candidate.key)
             if done is not None:
                 # the sampler proposed a candidate already evaluated: reuse what was paid for
-                for key in ("path_metrics", "train", "losses", "weights_artifact", "evaluator"):
+                for key in ("path_metrics", "train", "losses", "weights_artifact", "evaluator", "path_metrics_fp32",
+                            "quantization"):
                     if key in done.user_attrs:
                         trial.set_user_attr(key, done.user_attrs[key])
                 trial.set_user_attr("duplicate_of", done.number)
@@ -297,6 +303,8 @@ class Objective:
             except Pruned as exc:
                 raise optuna.TrialPruned(str(exc)) from None
             path_metrics = _json_safe(result.metrics.drop(columns=["path"]).to_dict("records"))
+            if getattr(candidate, "precision", "fp32") == "int8":
+                path_metrics = self._quantized(trial, result, path_metrics)
             trial.set_user_attr("path_metrics", path_metrics)
             trial.set_user_attr("evaluator", _json_safe(result.info))
             if result.info["evaluator"] == "proxy":
@@ -311,6 +319,22 @@ class Objective:
                     artifact_store=self.artifacts, file_path=str(ckpt), study_or_trial=trial)
                 trial.set_user_attr("weights_artifact", artifact)
         return self.values(losses, pm, latency)
+
+    def _quantized(self, trial: optuna.Trial, result, path_metrics: list[dict]) -> list[dict]:
+        """An int8 candidate's metrics: its estimate (fp32, on the frames every trial uses) times what
+        quantizing its graphs does to each path, measured with onnxruntime (explorer.quantize)."""
+        from explorer.evaluators import recalibrate_batchnorm
+        from explorer.quantize import quantization_effect
+        net = result.network
+        if result.info["evaluator"] == "supernet":   # stage-by-stage evaluation leaves the slice's BN as it was
+            recalibrate_batchnorm(net, self.evaluator.calibration)
+        net.eval()
+        effect = quantization_effect(net, self.config.train_size, self.config.data,
+                                     eval_frames=self.config.val_limit or 32)
+        trial.set_user_attr("path_metrics_fp32", path_metrics)
+        trial.set_user_attr("quantization", _json_safe({k: effect[k] for k in ("rmse_degradation", "frames")}))
+        return [{k: v * r.get(k, 1.0) if isinstance(v, (int, float)) else v for k, v in m.items()}
+                for m, r in zip(path_metrics, effect["ratios"])]
 
     @staticmethod
     def _finished_twin(trial: optuna.Trial, key: str) -> optuna.trial.FrozenTrial | None:

@@ -58,6 +58,7 @@ class Candidate:
     encoder_exits: tuple[int, ...] = ()    # image exits after these encoder blocks (stride 4 or 8)
     lidar_exit: bool = False               # a learned LiDAR-only path, run before the image encoder
     lidar_first: bool = False              # LiDAR encoder before the image encoder (encoder exits fuse it)
+    precision: str = "fp32"                # "int8": deployed statically quantized, costed and measured so
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "decoder_widths", tuple(int(w) for w in self.decoder_widths))
@@ -103,6 +104,8 @@ class Candidate:
                 raise UserError(
                     f"encoder exit after block {k}: no such place in a {self.encoder_blocks}-block encoder; "
                     f"encoder exits go after a block at stride 4 or 8 (blocks {list(encoder_exit_blocks(self.encoder_blocks))})")
+        if self.precision not in PRECISIONS:
+            raise UserError(f"precision '{self.precision}' is not one of {list(PRECISIONS)}")
         if self.head_depth not in (1, 2):
             raise UserError(f"head_depth={self.head_depth}: an exit head has 1 or 2 pointwise convs")
         if self.head_depth == 2 and self.head_width < 1:
@@ -150,6 +153,8 @@ class Candidate:
         names = ["ECU" if e == 0 else f"stage {e}" for e in self.exits]
         head = "1 pw conv" if self.head_depth == 1 else f"2 pw convs ({self.head_width} ch)"
         parts.append(f"exits after {', '.join(names)} ({head})")
+        if self.precision != "fp32":
+            parts.append(self.precision)
         return "; ".join(parts)
 
     def to_dict(self) -> dict[str, Any]:
@@ -187,7 +192,10 @@ class Candidate:
 
 
 #: Fields added after the first release, with the value that leaves them out of a candidate's dict.
-_LATER_FIELDS: dict[str, Any] = {"encoder_exits": [], "lidar_exit": False, "lidar_first": False}
+_LATER_FIELDS: dict[str, Any] = {"encoder_exits": [], "lidar_exit": False, "lidar_first": False,
+                                  "precision": "fp32"}
+#: Numeric precisions a candidate may be deployed at (``explorer export --quantize``).
+PRECISIONS = ("fp32", "int8")
 #: Strides at which an image exit may leave the encoder (after block k, before the decoder).
 ENCODER_EXIT_STRIDES = (4, 8)
 
@@ -222,7 +230,7 @@ _SPACE_SCHEMA: dict[str, dict[str, str]] = {
     "exits": {"optional": "exits", "required": "required_exits", "head_depth": "head_depth",
               "head_width": "head_width", "lidar_only": "lidar_exit"},
 }
-_TOP_KEYS = set(_SPACE_SCHEMA) | {"name", "description"}
+_TOP_KEYS = set(_SPACE_SCHEMA) | {"name", "description", "precision"}
 
 
 def _load_yaml(path: str | Path) -> Any:
@@ -271,6 +279,7 @@ class SearchSpace:
     optional_encoder_exits: tuple[int, ...] = ()
     lidar_first: tuple[bool, ...] = (False,)
     lidar_exit: tuple[bool, ...] = (False,)
+    precision: tuple[str, ...] = ("fp32",)
     description: str = ""
     source: str = ""
 
@@ -320,6 +329,11 @@ class SearchSpace:
                 else:
                     kind = float if field == "width_mult" else int
                     values[field] = tuple(_choices(raw, where, kind))
+        if "precision" in data:
+            values["precision"] = tuple(_choices(data["precision"], f"{source}: precision", str))
+            bad = [p for p in values["precision"] if p not in PRECISIONS]
+            if bad:
+                raise UserError(f"{source}: precision {bad} unknown: list some of {list(PRECISIONS)}")
         space = cls(name=str(data.get("name", Path(source).stem)),
                     description=str(data.get("description", "")), source=source, **values)
         space._validate(source)
@@ -387,6 +401,8 @@ class SearchSpace:
         if self.optional_encoder_exits and True in self.ecu:
             dims["lidar_first"] = self.lidar_first
         dims["lidar_exit"] = self.lidar_exit
+        if len(self.precision) > 1:
+            dims["precision"] = self.precision
         return dims
 
     @property
@@ -400,7 +416,8 @@ class SearchSpace:
         ecu = sum(lidar * with_order if on else encoder_exit_sets for on in self.ecu)
         heads = sum(len(self.head_width) if d == 2 else 1 for d in self.head_depth)
         rest = len(self.encoder_blocks) * len(self.width_mult) * math.prod(len(c) for c in self.decoder_widths)
-        return ecu * heads * rest * 2 ** len(self.optional_exits) * len(set(self.lidar_exit))
+        return (ecu * heads * rest * 2 ** len(self.optional_exits) * len(set(self.lidar_exit))
+                * len(set(self.precision)))
 
     def _exit_sets(self) -> Iterator[tuple[int, ...]]:
         last = len(self.decoder_widths)
@@ -425,13 +442,13 @@ class SearchSpace:
                 enc = tuple(k for k, on in zip(self.optional_encoder_exits, mask) if on)
                 orders = sorted(set(self.lidar_first)) if ecu[0] and enc else [False]
                 early += [(ecu, enc, first) for first in orders]
-        for blocks, wm, (ecu, enc, first), widths, exits, head, lidar_exit in itertools.product(
+        for blocks, wm, (ecu, enc, first), widths, exits, head, lidar_exit, precision in itertools.product(
                 self.encoder_blocks, self.width_mult, early, itertools.product(*self.decoder_widths),
-                exit_sets, heads, sorted(set(self.lidar_exit))):
+                exit_sets, heads, sorted(set(self.lidar_exit)), dict.fromkeys(self.precision)):
             yield Candidate(encoder_blocks=blocks, width_mult=wm, ecu=ecu[0], lidar_depth=ecu[1],
                             lidar_width=ecu[2], ecu_band=ecu[3], ecu_width=ecu[4],
                             decoder_widths=widths, exits=exits, head_depth=head[0], head_width=head[1],
-                            encoder_exits=enc, lidar_exit=lidar_exit, lidar_first=first)
+                            encoder_exits=enc, lidar_exit=lidar_exit, lidar_first=first, precision=precision)
 
     def sample(self, trial: Any) -> Candidate:
         """Draw a candidate with an Optuna trial (conditional dimensions only when they apply)."""
@@ -450,7 +467,9 @@ class SearchSpace:
         encoder_exits = tuple(k for k in self.optional_encoder_exits if s(f"encoder_exit_{k}", [False, True]))
         lidar_first = s("lidar_first", list(self.lidar_first)) if ecu and encoder_exits else False
         lidar_exit = s("lidar_exit", list(self.lidar_exit))
+        precision = s("precision", list(self.precision)) if len(self.precision) > 1 else self.precision[0]
         return Candidate(
+            precision=precision,
             encoder_exits=encoder_exits, lidar_first=lidar_first, lidar_exit=lidar_exit,
             encoder_blocks=s("encoder_blocks", list(self.encoder_blocks)),
             width_mult=s("width_mult", list(self.width_mult)),
@@ -491,13 +510,15 @@ class SearchSpace:
         if candidate.ecu and candidate.encoder_exits:
             p["lidar_first"] = candidate.lidar_first
         p["lidar_exit"] = candidate.lidar_exit
+        if len(self.precision) > 1:
+            p["precision"] = candidate.precision
         return p
 
     def contains(self, candidate: Candidate) -> bool:
         d = self.dimensions()
         p = self.params_of(candidate)
         inner = set(candidate.exits[:-1])
-        return len(candidate.decoder_widths) == len(self.decoder_widths) and \
+        return candidate.precision in self.precision and len(candidate.decoder_widths) == len(self.decoder_widths) and \
             set(candidate.encoder_exits) <= set(self.optional_encoder_exits) and all(
             v in d[k] for k, v in p.items()) and set(self.required_exits) <= inner and \
             inner <= set(self.optional_exits) | set(self.required_exits)

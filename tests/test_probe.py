@@ -157,7 +157,20 @@ def test_interrupted_probe_resumes_without_measuring_again(bundle_dir, tmp_path,
     prof = fit_results(res, name="box")
     assert prof.latency_basis == "measured" and prof.energy_basis == "none"
     assert prof.provenance["provider"] == "CPUExecutionProvider" and prof.active_power_w == 0.0
-    assert prof.provenance["fit"][0]["count"] == len(res["bundle"]["layers"])
+    int8 = [layer for layer in res["bundle"]["layers"] if layer.get("precision") == "int8"]
+    assert int8 and {layer["workload"]["kind"] for layer in int8} == {"pointwise", "depthwise", "conv", "conv1d"}
+    assert prof.provenance["fit"][0]["count"] == len(res["bundle"]["layers"]) - len(int8)
+    # the quantized convolutions give the profile its int8 section; the rest of it is the fp32 one's
+    assert prof.precisions == ("fp32", "int8") and prof.int8.provenance["fit"][0]["count"] == len(int8)
+    assert prof.int8.stage_overhead_ms == prof.stage_overhead_ms
+
+
+def test_bundle_int8_graphs_are_quantized_convolutions(bundle_dir):
+    import onnx
+    manifest = json.loads((bundle_dir / "manifest.json").read_text())
+    int8 = [layer for layer in manifest["layers"] if layer.get("precision") == "int8"]
+    ops = {n.op_type for n in onnx.load(str(bundle_dir / int8[0]["file"])).graph.node}
+    assert {"QuantizeLinear", "DequantizeLinear", "Conv"} <= ops
 
 
 def test_probe_with_a_power_sensor_writes_measured_energy(bundle_dir, tmp_path):

@@ -21,11 +21,11 @@ def _percent(text: str) -> float:
 
 def cmd_export(args) -> None:
     from explorer._console import console, err_console, print_frame
-    from explorer.deploy import Quantization, export_from_checkpoint, export_from_study
+    from explorer.deploy import AS_SEARCHED, Quantization, export_from_checkpoint, export_from_study
     if bool(args.study) == bool(args.checkpoint):
         raise UserError("give either --study S (optionally --trial N) or --checkpoint FILE")
-    if args.quantize not in ("none", "int8"):
-        raise UserError(f"--quantize {args.quantize}: use int8 (or none, the default: fp32)")
+    if args.quantize not in (None, "none", "int8"):
+        raise UserError(f"--quantize {args.quantize}: use int8 or none")
     quant = None
     if args.quantize == "int8":
         quant = Quantization(data=args.data or "synthetic", calibration_frames=args.calibration_frames,
@@ -33,6 +33,8 @@ def cmd_export(args) -> None:
                              force=args.force)
     elif args.force or args.data:
         raise UserError("--data and --force are read by --quantize int8 only")
+    elif args.quantize is None and args.study:
+        quant = AS_SEARCHED
     say = lambda msg: err_console.print(msg)  # noqa: E731
     if args.study:
         manifest = export_from_study(args.study, args.trial, Path(args.out), args.storage,
@@ -40,8 +42,8 @@ def cmd_export(args) -> None:
     else:
         manifest = export_from_checkpoint(Path(args.checkpoint), Path(args.out), args.input, args.device, quant, say)
     console.print(f"exported {len(manifest['stages'])} stage graphs to {args.out} (max |onnx - torch| "
-                  f"{manifest['verification']['max_abs_diff']:.2e}{' before quantization' if quant else ''})")
-    if quant:
+                  f"{manifest['verification']['max_abs_diff']:.2e}{' before quantization' if manifest.get('quantization') else ''})")
+    if manifest.get("quantization"):
         import pandas as pd
         q = manifest["quantization"]
         frame = pd.DataFrame({"path": range(len(q["rmse_degradation"])),
@@ -93,9 +95,10 @@ def register(sub, add, reports: dict) -> None:
     s.add_argument("--input-size", "--input", dest="input", type=_size, default=None,
                    help="input HxW (default: the study's input size)")
     s.add_argument("--device", action="append", help="devices whose expected costs go in the manifest")
-    s.add_argument("--quantize", default="none", metavar="int8",
+    s.add_argument("--quantize", default=None, metavar="int8|none",
                    help="int8: static quantization (onnxruntime QDQ) calibrated on --data; every path's metrics "
-                   "are measured again and written beside the fp32 ones")
+                   "are measured again and written beside the fp32 ones (default: as the trial was searched, "
+                   "int8 for a candidate of precision int8, else none)")
     s.add_argument("--data", help="frames to calibrate (train split) and check (val split) int8 on "
                    "(default synthetic)")
     s.add_argument("--calibration-frames", type=int, default=32, help="frames to calibrate on (default 32)")

@@ -23,14 +23,15 @@ def cmd_devices(args) -> None:
         fits = p.provenance.get("fit") or []
         err = fits[0].get("median_abs_error") if fits and "median_abs_error" in fits[0] else None
         rows.append({"name": name, "calibrated": p.calibrated, "latency": p.latency_basis,
-                     "energy": p.energy_basis, "description": p.description, "fit_median_error": err})
+                     "energy": p.energy_basis, "precisions": ",".join(p.precisions), "description": p.description,
+                     "fit_median_error": err})
     if args.json:
         print_json(rows)
         return
-    console.print(f"  {'name':12s} {'latency':9s} {'energy':9s} description")
+    console.print(f"  {'name':12s} {'latency':9s} {'energy':9s} {'precision':10s} description")
     for r in rows:
         err = f"  (fit error {r['fit_median_error']:.1%})" if r["fit_median_error"] is not None else ""
-        console.print(f"  {r['name']:12s} {r['latency']:9s} {r['energy']:9s} {r['description']}{err}")
+        console.print(f"  {r['name']:12s} {r['latency']:9s} {r['energy']:9s} {r['precisions']:10s} {r['description']}{err}")
     console.print("  (measured: on the device; published: fitted to published figures; estimate: scaled from "
                   "another profile; none: not modelled)")
     console.print("  (any profile YAML file works too: --device ./mybox.yaml; make one with explorer calibrate)")

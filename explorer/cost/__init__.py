@@ -48,9 +48,13 @@ class CandidateCost:
                         sum(totals.get(s, (0, 0))[1] for s in stages)))
         return out
 
+    @property
+    def precision(self) -> str:
+        return getattr(self.candidate, "precision", "fp32")
+
     def path_latency_ms(self, device: DeviceProfile) -> list[float]:
-        """Ready time of each path on ``device``, path 0 (0 ms) included."""
-        return [0.0] + path_latencies_ms(device, self.workloads, self.path_stages)
+        """Ready time of each path on ``device`` at the candidate's precision, path 0 (0 ms) included."""
+        return [0.0] + path_latencies_ms(device.at_precision(self.precision), self.workloads, self.path_stages)
 
     def path_energy_j(self, device: DeviceProfile) -> list[float]:
         return [float(device.energy_j(t)) for t in self.path_latency_ms(device)]

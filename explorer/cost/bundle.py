@@ -33,13 +33,28 @@ ZERO_FROM_ELEMENTS = 64
 STAGE_SEED_OFFSET = 7919
 
 
+_ZEROED = {TensorProto.FLOAT: np.float32, TensorProto.INT8: np.int8}
+#: Layer kinds timed a second time quantized to int8 (the others stay float in an int8 graph).
+INT8_KINDS = ("pointwise", "depthwise", "conv", "conv1d")
+
+
 def _zero_weights(model: bytes) -> bytes:
     proto = load_from_string(model)
     for i, init in enumerate(proto.graph.initializer):
-        if init.data_type == TensorProto.FLOAT and int(np.prod(init.dims)) >= ZERO_FROM_ELEMENTS:
-            zeros = np.zeros(tuple(init.dims), dtype=np.float32)
+        if init.data_type in _ZEROED and int(np.prod(init.dims)) >= ZERO_FROM_ELEMENTS:
+            zeros = np.zeros(tuple(init.dims), dtype=_ZEROED[init.data_type])
             proto.graph.initializer[i].CopyFrom(numpy_helper.from_array(zeros, init.name))
     return proto.SerializeToString()
+
+
+def _int8(model: bytes, feeds: dict[str, np.ndarray]) -> bytes:
+    """``model`` statically quantized as ``explorer export --quantize int8`` quantizes stage graphs."""
+    from explorer.quantize import quantize_graph
+    with tempfile.TemporaryDirectory(prefix="explorer-int8-") as tmp:
+        src, dst = Path(tmp) / "fp32.onnx", Path(tmp) / "int8.onnx"
+        src.write_bytes(model)
+        quantize_graph(src, dst, [feeds])
+        return dst.read_bytes()
 
 
 def stage_candidates(count: int, seed: int, exclude: set[str] = frozenset()) -> list:
@@ -51,9 +66,12 @@ def stage_candidates(count: int, seed: int, exclude: set[str] = frozenset()) -> 
 
 def write_bundle_dir(folder: Path, scale: float = 1.0, seed: int = 0, n_stage: int | None = None,
                      exclude: set[str] = frozenset(), input_size: tuple[int, int] = (224, 224),
-                     stage_sizes: tuple[tuple[int, int], ...] | None = None, repeats: int = 25, progress: Callable[[int, int], None] | None = None) -> dict:
+                     stage_sizes: tuple[tuple[int, int], ...] | None = None, repeats: int = 25,
+                     progress: Callable[[int, int], None] | None = None, int8: bool = True) -> dict:
     """Exports the layer sweep (``scale`` x the default counts) and the stage graphs of ``n_stage``
-    candidates (default 12 x ``scale``) into ``folder``; returns the manifest."""
+    candidates (default 12 x ``scale``) into ``folder``; returns the manifest. ``int8``: every
+    convolution of the sweep also goes in quantized (entries with ``precision: int8``), so that the
+    fit prices int8 graphs too."""
     from explorer import __version__
     from explorer.model import build_network
     from explorer.onnx_stages import export_stages
@@ -64,7 +82,8 @@ def write_bundle_dir(folder: Path, scale: float = 1.0, seed: int = 0, n_stage: i
     layers = _rng_layers(seed, counts)
     n_stage = max(1, round(12 * scale)) if n_stage is None else n_stage
     cands = stage_candidates(n_stage, seed, exclude) if n_stage else []
-    total = len(layers) + len(cands)
+    quantized = [layer for layer in layers if layer.kind in INT8_KINDS] if int8 else []
+    total = len(layers) + len(quantized) + len(cands)
     (folder / "layers").mkdir(parents=True, exist_ok=True)
     digest = hashlib.sha256()
 
@@ -82,6 +101,15 @@ def write_bundle_dir(folder: Path, scale: float = 1.0, seed: int = 0, n_stage: i
                               "workload": dataclasses.asdict(wl)})
         if progress:
             progress(i + 1, total)
+    for i, layer in enumerate(quantized):
+        model, feeds, wl = layer_graph(layer)
+        rel = f"layers/Q{i:03d}-{layer.kind}.onnx"
+        put(rel, _zero_weights(_int8(model, feeds)))
+        layer_entries.append({"id": f"Q{i:03d}", "file": rel, "precision": "int8",
+                              "inputs": [{"name": k, "shape": list(v.shape)} for k, v in feeds.items()],
+                              "workload": dataclasses.asdict(wl)})
+        if progress:
+            progress(len(layers) + i + 1, total)
     cand_entries = []
     for j, cand in enumerate(cands):
         (folder / "stages" / cand.key).mkdir(parents=True, exist_ok=True)
@@ -95,7 +123,7 @@ def write_bundle_dir(folder: Path, scale: float = 1.0, seed: int = 0, n_stage: i
         cand_entries.append({"key": cand.key, "candidate": cand.to_dict(), "graphs": graphs,
                              "input_size": list(size)})
         if progress:
-            progress(len(layers) + j + 1, total)
+            progress(len(layers) + len(quantized) + j + 1, total)
     manifest = {"format": probe_script.BUNDLE_FORMAT, "version": probe_script.VERSION,
                 "explorer": __version__, "created": datetime.datetime.now().isoformat(timespec="seconds"),
                 "scale": scale, "seed": seed, "input_size": list(input_size), "repeats": repeats,

@@ -230,12 +230,13 @@ def fit_results(results: dict, name: str = "host", source: str | None = None) ->
     from explorer.cost import candidate_cost
     from explorer.space import Candidate
     bundle = results["bundle"]
-    measured = []
+    measured, measured_int8 = [], []
     for layer in bundle["layers"]:
         if layer["id"] in results["layers"]:
             w = dict(layer["workload"])
             w["in_shape"], w["out_shape"] = tuple(w["in_shape"]), tuple(w["out_shape"])
-            measured.append((Workload(**w), float(results["layers"][layer["id"]])))
+            into = measured_int8 if layer.get("precision") == "int8" else measured
+            into.append((Workload(**w), float(results["layers"][layer["id"]])))
     stage_obs = []
     for cand in bundle["candidates"]:
         kept = results["stages"].get(cand["key"], {})
@@ -257,10 +258,33 @@ def fit_results(results: dict, name: str = "host", source: str | None = None) ->
             **({"board": dev["board"]} if dev.get("board") else {}), "bundle": bundle["id"]}
     where = dev.get("board") or dev.get("host") or "a device"
     description = f"{where}: {dev['cpu']}, onnxruntime {dev['onnxruntime']} {c['provider']}, {c['threads']} threads"
-    return fit_host(measured, name=name, description=description, cond=cond, stage_obs=stage_obs,
-                    energy=results.get("energy"),
-                    source=source or f"probe on {dev.get('host') or where} (bundle {bundle['id']}), fitted at "
-                    f"{datetime.datetime.now().isoformat(timespec='seconds')}")
+    profile = fit_host(measured, name=name, description=description, cond=cond, stage_obs=stage_obs,
+                       energy=results.get("energy"),
+                       source=source or f"probe on {dev.get('host') or where} (bundle {bundle['id']}), fitted at "
+                       f"{datetime.datetime.now().isoformat(timespec='seconds')}")
+    return with_int8(profile, measured, measured_int8)
+
+
+def with_int8(profile: DeviceProfile, measured: list[tuple[Workload, float]],
+              measured_int8: list[tuple[Workload, float]]) -> DeviceProfile:
+    """``profile`` with an int8 section fitted on the quantized layer graphs (convolutions; the
+    kinds an int8 graph keeps in float are priced from their fp32 timings), its per-inference and
+    per-stage costs the fp32 ones. Unchanged when too few int8 graphs were measured."""
+    from explorer.cost.bundle import INT8_KINDS
+    if len({w.kind for w, _ in measured_int8}) < len(INT8_KINDS):
+        return profile
+    floats = [(w, ms) for w, ms in measured if w.kind not in INT8_KINDS]
+    fitted = fit_host(measured_int8 + floats, name=profile.name, cond=profile.provenance.get("conditions"))
+    layers = errors(fitted, [Observation(w.layer, [w], ms, stages=1) for w, ms in measured_int8])
+    int8 = dataclasses.replace(
+        fitted, description=profile.description, inference_overhead_ms=profile.inference_overhead_ms,
+        stage_overhead_ms=profile.stage_overhead_ms, energy_fixed_j=profile.energy_fixed_j,
+        active_power_w=profile.active_power_w,
+        provenance={"fit": [fit_summary(layers, f"{len(measured_int8)} int8 (static QDQ) single-layer graphs "
+                                                "measured here")],
+                    "note": "convolutions quantized as `explorer export --quantize int8` does; resize, add, "
+                            "concat and slice stay float and keep their fp32 prices"})
+    return dataclasses.replace(profile, int8=int8)
 
 
 def calibrate(threads: int | None = None, repeats: int = 25, seed: int = 0, scale: float = 1.0,

@@ -7,6 +7,9 @@ cost grows with the tensors as on the device. On a GPU-like device compute and m
 (a layer takes the longer of the two), on a CPU-like one they add. A run also pays a fixed
 ``inference_overhead_ms`` before its first stage. Energy is a fixed energy per inference plus
 active power times time. ``provenance`` records what a profile was fitted on and its error there.
+A profile may also price int8 graphs (statically quantized, as ``explorer export --quantize int8``
+writes them): its ``int8`` section holds their own kinds, bandwidth and overheads (what it leaves
+out is the fp32 one's), fitted by ``explorer calibrate`` on quantized layer graphs.
 
 Built-in profiles live in ``explorer/cost/profiles/*.yaml``; any YAML file with the same fields
 can be passed wherever a device name is accepted (``--device ./mybox.yaml``).
@@ -50,11 +53,28 @@ class DeviceProfile:
     active_power_w: float = 0.0
     provenance: dict[str, Any] = field(default_factory=dict)
     source: str = ""
+    int8: "DeviceProfile | None" = None     # the same device running int8 graphs, where measured
 
     def __post_init__(self) -> None:
         missing = {k: self.kinds[f] for k, f in OPTIONAL_KINDS.items() if k not in self.kinds and f in self.kinds}
         if missing:  # an optional kind the profile does not price costs what its fallback costs
             object.__setattr__(self, "kinds", {**self.kinds, **missing})
+
+    # -- precision -----------------------------------------------------------------------------
+    @property
+    def precisions(self) -> tuple[str, ...]:
+        return ("fp32", "int8") if self.int8 is not None else ("fp32",)
+
+    def at_precision(self, precision: str) -> "DeviceProfile":
+        """The profile that prices graphs of ``precision`` ('fp32' or 'int8') on this device."""
+        if precision == "fp32":
+            return self
+        if precision == "int8" and self.int8 is not None:
+            return self.int8
+        if precision == "int8":
+            raise UserError(f"the {self.name} profile prices no int8 graphs: measure a profile that does "
+                            "(`explorer calibrate --out mybox.yaml` times int8 layers too) or keep precision fp32")
+        raise UserError(f"unknown precision '{precision}': use fp32 or int8")
 
     # -- prediction ----------------------------------------------------------------------------
     def layer_ms(self, w: Workload) -> float:
@@ -114,7 +134,13 @@ class DeviceProfile:
                       for k, v in self.kinds.items()},
             "energy": {"fixed_j": _round(self.energy_fixed_j), "active_power_w": _round(self.active_power_w)},
             "provenance": self.provenance,
+            **({"int8": self._int8_dict()} if self.int8 is not None else {}),
         }
+
+    def _int8_dict(self) -> dict[str, Any]:
+        d = self.int8.to_dict()
+        return {k: d[k] for k in ("overlap", "bandwidth_gbs", "inference_overhead_ms", "stage_overhead_ms", "kinds",
+                                  "provenance")}
 
     def to_yaml(self) -> str:
         return yaml.safe_dump(self.to_dict(), sort_keys=False, width=100)
@@ -128,7 +154,7 @@ class DeviceProfile:
         if missing:
             raise UserError(f"{source}: device profile lacks {missing}")
         known = set(required) | {"description", "inference_overhead_ms", "stage_overhead_ms", "energy",
-                                 "provenance"}
+                                 "provenance", "int8"}
         unknown = sorted(set(data) - known)
         if unknown:
             raise UserError(f"{source}: unknown device profile key(s) {unknown}; known: {sorted(known)}")
@@ -152,7 +178,16 @@ class DeviceProfile:
         energy = data.get("energy") or {}
         if not isinstance(energy, dict):
             raise UserError(f"{source}: 'energy' must be a mapping with fixed_j and active_power_w")
+        int8 = data.get("int8")
+        if int8 is not None:
+            if not isinstance(int8, dict) or "kinds" not in int8:
+                raise UserError(f"{source}: 'int8' must be a mapping with its own 'kinds' (and optionally overlap, "
+                                "bandwidth_gbs, inference_overhead_ms, stage_overhead_ms)")
+            inherited = {k: data[k] for k in ("name", "description", "overlap", "bandwidth_gbs", "energy",
+                                              "inference_overhead_ms", "stage_overhead_ms") if k in data}
+            int8 = cls.from_dict({**inherited, **int8}, f"{source} (int8)")
         return cls(
+            int8=int8,
             name=str(data["name"]), description=str(data.get("description", "")),
             overlap=_bool(data["overlap"], f"{source}: overlap"),
             bandwidth_gbs=_positive(data["bandwidth_gbs"], f"{source}: bandwidth_gbs"),

@@ -1,0 +1,103 @@
+"""Precision as a search dimension: profiles that price int8 graphs, spaces that list
+``precision: [fp32, int8]``, int8 candidates costed at int8 and measured after quantization."""
+
+import dataclasses
+import json
+
+import pytest
+import yaml
+
+from conftest import TINY_DATA
+from explorer.cost import candidate_cost, get_device
+from explorer.cost.devices import DeviceProfile
+from explorer.errors import UserError
+from explorer.space import Candidate, SearchSpace, paper_candidate
+
+TINY_INT8 = {**yaml.safe_load(open(SearchSpace.from_yaml("tiny").source).read()), "name": "tiny8",
+             "precision": ["fp32", "int8"]}
+
+
+def _with_int8(tmp_path, slower: float = 2.0):
+    """tx2 with an int8 section whose convolutions run ``slower`` times slower than fp32's."""
+    data = get_device("tx2").to_dict()
+    data["name"] = "tx2-int8"
+    data["int8"] = {"kinds": {k: {**v, "gmacs": v["gmacs"] / slower} for k, v in data["kinds"].items()}}
+    f = tmp_path / "tx2-int8.yaml"
+    f.write_text(yaml.safe_dump(data))
+    return f
+
+
+def test_a_profile_prices_int8_only_where_it_has_int8_rates(tmp_path):
+    tx2 = get_device("tx2")
+    assert tx2.precisions == ("fp32",)
+    with pytest.raises(UserError, match="prices no int8"):
+        tx2.at_precision("int8")
+    dev = get_device(_with_int8(tmp_path))
+    assert dev.precisions == ("fp32", "int8") and dev.int8.inference_overhead_ms == tx2.inference_overhead_ms
+    again = DeviceProfile.from_dict(yaml.safe_load(dev.to_yaml()), "again")
+    assert again.int8.kinds["pointwise"].gmacs == pytest.approx(dev.int8.kinds["pointwise"].gmacs, rel=1e-5)
+    fp32, int8 = paper_candidate(), dataclasses.replace(paper_candidate(), precision="int8")
+    a, b = candidate_cost(fp32).path_latency_ms(dev), candidate_cost(int8).path_latency_ms(dev)
+    assert a == candidate_cost(fp32).path_latency_ms(tx2)       # fp32 candidates: the fp32 rates
+    assert all(y > x for x, y in zip(a[1:], b[1:]))               # int8 ones: the (here slower) int8 rates
+    bad = get_device("tx2").to_dict()
+    bad["int8"] = {"gmacs": 3}
+    with pytest.raises(UserError, match="'int8' must be a mapping with its own 'kinds'"):
+        DeviceProfile.from_dict(bad, "bad.yaml")
+
+
+def test_precision_is_a_dimension_of_a_space():
+    space = SearchSpace.from_dict(TINY_INT8, "tiny8")
+    plain = SearchSpace.from_yaml("tiny")
+    assert space.size == 2 * plain.size == len(list(space.enumerate()))
+    assert {c.precision for c in space.enumerate()} == {"fp32", "int8"}
+    assert "precision" in space.dimensions() and "precision" not in plain.dimensions()
+    c = next(c for c in space.enumerate() if c.precision == "int8")
+    assert space.contains(c) and not plain.contains(c) and c.describe().endswith("int8")
+    assert Candidate.from_dict(c.to_dict()) == c
+    assert "precision" not in paper_candidate().to_dict()       # fp32 keys stay what they were
+    with pytest.raises(UserError, match=r"precision \['int4'\] unknown"):
+        SearchSpace.from_dict({**TINY_INT8, "precision": ["int4"]}, "bad")
+
+
+def test_a_search_measures_int8_candidates_after_quantization(tmp_path, run_cli):
+    from explorer.results import trial_path_costs
+    from explorer.search import SearchConfig, search
+    space = tmp_path / "tiny8.yaml"
+    space.write_text(yaml.safe_dump(TINY_INT8))
+    device = _with_int8(tmp_path)
+    cfg = SearchConfig(study="p8", space=str(space), device=str(device), data=TINY_DATA, train_size=(32, 32),
+                       input_size=(64, 64), batch_size=8, val_limit=8, evaluator="supernet", supernet_steps=4,
+                       finalists=0, baselines=())
+    out = search(cfg, n_trials=12, timeout_s=None, reports=tmp_path)
+    done = [t for t in out.study.trials if "path_metrics" in t.user_attrs]
+    int8 = [t for t in done if t.user_attrs["candidate"].get("precision") == "int8"]
+    fp32 = [t for t in done if t.user_attrs["candidate"].get("precision", "fp32") == "fp32"]
+    assert int8 and fp32
+    for t in int8:
+        q, pm, before = t.user_attrs["quantization"], t.user_attrs["path_metrics"], t.user_attrs["path_metrics_fp32"]
+        assert len(q["rmse_degradation"]) == len(pm) == len(before) and q["frames"] == 8
+        for d, m, b in zip(q["rmse_degradation"], pm, before):   # the estimate scaled by what int8 did
+            assert m["rmse"] == pytest.approx(b["rmse"] * (1 + d), rel=1e-6)
+        assert any(abs(d) > 0 for d in q["rmse_degradation"][1:])
+        cand = Candidate.from_dict(t.user_attrs["candidate"])
+        assert t.user_attrs["latency_ms"] == pytest.approx(candidate_cost(cand, (64, 64)).path_latency_ms(get_device(device)))
+        assert trial_path_costs(t, get_device(device), "time") == pytest.approx(t.user_attrs["latency_ms"])
+    assert all("quantization" not in t.user_attrs for t in fp32)
+    # an int8 trial exports as int8 unless told otherwise
+    trial = int8[0]
+    code, _, err = run_cli("export", "--study", "p8", "--trial", trial.number, "--out", tmp_path / "m8",
+                           "--reports", tmp_path, "--device", device)
+    assert code == 0, err
+    manifest = json.loads((tmp_path / "m8" / "manifest.json").read_text())
+    assert manifest["precision"] == "int8" and manifest["candidate"]["precision"] == "int8"
+
+
+def test_an_int8_space_on_a_profile_without_int8_rates_is_one_line(tmp_path, run_cli):
+    space = tmp_path / "tiny8.yaml"
+    space.write_text(yaml.safe_dump(TINY_INT8))
+    code, out, err = run_cli("search", "--space", space, "--device", "tx2", "--data", TINY_DATA,
+                             "--reports", tmp_path, "--trials", "1")
+    assert code == 2 and "prices no int8 graphs" in err and "Traceback" not in err
+    assert len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "tx2-tiny8").exists()
