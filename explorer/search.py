@@ -304,7 +304,10 @@ class Objective:
                 raise optuna.TrialPruned(str(exc)) from None
             path_metrics = _json_safe(result.metrics.drop(columns=["path"]).to_dict("records"))
             if getattr(candidate, "precision", "fp32") == "int8":
-                path_metrics = self._quantized(trial, result, path_metrics)
+                if result.info["evaluator"] == "supernet":   # stage-by-stage evaluation left the slice's BN as it was
+                    from explorer.evaluators import recalibrate_batchnorm
+                    recalibrate_batchnorm(result.network, self.evaluator.calibration)
+                path_metrics = self.quantized(trial, result.network, path_metrics)
             trial.set_user_attr("path_metrics", path_metrics)
             trial.set_user_attr("evaluator", _json_safe(result.info))
             if result.info["evaluator"] == "proxy":
@@ -320,14 +323,11 @@ class Objective:
                 trial.set_user_attr("weights_artifact", artifact)
         return self.values(losses, pm, latency)
 
-    def _quantized(self, trial: optuna.Trial, result, path_metrics: list[dict]) -> list[dict]:
-        """An int8 candidate's metrics: its estimate (fp32, on the frames every trial uses) times what
-        quantizing its graphs does to each path, measured with onnxruntime (explorer.quantize)."""
-        from explorer.evaluators import recalibrate_batchnorm
+    def quantized(self, trial, net, path_metrics: list[dict]) -> list[dict]:
+        """An int8 candidate's metrics: those of its fp32 weights ``net`` (on the frames every trial
+        uses) times what quantizing its graphs does to each path, measured with onnxruntime
+        (explorer.quantize); both, and the change, are kept on ``trial``."""
         from explorer.quantize import quantization_effect
-        net = result.network
-        if result.info["evaluator"] == "supernet":   # stage-by-stage evaluation leaves the slice's BN as it was
-            recalibrate_batchnorm(net, self.evaluator.calibration)
         net.eval()
         effect = quantization_effect(net, self.config.train_size, self.config.data,
                                      eval_frames=self.config.val_limit or 32)

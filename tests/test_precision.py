@@ -101,3 +101,24 @@ def test_an_int8_space_on_a_profile_without_int8_rates_is_one_line(tmp_path, run
     assert code == 2 and "prices no int8 graphs" in err and "Traceback" not in err
     assert len(err.strip().splitlines()) == 1
     assert not (tmp_path / "tx2-tiny8").exists()
+
+
+def test_an_int8_space_shares_the_supernet_of_its_fp32_twin():
+    from explorer.supernet.network import space_key
+    assert space_key(SearchSpace.from_dict(TINY_INT8, "tiny8")) == space_key(SearchSpace.from_yaml("tiny"))
+
+
+def test_an_int8_finalist_is_retrained_then_measured_after_quantization(tmp_path):
+    from explorer.finalists import finalist_trials
+    from explorer.search import SearchConfig, search
+    space = tmp_path / "only8.yaml"
+    space.write_text(yaml.safe_dump({**TINY_INT8, "name": "only8", "precision": ["int8"]}))
+    cfg = SearchConfig(study="f8", space=str(space), device=str(_with_int8(tmp_path)), data=TINY_DATA,
+                       train_size=(32, 32), input_size=(64, 64), batch_size=8, val_limit=8, evaluator="supernet",
+                       supernet_steps=4, finalists=1, finalist_steps=3, baselines=())
+    out = search(cfg, n_trials=3, timeout_s=None, reports=tmp_path)
+    (fin,) = finalist_trials(out.study)
+    assert fin.user_attrs["candidate"]["precision"] == "int8"
+    before, after = fin.user_attrs["path_metrics_fp32"], fin.user_attrs["path_metrics"]
+    for d, m, b in zip(fin.user_attrs["quantization"]["rmse_degradation"], after, before):
+        assert m["rmse"] == pytest.approx(b["rmse"] * (1 + d), rel=1e-6)

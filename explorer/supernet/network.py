@@ -28,8 +28,9 @@ from explorer.supernet._slicing import slice_of, slot_of, super_name
 
 
 def space_identity(space: SearchSpace) -> dict:
-    """What a supernet depends on in a space: its dimensions, not its name or description."""
-    dims = {k: list(v) for k, v in space.dimensions().items()}
+    """What a supernet depends on in a space: its dimensions, not its name or description (nor the
+    precisions it lists: int8 candidates are fp32 weights quantized afterwards)."""
+    dims = {k: list(v) for k, v in space.dimensions().items() if k != "precision"}
     dims["required_exits"] = list(space.required_exits)
     dims["decoder_stages"] = len(space.decoder_widths)
     return dims
@@ -102,7 +103,9 @@ class Supernet(nn.Module):
         if candidate in self._plans:
             self._plans.move_to_end(candidate)
             return self._plans[candidate]
-        if not self.space.contains(candidate) and candidate != self.largest:
+        # the weights do not depend on the precision a candidate is deployed at
+        as_searched = dataclasses.replace(candidate, precision=self.space.precision[0])
+        if not self.space.contains(as_searched) and candidate != self.largest:
             from explorer.errors import UserError
             raise UserError(f"candidate {candidate.key} is outside the supernet's space '{self.space.name}': "
                             "train a supernet for a space that contains it")
