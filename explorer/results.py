@@ -3,6 +3,8 @@ re-scoring for another device or budget without training anything again."""
 
 from __future__ import annotations
 
+import math
+
 from typing import Sequence
 
 import numpy as np
@@ -50,11 +52,17 @@ def expand_workloads(compact: dict) -> tuple[list[Workload], list[list[str]]]:
     return wl, [[stages[i] for i in ps] for ps in compact["path_stages"]]
 
 
+def trial_precision(trial: optuna.trial.FrozenTrial) -> str:
+    return (trial.user_attrs.get("candidate") or {}).get("precision", "fp32")
+
+
 def trial_path_costs(trial: optuna.trial.FrozenTrial, device: DeviceProfile, kind: str) -> list[float]:
-    """Per-path cost (path 0 included) of a stored trial on ``device``: ms for time, J for energy."""
+    """Per-path cost (path 0 included) of a stored trial on ``device``: ms for time, J for energy;
+    NaN where the device cannot price the trial's precision (int8 on a profile without int8 rates)."""
     wl, path_stages = expand_workloads(trial.user_attrs["workloads"])
-    precision = (trial.user_attrs.get("candidate") or {}).get("precision", "fp32")
-    ms = [0.0] + path_latencies_ms(device.at_precision(precision), wl, path_stages)
+    if trial_precision(trial) not in device.precisions:
+        return [0.0] + [math.nan] * len(path_stages)
+    ms = [0.0] + path_latencies_ms(device.at_precision(trial_precision(trial)), wl, path_stages)
     if kind == "time":
         return ms
     return [float(device.energy_j(t)) for t in ms]
@@ -66,6 +74,8 @@ def trial_losses(trial: optuna.trial.FrozenTrial, metric: str = "rmse") -> list[
 
 def trial_anytime_loss(trial: optuna.trial.FrozenTrial, device: DeviceProfile, budget, metric: str = "rmse") -> float:
     dist = parse_budget(budget)
+    if trial_precision(trial) not in device.precisions:
+        return math.nan
     return anytime_loss(trial_path_costs(trial, device, dist.kind), trial_losses(trial, metric), dist)
 
 

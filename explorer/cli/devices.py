@@ -78,9 +78,12 @@ def cmd_calibrate(args) -> None:
     how = f"from {args.fit}" if args.fit else "on this machine"
     out.write_text(f"# Made by `explorer calibrate` {how}.\n" + prof.to_yaml())
     console.print(f"wrote {out}")
-    for fit in prof.provenance["fit"]:
+    fits = prof.provenance["fit"] + (prof.int8.provenance["fit"] if prof.int8 is not None else [])
+    for fit in fits:
         console.print(f"  fit on {fit['what']}: median error {fit['median_abs_error']:.1%}, "
                       f"{fit['within_10pct']:.0%} within 10%")
+    if prof.int8 is None:
+        console.print("  int8: not priced (the measurements hold no int8 layer graphs)")
     console.print(f"  energy: {prof.provenance['energy_note']}")
 
 

@@ -30,7 +30,7 @@ from explorer.errors import UserError  # noqa: E402
 from explorer.results import (baseline_label, baseline_trial, finalists_frame,  # noqa: E402
                               is_retrained, missing_baselines, path_table, scored_trials, study_baselines,
                               trial_anytime_loss,
-                              trial_losses, trial_path_costs, trials_frame, winner)
+                              trial_losses, trial_path_costs, trial_precision, trials_frame, winner)
 from explorer.space import Candidate  # noqa: E402
 
 TABLE2_BUDGETS = ("time:uniform:100ms", "time:uniform:50ms", "time:uniform:33ms",
@@ -74,6 +74,8 @@ def _step_curves(rows, device: DeviceProfile, budget: str) -> str:
     dist = parse_budget(budget)
     fig, ax = plt.subplots(figsize=(6.4, 3.6))
     for label, trial, colour in rows:
+        if trial_precision(trial) not in device.precisions:
+            continue   # an int8 design on a profile without int8 rates: no curve to draw
         costs = trial_path_costs(trial, device, dist.kind)
         xs, ys = anytime_curve(costs, trial_losses(trial), dist.upper)
         loss = trial_anytime_loss(trial, device, dist)
@@ -215,6 +217,10 @@ def build_context(study: optuna.Study, devices: Sequence[str] | None = None,
             from scipy.stats import kendalltau
             ctx["finalists_tau"] = float(kendalltau(both["estimated"], both["retrained"]).statistic)
         ctx["finalists"] = _frame_html(fin, "finalists-table")
+    lacking = [d.name for d in devs if "int8" not in d.precisions]
+    if lacking and any(trial_precision(t) == "int8" for t in scored):
+        ctx["notes"].append(f"int8 designs are not priced on {', '.join(lacking)}: those profiles have no int8 "
+                            "rates, so their cells there are empty.")
     for name, why in (study.user_attrs.get("baselines_not_estimated") or {}).items():
         ctx["notes"].append(f"Baseline {baseline_label(name)} has no search estimate: {why}.")
     starts = [t.datetime_start for t in study.trials if t.datetime_start]
