@@ -164,10 +164,16 @@ def replan_sampling(plan: Plan, remaining_s: float, sampling_s: float | None) ->
 
 
 def replan_finalists(plan: Plan, remaining_s: float, speeds: Speeds, baselines: float, steps_free: bool,
-                     finalists_free: bool, baseline_count: int | None = None) -> Plan:
-    """The finalists' part, sized again to the time really left when sampling has ended."""
+                     finalists_free: bool, baseline_count: int | None = None,
+                     wanted: tuple[int, int] | None = None) -> Plan:
+    """The finalists' part, sized again to the time really left when sampling has ended, with
+    ``speeds`` measured again just before. ``wanted`` (finalists, steps) is what was asked before the
+    first plan shrank them: a machine that was busy when first measured gets them back."""
     baseline_count = round(baselines) if baseline_count is None else baseline_count
     finalists, steps, changes = plan.finalists, plan.finalist_steps, list(plan.changes)
+    if wanted is not None:
+        finalists = max(finalists, wanted[0]) if finalists_free else finalists
+        steps = max(steps, wanted[1]) if steps_free else steps
     budget = remaining_s - RESERVE_S
     while finalists_free and finalists > 1 and retrain_seconds(speeds, finalists, baselines, steps) > budget:
         finalists -= 1
@@ -176,8 +182,8 @@ def replan_finalists(plan: Plan, remaining_s: float, speeds: Speeds, baselines: 
         if per_step > 0 and per_step * steps > budget:
             steps = min(steps, max(MIN_FINALIST_STEPS, int(budget / per_step)))
     if (finalists, steps) != (plan.finalists, plan.finalist_steps):
-        changes.append(f"finalists re-planned with {remaining_s / 60:.1f} min left: {finalists} retrained "
-                       f"{steps} steps")
+        changes.append(f"finalists re-planned with {remaining_s / 60:.1f} min left ({speeds.retrain_step_s:.2f} s "
+                       f"a step here now): {finalists} retrained {steps} steps")
     return dataclasses.replace(plan, finalists=finalists, finalist_steps=steps,
                                retrain_jobs=finalists + baseline_count if (finalists or baseline_count) else 0,
                                retrain_s=retrain_seconds(speeds, finalists, baselines, steps),

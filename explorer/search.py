@@ -564,6 +564,18 @@ def plan_search(config: SearchConfig, storage: optuna.storages.BaseStorage, limi
     return config, chosen, speeds
 
 
+def _measure_again(config: SearchConfig, speeds):
+    """The retraining speeds measured again (the supernet's is kept: it is trained by now)."""
+    from explorer import planning
+    from explorer.data import open_dataset
+    train_set = open_dataset(config.data, "train", config.train_size, seed=config.seed)
+    val_set = open_dataset(config.data, "val", config.train_size, train_augment=False)
+    references = tuple(n for n in config.baselines if not isinstance(baseline_model(n), Candidate))
+    fresh = planning.measure_speeds(config, train_set, val_set, resolve_device(config.accelerator), supernet=False,
+                                    references=references)
+    return dataclasses.replace(fresh, supernet_step_s=speeds.supernet_step_s)
+
+
 def search(config: SearchConfig, storage_url: str | None = None, workers: int = 1,
            n_trials: int | None = None, timeout_s: float | None = 600.0, reports: Path = REPORTS_DIR,
            on_trial: Callable[[optuna.Study, optuna.trial.FrozenTrial], None] | None = None,
@@ -585,6 +597,7 @@ def search(config: SearchConfig, storage_url: str | None = None, workers: int = 
     sampling_cap = timeout_s
     if config.supernet:
         ensure_supernet(config)  # a foreign or corrupt file is one line before anything is measured
+    wanted = (config.finalists, config.finalist_steps)   # before a plan shrinks them
     if time_limit is not None:
         config, plan, speeds = plan_search(config, storage, time_limit, timeout_s, on_data)
         timeout_s = plan.sampling_s
@@ -644,9 +657,11 @@ def search(config: SearchConfig, storage_url: str | None = None, workers: int = 
         from explorer.planning import replan_finalists
         done = [t.user_attrs["finalist"]["recipe"]["steps"] for t in finalist_trials(study)]
         steps_free = "finalist_steps" in time_limit.free and not done   # a resumed study keeps its recipe
+        # the machine may be busier or freer than when it was first measured: measure it again (seconds)
+        speeds = _measure_again(config, speeds)
         plan = replan_finalists(plan, time_limit.remaining(), speeds, baseline_load(config, speeds),
                                 steps_free=steps_free, finalists_free="finalists" in time_limit.free,
-                                baseline_count=len(config.baselines))
+                                baseline_count=len(config.baselines), wanted=wanted)
         config = dataclasses.replace(config, finalists=plan.finalists,
                                      finalist_steps=plan.finalist_steps if steps_free or not done else max(done))
         study.set_user_attr("plan", plan.to_dict())

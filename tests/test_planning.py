@@ -130,3 +130,18 @@ def test_the_machine_is_measured_for_each_reference_baseline():
     assert [name for name, _ in speeds.reference_step_s] == ["fastdepth-pruned"]
     assert speeds.reference_step_s[0][1] > 0 and speeds.relative_training("fastdepth-pruned") > 0
     assert speeds.relative_training("s2d-resnet18") is None and speeds.supernet_step_s == 0
+
+
+def test_finalists_shrunk_on_a_busy_machine_come_back_when_it_is_free():
+    busy = plan(SLOW, remaining=8 * 60)                 # measured while the machine was loaded
+    assert (busy.finalists, busy.finalist_steps) < (3, 300)
+    # measured again at the end of sampling: fast now, with time left for what was asked
+    back = replan_finalists(busy, 6 * 60, FAST, 3, True, True, wanted=(3, 300))
+    assert (back.finalists, back.finalist_steps) == (3, 300) and "0.06 s a step" in back.changes[-1]
+    # still slow: no more than fits, and never more than was asked
+    still = replan_finalists(busy, 6 * 60, SLOW, 3, True, True, wanted=(3, 300))
+    assert still.finalists == 1 and still.retrain_s <= 1.05 * (6 * 60 - planning.RESERVE_S)   # steps sized linearly
+    assert still.finalists <= 3 and still.finalist_steps <= 300
+    # settings the user gave never move
+    fixed = replan_finalists(busy, 6 * 60, FAST, 3, False, False, wanted=(3, 300))
+    assert (fixed.finalists, fixed.finalist_steps) == (busy.finalists, busy.finalist_steps)
