@@ -4,6 +4,8 @@ halt it at any moment (``AnytimeRunner.halt``) and get the best map so far."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import json
 import threading
 import time
@@ -254,7 +256,9 @@ def curve_check(model_dir: Path, data: str, device: str | None = None, frames: i
     items = [ds[i] for i in range(min(frames, len(ds)))]
     losses = [m["rmse"] for m in path_metrics(runner, items)]
     profile = get_device(device) if device else calibrate(scale=0.5, provider=provider)
-    costs = candidate_cost(cand, runner.input_size).path_latency_ms(profile)
+    precision = runner.manifest.get("precision", "fp32")
+    priced = precision if precision in profile.precisions else "fp32"   # else the fp32 prediction, said so
+    costs = candidate_cost(dataclasses.replace(cand, precision=priced), runner.input_size).path_latency_ms(profile)
     b_max = 1.25 * costs[-1]
     grid = (np.arange(deadlines) + 0.5) * b_max / deadlines
     measured = {"deadlines_ms": [], "loss": [], "mean_path": []}
@@ -265,7 +269,7 @@ def curve_check(model_dir: Path, data: str, device: str | None = None, frames: i
         if progress:
             progress(i + 1, len(grid))
     result = {"candidate_key": cand.key, "device": profile.name, "provider": provider,
-              "precision": runner.manifest.get("precision", "fp32"), "frames": len(items), "b_max_ms": b_max,
+              "precision": precision, "priced_precision": priced, "frames": len(items), "b_max_ms": b_max,
               "path_losses": losses, "predicted_costs_ms": costs,
               "predicted_anytime_loss": anytime_loss(costs, losses, f"time:uniform:{b_max}ms"),
               "measured": measured, "measured_anytime_loss": float(np.mean(measured["loss"]))}

@@ -91,6 +91,13 @@ def test_a_search_measures_int8_candidates_after_quantization(tmp_path, run_cli)
     assert code == 0, err
     manifest = json.loads((tmp_path / "m8" / "manifest.json").read_text())
     assert manifest["precision"] == "int8" and manifest["candidate"]["precision"] == "int8"
+    # its anytime curve is predicted at int8 where the profile can, else at fp32 and said so
+    for dev, priced in ((device, "int8"), ("tx2", "fp32")):
+        code, text, err = run_cli("curve", tmp_path / "m8", "--data", TINY_DATA, "--device", dev, "--frames", "2",
+                                  "--deadlines", "3")
+        assert code == 0, err
+        assert json.loads((tmp_path / "m8" / "anytime_curve.json").read_text())["priced_precision"] == priced
+        assert ("the model is int8" in text) == (priced == "fp32")
 
 
 def test_an_int8_space_on_a_profile_without_int8_rates_is_one_line(tmp_path, run_cli):

@@ -79,9 +79,9 @@ def cmd_curve(args) -> None:
     m, p = res["measured_anytime_loss"], res["predicted_anytime_loss"]
     console.print(f"anytime loss U(0, {res['b_max_ms']:.1f} ms) on this machine: measured {m:.4f}, predicted by "
                   f"{res['device']} {p:.4f} ({m / p - 1:+.1%}); written to {Path(args.model) / 'anytime_curve.json'}")
-    if res["precision"] != "fp32":
-        console.print(f"(the model is {res['precision']}; the profile prices fp32 layers, so the prediction is an "
-                      "fp32 one)")
+    if res["precision"] != res["priced_precision"]:
+        console.print(f"(the model is {res['precision']}; the profile prices {res['priced_precision']} layers only, "
+                      f"so the prediction is an {res['priced_precision']} one)")
 
 
 def register(sub, add, reports: dict) -> None:
