@@ -132,8 +132,8 @@ def quantization_effect(net, input_size: tuple[int, int], data: str, calibration
                         eval_frames: int = 32) -> dict:
     """How quantizing ``net``'s stage graphs to int8 changes each path's metrics, measured with
     onnxruntime on ``eval_frames`` validation frames of ``data`` (fp32 and int8 graphs alike): per
-    path, each metric's int8 / fp32 ratio, and both sets of metrics. What a search applies to an int8
-    candidate's estimate, so that it is compared with fp32 ones on the same frames."""
+    path, each metric's int8 / fp32 ratio. What a search applies to an int8 candidate's estimate, so
+    that it is compared with fp32 ones on the same frames."""
     import math
     from explorer.deploy import Quantization, export_network
     with tempfile.TemporaryDirectory(prefix="explorer-int8-") as tmp:
@@ -143,6 +143,5 @@ def quantization_effect(net, input_size: tuple[int, int], data: str, calibration
     before, after = m["path_metrics_fp32"], m["path_metrics_int8"]
     ratios = [{k: (a[k] / b[k] if b[k] else 1.0) for k in b if isinstance(b[k], (int, float))}
               for a, b in zip(after, before)]
-    return {"ratios": ratios, "path_metrics_fp32": before, "path_metrics_int8": after,
-            "rmse_degradation": m["quantization"]["rmse_degradation"],
+    return {"ratios": ratios, "rmse_degradation": m["quantization"]["rmse_degradation"],
             "frames": m["quantization"]["evaluation"]["frames"]}

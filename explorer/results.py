@@ -60,9 +60,10 @@ def trial_path_costs(trial: optuna.trial.FrozenTrial, device: DeviceProfile, kin
     """Per-path cost (path 0 included) of a stored trial on ``device``: ms for time, J for energy;
     NaN where the device cannot price the trial's precision (int8 on a profile without int8 rates)."""
     wl, path_stages = expand_workloads(trial.user_attrs["workloads"])
-    if trial_precision(trial) not in device.precisions:
+    precision = trial_precision(trial)
+    if precision not in device.precisions:
         return [0.0] + [math.nan] * len(path_stages)
-    ms = [0.0] + path_latencies_ms(device.at_precision(trial_precision(trial)), wl, path_stages)
+    ms = [0.0] + path_latencies_ms(device.at_precision(precision), wl, path_stages)
     if kind == "time":
         return ms
     return [float(device.energy_j(t)) for t in ms]

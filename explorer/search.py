@@ -303,7 +303,7 @@ class Objective:
             except Pruned as exc:
                 raise optuna.TrialPruned(str(exc)) from None
             path_metrics = _json_safe(result.metrics.drop(columns=["path"]).to_dict("records"))
-            if getattr(candidate, "precision", "fp32") == "int8":
+            if candidate.precision == "int8":
                 if result.info["evaluator"] == "supernet":   # stage-by-stage evaluation left the slice's BN as it was
                     from explorer.evaluators import recalibrate_batchnorm
                     recalibrate_batchnorm(result.network, self.evaluator.calibration)
@@ -540,8 +540,7 @@ def plan_search(config: SearchConfig, storage: optuna.storages.BaseStorage, limi
     trains_supernet = config.evaluator == "supernet" and not config.supernet
     cached = _cached_supernet_steps(config) if trains_supernet else []
     must_measure_supernet = trains_supernet and ("supernet_steps" in free or config.supernet_steps not in cached)
-    references = tuple(n for n in config.baselines if not isinstance(baseline_model(n), Candidate)) \
-        if config.finalists else ()
+    references = _reference_baselines(config) if config.finalists else ()
     speeds = planning.measure_speeds(config, train_set, val_set, resolve_device(config.accelerator),
                                      supernet=must_measure_supernet, references=references)
     trial_s = 0.0 if config.evaluator == "supernet" else planning.SAFETY * (
@@ -564,13 +563,18 @@ def plan_search(config: SearchConfig, storage: optuna.storages.BaseStorage, limi
     return config, chosen, speeds
 
 
+def _reference_baselines(config: SearchConfig) -> tuple[str, ...]:
+    """The baselines that are reference networks (their training is measured, not assumed)."""
+    return tuple(n for n in config.baselines if not isinstance(baseline_model(n), Candidate))
+
+
 def _measure_again(config: SearchConfig, speeds):
     """The retraining speeds measured again (the supernet's is kept: it is trained by now)."""
     from explorer import planning
     from explorer.data import open_dataset
     train_set = open_dataset(config.data, "train", config.train_size, seed=config.seed)
     val_set = open_dataset(config.data, "val", config.train_size, train_augment=False)
-    references = tuple(n for n in config.baselines if not isinstance(baseline_model(n), Candidate))
+    references = _reference_baselines(config)
     fresh = planning.measure_speeds(config, train_set, val_set, resolve_device(config.accelerator), supernet=False,
                                     references=references)
     return dataclasses.replace(fresh, supernet_step_s=speeds.supernet_step_s)

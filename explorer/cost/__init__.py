@@ -50,7 +50,7 @@ class CandidateCost:
 
     @property
     def precision(self) -> str:
-        return getattr(self.candidate, "precision", "fp32")
+        return self.candidate.precision
 
     def path_latency_ms(self, device: DeviceProfile) -> list[float]:
         """Ready time of each path on ``device`` at the candidate's precision, path 0 (0 ms) included."""

@@ -289,6 +289,7 @@ class ReferenceModel:
 
     name: str
     num_paths: int = 2    # path 0 (the scan) and the network's one output
+    precision: str = "fp32"   # trained and costed as published
 
     @property
     def key(self) -> str:
