@@ -27,7 +27,7 @@ import torch
 from torch.utils.data import DataLoader
 
 from explorer.errors import UserError
-from explorer.space import SearchSpace
+from explorer.space import Candidate, SearchSpace
 from explorer.supernet.network import (Supernet, largest_candidate, random_training_subnet, smallest_candidate,
                                        space_identity, space_key)
 from explorer.train import _batch_row, _lr_at, TrainConfig, multi_exit_loss
@@ -47,6 +47,7 @@ class SupernetRecipe:
     weight_decay: float = 1e-4
     random_subnets: int = 1          # besides the largest and the smallest, per step
     distill: float = 0.5             # weight of the largest subnet's output in the others' loss
+    teacher_depths: str = "cycle"    # "cycle": the largest subnet's encoder depth turns over the space's; "max"
     micro_batches: int = 1           # per process; BatchNorm statistics are per micro-batch
     seed: int = 0
 
@@ -58,7 +59,7 @@ class SupernetRecipe:
     @classmethod
     def from_dict(cls, d: dict) -> "SupernetRecipe":
         known = {f.name for f in dataclasses.fields(cls)}
-        d = {k: v for k, v in d.items() if k in known}
+        d = {"teacher_depths": "max", **{k: v for k, v in d.items() if k in known}}  # files made before "cycle"
         d["input_size"] = tuple(d["input_size"])
         return cls(**d)
 
@@ -166,6 +167,20 @@ def _subnet_loss(outs: list[torch.Tensor], target: torch.Tensor, teacher: torch.
     return (1 - distill) * loss + distill * soft
 
 
+def _teacher(largest: Candidate, space: SearchSpace, recipe: SupernetRecipe, step: int) -> Candidate:
+    """The subnet trained on the labels alone and distilled from this step.
+
+    With ``teacher_depths="max"`` it is the largest network, every step: the decoder and exit heads
+    then learn on the deepest encoder's features and read shallower ones less well, and the supernet
+    ranks deep encoders above shallow ones that retrain better. "cycle" turns the largest subnet's
+    encoder depth over the space's depths, step by step, so each depth feeds the full decoder as often.
+    """
+    if recipe.teacher_depths == "max":
+        return largest
+    depths = sorted(space.encoder_blocks)
+    return dataclasses.replace(largest, encoder_blocks=depths[step % len(depths)])
+
+
 def train_supernet(space: SearchSpace, data: str, recipe: SupernetRecipe = SupernetRecipe(),
                    out: Path | None = None, device: torch.device | None = None,
                    progress: Callable[[int, int, dict], None] | None = None,
@@ -217,7 +232,8 @@ def train_supernet(space: SearchSpace, data: str, recipe: SupernetRecipe = Super
             if step >= stop:
                 break
             rng = random.Random(recipe.seed * 1_000_003 + step)  # the same subnets on every process
-            subnets = [largest, smallest] + [random_training_subnet(space, rng) for _ in range(recipe.random_subnets)]
+            subnets = [_teacher(largest, space, recipe, step), smallest] + \
+                [random_training_subnet(space, rng) for _ in range(recipe.random_subnets)]
             for g in opt.param_groups:
                 g["lr"] = _lr_at(lr_cfg, step)
             net.train()
