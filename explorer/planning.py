@@ -17,7 +17,8 @@ and of the supernet, a few seconds), then sizes what may give, in this order:
 So when time is short, sampling shrinks first (to ``MIN_SAMPLING_S``), then the supernet (to its
 minimum), then the number of finalists (to one), then the finalists' steps (to the proxy's). What was changed is
 said to the user and stored on the study (``plan``). The finalists are re-planned before they start
-(sampling and the supernet may have run long).
+(sampling and the supernet may have run long, the machine may have slowed): then their steps give
+way first, down to two thirds, so that one finalist per image encoder is kept where it can be.
 """
 
 from __future__ import annotations
@@ -35,6 +36,7 @@ MIN_FINALIST_STEPS = 150
 RESERVE_S = 20.0        # the report, the last costings, the process's exit
 SAFETY = 1.2            # measured step times are a few steps of a noisy machine
 FINALIST_SIZE = 1.3     # the finalists are larger than the paper design the step is measured on
+KEEP_STEPS = 2 / 3      # when re-planned short, the finalists' steps shrink this far before their number does
 
 
 @dataclass(frozen=True)
@@ -167,7 +169,8 @@ def replan_finalists(plan: Plan, remaining_s: float, speeds: Speeds, baselines: 
                      finalists_free: bool, baseline_count: int | None = None,
                      wanted: tuple[int, int] | None = None) -> Plan:
     """The finalists' part, sized again to the time really left when sampling has ended, with
-    ``speeds`` measured again just before. ``wanted`` (finalists, steps) is what was asked before the
+    ``speeds`` measured again just before: their steps shrink first (to ``KEEP_STEPS`` of the
+    recipe), then their number, then their steps to the minimum. ``wanted`` (finalists, steps) is what was asked before the
     first plan shrank them: a machine that was busy when first measured gets them back."""
     baseline_count = round(baselines) if baseline_count is None else baseline_count
     finalists, steps, changes = plan.finalists, plan.finalist_steps, list(plan.changes)
@@ -175,12 +178,20 @@ def replan_finalists(plan: Plan, remaining_s: float, speeds: Speeds, baselines: 
         finalists = max(finalists, wanted[0]) if finalists_free else finalists
         steps = max(steps, wanted[1]) if steps_free else steps
     budget = remaining_s - RESERVE_S
+
+    def fit_steps(floor: int) -> int:
+        fixed = retrain_seconds(speeds, finalists, baselines, 0)          # the validation passes
+        per_step = (retrain_seconds(speeds, finalists, baselines, steps) - fixed) / max(steps, 1)
+        if not steps_free or per_step <= 0 or fixed + per_step * steps <= budget:
+            return steps
+        return min(steps, max(floor, int((budget - fixed) / per_step)))
+
+    # The finalists' number is what turns the supernet's encoder bias around (one per encoder), so
+    # their steps give way first, to KEEP_STEPS of the recipe; then their number; then the steps again.
+    steps = fit_steps(max(MIN_FINALIST_STEPS, int(steps * KEEP_STEPS)))
     while finalists_free and finalists > 1 and retrain_seconds(speeds, finalists, baselines, steps) > budget:
         finalists -= 1
-    if steps_free:
-        per_step = retrain_seconds(speeds, finalists, baselines, steps) / max(steps, 1)
-        if per_step > 0 and per_step * steps > budget:
-            steps = min(steps, max(MIN_FINALIST_STEPS, int(budget / per_step)))
+    steps = fit_steps(MIN_FINALIST_STEPS)
     if (finalists, steps) != (plan.finalists, plan.finalist_steps):
         changes.append(f"finalists re-planned with {remaining_s / 60:.1f} min left ({speeds.retrain_step_s:.2f} s "
                        f"a step here now): {finalists} retrained {steps} steps")

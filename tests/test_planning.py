@@ -145,3 +145,15 @@ def test_finalists_shrunk_on_a_busy_machine_come_back_when_it_is_free():
     # settings the user gave never move
     fixed = replan_finalists(busy, 6 * 60, FAST, 3, False, False, wanted=(3, 300))
     assert (fixed.finalists, fixed.finalist_steps) == (busy.finalists, busy.finalist_steps)
+
+
+def test_a_short_replan_shortens_the_finalists_before_dropping_one():
+    p = plan(FAST)
+    need = p.retrain_s
+    # 20% short: 3 finalists at fewer steps (not below two thirds), rather than 2 at 300
+    short = replan_finalists(p, need * 0.8 + planning.RESERVE_S, FAST, 3, True, True)
+    assert short.finalists == 3 and 200 <= short.finalist_steps < 300
+    assert short.retrain_s <= need * 0.8 + 1
+    # far shorter: one finalist goes, and the steps stay at two thirds or more while that fits
+    shorter = replan_finalists(p, need * 0.55 + planning.RESERVE_S, FAST, 3, True, True)
+    assert shorter.finalists < 3 and shorter.finalist_steps >= 200

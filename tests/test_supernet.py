@@ -265,3 +265,28 @@ def test_largest_candidate_covers_the_space(default_space):
     big = largest_candidate(default_space)
     assert big.encoder_blocks == max(default_space.encoder_blocks)
     assert set(big.exits[:-1]) == set(default_space.optional_exits) | set(default_space.required_exits)
+
+
+@pytest.mark.parametrize("teacher, depths", [("cycle", [2, 3, 2, 3]), ("max", [3, 3, 3, 3])])
+def test_the_label_trained_subnet_turns_over_encoder_depths(tmp_path, monkeypatch, teacher, depths):
+    space = SearchSpace.from_yaml("tiny")
+    first = []
+    original = Supernet.forward_subnet
+
+    def spy(self, candidate, *args, **kw):
+        if not first or len(first[-1]) == 3:   # a new step: label-trained, smallest, random
+            first.append([])
+        first[-1].append(candidate)
+        return original(self, candidate, *args, **kw)
+
+    monkeypatch.setattr(Supernet, "forward_subnet", spy)
+    recipe = dataclasses.replace(RECIPE, teacher_depths=teacher)
+    train_supernet(space, TINY_DATA, recipe, tmp_path / "s.pt")
+    assert [step[0].encoder_blocks for step in first] == depths
+    assert all(step[0].decoder_widths == largest_candidate(space).decoder_widths for step in first)
+
+
+def test_supernet_files_made_before_cycling_read_as_max():
+    old = {k: v for k, v in RECIPE.to_dict().items() if k != "teacher_depths"}
+    assert SupernetRecipe.from_dict(old).teacher_depths == "max"
+    assert SupernetRecipe.from_dict(RECIPE.to_dict()).teacher_depths == "cycle"

@@ -100,7 +100,7 @@ def cmd_supernet_train(args) -> None:
         raise UserError("--steps, --batch-size and --micro-batches must be at least 1, --random-subnets at least 0")
     recipe = SupernetRecipe(steps=args.steps, batch_size=args.batch_size, input_size=args.input_size, lr=args.lr,
                             lr_end=args.lr / 10, random_subnets=args.random_subnets,
-                            micro_batches=args.micro_batches, seed=args.seed)
+                            micro_batches=args.micro_batches, seed=args.seed, teacher_depths=args.teacher_depths)
     out = Path(args.out) if args.out else default_path(space, args.data, recipe)
     with progress() as bar:
         task = bar.add_task("supernet", total=recipe.steps, status="")
@@ -184,6 +184,10 @@ def register(sub, add, reports: dict) -> None:
     s.add_argument("--lr", type=float, default=2e-3)
     s.add_argument("--random-subnets", type=int, default=1, help="random subnets per step besides the largest "
                    "and the smallest (default 1)")
+    s.add_argument("--teacher-depths", choices=["cycle", "max"], default="cycle",
+                   help="encoder depth of the subnet trained on the labels (and distilled from): cycle (default) "
+                   "turns over the space's depths step by step, so shallow encoders are not ranked below deep "
+                   "ones for lack of training; max always takes the deepest (the plain sandwich rule)")
     s.add_argument("--micro-batches", type=int, default=1, help="split each process's batch (gradient "
                    "accumulation; BatchNorm statistics per micro-batch)")
     s.add_argument("--seed", type=int, default=0)
