@@ -170,8 +170,9 @@ def replan_finalists(plan: Plan, remaining_s: float, speeds: Speeds, baselines: 
                      wanted: tuple[int, int] | None = None) -> Plan:
     """The finalists' part, sized again to the time really left when sampling has ended, with
     ``speeds`` measured again just before: their steps shrink first (to ``KEEP_STEPS`` of the
-    recipe), then their number, then their steps to the minimum. ``wanted`` (finalists, steps) is what was asked before the
-    first plan shrank them: a machine that was busy when first measured gets them back."""
+    recipe), then their number, then their steps to the minimum. ``wanted`` (finalists, steps) is
+    what was asked before the first plan shrank them: a machine that was busy when first measured
+    gets them back."""
     baseline_count = round(baselines) if baseline_count is None else baseline_count
     finalists, steps, changes = plan.finalists, plan.finalist_steps, list(plan.changes)
     if wanted is not None:

@@ -290,3 +290,10 @@ def test_supernet_files_made_before_cycling_read_as_max():
     old = {k: v for k, v in RECIPE.to_dict().items() if k != "teacher_depths"}
     assert SupernetRecipe.from_dict(old).teacher_depths == "max"
     assert SupernetRecipe.from_dict(RECIPE.to_dict()).teacher_depths == "cycle"
+
+
+def test_an_unknown_teacher_depths_is_refused(tmp_path):
+    recipe = dataclasses.replace(RECIPE, teacher_depths="deepest")
+    with pytest.raises(UserError, match="cycle, max"):
+        train_supernet(SearchSpace.from_yaml("tiny"), TINY_DATA, recipe, tmp_path / "s.pt")
+    assert not (tmp_path / "s.pt").exists()

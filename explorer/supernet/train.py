@@ -1,9 +1,10 @@
 """Supernet training: the sandwich rule with in-place distillation, atomic checkpoints and resume,
 a cache keyed by (space, data, recipe), and data parallelism under ``torchrun``.
 
-Each step trains the largest subnet on the labels, then the smallest and a few random ones on the
-labels and on the largest subnet's last exit (detached): every subnet keeps every exit, so every
-head is trained at every step. Gradients of all subnets are summed before one optimizer step.
+Each step trains the largest subnet on the labels (its encoder depth turning over the space's depths,
+``teacher_depths="cycle"``), then the smallest and a few random ones on the labels and on the
+largest subnet's last exit (detached): every subnet keeps every exit, so every head is trained at
+every step. Gradients of all subnets are summed before one optimizer step.
 
 Data parallel: each of the W processes takes its share of the same global batch and the same
 subnets; gradients are averaged with an all-reduce. BatchNorm statistics are per process (as in
@@ -33,6 +34,7 @@ from explorer.supernet.network import (Supernet, largest_candidate, random_train
 from explorer.train import _batch_row, _lr_at, TrainConfig, multi_exit_loss
 
 FORMAT = "anytime-explorer-supernet/1"
+TEACHER_DEPTHS = ("cycle", "max")
 
 
 @dataclass(frozen=True)
@@ -193,6 +195,8 @@ def train_supernet(space: SearchSpace, data: str, recipe: SupernetRecipe = Super
     rank, world = _distributed()
     device = device or (torch.device("cuda", rank % torch.cuda.device_count()) if torch.cuda.is_available()
                         else torch.device("cpu"))
+    if recipe.teacher_depths not in TEACHER_DEPTHS:
+        raise UserError(f"teacher depths '{recipe.teacher_depths}': choose one of {', '.join(TEACHER_DEPTHS)}")
     if recipe.batch_size % (world * recipe.micro_batches):
         raise UserError(f"--batch-size {recipe.batch_size} must divide by processes x micro-batches "
                         f"({world} x {recipe.micro_batches})")
