@@ -13,6 +13,7 @@ The supernets are trained once into the cache (the `max` one is what searches ma
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 from pathlib import Path
 
@@ -43,7 +44,6 @@ if __name__ == "__main__":
     cfg = SearchConfig(study="bench")
     files = {}
     for teacher in ("max", "cycle"):
-        import dataclasses
         rec = dataclasses.replace(cfg.supernet_recipe(), steps=args.steps, teacher_depths=teacher)
         files[teacher] = default_path(space, cfg.data, rec)
         print(f"supernet teacher_depths={teacher}: {files[teacher]}", flush=True)
