@@ -5,7 +5,8 @@ The same search takes 9 minutes on one of these 2-core machines and 30 on anothe
 steps, measured). So the run measures the machine first (a few training steps of the paper design
 and of the supernet, a few seconds), then sizes what may give, in this order:
 
-- the finalists keep their recipe (only settings a user did not give ever give way);
+- the finalists keep their recipe where the supernet's full steps fit beside it, else their steps
+  shrink to ``KEEP_STEPS`` of it first (only settings a user did not give ever give way);
 - the supernet, when its steps are not given, gets what is left but sampling's minimum, between
   ``MIN_SUPERNET_STEPS`` and ``MAX_SUPERNET_STEPS`` (rounded to ``STEP_GRID`` so that runs on one
   machine share the cached one);
@@ -14,8 +15,9 @@ and of the supernet, a few seconds), then sizes what may give, in this order:
   (retrained ratio to the paper design 0.877 against 0.865, one study each), so a fast machine
   finishes early rather than train longer.
 
-So when time is short, sampling shrinks first (to ``MIN_SAMPLING_S``), then the supernet (to its
-minimum), then the number of finalists (to one), then the finalists' steps (to the proxy's). What was changed is
+So when time is short, sampling shrinks first (to ``MIN_SAMPLING_S``), then the finalists' steps (to
+``KEEP_STEPS`` of theirs), then the supernet (to its minimum), then the number of finalists (to one),
+then the finalists' steps again (to ``MIN_FINALIST_STEPS``). What was changed is
 said to the user and stored on the study (``plan``). The finalists are re-planned before they start
 (sampling and the supernet may have run long, the machine may have slowed): then their steps give
 way first, down to two thirds, so that one finalist per image encoder is kept where it can be.
@@ -34,7 +36,8 @@ MAX_SUPERNET_STEPS = 600
 STEP_GRID = 100
 MIN_FINALIST_STEPS = 150
 RESERVE_S = 20.0        # the report, the last costings, the process's exit
-SAFETY = 1.2            # measured step times are a few steps of a noisy machine
+SAFETY = 1.1            # measured step times are a few steps of a noisy machine (1.2 left a fresh
+                        # `make search` 60 s unused, the finalists planned 30% above what they took)
 FINALIST_SIZE = 1.3     # the finalists are larger than the paper design the step is measured on
 KEEP_STEPS = 2 / 3      # when re-planned short, the finalists' steps shrink this far before their number does
 
@@ -114,6 +117,16 @@ def plan_run(remaining_s: float, limit_s: float, speeds: Speeds, *, sampling_s: 
     def retrain(n: int, steps: int) -> float:
         return retrain_seconds(speeds, n, baselines, steps)
 
+    if supernet_free and not supernet_cached and speeds.supernet_step_s > 0 and finalist_steps_free:
+        # the supernet's steps decide how well every candidate is ranked (Kendall tau 0.57-0.66 at 400
+        # steps against 0.74-0.75 at 600, bench_teacher_depths), the finalists' steps only which of a few
+        # near-equal ones wins: they give way first, to KEEP_STEPS, so that the supernet keeps its steps
+        room = budget - sampling_min - supernet_cost(supernet_steps)
+        steps = _steps_that_fit(lambda k: retrain(finalists, k), finalist_steps, room,
+                                max(MIN_FINALIST_STEPS, int(finalist_steps * KEEP_STEPS)))
+        if steps != finalist_steps:
+            changes.append(f"finalists retrained {steps} steps instead of {finalist_steps}")
+            finalist_steps = steps
     if supernet_free and not supernet_cached and speeds.supernet_step_s > 0:
         # sampling gives way first (its best estimate comes early: trial 178 of 481 in a default study),
         # so the supernet may take all but sampling's minimum
@@ -153,6 +166,16 @@ def plan_run(remaining_s: float, limit_s: float, speeds: Speeds, *, sampling_s: 
     return plan
 
 
+def _steps_that_fit(seconds, steps: int, room: float, floor: int) -> int:
+    """The most steps up to ``steps``, and not under ``floor``, whose ``seconds(steps)`` fit in ``room``
+    (a fixed part, the validation passes, plus a part per step)."""
+    fixed = seconds(0)
+    per_step = (seconds(steps) - fixed) / max(steps, 1)
+    if per_step <= 0 or seconds(steps) <= room:
+        return steps
+    return min(steps, max(floor, int((room - fixed) / per_step)))
+
+
 def replan_sampling(plan: Plan, remaining_s: float, sampling_s: float | None) -> Plan:
     """Sampling sized again once the supernet is trained: it gets what the supernet's phase left
     (more when it ran faster than measured, less when the machine slowed), up to the cap ``sampling_s``."""
@@ -181,11 +204,9 @@ def replan_finalists(plan: Plan, remaining_s: float, speeds: Speeds, baselines: 
     budget = remaining_s - RESERVE_S
 
     def fit_steps(floor: int) -> int:
-        fixed = retrain_seconds(speeds, finalists, baselines, 0)          # the validation passes
-        per_step = (retrain_seconds(speeds, finalists, baselines, steps) - fixed) / max(steps, 1)
-        if not steps_free or per_step <= 0 or fixed + per_step * steps <= budget:
+        if not steps_free:
             return steps
-        return min(steps, max(floor, int((budget - fixed) / per_step)))
+        return _steps_that_fit(lambda k: retrain_seconds(speeds, finalists, baselines, k), steps, budget, floor)
 
     # The finalists' number is what turns the supernet's encoder bias around (one per encoder), so
     # their steps give way first, to KEEP_STEPS of the recipe; then their number; then the steps again.

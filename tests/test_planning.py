@@ -27,11 +27,11 @@ def test_a_fast_machine_keeps_every_setting_and_finishes_early():
 
 
 def test_a_middling_machine_trains_a_shorter_supernet_on_the_step_grid():
-    p = plan(dataclasses.replace(SLOW, supernet_step_s=0.9, retrain_step_s=0.1), remaining=16 * 60)
+    p = plan(dataclasses.replace(SLOW, supernet_step_s=0.9, retrain_step_s=0.1), remaining=13 * 60)
     assert planning.MIN_SUPERNET_STEPS < p.supernet_steps < 600 and p.supernet_steps % planning.STEP_GRID == 0
-    assert (p.finalists, p.finalist_steps) == (3, 300)
+    assert (p.finalists, p.finalist_steps) == (3, 200)     # the finalists' steps gave way first, to 2/3
     assert planning.MIN_SAMPLING_S <= p.sampling_s < 180.0          # sampling gave way first
-    assert p.expected_s <= 16 * 60 and any("supernet" in c for c in p.changes)
+    assert p.expected_s <= 13 * 60 and any("supernet" in c for c in p.changes)
 
 
 def test_sampling_gives_way_before_the_supernet():
@@ -44,7 +44,7 @@ def test_sampling_gives_way_before_the_supernet():
 def test_a_slow_machine_shrinks_sampling_then_the_supernet_then_the_finalists():
     p = plan(SLOW)
     assert p.supernet_steps == planning.MIN_SUPERNET_STEPS
-    assert p.sampling_s == planning.MIN_SAMPLING_S
+    assert planning.MIN_SAMPLING_S <= p.sampling_s < 1.5 * planning.MIN_SAMPLING_S
     assert p.finalists < 3 or p.finalist_steps < 300
     assert p.finalist_steps >= planning.MIN_FINALIST_STEPS
     assert p.expected_s <= 14 * 60 + 1 or any("longer --time-limit" in c for c in p.changes)
@@ -105,7 +105,7 @@ def test_sampling_is_replanned_to_what_the_supernet_left():
     early = planning.replan_sampling(p, 14 * 60 - p.supernet_s / 2, 180.0)         # the supernet ran 2x faster
     assert early.sampling_s > p.sampling_s and early.sampling_s <= 180.0 and "re-planned" in early.changes[-1]
     late = planning.replan_sampling(p, 60, 180.0)
-    assert late.sampling_s == planning.MIN_SAMPLING_S
+    assert late.sampling_s < planning.MIN_SAMPLING_S + 5   # down to the minimum (a change under 5 s is no change)
 
 
 def test_reference_baselines_are_planned_by_their_measured_training_step():
@@ -157,3 +157,18 @@ def test_a_short_replan_shortens_the_finalists_before_dropping_one():
     # far shorter: one finalist goes, and the steps stay at two thirds or more while that fits
     shorter = replan_finalists(p, need * 0.55 + planning.RESERVE_S, FAST, 3, True, True)
     assert shorter.finalists < 3 and shorter.finalist_steps >= 200
+
+
+def test_the_finalists_steps_give_way_to_two_thirds_before_the_supernet_shrinks():
+    # a machine of this project's (0.64 s a supernet step, 0.21 s a retraining step) with 12.5 min left
+    # after the data: the full recipe leaves the supernet its minimum, two thirds of it 400 steps
+    speeds = Speeds(retrain_step_s=0.21, retrain_eval_s=8.0, supernet_step_s=0.64)
+    p = plan(speeds, remaining=12.5 * 60)
+    assert p.finalists == 3 and p.finalist_steps == 200
+    assert p.supernet_steps == 400
+    assert p.expected_s <= 12.5 * 60 + 1
+    assert p.changes[0] == "finalists retrained 200 steps instead of 300"
+    kept = plan(speeds, remaining=12.5 * 60, finalist_steps_free=False)   # steps the user gave stay...
+    assert kept.finalist_steps == 300 and kept.supernet_steps == planning.MIN_SUPERNET_STEPS   # ...the supernet pays
+    # a cached supernet leaves the finalists their recipe
+    assert plan(speeds, remaining=12.5 * 60, cached=True, supernet_free=False).finalist_steps == 300

@@ -37,7 +37,7 @@ def cmd_search(args) -> None:
     if (args.time_limit or 0) < 0 or (args.timeout or 0) < 0:
         raise UserError("--time-limit and --timeout must be 0 (none) or more, e.g. 15m")
     # a sampling time the user asks for is not cut short by the default limit
-    time_limit = args.time_limit if args.time_limit is not None else (900.0 if args.timeout is None else 0.0)
+    time_limit = args.time_limit if args.time_limit is not None else (960.0 if args.timeout is None else 0.0)
     timeout = 180.0 if args.timeout is None else (None if args.timeout == 0 else args.timeout)
     limit = None
     if time_limit:
@@ -219,9 +219,9 @@ def register(sub, add, reports: dict) -> None:
                    "postgresql://... for several machines)")
     s.add_argument("--workers", type=int, default=1, help="processes on this machine (journal storage)")
     s.add_argument("--time-limit", type=_duration_s, default=None, help="wall clock for the whole run: data, "
-                   "supernet training, sampling, finalists (default 15m, none when --timeout is given; 0 = none). "
-                   "The machine is measured first (seconds); sampling, the supernet's steps, then the finalists "
-                   "shrink to fit where not given, and the plan is printed")
+                   "supernet training, sampling, finalists (default 16m, none when --timeout is given; 0 = none). "
+                   "The machine is measured first (seconds); sampling, the finalists' steps (to 2/3), the supernet's "
+                   "steps, then the finalists shrink to fit where not given, and the plan is printed")
     s.add_argument("--timeout", type=_duration_s, default=None, help="stop sampling after this long (default 3m: "
                    "100-500 supernet estimates, by the machine; 0 = none)")
     s.add_argument("--trials", type=int, default=None, help="stop after this many finished trials")
