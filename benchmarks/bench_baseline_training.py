@@ -33,11 +33,11 @@ if __name__ == "__main__":
     ratios: dict[str, list[float]] = {n: [] for n in names}
     for rep in range(args.reps):   # each rep measures the paper design, then every reference
         speeds = measure_speeds(cfg, train_set, val_set, torch.device("cpu"), supernet=False, steps=args.steps,
-                                references=names)
+                                baselines=names)
         for n in names:
             ratios[n].append(speeds.relative_training(n))
         print(f"rep {rep + 1}: paper design {speeds.retrain_step_s:.3f} s a step; "
-              + ", ".join(f"{n} {dict(speeds.reference_step_s)[n]:.3f} s ({ratios[n][-1]:.2f}x)" for n in names),
+              + ", ".join(f"{n} {dict(speeds.baseline_step_s)[n]:.3f} s ({ratios[n][-1]:.2f}x)" for n in names),
               flush=True)
     for n in names:
         by_macs = baseline_load(SearchConfig(study="bench", baselines=(n,)))

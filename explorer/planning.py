@@ -38,7 +38,8 @@ MIN_FINALIST_STEPS = 150
 RESERVE_S = 20.0        # the report, the last costings, the process's exit
 SAFETY = 1.1            # measured step times are a few steps of a noisy machine (1.2 left a fresh
                         # `make search` 60 s unused, the finalists planned 30% above what they took)
-FINALIST_SIZE = 1.3     # the finalists are larger than the paper design the step is measured on
+FINALIST_SIZE = 1.3     # finalists not measured yet are larger than the paper design (by MACs; their
+                        # steps, measured at the end of sampling, were 1.0-1.1x its step)
 KEEP_STEPS = 2 / 3      # when re-planned short, the finalists' steps shrink this far before their number does
 
 
@@ -49,12 +50,20 @@ class Speeds:
     retrain_step_s: float        # the paper design, the study's training recipe
     retrain_eval_s: float        # its validation pass after training
     supernet_step_s: float       # one sandwich step (0 when no supernet is trained)
-    reference_step_s: tuple[tuple[str, float], ...] = ()   # reference baselines, same recipe
+    baseline_step_s: tuple[tuple[str, float], ...] = ()   # the other baselines, same recipe
+    finalist_step_s: tuple[float, ...] = ()   # the finalists chosen so far, best first, same recipe
 
-    def relative_training(self, reference: str) -> float | None:
-        """A reference network's training step over the paper design's, if it was measured."""
-        step = dict(self.reference_step_s).get(reference)
+    def relative_training(self, baseline: str) -> float | None:
+        """A baseline's training step over the paper design's, if it was measured."""
+        step = dict(self.baseline_step_s).get(baseline)
         return step / self.retrain_step_s if step and self.retrain_step_s > 0 else None
+
+    def finalist_load(self, count: int) -> float:
+        """The first ``count`` finalists' training in paper designs' worth: measured when they are
+        known (at the end of sampling), else ``FINALIST_SIZE`` each."""
+        if count <= len(self.finalist_step_s) and self.retrain_step_s > 0:
+            return sum(self.finalist_step_s[:count]) / self.retrain_step_s
+        return count * FINALIST_SIZE
 
 
 @dataclass(frozen=True)
@@ -91,7 +100,7 @@ class Plan:
 
 def retrain_seconds(speeds: Speeds, finalists: int, baselines: float, steps: int) -> float:
     """``baselines`` counts paper designs' worth of training (a reference network counts more)."""
-    jobs = finalists * FINALIST_SIZE + baselines
+    jobs = speeds.finalist_load(finalists) + baselines
     return SAFETY * jobs * (steps * speeds.retrain_step_s + speeds.retrain_eval_s) if jobs else 0.0
 
 
@@ -235,14 +244,14 @@ def _seconds_per_step(marks: dict[int, float]) -> float:
 
 
 def measure_speeds(config, train_set, val_set, device, supernet: bool, steps: int = 6,
-                   references: tuple[str, ...] = ()) -> Speeds:
-    """A few steps of the paper design with the study's recipe, of each reference network in
-    ``references`` (baselines) with the same recipe and, when one must be trained, of the supernet
-    with its recipe (on a throw-away file): the median seconds a step, warm-up left out."""
+                   baselines: tuple[str, ...] = (), finalists: tuple = ()) -> Speeds:
+    """A few steps of the paper design with the study's recipe, of each baseline named in ``baselines``
+    and each candidate in ``finalists`` with the same recipe and, when one must be trained, of the
+    supernet with its recipe (on a throw-away file): the median seconds a step, warm-up left out."""
     import tempfile
     from pathlib import Path
     import torch
-    from explorer.model import build_network
+    from explorer.model import build_model, build_network
     from explorer.space import SearchSpace, paper_candidate
     from explorer.train import train
     marks: dict[int, float] = {}
@@ -254,14 +263,17 @@ def measure_speeds(config, train_set, val_set, device, supernet: bool, steps: in
                    val_limit=config.val_limit)
     retrain_step = _seconds_per_step(marks)
     retrain_eval = max(time.perf_counter() - t0 - result.seconds, 0.0)
-    reference_steps = []
-    for name in references:
-        from explorer.model.reference import ReferenceDepthNet
-        marks = {}
+
+    def step_of(model) -> float:
+        marks: dict[int, float] = {}
         torch.manual_seed(0)
-        train(ReferenceDepthNet(name), train_set, val_set, recipe, device, val_limit=1,
+        train(build_model(model), train_set, val_set, recipe, device, val_limit=1,
               progress=lambda s, n, r: marks.setdefault(s, time.perf_counter()))
-        reference_steps.append((name, _seconds_per_step(marks)))
+        return _seconds_per_step(marks)
+
+    from explorer.search import baseline_model
+    baseline_steps = tuple((name, step_of(baseline_model(name))) for name in baselines)
+    finalist_steps = tuple(step_of(candidate) for candidate in finalists)
     supernet_step = 0.0
     if supernet:
         from explorer.supernet import train_supernet
@@ -271,7 +283,7 @@ def measure_speeds(config, train_set, val_set, device, supernet: bool, steps: in
                            dataclasses.replace(config.supernet_recipe(), steps=steps), Path(tmp) / "probe.pt",
                            device, progress=lambda s, n, r: marks.setdefault(s, time.perf_counter()))
         supernet_step = _seconds_per_step(marks)
-    return Speeds(retrain_step, retrain_eval, supernet_step, tuple(reference_steps))
+    return Speeds(retrain_step, retrain_eval, supernet_step, baseline_steps, finalist_steps)
 
 
 @dataclass(frozen=True)

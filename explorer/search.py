@@ -506,20 +506,22 @@ def _cached_supernet_steps(config: SearchConfig) -> list[int]:
 
 
 def baseline_load(config: SearchConfig, speeds=None) -> float:
-    """The baselines' retraining in paper designs' worth, for the time plan: a candidate counts one,
-    a reference network its measured training step over the paper design's (``speeds``), or without a
-    measurement its MACs at the training size over the paper design's (which over-counts the ResNets:
-    about 1.5x measured against 3.34x by MACs for S2D-ResNet-18, benchmarks/bench_baseline_training.py)."""
+    """The baselines' retraining in paper designs' worth, for the time plan: each its measured training
+    step over the paper design's (``speeds``), or without a measurement one for a candidate and for a
+    reference network its MACs at the training size over the paper design's (which over-counts the
+    ResNets: about 1.5x measured against 3.34x by MACs for S2D-ResNet-18,
+    benchmarks/bench_baseline_training.py)."""
     paper = candidate_cost(paper_candidate(), config.train_size).path_params_macs()[-1][1]
     load = 0.0
     for name in config.baselines:
-        model = baseline_model(name)
-        if isinstance(model, Candidate):
-            load += 1.0
-            continue
         measured = speeds.relative_training(name) if speeds is not None else None
-        load += measured if measured is not None else max(
-            1.0, model_cost(model, config.train_size).path_params_macs()[-1][1] / paper)
+        model = baseline_model(name)
+        if measured is not None:
+            load += measured
+        elif isinstance(model, Candidate):
+            load += 1.0
+        else:
+            load += max(1.0, model_cost(model, config.train_size).path_params_macs()[-1][1] / paper)
     return load
 
 
@@ -540,9 +542,9 @@ def plan_search(config: SearchConfig, storage: optuna.storages.BaseStorage, limi
     trains_supernet = config.evaluator == "supernet" and not config.supernet
     cached = _cached_supernet_steps(config) if trains_supernet else []
     must_measure_supernet = trains_supernet and ("supernet_steps" in free or config.supernet_steps not in cached)
-    references = _reference_baselines(config) if config.finalists else ()
     speeds = planning.measure_speeds(config, train_set, val_set, resolve_device(config.accelerator),
-                                     supernet=must_measure_supernet, references=references)
+                                     supernet=must_measure_supernet,
+                                     baselines=_measured_baselines(config) if config.finalists else ())
     trial_s = 0.0 if config.evaluator == "supernet" else planning.SAFETY * (
         config.train_steps * speeds.retrain_step_s + speeds.retrain_eval_s)
 
@@ -563,20 +565,20 @@ def plan_search(config: SearchConfig, storage: optuna.storages.BaseStorage, limi
     return config, chosen, speeds
 
 
-def _reference_baselines(config: SearchConfig) -> tuple[str, ...]:
-    """The baselines that are reference networks (their training is measured, not assumed)."""
-    return tuple(n for n in config.baselines if not isinstance(baseline_model(n), Candidate))
+def _measured_baselines(config: SearchConfig) -> tuple[str, ...]:
+    """The baselines whose training is measured for the plan (the paper design's is the step itself)."""
+    return tuple(n for n in config.baselines if baseline_model(n) != paper_candidate())
 
 
-def _measure_again(config: SearchConfig, speeds):
-    """The retraining speeds measured again (the supernet's is kept: it is trained by now)."""
+def _measure_again(config: SearchConfig, speeds, finalists: tuple[Candidate, ...] = ()):
+    """The retraining speeds measured again, the ``finalists`` chosen by now with them (the supernet's
+    is kept: it is trained by now)."""
     from explorer import planning
     from explorer.data import open_dataset
     train_set = open_dataset(config.data, "train", config.train_size, seed=config.seed)
     val_set = open_dataset(config.data, "val", config.train_size, train_augment=False)
-    references = _reference_baselines(config)
     fresh = planning.measure_speeds(config, train_set, val_set, resolve_device(config.accelerator), supernet=False,
-                                    references=references)
+                                    baselines=_measured_baselines(config), finalists=finalists)
     return dataclasses.replace(fresh, supernet_step_s=speeds.supernet_step_s)
 
 
@@ -657,12 +659,15 @@ def search(config: SearchConfig, storage_url: str | None = None, workers: int = 
                 if p.is_alive():
                     p.terminate()
     if plan is not None and (config.finalists or config.baselines):
-        from explorer.finalists import finalist_trials
+        from explorer.finalists import choose_finalists, finalist_trials
         from explorer.planning import replan_finalists
         done = [t.user_attrs["finalist"]["recipe"]["steps"] for t in finalist_trials(study)]
         steps_free = "finalist_steps" in time_limit.free and not done   # a resumed study keeps its recipe
-        # the machine may be busier or freer than when it was first measured: measure it again (seconds)
-        speeds = _measure_again(config, speeds)
+        # the machine may be busier or freer than when it was first measured, and the finalists are known
+        # now: measure it again, on them (seconds)
+        count = max(config.finalists, wanted[0]) if "finalists" in time_limit.free else config.finalists
+        chosen = tuple(Candidate.from_dict(t.user_attrs["candidate"]) for t in choose_finalists(study, count))
+        speeds = _measure_again(config, speeds, chosen)
         plan = replan_finalists(plan, time_limit.remaining(), speeds, baseline_load(config, speeds),
                                 steps_free=steps_free, finalists_free="finalists" in time_limit.free,
                                 baseline_count=len(config.baselines), wanted=wanted)

@@ -108,16 +108,33 @@ def test_sampling_is_replanned_to_what_the_supernet_left():
     assert late.sampling_s < planning.MIN_SAMPLING_S + 5   # down to the minimum (a change under 5 s is no change)
 
 
-def test_reference_baselines_are_planned_by_their_measured_training_step():
+def test_baselines_are_planned_by_their_measured_training_step():
     from explorer.search import SearchConfig, baseline_load
-    cfg = SearchConfig(study="x", baselines=("paper", "s2d-resnet18"))
-    measured = Speeds(0.1, 1.0, 0.2, reference_step_s=(("s2d-resnet18", 0.15),))
-    assert baseline_load(cfg, measured) == pytest.approx(1.0 + 1.5)
-    by_macs = baseline_load(cfg)                     # no measurement: its MACs over the paper design's
-    assert by_macs > 2.0 and baseline_load(SearchConfig(study="x")) == 3.0
+    cfg = SearchConfig(study="x", baselines=("paper", "s2d-resnet18", "fastdepth"))
+    measured = Speeds(0.1, 1.0, 0.2, baseline_step_s=(("s2d-resnet18", 0.15), ("fastdepth", 0.07)))
+    assert baseline_load(cfg, measured) == pytest.approx(1.0 + 1.5 + 0.7)
+    by_macs = baseline_load(cfg)       # no measurement: a reference network's MACs over the paper design's
+    assert by_macs > 3.0 and baseline_load(SearchConfig(study="x")) == 3.0
 
 
-def test_the_machine_is_measured_for_each_reference_baseline():
+def test_finalists_are_planned_by_their_measured_training_step_once_known():
+    unknown = FAST
+    known = dataclasses.replace(FAST, finalist_step_s=(0.06, 0.03, 0.09))
+    assert unknown.finalist_load(3) == pytest.approx(3 * planning.FINALIST_SIZE)
+    assert known.finalist_load(2) == pytest.approx(1.5) and known.finalist_load(3) == pytest.approx(3.0)
+    assert known.finalist_load(4) == pytest.approx(4 * planning.FINALIST_SIZE)   # more than were measured
+    fixed = planning.retrain_seconds(known, 0, 0, 300)
+    assert planning.retrain_seconds(known, 2, 0, 300) == pytest.approx(
+        planning.SAFETY * 1.5 * (300 * 0.06 + 0.5))
+    assert fixed == 0
+    # measured smaller than assumed, the same time left keeps more of the recipe
+    p = plan(FAST)
+    tight = p.retrain_s * 0.7 + planning.RESERVE_S
+    k, u = replan_finalists(p, tight, known, 3, True, True), replan_finalists(p, tight, unknown, 3, True, True)
+    assert (k.finalists, k.finalist_steps) > (u.finalists, u.finalist_steps)
+
+
+def test_the_machine_is_measured_for_each_baseline_and_finalist():
     import torch
     from conftest import TINY_DATA
     from explorer.data import open_dataset
@@ -125,10 +142,13 @@ def test_the_machine_is_measured_for_each_reference_baseline():
     cfg = SearchConfig(study="x", space="tiny", data=TINY_DATA, train_size=(32, 32), batch_size=4, val_limit=4)
     tr = open_dataset(TINY_DATA, "train", (32, 32))
     va = open_dataset(TINY_DATA, "val", (32, 32), train_augment=False)
+    from explorer.space import SearchSpace
+    finalists = tuple(SearchSpace.from_yaml("tiny").random_candidates(2, seed=0))
     speeds = planning.measure_speeds(cfg, tr, va, torch.device("cpu"), supernet=False, steps=4,
-                                     references=("fastdepth-pruned",))
-    assert [name for name, _ in speeds.reference_step_s] == ["fastdepth-pruned"]
-    assert speeds.reference_step_s[0][1] > 0 and speeds.relative_training("fastdepth-pruned") > 0
+                                     baselines=("fastdepth-pruned", "paper-nee"), finalists=finalists)
+    assert [name for name, _ in speeds.baseline_step_s] == ["fastdepth-pruned", "paper-nee"]
+    assert all(step > 0 for _, step in speeds.baseline_step_s) and speeds.relative_training("paper-nee") > 0
+    assert len(speeds.finalist_step_s) == 2 and all(step > 0 for step in speeds.finalist_step_s)
     assert speeds.relative_training("s2d-resnet18") is None and speeds.supernet_step_s == 0
 
 
