@@ -224,8 +224,11 @@ def replan_finalists(plan: Plan, remaining_s: float, speeds: Speeds, baselines: 
         finalists -= 1
     steps = fit_steps(MIN_FINALIST_STEPS)
     if (finalists, steps) != (plan.finalists, plan.finalist_steps):
+        relative = [step / speeds.retrain_step_s for step in speeds.finalist_step_s[:finalists]
+                    if speeds.retrain_step_s > 0]
+        measured = f", the finalists' {min(relative):.2f}-{max(relative):.2f}x that" if relative else ""
         changes.append(f"finalists re-planned with {remaining_s / 60:.1f} min left ({speeds.retrain_step_s:.2f} s "
-                       f"a step here now): {finalists} retrained {steps} steps")
+                       f"a step here now{measured}): {finalists} retrained {steps} steps")
     return dataclasses.replace(plan, finalists=finalists, finalist_steps=steps,
                                retrain_jobs=finalists + baseline_count if (finalists or baseline_count) else 0,
                                retrain_s=retrain_seconds(speeds, finalists, baselines, steps),
