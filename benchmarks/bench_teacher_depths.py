@@ -35,8 +35,8 @@ BUDGET = "time:uniform:33ms"
 
 if __name__ == "__main__":
     ap = argparse.ArgumentParser()
-    ap.add_argument("--steps", type=int, default=400, help="supernet steps (a 15-minute make search on a 2-core "
-                    "machine trains 400)")
+    ap.add_argument("--steps", type=int, default=400, help="supernet steps (a fresh make search on a 2-core "
+                    "machine trains 400-600, by its speed)")
     ap.add_argument("--candidates", type=int, default=16)
     args = ap.parse_args()
     torch.set_num_threads(2)

@@ -9,6 +9,7 @@ killed study resumes it where it stopped; a finished one is never redone.
 from __future__ import annotations
 
 import math
+import time
 from pathlib import Path
 from typing import Callable
 
@@ -67,30 +68,50 @@ def choose_finalists(study: optuna.Study, count: int) -> list[optuna.trial.Froze
 
 
 def retrain_finalists(study: optuna.Study, config, reports: Path,
-                      progress: Callable[[int, int, str], None] | None = None) -> list[optuna.trial.FrozenTrial]:
-    """Retrains the finalists and the baselines (those not retrained yet with this recipe)."""
+                      progress: Callable[[int, int, str], None] | None = None, extra: int = 0,
+                      deadline: float | None = None) -> list[optuna.trial.FrozenTrial]:
+    """Retrains the finalists and the baselines (those not retrained yet with this recipe), then up to
+    ``extra`` more finalists, each only if it should end before ``deadline`` (a time.time()), judged
+    by how long the finalists took here: a plan made on a moment's measurement of a noisy machine
+    (a few steps) gets the finalists it could not promise when the machine turns out faster."""
     from explorer.search import Objective, baseline_model
     recipe = config.finalist_config()
+    chosen = choose_finalists(study, config.finalists + max(extra, 0))
     jobs: list[tuple[Candidate, str, optuna.trial.FrozenTrial | None]] = []
-    for t in choose_finalists(study, config.finalists):
+    for t in chosen[:config.finalists]:
         jobs.append((Candidate.from_dict(t.user_attrs["candidate"]), "", t))
     if config.baselines:
         estimated = {t.user_attrs.get("baseline"): t for t in estimate_trials(study) if t.user_attrs.get("baseline")}
         jobs += [(baseline_model(name), name, estimated.get(name)) for name in config.baselines]
+    optional = [(Candidate.from_dict(t.user_attrs["candidate"]), "", t) for t in chosen[config.finalists:]]
     done = {(t.user_attrs["candidate_key"], t.user_attrs.get("baseline", "")) for t in finalist_trials(study)
             if t.user_attrs[FINALIST].get("recipe") == recipe.to_dict()}
     todo = [j for j in jobs if (j[0].key, j[1]) not in done]
-    if not todo:
+    optional = [j for j in optional if (j[0].key, j[1]) not in done]
+    if not todo and not optional:
         return finalist_trials(study)
     objective = Objective(_proxy_view(config), study_dir(config.study, reports))
     folder = study_dir(config.study, reports) / "finalists"
-    for i, (candidate, baseline, estimate) in enumerate(todo):
+    took: list[float] = []      # seconds of each finalist retrained here
+    total = len(todo) + len(optional)
+    for i, (candidate, baseline, estimate) in enumerate(todo + optional):
         label = baseline or f"trial {estimate.number}"
+        if i >= len(todo) and deadline is not None:
+            from explorer.planning import SAFETY
+            expected = SAFETY * max(took) if took else math.inf
+            if time.time() + expected > deadline:
+                if progress:
+                    progress(i, i, f"no time for {label} ({candidate.key}): about {expected:.0f} s")
+                total = i
+                break
         if progress:
-            progress(i, len(todo), f"retraining {label} ({candidate.key})")
+            progress(i, total, f"retraining {label} ({candidate.key})")
+        start = time.time()
         _retrain(study, objective, candidate, baseline, estimate, recipe, folder)
+        if not baseline:
+            took.append(time.time() - start)
     if progress:
-        progress(len(todo), len(todo), "finalists retrained")
+        progress(total, total, "finalists retrained")
     return finalist_trials(study)
 
 

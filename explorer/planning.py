@@ -20,7 +20,9 @@ So when time is short, sampling shrinks first (to ``MIN_SAMPLING_S``), then the 
 then the finalists' steps again (to ``MIN_FINALIST_STEPS``). What was changed is
 said to the user and stored on the study (``plan``). The finalists are re-planned before they start
 (sampling and the supernet may have run long, the machine may have slowed): then their steps give
-way first, down to two thirds, so that one finalist per image encoder is kept where it can be.
+way first, down to two thirds, so that one finalist per image encoder is kept where it can be; the
+finalists that re-plan drops are retrained last when the others' real time says they fit
+(``finalists.retrain_finalists(extra=, deadline=)``).
 """
 
 from __future__ import annotations
@@ -38,8 +40,8 @@ MIN_FINALIST_STEPS = 150
 RESERVE_S = 20.0        # the report, the last costings, the process's exit
 SAFETY = 1.1            # measured step times are a few steps of a noisy machine (1.2 left a fresh
                         # `make search` 60 s unused, the finalists planned 30% above what they took)
-FINALIST_SIZE = 1.3     # finalists not measured yet are larger than the paper design (by MACs; their
-                        # steps, measured at the end of sampling, were 1.0-1.1x its step)
+FINALIST_SIZE = 1.3     # finalists not measured yet train this much slower than the paper design
+                        # (1.16-1.33x in two default studies; they are measured at the end of sampling)
 KEEP_STEPS = 2 / 3      # when re-planned short, the finalists' steps shrink this far before their number does
 
 

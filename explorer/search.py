@@ -677,6 +677,22 @@ def search(config: SearchConfig, storage_url: str | None = None, workers: int = 
         if on_plan:
             on_plan(plan)
     if config.finalists:
-        from explorer.finalists import retrain_finalists
-        retrain_finalists(study, config, reports, progress=on_finalist)
+        from explorer.finalists import finalist_trials, retrain_finalists
+        # the re-plan stood on a few steps' measurement: finalists it dropped are retrained after the
+        # others when the time those took says they still fit
+        extra, deadline = 0, None
+        if plan is not None and "finalists" in time_limit.free:
+            from explorer.planning import RESERVE_S
+            extra = max(wanted[0] - config.finalists, 0)
+            deadline = time_limit.started + time_limit.seconds - RESERVE_S
+        retrain_finalists(study, config, reports, progress=on_finalist, extra=extra, deadline=deadline)
+        retrained = sum(1 for t in finalist_trials(study) if not t.user_attrs.get("baseline")
+                        and t.user_attrs["finalist"].get("recipe") == config.finalist_config().to_dict())
+        if plan is not None and retrained > plan.finalists:
+            plan = dataclasses.replace(plan, finalists=retrained, changes=plan.changes + (
+                f"{retrained - plan.finalists} more finalist(s) retrained: the others took less than planned",))
+            config = dataclasses.replace(config, finalists=retrained)
+            study.set_user_attr("plan", plan.to_dict())
+            if on_plan:
+                on_plan(plan)
     return SearchOutcome(study, url, time.time() - t0, failed, retried, not_retried, config, plan)

@@ -99,6 +99,33 @@ def test_an_interrupted_retraining_resumes_from_its_checkpoint(finished, tmp_pat
     assert not ckpt.exists()                                     # removed once its trial is stored
 
 
+def test_finalists_a_replan_dropped_are_retrained_when_the_others_leave_time(finished, tmp_path):
+    import dataclasses
+    import time
+    out, _ = finished
+    cfg = dataclasses.replace(CFG, study="fin3", baselines=False, finalists=1)
+
+    def study_of_estimates(name):
+        s = optuna.create_study(study_name=name, storage=optuna.storages.InMemoryStorage())
+        for t in out.study.trials:
+            if t.state == optuna.trial.TrialState.COMPLETE and not is_retrained(t):
+                s.add_trial(t)
+        return s
+
+    said = []
+    roomy = study_of_estimates("fin3")
+    retrain_finalists(roomy, cfg, tmp_path, extra=1, deadline=time.time() + 600,
+                      progress=lambda i, n, what: said.append(what))
+    wanted = [t.user_attrs["candidate_key"] for t in choose_finalists(roomy, 2)]
+    assert [t.user_attrs["candidate_key"] for t in finalist_trials(roomy)] == wanted   # the planned one first
+    # a deadline the first finalist's time says cannot be met: only the planned one
+    tight = study_of_estimates("fin4")
+    retrain_finalists(tight, dataclasses.replace(cfg, study="fin4"), tmp_path, extra=1, deadline=time.time(),
+                      progress=lambda i, n, what: said.append(what))
+    assert [t.user_attrs["candidate_key"] for t in finalist_trials(tight)] == wanted[:1]
+    assert any(what.startswith("no time for") for what in said)
+
+
 def test_a_time_limit_measures_the_machine_and_records_its_plan(tmp_path):
     import dataclasses
     from explorer.planning import TimeLimit
