@@ -74,6 +74,7 @@ def retrain_finalists(study: optuna.Study, config, reports: Path,
     ``extra`` more finalists, each only if it should end before ``deadline`` (a time.time()), judged
     by how long the finalists took here: a plan made on a moment's measurement of a noisy machine
     (a few steps) gets the finalists it could not promise when the machine turns out faster."""
+    from explorer.planning import SAFETY
     from explorer.search import Objective, baseline_model
     recipe = config.finalist_config()
     chosen = choose_finalists(study, config.finalists + max(extra, 0))
@@ -97,7 +98,6 @@ def retrain_finalists(study: optuna.Study, config, reports: Path,
     for i, (candidate, baseline, estimate) in enumerate(todo + optional):
         label = baseline or f"trial {estimate.number}"
         if i >= len(todo) and deadline is not None:
-            from explorer.planning import SAFETY
             expected = SAFETY * max(took) if took else math.inf
             if time.time() + expected > deadline:
                 if progress:
