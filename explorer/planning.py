@@ -41,7 +41,7 @@ RESERVE_S = 20.0        # the report, the last costings, the process's exit
 SAFETY = 1.1            # measured step times are a few steps of a noisy machine (1.2 left a fresh
                         # `make search` 60 s unused, the finalists planned 30% above what they took)
 FINALIST_SIZE = 1.3     # finalists not measured yet train this much slower than the paper design
-                        # (1.16-1.33x in two default studies; they are measured at the end of sampling)
+                        # (1.04-1.25x, medians of 3, bench_baseline_training; measured when sampling ends)
 KEEP_STEPS = 2 / 3      # when re-planned short, the finalists' steps shrink this far before their number does
 
 
