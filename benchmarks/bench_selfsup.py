@@ -72,6 +72,8 @@ if __name__ == "__main__":
     ap.add_argument("--val", type=int, default=48)
     ap.add_argument("--scan-weight", type=float, default=None,
                     help="weight of the scan term (default: explorer.selfsup.SCAN_WEIGHT)")
+    ap.add_argument("--smoothness-weight", type=float, default=None,
+                    help="weight of the edge-aware smoothness (default: explorer.selfsup.SMOOTHNESS_WEIGHT)")
     ap.add_argument("--poses", default="net", choices=["net", "given"],
                     help="self-supervision's camera motion: the pose network (default) or the data's poses")
     ap.add_argument("--kinds", default="supervised,self+scan,noscan",
@@ -81,7 +83,9 @@ if __name__ == "__main__":
     import explorer.selfsup
     if args.scan_weight is not None:
         explorer.selfsup.SCAN_WEIGHT = args.scan_weight
-    print(f"scan term weight {explorer.selfsup.SCAN_WEIGHT}")
+    if args.smoothness_weight is not None:
+        explorer.selfsup.SMOOTHNESS_WEIGHT = args.smoothness_weight
+    print(f"scan term weight {explorer.selfsup.SCAN_WEIGHT}, smoothness weight {explorer.selfsup.SMOOTHNESS_WEIGHT}")
 
     # rendered at 128x128 (a third of the default's pixels) since training runs at 64x64
     cfg = SyntheticSequenceConfig(train=args.train, val=args.val, height=128, width=128)
