@@ -125,16 +125,25 @@ class SelfSupervisedLoss(nn.Module):
     def forward(self, outputs: list[torch.Tensor], batch: dict, row: int,
                 weights: tuple[float, ...] | None = None) -> tuple[torch.Tensor, list[float]]:
         """Weighted mean over the exits (``outputs[1:]``; path 0 has no parameters) and each exit's
-        loss. ``batch`` holds image, sources, K, pose, pose_known and scan on the loss's device."""
+        loss. ``batch`` holds image, sources, K, pose, pose_known and scan on the loss's device, and
+        ``hint`` when training with depth hints."""
         target, K = batch["image"], batch["K"]
         sources = [batch["sources"][:, k] for k in range(2)]
         poses = self.relative_poses(batch)
+        hint = batch.get("hint")
+        if hint is not None:  # see explorer.depth_hints
+            from explorer.depth_hints import hint_loss, min_reprojection
+            with torch.no_grad():
+                hint_error = min_reprojection(target, [warp(s, hint, K, p) for s, p in zip(sources, poses)])
         losses = []
         for depth in outputs[1:]:
             depth = depth.clamp(min=MIN_DEPTH)
             warped = [warp(s, depth, K, p) for s, p in zip(sources, poses)]
             per_pixel, _ = reprojection_loss(target, sources, warped)
             loss = per_pixel.mean() + SMOOTHNESS_WEIGHT * smoothness(depth, target)
+            if hint is not None:
+                depth_error = min_reprojection(target, warped).detach()
+                loss = loss + hint_loss(depth, hint, depth_error, hint_error)
             if self.scan_loss:
                 loss = loss + SCAN_WEIGHT * scan_l1(depth, batch["scan"], row)
             losses.append(loss)

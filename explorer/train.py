@@ -26,7 +26,9 @@ class TrainConfig:
     (None = equal). ``supervision``: "supervised" (L1 on dense depth), "self" (photometric
     reprojection between neighbouring frames, :mod:`explorer.selfsup`; needs sequence data) or
     "mixed" (both); ``poses``: "net" (a pose network trained jointly) or "given" (the data's);
-    ``scan_loss``: an L1 term on the scan row that gives self-supervision metric scale."""
+    ``scan_loss``: an L1 term on the scan row that gives self-supervision metric scale; ``hints``:
+    pull each exit toward a per-frame depth optimised on the same loss where it explains the frames
+    better (:mod:`explorer.depth_hints`; needs ``poses="given"``)."""
 
     steps: int = 300
     batch_size: int = 16
@@ -43,6 +45,7 @@ class TrainConfig:
     supervision: str = "supervised"
     poses: str = "net"
     scan_loss: bool = True
+    hints: bool = False               # depth hints for self-supervision (explorer.depth_hints)
 
     @property
     def metric(self) -> bool:
@@ -55,6 +58,9 @@ class TrainConfig:
             raise UserError(f"supervision '{self.supervision}': use one of {', '.join(SUPERVISIONS)}")
         if self.poses not in POSE_SOURCES:
             raise UserError(f"poses '{self.poses}': use one of {', '.join(POSE_SOURCES)}")
+        if self.hints and (self.supervision == "supervised" or self.poses != "given"):
+            raise UserError("--depth-hints needs --supervision self or mixed with --poses given: hints are "
+                            "optimised with the data's camera motion")
 
     def to_dict(self) -> dict:
         d = dataclasses.asdict(self)
@@ -107,8 +113,8 @@ def _training_loss(cfg: TrainConfig, selfsup, outs: list[torch.Tensor], batch: d
     outs = [o.float() for o in outs]
     if selfsup is None:
         return multi_exit_loss(outs, batch["depth"].to(device), cfg.exit_weights)
-    keys = ("image", "sources", "K", "pose", "pose_known", "scan")
-    on_device = {k: torch.as_tensor(batch[k]).to(device) for k in keys}
+    keys = ("image", "sources", "K", "pose", "pose_known", "scan", "hint")
+    on_device = {k: torch.as_tensor(batch[k]).to(device) for k in keys if k in batch}
     loss, per_exit = selfsup(outs, on_device, _batch_row(batch), cfg.exit_weights)
     if cfg.supervision == "mixed" and bool((batch["depth"] > 0).any()):
         dense, dense_exit = multi_exit_loss(outs, batch["depth"].to(device), cfg.exit_weights)
@@ -289,6 +295,10 @@ def train(net: AnytimeDepthNet, train_set, val_set, cfg: TrainConfig = PROXY,
     if cfg.supervision != "supervised":
         from explorer.selfsup import SelfSupervisedLoss
         check_data_for(cfg, train_set)
+        if cfg.hints:
+            from explorer.depth_hints import HintedDataset, with_hints
+            if not isinstance(train_set, HintedDataset):
+                train_set = with_hints(train_set)
         selfsup = SelfSupervisedLoss(cfg.poses, cfg.scan_loss).to(device)
         params += [p for p in selfsup.parameters() if p.requires_grad]
     if cfg.optimizer == "sgd":

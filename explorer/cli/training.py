@@ -24,7 +24,7 @@ def cmd_train(args) -> None:
                                  ("input_size", args.input_size), ("lr", args.lr), ("seed", args.seed))
                if v is not None}
     cfg = dataclasses.replace(cfg, **changes, supervision=args.supervision, poses=args.poses,
-                              scan_loss=not args.no_scan_loss,
+                              scan_loss=not args.no_scan_loss, hints=args.depth_hints,
                               exit_weights=_exit_weights(args.exit_weights, candidate, args.device, args.budget))
     cfg.validate()
     if cfg.exit_weights:
@@ -36,6 +36,11 @@ def cmd_train(args) -> None:
                                  progress=lambda i, n: bar.update(task, completed=i, total=n))
     val_set = open_dataset(args.data, "val", cfg.input_size, train_augment=False)
     check_data_for(cfg, train_set)
+    if cfg.hints:
+        from explorer.depth_hints import with_hints
+        with progress(transient=True) as bar:
+            task = bar.add_task("depth hints (once per data set, then cached)", total=len(train_set), status="")
+            train_set = with_hints(train_set, progress=lambda i, n: bar.update(task, completed=i))
     import torch
     torch.manual_seed(cfg.seed)
     net = build_network(candidate)
@@ -160,6 +165,10 @@ def register(sub, add, reports: dict) -> None:
     s.add_argument("--no-scan-loss", action="store_true",
                    help="self-supervision without the L1 term on the scan row: depth only up to scale, "
                    "evaluated with median scaling")
+    s.add_argument("--depth-hints", action="store_true",
+                   help="self-supervision with depth hints (needs --poses given): each training frame's "
+                   "depth is first optimised on the photometric loss from the scan, then pulls every exit "
+                   "where it explains the neighbouring frames better (computed once, cached)")
 
     s = add("evaluate", cmd_evaluate, "per-path metrics of a checkpoint on a data set")
     s.add_argument("checkpoint")
