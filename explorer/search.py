@@ -90,6 +90,8 @@ class SearchConfig:
     finalist_steps: int = 300
     max_retries: int = 2          # an interrupted trial (killed, Ctrl-C, lost worker) is tried again
     supervision: str = "supervised"              # supervised | self | mixed (see explorer.selfsup)
+    poses: str = "net"                           # self-supervision's camera motion: net | given
+    hints: bool = False                          # depth hints (explorer.depth_hints; poses given)
 
     def __post_init__(self) -> None:
         if self.evaluator == "auto":  # the supernet is trained with dense labels; self-supervision trains alone
@@ -117,7 +119,8 @@ class SearchConfig:
     def train_config(self) -> TrainConfig:
         return dataclasses.replace(PROXY, steps=self.train_steps, batch_size=self.batch_size,
                                    input_size=self.train_size, lr=self.lr, lr_end=self.lr / 10,
-                                   seed=self.seed, supervision=self.supervision,
+                                   seed=self.seed, supervision=self.supervision, poses=self.poses,
+                                   hints=self.hints,
                                    eval_every=max(2 * self.train_steps // 3, 1) if self.pruning else 0)
 
     def finalist_config(self, seed: int | None = None) -> TrainConfig:
@@ -183,12 +186,12 @@ class SearchConfig:
 
     # settings that change what a trial's value means: a resumed study must keep them
     IDENTITY = ("space", "device", "budgets", "data", "objectives", "metric", "input_size", "train_size",
-                "train_steps", "batch_size", "lr", "evaluator", "supernet_steps", "supervision")
+                "train_steps", "batch_size", "lr", "evaluator", "supernet_steps", "supervision", "poses", "hints")
 
     @classmethod
     def defaults_of_older_studies(cls) -> dict:
         """Settings a study made before they existed was run with."""
-        return {"evaluator": "proxy", "finalists": 0, "supervision": "supervised"}
+        return {"evaluator": "proxy", "finalists": 0, "supervision": "supervised", "poses": "net", "hints": False}
 
 
 def _json_safe(x):

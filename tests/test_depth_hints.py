@@ -71,3 +71,22 @@ def test_cli_train_with_depth_hints(run_cli, tmp_path):
                            "--steps", "1", "--input-size", "32x32", "--out", tmp_path / "x.pt")
     assert code == 2 and "--poses given" in err and len(err.strip().splitlines()) == 1
     assert not (tmp_path / "x.pt").exists()
+
+
+def test_cli_search_with_depth_hints_records_them(run_cli, tmp_path):
+    import optuna
+    code, _, err = run_cli("search", "--study", "hs", "--space", "tiny", "--data", SEQ, "--supervision", "self",
+                           "--poses", "given", "--depth-hints", "--train-size", "32x32", "--input-size", "64x64",
+                           "--train-steps", "2", "--batch-size", "3", "--trials", "1", "--timeout", "0",
+                           "--no-baselines", "--evaluator", "proxy", "--finalists", "0", "--reports", tmp_path)
+    assert code == 0, err
+    study = optuna.load_study(study_name="hs", storage=f"sqlite:///{tmp_path / 'hs' / 'study.db'}")
+    assert study.user_attrs["config"]["hints"] is True and study.user_attrs["config"]["poses"] == "given"
+    assert any(t.state == optuna.trial.TrialState.COMPLETE for t in study.trials)
+    assert "self supervision with depth hints" in (tmp_path / "hs" / "report.html").read_text()
+    # resuming without hints would change what a trial's value means
+    code, _, err = run_cli("search", "--study", "hs", "--space", "tiny", "--data", SEQ, "--supervision", "self",
+                           "--poses", "given", "--train-size", "32x32", "--input-size", "64x64",
+                           "--train-steps", "2", "--batch-size", "3", "--trials", "1", "--timeout", "0",
+                           "--no-baselines", "--evaluator", "proxy", "--finalists", "0", "--reports", tmp_path)
+    assert code == 2 and "hints" in err and len(err.strip().splitlines()) == 1

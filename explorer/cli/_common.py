@@ -56,4 +56,11 @@ def _add_supervision(s: argparse.ArgumentParser) -> None:
                    help="supervised: L1 on dense depth (default); self: photometric reprojection between "
                    "neighbouring frames plus the scan row for metric scale (needs sequence data: "
                    "synthetic-seq, kitti-seq:DRIVE, frames:FOLDER); mixed: both where labels exist")
+    s.add_argument("--poses", default="net", choices=["net", "given"],
+                   help="self-supervision's camera motion: a pose network trained jointly (default), or "
+                   "the data's own poses (synthetic-seq, KITTI oxts, a folder's poses.txt)")
+    s.add_argument("--depth-hints", action="store_true",
+                   help="self-supervision with depth hints (needs --poses given): each training frame's "
+                   "depth is first optimised on the photometric loss from the scan, then pulls every exit "
+                   "where it explains the neighbouring frames better (computed once per data set, cached)")
 

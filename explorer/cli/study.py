@@ -31,7 +31,7 @@ def cmd_search(args) -> None:
         finalists=3 if args.finalists is None else args.finalists,
         finalist_steps=300 if args.finalist_steps is None else args.finalist_steps,
         max_retries=args.max_retries,
-        supervision=args.supervision)
+        supervision=args.supervision, poses=args.poses, hints=args.depth_hints)
     cfg.validate()
     reports = Path(args.reports)
     if (args.time_limit or 0) < 0 or (args.timeout or 0) < 0:

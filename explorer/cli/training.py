@@ -159,16 +159,9 @@ def register(sub, add, reports: dict) -> None:
     s.add_argument("--accelerator", default="auto", choices=["auto", "cpu", "cuda"])
     s.add_argument("--out", help="checkpoint path (resumes if it exists)")
     _add_supervision(s)
-    s.add_argument("--poses", default="net", choices=["net", "given"],
-                   help="self-supervision's camera motion: a pose network trained jointly (default), or "
-                   "the data's own poses (synthetic-seq, KITTI oxts, a folder's poses.txt)")
     s.add_argument("--no-scan-loss", action="store_true",
                    help="self-supervision without the L1 term on the scan row: depth only up to scale, "
                    "evaluated with median scaling")
-    s.add_argument("--depth-hints", action="store_true",
-                   help="self-supervision with depth hints (needs --poses given): each training frame's "
-                   "depth is first optimised on the photometric loss from the scan, then pulls every exit "
-                   "where it explains the neighbouring frames better (computed once, cached)")
 
     s = add("evaluate", cmd_evaluate, "per-path metrics of a checkpoint on a data set")
     s.add_argument("checkpoint")
