@@ -194,6 +194,15 @@ class SearchConfig:
         return {"evaluator": "proxy", "finalists": 0, "supervision": "supervised", "poses": "net", "hints": False}
 
 
+def _with_hints(config: SearchConfig, train_set, progress: Callable[[int, int], None] | None):
+    """The training frames with their depth hints when the study uses them: computed once, before the
+    first trial (with progress), then read from the cache by every trial and worker."""
+    if not config.hints:
+        return train_set
+    from explorer.depth_hints import with_hints
+    return with_hints(train_set, progress=progress)
+
+
 def _json_safe(x):
     return json.loads(json.dumps(x, default=float))
 
@@ -210,8 +219,8 @@ class Objective:
         self.budgets = [parse_budget(b) for b in config.budgets]
         self.train_cfg = config.train_config()
         self.torch_device = resolve_device(config.accelerator)
-        self.train_set = open_dataset(config.data, "train", config.train_size, seed=config.seed,
-                                      progress=data_progress)
+        self.train_set = _with_hints(config, open_dataset(config.data, "train", config.train_size, seed=config.seed,
+                                                          progress=data_progress), data_progress)
         self.val_set = open_dataset(config.data, "val", config.train_size, train_augment=False)
         if config.evaluator == "supernet":
             from explorer.supernet import default_path
@@ -539,7 +548,8 @@ def plan_search(config: SearchConfig, storage: optuna.storages.BaseStorage, limi
     if old and "supernet_steps" in free and "supernet_steps" in old:
         config = dataclasses.replace(config, supernet_steps=int(old["supernet_steps"]))  # the study's supernet
         free.discard("supernet_steps")
-    train_set = open_dataset(config.data, "train", config.train_size, seed=config.seed, progress=on_data)
+    train_set = _with_hints(config, open_dataset(config.data, "train", config.train_size, seed=config.seed,
+                                                 progress=on_data), on_data)
     val_set = open_dataset(config.data, "val", config.train_size, train_augment=False)
     os.sync()  # data just generated is still being written back: measured then, steps read 1.6-2x slow
     trains_supernet = config.evaluator == "supernet" and not config.supernet
