@@ -80,9 +80,9 @@ if __name__ == "__main__":
                     help="weight of the edge-aware smoothness (default: explorer.selfsup.SMOOTHNESS_WEIGHT)")
     ap.add_argument("--poses", default="net", choices=["net", "given"],
                     help="self-supervision's camera motion: the pose network (default) or the data's poses")
-    ap.add_argument("--kinds", default="supervised,self+scan,noscan",
+    ap.add_argument("--kinds", default="supervised,self+scan,hints,noscan",
                     help="which trainings, comma-separated: supervised, self+scan, hints (self+scan with depth "
-                    "hints and the data's poses), noscan (default: supervised,self+scan,noscan)")
+                    "hints and the data's poses), noscan (default: all four)")
     args = ap.parse_args()
     torch.set_num_threads(2)
     import explorer.selfsup
