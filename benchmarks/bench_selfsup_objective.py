@@ -1,7 +1,7 @@
 """Where does the self-supervised objective (issue 13) put its minimum, without any network?
 
 For validation frames of the synthetic sequences, one free depth value per pixel is optimised
-(Adam) on exactly the loss training uses (:mod:`explorer.selfsup`: photometric reprojection with the
+(Adam; :func:`explorer.depth_hints.compute_hints`, which makes depth hints) on exactly the loss training uses (:mod:`explorer.selfsup`: photometric reprojection with the
 data's poses, per-pixel minimum, auto-masking, edge-aware smoothness, the scan term), starting from
 path 0 (the scan filled column-wise) or from a constant 2.5 m. If the objective's minimum were the
 true depth, RMSE would fall; if it rises while the photometric error falls below the true depth's,
@@ -21,8 +21,9 @@ from torch.utils.data import DataLoader
 
 from explorer.data.sequences import (SequenceDataset, SyntheticSequenceConfig, SyntheticSequences,
                                      ensure_synthetic_sequences)
+from explorer.depth_hints import compute_hints
 from explorer.model.exits import DEPTH_INIT_M, interpolate_scan
-from explorer.selfsup import MIN_DEPTH, SCAN_WEIGHT, reprojection_loss, scan_l1, smoothness, warp
+from explorer.selfsup import SCAN_WEIGHT, reprojection_loss, warp
 
 SIZE = (64, 64)
 
@@ -40,20 +41,11 @@ def photometric(depth: torch.Tensor, batch: dict) -> torch.Tensor:
 
 
 def optimise(batch: dict, smoothness_weight: float, init: str, iters: int, lr: float) -> dict:
-    row = int(batch["scan_row"][0])
+    """The free depth map after ``iters`` steps of the very optimisation that makes depth hints."""
     start = interpolate_scan(batch["scan"], SIZE[0]) if init == "path0" else \
         torch.full_like(batch["depth"], DEPTH_INIT_M)
-    depth = start.clone().requires_grad_()
-    opt = torch.optim.Adam([depth], lr=lr)
-    for _ in range(iters):
-        d = depth.clamp(min=MIN_DEPTH)
-        loss = photometric(d, batch) + smoothness_weight * smoothness(d, batch["image"]) \
-            + SCAN_WEIGHT * scan_l1(d, batch["scan"], row)
-        opt.zero_grad()
-        loss.backward()
-        opt.step()
+    d = compute_hints(batch, iters, smoothness_weight, lr, start)
     with torch.no_grad():
-        d = depth.clamp(min=MIN_DEPTH)
         return {"rmse": rmse(d, batch["depth"]), "photometric": float(photometric(d, batch)),
                 "start_rmse": rmse(start, batch["depth"])}
 
@@ -70,7 +62,8 @@ if __name__ == "__main__":
     torch.set_num_threads(2)
     torch.manual_seed(0)  # auto-masking's tie-breaking noise
 
-    cfg = SyntheticSequenceConfig(train=480, val=args.frames * args.repeats, height=128, width=128)
+    # the data bench_selfsup trains on (its validation frames), more only when more are asked for
+    cfg = SyntheticSequenceConfig(train=480, val=max(48, args.frames * args.repeats), height=128, width=128)
     val = SequenceDataset(SyntheticSequences(ensure_synthetic_sequences(cfg), "val"), SIZE, name="synthetic-seq")
     batches = list(DataLoader(val, batch_size=args.frames))[:args.repeats]
     weights = [float(w) for w in args.weights.split(",")]

@@ -34,21 +34,24 @@ SMOOTHNESS = 0.1
 BATCH = 16
 
 
-def compute_hints(batch: dict, steps: int = STEPS) -> torch.Tensor:
-    """(N, 1, H, W) depth hints for a batch of sequence samples with known poses: path 0 refined by
-    ``steps`` Adam steps on the photometric loss, the smoothness and the scan term."""
+def compute_hints(batch: dict, steps: int = STEPS, smoothness_weight: float = SMOOTHNESS, lr: float = LR,
+                  start: torch.Tensor | None = None) -> torch.Tensor:
+    """(N, 1, H, W) depth hints for a batch of sequence samples with known poses: ``start`` (default
+    path 0) refined by ``steps`` Adam steps on the photometric loss, the smoothness and the scan term."""
     image, K, scan = batch["image"], batch["K"], batch["scan"]
     row = int(torch.as_tensor(batch["scan_row"]).float().median())
     sources = [batch["sources"][:, k] for k in range(2)]
     poses = [batch["pose"][:, k] for k in range(2)]
-    depth = interpolate_scan(scan, image.shape[2]).contiguous().clone().clamp(min=MIN_DEPTH)
+    if start is None:
+        start = interpolate_scan(scan, image.shape[2])
+    depth = start.contiguous().clone().clamp(min=MIN_DEPTH)
     depth.requires_grad_(True)
-    opt = torch.optim.Adam([depth], lr=LR)
+    opt = torch.optim.Adam([depth], lr=lr)
     with torch.enable_grad():
         for _ in range(steps):
             d = depth.clamp(min=MIN_DEPTH)
             warped = [warp(s, d, K, p) for s, p in zip(sources, poses)]
-            loss = reprojection_loss(image, sources, warped)[0].mean() + SMOOTHNESS * smoothness(d, image) \
+            loss = reprojection_loss(image, sources, warped)[0].mean() + smoothness_weight * smoothness(d, image) \
                 + SCAN_WEIGHT * scan_l1(d, scan, row)
             opt.zero_grad()
             loss.backward()
