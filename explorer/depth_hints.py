@@ -24,7 +24,7 @@ import torch
 from torch.utils.data import DataLoader, Dataset
 
 from explorer.model.exits import interpolate_scan
-from explorer.selfsup import MIN_DEPTH, SCAN_WEIGHT, photometric_error, reprojection_loss, scan_l1, smoothness, warp
+from explorer.selfsup import MIN_DEPTH, SCAN_WEIGHT, reprojection_loss, scan_l1, smoothness, warp
 
 #: Adam steps on the free depth map, its step (metres) and its smoothness weight: where the optimisation
 #: of 48 validation frames at 64x64 stops improving (RMSE 0.348 -> 0.25 m at 150 steps, 0.22 m at 400).
@@ -57,11 +57,6 @@ def compute_hints(batch: dict, steps: int = STEPS, smoothness_weight: float = SM
             loss.backward()
             opt.step()
     return depth.detach().clamp(min=MIN_DEPTH)
-
-
-def min_reprojection(target: torch.Tensor, warped: list[torch.Tensor]) -> torch.Tensor:
-    """Per-pixel minimum over the warped sources of the photometric error, (N, 1, H, W)."""
-    return torch.cat([photometric_error(w, target) for w in warped], dim=1).min(dim=1, keepdim=True).values
 
 
 def hint_loss(depth: torch.Tensor, hint: torch.Tensor, depth_error: torch.Tensor,

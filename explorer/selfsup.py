@@ -67,13 +67,17 @@ def warp(source: torch.Tensor, depth: torch.Tensor, K: torch.Tensor, target_to_s
                          align_corners=True)
 
 
+def min_reprojection(target: torch.Tensor, warped: list[torch.Tensor]) -> torch.Tensor:
+    """Per-pixel minimum over the warped sources of the photometric error, (N, 1, H, W)."""
+    return torch.cat([photometric_error(w, target) for w in warped], dim=1).min(dim=1, keepdim=True).values
+
+
 def reprojection_loss(target: torch.Tensor, sources: list[torch.Tensor], warped: list[torch.Tensor],
                       automask: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
     """(per-pixel loss (N, 1, H, W), mask of the pixels the warping explains) with MonoDepth2's
     per-pixel minimum over sources and auto-masking: a pixel whose unwarped source already matches
     better (a static scene, or something moving with the camera) is left out."""
-    reprojected = torch.cat([photometric_error(w, target) for w in warped], dim=1)
-    best, _ = reprojected.min(dim=1, keepdim=True)
+    best = min_reprojection(target, warped)
     if not automask:
         return best, torch.ones_like(best, dtype=torch.bool)
     identity = torch.cat([photometric_error(s, target) for s in sources], dim=1)
@@ -132,7 +136,7 @@ class SelfSupervisedLoss(nn.Module):
         poses = self.relative_poses(batch)
         hint = batch.get("hint")
         if hint is not None:  # see explorer.depth_hints
-            from explorer.depth_hints import hint_loss, min_reprojection
+            from explorer.depth_hints import hint_loss
             with torch.no_grad():
                 hint_error = min_reprojection(target, [warp(s, hint, K, p) for s, p in zip(sources, poses)])
         losses = []
