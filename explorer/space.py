@@ -59,6 +59,7 @@ class Candidate:
     lidar_exit: bool = False               # a learned LiDAR-only path, run before the image encoder
     lidar_first: bool = False              # LiDAR encoder before the image encoder (encoder exits fuse it)
     precision: str = "fp32"                # "int8": deployed statically quantized, costed and measured so
+    exit_residual: bool = False            # every exit corrects path 0 (the interpolated scan) instead of replacing it
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "decoder_widths", tuple(int(w) for w in self.decoder_widths))
@@ -66,6 +67,7 @@ class Candidate:
         object.__setattr__(self, "width_mult", float(self.width_mult))
         object.__setattr__(self, "encoder_exits", tuple(sorted({int(e) for e in self.encoder_exits})))
         object.__setattr__(self, "lidar_exit", bool(self.lidar_exit))
+        object.__setattr__(self, "exit_residual", bool(self.exit_residual))
         if not self.ecu:
             for name in ("lidar_depth", "lidar_width", "ecu_band", "ecu_width"):
                 object.__setattr__(self, name, 0)
@@ -152,7 +154,8 @@ class Candidate:
         parts.append("decoder " + "-".join(str(w) for w in self.decoder_widths))
         names = ["ECU" if e == 0 else f"stage {e}" for e in self.exits]
         head = "1 pw conv" if self.head_depth == 1 else f"2 pw convs ({self.head_width} ch)"
-        parts.append(f"exits after {', '.join(names)} ({head})")
+        correct = ", each correcting the interpolated scan" if self.exit_residual else ""
+        parts.append(f"exits after {', '.join(names)} ({head}){correct}")
         if self.precision != "fp32":
             parts.append(self.precision)
         return "; ".join(parts)
@@ -193,7 +196,7 @@ class Candidate:
 
 #: Fields added after the first release, with the value that leaves them out of a candidate's dict.
 _LATER_FIELDS: dict[str, Any] = {"encoder_exits": [], "lidar_exit": False, "lidar_first": False,
-                                  "precision": "fp32"}
+                                  "precision": "fp32", "exit_residual": False}
 #: Numeric precisions a candidate may be deployed at (``explorer export --quantize``).
 PRECISIONS = ("fp32", "int8")
 #: Strides at which an image exit may leave the encoder (after block k, before the decoder).
@@ -228,7 +231,7 @@ _SPACE_SCHEMA: dict[str, dict[str, str]] = {
     "ecu": {"enabled": "ecu", "band": "ecu_band", "width": "ecu_width"},
     "decoder": {"widths": "decoder_widths"},
     "exits": {"optional": "exits", "required": "required_exits", "head_depth": "head_depth",
-              "head_width": "head_width", "lidar_only": "lidar_exit"},
+              "head_width": "head_width", "lidar_only": "lidar_exit", "residual": "exit_residual"},
 }
 _TOP_KEYS = set(_SPACE_SCHEMA) | {"name", "description", "precision"}
 
@@ -280,6 +283,7 @@ class SearchSpace:
     lidar_first: tuple[bool, ...] = (False,)
     lidar_exit: tuple[bool, ...] = (False,)
     precision: tuple[str, ...] = ("fp32",)
+    exit_residual: tuple[bool, ...] = (False,)
     description: str = ""
     source: str = ""
 
@@ -324,7 +328,7 @@ class SearchSpace:
                 elif field in ("exits", "required_exits", "encoder_exits"):
                     name = {"exits": "optional_exits", "encoder_exits": "optional_encoder_exits"}.get(field, field)
                     values[name] = tuple(_choices(raw, where, int, allow_empty=True))
-                elif field in ("ecu", "lidar_first", "lidar_exit"):
+                elif field in ("ecu", "lidar_first", "lidar_exit", "exit_residual"):
                     values[field] = tuple(_choices(raw, where, bool))
                 else:
                     kind = float if field == "width_mult" else int
@@ -401,6 +405,8 @@ class SearchSpace:
         if self.optional_encoder_exits and True in self.ecu:
             dims["lidar_first"] = self.lidar_first
         dims["lidar_exit"] = self.lidar_exit
+        if len(self.exit_residual) > 1:
+            dims["exit_residual"] = self.exit_residual
         if len(self.precision) > 1:
             dims["precision"] = self.precision
         return dims
@@ -417,7 +423,7 @@ class SearchSpace:
         heads = sum(len(self.head_width) if d == 2 else 1 for d in self.head_depth)
         rest = len(self.encoder_blocks) * len(self.width_mult) * math.prod(len(c) for c in self.decoder_widths)
         return (ecu * heads * rest * 2 ** len(self.optional_exits) * len(set(self.lidar_exit))
-                * len(set(self.precision)))
+                * len(set(self.exit_residual)) * len(set(self.precision)))
 
     def _exit_sets(self) -> Iterator[tuple[int, ...]]:
         last = len(self.decoder_widths)
@@ -442,13 +448,15 @@ class SearchSpace:
                 enc = tuple(k for k, on in zip(self.optional_encoder_exits, mask) if on)
                 orders = sorted(set(self.lidar_first)) if ecu[0] and enc else [False]
                 early += [(ecu, enc, first) for first in orders]
-        for blocks, wm, (ecu, enc, first), widths, exits, head, lidar_exit, precision in itertools.product(
+        for blocks, wm, (ecu, enc, first), widths, exits, head, lidar_exit, residual, precision in itertools.product(
                 self.encoder_blocks, self.width_mult, early, itertools.product(*self.decoder_widths),
-                exit_sets, heads, sorted(set(self.lidar_exit)), dict.fromkeys(self.precision)):
+                exit_sets, heads, sorted(set(self.lidar_exit)), sorted(set(self.exit_residual)),
+                dict.fromkeys(self.precision)):
             yield Candidate(encoder_blocks=blocks, width_mult=wm, ecu=ecu[0], lidar_depth=ecu[1],
                             lidar_width=ecu[2], ecu_band=ecu[3], ecu_width=ecu[4],
                             decoder_widths=widths, exits=exits, head_depth=head[0], head_width=head[1],
-                            encoder_exits=enc, lidar_exit=lidar_exit, lidar_first=first, precision=precision)
+                            encoder_exits=enc, lidar_exit=lidar_exit, lidar_first=first, precision=precision,
+                            exit_residual=residual)
 
     def sample(self, trial: Any) -> Candidate:
         """Draw a candidate with an Optuna trial (conditional dimensions only when they apply)."""
@@ -468,8 +476,9 @@ class SearchSpace:
         lidar_first = s("lidar_first", list(self.lidar_first)) if ecu and encoder_exits else False
         lidar_exit = s("lidar_exit", list(self.lidar_exit))
         precision = s("precision", list(self.precision)) if len(self.precision) > 1 else self.precision[0]
+        residual = s("exit_residual", list(self.exit_residual)) if len(self.exit_residual) > 1 else self.exit_residual[0]
         return Candidate(
-            precision=precision,
+            precision=precision, exit_residual=residual,
             encoder_exits=encoder_exits, lidar_first=lidar_first, lidar_exit=lidar_exit,
             encoder_blocks=s("encoder_blocks", list(self.encoder_blocks)),
             width_mult=s("width_mult", list(self.width_mult)),
@@ -510,6 +519,8 @@ class SearchSpace:
         if candidate.ecu and candidate.encoder_exits:
             p["lidar_first"] = candidate.lidar_first
         p["lidar_exit"] = candidate.lidar_exit
+        if len(self.exit_residual) > 1:
+            p["exit_residual"] = candidate.exit_residual
         if len(self.precision) > 1:
             p["precision"] = candidate.precision
         return p
@@ -518,7 +529,7 @@ class SearchSpace:
         d = self.dimensions()
         p = self.params_of(candidate)
         inner = set(candidate.exits[:-1])
-        return candidate.precision in self.precision and len(candidate.decoder_widths) == len(self.decoder_widths) and \
+        return candidate.precision in self.precision and candidate.exit_residual in self.exit_residual and len(candidate.decoder_widths) == len(self.decoder_widths) and \
             set(candidate.encoder_exits) <= set(self.optional_encoder_exits) and all(
             v in d[k] for k, v in p.items()) and set(self.required_exits) <= inner and \
             inner <= set(self.optional_exits) | set(self.required_exits)

@@ -54,6 +54,23 @@ def test_largest_extracted_reproduces_the_supernet_exactly(default_space):
     assert all(torch.equal(a, b) for a, b in zip(ref, sub))
 
 
+def test_residual_and_plain_exits_share_the_backbone_not_the_heads(default_space):
+    net = Supernet(default_space)
+    plain = dataclasses.replace(random_training_subnet(default_space, random.Random(5)), exit_residual=False)
+    residual = dataclasses.replace(plain, exit_residual=True)
+    a, b = net.subnet_tensors(plain), net.subnet_tensors(residual)
+    assert set(a) == set(b)
+    heads = {k for k in a if k.startswith(("stages.exit", "stages.lidar_exit"))}
+    assert heads and all(a[k].data_ptr() != b[k].data_ptr() for k in heads if a[k].dim())
+    assert all(torch.equal(a[k], b[k]) for k in set(a) - heads)
+    image, scan = _inputs()
+    net.eval()
+    with torch.no_grad():
+        sliced = net.forward_subnet(residual, image, scan)
+        extracted = net.extract(residual).eval()(image, scan)
+    assert all(torch.equal(x, y) for x, y in zip(sliced, extracted))
+
+
 def test_a_smaller_candidate_is_a_slice_of_the_supernet(default_space):
     net = Supernet(default_space)
     cand = random_training_subnet(default_space, random.Random(3))
@@ -63,7 +80,8 @@ def test_a_smaller_candidate_is_a_slice_of_the_supernet(default_space):
     wide = full["image_encoder.blocks.1.pointwise.0.weight"]
     assert block.shape[0] <= wide.shape[0] and torch.equal(block, wide[:block.shape[0], :block.shape[1]])
     head = sub.stages[f"exit_{cand.exits[-1]}"].layers[-1].weight
-    wide_head = full[f"exit_{cand.exits[-1]}_d{cand.head_depth}.layers.{len(sub.stages[f'exit_{cand.exits[-1]}'].layers) - 1}.weight"]
+    slot = f"exit_{cand.exits[-1]}_d{cand.head_depth}" + ("_r" if cand.exit_residual else "")
+    wide_head = full[f"{slot}.layers.{len(sub.stages[f'exit_{cand.exits[-1]}'].layers) - 1}.weight"]
     assert torch.equal(head, wide_head[:, :head.shape[1]])
     # an ordinary network: its weights are copies, training it leaves the supernet alone
     before = wide.clone()

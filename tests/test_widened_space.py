@@ -122,3 +122,71 @@ def test_old_candidates_keep_their_keys():
     assert paper_candidate().key == "82c6b306e5"
     assert json.loads(json.dumps(WIDE.to_dict()))["encoder_exits"] == [3, 5]
     assert SearchSpace.from_yaml("anytime_depth").contains(paper_candidate())
+
+
+# -- exits that correct the interpolated scan --------------------------------------------------
+RESIDUAL = dataclasses.replace(WIDE, exit_residual=True)
+
+
+def _zero_outputs(net):
+    """Every head's last conv (and the LiDAR-only path's) set to output zero."""
+    with torch.no_grad():
+        for spec in net.specs:
+            if spec.path is not None:
+                module = net.stages[spec.name]
+                last = module.out if hasattr(module, "out") else module.layers[-1]
+                last.weight.zero_()
+                last.bias.zero_()
+
+
+def test_residual_exits_correct_path_0_and_plain_ones_replace_it():
+    image, scan = torch.rand(2, 3, 32, 48), torch.rand(2, 48) * 4 + 0.5
+    for cand, equal in ((RESIDUAL, True), (WIDE, False)):
+        net = build_network(cand).eval()
+        _zero_outputs(net)
+        with torch.no_grad():
+            outs = net(image, scan)
+        assert len(outs) == cand.num_paths and all(o.shape == (2, 1, 32, 48) for o in outs)
+        # a residual head that outputs nothing returns the scan; a plain one returns zeros
+        assert all(torch.equal(o, outs[0]) == equal for o in outs[1:])
+    names = [s.name for s in stage_specs(RESIDUAL)]
+    assert names[0] == "scan_fill" and "scan_fill" not in [s.name for s in stage_specs(WIDE)]
+    assert all(s.inputs[-1] == "scan_fill" for s in stage_specs(RESIDUAL) if s.path is not None)
+
+
+def test_residual_exits_pay_for_the_scan_once_and_keep_prefix_costs():
+    tx2 = get_device("tx2")
+    plain = candidate_cost(WIDE, (224, 224)).path_latency_ms(tx2)
+    cost = candidate_cost(RESIDUAL, (224, 224))
+    ms = cost.path_latency_ms(tx2)
+    assert all(a < b for a, b in zip(ms, ms[1:])) and all(r > p for r, p in zip(ms[1:], plain[1:]))
+    assert all(used[0] == "scan_fill" for used in cost.path_stages)
+    # the fill and the adds are a small part of the first path's price
+    assert ms[1] - plain[1] < 0.2
+
+
+def test_residual_exits_export_and_run(tmp_path):
+    torch.manual_seed(0)
+    net = build_network(RESIDUAL)
+    manifest = export_network(net, tmp_path, (32, 48), devices=("tx2",))
+    assert manifest["verification"]["max_abs_diff"] <= 1e-4
+    runner = AnytimeRunner(tmp_path)
+    image = np.random.default_rng(0).random((3, 32, 48), dtype=np.float32)
+    scan = np.linspace(1, 4, 48, dtype=np.float32)
+    scan[5:9] = 0.0     # no returns there: filled from the nearest column, as path 0 does
+    full = runner.run(image, scan)
+    with torch.no_grad():
+        ref = net.eval()(torch.from_numpy(image)[None], torch.from_numpy(scan)[None])
+    assert full.path == RESIDUAL.num_paths - 1
+    assert np.abs(full.depth - ref[-1][0, 0].numpy()).max() <= 1e-4
+
+
+def test_the_residual_choice_is_a_dimension(tmp_path, run_cli):
+    space = SearchSpace.from_yaml(_space(tmp_path, **{"exits.residual": [False, True]}))
+    plain = SearchSpace.from_yaml(_space(tmp_path, **{"exits.residual": [False]}))
+    assert space.size == 2 * plain.size and space.contains(paper_candidate())
+    assert space.contains(dataclasses.replace(paper_candidate(), exit_residual=True))
+    assert not plain.contains(dataclasses.replace(paper_candidate(), exit_residual=True))
+    assert "exit_residual" in dataclasses.replace(paper_candidate(), exit_residual=True).to_dict()
+    code, _, err = run_cli("space", "show", _space(tmp_path, **{"exits.residual": ["sometimes"]}))
+    assert code == 2 and "residual" in err and len(err.strip().splitlines()) == 1

@@ -18,6 +18,7 @@ import torch
 from torch import nn
 
 from explorer.model import ops
+from explorer.model.exits import ScanFill
 from explorer.model.network import StageSpec, stage_specs
 from explorer.space import Candidate
 
@@ -111,6 +112,10 @@ def trace_stage(module: nn.Module, stage: str, inputs: list) -> tuple[list[Workl
             elif isinstance(m, ops.RowGrid):
                 kind, k, s, macs = "concat", 0, 1, 0
                 n_in = n_out  # the image is read for its height only
+            elif isinstance(m, ScanFill):
+                # path 0 as a tensor: each column copies its nearest return down the image
+                kind, k, s, macs = "resize", 0, 1, 0
+                n_in = _numel(in_shape)  # the image is read for its height only
             elif isinstance(m, ops.BandCrop):
                 kind, k, s, macs = "slice", 0, 1, 0
                 n_in = n_out  # reads only the band

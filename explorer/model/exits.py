@@ -1,4 +1,8 @@
-"""Exit heads (1-2 pointwise convs to one channel, resized to full resolution) and path 0."""
+"""Exit heads (1-2 pointwise convs to one channel, resized to full resolution) and path 0.
+
+A residual head adds its output to path 0 (the interpolated scan, computed once per inference by the
+``scan_fill`` stage): it learns a correction to the scan instead of the whole depth map, and keeps
+the scan's full horizontal resolution where its own output is coarse."""
 
 from __future__ import annotations
 
@@ -7,7 +11,7 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from explorer.model.ops import BroadcastAdd, Resize
+from explorer.model.ops import BroadcastAdd, Resize, SkipAdd
 
 #: Initial bias of the depth output (metres): a typical indoor depth, so training starts near it.
 DEPTH_INIT_M = 2.5
@@ -20,6 +24,7 @@ class ExitHeadConfig:
     width: int
     upscale: int
     lidar_channels: int = 0      # > 0: the LiDAR feature at this stride is added to every row first
+    residual: bool = False       # the output corrects path 0 (its last input) instead of replacing it
 
     def build(self) -> "ExitHead":
         return ExitHead(self)
@@ -28,6 +33,7 @@ class ExitHeadConfig:
 class ExitHead(nn.Module):
     def __init__(self, config: ExitHeadConfig) -> None:
         super().__init__()
+        self.config = config
         layers: list[nn.Module] = []
         cin = config.in_channels
         if config.lidar_channels:
@@ -38,15 +44,32 @@ class ExitHead(nn.Module):
                        nn.ReLU(inplace=True)]
             cin = config.width
         out = nn.Conv2d(cin, 1, 1)
-        nn.init.constant_(out.bias, DEPTH_INIT_M)
+        nn.init.constant_(out.bias, 0.0 if config.residual else DEPTH_INIT_M)
         layers.append(out)
         self.layers = nn.Sequential(*layers)
         self.resize = Resize(config.upscale, "bilinear")
+        if config.residual:
+            self.correct = SkipAdd()
 
-    def forward(self, x: torch.Tensor, lidar: torch.Tensor | None = None) -> torch.Tensor:
-        if lidar is not None:
-            x = self.add(x, self.fuse(lidar).unsqueeze(2))
-        return self.resize(self.layers(x))
+    def forward(self, x: torch.Tensor, *extra: torch.Tensor) -> torch.Tensor:
+        """``extra``: the LiDAR feature when the head fuses it, then path 0 when it is residual."""
+        if self.config.lidar_channels:
+            x = self.add(x, self.fuse(extra[0]).unsqueeze(2))
+        depth = self.resize(self.layers(x))
+        return self.correct(depth, extra[-1]) if self.config.residual else depth
+
+
+@dataclass(frozen=True)
+class ScanFillConfig:
+    """Path 0 as a stage, for residual exits to read (its own path stays the free fallback)."""
+
+    def build(self) -> "ScanFill":
+        return ScanFill()
+
+
+class ScanFill(nn.Module):
+    def forward(self, scan: torch.Tensor, image: torch.Tensor) -> torch.Tensor:
+        return interpolate_scan(scan, image.shape[2])
 
 
 def interpolate_scan(scan: torch.Tensor, height: int) -> torch.Tensor:

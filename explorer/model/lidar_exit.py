@@ -12,7 +12,7 @@ from torch import nn
 
 from explorer.model.exits import DEPTH_INIT_M
 from explorer.model.lidar_encoder import SCAN_SCALE_M
-from explorer.model.ops import Resize, RowGrid, conv1d_bn_relu, conv_bn_relu
+from explorer.model.ops import Resize, RowGrid, SkipAdd, conv1d_bn_relu, conv_bn_relu
 
 #: The grid the LiDAR-only path predicts on, relative to the image (then resized bilinearly).
 LIDAR_EXIT_STRIDE = 8
@@ -23,6 +23,7 @@ LIDAR_EXIT_WIDTH = 16
 class LidarExitConfig:
     width: int = LIDAR_EXIT_WIDTH
     stride: int = LIDAR_EXIT_STRIDE
+    residual: bool = False      # the output corrects path 0 (a third input) instead of replacing it
 
     def build(self) -> "LidarExit":
         return LidarExit(self)
@@ -36,9 +37,12 @@ class LidarExit(nn.Module):
         self.grid = RowGrid(config.stride)
         self.cells = conv_bn_relu(w + 1, w, 1)
         self.out = nn.Conv2d(w, 1, 1)
-        nn.init.constant_(self.out.bias, DEPTH_INIT_M)
+        nn.init.constant_(self.out.bias, 0.0 if config.residual else DEPTH_INIT_M)
         self.resize = Resize(config.stride, "bilinear")
+        if config.residual:
+            self.correct = SkipAdd()
 
-    def forward(self, scan: torch.Tensor, image: torch.Tensor) -> torch.Tensor:
+    def forward(self, scan: torch.Tensor, image: torch.Tensor, path_0: torch.Tensor | None = None) -> torch.Tensor:
         x = torch.stack([scan / SCAN_SCALE_M, (scan > 0).to(scan.dtype)], dim=1)
-        return self.resize(self.out(self.cells(self.grid(self.columns(x), image))))
+        depth = self.resize(self.out(self.cells(self.grid(self.columns(x), image))))
+        return depth if path_0 is None else self.correct(depth, path_0)

@@ -11,7 +11,7 @@ from torch import nn
 
 from explorer.model.decoder import DecoderStageConfig
 from explorer.model.ecu import ECUConfig
-from explorer.model.exits import ExitHeadConfig, interpolate_scan
+from explorer.model.exits import ExitHeadConfig, ScanFillConfig, interpolate_scan
 from explorer.model.image_encoder import ImageEncoderConfig
 from explorer.model.lidar_encoder import LidarEncoderConfig
 from explorer.model.lidar_exit import LidarExitConfig
@@ -42,20 +42,26 @@ def _encoder_tensor(block: int, encoder_blocks: int) -> str:
 
 
 def stage_specs(candidate: Candidate) -> list[StageSpec]:
-    """The execution order of ``candidate``'s stages (path 0 needs none): the LiDAR-only exit, the
-    LiDAR encoder when it runs first, the image encoder (split by its exits), the LiDAR encoder
-    otherwise, the ECU, then decoder stages, each exit head right after what it reads."""
+    """The execution order of ``candidate``'s stages (path 0 needs none): the interpolated scan as
+    a tensor when the exits correct it, the LiDAR-only exit, the LiDAR encoder when it runs first,
+    the image encoder (split by its exits), the LiDAR encoder otherwise, the ECU, then decoder
+    stages, each exit head right after what it reads."""
     stride = candidate.stride
     specs: list[StageSpec] = []
     path = 1
+    residual = candidate.exit_residual
+    base = ("scan_fill",) if residual else ()
 
     def add_exit(name: str, cfg: ExitHeadConfig, inputs: tuple[str, ...]) -> None:
         nonlocal path
-        specs.append(StageSpec(name, cfg, inputs, (f"depth_{path}",), path))
+        specs.append(StageSpec(name, cfg, inputs + base, (f"depth_{path}",), path))
         path += 1
 
+    if residual:
+        specs.append(StageSpec("scan_fill", ScanFillConfig(), ("scan", "image"), ("scan_fill",)))
     if candidate.lidar_exit:
-        specs.append(StageSpec("lidar_exit", LidarExitConfig(), ("scan", "image"), (f"depth_{path}",), path))
+        specs.append(StageSpec("lidar_exit", LidarExitConfig(residual=residual), ("scan", "image") + base,
+                               (f"depth_{path}",), path))
         path += 1
     lidar = None
     if candidate.ecu:
@@ -73,7 +79,7 @@ def stage_specs(candidate: Candidate) -> list[StageSpec]:
         if k < candidate.encoder_blocks:
             s = encoder_stride(k)
             fuse = lidar.tap_channels(s) if candidate.lidar_first else 0
-            cfg = ExitHeadConfig(seg.out_channels(), candidate.head_depth, candidate.head_width, s, fuse)
+            cfg = ExitHeadConfig(seg.out_channels(), candidate.head_depth, candidate.head_width, s, fuse, residual)
             add_exit(f"exit_b{k}", cfg, (out, f"lidar_s{s}") if fuse else (out,))
         start, x = k, out
     enc = ImageEncoderConfig(candidate.encoder_blocks, candidate.width_mult)
@@ -89,7 +95,7 @@ def stage_specs(candidate: Candidate) -> list[StageSpec]:
     channels = enc.out_channels()
 
     def exit_cfg(cin: int, scale: int) -> ExitHeadConfig:
-        return ExitHeadConfig(cin, candidate.head_depth, candidate.head_width, scale)
+        return ExitHeadConfig(cin, candidate.head_depth, candidate.head_width, scale, residual=residual)
 
     if 0 in candidate.exits:
         add_exit("exit_0", exit_cfg(channels, stride), (x,))

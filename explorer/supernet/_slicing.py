@@ -13,7 +13,7 @@ import torch
 
 from explorer.model.decoder import DecoderStageConfig
 from explorer.model.ecu import ECUConfig
-from explorer.model.exits import ExitHeadConfig
+from explorer.model.exits import ExitHeadConfig, ScanFillConfig
 from explorer.model.image_encoder import ImageEncoderConfig
 from explorer.model.lidar_encoder import LidarEncoderConfig
 from explorer.model.lidar_exit import LidarExitConfig
@@ -29,12 +29,15 @@ def slot_of(spec: StageSpec) -> str:
         return "lidar_encoder"
     if isinstance(cfg, ECUConfig):
         return "ecu"
+    if isinstance(cfg, ScanFillConfig):
+        return "scan_fill"
+    # a head that corrects the scan learns another output than one that replaces it: its own weights
     if isinstance(cfg, LidarExitConfig):
-        return "lidar_exit"
+        return "lidar_exit" + ("_r" if cfg.residual else "")
     if isinstance(cfg, DecoderStageConfig):
         return spec.name
     if isinstance(cfg, ExitHeadConfig):
-        return f"{spec.name}_d{cfg.depth}"
+        return f"{spec.name}_d{cfg.depth}" + ("_r" if cfg.residual else "")
     raise TypeError(f"no supernet slot for stage {spec.name} ({type(cfg).__name__})")
 
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+import itertools
 import json
 import random
 from collections import OrderedDict
@@ -33,6 +34,8 @@ def space_identity(space: SearchSpace) -> dict:
     dims = {k: list(v) for k, v in space.dimensions().items() if k != "precision"}
     dims["required_exits"] = list(space.required_exits)
     dims["decoder_stages"] = len(space.decoder_widths)
+    if space.exit_residual != (False,):   # spaces without residual exits keep the keys they had
+        dims["exit_residual"] = list(space.exit_residual)
     return dims
 
 
@@ -41,10 +44,11 @@ def space_key(space: SearchSpace) -> str:
     return hashlib.sha1(text.encode()).hexdigest()[:10]
 
 
-def _extreme_candidate(space: SearchSpace, pick, head_depth: int | None) -> Candidate:
+def _extreme_candidate(space: SearchSpace, pick, head_depth: int | None, residual: bool | None = None) -> Candidate:
     """Every dimension at ``pick`` (max or min) of its choices, with every exit the space allows
     (heads cost nothing to train along, and every head trains every step)."""
     depth = pick(space.head_depth) if head_depth is None else head_depth
+    residual = pick(space.exit_residual) if residual is None else residual
     last = len(space.decoder_widths)
     return Candidate(
         encoder_blocks=pick(space.encoder_blocks), width_mult=pick(space.width_mult), ecu=pick(space.ecu),
@@ -53,12 +57,13 @@ def _extreme_candidate(space: SearchSpace, pick, head_depth: int | None) -> Cand
         exits=tuple(sorted(set(space.optional_exits) | set(space.required_exits))) + (last,),
         head_depth=depth, head_width=pick(space.head_width) if depth == 2 else 0,
         encoder_exits=space.optional_encoder_exits, lidar_exit=True in space.lidar_exit,
-        lidar_first=pick(space.lidar_first))
+        lidar_first=pick(space.lidar_first), exit_residual=residual)
 
 
-def largest_candidate(space: SearchSpace, head_depth: int | None = None) -> Candidate:
+def largest_candidate(space: SearchSpace, head_depth: int | None = None, residual: bool | None = None
+                      ) -> Candidate:
     """The biggest network of ``space`` with every exit it allows."""
-    return _extreme_candidate(space, max, head_depth)
+    return _extreme_candidate(space, max, head_depth, residual)
 
 
 def smallest_candidate(space: SearchSpace, head_depth: int | None = None) -> Candidate:
@@ -77,7 +82,7 @@ def random_training_subnet(space: SearchSpace, rng: random.Random) -> Candidate:
         ecu_band=rng.choice(space.ecu_band) if ecu else 0, ecu_width=rng.choice(space.ecu_width) if ecu else 0,
         decoder_widths=tuple(rng.choice(c) for c in space.decoder_widths),
         head_depth=depth, head_width=rng.choice(space.head_width) if depth == 2 else 0,
-        lidar_first=rng.choice(space.lidar_first))
+        lidar_first=rng.choice(space.lidar_first), exit_residual=rng.choice(space.exit_residual))
 
 
 class Supernet(nn.Module):
@@ -86,8 +91,8 @@ class Supernet(nn.Module):
         self.space = space
         self.largest = largest_candidate(space)
         slots: dict[str, nn.Module] = {}
-        for depth in sorted(set(space.head_depth)):
-            widest = largest_candidate(space, depth)
+        for depth, residual in itertools.product(sorted(set(space.head_depth)), sorted(set(space.exit_residual))):
+            widest = largest_candidate(space, depth, residual)
             # the whole image encoder in one slot; encoder exits split a candidate's encoder into views of it
             for spec in stage_specs(dataclasses.replace(widest, encoder_exits=())) + stage_specs(widest):
                 slot = slot_of(spec)
