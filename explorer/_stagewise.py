@@ -39,10 +39,10 @@ def _norms(module: torch.nn.Module) -> list[torch.nn.modules.batchnorm._BatchNor
 def recalibrating(module: torch.nn.Module):
     """Training mode without gradients, every BatchNorm of ``module`` reset to average its statistics
     over the batches run inside (cumulatively), exit heads' resize skipped (their outputs are thrown
-    away); eval mode after."""
+    away; a residual head's sum with the full-size scan needs its full size); eval mode after."""
     norms = _norms(module)
     momenta = [m.momentum for m in norms]
-    heads = [m for m in module.modules() if isinstance(m, ExitHead)]
+    heads = [m for m in module.modules() if isinstance(m, ExitHead) and not m.config.residual]
     factors = [h.resize.factor for h in heads]
     for m in norms:
         m.reset_running_stats()

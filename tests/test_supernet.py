@@ -128,7 +128,7 @@ def test_shared_encoder_features_give_the_same_evaluation(tmp_path):
         "lidar_encoder": {"depth": [4], "width": [8], "first": [False, True]},
         "ecu": {"enabled": [False, True], "band": [1], "width": [16]},
         "decoder": {"widths": [[32, 24], [16], [8, 4]]},
-        "exits": {"optional": [0, 2], "head_depth": [1, 2], "head_width": [8]}})
+        "exits": {"optional": [0, 2], "head_depth": [1, 2], "head_width": [8], "residual": [False, True]}})
     file = train_supernet(space, TINY_DATA, SupernetRecipe(steps=3, batch_size=8, input_size=(32, 32)),
                           tmp_path / "s.pt")
     train = open_dataset(TINY_DATA, "train", (32, 32), train_augment=False)
@@ -142,6 +142,9 @@ def test_shared_encoder_features_give_the_same_evaluation(tmp_path):
     candidates += [dataclasses.replace(first, decoder_widths=first.decoder_widths[:-1] + (12 - first.decoder_widths[-1],)),
                    dataclasses.replace(first, head_depth=3 - first.head_depth, head_width=8 if first.head_depth == 1 else 0),
                    first]
+    # residual heads of both depths too (a two-layer one recalibrates its statistics at full size)
+    candidates += [dataclasses.replace(first, exit_residual=not first.exit_residual, head_depth=d, head_width=8 if d == 2 else 0)
+                   for d in (1, 2)]
     assert {c.width_mult for c in candidates} == {0.25, 0.5} and any(c.encoder_exits for c in candidates)
     for cand in candidates:
         a, b = shared(cand), alone(cand)
@@ -246,6 +249,7 @@ def test_short_supernet_search_on_the_default_space(tmp_path):
                        evaluator="supernet", supernet_steps=3, finalists=0, keep_weights=False)
     out = search(cfg, n_trials=40, timeout_s=None, reports=tmp_path)
     done = [t for t in out.study.get_trials() if t.state == optuna.trial.TrialState.COMPLETE]
+    assert not out.study.get_trials(states=(optuna.trial.TrialState.FAIL,))
     assert all(t.user_attrs["evaluator"]["evaluator"] == "supernet" for t in done)
     assert len({t.user_attrs["candidate_key"] for t in done}) >= 24
     assert {t.user_attrs.get("baseline") for t in done} >= {"paper", "paper-nee"}   # both are in the space
