@@ -76,3 +76,27 @@ def score(entry: dict, device: str = "tx2", budget: str = BUDGET) -> float:
 
 def with_seed(cfg: TrainConfig, seed: int) -> TrainConfig:
     return dataclasses.replace(cfg, seed=seed)
+
+
+def add_candidate_options(ap, steps: int = 600, seeds: int = 2) -> None:
+    """--candidate / --study / --reports / --steps / --seeds, as benchmarks that train the paper
+    design beside one other candidate take them."""
+    ap.add_argument("--candidate", help="a candidate YAML (explorer show --yaml)")
+    ap.add_argument("--study", help="take the study's winner as the candidate")
+    ap.add_argument("--reports", default="reports")
+    ap.add_argument("--steps", type=int, default=steps)
+    ap.add_argument("--seeds", type=int, default=seeds)
+
+
+def candidates_of(args) -> dict[str, Candidate]:
+    """The paper design, and the candidate ``add_candidate_options`` named (if any)."""
+    from explorer.space import paper_candidate
+    cands = {"paper design": paper_candidate()}
+    if args.candidate:
+        cands["candidate"] = Candidate.from_yaml(args.candidate)
+    elif args.study:
+        from explorer.results import winner
+        from explorer.storage import load_study
+        win = winner(load_study(args.study, None, Path(args.reports)))
+        cands["winner"] = Candidate.from_dict(win.user_attrs["candidate"])
+    return cands

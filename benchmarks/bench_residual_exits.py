@@ -19,26 +19,14 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _labels import recipe, score, standalone, with_seed  # noqa: E402
+from _labels import add_candidate_options, candidates_of, recipe, score, standalone, with_seed  # noqa: E402
 
-from explorer.space import Candidate, paper_candidate  # noqa: E402
 
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--candidate", help="a candidate YAML (explorer show --yaml)")
-    ap.add_argument("--study")
-    ap.add_argument("--reports", default="reports")
-    ap.add_argument("--steps", type=int, default=600)
-    ap.add_argument("--seeds", type=int, default=3)
+    add_candidate_options(ap, seeds=3)
     args = ap.parse_args()
-    cands = {"paper design": paper_candidate()}
-    if args.candidate:
-        cands["candidate"] = Candidate.from_yaml(args.candidate)
-    elif args.study:
-        from explorer.results import winner
-        from explorer.storage import load_study
-        win = winner(load_study(args.study, None, Path(args.reports)))
-        cands["winner"] = Candidate.from_dict(win.user_attrs["candidate"])
+    cands = candidates_of(args)
     base = recipe(args.steps)
     loss: dict[tuple[str, bool], list[float]] = {}
     for seed in range(args.seeds):
