@@ -10,12 +10,12 @@ import pandas as pd
 
 from explorer.cost.devices import (DeviceProfile, available_devices, get_device,
                                    path_latencies_ms)
-from explorer.cost.workloads import KINDS, Workload, candidate_workloads, reference_workloads
+from explorer.cost.workloads import KINDS, Workload, candidate_workloads, dilated_count_macs, reference_workloads
 from explorer.model.network import stage_specs
 from explorer.space import Candidate
 
 __all__ = ["CandidateCost", "DeviceProfile", "KINDS", "Workload", "available_devices",
-           "candidate_cost", "candidate_workloads", "get_device", "model_cost", "profile_candidate", "profile_reference",
+           "candidate_cost", "candidate_workloads", "dilated_count_macs", "get_device", "model_cost", "profile_candidate", "profile_reference",
            "reference_cost", "reference_table",
            "reference_workloads"]
 
@@ -113,10 +113,14 @@ def profile_candidate(candidate: Candidate, input_size: tuple[int, int] = (224, 
 def profile_reference(name: str, input_size: tuple[int, int] = (224, 224),
                       device: str | Path | DeviceProfile | None = None) -> pd.DataFrame:
     """The reference network ``name`` (``explorer.model.reference.REFERENCES``) as one path: params,
-    macs, and latency_ms / energy_j when a device profile is given."""
+    macs, and latency_ms / energy_j when a device profile is given. A network with transposed
+    convolutions also has ``macs_dilated``: its multiply-adds as FLOP counters count them (see
+    ``dilated_count_macs``), the convention of the paper's GFLOPs."""
     workloads = reference_workloads(name, tuple(input_size))
     frame = pd.DataFrame({"path": [1], "exit": ["output"], "params": [sum(w.params for w in workloads)],
                           "macs": [sum(w.macs for w in workloads)]})
+    if any(w.kind == "deconv" for w in workloads):
+        frame["macs_dilated"] = [dilated_count_macs(workloads)]
     if device is not None:
         profile = get_device(device)
         latency = path_latencies_ms(profile, workloads, [("network",)])

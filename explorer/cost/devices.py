@@ -24,7 +24,7 @@ from typing import Any, Iterable, Sequence
 import numpy as np
 import yaml
 
-from explorer.cost.workloads import ALL_KINDS, KINDS, OPTIONAL_KINDS, Workload
+from explorer.cost.workloads import ALL_KINDS, BYTES_PER_VALUE, KINDS, OPTIONAL_KINDS, Workload
 from explorer.errors import UserError
 
 PROFILES_DIR = Path(__file__).resolve().parent / "profiles"
@@ -38,6 +38,8 @@ class KindCost:
     gmacs: float = 1.0          # effective compute rate, GMAC/s
     overhead_ms: float = 0.0    # fixed cost per layer of this kind
     bandwidth_gbs: float | None = None  # this kind's own memory rate (else the profile's)
+    # False: weights are staged on chip and reused, so the memory term counts activations only
+    weight_traffic: bool = True
 
 
 @dataclass(frozen=True)
@@ -80,7 +82,10 @@ class DeviceProfile:
     def layer_ms(self, w: Workload) -> float:
         k = self.kinds[w.kind]
         compute = w.macs / (k.gmacs * 1e6) if w.macs else 0.0
-        memory = (w.bytes_read + w.bytes_written) / ((k.bandwidth_gbs or self.bandwidth_gbs) * 1e6)
+        moved = w.bytes_read + w.bytes_written
+        if not k.weight_traffic:
+            moved = max(moved - w.params * BYTES_PER_VALUE, w.bytes_written)
+        memory = moved / ((k.bandwidth_gbs or self.bandwidth_gbs) * 1e6)
         body = max(compute, memory) if self.overlap else compute + memory
         return k.overhead_ms + body
 
@@ -130,7 +135,8 @@ class DeviceProfile:
             "inference_overhead_ms": _round(self.inference_overhead_ms),
             "stage_overhead_ms": _round(self.stage_overhead_ms),
             "kinds": {k: {"gmacs": _round(v.gmacs), "overhead_ms": _round(v.overhead_ms),
-                          **({"bandwidth_gbs": _round(v.bandwidth_gbs)} if v.bandwidth_gbs else {})}
+                          **({"bandwidth_gbs": _round(v.bandwidth_gbs)} if v.bandwidth_gbs else {}),
+                          **({} if v.weight_traffic else {"weight_traffic": False})}
                       for k, v in self.kinds.items()},
             "energy": {"fixed_j": _round(self.energy_fixed_j), "active_power_w": _round(self.active_power_w)},
             "provenance": self.provenance,
@@ -168,13 +174,14 @@ class DeviceProfile:
         for k, v in kinds_raw.items():
             if k not in ALL_KINDS:
                 raise UserError(f"{source}: unknown layer kind '{k}'; kinds are {list(ALL_KINDS)}")
-            if not isinstance(v, dict) or set(v) - {"gmacs", "overhead_ms", "bandwidth_gbs"}:
+            if not isinstance(v, dict) or set(v) - {"gmacs", "overhead_ms", "bandwidth_gbs", "weight_traffic"}:
                 raise UserError(f"{source}: kinds.{k} must be a mapping with gmacs, overhead_ms "
-                                "and optionally bandwidth_gbs")
+                                "and optionally bandwidth_gbs and weight_traffic")
             bw = v.get("bandwidth_gbs")
             kinds[k] = KindCost(_positive(v.get("gmacs", 1.0), f"{source}: kinds.{k}.gmacs"),
                                 _nonneg(v.get("overhead_ms", 0.0), f"{source}: kinds.{k}.overhead_ms"),
-                                None if bw is None else _positive(bw, f"{source}: kinds.{k}.bandwidth_gbs"))
+                                None if bw is None else _positive(bw, f"{source}: kinds.{k}.bandwidth_gbs"),
+                                _bool(v.get("weight_traffic", True), f"{source}: kinds.{k}.weight_traffic"))
         energy = data.get("energy") or {}
         if not isinstance(energy, dict):
             raise UserError(f"{source}: 'energy' must be a mapping with fixed_j and active_power_w")

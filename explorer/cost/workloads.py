@@ -185,3 +185,17 @@ def reference_workloads(name: str, input_size: tuple[int, int] = (224, 224)) -> 
         raise UserError(f"{name} cannot run at {h}x{w}: its skips need sides that are multiples of "
                         f"{ref.stride}") from None
     return tuple(records)
+
+
+def dilated_count_macs(workloads: tuple[Workload, ...] | list[Workload]) -> int:
+    """Multiply-adds as FLOP counters such as thop count them: a transposed convolution as the
+    convolution over its zero-dilated input that it is computed as (every output value x input
+    channels x kernel), 4x its real multiply-adds for a 2x2 stride-2 layer. The paper's GFLOPs for
+    sparse-to-dense follow this convention; every other layer counts as it is."""
+    total = 0
+    for w in workloads:
+        if w.kind == "deconv":
+            total += math.prod(w.out_shape) * w.in_shape[0] * w.kernel ** 2
+        else:
+            total += w.macs
+    return total

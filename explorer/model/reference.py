@@ -19,13 +19,16 @@ Decoders, checked against the paper's parameter counts (Tables 1 and 3):
 - FastDepth 3.96 M (paper 4.016 M, -1.4%); pruned 1.36 M (fast-depth's 1.34 M, +1.6%).
 
 GFLOPs (``explorer profile NAME --input HxW`` gives our exact MACs): the paper's "GFlops" column is
-multiply-adds under no single convention. S2D-ResNet-18 at 228x912: 8.20 G vs 8.593 (-4.5%);
-MonoDepth2 at 192x640: 8.01 G vs 8.051 (-0.5%); pruned FastDepth 0.366 G vs fast-depth's 0.37.
-Two are off by more than 10%, and explained: FastDepth's 0.737 G (-15%) is what FastDepth's own
-paper says (0.74 GMACs), so the 0.867 counts something beyond its multiply-adds; S2D-ResNet-50 at
-228x304: 6.86 G vs 8.910 (-23%), yet its 28.39 M parameters pin the network exactly (ResNet-50 +
-deconv2), and no decoder of Ma & Karaman with that parameter count reaches 8.9 G. Tests check our
-counts against ``torch.utils.flop_counter`` exactly.
+multiply-adds, with transposed convolutions counted as FLOP counters such as thop count them: as
+the convolution over the zero-dilated input they are computed as (every output value x input
+channels x kernel), 4x their real multiply-adds for sparse-to-dense's 2x2 stride-2 layers
+(``explorer.cost.workloads.dilated_count_macs``; ``explorer profile`` shows it as ``macs_dilated``).
+Counted so: S2D-ResNet-50 at 228x304 8.87 G vs 8.910 (-0.4%; real multiply-adds 6.86 G), S2D-ResNet-18
+at 228x912 8.57 G vs 8.593 (-0.3%; real 8.20 G). MonoDepth2 at 192x640: 8.01 G vs 8.051 (-0.5%);
+pruned FastDepth 0.366 G vs fast-depth's 0.37. One is off by more than 10%, and explained:
+FastDepth's 0.737 G (-15%) is what FastDepth's own paper says (0.74 GMACs), so the 0.867 counts
+something beyond its multiply-adds. Tests check our counts against ``torch.utils.flop_counter``
+exactly.
 """
 
 from __future__ import annotations
