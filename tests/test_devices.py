@@ -95,3 +95,34 @@ def test_rpi4_reproduces_table2():
     got = rpi4_table2(get_device("rpi4"))
     for spec, want in PAPER_RPI4_TABLE2.items():
         assert abs(got[spec] - want) <= 0.03, spec
+
+
+def test_one_channel_pointwise_layers_have_their_own_kind(tmp_path):
+    from explorer.cost.calibrate import HOST_KINDS, SweepLayer, fit_host, layer_graph
+    cost = candidate_cost(paper_candidate())
+    heads = [w for w in cost.workloads if w.kind == "pointwise_1ch"]
+    # every exit head ends in a 1x1 convolution to depth, and nothing else is one
+    assert {w.stage for w in heads} == {s for s in {w.stage for w in cost.workloads} if s.startswith("exit")}
+    assert all(w.out_shape[0] == 1 and w.kernel == 1 for w in heads)
+    assert not any(w.kind == "pointwise" and w.out_shape[0] == 1 for w in cost.workloads)
+    # a profile written before the kind existed prices it as pointwise
+    data = get_device("tx2").to_dict()
+    del data["kinds"]["pointwise_1ch"]
+    f = tmp_path / "old.yaml"
+    f.write_text(yaml.safe_dump(data))
+    assert get_device(str(f)).kinds["pointwise_1ch"] == get_device(str(f)).kinds["pointwise"]
+    # the host fit tells the kinds apart: layers timed as a device with one-channel layers 3x slower
+    truth = DeviceProfile("truth", "", False, 10.0, {k: KindCost(20.0, 0.01) for k in HOST_KINDS},
+                          stage_overhead_ms=0.02)
+    truth = dataclasses.replace(truth, kinds={**truth.kinds, "pointwise_1ch": KindCost(20.0 / 3, 0.01, 10.0 / 3)})
+    layers = [SweepLayer("pointwise", (c, s, s), o) for c in (16, 64, 256) for s in (14, 56, 112) for o in (16, 128)]
+    layers += [SweepLayer("pointwise_1ch", (c, s, s), 1) for c in (8, 16, 32, 64) for s in (28, 112, 224)]
+    layers += [SweepLayer(k, (32, 28, 28), 32, 3, 1) for k in ("depthwise", "conv")]
+    layers += [SweepLayer("conv1d", (16, 224), 16, 3, 1), SweepLayer("resize", (16, 28, 28), 16, 0, 2),
+               SweepLayer("add", (16, 28, 28), 16), SweepLayer("concat", (16, 28), 0, extra=16),
+               SweepLayer("slice", (16, 28, 28), 16, extra=3)]
+    measured = [(wl, truth.layer_ms(wl) + truth.stage_overhead_ms) for wl in (layer_graph(l)[2] for l in layers)]
+    fitted = fit_host(measured)
+    for wl, ms in measured:
+        if wl.kind.startswith("pointwise"):
+            assert fitted.layer_ms(wl) + fitted.stage_overhead_ms == pytest.approx(ms, rel=0.10), wl.layer

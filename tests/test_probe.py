@@ -158,7 +158,7 @@ def test_interrupted_probe_resumes_without_measuring_again(bundle_dir, tmp_path,
     assert prof.latency_basis == "measured" and prof.energy_basis == "none"
     assert prof.provenance["provider"] == "CPUExecutionProvider" and prof.active_power_w == 0.0
     int8 = [layer for layer in res["bundle"]["layers"] if layer.get("precision") == "int8"]
-    assert int8 and {layer["workload"]["kind"] for layer in int8} == {"pointwise", "depthwise", "conv", "conv1d"}
+    assert int8 and {layer["workload"]["kind"] for layer in int8} == {"pointwise", "pointwise_1ch", "depthwise", "conv", "conv1d"}
     assert prof.provenance["fit"][0]["count"] == len(res["bundle"]["layers"]) - len(int8)
     # the quantized convolutions give the profile its int8 section; the rest of it is the fp32 one's
     assert prof.precisions == ("fp32", "int8") and prof.int8.provenance["fit"][0]["count"] == len(int8)

@@ -12,7 +12,7 @@ from explorer.cost import dilated_count_macs, get_device, profile_reference, ref
 from explorer.errors import UserError
 from explorer.model.reference import REFERENCES
 
-CONV_KINDS = {"conv", "pointwise", "depthwise", "conv1d", "deconv"}
+CONV_KINDS = {"conv", "pointwise", "pointwise_1ch", "depthwise", "conv1d", "deconv"}
 
 
 @pytest.mark.parametrize("name", [n for n in REFERENCES if n != "s2d-resnet50-upproj"])

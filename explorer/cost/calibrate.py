@@ -50,9 +50,13 @@ def _rng_layers(seed: int, counts: dict[str, int]) -> list[SweepLayer]:
         return (c, side, side * rng.choice((1, 1, 1, 4 // 3 + 0, 2)))
 
     while len([l for l in out if l.kind == "pointwise"]) < counts["pointwise"]:
-        cin, cout, side = rng.choice(CHANNELS), rng.choice(CHANNELS + (1,)), rng.choice(SIDES)
+        cin, cout, side = rng.choice(CHANNELS), rng.choice(CHANNELS), rng.choice(SIDES)
         if cin * cout * side * side <= MAX_MACS:
             out.append(SweepLayer("pointwise", spatial(cin, side), cout))
+    while len([l for l in out if l.kind == "pointwise_1ch"]) < counts["pointwise_1ch"]:
+        # exit heads' last layer: few to many channels, up to full resolution
+        cin, side = rng.choice(CHANNELS[:10]), rng.choice(SIDES)
+        out.append(SweepLayer("pointwise_1ch", spatial(cin, side), 1))
     while len([l for l in out if l.kind == "depthwise"]) < counts["depthwise"]:
         c, side = rng.choice(CHANNELS), rng.choice(SIDES[:-1])
         k, s = rng.choice(((3, 1), (3, 2), (5, 1)))
@@ -83,8 +87,10 @@ def _rng_layers(seed: int, counts: dict[str, int]) -> list[SweepLayer]:
     return out
 
 
-DEFAULT_COUNTS = {"pointwise": 80, "depthwise": 60, "conv": 12, "conv1d": 24, "resize": 30, "add": 20,
-                  "concat": 8, "slice": 8}
+DEFAULT_COUNTS = {"pointwise": 80, "pointwise_1ch": 16, "depthwise": 60, "conv": 12, "conv1d": 24, "resize": 30,
+                  "add": 20, "concat": 8, "slice": 8}
+#: Kinds a host profile prices (transposed convolutions, in no candidate, fall back to conv).
+HOST_KINDS = KINDS + ("pointwise_1ch",)
 
 
 def layer_graph(layer: SweepLayer) -> tuple[bytes, dict[str, np.ndarray], Workload]:
@@ -95,7 +101,7 @@ def layer_graph(layer: SweepLayer) -> tuple[bytes, dict[str, np.ndarray], Worklo
     feeds = {"x": rng.random(x_shape, dtype=np.float32)}
     k, s, kind = layer.kernel, layer.stride, layer.kind
     params, macs = 0, 0
-    if kind in ("pointwise", "depthwise", "conv", "conv1d"):
+    if kind in ("pointwise", "pointwise_1ch", "depthwise", "conv", "conv1d"):
         cin = layer.in_shape[0]
         groups = cin if kind == "depthwise" else 1
         spatial = layer.in_shape[1:]
@@ -158,15 +164,15 @@ def fit_host(measured: list[tuple[Workload, float]], name: str = "host",
     obs = [Observation(w.layer, [w], ms, stages=1) for w, ms in measured] + list(stage_obs)
     base = DeviceProfile(
         name=name, description=description or f"{platform.node() or 'this machine'} CPU, onnxruntime",
-        overlap=False, bandwidth_gbs=10.0, kinds={k: KindCost(20.0, 0.005) for k in KINDS},
+        overlap=False, bandwidth_gbs=10.0, kinds={k: KindCost(20.0, 0.005) for k in HOST_KINDS},
         stage_overhead_ms=0.02)
-    ident = {k: k for k in KINDS}
-    rate_of = {k: k for k in ("conv", "pointwise", "depthwise", "conv1d", "resize")}
+    ident = {k: k for k in HOST_KINDS}
+    rate_of = {k: k for k in ("conv", "pointwise", "pointwise_1ch", "depthwise", "conv1d", "resize")}
     best, best_err = None, None
     for overlap in (False, True):
         p = fit_profile(dataclasses.replace(base, overlap=overlap), obs, rate_of, ident,
                         free_inference=False, free_stage=True,
-                        own_bandwidth=KINDS)
+                        own_bandwidth=HOST_KINDS)
         err = float(errors(p, obs)["error"].abs().median())
         if best_err is None or err < best_err:
             best, best_err = p, err
@@ -176,7 +182,7 @@ def fit_host(measured: list[tuple[Workload, float]], name: str = "host",
         summary.append(fit_summary(errors(best, list(stage_obs)), f"{len(stage_obs)} stage graphs of "
                                    "random candidates measured here"))
     per_kind = {k: round(float(layers[[w.kind == k for w, _ in measured]]["error"].abs().median()), 4)
-                for k in KINDS if any(w.kind == k for w, _ in measured)}
+                for k in HOST_KINDS if any(w.kind == k for w, _ in measured)}
     cond = cond or conditions()
     provenance = {
         "calibrated": True, "latency": "measured",

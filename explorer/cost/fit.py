@@ -225,9 +225,10 @@ def fit_tx2(data_dir: Path) -> tuple[DeviceProfile, DeviceProfile, dict]:
     """
     from explorer.space import paper_candidate
     csv = data_dir / "tx2-tvm-kernels" / "kernels.csv"
-    rate_of = {"conv": "conv", "pointwise": "pointwise", "depthwise": "depthwise", "conv1d": "conv",
-               "resize": "resize", "deconv": "deconv"}
-    overhead_of = {"conv": "conv", "pointwise": "pointwise", "depthwise": "depthwise",
+    # The TVM kernels do not tell one-channel pointwise layers apart: they share the pointwise rate.
+    rate_of = {"conv": "conv", "pointwise": "pointwise", "pointwise_1ch": "pointwise", "depthwise": "depthwise",
+               "conv1d": "conv", "resize": "resize", "deconv": "deconv"}
+    overhead_of = {"conv": "conv", "pointwise": "pointwise", "pointwise_1ch": "pointwise", "depthwise": "depthwise",
                    "conv1d": "depthwise", "deconv": "conv", **{k: "memory" for k in MEMORY_KINDS}}
     # Energy: fixed + active power through (6.37 ms, 0.2 J) and (554.7 ms, 6.244 J) (the paper).
     power = (6.244 - 0.2) / ((554.7 - 6.37) / 1000.0)

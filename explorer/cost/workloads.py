@@ -29,7 +29,10 @@ KINDS = ("conv", "pointwise", "depthwise", "conv1d", "resize", "add", "concat", 
 #: Layer kinds a profile may price; one that does not prices them as the kind named here (so
 #: profiles written before the kind existed still load). Transposed convolutions only occur in the
 #: reference networks (sparse-to-dense's decoder), and TVM's are slow enough to need their own rate.
-OPTIONAL_KINDS = {"deconv": "conv"}
+#: A 1x1 convolution to one channel (every exit head's last layer) is a matrix-vector product:
+#: memory-bound where other pointwise layers are not (on this project's CPU, 3x slower than the
+#: pointwise rate says at full resolution), so it has its own kind.
+OPTIONAL_KINDS = {"deconv": "conv", "pointwise_1ch": "pointwise"}
 ALL_KINDS = KINDS + tuple(OPTIONAL_KINDS)
 
 
@@ -60,7 +63,7 @@ def _conv_kind(m: nn.Module) -> str:
     if m.groups > 1 and m.groups == m.in_channels:
         return "depthwise"
     if all(k == 1 for k in m.kernel_size):
-        return "pointwise"
+        return "pointwise_1ch" if m.out_channels == 1 else "pointwise"
     return "conv"
 
 
