@@ -57,7 +57,30 @@ class _Feeds:
 
 
 def quantize_graph(src: Path, dst: Path, feeds: list[dict[str, np.ndarray]]) -> bool:
-    """Writes ``src`` quantized to ``dst``; False (and a plain copy) when it has nothing to quantize."""
+    """Writes ``src`` quantized to ``dst``; False (and a plain copy) when it has nothing to quantize.
+    onnxruntime.quantization makes sessions with thread pools of their own, which a process whose
+    sessions share the global pool (``probe_script.session``) may not: there it runs in a child process."""
+    from explorer.cost.probe_script import shared_pool_threads
+    if shared_pool_threads() is not None:
+        return _quantize_in_child(Path(src), Path(dst), feeds)
+    return _quantize(Path(src), Path(dst), feeds)
+
+
+def _quantize_in_child(src: Path, dst: Path, feeds: list[dict[str, np.ndarray]]) -> bool:
+    import pickle
+    import subprocess
+    import sys
+    with tempfile.TemporaryDirectory(prefix="explorer-quantize-") as tmp:
+        job = Path(tmp) / "feeds.pkl"
+        job.write_bytes(pickle.dumps(feeds))
+        run = subprocess.run([sys.executable, "-m", "explorer.quantize", str(src), str(dst), str(job)],
+                             capture_output=True, text=True)
+        if run.returncode not in (0, 3):
+            raise RuntimeError(f"quantizing {src.name} failed: {run.stderr.strip().splitlines()[-1:]}")
+        return run.returncode == 0
+
+
+def _quantize(src: Path, dst: Path, feeds: list[dict[str, np.ndarray]]) -> bool:
     import onnx
     from onnxruntime.quantization import CalibrationMethod, QuantFormat, QuantType, quantize_static
     from onnxruntime.quantization.shape_inference import quant_pre_process
@@ -145,3 +168,10 @@ def quantization_effect(net, input_size: tuple[int, int], data: str, calibration
               for a, b in zip(after, before)]
     return {"ratios": ratios, "rmse_degradation": m["quantization"]["rmse_degradation"],
             "frames": m["quantization"]["evaluation"]["frames"]}
+
+
+if __name__ == "__main__":   # _quantize_in_child: SRC DST FEEDS.pkl; exit 3 when there was nothing to quantize
+    import pickle
+    import sys
+    _src, _dst, _job = sys.argv[1:4]
+    raise SystemExit(0 if _quantize(Path(_src), Path(_dst), pickle.loads(Path(_job).read_bytes())) else 3)

@@ -259,6 +259,7 @@ def fit_results(results: dict, name: str = "host", source: str | None = None) ->
     dev = results["device"]
     c = results["conditions"]
     cond = {"onnxruntime": dev["onnxruntime"], "provider": c["provider"], "threads": c["threads"],
+            "thread_pool": c.get("thread_pool", "per-session"),
             "repeats": c["repeats"], "warmup": c["warmup"], "statistic": c["statistic"],
             "machine": dev["machine"], "processor": dev["cpu"], "cores": dev["cores"],
             **({"board": dev["board"]} if dev.get("board") else {}), "bundle": bundle["id"]}

@@ -58,18 +58,52 @@ def check_provider(provider: str) -> None:
                          f"(it has {', '.join(have)}); install the onnxruntime build that has it, or pick one of those")
 
 
+#: Environment variable: "session" gives every session its own thread pool instead of the shared one
+#: (for programs that also create onnxruntime sessions of their own, which a global pool forbids).
+POOL_ENV = "EXPLORER_ORT_POOL"
+_POOL: dict[str, "int | None"] = {}
+
+
+def shared_pool_threads() -> "int | None":
+    """Threads of onnxruntime's global intra-op pool when this process's sessions share it, else None."""
+    return _POOL.get("threads")
+
+
+def _shared_pool(threads: int) -> bool:
+    """Every session of this process shares onnxruntime's one global intra-op pool, created by the
+    first session. Stages run one after another, so one pool serves them all, and its threads spin
+    between operators. Pools of their own either sleep between operators (waking them took 1.5x as
+    long in some sessions as in others on this project's 2-core VM: bimodal timings) or, spinning,
+    fight each other for the cores (4x slower with a dozen stage sessions alive)."""
+    if "threads" not in _POOL:
+        _POOL["threads"] = None
+        if os.environ.get(POOL_ENV, "shared") != "session":
+            import onnxruntime as ort
+            try:
+                ort.set_global_thread_pool_sizes(threads, 1)
+                _POOL["threads"] = threads
+            except Exception:   # pools already created by this process: keep per-session ones
+                pass
+    return _POOL["threads"] is not None
+
+
 def session(model: "bytes | str | Path", threads: int | None = None, provider: str = DEFAULT_PROVIDER):
     """An onnxruntime session as every measurement and the runtime use it: ``threads`` intra-op
-    threads, full graph optimisation, ``provider`` first (the CPU one takes what it cannot run)."""
+    threads (the process's shared pool has those of its first session), full graph optimisation,
+    ``provider`` first (the CPU one takes what it cannot run)."""
     import onnxruntime as ort
     opts = ort.SessionOptions()
-    opts.intra_op_num_threads = threads or default_threads()
-    opts.inter_op_num_threads = 1
+    threads = threads or default_threads()
+    if _shared_pool(threads):
+        opts.use_per_session_threads = False
+    else:
+        opts.intra_op_num_threads = threads
+        opts.inter_op_num_threads = 1
+        # Stages run one after another in separate sessions: threads spinning after one stage would
+        # steal the cores from the next.
+        opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
     opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
     opts.log_severity_level = 3
-    # Stages run one after another in separate sessions: threads spinning after one stage would
-    # steal the cores from the next.
-    opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
     providers = [provider] + ([DEFAULT_PROVIDER] if provider != DEFAULT_PROVIDER else [])
     return ort.InferenceSession(str(model) if isinstance(model, Path) else model, opts, providers=providers)
 
@@ -473,8 +507,11 @@ def run_probe(bundle_dir: "str | Path", out: "str | Path", provider: str = DEFAU
     out.parent.mkdir(parents=True, exist_ok=True)
     check_provider(provider)
     threads = threads or default_threads()
+    shared = _shared_pool(threads)
+    threads = shared_pool_threads() or threads
     repeats = repeats or int(manifest["repeats"])
-    cond = {"provider": provider, "threads": threads, "repeats": repeats, "warmup": WARMUP, "statistic": "median"}
+    cond = {"provider": provider, "threads": threads, "thread_pool": "shared" if shared else "per-session",
+            "repeats": repeats, "warmup": WARMUP, "statistic": "median"}
     if out.exists():
         res = read_results(out)
         if res["bundle"].get("id") != manifest["id"]:
