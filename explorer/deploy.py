@@ -34,7 +34,7 @@ def verify(graphs, net: AnytimeDepthNet, input_size: tuple[int, int], scan_row: 
     feeds = {k: v.numpy() for k, v in env.items()}
     outs: dict[str, np.ndarray] = {}
     for _, model in graphs:
-        sess = session(model, 1)
+        sess = session(model)   # the process's shared pool: its first session sizes it
         res = sess.run(None, {i.name: (outs | feeds)[i.name] for i in sess.get_inputs()})
         outs.update({o.name: v for o, v in zip(sess.get_outputs(), res)})
     return max(float(np.abs(outs[f"depth_{p}"] - r).max()) for p, r in enumerate(ref))

@@ -66,18 +66,28 @@ def quantize_graph(src: Path, dst: Path, feeds: list[dict[str, np.ndarray]]) -> 
     return _quantize(Path(src), Path(dst), feeds)
 
 
+_WORKER: list = []   # one child process, started on first use and kept for the rest of this process
+
+
 def _quantize_in_child(src: Path, dst: Path, feeds: list[dict[str, np.ndarray]]) -> bool:
+    """Sends the job to the worker (``python -m explorer.quantize``: pickles over its stdin and stdout)."""
     import pickle
     import subprocess
     import sys
-    with tempfile.TemporaryDirectory(prefix="explorer-quantize-") as tmp:
-        job = Path(tmp) / "feeds.pkl"
-        job.write_bytes(pickle.dumps(feeds))
-        run = subprocess.run([sys.executable, "-m", "explorer.quantize", str(src), str(dst), str(job)],
-                             capture_output=True, text=True)
-        if run.returncode not in (0, 3):
-            raise RuntimeError(f"quantizing {src.name} failed: {run.stderr.strip().splitlines()[-1:]}")
-        return run.returncode == 0
+    if not _WORKER or _WORKER[0].poll() is not None:
+        _WORKER[:] = [subprocess.Popen([sys.executable, "-m", "explorer.quantize"], stdin=subprocess.PIPE,
+                                       stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)]
+    worker = _WORKER[0]
+    try:
+        pickle.dump((str(src), str(dst), feeds), worker.stdin)
+        worker.stdin.flush()
+        ok, result = pickle.load(worker.stdout)
+    except (EOFError, BrokenPipeError, pickle.UnpicklingError):
+        worker.kill()
+        raise RuntimeError(f"the quantization worker died while quantizing {src.name}") from None
+    if not ok:
+        raise RuntimeError(f"quantizing {src.name} failed: {result}")
+    return result
 
 
 def _quantize(src: Path, dst: Path, feeds: list[dict[str, np.ndarray]]) -> bool:
@@ -170,8 +180,25 @@ def quantization_effect(net, input_size: tuple[int, int], data: str, calibration
             "frames": m["quantization"]["evaluation"]["frames"]}
 
 
-if __name__ == "__main__":   # _quantize_in_child: SRC DST FEEDS.pkl; exit 3 when there was nothing to quantize
+def _serve() -> None:
+    """The worker's loop: (src, dst, feeds) in, (ok, quantized or error text) out, until stdin closes."""
+    import os
     import pickle
     import sys
-    _src, _dst, _job = sys.argv[1:4]
-    raise SystemExit(0 if _quantize(Path(_src), Path(_dst), pickle.loads(Path(_job).read_bytes())) else 3)
+    channel = os.fdopen(os.dup(1), "wb")
+    os.dup2(2, 1)   # anything else printed goes to stderr, not into the answers
+    while True:
+        try:
+            src, dst, feeds = pickle.load(sys.stdin.buffer)
+        except EOFError:
+            return
+        try:
+            answer = (True, _quantize(Path(src), Path(dst), feeds))
+        except Exception as exc:   # sent back and raised in the parent
+            answer = (False, f"{type(exc).__name__}: {exc}")
+        pickle.dump(answer, channel)
+        channel.flush()
+
+
+if __name__ == "__main__":
+    _serve()
