@@ -1,6 +1,7 @@
 """Thread pools for the staged runtime (issue 11): the paper design's stage graphs chained, and its
-whole graph, with one intra-op pool per session (spinning off, what explorer.runtime does), a pool
-per session with spinning on, onnxruntime's global thread pool shared by every session, and a pool
+whole graph, with one intra-op pool per session (spinning off, what explorer.runtime did before), a
+pool per session with spinning on, onnxruntime's global thread pool shared by every session (what
+``explorer.cost.probe_script.session`` does now), and a pool
 per session without the NCHWc layout transforms (what the stage boundaries cost them). A
 process can use the global pool only for all its sessions, so each variant runs in its own fresh
 process (staged and whole interleaved call by call), alternating, --reps times; every repetition
