@@ -126,3 +126,44 @@ def test_one_channel_pointwise_layers_have_their_own_kind(tmp_path):
     for wl, ms in measured:
         if wl.kind.startswith("pointwise"):
             assert fitted.layer_ms(wl) + fitted.stage_overhead_ms == pytest.approx(ms, rel=0.10), wl.layer
+
+
+def test_body_exponent_prices_and_round_trips(tmp_path):
+    w = Workload("s", "l", "pointwise", (1,), (1,), 1, 1, macs=4_000_000, params=0,
+                 bytes_read=1_000_000, bytes_written=3_000_000)
+    steep = dataclasses.replace(_profile(True), body_exponent=1.2)
+    assert steep.layer_ms(w) == pytest.approx(0.5 + 4.0 ** 1.2)
+    f = tmp_path / "steep.yaml"
+    f.write_text(steep.to_yaml())
+    assert get_device(str(f)).body_exponent == 1.2 and "body_exponent" not in _profile(True).to_dict()
+    data = steep.to_dict()
+    data["body_exponent"] = -1
+    f.write_text(yaml.safe_dump(data))
+    with pytest.raises(UserError, match="body_exponent"):
+        get_device(str(f))
+
+
+def test_host_fit_finds_the_body_exponent_from_stage_graphs_at_several_sizes():
+    from explorer.cost.calibrate import HOST_KINDS, SweepLayer, fit_host, layer_graph
+    from explorer.cost.fit import Observation
+    from explorer.space import SearchSpace
+    truth = DeviceProfile("truth", "", False, 8.0, {k: KindCost(30.0, 0.02) for k in HOST_KINDS},
+                          stage_overhead_ms=0.03, body_exponent=1.15)
+    layers = [SweepLayer(k, (c, s, s), c, 3 if k in ("depthwise", "conv") else 1, 1)
+              for k in ("pointwise", "depthwise", "conv") for c in (16, 64) for s in (14, 56)]
+    layers += [SweepLayer("pointwise_1ch", (16, 56, 56), 1), SweepLayer("conv1d", (16, 224), 16, 3, 1),
+               SweepLayer("resize", (16, 28, 28), 16, 0, 2), SweepLayer("add", (16, 28, 28), 16),
+               SweepLayer("concat", (16, 28), 0, extra=16), SweepLayer("slice", (16, 28, 28), 16, extra=3)]
+    measured = [(wl, truth.layer_ms(wl) + truth.stage_overhead_ms) for wl in (layer_graph(l)[2] for l in layers)]
+    stage_obs = []
+    for i, cand in enumerate(SearchSpace.from_yaml("anytime_depth").random_candidates(6, 3)):
+        for size in ((224, 224), (224, 320), (192, 640)):
+            cost = candidate_cost(cand, size)
+            for stage in cost.path_stages[-1]:
+                wl = [w for w in cost.workloads if w.stage == stage]
+                ms = sum(truth.layer_ms(w) for w in wl) + truth.stage_overhead_ms
+                stage_obs.append(Observation(f"{i}/{stage}", wl, ms, weight=4.0, stages=1, group=f"{size}"))
+    fitted = fit_host(measured, stage_obs=stage_obs)
+    assert fitted.body_exponent > 1.0
+    flat = fit_host(measured, stage_obs=[dataclasses.replace(o, group="one size") for o in stage_obs])
+    assert flat.body_exponent == 1.0   # one size cannot tell an exponent from rates

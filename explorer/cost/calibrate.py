@@ -168,14 +168,26 @@ def fit_host(measured: list[tuple[Workload, float]], name: str = "host",
         stage_overhead_ms=0.02)
     ident = {k: k for k in HOST_KINDS}
     rate_of = {k: k for k in ("conv", "pointwise", "pointwise_1ch", "depthwise", "conv1d", "resize")}
+
+    def fit(overlap: bool, exponent: float) -> DeviceProfile:
+        return fit_profile(dataclasses.replace(base, overlap=overlap, body_exponent=exponent), obs, rate_of, ident,
+                           free_inference=False, free_stage=True, own_bandwidth=HOST_KINDS)
+
     best, best_err = None, None
     for overlap in (False, True):
-        p = fit_profile(dataclasses.replace(base, overlap=overlap), obs, rate_of, ident,
-                        free_inference=False, free_stage=True,
-                        own_bandwidth=HOST_KINDS)
+        p = fit(overlap, 1.0)
         err = float(errors(p, obs)["error"].abs().median())
         if best_err is None or err < best_err:
             best, best_err = p, err
+    # The body exponent is chosen on the stage graphs alone, measured at several input sizes: the one
+    # that leaves the least difference in bias between sizes (the single-layer graphs, each with its
+    # own layout conversions, would pull it elsewhere); 1 unless another does clearly better.
+    if len({o.group for o in stage_obs}) > 1:
+        fitted = {1.0: best, **{e: fit(best.overlap, e) for e in BODY_EXPONENTS}}
+        spread = {e: _size_bias_spread(p, list(stage_obs)) for e, p in fitted.items()}
+        chosen = min(spread, key=spread.get)
+        if spread[chosen] < spread[1.0] - 0.01:
+            best = fitted[chosen]
     layers = errors(best, obs[:len(measured)])
     summary = [fit_summary(layers, f"{len(measured)} single-layer graphs measured here")]
     if stage_obs:
@@ -193,6 +205,19 @@ def fit_host(measured: list[tuple[Workload, float]], name: str = "host",
     fixed_j, power_w, energy_prov = fit_energy(energy)
     provenance.update(energy_prov)
     return dataclasses.replace(best, energy_fixed_j=fixed_j, active_power_w=power_w, provenance=provenance)
+
+
+#: Body exponents ``fit_host`` tries besides 1 (see ``DeviceProfile.body_exponent``).
+BODY_EXPONENTS = (1.05, 1.1, 1.15, 1.2)
+
+
+def _size_bias_spread(profile: DeviceProfile, stage_obs: list[Observation]) -> float:
+    """Largest minus smallest median log error among the groups (input sizes) of the stage graphs."""
+    by_group: dict[str, list[float]] = {}
+    for row, o in zip(errors(profile, stage_obs).itertuples(), stage_obs):
+        by_group.setdefault(o.group, []).append(float(np.log1p(row.error)))
+    medians = [float(np.median(v)) for v in by_group.values()]
+    return max(medians) - min(medians)
 
 
 def fit_energy(energy: dict | None) -> tuple[float, float, dict]:
@@ -252,7 +277,8 @@ def fit_results(results: dict, name: str = "host", source: str | None = None) ->
         cost = candidate_cost(Candidate.from_dict(cand["candidate"]), size)
         for stage, ms in kept.items():
             wl = [w for w in cost.workloads if w.stage == stage]
-            stage_obs.append(Observation(f"{cand['key']}/{stage}", wl, float(ms), weight=4.0, stages=1))
+            stage_obs.append(Observation(f"{cand['key']}/{stage}", wl, float(ms), weight=4.0, stages=1,
+                                         group=f"{size[0]}x{size[1]}"))
     if len(measured) < len(KINDS):
         raise UserError(f"the results hold {len(measured)} measured layer graphs, too few to fit: let the probe "
                         "finish (run it again with the same --out to go on)")

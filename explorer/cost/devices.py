@@ -51,6 +51,9 @@ class DeviceProfile:
     kinds: dict[str, KindCost]
     inference_overhead_ms: float = 0.0
     stage_overhead_ms: float = 0.0
+    # A layer's time past its overhead is (its compute or memory time in ms) ** body_exponent; above 1
+    # where bigger tensors run less efficiently (out of cache), as `explorer calibrate` finds on a CPU.
+    body_exponent: float = 1.0
     energy_fixed_j: float = 0.0
     active_power_w: float = 0.0
     provenance: dict[str, Any] = field(default_factory=dict)
@@ -87,7 +90,7 @@ class DeviceProfile:
             moved = max(moved - w.params * BYTES_PER_VALUE, w.bytes_written)
         memory = moved / ((k.bandwidth_gbs or self.bandwidth_gbs) * 1e6)
         body = max(compute, memory) if self.overlap else compute + memory
-        return k.overhead_ms + body
+        return k.overhead_ms + (body if self.body_exponent == 1.0 else body ** self.body_exponent)
 
     def latencies_ms(self, workloads: Iterable[Workload]) -> np.ndarray:
         return np.array([self.layer_ms(w) for w in workloads])
@@ -134,6 +137,7 @@ class DeviceProfile:
             "bandwidth_gbs": _round(self.bandwidth_gbs),
             "inference_overhead_ms": _round(self.inference_overhead_ms),
             "stage_overhead_ms": _round(self.stage_overhead_ms),
+            **({} if self.body_exponent == 1.0 else {"body_exponent": _round(self.body_exponent)}),
             "kinds": {k: {"gmacs": _round(v.gmacs), "overhead_ms": _round(v.overhead_ms),
                           **({"bandwidth_gbs": _round(v.bandwidth_gbs)} if v.bandwidth_gbs else {}),
                           **({} if v.weight_traffic else {"weight_traffic": False})}
@@ -145,8 +149,8 @@ class DeviceProfile:
 
     def _int8_dict(self) -> dict[str, Any]:
         d = self.int8.to_dict()
-        return {k: d[k] for k in ("overlap", "bandwidth_gbs", "inference_overhead_ms", "stage_overhead_ms", "kinds",
-                                  "provenance")}
+        return {k: d[k] for k in ("overlap", "bandwidth_gbs", "inference_overhead_ms", "stage_overhead_ms",
+                                  "body_exponent", "kinds", "provenance") if k in d}
 
     def to_yaml(self) -> str:
         return yaml.safe_dump(self.to_dict(), sort_keys=False, width=100)
@@ -159,7 +163,7 @@ class DeviceProfile:
         missing = [k for k in required if k not in data]
         if missing:
             raise UserError(f"{source}: device profile lacks {missing}")
-        known = set(required) | {"description", "inference_overhead_ms", "stage_overhead_ms", "energy",
+        known = set(required) | {"description", "inference_overhead_ms", "stage_overhead_ms", "body_exponent", "energy",
                                  "provenance", "int8"}
         unknown = sorted(set(data) - known)
         if unknown:
@@ -201,6 +205,7 @@ class DeviceProfile:
             kinds=kinds,
             inference_overhead_ms=_nonneg(data.get("inference_overhead_ms", 0.0), f"{source}: inference_overhead_ms"),
             stage_overhead_ms=_nonneg(data.get("stage_overhead_ms", 0.0), f"{source}: stage_overhead_ms"),
+            body_exponent=_positive(data.get("body_exponent", 1.0), f"{source}: body_exponent"),
             energy_fixed_j=_nonneg(energy.get("fixed_j", 0.0), f"{source}: energy.fixed_j"),
             active_power_w=_nonneg(energy.get("active_power_w", 0.0), f"{source}: energy.active_power_w"),
             provenance=data.get("provenance") or {}, source=source)

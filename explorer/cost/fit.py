@@ -35,6 +35,7 @@ class Observation:
     weight: float = 1.0
     end_to_end: bool = False
     stages: int = 0   # separately launched stages (graphs) in the measured run
+    group: str = ""   # e.g. the input size of a stage graph: fits compare groups' biases
 
 
 def kernel_workloads(csv: str | Path, target: str) -> list[tuple[Workload, float]]:
