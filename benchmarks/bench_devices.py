@@ -63,6 +63,7 @@ def host(n: int, seed: int, scale: float, reps: int = 3) -> None:
           f"{prof.provenance['conditions']['threads']} threads, onnxruntime {prof.provenance['conditions']['onnxruntime']}")
     for fit in prof.provenance["fit"]:
         print(f"  fit on {fit['what']}: median |error| {fit['median_abs_error']:.1%}")
+    print(f"  body exponent {prof.body_exponent:g}, compute and memory {'overlap' if prof.overlap else 'add'}")
     peak = host_peak()
     print(f"  this machine's peak: {peak.describe()}")
     medians: dict = {size: [] for size in HOST_SIZES}
