@@ -169,13 +169,13 @@ def fit_host(measured: list[tuple[Workload, float]], name: str = "host",
     ident = {k: k for k in HOST_KINDS}
     rate_of = {k: k for k in ("conv", "pointwise", "pointwise_1ch", "depthwise", "conv1d", "resize")}
 
-    def fit(overlap: bool, exponent: float) -> DeviceProfile:
-        return fit_profile(dataclasses.replace(base, overlap=overlap, body_exponent=exponent), obs, rate_of, ident,
+    def fit(start: DeviceProfile, overlap: bool, exponent: float) -> DeviceProfile:
+        return fit_profile(dataclasses.replace(start, overlap=overlap, body_exponent=exponent), obs, rate_of, ident,
                            free_inference=False, free_stage=True, own_bandwidth=HOST_KINDS)
 
     best, best_err = None, None
     for overlap in (False, True):
-        p = fit(overlap, 1.0)
+        p = fit(base, overlap, 1.0)
         err = float(errors(p, obs)["error"].abs().median())
         if best_err is None or err < best_err:
             best, best_err = p, err
@@ -184,7 +184,7 @@ def fit_host(measured: list[tuple[Workload, float]], name: str = "host",
     # own layout conversions, would pull it elsewhere). A fine grid with no margin for 1: a jump from
     # 1 to 1.2 between two calibrations of one machine moved their predictions apart by 6-7%.
     if len({o.group for o in stage_obs}) > 1:
-        fitted = {e: best if e == 1.0 else fit(best.overlap, e) for e in BODY_EXPONENTS}
+        fitted = {e: best if e == 1.0 else fit(best, best.overlap, e) for e in BODY_EXPONENTS}   # warm starts
         spread = {e: _size_bias_spread(p, list(stage_obs)) for e, p in fitted.items()}
         best = fitted[min(spread, key=spread.get)]
     layers = errors(best, obs[:len(measured)])
