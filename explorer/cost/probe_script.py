@@ -82,8 +82,10 @@ def _shared_pool(threads: int) -> bool:
             try:
                 ort.set_global_thread_pool_sizes(threads, 1)
                 _POOL["threads"] = threads
-            except Exception:   # pools already created by this process: keep per-session ones
+            except AttributeError:   # an onnxruntime without global pools: per-session ones
                 pass
+            except Exception:   # someone in this process made the global pools already: share them
+                _POOL["threads"] = threads
     return _POOL["threads"] is not None
 
 
