@@ -103,7 +103,8 @@ class _Params:
             g = v.get(f"gmacs:{self.rate_of.get(k, '')}", base.gmacs)
             o = v.get(f"overhead:{self.overhead_of.get(k, '')}", base.overhead_ms)
             bw = v.get(f"kbw:{k}", base.bandwidth_gbs)
-            kinds[k] = KindCost(float(g), float(o), None if bw is None else float(bw), base.weight_traffic)
+            kinds[k] = dataclasses.replace(base, gmacs=float(g), overhead_ms=float(o),
+                                           bandwidth_gbs=None if bw is None else float(bw))
         return dataclasses.replace(
             self.base, kinds=kinds, bandwidth_gbs=float(v.get("bandwidth", self.base.bandwidth_gbs)),
             inference_overhead_ms=float(v.get("inference", self.base.inference_overhead_ms)),

@@ -29,9 +29,8 @@ def conditions(threads: int | None = None, repeats: int = 15, warmup: int = 3,
                provider: str = DEFAULT_PROVIDER) -> dict:
     import onnxruntime as ort
     import platform
-    shared = _probe.shared_pool_threads()
-    return {"onnxruntime": ort.__version__, "provider": provider, "threads": shared or threads or default_threads(),
-            "thread_pool": "shared" if shared else "per-session",
+    return {"onnxruntime": ort.__version__, "provider": provider,
+            "threads": _probe.shared_pool_threads() or threads or default_threads(), "thread_pool": _probe.thread_pool(),
             "repeats": repeats,
             "warmup": warmup, "statistic": "median", "machine": platform.machine(),
             "processor": platform.processor() or platform.machine(), "cores": os.cpu_count(),

@@ -69,6 +69,11 @@ def shared_pool_threads() -> "int | None":
     return _POOL.get("threads")
 
 
+def thread_pool() -> str:
+    """What measurement conditions record: 'shared' or 'per-session'."""
+    return "shared" if shared_pool_threads() else "per-session"
+
+
 def _shared_pool(threads: int) -> bool:
     """Every session of this process shares onnxruntime's one global intra-op pool, created by the
     first session. Stages run one after another, so one pool serves them all, and its threads spin
@@ -509,10 +514,10 @@ def run_probe(bundle_dir: "str | Path", out: "str | Path", provider: str = DEFAU
     out.parent.mkdir(parents=True, exist_ok=True)
     check_provider(provider)
     threads = threads or default_threads()
-    shared = _shared_pool(threads)
+    _shared_pool(threads)
     threads = shared_pool_threads() or threads
     repeats = repeats or int(manifest["repeats"])
-    cond = {"provider": provider, "threads": threads, "thread_pool": "shared" if shared else "per-session",
+    cond = {"provider": provider, "threads": threads, "thread_pool": thread_pool(),
             "repeats": repeats, "warmup": WARMUP, "statistic": "median"}
     if out.exists():
         res = read_results(out)
