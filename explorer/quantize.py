@@ -3,9 +3,15 @@
 frames of a data set), and every path's metrics measured again after quantization.
 
 Each stage graph is calibrated on the inputs it really receives: the float model runs the
-calibration frames and every stage's inputs are kept. Only convolutions and matrix products are
-quantized; resizes, additions and concatenations stay float between them (onnxruntime fuses the
-QDQ pairs around each convolution into one int8 kernel). Path 0 (the scan) has nothing to quantize.
+calibration frames and every stage's inputs are kept. Only the layers where int8 pays are quantized
+(``quantizes``): ungrouped convolutions whose every output sums at least ``MIN_INT8_REDUCTION``
+products, transposed convolutions and matrix products. onnxruntime fuses the QDQ pairs around each
+into one int8 kernel; depthwise convolutions, thin ones (the RGB stem, the exit heads' last layers),
+resizes, additions and concatenations stay float. Path 0 (the scan) has nothing to quantize.
+
+Weights are quantized to 7 bits (``reduce_range``): x86 CPUs without VNNI multiply uint8 by int8 in
+pairs summed into int16 (VPMADDUBSW), which saturates with full-range weights; measured on one such
+machine (AVX2), full range degraded the paper design's last path by 29% RMSE, 7 bits by under 2%.
 """
 
 from __future__ import annotations
@@ -19,6 +25,45 @@ import numpy as np
 from explorer.errors import UserError
 
 QUANTIZED_OPS = ["Conv", "ConvTranspose", "MatMul", "Gemm"]
+#: An int8 convolution is quantized only when each output sums at least this many products (its
+#: in-channels x kernel area): below it, onnxruntime's int8 kernel plus the quantize / dequantize
+#: around it took longer than the float layer (the 3-channel stem: 0.57 against 0.40 ms; a
+#: 16 -> 8 exit head at 224x224: 0.57 against 0.24 ms), above it about half as long.
+MIN_INT8_REDUCTION = 32
+#: Workload kinds an int8 export may quantize: depthwise convolutions never are (onnxruntime's int8
+#: depthwise kernels were slower than its float ones: 0.74 against 0.37 ms for a 5x5 at 112x112).
+QUANTIZABLE_KINDS = ("pointwise", "pointwise_1ch", "conv", "conv1d", "deconv")
+
+
+def quantizes(kind: str, in_channels: int, kernel_area: int) -> bool:
+    """Whether an int8 export quantizes a layer of workload ``kind`` (an ungrouped convolution of
+    ``in_channels`` x ``kernel_area`` products per output, or a transposed one)."""
+    if kind == "deconv":
+        return True
+    return kind in QUANTIZABLE_KINDS and in_channels * kernel_area >= MIN_INT8_REDUCTION
+
+
+def workload_quantized(w) -> bool:
+    """``quantizes`` for a cost-model ``Workload``. One whose shape is unknown (stored by a study
+    before this rule) counts as quantized when its kind may be, as exports then quantized it."""
+    if not w.in_shape:
+        return w.kind in QUANTIZABLE_KINDS
+    return quantizes(w.kind, w.in_shape[0] if w.in_shape else 0,   # (channels, height, width)
+                     w.kernel if w.kind == "conv1d" else w.kernel * w.kernel)
+
+
+def _float_convolutions(model) -> list[str]:
+    """Names of the Conv nodes of ``model`` (an onnx ModelProto) that ``quantizes`` leaves float."""
+    weights = {i.name: tuple(i.dims) for i in model.graph.initializer}
+    keep = []
+    for n in model.graph.node:
+        if n.op_type != "Conv":
+            continue
+        group = next((a.i for a in n.attribute if a.name == "group"), 1)
+        dims = weights.get(n.input[1]) if len(n.input) > 1 else None
+        if group != 1 or dims is None or len(dims) < 3 or int(np.prod(dims[1:])) < MIN_INT8_REDUCTION:
+            keep.append(n.name)
+    return keep
 #: a path may lose at most this fraction of its RMSE to quantization unless --force
 MAX_DEGRADATION = 0.03
 
@@ -94,7 +139,9 @@ def _quantize(src: Path, dst: Path, feeds: list[dict[str, np.ndarray]]) -> bool:
     import onnx
     from onnxruntime.quantization import CalibrationMethod, QuantFormat, QuantType, quantize_static
     from onnxruntime.quantization.shape_inference import quant_pre_process
-    if not any(n.op_type in QUANTIZED_OPS for n in onnx.load(str(src)).graph.node):
+    model = onnx.load(str(src))
+    keep_float = _float_convolutions(model)
+    if not any(n.op_type in QUANTIZED_OPS and n.name not in keep_float for n in model.graph.node):
         dst.write_bytes(src.read_bytes())
         return False
     with tempfile.TemporaryDirectory() as tmp:
@@ -102,7 +149,9 @@ def _quantize(src: Path, dst: Path, feeds: list[dict[str, np.ndarray]]) -> bool:
         quant_pre_process(str(src), str(prepared), skip_symbolic_shape=True)
         quantize_static(str(prepared), str(dst), _Feeds(feeds), quant_format=QuantFormat.QDQ,
                         activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8, per_channel=True,
-                        op_types_to_quantize=QUANTIZED_OPS, calibrate_method=CalibrationMethod.MinMax)
+                        reduce_range=True, op_types_to_quantize=QUANTIZED_OPS,
+                        nodes_to_exclude=_float_convolutions(onnx.load(str(prepared))),
+                        calibrate_method=CalibrationMethod.MinMax)
     return True
 
 
@@ -152,8 +201,10 @@ def quantize_export(model_dir: Path, data: str, calibration_frames: int = 32, ev
                         f"{max_degradation:.0%}; {before[worst]['rmse']:.4f} -> {after[worst]['rmse']:.4f} m): "
                         "not exported; keep fp32, calibrate on more frames, or add --force")
     return {"precision": "int8", "stages": manifest["stages"], "path_metrics_fp32": before, "path_metrics_int8": after,
-            "quantization": {"method": "onnxruntime static QDQ: int8 weights per channel, uint8 activations "
-                                       "(MinMax calibration), ops " + ", ".join(QUANTIZED_OPS),
+            "quantization": {"method": "onnxruntime static QDQ: int8 weights per channel (7-bit range), uint8 "
+                                       "activations (MinMax calibration), ops " + ", ".join(QUANTIZED_OPS)
+                                       + f"; ungrouped convolutions of at least {MIN_INT8_REDUCTION} products per "
+                                       "output only (depthwise and thinner ones stay float)",
                              "calibration": {"data": data, "split": "train", "frames": len(calib[0]) if calib else 0},
                              "evaluation": {"data": data, "split": "val", "frames": len(evaluation)},
                              "rmse_degradation": degradation, "max_degradation": max_degradation,

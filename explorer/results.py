@@ -37,18 +37,21 @@ def study_baselines(study: optuna.Study) -> list[str]:
 
 
 def compact_workloads(cost) -> dict:
-    """What re-costing on any profile needs: per layer (stage, kind, MACs, bytes, params)."""
+    """What re-costing on any profile needs: per layer (stage, kind, MACs, bytes, params, and the
+    in-channels and kernel that decide whether an int8 export quantizes it)."""
     stages = list(dict.fromkeys(w.stage for w in cost.workloads))
     return {"input_size": list(cost.input_size), "stages": stages,
             "path_stages": [[stages.index(s) for s in ps] for ps in cost.path_stages],
-            "layers": [[stages.index(w.stage), w.kind, w.macs, w.bytes_read, w.bytes_written, w.params]
-                       for w in cost.workloads]}
+            "layers": [[stages.index(w.stage), w.kind, w.macs, w.bytes_read, w.bytes_written, w.params,
+                        w.in_shape[0] if w.in_shape else 0, w.kernel] for w in cost.workloads]}
 
 
 def expand_workloads(compact: dict) -> tuple[list[Workload], list[list[str]]]:
     stages = compact["stages"]
-    wl = [Workload(stages[s], "", kind, (), (), 0, 0, int(macs), int(params), int(br), int(bw))
-          for s, kind, macs, br, bw, params in compact["layers"]]
+    # rows stored before in-channels and kernel were kept have 6 fields: their shape stays unknown
+    wl = [Workload(stages[s], "", kind, tuple(int(c) for c in shape[:1]), (), int(shape[1]) if shape else 0, 0,
+                   int(macs), int(params), int(br), int(bw))
+          for s, kind, macs, br, bw, params, *shape in compact["layers"]]
     return wl, [[stages[i] for i in ps] for ps in compact["path_stages"]]
 
 

@@ -93,7 +93,7 @@ class AnytimeRunner:
             raise UserError(f"scan has {s.size} values, the model takes one per image column ({w})")
         if not np.isfinite(s).all() or (s < 0).any():
             raise UserError("scan must hold finite depths >= 0 (0 = no return)")
-        return img[None].astype(np.float32), s[None]
+        return np.ascontiguousarray(img[None], dtype=np.float32), s[None]   # no copy when it is already so
 
     def halt(self) -> None:
         """Stops the current run as soon as possible; it returns the best map completed so far."""

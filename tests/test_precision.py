@@ -129,3 +129,68 @@ def test_an_int8_finalist_is_retrained_then_measured_after_quantization(tmp_path
     before, after = fin.user_attrs["path_metrics_fp32"], fin.user_attrs["path_metrics"]
     for d, m, b in zip(fin.user_attrs["quantization"]["rmse_degradation"], after, before):
         assert m["rmse"] == pytest.approx(b["rmse"] * (1 + d), rel=1e-6)
+
+
+def test_an_int8_graph_prices_the_layers_it_keeps_float_at_fp32(tmp_path):
+    from explorer.quantize import MIN_INT8_REDUCTION, workload_quantized
+    dev = get_device(_with_int8(tmp_path))
+    wl = candidate_cost(paper_candidate()).workloads
+    kinds = {w.kind: workload_quantized(w) for w in wl if w.kind in ("depthwise", "resize", "add")}
+    assert kinds == {"depthwise": False, "resize": False, "add": False}
+    stem = next(w for w in wl if w.kind == "conv")          # 3 in-channels x 3x3 = 27 products: float
+    wide = next(w for w in wl if w.kind == "pointwise" and w.in_shape[0] >= MIN_INT8_REDUCTION)
+    assert not workload_quantized(stem) and workload_quantized(wide)
+    assert dev.int8.float_layers is dev
+    for w in wl:
+        expect = (dev.int8 if workload_quantized(w) else dev).kinds[w.kind]
+        assert dev.at_precision("int8").layer_ms(w) == pytest.approx(
+            dataclasses.replace(dev, kinds={**dev.kinds, w.kind: expect}).layer_ms(w))
+    assert dev.at_precision("int8").layer_ms(stem) == dev.layer_ms(stem)
+    assert dev.at_precision("int8").layer_ms(wide) == pytest.approx(2 * dev.layer_ms(wide), rel=0.2)
+
+
+def test_stored_workloads_recost_int8_trials_layer_by_layer():
+    from explorer.results import compact_workloads, expand_workloads
+    from explorer.quantize import workload_quantized
+    cost = candidate_cost(paper_candidate())
+    compact = compact_workloads(cost)
+    wl, _ = expand_workloads(json.loads(json.dumps(compact)))
+    assert [workload_quantized(w) for w in wl] == [workload_quantized(w) for w in cost.workloads]
+    old = {**compact, "layers": [row[:6] for row in compact["layers"]]}   # rows a study stored before
+    wl_old, _ = expand_workloads(old)
+    assert [w.macs for w in wl_old] == [w.macs for w in cost.workloads]
+    assert all(workload_quantized(w) == (w.kind in ("pointwise", "pointwise_1ch", "conv", "conv1d")) for w in wl_old)
+
+
+def test_int8_export_quantizes_wide_convolutions_only_with_7_bit_weights(tmp_path):
+    """The stem (27 products per output), depthwise and thin convolutions stay float; the others get
+    int8 weights within 7 bits (no VPMADDUBSW saturation on x86 without VNNI)."""
+    import numpy as np
+    import onnx
+    import torch
+    from onnx import numpy_helper
+    from explorer.quantize import quantize_graph
+    net = torch.nn.Sequential(torch.nn.Conv2d(3, 32, 3, 2, 1), torch.nn.ReLU(),
+                              torch.nn.Conv2d(32, 32, 3, 1, 1, groups=32), torch.nn.ReLU(),
+                              torch.nn.Conv2d(32, 48, 1), torch.nn.ReLU(), torch.nn.Conv2d(48, 16, 1), torch.nn.ReLU(),
+                              torch.nn.Conv2d(16, 8, 1)).eval()
+    src, dst = tmp_path / "f.onnx", tmp_path / "q.onnx"
+    x = torch.rand(1, 3, 32, 32)
+    torch.onnx.export(net, x, str(src), input_names=["x"], output_names=["y"], dynamo=False)
+    feeds = [{"x": torch.rand(1, 3, 32, 32).numpy()} for _ in range(4)]
+    assert quantize_graph(src, dst, feeds)
+    g = onnx.load(str(dst)).graph
+    weights = {i.name: numpy_helper.to_array(i) for i in g.initializer}
+    made_by = {o: n for n in g.node for o in n.output}
+    quantized_weights = []
+    for conv in (n for n in g.node if n.op_type == "Conv"):
+        producer = made_by.get(conv.input[1])
+        if producer is not None and producer.op_type == "DequantizeLinear":
+            quantized_weights.append(weights[producer.input[0]])
+        else:
+            quantized_weights.append(None)
+    # per conv in order: stem, depthwise, 32 -> 48, 48 -> 16, 16 -> 8 (16 products: float)
+    assert [w is not None for w in quantized_weights] == [False, False, True, True, False]
+    for w in (w for w in quantized_weights if w is not None):
+        # 255 x 64 x 2 < 2**15: a pair of products cannot saturate int16
+        assert w.dtype == np.int8 and np.abs(w.astype(int)).max() <= 64 and np.abs(w.astype(int)).max() >= 32

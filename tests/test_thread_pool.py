@@ -14,7 +14,7 @@ from explorer.cost.measure import conditions
 from explorer.cost.probe_script import session, shared_pool_threads
 from explorer.quantize import quantize_graph
 import tempfile, pathlib
-model, feeds, _ = layer_graph(SweepLayer("pointwise", (16, 14, 14), 8))
+model, feeds, _ = layer_graph(SweepLayer("pointwise", (48, 14, 14), 8))   # 48 products per output: quantized
 first = session(model, 2)
 second = session(model, 1)   # a later size cannot change the pool's
 out = {"pool": shared_pool_threads(), "conditions": conditions()["thread_pool"],

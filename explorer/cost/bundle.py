@@ -26,6 +26,7 @@ from onnx import TensorProto, load_from_string, numpy_helper
 from explorer.cost import probe_script
 from explorer.cost.calibrate import DEFAULT_COUNTS, _rng_layers, layer_graph
 from explorer.errors import UserError
+from explorer.quantize import workload_quantized
 
 #: Float initializers at least this large ship as zeros (their values do not change how long a
 #: dense kernel takes), so the archive compresses to a few MB instead of hundreds.
@@ -38,8 +39,6 @@ STAGE_CANDIDATES = 36
 
 
 _ZEROED = {TensorProto.FLOAT: np.float32, TensorProto.INT8: np.int8}
-#: Layer kinds timed a second time quantized to int8 (the others stay float in an int8 graph).
-INT8_KINDS = ("pointwise", "pointwise_1ch", "depthwise", "conv", "conv1d")
 
 
 def _zero_weights(model: bytes) -> bytes:
@@ -74,7 +73,7 @@ def write_bundle_dir(folder: Path, scale: float = 1.0, seed: int = 0, n_stage: i
                      progress: Callable[[int, int], None] | None = None, int8: bool = True) -> dict:
     """Exports the layer sweep (``scale`` x the default counts) and the stage graphs of ``n_stage``
     candidates (default ``STAGE_CANDIDATES`` x ``scale``) into ``folder``; returns the manifest. ``int8``: every
-    convolution of the sweep also goes in quantized (entries with ``precision: int8``), so that the
+    convolution of the sweep that ``explorer export --quantize int8`` would quantize also goes in quantized (entries with ``precision: int8``), so that the
     fit prices int8 graphs too."""
     from explorer import __version__
     from explorer.model import build_network
@@ -86,7 +85,8 @@ def write_bundle_dir(folder: Path, scale: float = 1.0, seed: int = 0, n_stage: i
     layers = _rng_layers(seed, counts)
     n_stage = max(1, round(STAGE_CANDIDATES * scale)) if n_stage is None else n_stage
     cands = stage_candidates(n_stage, seed, exclude) if n_stage else []
-    quantized = [layer for layer in layers if layer.kind in INT8_KINDS] if int8 else []
+    graphs = [layer_graph(layer) for layer in layers]
+    quantized = [(layer, g) for layer, g in zip(layers, graphs) if workload_quantized(g[2])] if int8 else []
     total = len(layers) + len(quantized) + len(cands)
     (folder / "layers").mkdir(parents=True, exist_ok=True)
     digest = hashlib.sha256()
@@ -96,8 +96,7 @@ def write_bundle_dir(folder: Path, scale: float = 1.0, seed: int = 0, n_stage: i
         digest.update(rel.encode() + hashlib.sha256(data).digest())
 
     layer_entries = []
-    for i, layer in enumerate(layers):
-        model, feeds, wl = layer_graph(layer)
+    for i, (layer, (model, feeds, wl)) in enumerate(zip(layers, graphs)):
         rel = f"layers/L{i:03d}-{layer.kind}.onnx"
         put(rel, _zero_weights(model))
         layer_entries.append({"id": f"L{i:03d}", "file": rel,
@@ -105,8 +104,7 @@ def write_bundle_dir(folder: Path, scale: float = 1.0, seed: int = 0, n_stage: i
                               "workload": dataclasses.asdict(wl)})
         if progress:
             progress(i + 1, total)
-    for i, layer in enumerate(quantized):
-        model, feeds, wl = layer_graph(layer)
+    for i, (layer, (model, feeds, wl)) in enumerate(quantized):
         rel = f"layers/Q{i:03d}-{layer.kind}.onnx"
         put(rel, _zero_weights(_int8(model, feeds)))
         layer_entries.append({"id": f"Q{i:03d}", "file": rel, "precision": "int8",

@@ -299,13 +299,16 @@ def fit_results(results: dict, name: str = "host", source: str | None = None) ->
 
 def with_int8(profile: DeviceProfile, measured: list[tuple[Workload, float]],
               measured_int8: list[tuple[Workload, float]]) -> DeviceProfile:
-    """``profile`` with an int8 section fitted on the quantized layer graphs (convolutions; the
-    kinds an int8 graph keeps in float are priced from their fp32 timings), its per-inference and
-    per-stage costs the fp32 ones. Unchanged when too few int8 graphs were measured."""
-    from explorer.cost.bundle import INT8_KINDS
-    if len({w.kind for w, _ in measured_int8}) < len(INT8_KINDS):
+    """``profile`` with an int8 section fitted on the quantized layer graphs (the layers
+    ``explorer export --quantize int8`` quantizes; kinds with none of those take their fp32 timings),
+    its per-inference and per-stage costs the fp32 ones. Unchanged when no quantized pointwise
+    convolution was measured."""
+    from explorer.quantize import workload_quantized
+    measured_int8 = [(w, ms) for w, ms in measured_int8 if workload_quantized(w)]   # bundles before the rule
+    kinds = {w.kind for w, _ in measured_int8}
+    if "pointwise" not in kinds:
         return profile
-    floats = [(w, ms) for w, ms in measured if w.kind not in INT8_KINDS]
+    floats = [(w, ms) for w, ms in measured if w.kind not in kinds]
     fitted = fit_host(measured_int8 + floats, name=profile.name, cond=profile.provenance.get("conditions"))
     layers = errors(fitted, [Observation(w.layer, [w], ms, stages=1) for w, ms in measured_int8])
     int8 = dataclasses.replace(
@@ -314,8 +317,9 @@ def with_int8(profile: DeviceProfile, measured: list[tuple[Workload, float]],
         active_power_w=profile.active_power_w,
         provenance={"fit": [fit_summary(layers, f"{len(measured_int8)} int8 (static QDQ) single-layer graphs "
                                                 "measured here")],
-                    "note": "convolutions quantized as `explorer export --quantize int8` does; resize, add, "
-                            "concat and slice stay float and keep their fp32 prices"})
+                    "note": "the layers `explorer export --quantize int8` quantizes (ungrouped convolutions of "
+                            "32 or more products per output); the rest of an int8 graph stays float and is "
+                            "priced by the fp32 profile"})
     return dataclasses.replace(profile, int8=int8)
 
 

@@ -9,7 +9,9 @@ cost grows with the tensors as on the device. On a GPU-like device compute and m
 active power times time. ``provenance`` records what a profile was fitted on and its error there.
 A profile may also price int8 graphs (statically quantized, as ``explorer export --quantize int8``
 writes them): its ``int8`` section holds their own kinds, bandwidth and overheads (what it leaves
-out is the fp32 one's), fitted by ``explorer calibrate`` on quantized layer graphs.
+out is the fp32 one's), fitted by ``explorer calibrate`` on quantized layer graphs. It prices the
+layers such an export quantizes (``explorer.quantize.quantizes``); the rest of an int8 graph stays
+float and is priced by the fp32 profile.
 
 Built-in profiles live in ``explorer/cost/profiles/*.yaml``; any YAML file with the same fields
 can be passed wherever a device name is accepted (``--device ./mybox.yaml``).
@@ -17,7 +19,7 @@ can be passed wherever a device name is accepted (``--device ./mybox.yaml``).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Iterable, Sequence
 
@@ -26,6 +28,7 @@ import yaml
 
 from explorer.cost.workloads import ALL_KINDS, BYTES_PER_VALUE, KINDS, OPTIONAL_KINDS, Workload
 from explorer.errors import UserError
+from explorer.quantize import workload_quantized
 
 PROFILES_DIR = Path(__file__).resolve().parent / "profiles"
 
@@ -59,11 +62,15 @@ class DeviceProfile:
     provenance: dict[str, Any] = field(default_factory=dict)
     source: str = ""
     int8: "DeviceProfile | None" = None     # the same device running int8 graphs, where measured
+    # set on an ``int8`` section: the fp32 profile, which prices the layers an int8 export leaves float
+    float_layers: "DeviceProfile | None" = field(default=None, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         missing = {k: self.kinds[f] for k, f in OPTIONAL_KINDS.items() if k not in self.kinds and f in self.kinds}
         if missing:  # an optional kind the profile does not price costs what its fallback costs
             object.__setattr__(self, "kinds", {**self.kinds, **missing})
+        if self.int8 is not None and self.int8.float_layers is not self:
+            object.__setattr__(self, "int8", replace(self.int8, float_layers=self))
 
     # -- precision -----------------------------------------------------------------------------
     @property
@@ -83,6 +90,8 @@ class DeviceProfile:
 
     # -- prediction ----------------------------------------------------------------------------
     def layer_ms(self, w: Workload) -> float:
+        if self.float_layers is not None and not workload_quantized(w):
+            return self.float_layers.layer_ms(w)
         k = self.kinds[w.kind]
         compute = w.macs / (k.gmacs * 1e6) if w.macs else 0.0
         moved = w.bytes_read + w.bytes_written
