@@ -1,7 +1,7 @@
 """Device cost models: the shipped fits against their calibration figures, then the host:
-calibrate with onnxruntime (stage graphs at 224x224, 224x320, 192x640), predict random default-space
-candidates that were not in the sweep at those three sizes, 3 repetitions,
-and compare with measurement.
+3 repetitions of: calibrate with onnxruntime (stage graphs at 224x224, 224x320, 192x640), predict
+random default-space candidates that were not in the sweep at those three sizes, and compare with
+measurement.
 
     .venv/bin/python benchmarks/bench_devices.py [--candidates 8] [--scale 1] [--skip-host] [--data ../shared/data]
 """
@@ -52,22 +52,36 @@ def shipped(data: Path) -> None:
 HOST_SIZES = ((224, 224), (224, 320), (192, 640))
 
 
+def _sentinel() -> "callable":
+    """Times one fixed graph (the paper design at 224x224, whole): the machine's speed at that moment."""
+    from explorer.cost.measure import session, time_call
+    from explorer.model import build_network
+    from explorer.onnx_stages import example_inputs, export_whole
+    sess = session(export_whole(build_network(paper_candidate()), (224, 224)))
+    feeds = {k: v.numpy() for k, v in example_inputs((224, 224)).items()}
+    return lambda: time_call(lambda: sess.run(None, feeds), 3, 30)
+
+
 def host(n: int, seed: int, scale: float, reps: int = 3) -> None:
-    """Calibrate once (stage graphs at every size of ``STAGE_SIZES``), then measure ``n`` held-out
-    candidates at each of ``HOST_SIZES`` ``reps`` times, interleaved, and report the median
-    per-path error of each size in each repetition."""
+    """Each repetition is what a user does: calibrate (stage graphs at every size of ``STAGE_SIZES``),
+    then measure ``n`` held-out candidates at each of ``HOST_SIZES`` at once, and report the median
+    per-path error of each size. A fixed graph timed before and after each step shows whether the
+    machine itself changed speed in between (a shared machine does, by up to 30% here)."""
     cands = SearchSpace.from_yaml("anytime_depth").random_candidates(n, seed + 1)
-    t0 = time.perf_counter()
-    prof = calibrate(seed=seed, scale=scale, exclude={c.key for c in cands})  # held out: never in the sweep
-    print(f"\nhost calibration (scale {scale}): {time.perf_counter() - t0:.0f} s; "
-          f"{prof.provenance['conditions']['threads']} threads, onnxruntime {prof.provenance['conditions']['onnxruntime']}")
-    for fit in prof.provenance["fit"]:
-        print(f"  fit on {fit['what']}: median |error| {fit['median_abs_error']:.1%}")
-    print(f"  body exponent {prof.body_exponent:g}, compute and memory {'overlap' if prof.overlap else 'add'}")
     peak = host_peak()
-    print(f"  this machine's peak: {peak.describe()}")
+    print(f"\nthis machine's peak: {peak.describe()}")
+    sentinel = _sentinel()
     medians: dict = {size: [] for size in HOST_SIZES}
     for rep in range(1, reps + 1):
+        speed = [sentinel()]
+        t0 = time.perf_counter()
+        prof = calibrate(seed=seed + rep - 1, scale=scale, exclude={c.key for c in cands})  # held out: never in the sweep
+        speed.append(sentinel())
+        print(f"rep {rep}: host calibration (scale {scale}, seed {seed + rep - 1}): {time.perf_counter() - t0:.0f} s; "
+              f"{prof.provenance['conditions']['threads']} threads, onnxruntime {prof.provenance['conditions']['onnxruntime']}; "
+              f"body exponent {prof.body_exponent:g}, compute and memory {'overlap' if prof.overlap else 'add'}")
+        for fit in prof.provenance["fit"]:
+            print(f"  fit on {fit['what']}: median |error| {fit['median_abs_error']:.1%}")
         for size in HOST_SIZES:
             errs, fractions = [], []
             for c in cands:
@@ -81,6 +95,10 @@ def host(n: int, seed: int, scale: float, reps: int = 3) -> None:
             print(f"  rep {rep} {size[0]}x{size[1]}: {n} held-out candidates, {len(a)} paths, median |error| "
                   f"{np.median(a):.1%}, within 10%: {(a <= 0.1).mean():.0%}, median signed {np.median(errs):+.1%}; "
                   f"whole graphs at {' '.join(f'{f:.0%}' for f in fractions)} of fp32 peak")
+        speed.append(sentinel())
+        print(f"  machine speed (paper design whole graph at 224x224): {speed[0]:.2f} ms before calibrating, "
+              f"{speed[1]:.2f} after, {speed[2]:.2f} after the held-out measurement "
+              f"({max(speed) / min(speed) - 1:+.0%} between the slowest and fastest)")
     for size, ms in medians.items():
         print(f"host {size[0]}x{size[1]}: median per-path |error| over {reps} repetitions "
               f"{' '.join(f'{x:.1%}' for x in ms)} -> median {np.median(ms):.1%} (target <= 5%)")

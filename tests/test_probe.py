@@ -149,13 +149,17 @@ def test_interrupted_probe_resumes_without_measuring_again(bundle_dir, tmp_path,
     monkeypatch.setattr(probe, "time_call", lambda *a, **k: calls.append(1) or real(*a, **k))
     res = probe.run_probe(bundle_dir, out, repeats=2, energy=True, root=str(tmp_path), vcgencmd="none")
     total = len(res["bundle"]["layers"]) + sum(len(c["graphs"]) for c in res["bundle"]["candidates"])
-    assert len(calls) == total - 5
+    checks = len(res["speed"]["ms"]) - len(kept["speed"]["ms"])   # the machine's speed, re-timed as it went
+    assert len(calls) == total - 5 + checks and checks == 1 + (total - 6) // probe.SPEED_CHECK_EVERY + 1
+    assert res["speed"]["layer"] == probe.speed_layer(res["bundle"]["layers"])["id"]
+    assert res["speed"]["remeasured"] == 0 or probe.speed_drift(res) > probe.SLOW
     assert all(res["layers"][k] == v for k, v in kept["layers"].items())
     assert res["energy"]["sensor"] is None and "no readable power sensor" in res["energy"]["note"]
     calls.clear()
     probe.run_probe(bundle_dir, out, repeats=2, energy=False)    # finished: nothing measured again
     assert calls == []
     prof = fit_results(res, name="box")
+    assert prof.provenance["conditions"]["speed_drift"] == pytest.approx(probe.speed_drift(res), abs=1e-3)
     assert prof.latency_basis == "measured" and prof.energy_basis == "none"
     assert prof.provenance["provider"] == "CPUExecutionProvider" and prof.active_power_w == 0.0
     int8 = [layer for layer in res["bundle"]["layers"] if layer.get("precision") == "int8"]
@@ -167,6 +171,41 @@ def test_interrupted_probe_resumes_without_measuring_again(bundle_dir, tmp_path,
     # the quantized convolutions give the profile its int8 section; the rest of it is the fp32 one's
     assert prof.precisions == ("fp32", "int8") and prof.int8.provenance["fit"][0]["count"] == len(int8)
     assert prof.int8.stage_overhead_ms == prof.stage_overhead_ms
+
+
+def test_graphs_timed_while_the_machine_ran_slow_are_timed_again(bundle_dir, tmp_path, monkeypatch, run_cli):
+    """The probe re-times one fixed graph every SPEED_CHECK_EVERY graphs; the graphs between two
+    checks of which one ran slow are timed again, and the profile says so."""
+    checks = iter([1.0, 1.0, 3.0] + [1.0] * 1000)   # the third check: another load had slowed it down
+    timed = []
+
+    def fake_time_call(fn, warmup, repeats):
+        if repeats == probe.SPEED_CHECK_REPEATS:
+            return next(checks)
+        timed.append(1)
+        return 2.0
+
+    monkeypatch.setattr(probe, "time_call", fake_time_call)
+    logged = []
+    res = probe.run_probe(bundle_dir, tmp_path / "r.json", repeats=2, energy=False, log=logged.append)
+    total = len(res["bundle"]["layers"]) + sum(len(c["graphs"]) for c in res["bundle"]["candidates"])
+    every = probe.SPEED_CHECK_EVERY
+    assert total > 3 * every
+    # the windows on both sides of the slow check: graphs 13-24 and 25-36, timed twice
+    assert res["speed"]["remeasured"] == 2 * every and len(timed) == total + 2 * every
+    assert probe.speed_drift(res) == pytest.approx(2.0)
+    assert any("timing those again" in line for line in logged) and any("changed by 200%" in line for line in logged)
+    assert probe.slow_windows([1.0, 1.0, 1.05, 1.2, 1.0], 1.0) == [2, 3]
+    out = tmp_path / "r.json"
+    code, stdout, err = run_cli("calibrate", "--fit", out, "--out", tmp_path / "box.yaml")
+    assert code == 0, err
+    assert "varied by 200%" in stdout and f"{2 * every} graphs timed while it ran slow were timed again" in stdout
+    cond = yaml.safe_load((tmp_path / "box.yaml").read_text())["provenance"]["conditions"]
+    assert cond["speed_drift"] == 2.0 and cond["speed_remeasured"] == 2 * every
+    res["speed"] = {"layer": res["speed"]["layer"], "ms": [1.0, 1.05], "remeasured": 0}
+    out.write_text(json.dumps(res))
+    code, stdout, _ = run_cli("calibrate", "--fit", out, "--out", tmp_path / "box.yaml", "--force")
+    assert code == 0 and "varied by 5%" in stdout and "timed again" not in stdout and "calibrate again" not in stdout
 
 
 def test_bundle_int8_graphs_are_quantized_convolutions(bundle_dir):

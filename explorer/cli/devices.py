@@ -40,6 +40,7 @@ def cmd_devices(args) -> None:
 def cmd_calibrate(args) -> None:
     from explorer._console import console, progress
     from explorer.cost.calibrate import calibrate, fit_results, read_results
+    from explorer.cost.probe_script import SPEED_CHECK_EVERY, SPEED_DRIFT_WARN
     if args.bundle and args.fit:
         raise UserError("--bundle writes graphs for a device, --fit reads what the probe measured there: give one")
     if args.bundle:
@@ -84,6 +85,14 @@ def cmd_calibrate(args) -> None:
                       f"{fit['within_10pct']:.0%} within 10%")
     if prof.int8 is None:
         console.print("  int8: not priced (the measurements hold no int8 layer graphs)")
+    cond = prof.provenance.get("conditions") or {}
+    if cond.get("speed_drift") is not None:
+        drift, again = cond["speed_drift"], cond.get("speed_remeasured", 0)
+        console.print(f"  machine speed while measuring: varied by {drift:.0%} (a fixed layer graph timed every "
+                      f"{SPEED_CHECK_EVERY} graphs)" + (f"; {again} graphs timed while it ran slow were timed again"
+                                                        if again else "")
+                      + (f". Above {SPEED_DRIFT_WARN:.0%}: if the profile disagrees with later measurements, "
+                         "calibrate again when the machine is idle" if drift > SPEED_DRIFT_WARN else ""))
     console.print(f"  energy: {prof.provenance['energy_note']}")
 
 

@@ -288,6 +288,12 @@ def fit_results(results: dict, name: str = "host", source: str | None = None) ->
             "repeats": c["repeats"], "warmup": c["warmup"], "statistic": c["statistic"],
             "machine": dev["machine"], "processor": dev["cpu"], "cores": dev["cores"],
             **({"board": dev["board"]} if dev.get("board") else {}), "bundle": bundle["id"]}
+    drift = _probe.speed_drift(results)
+    if drift is not None:   # how much the machine's own speed changed while it was measured
+        cond["speed_drift"] = round(drift, 3)
+    remeasured = (results.get("speed") or {}).get("remeasured")
+    if remeasured:   # graphs timed while it ran slow, and timed again
+        cond["speed_remeasured"] = remeasured
     where = dev.get("board") or dev.get("host") or "a device"
     description = f"{where}: {dev['cpu']}, onnxruntime {dev['onnxruntime']} {c['provider']}, {c['threads']} threads"
     profile = fit_host(measured, name=name, description=description, cond=cond, stage_obs=stage_obs,

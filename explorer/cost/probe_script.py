@@ -501,6 +501,39 @@ def schedule(layers: list[dict], cands: list[dict]) -> list[tuple[str, dict]]:
     return order
 
 
+#: The probe times one fixed layer graph first, again after every this many graphs, and last: how
+#: much the machine's own speed changed while it measured (another load, throttling), and when.
+SPEED_CHECK_EVERY = 12
+SPEED_CHECK_REPEATS = 9
+#: Graphs timed between two speed checks of which one ran this much slower than the median check
+#: are timed again (at most ``REMEASURE_PASSES`` times): a load that came and went leaves no mark.
+SLOW = 0.10
+REMEASURE_PASSES = 2
+#: A change of speed above this fraction while measuring is reported.
+SPEED_DRIFT_WARN = 0.10
+
+
+def speed_layer(layers: list[dict]) -> "dict | None":
+    """The layer graph the probe re-times to follow the machine's speed: the largest float pointwise
+    convolution (every thread busy for long enough that a competing load shows)."""
+    pointwise = [layer for layer in layers if layer.get("precision", "fp32") == "fp32"
+                 and layer["workload"]["kind"] == "pointwise"]
+    return max(pointwise, key=lambda layer: layer["workload"]["macs"]) if pointwise else None
+
+
+def speed_drift(results: dict) -> "float | None":
+    """(slowest / fastest) - 1 of the probe's speed checks, None with fewer than two."""
+    ms = (results.get("speed") or {}).get("ms") or []
+    return max(ms) / min(ms) - 1.0 if len(ms) >= 2 and min(ms) > 0 else None
+
+
+def slow_windows(checks: list[float], usual: float) -> list[int]:
+    """Indices j of the windows between check j and check j + 1 (the graphs timed in between) that
+    either check shows the machine ``SLOW`` or more slower than ``usual``."""
+    slow = [ms > usual * (1 + SLOW) for ms in checks]
+    return [j for j in range(len(checks) - 1) if slow[j] or slow[j + 1]]
+
+
 def run_probe(bundle_dir: "str | Path", out: "str | Path", provider: str = DEFAULT_PROVIDER,
               threads: int | None = None, repeats: int | None = None, energy: bool = True,
               root: str = "/", vcgencmd: str = "vcgencmd", idle_s: float = 2.0, window_s: float = 1.0,
@@ -544,31 +577,74 @@ def run_probe(bundle_dir: "str | Path", out: "str | Path", provider: str = DEFAU
             progress(done, total, what)
 
     rng = np.random.default_rng(0)
-    for kind, item in schedule(layers, cands):
-        if kind == "layer":
-            if item["id"] not in res["layers"]:
-                sess = session(bundle_dir / item["file"], threads, provider)
-                feeds = _random_feeds(item["inputs"], rng)
-                res["layers"][item["id"]] = time_call(lambda: sess.run(None, feeds), WARMUP, repeats)
-                write_atomically(out, res)
-            tick("layers")
-            continue
-        kept = res["stages"].setdefault(item["key"], {})
-        if all(g["stage"] in kept for g in item["graphs"]):
-            for _ in item["graphs"]:
+    reference = speed_layer(layers)
+    speed = res.setdefault("speed", {"layer": reference["id"] if reference else None, "ms": [], "remeasured": 0})
+    windows: list[list[tuple[str, str | None]]] = []   # this pass: graphs timed after each speed check
+
+    def check_speed() -> None:
+        if reference is not None:
+            sess = session(bundle_dir / reference["file"], threads, provider)
+            feeds = _random_feeds(reference["inputs"], np.random.default_rng(0))
+            speed["ms"].append(time_call(lambda: sess.run(None, feeds), WARMUP, SPEED_CHECK_REPEATS))
+        windows.append([])
+
+    def measure(sess, feeds, key: tuple[str, str | None]) -> float:
+        if not windows or len(windows[-1]) >= SPEED_CHECK_EVERY:
+            check_speed()
+        windows[-1].append(key)
+        return time_call(lambda: sess.run(None, feeds), WARMUP, repeats)
+
+    for attempt in range(REMEASURE_PASSES + 1):
+        windows.clear()
+        first_check = len(speed["ms"])
+        for kind, item in schedule(layers, cands):
+            if kind == "layer":
+                if item["id"] not in res["layers"]:
+                    sess = session(bundle_dir / item["file"], threads, provider)
+                    res["layers"][item["id"]] = measure(sess, _random_feeds(item["inputs"], rng), (item["id"], None))
+                    write_atomically(out, res)
+                tick("layers")
+                continue
+            kept = res["stages"].setdefault(item["key"], {})
+            if all(g["stage"] in kept for g in item["graphs"]):
+                for _ in item["graphs"]:
+                    tick("stages")
+                continue
+            env = _candidate_inputs(manifest, rng, item)
+            for g in item["graphs"]:
+                sess = session(bundle_dir / g["file"], threads, provider)
+                names = [i.name for i in sess.get_inputs()]
+                feeds = {n: env[n] for n in names}
+                outs = sess.run(None, feeds)   # what later stages read (also when this one was kept)
+                if g["stage"] not in kept:
+                    kept[g["stage"]] = measure(sess, feeds, (item["key"], g["stage"]))
+                    write_atomically(out, res)
+                env.update({o.name: v for o, v in zip(sess.get_outputs(), outs)})
                 tick("stages")
-            continue
-        env = _candidate_inputs(manifest, rng, item)
-        for g in item["graphs"]:
-            sess = session(bundle_dir / g["file"], threads, provider)
-            names = [i.name for i in sess.get_inputs()]
-            feeds = {n: env[n] for n in names}
-            outs = sess.run(None, feeds)   # what later stages read (also when this one was kept)
-            if g["stage"] not in kept:
-                kept[g["stage"]] = time_call(lambda: sess.run(None, feeds), WARMUP, repeats)
-                write_atomically(out, res)
-            env.update({o.name: v for o, v in zip(sess.get_outputs(), outs)})
-            tick("stages")
+        if not windows:
+            break
+        check_speed()   # closes the last window
+        if reference is None or attempt == REMEASURE_PASSES:
+            break
+        again = [key for j in slow_windows(speed["ms"][first_check:], float(np.median(speed["ms"])))
+                 for key in windows[j]]
+        if not again:
+            break
+        log(f"the machine ran slower for a while ({len(again)} graphs timed then): timing those again")
+        for key, stage in again:
+            if stage is None:
+                res["layers"].pop(key, None)
+            else:
+                res["stages"].get(key, {}).pop(stage, None)
+        speed["remeasured"] = speed.get("remeasured", 0) + len(again)
+        done -= len(layers) + sum(len(c["graphs"]) for c in cands)   # the progress bar goes round again
+    write_atomically(out, res)
+    drift = speed_drift(res)
+    if drift is not None and drift > SPEED_DRIFT_WARN:
+        log(f"note: this machine's speed changed by {drift:.0%} while it was measured (a fixed layer graph "
+            f"took {min(speed['ms']):.3g}-{max(speed['ms']):.3g} ms); {speed.get('remeasured', 0)} graphs timed "
+            "while it ran slow were timed again. Another load or throttling? If the profile disagrees with "
+            "later measurements, measure again when the machine is idle")
     if energy:
         _probe_energy(res, manifest, bundle_dir, out, provider, threads, root, vcgencmd, idle_s, window_s,
                       progress, log)
