@@ -9,7 +9,9 @@ profile fitted from a probe run and one calibrated directly share one measuremen
     explorer calibrate --fit results.json --out myboard.yaml   # anywhere
 
 Results are written atomically after every graph: an interrupted probe, run again with the same
-``--out``, keeps what it had measured and measures only the rest.
+``--out``, keeps what it had measured and measures only the rest. One fixed layer graph is re-timed
+every ``SPEED_CHECK_EVERY`` graphs; the graphs timed while it shows the machine running slow (another
+load, throttling) are timed again, and the change of speed is kept in the results.
 """
 
 from __future__ import annotations
