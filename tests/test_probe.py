@@ -196,6 +196,8 @@ def test_graphs_timed_while_the_machine_ran_slow_are_timed_again(bundle_dir, tmp
     assert probe.speed_drift(res) == pytest.approx(2.0)
     assert any("timing those again" in line for line in logged) and any("changed by 200%" in line for line in logged)
     assert probe.slow_windows([1.0, 1.0, 1.05, 1.2, 1.0], 1.0) == [2, 3]
+    # a machine slowed for most of the run: its usual speed is still the undisturbed one
+    assert probe.usual_speed([1.0, 1.02, 1.4, 1.4, 1.4, 1.4, 1.41, 1.0]) == pytest.approx(1.015)
     out = tmp_path / "r.json"
     code, stdout, err = run_cli("calibrate", "--fit", out, "--out", tmp_path / "box.yaml")
     assert code == 0, err

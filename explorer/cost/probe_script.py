@@ -507,10 +507,13 @@ def schedule(layers: list[dict], cands: list[dict]) -> list[tuple[str, dict]]:
 #: much the machine's own speed changed while it measured (another load, throttling), and when.
 SPEED_CHECK_EVERY = 12
 SPEED_CHECK_REPEATS = 9
-#: Graphs timed between two speed checks of which one ran this much slower than the median check
-#: are timed again (at most ``REMEASURE_PASSES`` times): a load that came and went leaves no mark.
+#: Graphs timed between two speed checks of which one ran this much slower than the machine's usual
+#: speed (the first quartile of all checks: a shared machine is slowed more often than sped up) are
+#: timed again (at most ``REMEASURE_PASSES`` times), once a check shows it back to its usual speed
+#: (waiting up to ``CALM_WAIT_S``): a load that came and went leaves no mark.
 SLOW = 0.10
 REMEASURE_PASSES = 2
+CALM_WAIT_S = 60.0
 #: A change of speed above this fraction while measuring is reported.
 SPEED_DRIFT_WARN = 0.10
 
@@ -527,6 +530,11 @@ def speed_drift(results: dict) -> "float | None":
     """(slowest / fastest) - 1 of the probe's speed checks, None with fewer than two."""
     ms = (results.get("speed") or {}).get("ms") or []
     return max(ms) / min(ms) - 1.0 if len(ms) >= 2 and min(ms) > 0 else None
+
+
+def usual_speed(checks: list[float]) -> float:
+    """The time the speed check takes on this machine undisturbed: the first quartile of the checks."""
+    return float(np.percentile(checks, 25))
 
 
 def slow_windows(checks: list[float], usual: float) -> list[int]:
@@ -628,11 +636,15 @@ def run_probe(bundle_dir: "str | Path", out: "str | Path", provider: str = DEFAU
         check_speed()   # closes the last window
         if reference is None or attempt == REMEASURE_PASSES:
             break
-        again = [key for j in slow_windows(speed["ms"][first_check:], float(np.median(speed["ms"])))
-                 for key in windows[j]]
+        usual = usual_speed(speed["ms"])
+        again = [key for j in slow_windows(speed["ms"][first_check:], usual) for key in windows[j]]
         if not again:
             break
         log(f"the machine ran slower for a while ({len(again)} graphs timed then): timing those again")
+        calm_by = time.monotonic() + CALM_WAIT_S
+        while speed["ms"][-1] > usual * (1 + SLOW) and time.monotonic() < calm_by:
+            time.sleep(1.0)   # still slow: give the other load time to finish
+            check_speed()
         for key, stage in again:
             if stage is None:
                 res["layers"].pop(key, None)
