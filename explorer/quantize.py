@@ -45,7 +45,7 @@ def quantizes(kind: str, in_channels: int, kernel_area: int) -> bool:
 
 def workload_quantized(w) -> bool:
     """``quantizes`` for a cost-model ``Workload``. One whose shape is unknown (stored by a study
-    before this rule) counts as quantized when its kind may be, as exports then quantized it."""
+    before this rule) counts as quantized when its kind may be: every convolution but a depthwise one."""
     if not w.in_shape:
         return w.kind in QUANTIZABLE_KINDS
     return quantizes(w.kind, w.in_shape[0] if w.in_shape else 0,   # (channels, height, width)

@@ -73,8 +73,8 @@ def write_bundle_dir(folder: Path, scale: float = 1.0, seed: int = 0, n_stage: i
                      progress: Callable[[int, int], None] | None = None, int8: bool = True) -> dict:
     """Exports the layer sweep (``scale`` x the default counts) and the stage graphs of ``n_stage``
     candidates (default ``STAGE_CANDIDATES`` x ``scale``) into ``folder``; returns the manifest. ``int8``: every
-    convolution of the sweep that ``explorer export --quantize int8`` would quantize also goes in quantized (entries with ``precision: int8``), so that the
-    fit prices int8 graphs too."""
+    convolution of the sweep that ``explorer export --quantize int8`` quantizes also goes in quantized
+    (entries with ``precision: int8``), so that the fit prices int8 graphs too."""
     from explorer import __version__
     from explorer.model import build_network
     from explorer.onnx_stages import export_stages
