@@ -18,7 +18,7 @@ from explorer.cost.fit import (PAPER_RPI4_TABLE2, PAPER_TX2_PATHS_MS, TX2_REFERE
                                kernel_workloads, rpi4_table2)
 from explorer.cost.measure import measure_candidate
 from explorer.cost.peak import host_peak
-from explorer.cost.probe_script import CALM_WAIT_S, REMEASURE_PASSES, SLOW, usual_speed
+from explorer.cost.probe_script import REMEASURE_PASSES, SLOW, usual_speed, wait_until_calm
 from explorer.model.reference import REFERENCES
 from explorer.space import SearchSpace, paper_candidate
 
@@ -75,9 +75,7 @@ def _measure_steadily(c, size, sentinel, checks: list[float]):
         usual = usual_speed(checks)
         if max(before, after) <= usual * (1 + SLOW) or again == REMEASURE_PASSES:
             return m, again
-        calm_by = time.monotonic() + CALM_WAIT_S
-        while sentinel() > usual * (1 + SLOW) and time.monotonic() < calm_by:
-            time.sleep(1.0)
+        wait_until_calm(after, sentinel, usual)
 
 
 def host(n: int, seed: int, scale: float, reps: int = 3) -> None:

@@ -26,12 +26,12 @@ from explorer.errors import UserError
 
 QUANTIZED_OPS = ["Conv", "ConvTranspose", "MatMul", "Gemm"]
 #: An int8 convolution is quantized only when each output sums at least this many products (its
-#: in-channels x kernel area): below it, onnxruntime's int8 kernel plus the quantize / dequantize
-#: around it took longer than the float layer (the 3-channel stem: 0.57 against 0.40 ms; a
-#: 16 -> 8 exit head at 224x224: 0.57 against 0.24 ms), above it about half as long.
+#: in-channels x kernel area): below it, onnxruntime's int8 kernel with the quantize / dequantize
+#: around it took longer than the float layer (the 27-product stem 1.9x, a 16 -> 8 exit head at
+#: 224x224 1.45x), from 64 products on 0.57-0.86x (benchmarks/bench_int8_layers.py, this AVX2 machine).
 MIN_INT8_REDUCTION = 32
 #: Workload kinds an int8 export may quantize: depthwise convolutions never are (onnxruntime's int8
-#: depthwise kernels were slower than its float ones: 0.74 against 0.37 ms for a 5x5 at 112x112).
+#: depthwise kernels took 1.1-1.7x as long as its float ones, same benchmark).
 QUANTIZABLE_KINDS = ("pointwise", "pointwise_1ch", "conv", "conv1d", "deconv")
 
 
@@ -48,8 +48,7 @@ def workload_quantized(w) -> bool:
     before this rule) counts as quantized when its kind may be: every convolution but a depthwise one."""
     if not w.in_shape:
         return w.kind in QUANTIZABLE_KINDS
-    return quantizes(w.kind, w.in_shape[0] if w.in_shape else 0,   # (channels, height, width)
-                     w.kernel if w.kind == "conv1d" else w.kernel * w.kernel)
+    return quantizes(w.kind, w.in_shape[0], w.kernel if w.kind == "conv1d" else w.kernel * w.kernel)
 
 
 def _float_convolutions(model) -> list[str]:
@@ -60,10 +59,13 @@ def _float_convolutions(model) -> list[str]:
         if n.op_type != "Conv":
             continue
         group = next((a.i for a in n.attribute if a.name == "group"), 1)
-        dims = weights.get(n.input[1]) if len(n.input) > 1 else None
-        if group != 1 or dims is None or len(dims) < 3 or int(np.prod(dims[1:])) < MIN_INT8_REDUCTION:
+        dims = weights.get(n.input[1]) if len(n.input) > 1 else None   # (out, in / group, *kernel)
+        if dims is None or len(dims) < 3 or not quantizes("conv" if group == 1 else "depthwise", dims[1],
+                                                          int(np.prod(dims[2:]))):
             keep.append(n.name)
     return keep
+
+
 #: a path may lose at most this fraction of its RMSE to quantization unless --force
 MAX_DEGRADATION = 0.03
 

@@ -537,6 +537,16 @@ def usual_speed(checks: list[float]) -> float:
     return float(np.percentile(checks, 25))
 
 
+def wait_until_calm(latest: float, time_again: Callable[[], float], usual: float) -> float:
+    """While the fixed graph's ``latest`` time is ``SLOW`` or more above ``usual``, waits a second and
+    times it again (``time_again``), for at most ``CALM_WAIT_S``; returns its last time."""
+    calm_by = time.monotonic() + CALM_WAIT_S
+    while latest > usual * (1 + SLOW) and time.monotonic() < calm_by:
+        time.sleep(1.0)   # still slow: give the other load time to finish
+        latest = time_again()
+    return latest
+
+
 def slow_windows(checks: list[float], usual: float) -> list[int]:
     """Indices j of the windows between check j and check j + 1 (the graphs timed in between) that
     either check shows the machine ``SLOW`` or more slower than ``usual``."""
@@ -591,12 +601,15 @@ def run_probe(bundle_dir: "str | Path", out: "str | Path", provider: str = DEFAU
     speed = res.setdefault("speed", {"layer": reference["id"] if reference else None, "ms": [], "remeasured": 0})
     windows: list[list[tuple[str, str | None]]] = []   # this pass: graphs timed after each speed check
 
-    def check_speed() -> None:
-        if reference is not None:
-            sess = session(bundle_dir / reference["file"], threads, provider)
-            feeds = _random_feeds(reference["inputs"], np.random.default_rng(0))
-            speed["ms"].append(time_call(lambda: sess.run(None, feeds), WARMUP, SPEED_CHECK_REPEATS))
+    def check_speed() -> float:
+        """Times the fixed graph (and opens a new window of graphs); returns its time."""
         windows.append([])
+        if reference is None:
+            return 0.0
+        sess = session(bundle_dir / reference["file"], threads, provider)
+        feeds = _random_feeds(reference["inputs"], np.random.default_rng(0))
+        speed["ms"].append(time_call(lambda: sess.run(None, feeds), WARMUP, SPEED_CHECK_REPEATS))
+        return speed["ms"][-1]
 
     def measure(sess, feeds, key: tuple[str, str | None]) -> float:
         if not windows or len(windows[-1]) >= SPEED_CHECK_EVERY:
@@ -641,10 +654,7 @@ def run_probe(bundle_dir: "str | Path", out: "str | Path", provider: str = DEFAU
         if not again:
             break
         log(f"the machine ran slower for a while ({len(again)} graphs timed then): timing those again")
-        calm_by = time.monotonic() + CALM_WAIT_S
-        while speed["ms"][-1] > usual * (1 + SLOW) and time.monotonic() < calm_by:
-            time.sleep(1.0)   # still slow: give the other load time to finish
-            check_speed()
+        wait_until_calm(speed["ms"][-1], check_speed, usual)
         for key, stage in again:
             if stage is None:
                 res["layers"].pop(key, None)
