@@ -4,9 +4,12 @@ random default-space candidates that were not in the sweep at those three sizes,
 measurement.
 
     .venv/bin/python benchmarks/bench_devices.py [--candidates 8] [--scale 1] [--skip-host] [--data ../shared/data]
+        [--save DIR]     # also keep each repetition's probe results and held-out timings in DIR
+    .venv/bin/python benchmarks/bench_devices.py --refit DIR   # the fit again on those, no measuring
 """
 
 import argparse
+import json
 import time
 from pathlib import Path
 
@@ -78,7 +81,41 @@ def _measure_steadily(c, size, sentinel, checks: list[float]):
         wait_until_calm(after, sentinel, usual)
 
 
-def host(n: int, seed: int, scale: float, reps: int = 3) -> None:
+def _size_errors(prof, cands, size, timings: dict) -> list[float]:
+    """Signed per-path errors of ``prof`` against held-out timings {candidate key: path ms}."""
+    errs = []
+    for c in cands:
+        pred = candidate_cost(c, size).path_latency_ms(prof)
+        errs += [p / q - 1 for p, q in zip(pred[1:], timings[c.key][1:])]
+    return errs
+
+
+def refit(folder: Path) -> None:
+    """Fits each saved repetition's probe results again (the code as it is now) and compares with the
+    held-out timings saved beside them: a change to the fit judged on the very same measurements."""
+    from explorer.cost.calibrate import fit_results
+    from explorer.cost.probe_script import read_results
+    from explorer.space import Candidate
+    medians: dict = {}
+    for rep_file in sorted(folder.glob("rep*-heldout.json")):
+        held = json.loads(rep_file.read_text())
+        prof = fit_results(read_results(folder / rep_file.name.replace("-heldout", "-results")))
+        cands = [Candidate.from_dict(d) for d in held["candidates"]]
+        print(f"{rep_file.stem}: body exponent {prof.body_exponent:g}, "
+              f"{'overlap' if prof.overlap else 'add'}; fit " + "; ".join(
+                  f"{f['what']}: {f['median_abs_error']:.1%}" for f in prof.provenance["fit"]))
+        for size_key, timings in held["timings"].items():
+            size = tuple(int(x) for x in size_key.split("x"))
+            errs = _size_errors(prof, cands, size, timings)
+            a = np.abs(errs)
+            medians.setdefault(size_key, []).append(float(np.median(a)))
+            print(f"  {size_key}: median |error| {np.median(a):.1%}, median signed {np.median(errs):+.1%}, "
+                  f"within 10%: {(a <= 0.1).mean():.0%}")
+    for size_key, ms in medians.items():
+        print(f"refit {size_key}: {' '.join(f'{x:.1%}' for x in ms)} -> median {np.median(ms):.1%}")
+
+
+def host(n: int, seed: int, scale: float, reps: int = 3, save: Path | None = None) -> None:
     """Each repetition is what a user does: calibrate (stage graphs at every size of ``STAGE_SIZES``),
     then measure ``n`` held-out candidates at each of ``HOST_SIZES`` at once, and report the median
     per-path error of each size. A fixed graph timed before and after each step shows whether the
@@ -93,7 +130,9 @@ def host(n: int, seed: int, scale: float, reps: int = 3) -> None:
     for rep in range(1, reps + 1):
         speed = [sentinel()]
         t0 = time.perf_counter()
-        prof = calibrate(seed=seed + rep - 1, scale=scale, exclude={c.key for c in cands})  # held out: never in the sweep
+        prof = calibrate(seed=seed + rep - 1, scale=scale, exclude={c.key for c in cands},   # held out: never in the sweep
+                         results_out=save / f"rep{rep}-results.json" if save else None)
+        held = {"candidates": [c.to_dict() for c in cands], "timings": {}}
         speed.append(sentinel())
         print(f"rep {rep}: host calibration (scale {scale}, seed {seed + rep - 1}): {time.perf_counter() - t0:.0f} s; "
               f"{prof.provenance['conditions']['threads']} threads, onnxruntime {prof.provenance['conditions']['onnxruntime']}; "
@@ -103,20 +142,22 @@ def host(n: int, seed: int, scale: float, reps: int = 3) -> None:
         for fit in prof.provenance["fit"]:
             print(f"  fit on {fit['what']}: median |error| {fit['median_abs_error']:.1%}")
         for size in HOST_SIZES:
-            errs, fractions, timed_again = [], [], 0
+            fractions, timed_again, timings = [], 0, {}
             for c in cands:
                 m, again = _measure_steadily(c, size, sentinel, checks)
                 timed_again += again
-                cost = candidate_cost(c, size)
-                pred = cost.path_latency_ms(prof)
-                errs += [p / q - 1 for p, q in zip(pred[1:], m.path_ms[1:])]
-                fractions.append(peak.fraction(cost.path_params_macs()[-1][1], m.whole_ms))
+                timings[c.key] = m.path_ms
+                fractions.append(peak.fraction(candidate_cost(c, size).path_params_macs()[-1][1], m.whole_ms))
+            held["timings"][f"{size[0]}x{size[1]}"] = timings
+            errs = _size_errors(prof, cands, size, timings)
             a = np.abs(errs)
             medians[size].append(float(np.median(a)))
             print(f"  rep {rep} {size[0]}x{size[1]}: {n} held-out candidates, {len(a)} paths, median |error| "
                   f"{np.median(a):.1%}, within 10%: {(a <= 0.1).mean():.0%}, median signed {np.median(errs):+.1%}; "
                   f"whole graphs at {' '.join(f'{f:.0%}' for f in fractions)} of fp32 peak; "
                   f"{timed_again} timed again after the machine ran slow")
+        if save:
+            (save / f"rep{rep}-heldout.json").write_text(json.dumps(held))
         speed.append(sentinel())
         print(f"  machine speed (paper design whole graph at 224x224): {speed[0]:.2f} ms before calibrating, "
               f"{speed[1]:.2f} after, {speed[2]:.2f} after the held-out measurement "
@@ -133,8 +174,15 @@ if __name__ == "__main__":
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--scale", type=float, default=1.0, help="calibration sweep size (1 = explorer calibrate's)")
     ap.add_argument("--skip-host", action="store_true", help="only the shipped profiles")
+    ap.add_argument("--save", type=Path, help="keep each repetition's probe results and held-out timings here")
+    ap.add_argument("--refit", type=Path, help="no measuring: fit --save's results again and compare")
     args = ap.parse_args()
+    if args.refit:
+        refit(args.refit)
+        raise SystemExit(0)
+    if args.save:
+        args.save.mkdir(parents=True, exist_ok=True)
     if Path(args.data).is_dir():
         shipped(Path(args.data))
     if not args.skip_host:
-        host(args.candidates, args.seed, args.scale)
+        host(args.candidates, args.seed, args.scale, save=args.save)

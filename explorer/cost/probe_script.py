@@ -526,6 +526,14 @@ def speed_layer(layers: list[dict]) -> "dict | None":
     return max(pointwise, key=lambda layer: layer["workload"]["macs"]) if pointwise else None
 
 
+def speed_stage(cands: list[dict]) -> "dict | None":
+    """The stage graph the probe also re-times: the first candidate's image encoder (about a
+    millisecond of mixed operators, which another load slows more than one large convolution:
+    measured here, 1.6-2x against 1.2-1.3x)."""
+    graphs = cands[0]["graphs"] if cands else []
+    return next((g for g in graphs if g["stage"] == "image_encoder"), graphs[0] if graphs else None)
+
+
 def speed_drift(results: dict) -> "float | None":
     """(slowest / fastest) - 1 of the probe's speed checks, None with fewer than two."""
     ms = (results.get("speed") or {}).get("ms") or []
@@ -533,8 +541,19 @@ def speed_drift(results: dict) -> "float | None":
 
 
 def usual_speed(checks: list[float]) -> float:
-    """The time the speed check takes on this machine undisturbed: the first quartile of the checks."""
-    return float(np.percentile(checks, 25))
+    """The time a speed check takes on this machine undisturbed: the 10th percentile of the checks
+    (a shared machine was seen slowed for most of a calibration, its first quartile 14% slow)."""
+    return float(np.percentile(checks, 10))
+
+
+def slowness(speed: dict) -> list[float]:
+    """For each speed check, how much slower than usual the machine ran (1 = usual): the larger
+    of the fixed graphs' times over their usual ones."""
+    series = [speed.get("ms") or []]
+    if len(speed.get("stage_ms") or []) == len(series[0]):
+        series.append(speed["stage_ms"])
+    ratios = [[ms / usual_speed(s) for ms in s] for s in series if s]
+    return [max(r) for r in zip(*ratios)]
 
 
 def wait_until_calm(latest: float, time_again: Callable[[], float], usual: float) -> float:
@@ -547,11 +566,11 @@ def wait_until_calm(latest: float, time_again: Callable[[], float], usual: float
     return latest
 
 
-def slow_windows(checks: list[float], usual: float) -> list[int]:
+def slow_windows(ratios: list[float]) -> list[int]:
     """Indices j of the windows between check j and check j + 1 (the graphs timed in between) that
-    either check shows the machine ``SLOW`` or more slower than ``usual``."""
-    slow = [ms > usual * (1 + SLOW) for ms in checks]
-    return [j for j in range(len(checks) - 1) if slow[j] or slow[j + 1]]
+    either check shows the machine ``SLOW`` or more slower than usual (``ratios``: ``slowness``)."""
+    slow = [x > 1 + SLOW for x in ratios]
+    return [j for j in range(len(slow) - 1) if slow[j] or slow[j + 1]]
 
 
 def run_probe(bundle_dir: "str | Path", out: "str | Path", provider: str = DEFAULT_PROVIDER,
@@ -597,25 +616,34 @@ def run_probe(bundle_dir: "str | Path", out: "str | Path", provider: str = DEFAU
             progress(done, total, what)
 
     rng = np.random.default_rng(0)
-    reference = speed_layer(layers)
+    reference, reference_stage = speed_layer(layers), speed_stage(cands)
     speed = res.setdefault("speed", {"layer": reference["id"] if reference else None, "ms": [], "remeasured": 0})
+    speed.setdefault("stage", reference_stage["file"] if reference and reference_stage else None)
+    speed.setdefault("stage_ms", [])
+    # a graph timed while the machine ran slow, until it is timed again: the faster timing is kept
+    earlier = res.setdefault("earlier", {})
     windows: list[list[tuple[str, str | None]]] = []   # this pass: graphs timed after each speed check
 
     def check_speed() -> float:
-        """Times the fixed graph (and opens a new window of graphs); returns its time."""
+        """Times the fixed graphs (and opens a new window of graphs); returns how much slower than
+        usual the machine runs now (1 = usual)."""
         windows.append([])
         if reference is None:
-            return 0.0
-        sess = session(bundle_dir / reference["file"], threads, provider)
-        feeds = _random_feeds(reference["inputs"], np.random.default_rng(0))
-        speed["ms"].append(time_call(lambda: sess.run(None, feeds), WARMUP, SPEED_CHECK_REPEATS))
-        return speed["ms"][-1]
+            return 1.0
+        for file, times in ((reference["file"], speed["ms"]), (speed["stage"], speed["stage_ms"])):
+            if file:
+                sess = session(bundle_dir / file, threads, provider)
+                feeds = _random_feeds(({"name": i.name, "shape": i.shape} for i in sess.get_inputs()),
+                                      np.random.default_rng(0))
+                times.append(time_call(lambda: sess.run(None, feeds), WARMUP, SPEED_CHECK_REPEATS))
+        return slowness(speed)[-1]
 
     def measure(sess, feeds, key: tuple[str, str | None]) -> float:
         if not windows or len(windows[-1]) >= SPEED_CHECK_EVERY:
             check_speed()
         windows[-1].append(key)
-        return time_call(lambda: sess.run(None, feeds), WARMUP, repeats)
+        ms = time_call(lambda: sess.run(None, feeds), WARMUP, repeats)
+        return min(ms, earlier.pop(key[0] if key[1] is None else f"{key[0]}/{key[1]}", ms))
 
     for attempt in range(REMEASURE_PASSES + 1):
         windows.clear()
@@ -649,17 +677,16 @@ def run_probe(bundle_dir: "str | Path", out: "str | Path", provider: str = DEFAU
         check_speed()   # closes the last window
         if reference is None or attempt == REMEASURE_PASSES:
             break
-        usual = usual_speed(speed["ms"])
-        again = [key for j in slow_windows(speed["ms"][first_check:], usual) for key in windows[j]]
+        again = [key for j in slow_windows(slowness(speed)[first_check:]) for key in windows[j]]
         if not again:
             break
         log(f"the machine ran slower for a while ({len(again)} graphs timed then): timing those again")
-        wait_until_calm(speed["ms"][-1], check_speed, usual)
+        wait_until_calm(slowness(speed)[-1], check_speed, 1.0)
         for key, stage in again:
             if stage is None:
-                res["layers"].pop(key, None)
+                earlier[key] = res["layers"].pop(key)
             else:
-                res["stages"].get(key, {}).pop(stage, None)
+                earlier[f"{key}/{stage}"] = res["stages"][key].pop(stage)
         speed["remeasured"] = speed.get("remeasured", 0) + len(again)
         done -= len(layers) + sum(len(c["graphs"]) for c in cands)   # the progress bar goes round again
     write_atomically(out, res)
