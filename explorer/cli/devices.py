@@ -88,7 +88,7 @@ def cmd_calibrate(args) -> None:
     cond = prof.provenance.get("conditions") or {}
     if cond.get("speed_drift") is not None:
         drift, again = cond["speed_drift"], cond.get("speed_remeasured", 0)
-        console.print(f"  machine speed while measuring: varied by {drift:.0%} (a fixed layer graph timed every "
+        console.print(f"  machine speed while measuring: varied by {drift:.0%} (fixed graphs timed every "
                       f"{SPEED_CHECK_EVERY} graphs)" + (f"; {again} graphs timed while it ran slow were timed again"
                                                         if again else "")
                       + (f". Above {SPEED_DRIFT_WARN:.0%}: if the profile disagrees with later measurements, "

@@ -9,9 +9,10 @@ profile fitted from a probe run and one calibrated directly share one measuremen
     explorer calibrate --fit results.json --out myboard.yaml   # anywhere
 
 Results are written atomically after every graph: an interrupted probe, run again with the same
-``--out``, keeps what it had measured and measures only the rest. One fixed layer graph is re-timed
-every ``SPEED_CHECK_EVERY`` graphs; the graphs timed while it shows the machine running slow (another
-load, throttling) are timed again, and the change of speed is kept in the results.
+``--out``, keeps what it had measured and measures only the rest. Two fixed graphs (a large convolution and a
+stage graph) are re-timed every ``SPEED_CHECK_EVERY`` graphs; the graphs timed while either shows the
+machine running slow (another load, throttling) are timed again, the faster timing of the two is
+kept, and the change of speed is kept in the results.
 """
 
 from __future__ import annotations
@@ -503,14 +504,14 @@ def schedule(layers: list[dict], cands: list[dict]) -> list[tuple[str, dict]]:
     return order
 
 
-#: The probe times one fixed layer graph first, again after every this many graphs, and last: how
-#: much the machine's own speed changed while it measured (another load, throttling), and when.
+#: The probe times two fixed graphs first, again after every this many graphs, and last: how much
+#: the machine's own speed changed while it measured (another load, throttling), and when.
 SPEED_CHECK_EVERY = 12
 SPEED_CHECK_REPEATS = 9
 #: Graphs timed between two speed checks of which one ran this much slower than the machine's usual
-#: speed (the first quartile of all checks: a shared machine is slowed more often than sped up) are
-#: timed again (at most ``REMEASURE_PASSES`` times), once a check shows it back to its usual speed
-#: (waiting up to ``CALM_WAIT_S``): a load that came and went leaves no mark.
+#: speed (``usual_speed``: a shared machine is slowed more often than sped up) are timed again (at
+#: most ``REMEASURE_PASSES`` times), once a check shows it back to its usual speed (waiting up to
+#: ``CALM_WAIT_S``): a load that came and went leaves no mark.
 SLOW = 0.10
 REMEASURE_PASSES = 2
 CALM_WAIT_S = 60.0
@@ -535,9 +536,9 @@ def speed_stage(cands: list[dict]) -> "dict | None":
 
 
 def speed_drift(results: dict) -> "float | None":
-    """(slowest / fastest) - 1 of the probe's speed checks, None with fewer than two."""
-    ms = (results.get("speed") or {}).get("ms") or []
-    return max(ms) / min(ms) - 1.0 if len(ms) >= 2 and min(ms) > 0 else None
+    """(slowest / fastest) - 1 of the probe's speed checks (``slowness``), None with fewer than two."""
+    ratios = slowness(results.get("speed") or {}) if all((results.get("speed") or {}).get("ms") or [0]) else []
+    return max(ratios) / min(ratios) - 1.0 if len(ratios) >= 2 else None
 
 
 def usual_speed(checks: list[float]) -> float:
@@ -692,8 +693,9 @@ def run_probe(bundle_dir: "str | Path", out: "str | Path", provider: str = DEFAU
     write_atomically(out, res)
     drift = speed_drift(res)
     if drift is not None and drift > SPEED_DRIFT_WARN:
-        log(f"note: this machine's speed changed by {drift:.0%} while it was measured (a fixed layer graph "
-            f"took {min(speed['ms']):.3g}-{max(speed['ms']):.3g} ms); {speed.get('remeasured', 0)} graphs timed "
+        log(f"note: this machine's speed changed by {drift:.0%} while it was measured (a fixed convolution "
+            f"took {min(speed['ms']):.3g}-{max(speed['ms']):.3g} ms, a fixed stage graph "
+            f"{min(speed['stage_ms'] or [0]):.3g}-{max(speed['stage_ms'] or [0]):.3g}); {speed.get('remeasured', 0)} graphs timed "
             "while it ran slow were timed again. Another load or throttling? If the profile disagrees with "
             "later measurements, measure again when the machine is idle")
     if energy:
