@@ -243,6 +243,31 @@ def test_a_slow_stage_check_alone_retimes_and_the_faster_timing_is_kept(bundle_d
     assert sorted(kept)[-1] == 2.0
 
 
+def test_a_machine_slow_for_the_whole_first_pass_is_found_out_once_it_speeds_up(bundle_dir, tmp_path, monkeypatch):
+    """Slowed by another load for the whole first pass, the checks look usual but for one spike:
+    only its windows are timed again. That second pass runs at full speed, and then every graph
+    of the first pass is judged slow against it and timed again too."""
+    manifest = json.loads((bundle_dir / "manifest.json").read_text())
+    total = len(manifest["layers"]) + sum(len(c["graphs"]) for c in manifest["candidates"])
+    timed, checks = [], []
+
+    def fake_time_call(fn, warmup, repeats):
+        first_pass = len(timed) < total
+        if repeats == probe.SPEED_CHECK_REPEATS:
+            checks.append(1)
+            return (3.0 if len(checks) in (5, 6) else 2.0) if first_pass else 1.0
+        timed.append(1)
+        return 5.0 if first_pass else 1.0
+
+    monkeypatch.setattr(probe, "time_call", fake_time_call)
+    res = probe.run_probe(bundle_dir, tmp_path / "r.json", repeats=2, energy=False)
+    every = probe.SPEED_CHECK_EVERY
+    assert len(timed) == 2 * total and res["speed"]["remeasured"] == total
+    kept = list(res["layers"].values()) + [ms for st in res["stages"].values() for ms in st.values()]
+    assert len(kept) == total and set(kept) == {1.0}
+    assert total > 3 * every
+
+
 def test_bundle_int8_graphs_are_quantized_convolutions(bundle_dir):
     import onnx
     manifest = json.loads((bundle_dir / "manifest.json").read_text())

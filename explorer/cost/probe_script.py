@@ -513,7 +513,7 @@ SPEED_CHECK_REPEATS = 9
 #: most ``REMEASURE_PASSES`` times), once a check shows it back to its usual speed (waiting up to
 #: ``CALM_WAIT_S``): a load that came and went leaves no mark.
 SLOW = 0.10
-REMEASURE_PASSES = 2
+REMEASURE_PASSES = 3
 CALM_WAIT_S = 60.0
 #: A change of speed above this fraction while measuring is reported.
 SPEED_DRIFT_WARN = 0.10
@@ -623,12 +623,15 @@ def run_probe(bundle_dir: "str | Path", out: "str | Path", provider: str = DEFAU
     speed.setdefault("stage_ms", [])
     # a graph timed while the machine ran slow, until it is timed again: the faster timing is kept
     earlier = res.setdefault("earlier", {})
-    windows: list[list[tuple[str, str | None]]] = []   # this pass: graphs timed after each speed check
+    # for each kept timing, the speed check before it: judged again at the end of every pass against
+    # every check so far (a machine slowed for a whole pass looks usual until it speeds up)
+    timed_after = res.setdefault("timed_after", {})
+    since_check = [SPEED_CHECK_EVERY]   # graphs timed since the last speed check
 
     def check_speed() -> float:
         """Times the fixed graphs (and opens a new window of graphs); returns how much slower than
         usual the machine runs now (1 = usual)."""
-        windows.append([])
+        since_check[0] = 0
         if reference is None:
             return 1.0
         for file, times in ((reference["file"], speed["ms"]), (speed["stage"], speed["stage_ms"])):
@@ -639,21 +642,22 @@ def run_probe(bundle_dir: "str | Path", out: "str | Path", provider: str = DEFAU
                 times.append(time_call(lambda: sess.run(None, feeds), WARMUP, SPEED_CHECK_REPEATS))
         return slowness(speed)[-1]
 
-    def measure(sess, feeds, key: tuple[str, str | None]) -> float:
-        if not windows or len(windows[-1]) >= SPEED_CHECK_EVERY:
+    def measure(sess, feeds, label: str) -> float:
+        if since_check[0] >= SPEED_CHECK_EVERY:
             check_speed()
-        windows[-1].append(key)
+        since_check[0] += 1
+        timed_after[label] = len(speed["ms"]) - 1
         ms = time_call(lambda: sess.run(None, feeds), WARMUP, repeats)
-        return min(ms, earlier.pop(key[0] if key[1] is None else f"{key[0]}/{key[1]}", ms))
+        return min(ms, earlier.pop(label, ms))
 
     for attempt in range(REMEASURE_PASSES + 1):
-        windows.clear()
-        first_check = len(speed["ms"])
+        since_check[0] = SPEED_CHECK_EVERY   # each pass opens with a check
+        timed_before = dict(timed_after)
         for kind, item in schedule(layers, cands):
             if kind == "layer":
                 if item["id"] not in res["layers"]:
                     sess = session(bundle_dir / item["file"], threads, provider)
-                    res["layers"][item["id"]] = measure(sess, _random_feeds(item["inputs"], rng), (item["id"], None))
+                    res["layers"][item["id"]] = measure(sess, _random_feeds(item["inputs"], rng), item["id"])
                     write_atomically(out, res)
                 tick("layers")
                 continue
@@ -669,25 +673,24 @@ def run_probe(bundle_dir: "str | Path", out: "str | Path", provider: str = DEFAU
                 feeds = {n: env[n] for n in names}
                 outs = sess.run(None, feeds)   # what later stages read (also when this one was kept)
                 if g["stage"] not in kept:
-                    kept[g["stage"]] = measure(sess, feeds, (item["key"], g["stage"]))
+                    kept[g["stage"]] = measure(sess, feeds, f"{item['key']}/{g['stage']}")
                     write_atomically(out, res)
                 env.update({o.name: v for o, v in zip(sess.get_outputs(), outs)})
                 tick("stages")
-        if not windows:
-            break
+        if timed_after == timed_before:
+            break   # nothing timed in this pass (a finished run, resumed)
         check_speed()   # closes the last window
         if reference is None or attempt == REMEASURE_PASSES:
             break
-        again = [key for j in slow_windows(slowness(speed)[first_check:]) for key in windows[j]]
+        slow = set(slow_windows(slowness(speed)))
+        again = [label for label, j in timed_after.items() if j in slow]
         if not again:
             break
         log(f"the machine ran slower for a while ({len(again)} graphs timed then): timing those again")
         wait_until_calm(slowness(speed)[-1], check_speed, 1.0)
-        for key, stage in again:
-            if stage is None:
-                earlier[key] = res["layers"].pop(key)
-            else:
-                earlier[f"{key}/{stage}"] = res["stages"][key].pop(stage)
+        for label in again:
+            key, _, stage = label.partition("/")
+            earlier[label] = res["stages"][key].pop(stage) if stage else res["layers"].pop(key)
         speed["remeasured"] = speed.get("remeasured", 0) + len(again)
         done -= len(layers) + sum(len(c["graphs"]) for c in cands)   # the progress bar goes round again
     write_atomically(out, res)
