@@ -9,10 +9,10 @@ profile fitted from a probe run and one calibrated directly share one measuremen
     explorer calibrate --fit results.json --out myboard.yaml   # anywhere
 
 Results are written atomically after every graph: an interrupted probe, run again with the same
-``--out``, keeps what it had measured and measures only the rest. Two fixed graphs (a large convolution and a
-stage graph) are re-timed every ``SPEED_CHECK_EVERY`` graphs; the graphs timed while either shows the
-machine running slow (another load, throttling) are timed again, the faster timing of the two is
-kept, and the change of speed is kept in the results.
+``--out``, keeps what it had measured and measures only the rest. Two fixed graphs (a convolution,
+a stage) are re-timed every ``SPEED_CHECK_EVERY`` graphs; graphs timed while either shows the machine
+running slow (another load, throttling) are timed again, the faster timing is kept, and the change
+of speed is kept in the results.
 """
 
 from __future__ import annotations
@@ -537,7 +537,7 @@ def speed_stage(cands: list[dict]) -> "dict | None":
 
 def speed_drift(results: dict) -> "float | None":
     """(slowest / fastest) - 1 of the probe's speed checks (``slowness``), None with fewer than two."""
-    ratios = slowness(results.get("speed") or {}) if all((results.get("speed") or {}).get("ms") or [0]) else []
+    ratios = slowness(results.get("speed") or {})
     return max(ratios) / min(ratios) - 1.0 if len(ratios) >= 2 else None
 
 
@@ -548,8 +548,7 @@ def usual_speed(checks: list[float]) -> float:
 
 
 def slowness(speed: dict) -> list[float]:
-    """For each speed check, how much slower than usual the machine ran (1 = usual): the larger
-    of the fixed graphs' times over their usual ones."""
+    """Per speed check, how much slower than usual the machine ran (1 = usual; the slower graph's)."""
     series = [speed.get("ms") or []]
     if len(speed.get("stage_ms") or []) == len(series[0]):
         series.append(speed["stage_ms"])
@@ -621,10 +620,9 @@ def run_probe(bundle_dir: "str | Path", out: "str | Path", provider: str = DEFAU
     speed = res.setdefault("speed", {"layer": reference["id"] if reference else None, "ms": [], "remeasured": 0})
     speed.setdefault("stage", reference_stage["file"] if reference and reference_stage else None)
     speed.setdefault("stage_ms", [])
-    # a graph timed while the machine ran slow, until it is timed again: the faster timing is kept
-    earlier = res.setdefault("earlier", {})
-    # for each kept timing, the speed check before it: judged again at the end of every pass against
-    # every check so far (a machine slowed for a whole pass looks usual until it speeds up)
+    earlier = res.setdefault("earlier", {})   # timings taken while it ran slow, until timed again
+    # each kept timing's speed check before it: judged again after every pass against all checks so
+    # far (a machine slowed for a whole pass looks usual until it speeds up)
     timed_after = res.setdefault("timed_after", {})
     since_check = [SPEED_CHECK_EVERY]   # graphs timed since the last speed check
 
@@ -696,11 +694,10 @@ def run_probe(bundle_dir: "str | Path", out: "str | Path", provider: str = DEFAU
     write_atomically(out, res)
     drift = speed_drift(res)
     if drift is not None and drift > SPEED_DRIFT_WARN:
-        log(f"note: this machine's speed changed by {drift:.0%} while it was measured (a fixed convolution "
-            f"took {min(speed['ms']):.3g}-{max(speed['ms']):.3g} ms, a fixed stage graph "
-            f"{min(speed['stage_ms'] or [0]):.3g}-{max(speed['stage_ms'] or [0]):.3g}); {speed.get('remeasured', 0)} graphs timed "
-            "while it ran slow were timed again. Another load or throttling? If the profile disagrees with "
-            "later measurements, measure again when the machine is idle")
+        ranges = ", ".join(f"{min(t):.3g}-{max(t):.3g} ms" for t in (speed["ms"], speed["stage_ms"]) if t)
+        log(f"note: this machine's speed changed by {drift:.0%} while it was measured (fixed graphs took {ranges}); "
+            f"{speed.get('remeasured', 0)} graphs timed while it ran slow were timed again. Another load or "
+            "throttling? If the profile disagrees with later measurements, measure again when the machine is idle")
     if energy:
         _probe_energy(res, manifest, bundle_dir, out, provider, threads, root, vcgencmd, idle_s, window_s,
                       progress, log)
