@@ -216,6 +216,15 @@ def test_graphs_timed_while_the_machine_ran_slow_are_timed_again(bundle_dir, tmp
     assert code == 0 and "varied by 5%" in stdout and "timed again" not in stdout and "calibrate again" not in stdout
 
 
+def _graph_count(bundle_dir) -> int:
+    manifest = json.loads((bundle_dir / "manifest.json").read_text())
+    return len(manifest["layers"]) + sum(len(c["graphs"]) for c in manifest["candidates"])
+
+
+def _kept_timings(res: dict) -> list[float]:
+    return list(res["layers"].values()) + [ms for st in res["stages"].values() for ms in st.values()]
+
+
 @pytest.mark.parametrize("later_ms", [5.0, 1.5])
 def test_a_slow_stage_check_alone_retimes_and_the_faster_timing_is_kept(bundle_dir, tmp_path, monkeypatch, later_ms):
     """The large convolution ran at its usual speed while the stage graph ran slow (small operators
@@ -230,15 +239,14 @@ def test_a_slow_stage_check_alone_retimes_and_the_faster_timing_is_kept(bundle_d
         timed.append(1)
         return 2.0 if len(timed) <= total else later_ms
 
-    manifest = json.loads((bundle_dir / "manifest.json").read_text())
-    total = len(manifest["layers"]) + sum(len(c["graphs"]) for c in manifest["candidates"])
+    total = _graph_count(bundle_dir)
     monkeypatch.setattr(probe, "time_call", fake_time_call)
     res = probe.run_probe(bundle_dir, tmp_path / "r.json", repeats=2, energy=False)
     every = probe.SPEED_CHECK_EVERY
     assert res["speed"]["remeasured"] == 2 * every and len(timed) == total + 2 * every
     # the stage graph's 2x counts in the speed change, the convolution's time stayed
     assert probe.speed_drift(res) == pytest.approx(1.0) and max(res["speed"]["ms"]) == 1.0
-    kept = list(res["layers"].values()) + [ms for st in res["stages"].values() for ms in st.values()]
+    kept = _kept_timings(res)
     assert len(kept) == total and kept.count(min(2.0, later_ms)) >= 2 * every and res["earlier"] == {}
     assert sorted(kept)[-1] == 2.0
 
@@ -247,8 +255,7 @@ def test_a_machine_slow_for_the_whole_first_pass_is_found_out_once_it_speeds_up(
     """Slowed by another load for the whole first pass, the checks look usual but for one spike:
     only its windows are timed again. That second pass runs at full speed, and then every graph
     of the first pass is judged slow against it and timed again too."""
-    manifest = json.loads((bundle_dir / "manifest.json").read_text())
-    total = len(manifest["layers"]) + sum(len(c["graphs"]) for c in manifest["candidates"])
+    total = _graph_count(bundle_dir)
     timed, checks = [], []
 
     def fake_time_call(fn, warmup, repeats):
@@ -263,7 +270,7 @@ def test_a_machine_slow_for_the_whole_first_pass_is_found_out_once_it_speeds_up(
     res = probe.run_probe(bundle_dir, tmp_path / "r.json", repeats=2, energy=False)
     every = probe.SPEED_CHECK_EVERY
     assert len(timed) == 2 * total and res["speed"]["remeasured"] == total
-    kept = list(res["layers"].values()) + [ms for st in res["stages"].values() for ms in st.values()]
+    kept = _kept_timings(res)
     assert len(kept) == total and set(kept) == {1.0}
     assert total > 3 * every
 
