@@ -10,18 +10,21 @@ measurement.
 
 import argparse
 import json
+import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
 from explorer.cost import candidate_cost, get_device, profile_reference
-from explorer.cost.calibrate import calibrate
+from explorer.cost.bundle import write_bundle_dir
+from explorer.cost.calibrate import fit_results
 from explorer.cost.fit import (PAPER_RPI4_TABLE2, PAPER_TX2_PATHS_MS, TX2_REFERENCES, Observation, errors,
                                kernel_workloads, rpi4_table2)
 from explorer.cost.measure import measure_candidate
 from explorer.cost.peak import host_peak
-from explorer.cost.probe_script import REMEASURE_PASSES, SLOW, usual_speed, wait_until_calm
+from explorer.cost.probe_script import (DEFAULT_PROVIDER, REMEASURE_PASSES, SLOW, default_threads, fixed_graph_timer,
+                                       run_probe, speed_layer, usual_speed, wait_until_calm)
 from explorer.model.reference import REFERENCES
 from explorer.space import SearchSpace, paper_candidate
 
@@ -66,19 +69,40 @@ def _sentinel() -> "callable":
     return lambda: time_call(lambda: sess.run(None, feeds), 3, 15)
 
 
-def _measure_steadily(c, size, sentinel, checks: list[float]):
-    """``measure_candidate`` under the probe's rule: timed again (after waiting for the machine to
-    calm down) when the fixed graph timed before or after it ran ``SLOW`` slower than usual.
-    Returns the measurement and how many times it was timed again."""
+def _calibrate(folder: Path, seed: int, scale: float, exclude: set[str], results_out: Path | None):
+    """What ``explorer calibrate`` does (bundle, probe, fit), keeping the bundle in ``folder``: its
+    speed-check graphs tell later how fast the machine runs against the calibration's usual speed."""
+    out = results_out or folder / "results.json"
+    write_bundle_dir(folder / "bundle", scale=scale, seed=seed, exclude=exclude)
+    results = run_probe(folder / "bundle", out, threads=default_threads())
+    return fit_results(results, name="host", source="bench_devices.py"), results
+
+
+def _speedometer(bundle: Path, results: dict) -> "callable":
+    """How much slower than during its calibration the machine runs now (1 = its usual speed then):
+    the probe's two speed-check graphs timed again, each against its usual time in the calibration."""
+    speed = results["speed"]
+    graphs = [(speed_layer(results["bundle"]["layers"])["file"], speed["ms"]), (speed["stage"], speed["stage_ms"])]
+    timers = [(fixed_graph_timer(bundle / file, default_threads(), DEFAULT_PROVIDER), usual_speed(times))
+              for file, times in graphs if file and times]
+    return lambda: max(timer() / usual for timer, usual in timers)
+
+
+def _measure_steadily(c, size, speedometer) -> tuple:
+    """``measure_candidate`` under the probe's rule, against the calibration's own speed: timed again
+    (after waiting for the machine to calm down) when its speed checks before or after ran ``SLOW``
+    slower than they usually did in the calibration; each path keeps its fastest timing. Returns the
+    path timings, the whole graph's, and how many times it was timed again."""
+    path_ms, whole_ms = None, float("inf")
     for again in range(REMEASURE_PASSES + 1):
-        before = sentinel()
+        before = speedometer()
         m = measure_candidate(c, size, repeats=20)
-        after = sentinel()
-        checks += [before, after]
-        usual = usual_speed(checks)
-        if max(before, after) <= usual * (1 + SLOW) or again == REMEASURE_PASSES:
-            return m, again
-        wait_until_calm(after, sentinel, usual)
+        after = speedometer()
+        path_ms = m.path_ms if path_ms is None else [min(a, b) for a, b in zip(path_ms, m.path_ms)]
+        whole_ms = min(whole_ms, m.whole_ms)
+        if max(before, after) <= 1 + SLOW or again == REMEASURE_PASSES:
+            return path_ms, whole_ms, again
+        wait_until_calm(after, speedometer, 1.0)
 
 
 def _size_errors(prof, cands, size, timings: dict) -> list[float]:
@@ -93,7 +117,6 @@ def _size_errors(prof, cands, size, timings: dict) -> list[float]:
 def refit(folder: Path) -> None:
     """Fits each saved repetition's probe results again (the code as it is now) and compares with the
     held-out timings saved beside them: a change to the fit judged on the very same measurements."""
-    from explorer.cost.calibrate import fit_results
     from explorer.cost.probe_script import read_results
     from explorer.space import Candidate
     medians: dict = {}
@@ -119,19 +142,22 @@ def host(n: int, seed: int, scale: float, reps: int = 3, save: Path | None = Non
     """Each repetition is what a user does: calibrate (stage graphs at every size of ``STAGE_SIZES``),
     then measure ``n`` held-out candidates at each of ``HOST_SIZES`` at once, and report the median
     per-path error of each size. A fixed graph timed before and after each step shows whether the
-    machine itself changed speed in between (a shared machine does, by up to 40% here); held-out
-    candidates are measured under the rule the probe follows (``_measure_steadily``)."""
+    machine itself changed speed in between (a shared machine does, by up to 4x here); held-out
+    candidates are measured under the rule the probe follows, against the speed the calibration
+    measured at (``_measure_steadily``): a profile describes the machine undisturbed, and a held-out
+    timing taken while another load slows it says nothing about the profile."""
     cands = SearchSpace.from_yaml("anytime_depth").random_candidates(n, seed + 1)
     peak = host_peak()
     print(f"\nthis machine's peak: {peak.describe()}")
     sentinel = _sentinel()
     medians: dict = {size: [] for size in HOST_SIZES}
-    checks: list[float] = []   # every timing of the fixed graph during held-out measurement
     for rep in range(1, reps + 1):
         speed = [sentinel()]
         t0 = time.perf_counter()
-        prof = calibrate(seed=seed + rep - 1, scale=scale, exclude={c.key for c in cands},   # held out: never in the sweep
-                         results_out=save / f"rep{rep}-results.json" if save else None)
+        tmp = tempfile.TemporaryDirectory(prefix="bench-devices-")
+        prof, results = _calibrate(Path(tmp.name), seed + rep - 1, scale, {c.key for c in cands},   # held out: never in the sweep
+                                   save / f"rep{rep}-results.json" if save else None)
+        speedometer = _speedometer(Path(tmp.name) / "bundle", results)
         held = {"candidates": [c.to_dict() for c in cands], "timings": {}}
         speed.append(sentinel())
         print(f"rep {rep}: host calibration (scale {scale}, seed {seed + rep - 1}): {time.perf_counter() - t0:.0f} s; "
@@ -144,10 +170,9 @@ def host(n: int, seed: int, scale: float, reps: int = 3, save: Path | None = Non
         for size in HOST_SIZES:
             fractions, timed_again, timings = [], 0, {}
             for c in cands:
-                m, again = _measure_steadily(c, size, sentinel, checks)
+                timings[c.key], whole_ms, again = _measure_steadily(c, size, speedometer)
                 timed_again += again
-                timings[c.key] = m.path_ms
-                fractions.append(peak.fraction(candidate_cost(c, size).path_params_macs()[-1][1], m.whole_ms))
+                fractions.append(peak.fraction(candidate_cost(c, size).path_params_macs()[-1][1], whole_ms))
             held["timings"][f"{size[0]}x{size[1]}"] = timings
             errs = _size_errors(prof, cands, size, timings)
             a = np.abs(errs)
@@ -158,6 +183,7 @@ def host(n: int, seed: int, scale: float, reps: int = 3, save: Path | None = Non
                   f"{timed_again} timed again after the machine ran slow")
         if save:
             (save / f"rep{rep}-heldout.json").write_text(json.dumps(held))
+        tmp.cleanup()
         speed.append(sentinel())
         print(f"  machine speed (paper design whole graph at 224x224): {speed[0]:.2f} ms before calibrating, "
               f"{speed[1]:.2f} after, {speed[2]:.2f} after the held-out measurement "

@@ -566,6 +566,15 @@ def wait_until_calm(latest: float, time_again: Callable[[], float], usual: float
     return latest
 
 
+def fixed_graph_timer(graph: Path, threads: int, provider: str) -> Callable[[], float]:
+    """Times one of the speed checks' fixed graphs (``SPEED_CHECK_REPEATS`` runs, median ms), fed as
+    the probe feeds it, so that another process can tell how fast the machine runs against a probe's
+    checks (``usual_speed`` of its ``speed`` series)."""
+    sess = session(graph, threads, provider)
+    feeds = _random_feeds(({"name": i.name, "shape": i.shape} for i in sess.get_inputs()), np.random.default_rng(0))
+    return lambda: time_call(lambda: sess.run(None, feeds), WARMUP, SPEED_CHECK_REPEATS)
+
+
 def slow_windows(ratios: list[float]) -> list[int]:
     """Indices j of the windows between check j and check j + 1 (the graphs timed in between) that
     either check shows the machine ``SLOW`` or more slower than usual (``ratios``: ``slowness``)."""
@@ -625,6 +634,9 @@ def run_probe(bundle_dir: "str | Path", out: "str | Path", provider: str = DEFAU
     # far (a machine slowed for a whole pass looks usual until it speeds up)
     timed_after = res.setdefault("timed_after", {})
     since_check = [SPEED_CHECK_EVERY]   # graphs timed since the last speed check
+    checks = [(fixed_graph_timer(bundle_dir / file, threads, provider), times)
+              for file, times in ((reference and reference["file"], speed["ms"]), (speed["stage"], speed["stage_ms"]))
+              if file]
 
     def check_speed() -> float:
         """Times the fixed graphs (and opens a new window of graphs); returns how much slower than
@@ -632,12 +644,8 @@ def run_probe(bundle_dir: "str | Path", out: "str | Path", provider: str = DEFAU
         since_check[0] = 0
         if reference is None:
             return 1.0
-        for file, times in ((reference["file"], speed["ms"]), (speed["stage"], speed["stage_ms"])):
-            if file:
-                sess = session(bundle_dir / file, threads, provider)
-                feeds = _random_feeds(({"name": i.name, "shape": i.shape} for i in sess.get_inputs()),
-                                      np.random.default_rng(0))
-                times.append(time_call(lambda: sess.run(None, feeds), WARMUP, SPEED_CHECK_REPEATS))
+        for timer, times in checks:
+            times.append(timer())
         return slowness(speed)[-1]
 
     def measure(sess, feeds, label: str) -> float:
