@@ -17,14 +17,13 @@ from pathlib import Path
 import numpy as np
 
 from explorer.cost import candidate_cost, get_device, profile_reference
-from explorer.cost.bundle import write_bundle_dir
-from explorer.cost.calibrate import fit_results
+from explorer.cost.calibrate import calibrate, fit_results
 from explorer.cost.fit import (PAPER_RPI4_TABLE2, PAPER_TX2_PATHS_MS, TX2_REFERENCES, Observation, errors,
                                kernel_workloads, rpi4_table2)
 from explorer.cost.measure import measure_candidate
 from explorer.cost.peak import host_peak
 from explorer.cost.probe_script import (DEFAULT_PROVIDER, REMEASURE_PASSES, SLOW, default_threads, fixed_graph_timer,
-                                       run_probe, speed_layer, usual_speed, wait_until_calm)
+                                       read_results, speed_layer, usual_speed, wait_until_calm)
 from explorer.model.reference import REFERENCES
 from explorer.space import SearchSpace, paper_candidate
 
@@ -69,15 +68,6 @@ def _sentinel() -> "callable":
     return lambda: time_call(lambda: sess.run(None, feeds), 3, 15)
 
 
-def _calibrate(folder: Path, seed: int, scale: float, exclude: set[str], results_out: Path | None):
-    """What ``explorer calibrate`` does (bundle, probe, fit), keeping the bundle in ``folder``: its
-    speed-check graphs tell later how fast the machine runs against the calibration's usual speed."""
-    out = results_out or folder / "results.json"
-    write_bundle_dir(folder / "bundle", scale=scale, seed=seed, exclude=exclude)
-    results = run_probe(folder / "bundle", out, threads=default_threads())
-    return fit_results(results, name="host", source="bench_devices.py"), results
-
-
 def _speedometer(bundle: Path, results: dict) -> "callable":
     """How much slower than during its calibration the machine runs now (1 = its usual speed then):
     the probe's two speed-check graphs timed again, each against its usual time in the calibration."""
@@ -117,7 +107,6 @@ def _size_errors(prof, cands, size, timings: dict) -> list[float]:
 def refit(folder: Path) -> None:
     """Fits each saved repetition's probe results again (the code as it is now) and compares with the
     held-out timings saved beside them: a change to the fit judged on the very same measurements."""
-    from explorer.cost.probe_script import read_results
     from explorer.space import Candidate
     medians: dict = {}
     for rep_file in sorted(folder.glob("rep*-heldout.json")):
@@ -154,10 +143,11 @@ def host(n: int, seed: int, scale: float, reps: int = 3, save: Path | None = Non
     for rep in range(1, reps + 1):
         speed = [sentinel()]
         t0 = time.perf_counter()
-        tmp = tempfile.TemporaryDirectory(prefix="bench-devices-")
-        prof, results = _calibrate(Path(tmp.name), seed + rep - 1, scale, {c.key for c in cands},   # held out: never in the sweep
-                                   save / f"rep{rep}-results.json" if save else None)
-        speedometer = _speedometer(Path(tmp.name) / "bundle", results)
+        tmp = tempfile.TemporaryDirectory(prefix="bench-devices-")   # the bundle: its speed checks, timed again
+        results_out = save / f"rep{rep}-results.json" if save else Path(tmp.name) / "results.json"
+        prof = calibrate(seed=seed + rep - 1, scale=scale, exclude={c.key for c in cands},   # held out: never in the sweep
+                         results_out=results_out, bundle_out=Path(tmp.name) / "bundle")
+        speedometer = _speedometer(Path(tmp.name) / "bundle", read_results(results_out))
         held = {"candidates": [c.to_dict() for c in cands], "timings": {}}
         speed.append(sentinel())
         print(f"rep {rep}: host calibration (scale {scale}, seed {seed + rep - 1}): {time.perf_counter() - t0:.0f} s; "

@@ -333,10 +333,12 @@ def calibrate(threads: int | None = None, repeats: int = 25, seed: int = 0, scal
               progress: Callable[[int, int], None] | None = None, name: str = "host",
               stage_candidates: int | None = None, exclude: set[str] = frozenset(),
               provider: str = DEFAULT_PROVIDER, energy: bool = True, sysfs_root: str = "/",
-              log: Callable[[str], None] = lambda s: None, results_out: Path | None = None) -> DeviceProfile:
+              log: Callable[[str], None] = lambda s: None, results_out: Path | None = None,
+              bundle_out: Path | None = None) -> DeviceProfile:
     """Bundle, probe and fit in one process (the numbers a separate probe run would give): layer
     sweep plus the stages of ``stage_candidates`` random default-space candidates (none of
-    ``exclude``, candidate keys). ``results_out``: also keep the probe's results there."""
+    ``exclude``, candidate keys). ``results_out`` / ``bundle_out``: also keep the probe's results /
+    the bundle there."""
     import tempfile
     from explorer.cost.bundle import write_bundle_dir
     try:
@@ -344,7 +346,7 @@ def calibrate(threads: int | None = None, repeats: int = 25, seed: int = 0, scal
     except _probe.ProbeError as exc:
         raise UserError(str(exc)) from None
     with tempfile.TemporaryDirectory(prefix="explorer-calibrate-") as tmp:
-        folder = Path(tmp) / "bundle"
+        folder = bundle_out or Path(tmp) / "bundle"
         n_export = [0]
 
         def exported(i: int, n: int) -> None:
