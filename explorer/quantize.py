@@ -82,7 +82,7 @@ def _frames(data: str, input_size: tuple[int, int], count: int, split: str) -> l
 def stage_inputs(model_dir: Path, frames: list[dict]) -> list[list[dict[str, np.ndarray]]]:
     """For each stage graph of an exported model, the inputs it receives on each frame."""
     from explorer.runtime import AnytimeRunner
-    runner = AnytimeRunner(model_dir, warmup=False)
+    runner = AnytimeRunner(model_dir, warmup=False, blocked_handoff=False)   # the graphs' own inputs
     per_stage: list[list[dict[str, np.ndarray]]] = [[] for _ in runner.sessions]
     for f in frames:
         img, scan = runner.check(f["image"].numpy(), f["scan"].numpy())

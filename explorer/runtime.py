@@ -7,8 +7,10 @@ from __future__ import annotations
 import dataclasses
 
 import json
+import tempfile
 import threading
 import time
+import weakref
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
@@ -29,9 +31,54 @@ class AnytimeResult:
     halted: bool = False
 
 
+class _Watchdog:
+    """One thread per runner that halts its run at the deadline. A timer thread started for every
+    run cost ~0.45 ms (7% of the paper design's 6.2 ms) on this project's 2-core VM
+    (benchmarks/bench_runtime.py); this thread is started once and only woken."""
+
+    def __init__(self, halt: Callable[[], None]) -> None:
+        self._halt = halt
+        self._cond = threading.Condition()
+        self._at: float | None = None     # perf_counter() time to halt at
+        self._stopped = False
+        self._thread: threading.Thread | None = None
+
+    def arm(self, at: float) -> None:
+        with self._cond:
+            self._at = at
+            if self._thread is None:
+                self._thread = threading.Thread(target=self._loop, name="anytime-deadline", daemon=True)
+                self._thread.start()
+            self._cond.notify()
+
+    def disarm(self) -> None:
+        with self._cond:
+            self._at = None      # not woken: it finds nothing to do at the old deadline
+
+    def stop(self) -> None:
+        with self._cond:
+            self._stopped = True
+            self._cond.notify()
+
+    def _loop(self) -> None:
+        with self._cond:
+            while not self._stopped:
+                if self._at is None:
+                    self._cond.wait()
+                    continue
+                left = self._at - time.perf_counter()
+                if left > 0:
+                    self._cond.wait(left)
+                    continue
+                self._at = None
+                self._halt()
+
+
 class AnytimeRunner:
     def __init__(self, model_dir: str | Path, threads: int | None = None, warmup: bool = True,
-                 provider: str = "CPUExecutionProvider") -> None:
+                 provider: str = "CPUExecutionProvider", blocked_handoff: bool = True) -> None:
+        """``blocked_handoff``: stages hand tensors over in onnxruntime's blocked layout where it
+        applies (``explorer._layout``); ``sessions`` then read and write ``NAME.nchwc`` tensors."""
         import onnxruntime as ort
         from explorer.cost.measure import session
         from explorer.cost.probe_script import ProbeError, check_provider
@@ -50,33 +97,67 @@ class AnytimeRunner:
             raise UserError(f"{mpath}: not valid JSON ({exc.msg})") from None
         self.input_size = tuple(self.manifest["input_size"])
         self.scan_row = int(self.manifest["scan_row"])
-        self.sessions = []
-        for st in self.manifest["stages"]:
-            f = self.dir / st["file"]
-            if not f.is_file():
-                raise UserError(f"{f}: stage graph listed in the manifest is missing")
-            try:
-                sess = session(f.read_bytes(), threads, provider)
-            except Exception as exc:  # onnxruntime raises its own types for corrupt graphs
-                raise UserError(f"{f}: not a loadable ONNX graph ({str(exc).splitlines()[0][:100]})") from None
-            # names looked up once: get_inputs() builds new objects on every call
-            self.sessions.append((st, sess, [i.name for i in sess.get_inputs()],
-                                  [o.name for o in sess.get_outputs()]))
+        self.sessions: list[tuple[dict, object, list[str], list[str]]] = []
+        self.handed_off: list[str] = []   # tensors passed between stages in the blocked layout
+        with tempfile.TemporaryDirectory() as tmp:
+            optimized = Path(tmp)
+            for k, st in enumerate(self.manifest["stages"]):
+                f = self.dir / st["file"]
+                if not f.is_file():
+                    raise UserError(f"{f}: stage graph listed in the manifest is missing")
+                try:
+                    sess = session(f.read_bytes(), threads, provider,
+                                   save_optimized=optimized / f"{k}.onnx" if blocked_handoff else None)
+                except Exception as exc:  # onnxruntime raises its own types for corrupt graphs
+                    raise UserError(f"{f}: not a loadable ONNX graph ({str(exc).splitlines()[0][:100]})") from None
+                self.sessions.append(_named(st, sess))
+            if blocked_handoff and provider == "CPUExecutionProvider":
+                self.handed_off = self._hand_off_blocked(optimized, threads)
         self._lock = threading.Lock()
         self._halt = threading.Event()
         self._options: "ort.RunOptions | None" = None
+        halt = weakref.WeakMethod(self.halt)   # the watchdog's thread must not keep the runner alive
+        self._watchdog = _Watchdog(lambda: (h := halt()) is not None and h())
+        weakref.finalize(self, self._watchdog.stop)
         if warmup:
             h, w = self.input_size
             self.run(np.zeros((3, h, w), np.float32), np.ones(w, np.float32))
 
+    def _hand_off_blocked(self, optimized: Path, threads: int | None) -> list[str]:
+        """Replaces the sessions by ones made from their optimised graphs rewritten to hand tensors over
+        blocked, when the rewrite applies and gives the same depth maps; the names handed over."""
+        import onnx
+        from explorer._layout import hand_off_blocked
+        from explorer.cost.measure import session
+        try:
+            models = [onnx.load(str(optimized / f"{k}.onnx")) for k in range(len(self.sessions))]
+            handed = hand_off_blocked(models, [s[2] for s in self.sessions], [s[3] for s in self.sessions])
+            if not handed:
+                return []
+            rewritten = [_named(st, session(m.SerializeToString(), threads, self.provider, optimize=False))
+                         for (st, *_), m in zip(self.sessions, models)]
+            h, w = self.input_size
+            rng = np.random.default_rng(0)
+            img = rng.random((1, 3, h, w), dtype=np.float32)
+            scan = rng.uniform(0.5, 10.0, (1, w)).astype(np.float32)
+            same = all(np.allclose(a, b, rtol=1e-5, atol=1e-6) for a, b in
+                       zip(self._depths(self.sessions, img, scan), self._depths(rewritten, img, scan)))
+        except Exception:   # an onnxruntime whose optimised graphs this rewrite does not know
+            return []
+        if not same:
+            return []
+        self.sessions = rewritten
+        return handed
+
+    def _depths(self, sessions: list, img: np.ndarray, scan: np.ndarray) -> list[np.ndarray]:
+        env = {"image": img, "scan": scan}
+        for _, sess, ins, outs_names in sessions:
+            env.update(zip(outs_names, sess.run(outs_names, {n: env[n] for n in ins})))
+        return [env[f"depth_{p}"][0, 0] for p in range(self.manifest["paths"])]
+
     def depths(self, image: np.ndarray, scan: np.ndarray) -> list[np.ndarray]:
         """Every path's depth map (no deadline), in order."""
-        img, s = self.check(image, scan)
-        env = {"image": img, "scan": s}
-        for _, sess, ins, outs_names in self.sessions:
-            outs = sess.run(outs_names, {n: env[n] for n in ins})
-            env.update(zip(outs_names, outs))
-        return [env[f"depth_{p}"][0, 0] for p in range(self.manifest["paths"])]
+        return self._depths(self.sessions, *self.check(image, scan))
 
     def check(self, image: np.ndarray, scan: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         h, w = self.input_size
@@ -111,16 +192,24 @@ class AnytimeRunner:
         self._halt.clear()
         env = {"image": img, "scan": s}
         t0 = time.perf_counter()
-        timer = None
         if deadline_ms is not None:
-            timer = threading.Timer(max(deadline_ms, 0.0) / 1000.0, self.halt)
-            timer.start()
-        best: tuple[int, np.ndarray, float] | None = None
+            self._watchdog.arm(t0 + max(deadline_ms, 0.0) / 1000.0)
+        best: tuple[int, np.ndarray | None, float] | None = None
         completed = []
         halted = False
         opts = ort.RunOptions()
+        path0 = None
         try:
             for st, sess, ins, out_names in self.sessions:
+                if _is_scan_path(st):
+                    # the scan's own map is available at once (its cost is ~0) and is computed only
+                    # if it is the answer: a run that reaches path 1 never needs it
+                    path0 = (sess, ins, out_names)
+                    best = (0, None, 0.0)
+                    completed.append((0, 0.0))
+                    if on_path is not None:
+                        on_path(0, 0.0)
+                    continue
                 if best is not None and self._halt.is_set():
                     halted = True
                     break
@@ -154,12 +243,25 @@ class AnytimeRunner:
                         halted = True
                         break
         finally:
-            if timer is not None:
-                timer.cancel()
+            if deadline_ms is not None:
+                self._watchdog.disarm()
             with self._lock:
                 self._options = None
         path, depth, ready = best
+        if depth is None:
+            sess, ins, out_names = path0
+            depth = sess.run(out_names, {n: env[n] for n in ins})[0]   # a RunOptions of its own: never cut
         return AnytimeResult(depth[0, 0], path, ready, completed, halted)
+
+
+def _named(stage: dict, sess) -> tuple[dict, object, list[str], list[str]]:
+    # names looked up once: get_inputs() builds new objects on every call
+    return stage, sess, [i.name for i in sess.get_inputs()], [o.name for o in sess.get_outputs()]
+
+
+def _is_scan_path(stage: dict) -> bool:
+    """Path 0's graph: the interpolated scan, read by no later stage."""
+    return stage["path"] == 0 and list(stage["outputs"]) == ["depth_0"]
 
 
 def read_scan(path: Path) -> np.ndarray:

@@ -16,13 +16,14 @@ __all__ = ["session", "default_threads", "time_call", "conditions", "Measurement
            "measure_candidate", "DEFAULT_PROVIDER"]
 
 
-def session(model: bytes, threads: int | None = None, provider: str = DEFAULT_PROVIDER):
-    """The probe's session (one measurement path); a provider this onnxruntime lacks is a UserError."""
+def session(model: bytes, threads: int | None = None, provider: str = DEFAULT_PROVIDER, **options):
+    """The probe's session (one measurement path; ``options``: its ``optimize`` and ``save_optimized``);
+    a provider this onnxruntime lacks is a UserError."""
     try:
         check_provider(provider)
     except ProbeError as exc:
         raise UserError(str(exc)) from None
-    return _probe.session(model, threads, provider)
+    return _probe.session(model, threads, provider, **options)
 
 
 def conditions(threads: int | None = None, repeats: int = 15, warmup: int = 3,

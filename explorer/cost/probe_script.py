@@ -97,9 +97,11 @@ def _shared_pool(threads: int) -> bool:
     return _POOL["threads"] is not None
 
 
-def session(model: "bytes | str | Path", threads: int | None = None, provider: str = DEFAULT_PROVIDER):
+def session(model: "bytes | str | Path", threads: int | None = None, provider: str = DEFAULT_PROVIDER,
+            optimize: bool = True, save_optimized: "Path | None" = None):
     """An onnxruntime session as every measurement and the runtime use it: ``threads`` intra-op
-    threads (the process's shared pool has those of its first session), full graph optimisation,
+    threads (the process's shared pool has those of its first session), full graph optimisation
+    (none for a graph optimised already; ``save_optimized``: where to write the optimised graph),
     ``provider`` first (the CPU one takes what it cannot run)."""
     import onnxruntime as ort
     opts = ort.SessionOptions()
@@ -112,7 +114,10 @@ def session(model: "bytes | str | Path", threads: int | None = None, provider: s
         # Stages run one after another in separate sessions: threads spinning after one stage would
         # steal the cores from the next.
         opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
-    opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    opts.graph_optimization_level = (ort.GraphOptimizationLevel.ORT_ENABLE_ALL if optimize
+                                     else ort.GraphOptimizationLevel.ORT_DISABLE_ALL)
+    if save_optimized is not None:
+        opts.optimized_model_filepath = str(save_optimized)
     opts.log_severity_level = 3
     providers = [provider] + ([DEFAULT_PROVIDER] if provider != DEFAULT_PROVIDER else [])
     return ort.InferenceSession(str(model) if isinstance(model, Path) else model, opts, providers=providers)
