@@ -6,7 +6,7 @@ the one the host profile predicts.
 """
 
 import argparse
-import shutil
+from dataclasses import replace
 import statistics
 import tempfile
 from pathlib import Path
@@ -93,9 +93,12 @@ if __name__ == "__main__":
               f"(medians of 5): {statistics.median(ratios):.2f}x per rep ({min(ratios):.2f}-{max(ratios):.2f}; goal >= 3x)")
 
         if not args.skip_int8:
-            q8 = out.parent / (out.name + "-int8")
+            q8 = out / "int8"   # inside the temporary folder: removed with it
             m = export_network(net, q8, size, quantization=Quantization(data="synthetic", max_degradation=1.0))
             runner8 = AnytimeRunner(q8)
+            print("int8 export, per stage graph (kept int8 where it took at most 95% of its fp32 time here): "
+                  + "; ".join(f"{st['name']} {st['precision']}" + (f" ({st['ms_here']['int8']:.2f} vs "
+                              f"{st['ms_here']['fp32']:.2f} ms)" if "ms_here" in st else "") for st in m["stages"]))
             fp32_ms, int8_ms = [], []
             for rep in range(5):  # interleaved
                 fp32_ms.append(time_call(lambda: runner.run(env["image"][0], env["scan"][0]), 2, 20))
@@ -108,12 +111,23 @@ if __name__ == "__main__":
                   f"RMSE change per path on {m['quantization']['evaluation']['frames']} frames: "
                   f"{' '.join(f'{100 * d:+.1f}%' for d in deg)} (goal: last path within 2%)")
             print(f"int8 staged: {macs / (i * 1e6):.1f} GMAC/s, {peak.fraction(macs, i, 'int8'):.0%} of int8 peak")
-            shutil.rmtree(q8)
 
         if args.skip_anytime:
             raise SystemExit(0)
         prof = calibrate()
         pred_ms = candidate_cost(cand, size).path_latency_ms(prof)
+        for label, r, c in (("fp32", runner, cand),) + ((("int8", runner8, replace(cand, precision="int8")),)
+                                                          if not args.skip_int8 else ()):
+            ready = [[] for _ in range(cand.num_paths)]
+            for rep in range(3):   # path ready times of whole runs, 20 per rep
+                for _ in range(20):
+                    for path, ms in r.run(env["image"][0], env["scan"][0]).completed:
+                        ready[path].append(ms)
+            measured = [statistics.median(t) for t in ready]
+            predicted = candidate_cost(c, size).path_latency_ms(prof)
+            print(f"{label} path ready times, measured (median of 60 runs) vs predicted by the host profile: "
+                  + ", ".join(f"path {p} {m:.2f} vs {q:.2f} ms ({q / m - 1:+.1%})"
+                              for p, (m, q) in enumerate(zip(measured, predicted)) if p))
         ds = open_dataset("synthetic", "val", size, train_augment=False)
         frames = [ds[i] for i in range(args.frames)]
         per_path = [MetricAverager() for _ in range(cand.num_paths)]

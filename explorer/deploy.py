@@ -49,6 +49,8 @@ class Quantization:
     eval_frames: int = 64
     max_degradation: float = MAX_DEGRADATION
     force: bool = False
+    # which stage graphs are int8: "faster" (measured here), "all", or those named (as searched)
+    stages: "str | tuple[str, ...]" = "faster"
 
 
 def export_network(net: AnytimeDepthNet, out_dir: Path, input_size: tuple[int, int],
@@ -68,7 +70,7 @@ def export_network(net: AnytimeDepthNet, out_dir: Path, input_size: tuple[int, i
         manifest = _export_fp32(net, scratch, input_size, scan_row, path_metrics, devices, source)
         q = quantization
         manifest.update(quantize_export(scratch, q.data, q.calibration_frames, q.eval_frames, q.max_degradation,
-                                        q.force, progress))
+                                        q.force, progress, q.stages))
         manifest["path_metrics_trained"] = manifest["path_metrics"]
         manifest["path_metrics"] = manifest["path_metrics_int8"]
         (scratch / MANIFEST).write_text(json.dumps(manifest, indent=2))
@@ -154,7 +156,10 @@ def export_from_study(study_name: str, trial_number: int | None, out_dir: Path, 
     net = trial_network(study, trial)
     cfg = study.user_attrs.get("config", {})
     if quantization == AS_SEARCHED:   # an int8 candidate was costed and measured as int8: export it so
-        quantization = Quantization(data=cfg.get("data", "synthetic")) if net.candidate.precision == "int8" else None
+        searched = trial.user_attrs.get("int8_graphs")   # the stage graphs its device priced int8
+        quantization = Quantization(data=cfg.get("data", "synthetic"),
+                                    stages="faster" if searched is None else tuple(searched)) \
+            if net.candidate.precision == "int8" else None
     size = tuple(input_size or cfg.get("input_size", (224, 224)))
     devs = list(devices or dict.fromkeys([cfg.get("device", "tx2"), "tx2", "rpi4"]))
     return export_network(net, out_dir, size, path_metrics=trial.user_attrs.get("path_metrics"), devices=devs,

@@ -137,7 +137,7 @@ def _retrain(study: optuna.Study, objective, candidate: Candidate, baseline: str
                    checkpoint=checkpoint, val_limit=objective.config.val_limit)
     path_metrics = _json_safe(result.metrics.drop(columns=["path"]).to_dict("records"))
     if candidate.precision == "int8":
-        path_metrics = objective.quantized(holder, net, path_metrics)
+        path_metrics = objective.quantized(holder, net, path_metrics, cost)
     path_losses = [m[objective.config.metric] for m in path_metrics]
     if any(not math.isfinite(v) for v in path_losses):
         checkpoint.unlink(missing_ok=True)

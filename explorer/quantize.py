@@ -3,11 +3,17 @@
 frames of a data set), and every path's metrics measured again after quantization.
 
 Each stage graph is calibrated on the inputs it really receives: the float model runs the
-calibration frames and every stage's inputs are kept. Only the layers where int8 pays are quantized
-(``quantizes``): ungrouped convolutions whose every output sums at least ``MIN_INT8_REDUCTION``
-products, transposed convolutions and matrix products. onnxruntime fuses the QDQ pairs around each
-into one int8 kernel; depthwise convolutions, thin ones (the RGB stem, the exit heads' last layers),
-resizes, additions and concatenations stay float. Path 0 (the scan) has nothing to quantize.
+calibration frames and every stage's inputs are kept. A stage graph is quantized whole: every operator
+onnxruntime's quantizer handles (convolutions of every kind, resizes, additions, concatenations), so
+that its tensors stay uint8 from one layer to the next and it quantizes and dequantizes only at its
+edges. Quantizing only the wide convolutions, with float depthwise layers between them, paid for
+nothing: on this project's AVX-512 VNNI VM the encoder stage ran 1.04x its fp32 speed that way and
+1.68x quantized whole (benchmarks/bench_runtime.py). Whole quantization does not pay everywhere: the
+full-resolution decoder stages ran 1.9x slower (onnxruntime's uint8 resize and depthwise kernels are
+slower than its blocked fp32 ones). So an export keeps a stage int8 only where it runs at most
+``INT8_KEEP_RATIO`` of its fp32 time on the exporting machine (``stages="all"``: every stage int8), and
+the cost model prices an int8 candidate's stages the same way (``explorer.cost.devices``). Path 0
+(the scan) has nothing to quantize.
 
 Weights are quantized to 7 bits (``reduce_range``): x86 CPUs without VNNI multiply uint8 by int8 in
 pairs summed into int16 (VPMADDUBSW), which saturates with full-range weights; measured on one such
@@ -16,6 +22,7 @@ machine (AVX2), full range degraded the paper design's last path by 29% RMSE, 7 
 
 from __future__ import annotations
 
+import statistics
 import tempfile
 from pathlib import Path
 from typing import Callable
@@ -24,46 +31,26 @@ import numpy as np
 
 from explorer.errors import UserError
 
+#: a graph with none of these keeps fp32: nothing in it is worth quantizing
 QUANTIZED_OPS = ["Conv", "ConvTranspose", "MatMul", "Gemm"]
-#: An int8 convolution is quantized only when each output sums at least this many products (its
-#: in-channels x kernel area): below it, onnxruntime's int8 kernel with the quantize / dequantize
-#: around it took longer than the float layer (the 27-product stem 1.9x, a 16 -> 8 exit head at
-#: 224x224 1.45x), from 64 products on 0.57-0.86x (benchmarks/bench_int8_layers.py, this AVX2 machine).
-MIN_INT8_REDUCTION = 32
-#: Workload kinds an int8 export may quantize: depthwise convolutions never are (onnxruntime's int8
-#: depthwise kernels took 1.1-1.7x as long as its float ones, same benchmark).
-QUANTIZABLE_KINDS = ("pointwise", "pointwise_1ch", "conv", "conv1d", "deconv")
+#: an export keeps a stage int8 where it takes at most this fraction of its fp32 time (timing noise
+#: would otherwise flip stages that int8 leaves as fast as they were)
+INT8_KEEP_RATIO = 0.95
+#: ``explorer export --int8-stages``: which stages of an int8 export are int8
+INT8_STAGES = ("faster", "all")
+#: Workload kinds an int8 stage graph runs quantized: every convolution (the rest, resizes and
+#: additions, are quantized too, and priced by the int8 profile's fit of whole stage graphs).
+QUANTIZABLE_KINDS = ("pointwise", "pointwise_1ch", "conv", "conv1d", "deconv", "depthwise")
 
 
-def quantizes(kind: str, in_channels: int, kernel_area: int) -> bool:
-    """Whether an int8 export quantizes a layer of workload ``kind`` (an ungrouped convolution of
-    ``in_channels`` x ``kernel_area`` products per output, or a transposed one)."""
-    if kind == "deconv":
-        return True
-    return kind in QUANTIZABLE_KINDS and in_channels * kernel_area >= MIN_INT8_REDUCTION
+def quantizes(kind: str, in_channels: int = 0, kernel_area: int = 0) -> bool:
+    """Whether an int8 stage graph runs a layer of workload ``kind`` quantized (every convolution)."""
+    return kind in QUANTIZABLE_KINDS
 
 
 def workload_quantized(w) -> bool:
-    """``quantizes`` for a cost-model ``Workload``. One whose shape is unknown (stored by a study
-    before this rule) counts as quantized when its kind may be: every convolution but a depthwise one."""
-    if not w.in_shape:
-        return w.kind in QUANTIZABLE_KINDS
-    return quantizes(w.kind, w.in_shape[0], w.kernel if w.kind == "conv1d" else w.kernel * w.kernel)
-
-
-def _float_convolutions(model) -> list[str]:
-    """Names of the Conv nodes of ``model`` (an onnx ModelProto) that ``quantizes`` leaves float."""
-    weights = {i.name: tuple(i.dims) for i in model.graph.initializer}
-    keep = []
-    for n in model.graph.node:
-        if n.op_type != "Conv":
-            continue
-        group = next((a.i for a in n.attribute if a.name == "group"), 1)
-        dims = weights.get(n.input[1]) if len(n.input) > 1 else None   # (out, in / group, *kernel)
-        if dims is None or len(dims) < 3 or not quantizes("conv" if group == 1 else "depthwise", dims[1],
-                                                          int(np.prod(dims[2:]))):
-            keep.append(n.name)
-    return keep
+    """``quantizes`` for a cost-model ``Workload``."""
+    return quantizes(w.kind)
 
 
 #: a path may lose at most this fraction of its RMSE to quantization unless --force
@@ -141,20 +128,28 @@ def _quantize(src: Path, dst: Path, feeds: list[dict[str, np.ndarray]]) -> bool:
     import onnx
     from onnxruntime.quantization import CalibrationMethod, QuantFormat, QuantType, quantize_static
     from onnxruntime.quantization.shape_inference import quant_pre_process
-    model = onnx.load(str(src))
-    keep_float = _float_convolutions(model)
-    if not any(n.op_type in QUANTIZED_OPS and n.name not in keep_float for n in model.graph.node):
+    if not any(n.op_type in QUANTIZED_OPS for n in onnx.load(str(src)).graph.node):
         dst.write_bytes(src.read_bytes())
         return False
     with tempfile.TemporaryDirectory() as tmp:
         prepared = Path(tmp) / "prepared.onnx"
         quant_pre_process(str(src), str(prepared), skip_symbolic_shape=True)
+        # op_types_to_quantize left out: every operator the quantizer handles
         quantize_static(str(prepared), str(dst), _Feeds(feeds), quant_format=QuantFormat.QDQ,
                         activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8, per_channel=True,
-                        reduce_range=True, op_types_to_quantize=QUANTIZED_OPS,
-                        nodes_to_exclude=_float_convolutions(onnx.load(str(prepared))),
-                        calibrate_method=CalibrationMethod.MinMax)
+                        reduce_range=True, calibrate_method=CalibrationMethod.MinMax)
     return True
+
+
+def compare_speed(fp32: Path, int8: Path, feeds: dict[str, np.ndarray], reps: int = 3) -> tuple[float, float]:
+    """Median ms of the two graphs on ``feeds`` on this machine, timed in turn ``reps`` times."""
+    from explorer.cost.measure import session, time_call
+    sessions = [session(fp32.read_bytes()), session(int8.read_bytes())]
+    times: list[list[float]] = [[], []]
+    for _ in range(reps):
+        for sess, t in zip(sessions, times):
+            t.append(time_call(lambda: sess.run(None, feeds), 2, 10))
+    return statistics.median(times[0]), statistics.median(times[1])
 
 
 def path_metrics(model_dir: Path, frames: list[dict]) -> list[dict[str, float]]:
@@ -165,17 +160,22 @@ def path_metrics(model_dir: Path, frames: list[dict]) -> list[dict[str, float]]:
 
 def quantize_export(model_dir: Path, data: str, calibration_frames: int = 32, eval_frames: int = 64,
                     max_degradation: float = MAX_DEGRADATION, force: bool = False,
-                    progress: Callable[[str], None] | None = None) -> dict:
+                    progress: Callable[[str], None] | None = None,
+                    stages: "str | tuple[str, ...]" = "faster") -> dict:
     """Turns the fp32 export in ``model_dir`` (a scratch folder) into an int8 one in place and returns
-    what the manifest records: per-path metrics before and after on ``eval_frames`` validation frames,
-    each path's RMSE degradation, the calibration. Refuses (UserError) when a path degrades by more than
-    ``max_degradation`` unless ``force``."""
+    what the manifest records: which stage graphs are int8 and why (``stages="faster"``: those that ran at
+    most ``INT8_KEEP_RATIO`` of their fp32 time here; ``"all"``: every one; a tuple: those named, as
+    ``CandidateCost.int8_graphs`` names the ones a device profile prices int8), per-path metrics before and after
+    on ``eval_frames`` validation frames, each path's RMSE degradation, the calibration. Refuses
+    (UserError) when a path degrades by more than ``max_degradation`` unless ``force``."""
     import json
     from explorer.runtime import MANIFEST
     if calibration_frames < 1 or eval_frames < 1:
         raise UserError("--calibration-frames and --eval-frames must be at least 1")
     if not 0 <= max_degradation:
         raise UserError(f"--max-degradation must be 0 or more, got {max_degradation}")
+    if isinstance(stages, str) and stages not in INT8_STAGES:
+        raise UserError(f"--int8-stages {stages}: use {' or '.join(INT8_STAGES)}")
     manifest = json.loads((model_dir / MANIFEST).read_text())
     size = tuple(manifest["input_size"])
     say = progress or (lambda _: None)
@@ -186,13 +186,30 @@ def quantize_export(model_dir: Path, data: str, calibration_frames: int = 32, ev
     before = path_metrics(model_dir, evaluation)
     quantized = []
     for k, stage in enumerate(manifest["stages"]):
-        say(f"quantizing {stage['file']}")
         src = model_dir / stage["file"]
         dst = src.with_name(src.stem + ".int8.onnx")
-        if quantize_graph(src, dst, calib[k]):
-            quantized.append(stage["file"])
-        src.unlink()
-        stage["file"] = dst.name
+        stage["precision"] = "fp32"
+        if stage["path"] == 0 and not stage["stages"]:
+            continue   # the scan's own map: nothing to quantize
+        if not isinstance(stages, str) and stage["name"] not in stages:
+            continue
+        say(f"quantizing {stage['file']}")
+        if not quantize_graph(src, dst, calib[k]):
+            dst.unlink(missing_ok=True)
+            continue
+        keep = True
+        if stages == "faster":
+            fp32_ms, int8_ms = compare_speed(src, dst, calib[k][0])
+            keep = int8_ms <= INT8_KEEP_RATIO * fp32_ms
+            stage["ms_here"] = {"fp32": round(fp32_ms, 4), "int8": round(int8_ms, 4)}
+            say(f"  {stage['name']}: {int8_ms:.2f} ms in int8, {fp32_ms:.2f} ms in fp32 on this machine: "
+                + ("int8" if keep else "kept fp32"))
+        if keep:
+            src.unlink()
+            stage["file"], stage["precision"] = dst.name, "int8"
+            quantized.append(src.name)
+        else:
+            dst.unlink()
     (model_dir / MANIFEST).write_text(json.dumps(manifest, indent=2))
     say(f"measuring the int8 paths on {len(evaluation)} validation frames")
     after = path_metrics(model_dir, evaluation)
@@ -203,10 +220,10 @@ def quantize_export(model_dir: Path, data: str, calibration_frames: int = 32, ev
                         f"{max_degradation:.0%}; {before[worst]['rmse']:.4f} -> {after[worst]['rmse']:.4f} m): "
                         "not exported; keep fp32, calibrate on more frames, or add --force")
     return {"precision": "int8", "stages": manifest["stages"], "path_metrics_fp32": before, "path_metrics_int8": after,
-            "quantization": {"method": "onnxruntime static QDQ: int8 weights per channel (7-bit range), uint8 "
-                                       "activations (MinMax calibration), ops " + ", ".join(QUANTIZED_OPS)
-                                       + f"; ungrouped convolutions of at least {MIN_INT8_REDUCTION} products per "
-                                       "output only (depthwise and thinner ones stay float)",
+            "quantization": {"method": "onnxruntime static QDQ, each stage graph quantized whole (every operator "
+                                       "the quantizer handles): int8 weights per channel (7-bit range), uint8 "
+                                       "activations (MinMax calibration)",
+                             "int8_stages": _why(stages),
                              "calibration": {"data": data, "split": "train", "frames": len(calib[0]) if calib else 0},
                              "evaluation": {"data": data, "split": "val", "frames": len(evaluation)},
                              "rmse_degradation": degradation, "max_degradation": max_degradation,
@@ -214,23 +231,37 @@ def quantize_export(model_dir: Path, data: str, calibration_frames: int = 32, ev
                              "quantized_graphs": quantized}}
 
 
+def _why(stages: "str | tuple[str, ...]") -> str:
+    if stages == "all":
+        return "all"
+    if stages == "faster":
+        return (f"faster: int8 where a stage graph took at most {INT8_KEEP_RATIO:.0%} of its fp32 time on the "
+                "exporting machine (ms_here)")
+    return "as searched: those the device profile prices faster in int8"
+
+
 def quantization_effect(net, input_size: tuple[int, int], data: str, calibration_frames: int = 16,
-                        eval_frames: int = 32) -> dict:
-    """How quantizing ``net``'s stage graphs to int8 changes each path's metrics, measured with
-    onnxruntime on ``eval_frames`` validation frames of ``data`` (fp32 and int8 graphs alike): per
-    path, each metric's int8 / fp32 ratio. What a search applies to an int8 candidate's estimate, so
-    that it is compared with fp32 ones on the same frames."""
+                        eval_frames: int = 32, stages: "str | tuple[str, ...]" = "faster") -> dict:
+    """How quantizing ``net``'s stage graphs to int8 (``stages``, as ``quantize_export`` reads it)
+    changes each path's metrics, measured with onnxruntime on ``eval_frames`` validation frames of
+    ``data`` (fp32 and int8 graphs alike): per path, each metric's int8 / fp32 ratio. What a search
+    applies to an int8 candidate's estimate, so that it is compared with fp32 ones on the same frames."""
     import math
     from explorer.deploy import Quantization, export_network
+    if stages == ():   # no graph int8 (none pays on the device): its fp32 metrics
+        paths = net.candidate.num_paths
+        return {"ratios": [{}] * paths, "rmse_degradation": [0.0] * paths, "frames": 0, "int8_graphs": []}
     with tempfile.TemporaryDirectory(prefix="explorer-int8-") as tmp:
         m = export_network(net, Path(tmp) / "model", input_size, devices=(),
                            quantization=Quantization(data=data, calibration_frames=calibration_frames,
-                                                     eval_frames=eval_frames, max_degradation=math.inf, force=True))
+                                                     eval_frames=eval_frames, max_degradation=math.inf, force=True,
+                                                     stages=stages))
     before, after = m["path_metrics_fp32"], m["path_metrics_int8"]
     ratios = [{k: (a[k] / b[k] if b[k] else 1.0) for k in b if isinstance(b[k], (int, float))}
               for a, b in zip(after, before)]
     return {"ratios": ratios, "rmse_degradation": m["quantization"]["rmse_degradation"],
-            "frames": m["quantization"]["evaluation"]["frames"]}
+            "frames": m["quantization"]["evaluation"]["frames"],
+            "int8_graphs": [s["name"] for s in m["stages"] if s["precision"] == "int8"]}
 
 
 def _serve() -> None:

@@ -289,7 +289,7 @@ class Objective:
             if done is not None:
                 # the sampler proposed a candidate already evaluated: reuse what was paid for
                 for key in ("path_metrics", "train", "losses", "weights_artifact", "evaluator", "path_metrics_fp32",
-                            "quantization"):
+                            "quantization", "int8_graphs"):
                     if key in done.user_attrs:
                         trial.set_user_attr(key, done.user_attrs[key])
                 trial.set_user_attr("duplicate_of", done.number)
@@ -319,7 +319,7 @@ class Objective:
                 if result.info["evaluator"] == "supernet":   # stage-by-stage evaluation left the slice's BN as it was
                     from explorer.evaluators import recalibrate_batchnorm
                     recalibrate_batchnorm(result.network, self.evaluator.calibration)
-                path_metrics = self.quantized(trial, result.network, path_metrics)
+                path_metrics = self.quantized(trial, result.network, path_metrics, cost)
             trial.set_user_attr("path_metrics", path_metrics)
             trial.set_user_attr("evaluator", _json_safe(result.info))
             if result.info["evaluator"] == "proxy":
@@ -335,14 +335,17 @@ class Objective:
                 trial.set_user_attr("weights_artifact", artifact)
         return self.values(losses, pm, latency)
 
-    def quantized(self, trial, net, path_metrics: list[dict]) -> list[dict]:
+    def quantized(self, trial, net, path_metrics: list[dict], cost) -> list[dict]:
         """An int8 candidate's metrics: those of its fp32 weights ``net`` (on the frames every trial
         uses) times what quantizing its graphs does to each path, measured with onnxruntime
-        (explorer.quantize); both, and the change, are kept on ``trial``."""
+        (explorer.quantize); both, and the change, are kept on ``trial``. The graphs quantized are those
+        the device profile prices int8 (``CandidateCost.int8_graphs``), as its latency assumes."""
         from explorer.quantize import quantization_effect
         net.eval()
+        graphs = cost.int8_graphs(self.device_profile)
         effect = quantization_effect(net, self.config.train_size, self.config.data,
-                                     eval_frames=self.config.val_limit or 32)
+                                     eval_frames=self.config.val_limit or 32, stages=graphs)
+        trial.set_user_attr("int8_graphs", list(graphs))
         trial.set_user_attr("path_metrics_fp32", path_metrics)
         trial.set_user_attr("quantization", _json_safe({k: effect[k] for k in ("rmse_degradation", "frames")}))
         return [{k: v * r.get(k, 1.0) if isinstance(v, (int, float)) else v for k, v in m.items()}

@@ -120,7 +120,7 @@ def int8_export(tmp_path_factory):
     torch.manual_seed(0)
     net = build_network(CAND)
     m = export_network(net, out / "m", (32, 48), quantization=Quantization(
-        data=TINY_DATA, calibration_frames=4, eval_frames=6, max_degradation=10.0))
+        data=TINY_DATA, calibration_frames=4, eval_frames=6, max_degradation=10.0, stages="all"))
     return out / "m", m
 
 
@@ -130,8 +130,10 @@ def test_int8_export_records_every_path_before_and_after(int8_export):
     from explorer.quantize import _frames, path_metrics
     out, m = int8_export
     assert m["precision"] == "int8" and json.loads((out / "manifest.json").read_text()) == m
-    assert all(s["file"].endswith(".int8.onnx") and (out / s["file"]).is_file() for s in m["stages"])
-    assert all(f.name.endswith(".int8.onnx") for f in out.glob("*.onnx"))   # no fp32 graph left beside them
+    # --int8-stages all: every stage graph but path 0's (the scan: nothing to quantize)
+    assert [s["precision"] for s in m["stages"]] == ["fp32"] + ["int8"] * (len(m["stages"]) - 1)
+    assert all(s["file"].endswith(".int8.onnx") and (out / s["file"]).is_file() for s in m["stages"][1:])
+    assert sorted(f.name for f in out.glob("*.onnx")) == sorted(s["file"] for s in m["stages"])   # no fp32 one left
     ops = {n.op_type for s in m["stages"][1:] for n in onnx.load(str(out / s["file"])).graph.node}
     assert {"QuantizeLinear", "DequantizeLinear"} <= ops
     q = m["quantization"]
@@ -178,6 +180,28 @@ def test_int8_past_the_degradation_limit_is_refused_and_changes_nothing(exported
     assert [p.name for p in tmp_path.iterdir()] == ["kept"]                 # no scratch folder left
 
 
+def test_int8_keeps_a_stage_fp32_where_int8_is_not_faster_here(exported, tmp_path, monkeypatch):
+    import explorer.quantize as quantize
+    from conftest import TINY_DATA
+    from explorer.deploy import Quantization
+    _, net = exported
+    timed = []
+
+    def speeds(fp32, int8, feeds):   # stage 1 runs twice as fast in int8; the others 0.97x their fp32 time
+        timed.append(fp32.name)
+        return (2.0, 1.0) if len(timed) == 1 else (1.0, 0.97)
+    monkeypatch.setattr(quantize, "compare_speed", speeds)
+    m = export_network(net, tmp_path / "m", (32, 48), quantization=Quantization(
+        data=TINY_DATA, calibration_frames=2, eval_frames=2, max_degradation=10.0))
+    assert len(timed) == len(m["stages"]) - 1   # every stage graph but path 0's
+    assert [s["precision"] for s in m["stages"]] == ["fp32", "int8"] + ["fp32"] * (len(m["stages"]) - 2)
+    assert m["stages"][1]["ms_here"] == {"fp32": 2.0, "int8": 1.0} and m["stages"][2]["ms_here"]["int8"] == 0.97
+    assert sorted(f.name for f in (tmp_path / "m").glob("*.onnx")) == sorted(s["file"] for s in m["stages"])
+    assert m["quantization"]["quantized_graphs"] == [m["stages"][1]["file"].replace(".int8", "")]
+    runner = AnytimeRunner(tmp_path / "m")   # fp32 and int8 stage graphs run together
+    assert runner.run(np.zeros((3, 32, 48), np.float32), np.ones(48, np.float32)).path == CAND.num_paths - 1
+
+
 def test_int8_cli_options(run_cli, tmp_path):
     code, _, err = run_cli("export", "--checkpoint", "x.pt", "--out", tmp_path / "o", "--quantize", "int4")
     assert code == 2 and "--quantize int4" in err
@@ -186,3 +210,8 @@ def test_int8_cli_options(run_cli, tmp_path):
     code, _, err = run_cli("export", "--checkpoint", "x.pt", "--out", tmp_path / "o", "--quantize", "int8",
                            "--max-degradation", "lots")
     assert code == 2 and "not a percentage" in err
+    code, _, err = run_cli("export", "--checkpoint", "x.pt", "--out", tmp_path / "o", "--int8-stages", "all")
+    assert code == 2 and "--quantize int8 only" in err
+    code, _, err = run_cli("export", "--checkpoint", "x.pt", "--out", tmp_path / "o", "--quantize", "int8",
+                           "--int8-stages", "some")
+    assert code == 2 and "--int8-stages" in err and len(err.strip().splitlines()) == 1

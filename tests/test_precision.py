@@ -18,10 +18,13 @@ TINY_INT8 = {**yaml.safe_load(open(SearchSpace.from_yaml("tiny").source).read())
 
 
 def _with_int8(tmp_path, slower: float = 2.0):
-    """tx2 with an int8 section whose convolutions run ``slower`` times slower than fp32's."""
+    """tx2 with an int8 section whose every layer takes ``slower`` times as long as in fp32."""
     data = get_device("tx2").to_dict()
     data["name"] = "tx2-int8"
-    data["int8"] = {"kinds": {k: {**v, "gmacs": v["gmacs"] / slower} for k, v in data["kinds"].items()}}
+    data["int8"] = {"bandwidth_gbs": data["bandwidth_gbs"] / slower,
+                    "kinds": {k: {**v, "gmacs": v["gmacs"] / slower, "overhead_ms": v["overhead_ms"] * slower,
+                                  **({"bandwidth_gbs": v["bandwidth_gbs"] / slower} if v.get("bandwidth_gbs") else {})}
+                              for k, v in data["kinds"].items()}}
     f = tmp_path / "tx2-int8.yaml"
     f.write_text(yaml.safe_dump(data))
     return f
@@ -39,7 +42,10 @@ def test_a_profile_prices_int8_only_where_it_has_int8_rates(tmp_path):
     fp32, int8 = paper_candidate(), dataclasses.replace(paper_candidate(), precision="int8")
     a, b = candidate_cost(fp32).path_latency_ms(dev), candidate_cost(int8).path_latency_ms(dev)
     assert a == candidate_cost(fp32).path_latency_ms(tx2)       # fp32 candidates: the fp32 rates
-    assert all(y > x for x, y in zip(a[1:], b[1:]))               # int8 ones: the (here slower) int8 rates
+    assert b == a      # int8 twice as slow: an int8 export keeps every stage graph fp32, and so does the price
+    faster = get_device(_with_int8(tmp_path, slower=0.5))
+    c = candidate_cost(int8).path_latency_ms(faster)
+    assert all(y < x for x, y in zip(a[1:], c[1:]))               # int8 twice as fast: the int8 rates
     bad = get_device("tx2").to_dict()
     bad["int8"] = {"gmacs": 3}
     with pytest.raises(UserError, match="'int8' must be a mapping with its own 'kinds'"):
@@ -65,7 +71,7 @@ def test_a_search_measures_int8_candidates_after_quantization(tmp_path, run_cli)
     from explorer.search import SearchConfig, search
     space = tmp_path / "tiny8.yaml"
     space.write_text(yaml.safe_dump(TINY_INT8))
-    device = _with_int8(tmp_path)
+    device = _with_int8(tmp_path, slower=0.5)   # int8 pays in every stage graph
     cfg = SearchConfig(study="p8", space=str(space), device=str(device), data=TINY_DATA, train_size=(32, 32),
                        input_size=(64, 64), batch_size=8, val_limit=8, evaluator="supernet", supernet_steps=4,
                        finalists=0, baselines=())
@@ -81,6 +87,8 @@ def test_a_search_measures_int8_candidates_after_quantization(tmp_path, run_cli)
             assert m["rmse"] == pytest.approx(b["rmse"] * (1 + d), rel=1e-6)
         assert any(abs(d) > 0 for d in q["rmse_degradation"][1:])
         cand = Candidate.from_dict(t.user_attrs["candidate"])
+        assert t.user_attrs["int8_graphs"] == list(candidate_cost(cand, (64, 64)).int8_graphs(get_device(device)))
+        assert len(t.user_attrs["int8_graphs"]) == cand.num_paths - 1   # every stage graph but path 0's
         assert t.user_attrs["latency_ms"] == pytest.approx(candidate_cost(cand, (64, 64)).path_latency_ms(get_device(device)))
         assert trial_path_costs(t, get_device(device), "time") == pytest.approx(t.user_attrs["latency_ms"])
     assert all("quantization" not in t.user_attrs for t in fp32)
@@ -91,6 +99,9 @@ def test_a_search_measures_int8_candidates_after_quantization(tmp_path, run_cli)
     assert code == 0, err
     manifest = json.loads((tmp_path / "m8" / "manifest.json").read_text())
     assert manifest["precision"] == "int8" and manifest["candidate"]["precision"] == "int8"
+    # the stage graphs the search priced int8, and no timing here
+    assert [s["name"] for s in manifest["stages"] if s["precision"] == "int8"] == trial.user_attrs["int8_graphs"]
+    assert not any("ms_here" in s for s in manifest["stages"])
     # its anytime curve is predicted at int8 where the profile can, else at fp32 and said so
     for dev, priced in ((device, "int8"), ("tx2", "fp32")):
         code, text, err = run_cli("curve", tmp_path / "m8", "--data", TINY_DATA, "--device", dev, "--frames", "2",
@@ -131,27 +142,39 @@ def test_an_int8_finalist_is_retrained_then_measured_after_quantization(tmp_path
         assert m["rmse"] == pytest.approx(b["rmse"] * (1 + d), rel=1e-6)
 
 
-def test_an_int8_graph_prices_the_layers_it_keeps_float_at_fp32(tmp_path):
-    from explorer.quantize import MIN_INT8_REDUCTION, workload_quantized
-    dev = get_device(_with_int8(tmp_path))
-    wl = candidate_cost(paper_candidate()).workloads
-    kinds = {w.kind: workload_quantized(w) for w in wl if w.kind in ("depthwise", "resize", "add")}
-    assert kinds == {"depthwise": False, "resize": False, "add": False}
-    stem = next(w for w in wl if w.kind == "conv")          # 3 in-channels x 3x3 = 27 products: float
-    wide = next(w for w in wl if w.kind == "pointwise" and w.in_shape[0] >= MIN_INT8_REDUCTION)
-    assert not workload_quantized(stem) and workload_quantized(wide)
-    assert dev.int8.float_layers is dev
-    for w in wl:
-        expect = (dev.int8 if workload_quantized(w) else dev).kinds[w.kind]
-        assert dev.at_precision("int8").layer_ms(w) == pytest.approx(
-            dataclasses.replace(dev, kinds={**dev.kinds, w.kind: expect}).layer_ms(w))
-    assert dev.at_precision("int8").layer_ms(stem) == dev.layer_ms(stem)
-    assert dev.at_precision("int8").layer_ms(wide) == pytest.approx(2 * dev.layer_ms(wide), rel=0.2)
+def test_an_int8_candidate_is_priced_at_int8_only_in_the_stage_graphs_where_it_pays(tmp_path):
+    """As an int8 export keeps a stage graph (the stages between two exits) int8 only where it runs at
+    most INT8_KEEP_RATIO of its fp32 time, the price takes int8 only there."""
+    from explorer.cost.devices import _stage_ms
+    from explorer.quantize import INT8_KEEP_RATIO
+    data = get_device("tx2").to_dict()
+    # int8 convolutions 4x as fast, resizes 20x as slow: the encoder pays, the decoders do not
+    bandwidth = data["bandwidth_gbs"]
+    data["int8"] = {"kinds": {k: {**v, "gmacs": v["gmacs"] * 4, "bandwidth_gbs": v.get("bandwidth_gbs", bandwidth) * 4}
+                              if k in ("pointwise", "depthwise", "conv") else
+                              {**v, "bandwidth_gbs": v.get("bandwidth_gbs", bandwidth) / 20,
+                               "overhead_ms": v["overhead_ms"] * 20} if k == "resize" else v
+                              for k, v in data["kinds"].items()}}
+    (tmp_path / "d.yaml").write_text(yaml.safe_dump({**data, "name": "mixed"}))
+    dev = get_device(tmp_path / "d.yaml")
+    cost = candidate_cost(dataclasses.replace(paper_candidate(), precision="int8"))
+    int8, fp32 = _stage_ms(dev.int8, cost.workloads), _stage_ms(dev, cost.workloads)
+    chosen, done, picks = {}, 0, []
+    for stages in cost.path_stages:
+        graph = list(stages)[done:]
+        done = len(stages)
+        t8, t32 = sum(int8.get(s, 0) for s in graph), sum(fp32.get(s, 0) for s in graph)
+        picks.append(t8 <= INT8_KEEP_RATIO * t32)
+        chosen.update({s: (int8 if picks[-1] else fp32).get(s, 0.0) for s in graph})
+    assert picks[0] and not all(picks)   # the encoders' graph int8, some decoder graph fp32
+    want = [dev.inference_overhead_ms + sum(chosen.get(s, 0.0) + dev.stage_overhead_ms for s in stages)
+            for stages in cost.path_stages]
+    assert cost.path_latency_ms(dev)[1:] == pytest.approx(want)
 
 
 def test_stored_workloads_recost_int8_trials_layer_by_layer():
     from explorer.results import compact_workloads, expand_workloads
-    from explorer.quantize import workload_quantized
+    from explorer.quantize import QUANTIZABLE_KINDS, workload_quantized
     cost = candidate_cost(paper_candidate())
     compact = compact_workloads(cost)
     wl, _ = expand_workloads(json.loads(json.dumps(compact)))
@@ -159,12 +182,12 @@ def test_stored_workloads_recost_int8_trials_layer_by_layer():
     old = {**compact, "layers": [row[:6] for row in compact["layers"]]}   # rows a study stored before
     wl_old, _ = expand_workloads(old)
     assert [w.macs for w in wl_old] == [w.macs for w in cost.workloads]
-    assert all(workload_quantized(w) == (w.kind in ("pointwise", "pointwise_1ch", "conv", "conv1d")) for w in wl_old)
+    assert all(workload_quantized(w) == (w.kind in QUANTIZABLE_KINDS) for w in wl_old)
 
 
-def test_int8_export_quantizes_wide_convolutions_only_with_7_bit_weights(tmp_path):
-    """The stem (27 products per output), depthwise and thin convolutions stay float; the others get
-    int8 weights within 7 bits (no VPMADDUBSW saturation on x86 without VNNI)."""
+def test_int8_quantizes_a_stage_graph_whole_with_7_bit_weights(tmp_path):
+    """Every convolution (the stem, depthwise and thin ones too) gets int8 weights within 7 bits (no
+    VPMADDUBSW saturation on x86 without VNNI), and the activations between them are quantized."""
     import numpy as np
     import onnx
     import torch
@@ -173,7 +196,7 @@ def test_int8_export_quantizes_wide_convolutions_only_with_7_bit_weights(tmp_pat
     net = torch.nn.Sequential(torch.nn.Conv2d(3, 32, 3, 2, 1), torch.nn.ReLU(),
                               torch.nn.Conv2d(32, 32, 3, 1, 1, groups=32), torch.nn.ReLU(),
                               torch.nn.Conv2d(32, 48, 1), torch.nn.ReLU(), torch.nn.Conv2d(48, 16, 1), torch.nn.ReLU(),
-                              torch.nn.Conv2d(16, 8, 1)).eval()
+                              torch.nn.Upsample(scale_factor=2), torch.nn.Conv2d(16, 8, 1)).eval()
     src, dst = tmp_path / "f.onnx", tmp_path / "q.onnx"
     x = torch.rand(1, 3, 32, 32)
     torch.onnx.export(net, x, str(src), input_names=["x"], output_names=["y"], dynamo=False)
@@ -182,15 +205,21 @@ def test_int8_export_quantizes_wide_convolutions_only_with_7_bit_weights(tmp_pat
     g = onnx.load(str(dst)).graph
     weights = {i.name: numpy_helper.to_array(i) for i in g.initializer}
     made_by = {o: n for n in g.node for o in n.output}
-    quantized_weights = []
-    for conv in (n for n in g.node if n.op_type == "Conv"):
-        producer = made_by.get(conv.input[1])
-        if producer is not None and producer.op_type == "DequantizeLinear":
-            quantized_weights.append(weights[producer.input[0]])
-        else:
-            quantized_weights.append(None)
-    # per conv in order: stem, depthwise, 32 -> 48, 48 -> 16, 16 -> 8 (16 products: float)
-    assert [w is not None for w in quantized_weights] == [False, False, True, True, False]
-    for w in (w for w in quantized_weights if w is not None):
+    convs = [n for n in g.node if n.op_type == "Conv"]
+    assert len(convs) == 5 and all(made_by[c.input[0]].op_type == "DequantizeLinear" for c in convs)
+    resize = next(n for n in g.node if n.op_type == "Resize")
+    assert made_by[resize.input[0]].op_type == "DequantizeLinear"   # the resize runs on uint8 too
+    for conv in convs:
+        w = weights[made_by[conv.input[1]].input[0]]
         # 255 x 64 x 2 < 2**15: a pair of products cannot saturate int16
         assert w.dtype == np.int8 and np.abs(w.astype(int)).max() <= 64 and np.abs(w.astype(int)).max() >= 32
+
+
+def test_a_graph_without_convolutions_stays_fp32(tmp_path):
+    import torch
+    from explorer.quantize import quantize_graph
+    src, dst = tmp_path / "f.onnx", tmp_path / "q.onnx"
+    torch.onnx.export(torch.nn.ReLU(), torch.rand(1, 4), str(src), input_names=["x"], output_names=["y"],
+                      dynamo=False)
+    assert not quantize_graph(src, dst, [{"x": torch.rand(1, 4).numpy()}])
+    assert dst.read_bytes() == src.read_bytes()

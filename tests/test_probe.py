@@ -13,7 +13,7 @@ import pytest
 import yaml
 
 from explorer.cost import probe_script as probe
-from explorer.quantize import MIN_INT8_REDUCTION
+from explorer.quantize import QUANTIZABLE_KINDS
 from explorer.cost.calibrate import fit_energy, fit_results
 
 TINY = dict(scale=0.05, n_stage=1, repeats=2)
@@ -167,14 +167,20 @@ def test_interrupted_probe_resumes_without_measuring_again(bundle_dir, tmp_path,
     assert prof.provenance["conditions"]["speed_drift"] == pytest.approx(probe.speed_drift(res), abs=1e-3)
     assert prof.latency_basis == "measured" and prof.energy_basis == "none"
     assert prof.provenance["provider"] == "CPUExecutionProvider" and prof.active_power_w == 0.0
-    int8 = [layer for layer in res["bundle"]["layers"] if layer.get("precision") == "int8"]
-    # the layers an int8 export quantizes: no depthwise one, no stem (3 x 3x3 = 27 products per output)
-    assert int8 and {layer["workload"]["kind"] for layer in int8} <= {"pointwise", "pointwise_1ch", "conv1d"}
-    assert all(layer["workload"]["in_shape"][0] * layer["workload"]["kernel"] ** (1 if layer["workload"]["kind"] == "conv1d" else 2)
-               >= MIN_INT8_REDUCTION for layer in int8)
-    assert prof.provenance["fit"][0]["count"] == len(res["bundle"]["layers"]) - len(int8)
-    # the quantized convolutions give the profile its int8 section; the rest of it is the fp32 one's
+    layers = res["bundle"]["layers"]
+    int8 = [layer for layer in layers if layer.get("precision") == "int8"]
+    # every convolution of the sweep goes in quantized too (an int8 export quantizes stage graphs whole)
+    assert int8 and {layer["workload"]["kind"] for layer in int8} <= set(QUANTIZABLE_KINDS)
+    assert len(int8) == sum(layer["workload"]["kind"] in QUANTIZABLE_KINDS for layer in layers if layer not in int8)
+    assert prof.provenance["fit"][0]["count"] == len(layers) - len(int8)
+    # and the calibration candidate's stage graphs, quantized whole
+    fp32_cands = [c for c in res["bundle"]["candidates"] if c.get("precision", "fp32") == "fp32"]
+    int8_cands = [c for c in res["bundle"]["candidates"] if c.get("precision") == "int8"]
+    assert len(int8_cands) == len(fp32_cands) == 1 and int8_cands[0]["key"] == fp32_cands[0]["key"] + "-int8"
+    assert prof.provenance["fit"][1]["count"] == len(fp32_cands[0]["graphs"])
+    # the quantized graphs give the profile its int8 section
     assert prof.precisions == ("fp32", "int8") and prof.int8.provenance["fit"][0]["count"] == len(int8)
+    assert prof.int8.provenance["fit"][1]["count"] == len(int8_cands[0]["graphs"])
     assert prof.int8.stage_overhead_ms == prof.stage_overhead_ms
 
 
@@ -275,12 +281,18 @@ def test_a_machine_slow_for_the_whole_first_pass_is_found_out_once_it_speeds_up(
     assert total > 3 * every
 
 
-def test_bundle_int8_graphs_are_quantized_convolutions(bundle_dir):
+def test_bundle_int8_graphs_are_quantized_convolutions_and_stage_graphs(bundle_dir):
     import onnx
     manifest = json.loads((bundle_dir / "manifest.json").read_text())
     int8 = [layer for layer in manifest["layers"] if layer.get("precision") == "int8"]
     ops = {n.op_type for n in onnx.load(str(bundle_dir / int8[0]["file"])).graph.node}
     assert {"QuantizeLinear", "DequantizeLinear", "Conv"} <= ops
+    cand = next(c for c in manifest["candidates"] if c.get("precision") == "int8")
+    encoder = next(g for g in cand["graphs"] if g["stage"] == "image_encoder")
+    nodes = onnx.load(str(bundle_dir / encoder["file"])).graph.node
+    made_by = {o: n for n in nodes for o in n.output}
+    convs = [n for n in nodes if n.op_type == "Conv"]
+    assert convs and all(made_by[c.input[0]].op_type == "DequantizeLinear" for c in convs)   # quantized whole
 
 
 def test_probe_with_a_power_sensor_writes_measured_energy(bundle_dir, tmp_path):

@@ -30,9 +30,9 @@ def cmd_export(args) -> None:
     if args.quantize == "int8":
         quant = Quantization(data=args.data or "synthetic", calibration_frames=args.calibration_frames,
                              eval_frames=args.eval_frames, max_degradation=args.max_degradation / 100,
-                             force=args.force)
-    elif args.force or args.data:
-        raise UserError("--data and --force are read by --quantize int8 only")
+                             force=args.force, stages=args.int8_stages or "faster")
+    elif args.force or args.data or args.int8_stages:
+        raise UserError("--data, --force and --int8-stages are read by --quantize int8 only")
     elif args.quantize is None and args.study:
         quant = AS_SEARCHED
     say = lambda msg: err_console.print(msg)  # noqa: E731
@@ -106,6 +106,10 @@ def register(sub, add, reports: dict) -> None:
     s.add_argument("--max-degradation", type=_percent, default=3.0, metavar="PCT",
                    help="refuse int8 if a path's RMSE grows by more than this (default 3%%)")
     s.add_argument("--force", action="store_true", help="export int8 even past --max-degradation")
+    s.add_argument("--int8-stages", choices=("faster", "all"), default=None,
+                   help="faster (default): each stage graph is int8 only where it runs at least 5%% faster than "
+                   "in fp32 on this machine (timed at export); all: every stage int8 (for a target other than "
+                   "this machine)")
     s.add_argument("--reports", **reports)
 
     s = add("run", cmd_run, "run an exported model under a deadline and return the best depth map")

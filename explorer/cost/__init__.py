@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from explorer.cost.devices import (DeviceProfile, available_devices, get_device,
+from explorer.cost.devices import (DeviceProfile, available_devices, deployed_graphs, get_device, int8_graphs,
                                    path_latencies_ms)
 from explorer.cost.workloads import KINDS, Workload, candidate_workloads, dilated_count_macs, reference_workloads
 from explorer.model.network import stage_specs
@@ -51,6 +51,15 @@ class CandidateCost:
     @property
     def precision(self) -> str:
         return self.candidate.precision
+
+    def int8_graphs(self, device: DeviceProfile) -> tuple[str, ...]:
+        """Names of the deployed stage graphs (``stage+stage+...``, as an export names them) that an int8
+        export of this candidate keeps int8 on ``device``: none for an fp32 candidate."""
+        if self.precision != "int8":
+            return ()
+        graphs = deployed_graphs(self.path_stages)
+        keep = int8_graphs(device.at_precision("int8"), self.workloads, self.path_stages)
+        return tuple("+".join(g) for g, k in zip(graphs, keep) if k)
 
     def path_latency_ms(self, device: DeviceProfile) -> list[float]:
         """Ready time of each path on ``device`` at the candidate's precision, path 0 (0 ms) included."""

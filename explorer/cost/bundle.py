@@ -36,6 +36,10 @@ STAGE_SEED_OFFSET = 7919
 #: but predict new candidates worse (12 gave 8-16% median per-path error at the three sizes, 36
 #: gave 3-10%, fitted on the same measurements).
 STAGE_CANDIDATES = 36
+#: Of every this many calibration candidates in a row, the first three (one per stage size) also go in
+#: with their stage graphs quantized (``precision: int8``): what the int8 fit learns whole-graph
+#: quantization from (tensors kept uint8 from layer to layer, quantized only at a graph's edges).
+INT8_STAGE_EVERY = 9
 
 
 _ZEROED = {TensorProto.FLOAT: np.float32, TensorProto.INT8: np.int8}
@@ -60,6 +64,19 @@ def _int8(model: bytes, feeds: dict[str, np.ndarray]) -> bytes:
         return dst.read_bytes()
 
 
+def _stage_feeds(net, size: tuple[int, int]) -> list[dict[str, np.ndarray]]:
+    """What each of ``net``'s stage graphs reads, on the example inputs (to calibrate its quantization)."""
+    import torch
+    from explorer.onnx_stages import example_inputs
+    env = example_inputs(size)
+    feeds = []
+    with torch.no_grad():
+        for spec in net.specs:
+            feeds.append({n: env[n].numpy() for n in dict.fromkeys(spec.inputs)})
+            net.run_stage(spec, env, size[0] // 2)
+    return feeds
+
+
 def stage_candidates(count: int, seed: int, exclude: set[str] = frozenset()) -> list:
     """The calibration candidates: ``count`` random default-space candidates, none of ``exclude``."""
     from explorer.space import SearchSpace
@@ -73,8 +90,9 @@ def write_bundle_dir(folder: Path, scale: float = 1.0, seed: int = 0, n_stage: i
                      progress: Callable[[int, int], None] | None = None, int8: bool = True) -> dict:
     """Exports the layer sweep (``scale`` x the default counts) and the stage graphs of ``n_stage``
     candidates (default ``STAGE_CANDIDATES`` x ``scale``) into ``folder``; returns the manifest. ``int8``: every
-    convolution of the sweep that ``explorer export --quantize int8`` quantizes also goes in quantized
-    (entries with ``precision: int8``), so that the fit prices int8 graphs too."""
+    convolution of the sweep, and the stage graphs of some candidates (``INT8_STAGE_EVERY``), also go in
+    quantized as ``explorer export --quantize int8`` quantizes (entries with ``precision: int8``), so that
+    the fit prices int8 graphs too."""
     from explorer import __version__
     from explorer.model import build_network
     from explorer.onnx_stages import export_stages
@@ -87,7 +105,8 @@ def write_bundle_dir(folder: Path, scale: float = 1.0, seed: int = 0, n_stage: i
     cands = stage_candidates(n_stage, seed, exclude) if n_stage else []
     graphs = [layer_graph(layer) for layer in layers]
     quantized = [(layer, g) for layer, g in zip(layers, graphs) if workload_quantized(g[2])] if int8 else []
-    total = len(layers) + len(quantized) + len(cands)
+    int8_cands = {j for j in range(len(cands)) if int8 and j % INT8_STAGE_EVERY < 3}
+    total = len(layers) + len(quantized) + len(cands) + len(int8_cands)
     (folder / "layers").mkdir(parents=True, exist_ok=True)
     digest = hashlib.sha256()
 
@@ -112,20 +131,31 @@ def write_bundle_dir(folder: Path, scale: float = 1.0, seed: int = 0, n_stage: i
                               "workload": dataclasses.asdict(wl)})
         if progress:
             progress(len(layers) + i + 1, total)
-    cand_entries = []
+    cand_entries, int8_entries = [], []
     for j, cand in enumerate(cands):
         (folder / "stages" / cand.key).mkdir(parents=True, exist_ok=True)
-        graphs = []
+        graphs, graphs8 = [], []
         # the stage graphs cycle through input sizes, so that the fitted profile holds at each of them
         size = tuple(stage_sizes[j % len(stage_sizes)])
-        for k, (spec, model) in enumerate(export_stages(build_network(cand), size)[1:]):
+        net = build_network(cand)
+        stages = export_stages(net, size)[1:]
+        feeds = _stage_feeds(net, size) if j in int8_cands else None
+        for k, (spec, model) in enumerate(stages):
             rel = f"stages/{cand.key}/{k:02d}-{spec.name}.onnx"
             put(rel, _zero_weights(model))
             graphs.append({"stage": spec.name, "file": rel})
-        cand_entries.append({"key": cand.key, "candidate": cand.to_dict(), "graphs": graphs,
-                             "input_size": list(size)})
+            if feeds is not None:
+                rel = f"stages/{cand.key}/{k:02d}-{spec.name}.int8.onnx"
+                names = {i.name for i in load_from_string(model).graph.input}   # unused ones were dropped
+                put(rel, _zero_weights(_int8(model, {n: v for n, v in feeds[k].items() if n in names})))
+                graphs8.append({"stage": spec.name, "file": rel})
+        entry = {"key": cand.key, "candidate": cand.to_dict(), "graphs": graphs, "input_size": list(size)}
+        cand_entries.append(entry)
+        if graphs8:
+            int8_entries.append({**entry, "key": f"{cand.key}-int8", "graphs": graphs8, "precision": "int8"})
         if progress:
-            progress(len(layers) + len(quantized) + j + 1, total)
+            progress(len(layers) + len(quantized) + j + 1 + len(int8_entries), total)
+    cand_entries += int8_entries   # after the fp32 ones: the probe's speed check is an fp32 stage graph
     manifest = {"format": probe_script.BUNDLE_FORMAT, "version": probe_script.VERSION,
                 "explorer": __version__, "created": datetime.datetime.now().isoformat(timespec="seconds"),
                 "scale": scale, "seed": seed, "input_size": list(input_size), "repeats": repeats,

@@ -267,17 +267,18 @@ def fit_results(results: dict, name: str = "host", source: str | None = None) ->
             w["in_shape"], w["out_shape"] = tuple(w["in_shape"]), tuple(w["out_shape"])
             into = measured_int8 if layer.get("precision") == "int8" else measured
             into.append((Workload(**w), float(results["layers"][layer["id"]])))
-    stage_obs = []
+    stage_obs, stage_obs_int8 = [], []
     for cand in bundle["candidates"]:
         kept = results["stages"].get(cand["key"], {})
         if not kept:
             continue
         size = tuple(cand.get("input_size", bundle["input_size"]))
         cost = candidate_cost(Candidate.from_dict(cand["candidate"]), size)
+        into = stage_obs_int8 if cand.get("precision") == "int8" else stage_obs
         for stage, ms in kept.items():
             wl = [w for w in cost.workloads if w.stage == stage]
-            stage_obs.append(Observation(f"{cand['key']}/{stage}", wl, float(ms), weight=4.0, stages=1,
-                                         group=f"{size[0]}x{size[1]}"))
+            into.append(Observation(f"{cand['key']}/{stage}", wl, float(ms), weight=4.0, stages=1,
+                                    group=f"{size[0]}x{size[1]}"))
     if len(measured) < len(KINDS):
         raise UserError(f"the results hold {len(measured)} measured layer graphs, too few to fit: let the probe "
                         "finish (run it again with the same --out to go on)")
@@ -300,32 +301,36 @@ def fit_results(results: dict, name: str = "host", source: str | None = None) ->
                        energy=results.get("energy"),
                        source=source or f"probe on {dev.get('host') or where} (bundle {bundle['id']}), fitted at "
                        f"{datetime.datetime.now().isoformat(timespec='seconds')}")
-    return with_int8(profile, measured, measured_int8)
+    return with_int8(profile, measured, measured_int8, stage_obs_int8)
 
 
 def with_int8(profile: DeviceProfile, measured: list[tuple[Workload, float]],
-              measured_int8: list[tuple[Workload, float]]) -> DeviceProfile:
-    """``profile`` with an int8 section fitted on the quantized layer graphs (the layers
-    ``explorer export --quantize int8`` quantizes; kinds with none of those take their fp32 timings),
-    its per-inference and per-stage costs the fp32 ones. Unchanged when no quantized pointwise
-    convolution was measured."""
+              measured_int8: list[tuple[Workload, float]], stage_obs: list[Observation] = ()) -> DeviceProfile:
+    """``profile`` with an int8 section fitted on the quantized layer graphs (kinds with none of those
+    take their fp32 timings) and ``stage_obs``, stage graphs quantized whole as ``explorer export
+    --quantize int8`` quantizes them; its per-inference and per-stage costs the fp32 ones. Unchanged when
+    no quantized pointwise convolution was measured."""
     from explorer.quantize import workload_quantized
-    measured_int8 = [(w, ms) for w, ms in measured_int8 if workload_quantized(w)]   # bundles before the rule
+    measured_int8 = [(w, ms) for w, ms in measured_int8 if workload_quantized(w)]
     kinds = {w.kind for w, _ in measured_int8}
     if "pointwise" not in kinds:
         return profile
     floats = [(w, ms) for w, ms in measured if w.kind not in kinds]
-    fitted = fit_host(measured_int8 + floats, name=profile.name, cond=profile.provenance.get("conditions"))
+    fitted = fit_host(measured_int8 + floats, name=profile.name, cond=profile.provenance.get("conditions"),
+                      stage_obs=list(stage_obs))
     layers = errors(fitted, [Observation(w.layer, [w], ms, stages=1) for w, ms in measured_int8])
+    summary = [fit_summary(layers, f"{len(measured_int8)} int8 (static QDQ) single-layer graphs measured here")]
+    if stage_obs:
+        summary.append(fit_summary(errors(fitted, list(stage_obs)), f"{len(stage_obs)} int8 stage graphs (each "
+                                   "quantized whole) of random candidates measured here"))
     int8 = dataclasses.replace(
         fitted, description=profile.description, inference_overhead_ms=profile.inference_overhead_ms,
         stage_overhead_ms=profile.stage_overhead_ms, energy_fixed_j=profile.energy_fixed_j,
         active_power_w=profile.active_power_w,
-        provenance={"fit": [fit_summary(layers, f"{len(measured_int8)} int8 (static QDQ) single-layer graphs "
-                                                "measured here")],
-                    "note": "the layers `explorer export --quantize int8` quantizes (ungrouped convolutions of "
-                            "32 or more products per output); the rest of an int8 graph stays float and is "
-                            "priced by the fp32 profile"})
+        provenance={"fit": summary,
+                    "note": "stage graphs quantized whole, as `explorer export --quantize int8` quantizes them; "
+                            "an int8 candidate's stage graph is priced at fp32 where int8 would not be at least "
+                            "5% faster (such an export keeps it fp32)"})
     return dataclasses.replace(profile, int8=int8)
 
 

@@ -9,9 +9,10 @@ cost grows with the tensors as on the device. On a GPU-like device compute and m
 active power times time. ``provenance`` records what a profile was fitted on and its error there.
 A profile may also price int8 graphs (statically quantized, as ``explorer export --quantize int8``
 writes them): its ``int8`` section holds their own kinds, bandwidth and overheads (what it leaves
-out is the fp32 one's), fitted by ``explorer calibrate`` on quantized layer graphs. It prices the
-layers such an export quantizes (``explorer.quantize.quantizes``); the rest of an int8 graph stays
-float and is priced by the fp32 profile.
+out is the fp32 one's), fitted by ``explorer calibrate`` on quantized layer and stage graphs. Such an
+export quantizes each stage graph whole and keeps it int8 only where that runs faster
+(``explorer.quantize``), so an int8 candidate's path times take, per deployed stage graph, the int8
+price where it is at most ``INT8_KEEP_RATIO`` of the fp32 one, else the fp32 price.
 
 Built-in profiles live in ``explorer/cost/profiles/*.yaml``; any YAML file with the same fields
 can be passed wherever a device name is accepted (``--device ./mybox.yaml``).
@@ -28,7 +29,7 @@ import yaml
 
 from explorer.cost.workloads import ALL_KINDS, BYTES_PER_VALUE, KINDS, OPTIONAL_KINDS, Workload
 from explorer.errors import UserError
-from explorer.quantize import workload_quantized
+from explorer.quantize import INT8_KEEP_RATIO
 
 PROFILES_DIR = Path(__file__).resolve().parent / "profiles"
 
@@ -62,7 +63,7 @@ class DeviceProfile:
     provenance: dict[str, Any] = field(default_factory=dict)
     source: str = ""
     int8: "DeviceProfile | None" = None     # the same device running int8 graphs, where measured
-    # set on an ``int8`` section: the fp32 profile, which prices the layers an int8 export leaves float
+    # set on an ``int8`` section: the fp32 profile, which prices the stage graphs an int8 export keeps fp32
     float_layers: "DeviceProfile | None" = field(default=None, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -90,8 +91,6 @@ class DeviceProfile:
 
     # -- prediction ----------------------------------------------------------------------------
     def layer_ms(self, w: Workload) -> float:
-        if self.float_layers is not None and not workload_quantized(w):
-            return self.float_layers.layer_ms(w)
         k = self.kinds[w.kind]
         compute = w.macs / (k.gmacs * 1e6) if w.macs else 0.0
         moved = w.bytes_read + w.bytes_written
@@ -288,11 +287,41 @@ def path_latencies_ms(profile: DeviceProfile, workloads: Sequence[Workload],
     """Latency at which each path is ready: the inference overhead plus every stage up to its exit
     (each stage paying its own launch cost, ``stage_overhead_ms``).
 
-    ``path_stages[i]`` lists the stages that path i+1 needs (a prefix of the execution order).
+    ``path_stages[i]`` lists the stages that path i+1 needs (a prefix of the execution order). On an
+    int8 section, each deployed stage graph (the stages between two exits) costs what an int8 export
+    runs it at: its int8 price where that is at most ``INT8_KEEP_RATIO`` of its fp32 price, else fp32.
     """
-    per_stage: dict[str, float] = {}
-    for w, t in zip(workloads, profile.latencies_ms(workloads)):
-        per_stage[w.stage] = per_stage.get(w.stage, 0.0) + float(t)
+    per_stage = _stage_ms(profile, workloads)
+    if profile.float_layers is not None:
+        fp32 = _stage_ms(profile.float_layers, workloads)
+        for graph, int8 in zip(deployed_graphs(path_stages), int8_graphs(profile, workloads, path_stages)):
+            if not int8:
+                per_stage.update({s: fp32.get(s, 0.0) for s in graph})
     return [profile.inference_overhead_ms
             + sum(per_stage.get(s, 0.0) + profile.stage_overhead_ms for s in stages)
             for stages in path_stages]
+
+
+def deployed_graphs(path_stages: Sequence[Sequence[str]]) -> list[list[str]]:
+    """The stages of each deployed stage graph (those between two exits), in order."""
+    out, done = [], 0
+    for stages in path_stages:
+        out.append(list(stages)[done:])
+        done = len(stages)
+    return out
+
+
+def int8_graphs(profile: DeviceProfile, workloads: Sequence[Workload],
+                path_stages: Sequence[Sequence[str]]) -> list[bool]:
+    """Per deployed stage graph, whether an int8 export keeps it int8 on this device: its price on
+    ``profile`` (an int8 section) is at most ``INT8_KEEP_RATIO`` of its fp32 price."""
+    int8, fp32 = _stage_ms(profile, workloads), _stage_ms(profile.float_layers or profile, workloads)
+    return [sum(int8.get(s, 0.0) for s in graph) <= INT8_KEEP_RATIO * sum(fp32.get(s, 0.0) for s in graph)
+            for graph in deployed_graphs(path_stages)]
+
+
+def _stage_ms(profile: DeviceProfile, workloads: Sequence[Workload]) -> dict[str, float]:
+    per_stage: dict[str, float] = {}
+    for w, t in zip(workloads, profile.latencies_ms(workloads)):
+        per_stage[w.stage] = per_stage.get(w.stage, 0.0) + float(t)
+    return per_stage
