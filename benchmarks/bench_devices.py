@@ -127,6 +127,27 @@ def refit(folder: Path) -> None:
         print(f"refit {size_key}: {' '.join(f'{x:.1%}' for x in ms)} -> median {np.median(ms):.1%}")
 
 
+def _int8_errors(prof, cands, size) -> list[float]:
+    """Signed errors of ``prof``'s int8 section on the held-out candidates' deployed stage graphs, each
+    quantized whole (as ``explorer export --quantize int8 --int8-stages all`` does) and timed alone."""
+    from explorer.cost.bundle import _int8_graphs
+    from explorer.cost.measure import session, time_call
+    from explorer.model import build_network
+    from explorer.onnx_stages import example_inputs
+    obs = []
+    for c in cands:
+        cost = candidate_cost(c, size)
+        env = {k: v.numpy() for k, v in example_inputs(size).items()}
+        for name, model in _int8_graphs(build_network(c), size):
+            sess = session(model)
+            feeds = {i.name: env[i.name] for i in sess.get_inputs()}
+            ms = time_call(lambda: sess.run(None, feeds), 3, 20)
+            env.update(zip([o.name for o in sess.get_outputs()], sess.run(None, feeds)))
+            obs.append(Observation(f"{c.key}/{name}", [w for w in cost.workloads if w.stage in name.split("+")],
+                                   ms, stages=1))
+    return list(errors(prof.int8, obs)["error"])
+
+
 def host(n: int, seed: int, scale: float, reps: int = 3, save: Path | None = None) -> None:
     """Each repetition is what a user does: calibrate (stage graphs at every size of ``STAGE_SIZES``),
     then measure ``n`` held-out candidates at each of ``HOST_SIZES`` at once, and report the median
@@ -140,6 +161,7 @@ def host(n: int, seed: int, scale: float, reps: int = 3, save: Path | None = Non
     print(f"\nthis machine's peak: {peak.describe()}")
     sentinel = _sentinel()
     medians: dict = {size: [] for size in HOST_SIZES}
+    int8_medians: list[float] = []
     for rep in range(1, reps + 1):
         speed = [sentinel()]
         t0 = time.perf_counter()
@@ -171,6 +193,12 @@ def host(n: int, seed: int, scale: float, reps: int = 3, save: Path | None = Non
                   f"{np.median(a):.1%}, within 10%: {(a <= 0.1).mean():.0%}, median signed {np.median(errs):+.1%}; "
                   f"whole graphs at {' '.join(f'{f:.0%}' for f in fractions)} of fp32 peak; "
                   f"{timed_again} timed again after the machine ran slow")
+        if prof.int8 is not None:
+            errs = np.array(_int8_errors(prof, cands, HOST_SIZES[0]))
+            int8_medians.append(float(np.median(np.abs(errs))))
+            print(f"  rep {rep} int8 at {HOST_SIZES[0][0]}x{HOST_SIZES[0][1]}: {len(errs)} deployed stage graphs of the "
+                  f"held-out candidates, each quantized whole: median |error| {np.median(np.abs(errs)):.1%}, within "
+                  f"10%: {(np.abs(errs) <= 0.1).mean():.0%}, median signed {np.median(errs):+.1%}")
         if save:
             (save / f"rep{rep}-heldout.json").write_text(json.dumps(held))
         tmp.cleanup()
@@ -181,6 +209,9 @@ def host(n: int, seed: int, scale: float, reps: int = 3, save: Path | None = Non
     for size, ms in medians.items():
         print(f"host {size[0]}x{size[1]}: median per-path |error| over {reps} repetitions "
               f"{' '.join(f'{x:.1%}' for x in ms)} -> median {np.median(ms):.1%} (target <= 5%)")
+    if int8_medians:
+        print(f"host int8 {HOST_SIZES[0][0]}x{HOST_SIZES[0][1]}: median per-graph |error| over {reps} repetitions "
+              f"{' '.join(f'{x:.1%}' for x in int8_medians)} -> median {np.median(int8_medians):.1%}")
 
 
 if __name__ == "__main__":

@@ -37,7 +37,8 @@ STAGE_SEED_OFFSET = 7919
 #: gave 3-10%, fitted on the same measurements).
 STAGE_CANDIDATES = 36
 #: Of every this many calibration candidates in a row, the first three (one per stage size) also go in
-#: with their stage graphs quantized (``precision: int8``): what the int8 fit learns whole-graph
+#: as int8 deployments (``precision: int8``): their deployed stage graphs (the stages between two
+#: exits) quantized whole, as an int8 export quantizes them. What the int8 fit learns whole-graph
 #: quantization from (tensors kept uint8 from layer to layer, quantized only at a graph's edges).
 INT8_STAGE_EVERY = 9
 
@@ -64,17 +65,22 @@ def _int8(model: bytes, feeds: dict[str, np.ndarray]) -> bytes:
         return dst.read_bytes()
 
 
-def _stage_feeds(net, size: tuple[int, int]) -> list[dict[str, np.ndarray]]:
-    """What each of ``net``'s stage graphs reads, on the example inputs (to calibrate its quantization)."""
+def _int8_graphs(net, size: tuple[int, int]) -> list[tuple[str, bytes]]:
+    """``net``'s deployed stage graphs (path 0's aside) quantized as an int8 export quantizes them, each
+    calibrated on what it reads on the example inputs: [(stages joined by '+', graph), ...]."""
     import torch
-    from explorer.onnx_stages import example_inputs
+    from explorer.onnx_stages import example_inputs, export_segments
+    graphs = export_segments(net, size)[1:]
     env = example_inputs(size)
-    feeds = []
+    out = []
     with torch.no_grad():
-        for spec in net.specs:
-            feeds.append({n: env[n].numpy() for n in dict.fromkeys(spec.inputs)})
-            net.run_stage(spec, env, size[0] // 2)
-    return feeds
+        for desc, model in graphs:
+            names = {i.name for i in load_from_string(model).graph.input}   # unused inputs were dropped
+            out.append((desc["name"], _int8(model, {n: env[n].numpy() for n in desc["inputs"] if n in names})))
+            for spec in net.specs:
+                if spec.name in desc["stages"]:
+                    net.run_stage(spec, env, size[0] // 2)
+    return out
 
 
 def stage_candidates(count: int, seed: int, exclude: set[str] = frozenset()) -> list:
@@ -138,17 +144,14 @@ def write_bundle_dir(folder: Path, scale: float = 1.0, seed: int = 0, n_stage: i
         # the stage graphs cycle through input sizes, so that the fitted profile holds at each of them
         size = tuple(stage_sizes[j % len(stage_sizes)])
         net = build_network(cand)
-        stages = export_stages(net, size)[1:]
-        feeds = _stage_feeds(net, size) if j in int8_cands else None
-        for k, (spec, model) in enumerate(stages):
+        for k, (spec, model) in enumerate(export_stages(net, size)[1:]):
             rel = f"stages/{cand.key}/{k:02d}-{spec.name}.onnx"
             put(rel, _zero_weights(model))
             graphs.append({"stage": spec.name, "file": rel})
-            if feeds is not None:
-                rel = f"stages/{cand.key}/{k:02d}-{spec.name}.int8.onnx"
-                names = {i.name for i in load_from_string(model).graph.input}   # unused ones were dropped
-                put(rel, _zero_weights(_int8(model, {n: v for n, v in feeds[k].items() if n in names})))
-                graphs8.append({"stage": spec.name, "file": rel})
+        for k, (name, model) in enumerate(_int8_graphs(net, size) if j in int8_cands else []):
+            rel = f"stages/{cand.key}/int8-{k:02d}.onnx"
+            put(rel, _zero_weights(model))
+            graphs8.append({"stage": name, "file": rel})   # several stages, joined by '+'
         entry = {"key": cand.key, "candidate": cand.to_dict(), "graphs": graphs, "input_size": list(size)}
         cand_entries.append(entry)
         if graphs8:
