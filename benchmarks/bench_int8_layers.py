@@ -1,8 +1,8 @@
 """Which layers int8 pays for on this machine: single-layer graphs of the paper design's kinds and
 sizes, each timed in float and quantized as `explorer export --quantize int8` quantizes (static QDQ,
 7-bit per-channel weights, uint8 activations, the quantize / dequantize at its input and output
-included), whether or not the export's rule (`explorer.quantize.quantizes`) would quantize it.
-Interleaved, --reps repetitions in one invocation; every repetition and the median.
+included). An export quantizes whole stage graphs, where a layer pays these edges only at the graph's
+own (`explorer.quantize`); this shows what each kind costs alone. Interleaved, --reps repetitions in one invocation; every repetition and the median.
 
     .venv/bin/python benchmarks/bench_int8_layers.py [--reps 3]
 """
@@ -19,7 +19,7 @@ from onnxruntime.quantization import CalibrationMethod, QuantFormat, QuantType, 
 
 from explorer.cost.calibrate import SweepLayer, layer_graph  # noqa: E402
 from explorer.cost.measure import session, time_call  # noqa: E402
-from explorer.quantize import _Feeds, workload_quantized  # noqa: E402
+from explorer.quantize import _Feeds  # noqa: E402
 
 #: (label, layer): the paper design's layers at 224x224
 LAYERS = [
@@ -53,22 +53,21 @@ if __name__ == "__main__":
     args = ap.parse_args()
     graphs = []
     for label, layer in LAYERS:
-        model, feeds, wl = layer_graph(layer)
+        model, feeds, _ = layer_graph(layer)
         fp32, int8 = session(model, args.threads), session(quantized(model, feeds), args.threads)
-        graphs.append((label, workload_quantized(wl), feeds, fp32, int8))
+        graphs.append((label, feeds, fp32, int8))
     ratios: dict[str, list[float]] = {label: [] for label, *_ in graphs}
     times: dict[str, list[tuple[float, float]]] = {label: [] for label, *_ in graphs}
     for rep in range(args.reps):   # interleaved: every layer, both precisions, then again
-        for label, _, feeds, fp32, int8 in graphs:
+        for label, feeds, fp32, int8 in graphs:
             f = time_call(lambda: fp32.run(None, feeds), 3, 25)
             q = time_call(lambda: int8.run(None, feeds), 3, 25)
             ratios[label].append(q / f)
             times[label].append((f, q))
-    print(f"int8 time / fp32 time per layer ({args.threads} threads), {args.reps} reps; "
-          "'rule': whether `explorer export --quantize int8` quantizes it")
-    for label, rule, *_ in graphs:
+    print(f"int8 time / fp32 time per layer ({args.threads} threads), {args.reps} reps")
+    for label, *_ in graphs:
         r = ratios[label]
         f = statistics.median(t[0] for t in times[label])
         q = statistics.median(t[1] for t in times[label])
-        print(f"  {label:32s} rule {'int8 ' if rule else 'float'}  fp32 {f:.3f} ms, int8 {q:.3f} ms: "
+        print(f"  {label:32s} fp32 {f:.3f} ms, int8 {q:.3f} ms: "
               f"{statistics.median(r):.2f}x ({min(r):.2f}-{max(r):.2f}; reps {' '.join(f'{x:.2f}' for x in r)})")

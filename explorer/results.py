@@ -37,8 +37,8 @@ def study_baselines(study: optuna.Study) -> list[str]:
 
 
 def compact_workloads(cost) -> dict:
-    """What re-costing on any profile needs: per layer (stage, kind, MACs, bytes, params, and the
-    in-channels and kernel that decide whether an int8 export quantizes it)."""
+    """What re-costing on any profile needs: per layer (stage, kind, MACs, bytes, params, in-channels
+    and kernel)."""
     stages = list(dict.fromkeys(w.stage for w in cost.workloads))
     return {"input_size": list(cost.input_size), "stages": stages,
             "path_stages": [[stages.index(s) for s in ps] for ps in cost.path_stages],
