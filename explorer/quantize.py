@@ -134,10 +134,12 @@ def _quantize(src: Path, dst: Path, feeds: list[dict[str, np.ndarray]]) -> bool:
     with tempfile.TemporaryDirectory() as tmp:
         prepared = Path(tmp) / "prepared.onnx"
         quant_pre_process(str(src), str(prepared), skip_symbolic_shape=True)
-        # op_types_to_quantize left out: every operator the quantizer handles
+        # op_types_to_quantize left out: every operator the quantizer handles. Activation ranges from
+        # the 99.999th percentile, not the extremes: on the paper design (32 and 128 calibration
+        # frames) the last path lost 1.7-1.8% RMSE against 2.3-2.4% with min / max ranges
         quantize_static(str(prepared), str(dst), _Feeds(feeds), quant_format=QuantFormat.QDQ,
                         activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8, per_channel=True,
-                        reduce_range=True, calibrate_method=CalibrationMethod.MinMax)
+                        reduce_range=True, calibrate_method=CalibrationMethod.Percentile)
     return True
 
 
@@ -222,7 +224,7 @@ def quantize_export(model_dir: Path, data: str, calibration_frames: int = 32, ev
     return {"precision": "int8", "stages": manifest["stages"], "path_metrics_fp32": before, "path_metrics_int8": after,
             "quantization": {"method": "onnxruntime static QDQ, each stage graph quantized whole (every operator "
                                        "the quantizer handles): int8 weights per channel (7-bit range), uint8 "
-                                       "activations (MinMax calibration)",
+                                       "activations (ranges at the 99.999th percentile of the calibration frames)",
                              "int8_stages": _why(stages),
                              "calibration": {"data": data, "split": "train", "frames": len(calib[0]) if calib else 0},
                              "evaluation": {"data": data, "split": "val", "frames": len(evaluation)},
