@@ -43,14 +43,10 @@ INT8_STAGES = ("faster", "all")
 QUANTIZABLE_KINDS = ("pointwise", "pointwise_1ch", "conv", "conv1d", "deconv", "depthwise")
 
 
-def quantizes(kind: str, in_channels: int = 0, kernel_area: int = 0) -> bool:
-    """Whether an int8 stage graph runs a layer of workload ``kind`` quantized (every convolution)."""
-    return kind in QUANTIZABLE_KINDS
-
-
 def workload_quantized(w) -> bool:
-    """``quantizes`` for a cost-model ``Workload``."""
-    return quantizes(w.kind)
+    """Whether an int8 stage graph runs the cost-model ``Workload`` ``w`` as a quantized convolution
+    (what the calibration times in int8 alone, besides whole graphs)."""
+    return w.kind in QUANTIZABLE_KINDS
 
 
 #: a path may lose at most this fraction of its RMSE to quantization unless --force

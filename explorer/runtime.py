@@ -99,6 +99,7 @@ class AnytimeRunner:
         self.scan_row = int(self.manifest["scan_row"])
         self.sessions: list[tuple[dict, object, list[str], list[str]]] = []
         self.handed_off: list[str] = []   # tensors passed between stages in the blocked layout
+        blocked_handoff = blocked_handoff and provider == "CPUExecutionProvider"   # its NCHWc kernels
         with tempfile.TemporaryDirectory() as tmp:
             optimized = Path(tmp)
             for k, st in enumerate(self.manifest["stages"]):
@@ -111,7 +112,7 @@ class AnytimeRunner:
                 except Exception as exc:  # onnxruntime raises its own types for corrupt graphs
                     raise UserError(f"{f}: not a loadable ONNX graph ({str(exc).splitlines()[0][:100]})") from None
                 self.sessions.append(_named(st, sess))
-            if blocked_handoff and provider == "CPUExecutionProvider":
+            if blocked_handoff:
                 self.handed_off = self._hand_off_blocked(optimized, threads)
         self._lock = threading.Lock()
         self._halt = threading.Event()
