@@ -94,9 +94,11 @@ def test_a_search_measures_int8_candidates_after_quantization(tmp_path, run_cli)
     assert all("quantization" not in t.user_attrs for t in fp32)
     # an int8 trial exports as int8 unless told otherwise
     trial = int8[0]
-    code, _, err = run_cli("export", "--study", "p8", "--trial", trial.number, "--out", tmp_path / "m8",
-                           "--reports", tmp_path, "--device", device)
+    code, text, err = run_cli("export", "--study", "p8", "--trial", trial.number, "--out", tmp_path / "m8",
+                              "--reports", tmp_path, "--device", device)
     assert code == 0, err
+    graphs = trial.user_attrs["int8_graphs"]
+    assert f"int8 stage graphs: {len(graphs)} of {len(graphs) + 1}" in text.replace("\n", " ")
     manifest = json.loads((tmp_path / "m8" / "manifest.json").read_text())
     assert manifest["precision"] == "int8" and manifest["candidate"]["precision"] == "int8"
     # the stage graphs the search priced int8, and no timing here

@@ -52,6 +52,10 @@ def cmd_export(args) -> None:
                               "change %": [100 * d for d in q["rmse_degradation"]]})
         print_frame(frame, f"int8 vs fp32 on {q['evaluation']['frames']} validation frames of {q['evaluation']['data']}"
                     + (" (--force: over --max-degradation)" if q["forced"] else ""))
+        int8 = [st["name"] for st in manifest["stages"] if st.get("precision") == "int8"]
+        console.print(f"int8 stage graphs: {len(int8)} of {len(manifest['stages'])}"
+                      + (f" ({', '.join(int8)})" if int8 else " (none ran at least 5% faster in int8 here: the "
+                         "export is fp32; --int8-stages all forces int8)"))
 
 
 def cmd_run(args) -> None:
