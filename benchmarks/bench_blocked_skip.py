@@ -23,25 +23,13 @@ from pathlib import Path
 
 import numpy as np
 import onnx
-import onnxruntime as ort
 import torch
 from onnx import TensorProto, helper, numpy_helper
 
-from explorer.cost.measure import time_call
+from explorer.cost.measure import session, time_call
 from explorer.model import build_network
 from explorer.onnx_stages import example_inputs, export_whole
 from explorer.space import paper_candidate
-
-
-def _session(model: bytes, optimize: bool, save: Path | None = None):
-    opts = ort.SessionOptions()
-    opts.use_per_session_threads = False
-    opts.log_severity_level = 3
-    opts.graph_optimization_level = (ort.GraphOptimizationLevel.ORT_ENABLE_ALL if optimize
-                                     else ort.GraphOptimizationLevel.ORT_DISABLE_ALL)
-    if save is not None:
-        opts.optimized_model_filepath = str(save)
-    return ort.InferenceSession(model, opts)
 
 
 def block_size() -> int:
@@ -51,7 +39,7 @@ def block_size() -> int:
     node = helper.make_node("ReorderInput", ["x"], ["y"], domain="com.microsoft.nchwc", channels_last=0)
     model = helper.make_model(helper.make_graph([node], "block", [x], [y]),
                               opset_imports=[helper.make_opsetid("", 17), helper.make_opsetid("com.microsoft.nchwc", 1)])
-    return _session(model.SerializeToString(), False).run(None, {"x": np.zeros((1, 4, 1, 1), np.float32)})[0].shape[1]
+    return session(model.SerializeToString(), optimize=False).run(None, {"x": np.zeros((1, 4, 1, 1), np.float32)})[0].shape[1]
 
 
 def blocked_skip_adds(model: onnx.ModelProto, block: int) -> int:
@@ -106,17 +94,16 @@ if __name__ == "__main__":
     ap = argparse.ArgumentParser()
     ap.add_argument("--reps", type=int, default=7)
     args = ap.parse_args()
-    ort.set_global_thread_pool_sizes(2, 1)
     torch.manual_seed(0)
     net = build_network(paper_candidate()).eval()
     whole = export_whole(net, (224, 224))
     feeds = {k: v.numpy() for k, v in example_inputs((224, 224)).items()}
     with tempfile.TemporaryDirectory() as tmp:
-        plain = _session(whole, True, Path(tmp) / "optimised.onnx")
+        plain = session(whole, save_optimized=Path(tmp) / "optimised.onnx")
         model = onnx.load(str(Path(tmp) / "optimised.onnx"))
     block = block_size()
     count = blocked_skip_adds(model, block)
-    blocked = _session(model.SerializeToString(), False)
+    blocked = session(model.SerializeToString(), optimize=False)
     diff = max(float(np.abs(a - b).max()) for a, b in zip(plain.run(None, feeds), blocked.run(None, feeds)))
     print(f"block size {block}; {count} skip additions rewritten; max |difference| of the depth maps {diff:.2e}")
     times: dict[str, list[float]] = {"as optimised": [], "blocked skip additions": []}

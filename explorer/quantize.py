@@ -167,7 +167,7 @@ def quantize_export(model_dir: Path, data: str, calibration_frames: int = 32, ev
     on ``eval_frames`` validation frames, each path's RMSE degradation, the calibration. Refuses
     (UserError) when a path degrades by more than ``max_degradation`` unless ``force``."""
     import json
-    from explorer.runtime import MANIFEST
+    from explorer.runtime import MANIFEST, _is_scan_path
     if calibration_frames < 1 or eval_frames < 1:
         raise UserError("--calibration-frames and --eval-frames must be at least 1")
     if not 0 <= max_degradation:
@@ -187,7 +187,7 @@ def quantize_export(model_dir: Path, data: str, calibration_frames: int = 32, ev
         src = model_dir / stage["file"]
         dst = src.with_name(src.stem + ".int8.onnx")
         stage["precision"] = "fp32"
-        if stage["path"] == 0 and not stage["stages"]:
+        if _is_scan_path(stage):
             continue   # the scan's own map: nothing to quantize
         if not isinstance(stages, str) and stage["name"] not in stages:
             continue
