@@ -18,7 +18,7 @@ from explorer.anytime import anytime_loss
 from explorer.cost import candidate_cost
 from explorer.cost.calibrate import calibrate
 from explorer.cost.measure import session, time_call
-from explorer.cost.peak import host_peak
+from explorer.cost.peak import gemm_gmacs, host_peak
 from explorer.data import open_dataset
 from explorer.deploy import Quantization, export_network
 from explorer.metrics import MetricAverager, depth_metrics
@@ -91,6 +91,12 @@ if __name__ == "__main__":
               f"{peak.fraction(macs, w):.0%} of fp32 peak (goal >= 50%)")
         print(f"PyTorch eager {eager:.2f} ms ({torch.get_num_threads()} threads) vs onnxruntime whole graph {w:.2f} ms "
               f"(medians of 5): {statistics.median(ratios):.2f}x per rep ({min(ratios):.2f}-{max(ratios):.2f}; goal >= 3x)")
+        gemm = gemm_gmacs()
+        g = statistics.median(gemm)
+        print(f"attainable here: a 1024^3 fp32 matrix product in onnxruntime, 5 reps: "
+              f"{' '.join(f'{r:.1f}' for r in gemm)} GMAC/s, median {g:.1f} ({g / peak.fp32_gmacs:.0%} of nominal peak); "
+              f"whole graph at {macs / (w * 1e6) / g:.0%} of it; 3x eager would need {3 * macs / (eager * 1e6):.1f} GMAC/s, "
+              f"{3 * macs / (eager * 1e6) / g:.0%} of it")
 
         if not args.skip_int8:
             q8 = out / "int8"   # inside the temporary folder: removed with it

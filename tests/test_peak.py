@@ -46,3 +46,22 @@ def test_highest_current_clock_and_neon_without_dot_product(tmp_path):
 def test_this_machine_has_a_positive_peak():
     p = host_peak()
     assert p.cores >= 1 and p.fp32_gmacs > 0 and "GMAC/s" in p.describe()
+
+
+ZEN4 = """processor\t: 0
+vendor_id\t: AuthenticAMD
+cpu family\t: 25
+model\t\t: 17
+model name\t: AMD EPYC
+cpu MHz\t\t: 2596.148
+flags\t\t: fpu fma avx avx2 avx512f avx512_vnni
+"""
+
+
+def test_zen4_takes_a_512_bit_fma_on_its_two_256_bit_units(tmp_path):
+    p = host_peak(ZEN4, sysfs=tmp_path, cores=2)
+    assert (p.fp32_lanes, p.fma_units) == (16, 1)
+    assert p.fp32_gmacs == pytest.approx(2 * 2.596148 * 16)
+    # the same flags on another vendor or family keep two full-width units
+    assert host_peak(ZEN4.replace("cpu family\t: 25", "cpu family\t: 26"), sysfs=tmp_path, cores=2).fma_units == 2
+    assert host_peak(ZEN4.replace("AuthenticAMD", "GenuineIntel"), sysfs=tmp_path, cores=2).fma_units == 2
