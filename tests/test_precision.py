@@ -184,7 +184,8 @@ def test_stored_workloads_recost_int8_trials_layer_by_layer():
     old = {**compact, "layers": [row[:6] for row in compact["layers"]]}   # rows a study stored before
     wl_old, _ = expand_workloads(old)
     assert [w.macs for w in wl_old] == [w.macs for w in cost.workloads]
-    assert all(workload_quantized(w) == (w.kind in QUANTIZABLE_KINDS) for w in wl_old)
+    assert [workload_quantized(w) for w in wl_old] == [workload_quantized(w) for w in cost.workloads]
+    assert {w.kind for w in wl_old if workload_quantized(w)} <= set(QUANTIZABLE_KINDS)
 
 
 def test_int8_quantizes_a_stage_graph_whole_with_7_bit_weights(tmp_path):
@@ -215,6 +216,49 @@ def test_int8_quantizes_a_stage_graph_whole_with_7_bit_weights(tmp_path):
         w = weights[made_by[conv.input[1]].input[0]]
         # 255 x 64 x 2 < 2**15: a pair of products cannot saturate int16
         assert w.dtype == np.int8 and np.abs(w.astype(int)).max() <= 64 and np.abs(w.astype(int)).max() >= 32
+
+
+def test_int8_keeps_the_lidar_encoder_fp32_inside_a_quantized_graph(tmp_path):
+    """The scan's metric depths stay float through the LiDAR encoder; the image convolutions are int8."""
+    import onnx
+    import torch
+    from explorer.quantize import quantize_graph
+
+    class Encoders(torch.nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.image_encoder = torch.nn.Sequential(torch.nn.Conv2d(3, 16, 3, 2, 1), torch.nn.ReLU())
+            self.lidar_encoder = torch.nn.Sequential(torch.nn.Conv1d(1, 16, 3, 1, 1), torch.nn.ReLU(),
+                                                     torch.nn.Conv1d(16, 16, 3, 2, 1))
+
+        def forward(self, image, scan):
+            return self.image_encoder(image) + self.lidar_encoder(scan)[:, :, None, :]
+
+    src, dst = tmp_path / "f.onnx", tmp_path / "q.onnx"
+    torch.onnx.export(Encoders().eval(), (torch.rand(1, 3, 8, 32), torch.rand(1, 1, 32)), str(src),
+                      input_names=["image", "scan"], output_names=["y"], dynamo=False)
+    feeds = [{"image": torch.rand(1, 3, 8, 32).numpy(), "scan": 10 * torch.rand(1, 1, 32).numpy()} for _ in range(4)]
+    assert quantize_graph(src, dst, feeds)
+    g = onnx.load(str(dst)).graph
+    made_by = {o: n.op_type for n in g.node for o in n.output}
+    convs = {n.name: n for n in g.node if n.op_type == "Conv"}
+    lidar = [n for name, n in convs.items() if name.startswith("/lidar_encoder/")]
+    image = [n for name, n in convs.items() if name.startswith("/image_encoder/")]
+    assert len(lidar) == 2 and len(image) == 1
+    assert all(made_by.get(c.input[1]) != "DequantizeLinear" for c in lidar)   # float weights
+    assert made_by[image[0].input[1]] == "DequantizeLinear"
+
+
+def test_an_int8_graph_prices_its_lidar_encoder_at_fp32(tmp_path):
+    from explorer.cost.devices import _stage_ms
+    dev = get_device(_with_int8(tmp_path, slower=0.25))   # every int8 layer 4x as fast
+    cost = candidate_cost(dataclasses.replace(paper_candidate(), precision="int8"))
+    int8, fp32 = _stage_ms(dev.int8, cost.workloads), _stage_ms(dev, cost.workloads)
+    assert int8["lidar_encoder"] < fp32["lidar_encoder"]
+    encoders = cost.path_stages[0]   # path 1's stages (index 0 of the latencies is the scan)
+    want = dev.inference_overhead_ms + sum((fp32 if s == "lidar_encoder" else int8)[s] + dev.stage_overhead_ms
+                                           for s in encoders)
+    assert cost.path_latency_ms(dev)[1] == pytest.approx(want)
 
 
 def test_a_graph_without_convolutions_stays_fp32(tmp_path):

@@ -171,7 +171,10 @@ def test_interrupted_probe_resumes_without_measuring_again(bundle_dir, tmp_path,
     int8 = [layer for layer in layers if layer.get("precision") == "int8"]
     # every convolution of the sweep goes in quantized too (an int8 export quantizes stage graphs whole)
     assert int8 and {layer["workload"]["kind"] for layer in int8} <= set(QUANTIZABLE_KINDS)
-    assert len(int8) == sum(layer["workload"]["kind"] in QUANTIZABLE_KINDS for layer in layers if layer not in int8)
+    # but the LiDAR encoder's, which int8 graphs keep fp32
+    assert len(int8) == sum(layer["workload"]["kind"] in QUANTIZABLE_KINDS and layer["workload"]["stage"] != "lidar_encoder"
+                            for layer in layers if layer not in int8)
+    assert not any(layer["workload"]["stage"] == "lidar_encoder" for layer in int8)
     assert prof.provenance["fit"][0]["count"] == len(layers) - len(int8)
     # and the calibration candidate's stage graphs, quantized whole
     fp32_cands = [c for c in res["bundle"]["candidates"] if c.get("precision", "fp32") == "fp32"]
@@ -294,7 +297,10 @@ def test_bundle_int8_graphs_are_quantized_convolutions_and_stage_graphs(bundle_d
     nodes = onnx.load(str(bundle_dir / encoder["file"])).graph.node
     made_by = {o: n for n in nodes for o in n.output}
     convs = [n for n in nodes if n.op_type == "Conv"]
-    assert convs and all(made_by[c.input[0]].op_type == "DequantizeLinear" for c in convs)   # quantized whole
+    lidar = [c for c in convs if c.name.startswith("/lidar_encoder/")]
+    assert lidar and not any(c.input[1] in made_by for c in lidar)   # kept fp32: weights read straight from initializers
+    rest = [c for c in convs if c not in lidar]
+    assert rest and all(made_by[c.input[0]].op_type == "DequantizeLinear" for c in rest)   # quantized whole
 
 
 def test_probe_with_a_power_sensor_writes_measured_energy(bundle_dir, tmp_path):

@@ -294,6 +294,7 @@ def path_latencies_ms(profile: DeviceProfile, workloads: Sequence[Workload],
     per_stage = _stage_ms(profile, workloads)
     if profile.float_layers is not None:
         fp32 = _stage_ms(profile.float_layers, workloads)
+        per_stage = _int8_stage_ms(per_stage, fp32)
         for graph, int8 in zip(deployed_graphs(path_stages), int8_graphs(profile, workloads, path_stages)):
             if not int8:
                 per_stage.update({s: fp32.get(s, 0.0) for s in graph})
@@ -315,9 +316,16 @@ def int8_graphs(profile: DeviceProfile, workloads: Sequence[Workload],
                 path_stages: Sequence[Sequence[str]]) -> list[bool]:
     """Per deployed stage graph, whether an int8 export keeps it int8 on this device: its price on
     ``profile`` (an int8 section) is at most ``INT8_KEEP_RATIO`` of its fp32 price."""
-    int8, fp32 = _stage_ms(profile, workloads), _stage_ms(profile.float_layers or profile, workloads)
+    fp32 = _stage_ms(profile.float_layers or profile, workloads)
+    int8 = _int8_stage_ms(_stage_ms(profile, workloads), fp32)
     return [sum(int8.get(s, 0.0) for s in graph) <= INT8_KEEP_RATIO * sum(fp32.get(s, 0.0) for s in graph)
             for graph in deployed_graphs(path_stages)]
+
+
+def _int8_stage_ms(int8: dict[str, float], fp32: dict[str, float]) -> dict[str, float]:
+    """Per-stage times of an int8 graph: the stages it keeps fp32 (``FLOAT_STAGES``) at their fp32 price."""
+    from explorer.quantize import FLOAT_STAGES
+    return {s: fp32.get(s, ms) if s in FLOAT_STAGES else ms for s, ms in int8.items()}
 
 
 def _stage_ms(profile: DeviceProfile, workloads: Sequence[Workload]) -> dict[str, float]:
