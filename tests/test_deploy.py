@@ -161,6 +161,36 @@ def test_int8_runs_under_deadlines(int8_export, run_cli):
     assert "the model is int8" in text and json.loads((out / "anytime_curve.json").read_text())["precision"] == "int8"
 
 
+def _metrics_losing(loss: float, spoils) -> "Callable":
+    """A stand-in for quantize.path_metrics: every path's RMSE 1.0, and ``1 + loss`` from the first path
+    after an int8 stage graph for which ``spoils(stage)`` holds (what the export's manifest says now)."""
+    def metrics(model_dir, frames):
+        stages = json.loads((model_dir / "manifest.json").read_text())["stages"]
+        spoiled = [st["path"] for st in stages if st.get("precision") == "int8" and spoils(st)]
+        return [{"path": p, "rmse": 1.0 + (loss if spoiled and p >= min(spoiled) else 0.0)}
+                for p in range(CAND.num_paths)]
+    return metrics
+
+
+def test_int8_keeps_fp32_the_graph_that_costs_accuracy(exported, tmp_path, monkeypatch):
+    """--int8-stages faster: a graph whose int8 form takes a path past --max-degradation goes back to
+    fp32, the others stay int8, and the manifest says which and why."""
+    import explorer.quantize as quantize
+    from conftest import TINY_DATA
+    from explorer.deploy import Quantization
+    _, net = exported
+    monkeypatch.setattr(quantize, "compare_speed", lambda fp32, int8, feeds: (2.0, 1.0))
+    monkeypatch.setattr(quantize, "path_metrics", _metrics_losing(0.10, lambda st: st["path"] == 2))
+    m = export_network(net, tmp_path / "m", (32, 48), quantization=Quantization(
+        data=TINY_DATA, calibration_frames=2, eval_frames=2, max_degradation=0.03))
+    precisions = [st["precision"] for st in m["stages"]]
+    assert precisions == ["fp32", "int8", "fp32"] + ["int8"] * (len(m["stages"]) - 3)
+    assert m["quantization"]["kept_fp32_for_accuracy"] == [m["stages"][2]["name"]]
+    assert max(m["quantization"]["rmse_degradation"]) == 0.0
+    assert sorted(f.name for f in (tmp_path / "m").glob("*.onnx")) == sorted(st["file"] for st in m["stages"])
+    assert json.loads((tmp_path / "m" / "manifest.json").read_text()) == m
+
+
 def test_int8_past_the_degradation_limit_is_refused_and_changes_nothing(exported, tmp_path, monkeypatch):
     import shutil
     import explorer.quantize as quantize
@@ -171,9 +201,9 @@ def test_int8_past_the_degradation_limit_is_refused_and_changes_nothing(exported
     target = tmp_path / "kept"
     shutil.copytree(out, target)
     before = {f.name: f.read_bytes() for f in target.iterdir()}
-    measured = iter([[{"rmse": 1.0}] * CAND.num_paths, [{"rmse": 1.0}, *[{"rmse": 1.1}] * (CAND.num_paths - 1)]])
-    monkeypatch.setattr(quantize, "path_metrics", lambda *a: [{"path": p, **r} for p, r in enumerate(next(measured))])
-    with pytest.raises(UserError, match=r"path 1's RMSE by 10\.0% .*--force"):
+    monkeypatch.setattr(quantize, "compare_speed", lambda fp32, int8, feeds: (2.0, 1.0))   # every graph pays
+    monkeypatch.setattr(quantize, "path_metrics", _metrics_losing(0.10, lambda stage: True))
+    with pytest.raises(UserError, match=r"path \d's RMSE by 10\.0% even with only \S+ int8 .*--force"):
         export_network(net, target, (32, 48), quantization=Quantization(data=TINY_DATA, calibration_frames=2,
                                                                          eval_frames=2, max_degradation=0.03))
     assert {f.name: f.read_bytes() for f in target.iterdir()} == before      # the fp32 export is intact

@@ -56,6 +56,9 @@ def cmd_export(args) -> None:
         console.print(f"int8 stage graphs: {len(int8)} of {len(manifest['stages'])}"
                       + (f" ({', '.join(int8)})" if int8 else " (none ran at least 5% faster in int8 here: the "
                          "export is fp32; --int8-stages all forces int8)"))
+        if q.get("kept_fp32_for_accuracy"):
+            console.print(f"kept fp32 because int8 took a path past --max-degradation: "
+                          f"{', '.join(q['kept_fp32_for_accuracy'])}")
 
 
 def cmd_run(args) -> None:
@@ -112,8 +115,9 @@ def register(sub, add, reports: dict) -> None:
     s.add_argument("--force", action="store_true", help="export int8 even past --max-degradation")
     s.add_argument("--int8-stages", choices=("faster", "all"), default=None,
                    help="faster (default): each stage graph is int8 only where it runs at least 5%% faster than "
-                   "in fp32 on this machine (timed at export); all: every stage int8 (for a target other than "
-                   "this machine)")
+                   "in fp32 on this machine (timed at export), and graphs that take a path past "
+                   "--max-degradation go back to fp32 one by one; all: every stage int8 (for a target other "
+                   "than this machine)")
     s.add_argument("--reports", **reports)
 
     s = add("run", cmd_run, "run an exported model under a deadline and return the best depth map")
