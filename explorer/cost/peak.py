@@ -106,16 +106,15 @@ def gemm_gmacs(n: int = 1024, reps: int = 5) -> list[float]:
     import time
 
     import numpy as np
-    import onnxruntime as ort
     from onnx import TensorProto, helper
+
+    from explorer.cost.measure import session
 
     graph = helper.make_graph([helper.make_node("MatMul", ["a", "b"], ["c"])], "gemm",
                               [helper.make_tensor_value_info(k, TensorProto.FLOAT, [n, n]) for k in "ab"],
                               [helper.make_tensor_value_info("c", TensorProto.FLOAT, [n, n])])
     model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 13)])
-    options = ort.SessionOptions()
-    options.intra_op_num_threads = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else 0
-    sess = ort.InferenceSession(model.SerializeToString(), options, providers=["CPUExecutionProvider"])
+    sess = session(model.SerializeToString())   # as every measured graph: the same threads and pool
     rng = np.random.default_rng(0)
     feeds = {k: rng.standard_normal((n, n), dtype=np.float32) for k in "ab"}
     sess.run(None, feeds)
