@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from explorer.model.ops import BroadcastAdd, Resize, SkipAdd
+from explorer.model.ops import BroadcastAdd, Resize, SkipAdd, one_channel_unblocked
 
 #: Initial bias of the depth output (metres): a typical indoor depth, so training starts near it.
 DEPTH_INIT_M = 2.5
@@ -55,7 +55,9 @@ class ExitHead(nn.Module):
         """``extra``: the LiDAR feature when the head fuses it, then path 0 when it is residual."""
         if self.config.lidar_channels:
             x = self.add(x, self.fuse(extra[0]).unsqueeze(2))
-        depth = self.resize(self.layers(x))
+        depth = self.layers(x)
+        if self.config.upscale > 1:
+            depth = self.resize(one_channel_unblocked(depth))
         return self.correct(depth, extra[-1]) if self.config.residual else depth
 
 

@@ -12,7 +12,7 @@ from torch import nn
 
 from explorer.model.exits import DEPTH_INIT_M
 from explorer.model.lidar_encoder import SCAN_SCALE_M
-from explorer.model.ops import Resize, RowGrid, SkipAdd, conv1d_bn_relu, conv_bn_relu
+from explorer.model.ops import Resize, RowGrid, SkipAdd, conv1d_bn_relu, conv_bn_relu, one_channel_unblocked
 
 #: The grid the LiDAR-only path predicts on, relative to the image (then resized bilinearly).
 LIDAR_EXIT_STRIDE = 8
@@ -44,5 +44,5 @@ class LidarExit(nn.Module):
 
     def forward(self, scan: torch.Tensor, image: torch.Tensor, path_0: torch.Tensor | None = None) -> torch.Tensor:
         x = torch.stack([scan / SCAN_SCALE_M, (scan > 0).to(scan.dtype)], dim=1)
-        depth = self.resize(self.out(self.cells(self.grid(self.columns(x), image))))
+        depth = self.resize(one_channel_unblocked(self.out(self.cells(self.grid(self.columns(x), image)))))
         return depth if path_0 is None else self.correct(depth, path_0)

@@ -37,6 +37,15 @@ class Resize(nn.Module):
         return F.interpolate(x, scale_factor=float(self.factor), mode=self.mode, **kwargs)
 
 
+def one_channel_unblocked(x: torch.Tensor) -> torch.Tensor:
+    """``x`` (N, 1, H, W) as it is: views in torch, a Squeeze / Unsqueeze pair in the exported graph.
+    onnxruntime's blocked layout (NCHWc) does not cross that pair, so the bilinear resize after an
+    exit's last convolution runs on its one channel instead of a block of 8 or 16 channels, 15 of
+    them padding: an exit head (1x1 convolution then resize) ran 1.5-2.2x as fast so
+    (``benchmarks/bench_exit_heads.py``)."""
+    return x.squeeze(1).unsqueeze(1)
+
+
 class SkipAdd(nn.Module):
     """Additive skip. Channels that only one side has pass through (no projection, no parameters),
     so decoder widths can be searched freely."""
