@@ -6,14 +6,16 @@ Each stage graph is calibrated on the inputs it really receives: the float model
 calibration frames and every stage's inputs are kept. A stage graph is quantized whole: every operator
 onnxruntime's quantizer handles (convolutions of every kind, resizes, additions, concatenations), so
 that its tensors stay uint8 from one layer to the next and it quantizes and dequantizes only at its
-edges; only the LiDAR encoder stays fp32 (``FLOAT_STAGES``). Quantizing only the wide convolutions, with float depthwise layers between them, paid for
-nothing: on this project's AVX-512 VNNI VM the encoder stage ran 1.04x its fp32 speed that way and
-1.68x quantized whole (benchmarks/bench_runtime.py). Whole quantization does not pay everywhere: the
-full-resolution decoder stages ran 1.9x slower (onnxruntime's uint8 resize and depthwise kernels are
-slower than its blocked fp32 ones). So an export keeps a stage int8 only where it runs at most
-``INT8_KEEP_RATIO`` of its fp32 time on the exporting machine (``stages="all"``: every stage int8), and
-the cost model prices an int8 candidate's stages the same way (``explorer.cost.devices``). Path 0
-(the scan) has nothing to quantize.
+edges; only the LiDAR encoder stays fp32 (``FLOAT_STAGES``). Quantizing only the wide convolutions,
+with float depthwise layers between them, paid for nothing: on this project's AVX-512 VNNI VM the
+encoder stage ran 1.04x its fp32 speed that way and 1.68x quantized whole
+(benchmarks/bench_runtime.py). Whole quantization does not pay everywhere: the full-resolution
+decoder stages ran 1.9x slower (onnxruntime's uint8 resize and depthwise kernels are slower than its
+blocked fp32 ones). So an export keeps a stage int8 only where it runs at most ``INT8_KEEP_RATIO`` of
+its fp32 time on the exporting machine (``stages="all"``: every stage int8), and the cost model
+prices an int8 candidate's stages the same way (``explorer.cost.devices``); then, where a path loses
+more RMSE than the export allows, it gives graphs back to fp32 one by one. Path 0 (the scan) has
+nothing to quantize.
 
 Weights are quantized to 7 bits (``reduce_range``): x86 CPUs without VNNI multiply uint8 by int8 in
 pairs summed into int16 (VPMADDUBSW), which saturates with full-range weights; measured on one such
@@ -234,13 +236,15 @@ def quantize_export(model_dir: Path, data: str, calibration_frames: int = 32, ev
         else:
             dst.unlink()
 
-    def measure(chosen: dict[int, str]) -> tuple[list[dict[str, float]], list[float]]:
-        """Per-path metrics and RMSE degradation with exactly the graphs ``chosen`` int8."""
+    def choose(chosen: dict[int, str]) -> None:
         for k, stage in enumerate(manifest["stages"]):
             stage["precision"] = "int8" if k in chosen else "fp32"
-        (model_dir / MANIFEST).write_text(json.dumps(
-            {**manifest, "stages": [{**st, "file": chosen.get(k, st["file"])} for k, st in enumerate(manifest["stages"])]},
-            indent=2))
+
+    def measure(chosen: dict[int, str]) -> tuple[list[dict[str, float]], list[float]]:
+        """Per-path metrics and RMSE degradation with exactly the graphs ``chosen`` int8."""
+        choose(chosen)
+        files = [{**st, "file": chosen.get(k, st["file"])} for k, st in enumerate(manifest["stages"])]
+        (model_dir / MANIFEST).write_text(json.dumps({**manifest, "stages": files}, indent=2))
         after = path_metrics(model_dir, evaluation)
         return after, [a["rmse"] / b["rmse"] - 1 if b["rmse"] > 0 else 0.0 for a, b in zip(after, before)]
 
@@ -262,11 +266,11 @@ def quantize_export(model_dir: Path, data: str, calibration_frames: int = 32, ev
                 f"(worst path without it {worst_after:+.1%})")
             kept_for_accuracy.append(name)
             (model_dir / int8_files.pop(k)).unlink()
-        if kept_for_accuracy:
-            measure(int8_files)   # the manifest as chosen
+        choose(int8_files)
     worst = int(np.argmax(degradation))
     if degradation[worst] > max_degradation and not force:
-        alone = f" even with only {manifest['stages'][next(iter(int8_files))]['name']} int8" if kept_for_accuracy else ""
+        last = manifest["stages"][next(iter(int8_files))]["name"] if kept_for_accuracy else None
+        alone = f" even with only {last} int8" if last else ""
         raise UserError(f"int8 degrades path {worst}'s RMSE by {degradation[worst]:.1%}{alone} (> --max-degradation "
                         f"{max_degradation:.0%}; {before[worst]['rmse']:.4f} -> {after[worst]['rmse']:.4f} m): "
                         "not exported; keep fp32, calibrate on more frames, or add --force")
