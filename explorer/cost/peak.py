@@ -8,8 +8,8 @@ where the CPU has dot-product instructions (AVX-512 VNNI, AVX-VNNI, ARM dotprod)
 multiply-add). FMA units per core cannot be read from the flags: 2 is assumed for AVX-512 and
 AVX2 server cores (Skylake-SP Gold/Platinum and later, Zen), 1 for the rest, and 1 for AMD's Zen 4
 (family 25 with AVX-512), whose two FMA units are 256 bits wide and take a 512-bit FMA together;
-``fma_units`` overrides The clock is the highest one the kernel reports (cpufreq's maximum, the model name's "@ x GHz",
-then /proc/cpuinfo's current MHz). A virtual machine often reports only its base clock, below the
+``fma_units`` overrides it. The clock is the highest one the kernel reports (cpufreq's maximum, the
+model name's "@ x GHz", then /proc/cpuinfo's current MHz). A virtual machine often reports only its base clock, below the
 one its cores boost to: ``gemm_gmacs`` measures what a large matrix product actually reaches.
 """
 
