@@ -60,26 +60,22 @@ if __name__ == "__main__":
             for _, sess, ins, outs in runner.sessions:
                 values.update(zip(outs, sess.run(outs, {n: values[n] for n in ins})))
 
-        import onnxruntime as ort   # measured, not adopted: one memory arena shared by the stage sessions
-        ort.create_and_register_allocator(
-            ort.OrtMemoryInfo("Cpu", ort.OrtAllocatorType.ORT_ARENA_ALLOCATOR, 0, ort.OrtMemType.DEFAULT),
-            ort.OrtArenaCfg(0, -1, -1, -1))
+        import onnxruntime as ort
 
-        def shared_arena(st: dict):   # a stage session as session() makes it, allocating from that arena
+        def own_arena(st: dict):   # a stage session as session() makes it, but with a memory arena of its own
             opts = ort.SessionOptions()
             opts.use_per_session_threads = False
             opts.log_severity_level = 3
-            opts.add_session_config_entry("session.use_env_allocators", "1")
             sess = ort.InferenceSession(str(out / st["file"]), opts, providers=["CPUExecutionProvider"])
             return sess, [i.name for i in sess.get_inputs()], [o.name for o in sess.get_outputs()]
-        arena_sessions = [shared_arena(st) for st in runner.manifest["stages"] if st["path"] != 0]
+        own_sessions = [own_arena(st) for st in runner.manifest["stages"] if st["path"] != 0]
 
-        def shared_arena_chain():   # the plain stage graphs with one memory arena between them
+        def own_arena_chain():   # the plain stage graphs, each session with its own arena (as before stop 32)
             values = dict(feeds)
-            for sess, ins, outs in arena_sessions:
+            for sess, ins, outs in own_sessions:
                 values.update(zip(outs, sess.run(outs, {n: values[n] for n in ins})))
 
-        arena_staged = []
+        own_staged = []
         img, scan = torch.from_numpy(env["image"]), torch.from_numpy(env["scan"])
         eager_ms = []
         for rep in range(5):  # interleaved, so all four see the same machine
@@ -87,7 +83,7 @@ if __name__ == "__main__":
             with_deadline.append(time_call(lambda: runner.run(env["image"][0], env["scan"][0], 1e4), 2, 20))
             plain_staged.append(time_call(lambda: plain.run(env["image"][0], env["scan"][0]), 2, 20))
             bare_staged.append(time_call(bare_chain, 2, 20))
-            arena_staged.append(time_call(shared_arena_chain, 2, 20))
+            own_staged.append(time_call(own_arena_chain, 2, 20))
             whole_ms.append(time_call(lambda: whole.run(None, feeds), 2, 20))
             with torch.no_grad():
                 eager_ms.append(time_call(lambda: net(img, scan), 2, 20))
@@ -95,15 +91,15 @@ if __name__ == "__main__":
             print(f"  rep {rep + 1}: whole graph {w:.2f} ms; staged {staged[-1]:.2f} ms ({staged[-1] / w - 1:+.1%}), "
                   f"with a deadline {with_deadline[-1]:.2f} ({with_deadline[-1] / w - 1:+.1%}), without the blocked "
                   f"handoff {plain_staged[-1]:.2f} ({plain_staged[-1] / w - 1:+.1%}), bare stage chain "
-                  f"{bare_staged[-1]:.2f} ({bare_staged[-1] / w - 1:+.1%}), plain stage graphs sharing one arena "
-                  f"{arena_staged[-1]:.2f} ({arena_staged[-1] / w - 1:+.1%}); PyTorch eager {eager_ms[-1]:.2f} ms, "
+                  f"{bare_staged[-1]:.2f} ({bare_staged[-1] / w - 1:+.1%}), plain stage graphs, an arena each "
+                  f"{own_staged[-1]:.2f} ({own_staged[-1] / w - 1:+.1%}); PyTorch eager {eager_ms[-1]:.2f} ms, "
                   f"{eager_ms[-1] / w:.2f}x the whole graph")
         w = statistics.median(whole_ms)
         print(f"staged execution vs one whole graph ({w:.2f} ms), medians of 5: "
               + ", ".join(f"{label} {statistics.median(t):.2f} ms {statistics.median(t) / w - 1:+.1%}" for label, t in
                           (("staged", staged), ("with a deadline", with_deadline),
                            ("without the blocked handoff", plain_staged), ("the stage sessions alone", bare_staged),
-                           ("plain stage graphs, one shared arena", arena_staged)))
+                           ("plain stage graphs, an arena each", own_staged)))
               + " (goal <= 5%)")
         eager = statistics.median(eager_ms)
         ratios = [e / w for e, w in zip(eager_ms, whole_ms)]
