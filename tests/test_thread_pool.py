@@ -1,7 +1,7 @@
 """Every onnxruntime session of a process shares the global intra-op pool and one memory arena
 (explorer.cost.probe_script), and quantization, whose own sessions a shared pool forbids, still
-works there. Each case runs in a
-fresh interpreter: the pool is per process, and this test process has made sessions already."""
+works there. Each case runs in a fresh interpreter: the pool is per process, and this test process
+has made sessions already."""
 
 import json
 import os
