@@ -78,7 +78,7 @@ if __name__ == "__main__":
         own_staged = []
         img, scan = torch.from_numpy(env["image"]), torch.from_numpy(env["scan"])
         eager_ms = []
-        for rep in range(5):  # interleaved, so all four see the same machine
+        for rep in range(5):  # interleaved, so that all of them see the same machine
             staged.append(time_call(lambda: runner.run(env["image"][0], env["scan"][0]), 2, 20))
             with_deadline.append(time_call(lambda: runner.run(env["image"][0], env["scan"][0], 1e4), 2, 20))
             plain_staged.append(time_call(lambda: plain.run(env["image"][0], env["scan"][0]), 2, 20))
