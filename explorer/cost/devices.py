@@ -29,7 +29,7 @@ import yaml
 
 from explorer.cost.workloads import ALL_KINDS, BYTES_PER_VALUE, KINDS, OPTIONAL_KINDS, Workload
 from explorer.errors import UserError
-from explorer.quantize import INT8_KEEP_RATIO
+from explorer.quantize import FLOAT_STAGES, INT8_KEEP_RATIO
 
 PROFILES_DIR = Path(__file__).resolve().parent / "profiles"
 
@@ -324,7 +324,6 @@ def int8_graphs(profile: DeviceProfile, workloads: Sequence[Workload],
 
 def _int8_stage_ms(int8: dict[str, float], fp32: dict[str, float]) -> dict[str, float]:
     """Per-stage times of an int8 graph: the stages it keeps fp32 (``FLOAT_STAGES``) at their fp32 price."""
-    from explorer.quantize import FLOAT_STAGES
     return {s: fp32.get(s, ms) if s in FLOAT_STAGES else ms for s, ms in int8.items()}
 
 

@@ -101,14 +101,12 @@ def host_peak(cpuinfo: str | None = None, sysfs: str | Path = "/sys/devices/syst
 
 def gemm_gmacs(n: int = 1024, reps: int = 5) -> list[float]:
     """The fp32 rate one n x n x n matrix product reaches here in onnxruntime (its MLAS kernels, the
-    ones its convolutions use), in GMAC/s, one figure per rep of 5 products: an attainable ceiling
-    to set beside the nominal peak."""
-    import time
-
+    ones its convolutions use), in GMAC/s, one figure per rep (the median of 5 products): an
+    attainable ceiling to set beside the nominal peak."""
     import numpy as np
     from onnx import TensorProto, helper
 
-    from explorer.cost.measure import session
+    from explorer.cost.measure import session, time_call
 
     graph = helper.make_graph([helper.make_node("MatMul", ["a", "b"], ["c"])], "gemm",
                               [helper.make_tensor_value_info(k, TensorProto.FLOAT, [n, n]) for k in "ab"],
@@ -117,11 +115,4 @@ def gemm_gmacs(n: int = 1024, reps: int = 5) -> list[float]:
     sess = session(model.SerializeToString())   # as every measured graph: the same threads and pool
     rng = np.random.default_rng(0)
     feeds = {k: rng.standard_normal((n, n), dtype=np.float32) for k in "ab"}
-    sess.run(None, feeds)
-    rates = []
-    for _ in range(reps):
-        t = time.perf_counter()
-        for _ in range(5):
-            sess.run(None, feeds)
-        rates.append(n ** 3 / ((time.perf_counter() - t) / 5) / 1e9)
-    return rates
+    return [n ** 3 / (time_call(lambda: sess.run(None, feeds), 1, 5) * 1e6) for _ in range(reps)]
