@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from explorer._arena_choice import ArenaChoice
 from explorer.anytime import anytime_loss
 from explorer.cost import candidate_cost
 from explorer.cost.calibrate import calibrate
@@ -60,22 +61,13 @@ if __name__ == "__main__":
             for _, sess, ins, outs in runner.sessions:
                 values.update(zip(outs, sess.run(outs, {n: values[n] for n in ins})))
 
-        import onnxruntime as ort
+        def one_set(i: int) -> AnytimeRunner:   # a runner held to one of its two session sets
+            r = AnytimeRunner(out)
+            r.session_sets, r.arena_choice = [r.session_sets[i]], ArenaChoice(1, len(r.sessions))
+            return r
+        shared_only, own_only = one_set(0), one_set(-1)
 
-        def own_arena(st: dict):   # a stage session as session() makes it, but with a memory arena of its own
-            opts = ort.SessionOptions()
-            opts.use_per_session_threads = False
-            opts.log_severity_level = 3
-            sess = ort.InferenceSession(str(out / st["file"]), opts, providers=["CPUExecutionProvider"])
-            return sess, [i.name for i in sess.get_inputs()], [o.name for o in sess.get_outputs()]
-        own_sessions = [own_arena(st) for st in runner.manifest["stages"] if st["path"] != 0]
-
-        def own_arena_chain():   # the plain stage graphs, each session with its own arena (as before stop 32)
-            values = dict(feeds)
-            for sess, ins, outs in own_sessions:
-                values.update(zip(outs, sess.run(outs, {n: values[n] for n in ins})))
-
-        own_staged = []
+        shared_staged, own_staged = [], []
         img, scan = torch.from_numpy(env["image"]), torch.from_numpy(env["scan"])
         eager_ms = []
         for rep in range(5):  # interleaved, so that all of them see the same machine
@@ -83,7 +75,8 @@ if __name__ == "__main__":
             with_deadline.append(time_call(lambda: runner.run(env["image"][0], env["scan"][0], 1e4), 2, 20))
             plain_staged.append(time_call(lambda: plain.run(env["image"][0], env["scan"][0]), 2, 20))
             bare_staged.append(time_call(bare_chain, 2, 20))
-            own_staged.append(time_call(own_arena_chain, 2, 20))
+            shared_staged.append(time_call(lambda: shared_only.run(env["image"][0], env["scan"][0]), 2, 20))
+            own_staged.append(time_call(lambda: own_only.run(env["image"][0], env["scan"][0]), 2, 20))
             whole_ms.append(time_call(lambda: whole.run(None, feeds), 2, 20))
             with torch.no_grad():
                 eager_ms.append(time_call(lambda: net(img, scan), 2, 20))
@@ -91,7 +84,8 @@ if __name__ == "__main__":
             print(f"  rep {rep + 1}: whole graph {w:.2f} ms; staged {staged[-1]:.2f} ms ({staged[-1] / w - 1:+.1%}), "
                   f"with a deadline {with_deadline[-1]:.2f} ({with_deadline[-1] / w - 1:+.1%}), without the blocked "
                   f"handoff {plain_staged[-1]:.2f} ({plain_staged[-1] / w - 1:+.1%}), bare stage chain "
-                  f"{bare_staged[-1]:.2f} ({bare_staged[-1] / w - 1:+.1%}), plain stage graphs, an arena each "
+                  f"{bare_staged[-1]:.2f} ({bare_staged[-1] / w - 1:+.1%}), held to the shared arena "
+                  f"{shared_staged[-1]:.2f} ({shared_staged[-1] / w - 1:+.1%}), held to arenas of their own "
                   f"{own_staged[-1]:.2f} ({own_staged[-1] / w - 1:+.1%}); PyTorch eager {eager_ms[-1]:.2f} ms, "
                   f"{eager_ms[-1] / w:.2f}x the whole graph")
         w = statistics.median(whole_ms)
@@ -99,8 +93,9 @@ if __name__ == "__main__":
               + ", ".join(f"{label} {statistics.median(t):.2f} ms {statistics.median(t) / w - 1:+.1%}" for label, t in
                           (("staged", staged), ("with a deadline", with_deadline),
                            ("without the blocked handoff", plain_staged), ("the stage sessions alone", bare_staged),
-                           ("plain stage graphs, an arena each", own_staged)))
+                           ("held to the shared arena", shared_staged), ("held to arenas of their own", own_staged)))
               + " (goal <= 5%)")
+        print(f"the runner's runs per session set (shared arena, arenas of their own): {runner.arena_choice.runs}")
         eager = statistics.median(eager_ms)
         ratios = [e / w for e, w in zip(eager_ms, whole_ms)]
         peak = host_peak()

@@ -17,6 +17,7 @@ from typing import Callable
 
 import numpy as np
 
+from explorer._arena_choice import ArenaChoice
 from explorer.errors import UserError
 
 MANIFEST = "manifest.json"
@@ -81,7 +82,7 @@ class AnytimeRunner:
         applies (``explorer._layout``); ``sessions`` then read and write ``NAME.nchwc`` tensors."""
         import onnxruntime as ort
         from explorer.cost.measure import session
-        from explorer.cost.probe_script import ProbeError, check_provider
+        from explorer.cost.probe_script import ProbeError, check_provider, shared_arena
         try:
             check_provider(provider)
         except ProbeError as exc:
@@ -99,6 +100,7 @@ class AnytimeRunner:
         self.scan_row = int(self.manifest["scan_row"])
         self.sessions: list[tuple[dict, object, list[str], list[str]]] = []
         self.handed_off: list[str] = []   # tensors passed between stages in the blocked layout
+        self._graphs: list[tuple[bytes, bool]] = []   # each session's graph, and whether onnxruntime optimises it
         blocked_handoff = blocked_handoff and provider == "CPUExecutionProvider"   # its NCHWc kernels
         with tempfile.TemporaryDirectory() as tmp:
             optimized = Path(tmp)
@@ -107,13 +109,21 @@ class AnytimeRunner:
                 if not f.is_file():
                     raise UserError(f"{f}: stage graph listed in the manifest is missing")
                 try:
-                    sess = session(f.read_bytes(), threads, provider,
+                    graph = f.read_bytes()
+                    sess = session(graph, threads, provider,
                                    save_optimized=optimized / f"{k}.onnx" if blocked_handoff else None)
                 except Exception as exc:  # onnxruntime raises its own types for corrupt graphs
                     raise UserError(f"{f}: not a loadable ONNX graph ({str(exc).splitlines()[0][:100]})") from None
                 self.sessions.append(_named(st, sess))
+                self._graphs.append((graph, True))
             if blocked_handoff:
                 self.handed_off = self._hand_off_blocked(optimized, threads)
+        # the same graphs again, each session with a memory arena of its own (``explorer._arena_choice``)
+        self.session_sets = [self.sessions]
+        if shared_arena():
+            self.session_sets.append([_named(st, session(graph, threads, provider, optimize=optimize, own_arena=True))
+                                      for (st, *_), (graph, optimize) in zip(self.sessions, self._graphs)])
+        self.arena_choice = ArenaChoice(len(self.session_sets), len(self.sessions))
         self._lock = threading.Lock()
         self._halt = threading.Event()
         self._options: "ort.RunOptions | None" = None
@@ -122,7 +132,9 @@ class AnytimeRunner:
         weakref.finalize(self, self._watchdog.stop)
         if warmup:
             h, w = self.input_size
-            self.run(np.zeros((3, h, w), np.float32), np.ones(w, np.float32))
+            img, scan = self.check(np.zeros((3, h, w), np.float32), np.ones(w, np.float32))
+            for sessions in self.session_sets:   # untimed: a first run is slower than the rest
+                self._depths(sessions, img, scan)
 
     def _hand_off_blocked(self, optimized: Path, threads: int | None) -> list[str]:
         """Replaces the sessions by ones made from their optimised graphs rewritten to hand tensors over
@@ -148,6 +160,7 @@ class AnytimeRunner:
         if not same:
             return []
         self.sessions = rewritten
+        self._graphs = [(m.SerializeToString(), False) for m in models]
         return handed
 
     def _depths(self, sessions: list, img: np.ndarray, scan: np.ndarray) -> list[np.ndarray]:
@@ -200,8 +213,9 @@ class AnytimeRunner:
         halted = False
         opts = ort.RunOptions()
         path0 = None
+        option = self.arena_choice.pick()
         try:
-            for st, sess, ins, out_names in self.sessions:
+            for k, (st, sess, ins, out_names) in enumerate(self.session_sets[option]):
                 if _is_scan_path(st):
                     # the scan's own map is available at once (its cost is ~0) and is computed only
                     # if it is the answer: a run that reaches path 1 never needs it
@@ -221,6 +235,7 @@ class AnytimeRunner:
                     if self._halt.is_set():
                         halted = True
                         break
+                started = time.perf_counter()
                 try:
                     outs = sess.run(out_names, {n: env[n] for n in ins}, opts)
                 except Exception:
@@ -228,7 +243,9 @@ class AnytimeRunner:
                         halted = True
                         break  # terminated mid-stage: keep what was ready
                     raise
-                ready = (time.perf_counter() - t0) * 1000.0
+                done = time.perf_counter()
+                self.arena_choice.record(option, k, (done - started) * 1000.0)
+                ready = (done - t0) * 1000.0
                 env.update(zip(out_names, outs))
                 path = st["path"]
                 if path is not None:

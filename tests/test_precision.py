@@ -286,3 +286,35 @@ def test_a_graph_without_convolutions_stays_fp32(tmp_path):
                       dynamo=False)
     assert not quantize_graph(src, dst, [{"x": torch.rand(1, 4).numpy()}])
     assert dst.read_bytes() == src.read_bytes()
+
+
+def test_a_quantized_nearest_resize_runs_channels_first(tmp_path):
+    """onnxruntime carries a quantized graph's channels-last layout on through a uint8 Resize unless
+    something stops it (its channels-last kernel is 30x slower): the int8 graph keeps the decoder's
+    up-sampling channels-first, and computes what it computed before."""
+    import numpy as np
+    import onnx
+    import torch
+    from explorer.cost.measure import session
+    from explorer.model.decoder import DecoderStageConfig
+    from explorer.quantize import KEEP_NCHW_SUFFIX, quantize_graph, resizes_kept_nchw
+    torch.manual_seed(0)
+    net = DecoderStageConfig(32, 16, has_skip=False).build().eval()
+    src, dst = tmp_path / "f.onnx", tmp_path / "q.onnx"
+    x = torch.rand(1, 32, 28, 28)
+    torch.onnx.export(net, (x,), str(src), input_names=["x"], output_names=["y"], dynamo=False)
+    kept = onnx.load(str(src))
+    assert resizes_kept_nchw(kept) == 1
+    before, after = session(src.read_bytes()), session(kept.SerializeToString())
+    np.testing.assert_array_equal(before.run(None, {"x": x.numpy()})[0], after.run(None, {"x": x.numpy()})[0])
+
+    assert quantize_graph(src, dst, [{"x": torch.rand(1, 32, 28, 28).numpy()} for _ in range(4)])
+    assert sum(n.name.endswith(KEEP_NCHW_SUFFIX) for n in onnx.load(str(dst)).graph.node) == 1
+    session(dst.read_bytes(), save_optimized=tmp_path / "opt.onnx")
+    graph = onnx.load(str(tmp_path / "opt.onnx")).graph
+    producer = {o: n for n in graph.node for o in n.output}
+    resize = next(n for n in graph.node if n.op_type == "Resize")
+    assert producer[resize.input[0]].op_type == "Transpose"   # channels-last -> first before it
+    q8 = session(dst.read_bytes()).run(None, {"x": x.numpy()})[0]
+    ref = net(x).detach().numpy()
+    assert np.abs(q8 - ref).max() < 0.05 * np.abs(ref).max()

@@ -72,6 +72,11 @@ def shared_pool_threads() -> "int | None":
     return _POOL.get("threads")
 
 
+def shared_arena() -> bool:
+    """Whether this process's sessions allocate from one shared memory arena (``_shared_arena``)."""
+    return bool(_POOL.get("arena"))
+
+
 def thread_pool() -> str:
     """What measurement conditions record: 'shared' or 'per-session'."""
     return "shared" if shared_pool_threads() else "per-session"
@@ -105,7 +110,7 @@ def _shared_arena(ort) -> bool:
     graph with arenas of their own, and 1.1-2.5% faster with one shared arena: buffers are reused
     from stage to stage instead of each stage keeping its own apart (benchmarks/bench_runtime.py).
     While that VM was slowed from outside (whole graph 14 ms, not 7.6), it went the other way:
-    -9.0% with their own, +4.9% shared."""
+    -9.0% with their own, +4.9% shared; so the runtime keeps both (``explorer._arena_choice``)."""
     try:
         info = ort.OrtMemoryInfo("Cpu", ort.OrtAllocatorType.ORT_ARENA_ALLOCATOR, 0, ort.OrtMemType.DEFAULT)
         ort.create_and_register_allocator(info, ort.OrtArenaCfg(0, -1, -1, -1))
@@ -117,18 +122,18 @@ def _shared_arena(ort) -> bool:
 
 
 def session(model: "bytes | str | Path", threads: int | None = None, provider: str = DEFAULT_PROVIDER,
-            optimize: bool = True, save_optimized: "Path | None" = None):
+            optimize: bool = True, save_optimized: "Path | None" = None, own_arena: bool = False):
     """An onnxruntime session as every measurement and the runtime use it: ``threads`` intra-op
     threads (the process's shared pool has those of its first session) and, with that pool, the
-    process's one memory arena (``_shared_arena``), full graph optimisation
-    (none for a graph optimised already; ``save_optimized``: where to write the optimised graph),
-    ``provider`` first (the CPU one takes what it cannot run)."""
+    process's one memory arena (``_shared_arena``; ``own_arena``: one of its own instead), full graph
+    optimisation (none for a graph optimised already; ``save_optimized``: where to write the optimised
+    graph), ``provider`` first (the CPU one takes what it cannot run)."""
     import onnxruntime as ort
     opts = ort.SessionOptions()
     threads = threads or default_threads()
     if _shared_pool(threads):
         opts.use_per_session_threads = False
-        if _POOL.get("arena"):
+        if _POOL.get("arena") and not own_arena:
             opts.add_session_config_entry("session.use_env_allocators", "1")
     else:
         opts.intra_op_num_threads = threads

@@ -1,0 +1,73 @@
+"""The runner's choice between stage sessions sharing one memory arena and sessions with their own."""
+
+import numpy as np
+
+from explorer._arena_choice import EXPLORE_EVERY, ArenaChoice
+
+
+def _serve(choice: ArenaChoice, stage_ms: list[list[float]], runs: int) -> list[int]:
+    """``runs`` runs where set o takes ``stage_ms[o][k]`` ms for stage k; the sets picked."""
+    picked = []
+    for _ in range(runs):
+        o = choice.pick()
+        picked.append(o)
+        for k, ms in enumerate(stage_ms[o]):
+            choice.record(o, k, ms)
+    return picked
+
+
+def test_it_times_both_sets_then_keeps_to_the_faster_one_exploring_the_other():
+    choice = ArenaChoice(2, 3)
+    picked = _serve(choice, [[1.0, 2.0, 1.0], [1.0, 1.5, 1.0]], 10 * EXPLORE_EVERY)
+    assert picked[:2] == [0, 1]   # each set timed once before any comparison
+    later = picked[2 * EXPLORE_EVERY:]
+    assert later.count(0) == len(later) // EXPLORE_EVERY   # the slower set: only its explorations
+    assert choice.best() == 1
+
+
+def test_it_follows_the_machine_when_the_faster_set_changes():
+    choice = ArenaChoice(2, 2)
+    _serve(choice, [[1.0, 1.0], [1.3, 1.3]], 5 * EXPLORE_EVERY)
+    assert choice.best() == 0
+    picked = _serve(choice, [[1.4, 1.4], [1.1, 1.1]], 5 * EXPLORE_EVERY)   # the machine changed state
+    assert choice.best() == 1
+    assert picked[-3 * EXPLORE_EVERY:].count(1) > 2 * EXPLORE_EVERY
+
+
+def test_stages_timed_in_only_one_set_do_not_decide():
+    choice = ArenaChoice(2, 3)
+    choice.record(0, 0, 1.0)
+    choice.record(1, 0, 2.0)
+    choice.record(1, 2, 0.1)   # a stage set 0 never completed (cut by deadlines)
+    assert choice.best() == 0
+
+
+def test_one_set_is_always_that_set():
+    choice = ArenaChoice(1, 2)
+    assert set(_serve(choice, [[1.0, 1.0]], 3 * EXPLORE_EVERY)) == {0}
+
+
+def test_the_runner_keeps_both_sets_and_they_give_the_same_depths(tmp_path):
+    import torch
+    from explorer.cost.probe_script import shared_arena
+    from explorer.deploy import export_network
+    from explorer.model import build_network
+    from explorer.runtime import AnytimeRunner
+    from explorer.space import SearchSpace
+    torch.manual_seed(0)
+    cand = SearchSpace.from_yaml("tiny").random_candidates(1, 0)[0]
+    export_network(build_network(cand).eval(), tmp_path / "m", (32, 32))
+    runner = AnytimeRunner(tmp_path / "m")
+    assert len(runner.session_sets) == (2 if shared_arena() else 1)
+    rng = np.random.default_rng(0)
+    img, scan = rng.random((3, 32, 32), dtype=np.float32), rng.uniform(0.5, 10, 32).astype(np.float32)
+    maps = [runner._depths(s, *runner.check(img, scan)) for s in runner.session_sets]
+    for other in maps[1:]:
+        for a, b in zip(maps[0], other):
+            np.testing.assert_array_equal(a, b)
+    for _ in range(2 * EXPLORE_EVERY):
+        runner.run(img, scan)
+    assert sum(runner.arena_choice.runs) == 2 * EXPLORE_EVERY
+    if len(runner.session_sets) == 2:
+        assert min(runner.arena_choice.runs) >= 2   # each set served, so each was timed
+        assert all(m is not None for m in runner.arena_choice.ms[1][1:])
