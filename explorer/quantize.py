@@ -9,9 +9,11 @@ that its tensors stay uint8 from one layer to the next and it quantizes and dequ
 edges; only the LiDAR encoder stays fp32 (``FLOAT_STAGES``). Quantizing only the wide convolutions,
 with float depthwise layers between them, paid for nothing: on this project's AVX-512 VNNI VM the
 encoder stage ran 1.04x its fp32 speed that way and 1.68x quantized whole
-(benchmarks/bench_runtime.py). Whole quantization does not pay everywhere: the full-resolution
-decoder stages ran 1.9x slower (onnxruntime's uint8 resize and depthwise kernels are slower than its
-blocked fp32 ones). So an export keeps a stage int8 only where it runs at most ``INT8_KEEP_RATIO`` of
+(benchmarks/bench_runtime.py). Whole quantization does not pay everywhere. The decoder's nearest
+up-sampling is kept channels-first (``resizes_kept_nchw``): onnxruntime's channels-last uint8 Resize
+made every int8 decoder stage slower than fp32; so, on the Zen 4 VM, decoders 1-2 ran 1.3-1.5x faster
+in int8, but decoders 3-4, at full resolution with 8-16 channels, still 1.4x slower (onnxruntime's
+uint8 depthwise kernels are slower than its blocked fp32 ones). So an export keeps a stage int8 only where it runs at most ``INT8_KEEP_RATIO`` of
 its fp32 time on the exporting machine (``stages="all"``: every stage int8), and the cost model
 prices an int8 candidate's stages the same way (``explorer.cost.devices``); then, where a path loses
 more RMSE than the export allows, it gives graphs back to fp32 one by one. Path 0 (the scan) has
