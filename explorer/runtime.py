@@ -79,7 +79,10 @@ class AnytimeRunner:
     def __init__(self, model_dir: str | Path, threads: int | None = None, warmup: bool = True,
                  provider: str = "CPUExecutionProvider", blocked_handoff: bool = True) -> None:
         """``blocked_handoff``: stages hand tensors over in onnxruntime's blocked layout where it
-        applies (``explorer._layout``); ``sessions`` then read and write ``NAME.nchwc`` tensors."""
+        applies (``explorer._layout``); ``sessions`` then read and write ``NAME.nchwc`` tensors.
+        ``session_sets``: ``sessions`` (one memory arena shared by the process's sessions) and, where
+        that arena is in use, the same graphs each with an arena of its own; a run uses the set that
+        ``arena_choice`` picks (``explorer._arena_choice``)."""
         import onnxruntime as ort
         from explorer.cost.measure import session
         from explorer.cost.probe_script import ProbeError, check_provider, shared_arena
