@@ -14,7 +14,6 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from explorer._arena_choice import ArenaChoice
 from explorer.anytime import anytime_loss
 from explorer.cost import candidate_cost
 from explorer.cost.calibrate import calibrate
@@ -61,11 +60,7 @@ if __name__ == "__main__":
             for _, sess, ins, outs in runner.sessions:
                 values.update(zip(outs, sess.run(outs, {n: values[n] for n in ins})))
 
-        def one_set(i: int) -> AnytimeRunner:   # a runner held to one of its two session sets
-            r = AnytimeRunner(out)
-            r.session_sets, r.arena_choice = [r.session_sets[i]], ArenaChoice(1, len(r.sessions))
-            return r
-        shared_only, own_only = one_set(0), one_set(-1)
+        shared_only, own_only = AnytimeRunner(out, arenas="shared"), AnytimeRunner(out, arenas="own")
 
         shared_staged, own_staged = [], []
         img, scan = torch.from_numpy(env["image"]), torch.from_numpy(env["scan"])

@@ -21,6 +21,8 @@ from explorer._arena_choice import ArenaChoice
 from explorer.errors import UserError
 
 MANIFEST = "manifest.json"
+#: ``AnytimeRunner(arenas=...)``
+ARENAS = ("both", "shared", "own")
 
 
 @dataclass
@@ -77,12 +79,14 @@ class _Watchdog:
 
 class AnytimeRunner:
     def __init__(self, model_dir: str | Path, threads: int | None = None, warmup: bool = True,
-                 provider: str = "CPUExecutionProvider", blocked_handoff: bool = True) -> None:
+                 provider: str = "CPUExecutionProvider", blocked_handoff: bool = True,
+                 arenas: str = "both") -> None:
         """``blocked_handoff``: stages hand tensors over in onnxruntime's blocked layout where it
         applies (``explorer._layout``); ``sessions`` then read and write ``NAME.nchwc`` tensors.
         ``session_sets``: ``sessions`` (one memory arena shared by the process's sessions) and, where
         that arena is in use, the same graphs each with an arena of its own; a run uses the set that
-        ``arena_choice`` picks (``explorer._arena_choice``)."""
+        ``arena_choice`` picks (``explorer._arena_choice``). ``arenas``: "both" (that), "shared" or
+        "own" (only that set: for timing one of them)."""
         import onnxruntime as ort
         from explorer.cost.measure import session
         from explorer.cost.probe_script import ProbeError, check_provider, shared_arena
@@ -90,6 +94,8 @@ class AnytimeRunner:
             check_provider(provider)
         except ProbeError as exc:
             raise UserError(str(exc)) from None
+        if arenas not in ARENAS:
+            raise UserError(f"arenas={arenas!r}: use one of {', '.join(ARENAS)}")
         self.provider = provider
         self.dir = Path(model_dir)
         mpath = self.dir / MANIFEST
@@ -123,9 +129,11 @@ class AnytimeRunner:
                 self.handed_off = self._hand_off_blocked(optimized, threads)
         # the same graphs again, each session with a memory arena of its own (``explorer._arena_choice``)
         self.session_sets = [self.sessions]
-        if shared_arena():
-            self.session_sets.append([_named(st, session(graph, threads, provider, optimize=optimize, own_arena=True))
-                                      for (st, *_), (graph, optimize) in zip(self.sessions, self._graphs)])
+        if shared_arena() and arenas != "shared":
+            own = [_named(st, session(graph, threads, provider, optimize=optimize, own_arena=True))
+                   for (st, *_), (graph, optimize) in zip(self.sessions, self._graphs)]
+            self.session_sets = [own] if arenas == "own" else [self.sessions, own]
+            self.sessions = self.session_sets[0]
         self.arena_choice = ArenaChoice(len(self.session_sets), len(self.sessions))
         self._lock = threading.Lock()
         self._halt = threading.Event()

@@ -71,3 +71,33 @@ def test_the_runner_keeps_both_sets_and_they_give_the_same_depths(tmp_path):
     if len(runner.session_sets) == 2:
         assert min(runner.arena_choice.runs) >= 2   # each set served, so each was timed
         assert all(m is not None for m in runner.arena_choice.ms[1][1:])
+
+
+def test_a_runner_can_be_held_to_one_set(tmp_path):
+    import pytest
+    import torch
+    from explorer.cost.probe_script import shared_arena
+    from explorer.deploy import export_network
+    from explorer.errors import UserError
+    from explorer.model import build_network
+    from explorer.runtime import AnytimeRunner
+    from explorer.space import SearchSpace
+    torch.manual_seed(0)
+    export_network(build_network(SearchSpace.from_yaml("tiny").random_candidates(1, 0)[0]).eval(), tmp_path / "m",
+                   (32, 32))
+
+    def env_allocator(sess) -> str:
+        try:
+            return sess.get_session_options().get_session_config_entry("session.use_env_allocators")
+        except RuntimeError:   # not set
+            return ""
+    for arenas in ("shared", "own"):
+        runner = AnytimeRunner(tmp_path / "m", arenas=arenas)
+        assert len(runner.session_sets) == 1 and runner.sessions is runner.session_sets[0]
+        uses = {env_allocator(sess) for _, sess, *_ in runner.sessions}
+        if arenas == "own":
+            assert "1" not in uses   # arenas of their own
+        elif shared_arena():
+            assert uses == {"1"}     # the process's one arena
+    with pytest.raises(UserError, match="arenas='none'"):
+        AnytimeRunner(tmp_path / "m", arenas="none")
