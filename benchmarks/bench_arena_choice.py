@@ -27,6 +27,7 @@ from explorer.runtime import AnytimeRunner
 from explorer.space import paper_candidate
 
 CALM, SLOWED = 1.25, 1.5
+SHARED_SHARE = "share of the runner's runs on the shared arena's set"
 
 
 def report(label: str, cycles: list[tuple[float, dict[str, float]]], fastest: float) -> None:
@@ -36,7 +37,10 @@ def report(label: str, cycles: list[tuple[float, dict[str, float]]], fastest: fl
             print(f"  {label} {state}: no cycle")
             continue
         print(f"  {label} {state}: {len(rows)} cycles, whole graph {statistics.median(w for w, _ in rows):.2f} ms; "
-              + "; ".join(f"{k} {statistics.median(r[k] / w - 1 for w, r in rows):+.1%}" for k in rows[0][1]))
+              + "; ".join(f"{k} {statistics.median(r[k] / w - 1 for w, r in rows):+.1%}" for k in rows[0][1]
+                          if k != SHARED_SHARE)
+              + f"; the runner ran the shared arena's set in {statistics.mean(r[SHARED_SHARE] for _, r in rows):.0%} "
+                "of its runs")
 
 
 if __name__ == "__main__":
@@ -59,13 +63,16 @@ if __name__ == "__main__":
                    "held to arenas of their own": AnytimeRunner(out, arenas="own")}
         if len(runners["runner (picks a set per run)"].session_sets) < 2:
             raise SystemExit("the sessions here do not share an arena (EXPLORER_ORT_POOL=session?): nothing to compare")
+        chooser = runners["runner (picks a set per run)"].arena_choice
         blocks: list[list[tuple[float, dict[str, float]]]] = []
         for b in range(args.blocks):
             cycles = []
             t0 = time.monotonic()
             while time.monotonic() - t0 < args.seconds:
                 before = time_call(lambda: whole.run(None, feeds), 1, 8)
+                served = list(chooser.runs)
                 timed = {k: time_call(lambda: r.run(image, scan), 1, 16) for k, r in runners.items()}
+                timed[SHARED_SHARE] = (chooser.runs[0] - served[0]) / (sum(chooser.runs) - sum(served))
                 after = time_call(lambda: whole.run(None, feeds), 1, 8)
                 if max(before, after) <= CALM * min(before, after):   # the state held through the cycle
                     cycles.append(((before + after) / 2, timed))
@@ -76,5 +83,4 @@ if __name__ == "__main__":
         for b, cycles in enumerate(blocks, start=1):
             report(f"rep {b}", cycles, fastest)
         report("all reps", [c for cycles in blocks for c in cycles], fastest)
-        chosen = runners["runner (picks a set per run)"].arena_choice.runs
-        print(f"the runner's runs per set (shared arena, arenas of their own): {chosen}")
+        print(f"the runner's runs per set (shared arena, arenas of their own): {chooser.runs}")

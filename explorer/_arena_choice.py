@@ -8,43 +8,62 @@ arena per session; slowed (whole graph 13.9 ms, two threads no faster than one),
 -6.6% with arenas of their own (about 120 runs in each state, interleaved; measured with the paper
 design's stage graphs as ``benchmarks/bench_runtime.py`` makes them). Neither set is within 5% in both
 states, so the runner keeps both and measures them as it runs: a run uses the set whose stages took
-less time lately, and every ``EXPLORE_EVERY``-th run the other one, so that a change of state is seen
-within a few dozen runs.
+less time lately (the median of its last ``WINDOW`` timings), and every ``EXPLORE_EVERY`` runs the other one for ``EXPLORE_RUNS`` runs in a row, so
+that a change of state is seen within a few dozen runs. Only a run that follows a run of the same set
+counts: the first run after a switch finds the other set's buffers in the caches, and it was timed
+slower enough that a set tried for one run at a time never won back (calm: the runner stayed with the
+slower set, +6.6% where the shared arena gave +2.7%; ``benchmarks/bench_arena_choice.py``).
 """
 
 from __future__ import annotations
 
-#: every this many runs, the set not in favour is timed again
-EXPLORE_EVERY = 8
-#: weight of the newest timing in a stage's running average
-ALPHA = 0.5
+import statistics
+from collections import deque
+
+#: every this many runs, the set not in favour is timed again ...
+EXPLORE_EVERY = 30
+#: ... for this many runs in a row (the first of them only warms it)
+EXPLORE_RUNS = 3
+#: a set's time for a stage: the median of its last this many warm timings
+WINDOW = 5
 
 
 class ArenaChoice:
-    """Running average of every stage's time in each of ``options`` session sets; ``pick`` the set for
-    the next run, ``record`` the stages it completed."""
+    """Recent warm timings of every stage in each of ``options`` session sets; ``pick`` the set for the
+    next run, ``record`` the stages it completed."""
 
     def __init__(self, options: int, stages: int) -> None:
-        self.ms: list[list[float | None]] = [[None] * stages for _ in range(options)]
+        self.samples = [[deque(maxlen=WINDOW) for _ in range(stages)] for _ in range(options)]
         self.runs = [0] * options   # how many runs each set served
         self._count = 0
+        self._last: int | None = None
+        self._warm = False   # whether the run picked last follows one of the same set
+
+    def ms(self, option: int, stage: int) -> "float | None":
+        """The set's time for the stage (the median of its recent warm timings); None before any."""
+        recent = self.samples[option][stage]
+        return statistics.median(recent) if recent else None
 
     def best(self) -> int:
         """The set with the least total time over the stages every set has timed; before that, the
         one with the fewest stages timed (so that it gets timed)."""
-        common = [k for k in range(len(self.ms[0])) if all(ms[k] is not None for ms in self.ms)]
+        options, stages = range(len(self.samples)), range(len(self.samples[0]))
+        common = [k for k in stages if all(self.samples[o][k] for o in options)]
         if not common:
-            return min(range(len(self.ms)), key=lambda o: sum(m is not None for m in self.ms[o]))
-        return min(range(len(self.ms)), key=lambda o: sum(self.ms[o][k] for k in common))
+            return min(options, key=lambda o: sum(bool(s) for s in self.samples[o]))
+        return min(options, key=lambda o: sum(self.ms(o, k) for k in common))
 
     def pick(self) -> int:
         self._count += 1
         option = self.best()
-        if len(self.ms) > 1 and self._count % EXPLORE_EVERY == 0:
-            option = (option + 1 + (self._count // EXPLORE_EVERY) % (len(self.ms) - 1)) % len(self.ms)
+        n = len(self.samples)
+        if n > 1 and (self._count - 1) % EXPLORE_EVERY >= EXPLORE_EVERY - EXPLORE_RUNS:
+            option = (option + 1 + ((self._count - 1) // EXPLORE_EVERY) % (n - 1)) % n
+        self._warm, self._last = option == self._last, option
         self.runs[option] += 1
         return option
 
     def record(self, option: int, stage: int, ms: float) -> None:
-        old = self.ms[option][stage]
-        self.ms[option][stage] = ms if old is None else old + ALPHA * (ms - old)
+        """A stage of the run ``pick`` gave ``option`` took ``ms``; kept if that run was warm."""
+        if self._warm:
+            self.samples[option][stage].append(ms)

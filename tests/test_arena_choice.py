@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from explorer._arena_choice import EXPLORE_EVERY, ArenaChoice
+from explorer._arena_choice import EXPLORE_EVERY, EXPLORE_RUNS, ArenaChoice
 
 
 def _serve(choice: ArenaChoice, stage_ms: list[list[float]], runs: int) -> list[int]:
@@ -19,10 +19,22 @@ def _serve(choice: ArenaChoice, stage_ms: list[list[float]], runs: int) -> list[
 def test_it_times_both_sets_then_keeps_to_the_faster_one_exploring_the_other():
     choice = ArenaChoice(2, 3)
     picked = _serve(choice, [[1.0, 2.0, 1.0], [1.0, 1.5, 1.0]], 10 * EXPLORE_EVERY)
-    assert picked[:2] == [0, 1]   # each set timed once before any comparison
-    later = picked[2 * EXPLORE_EVERY:]
-    assert later.count(0) == len(later) // EXPLORE_EVERY   # the slower set: only its explorations
+    assert picked[:4] == [0, 0, 1, 1]   # each set warmed, then timed, before any comparison
+    later = picked[EXPLORE_EVERY:]
+    assert later.count(0) == EXPLORE_RUNS * (len(later) // EXPLORE_EVERY)   # the slower set: its explorations
     assert choice.best() == 1
+
+
+def test_a_run_after_a_switch_of_set_does_not_count():
+    """The first run of a set after the other's finds the caches full of the other's buffers."""
+    choice = ArenaChoice(2, 1)
+    first = choice.pick()
+    choice.record(first, 0, 99.0)   # cold: not kept
+    assert choice.ms(first, 0) is None
+    again = choice.pick()
+    assert again == first
+    choice.record(again, 0, 1.0)
+    assert choice.ms(first, 0) == 1.0
 
 
 def test_it_follows_the_machine_when_the_faster_set_changes():
@@ -36,9 +48,8 @@ def test_it_follows_the_machine_when_the_faster_set_changes():
 
 def test_stages_timed_in_only_one_set_do_not_decide():
     choice = ArenaChoice(2, 3)
-    choice.record(0, 0, 1.0)
-    choice.record(1, 0, 2.0)
-    choice.record(1, 2, 0.1)   # a stage set 0 never completed (cut by deadlines)
+    for o, stage, ms in ((0, 0, 1.0), (1, 0, 2.0), (1, 2, 0.1)):   # stage 2: set 0 never completed it
+        choice.samples[o][stage].append(ms)
     assert choice.best() == 0
 
 
@@ -70,7 +81,7 @@ def test_the_runner_keeps_both_sets_and_they_give_the_same_depths(tmp_path):
     assert sum(runner.arena_choice.runs) == 2 * EXPLORE_EVERY
     if len(runner.session_sets) == 2:
         assert min(runner.arena_choice.runs) >= 2   # each set served, so each was timed
-        assert all(m is not None for m in runner.arena_choice.ms[1][1:])
+        assert all(runner.arena_choice.ms(1, k) is not None for k in range(1, len(runner.sessions)))
 
 
 def test_a_runner_can_be_held_to_one_set(tmp_path):
