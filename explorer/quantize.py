@@ -13,8 +13,8 @@ encoder stage ran 1.04x its fp32 speed that way and 1.68x quantized whole
 up-sampling is kept channels-first (``resizes_kept_nchw``): onnxruntime's channels-last uint8 Resize
 made every int8 decoder stage slower than fp32; so, on the Zen 4 VM, decoders 1-2 ran 1.3-1.5x faster
 in int8, but decoders 3-4, at full resolution with 8-16 channels, still 1.4x slower (onnxruntime's
-uint8 depthwise kernels are slower than its blocked fp32 ones). So an export keeps a stage int8 only where it runs at most ``INT8_KEEP_RATIO`` of
-its fp32 time on the exporting machine (``stages="all"``: every stage int8), and the cost model
+uint8 depthwise kernels are slower than its blocked fp32 ones). So an export keeps a stage int8 only
+where it runs at most ``INT8_KEEP_RATIO`` of its fp32 time on the exporting machine (``stages="all"``: every stage int8), and the cost model
 prices an int8 candidate's stages the same way (``explorer.cost.devices``); then, where a path loses
 more RMSE than the export allows, it gives graphs back to fp32 one by one. Path 0 (the scan) has
 nothing to quantize.
@@ -149,7 +149,7 @@ def resizes_kept_nchw(model) -> int:
     convolutions channels-last (NHWC) and carries that layout on through a uint8 Resize, whose
     channels-last kernel is slow (paper design, 16 channels to 224x224: 0.75 ms against 0.023 ms
     channels-first); it does not carry a layout through a Reshape, so the Resize stays channels-first.
-    The paper design's int8 decoder graphs ran 1.2-1.4x faster so (benchmarks/bench_runtime.py)."""
+    The paper design's int8 decoder graphs ran 1.2-1.6x faster so (each alone, 5 interleaved reps)."""
     from onnx import helper, numpy_helper, shape_inference
     inferred = shape_inference.infer_shapes(model).graph
     shapes = {v.name: [d.dim_value if d.HasField("dim_value") else 0 for d in v.type.tensor_type.shape.dim]
