@@ -2,17 +2,17 @@
 
 Stage sessions that allocate from one shared memory arena reuse each other's buffers: the next stage
 writes where the last one just wrote. Whether that pays depends on the machine's state, and on this
-project's 2-core Zen 4 VM that state changes from outside every 10-30 s: calm, the paper design's
-whole graph takes 7.7 ms and its staged chain ran +0.9% over it with the shared arena, +7.1% with an
-arena per session; slowed (whole graph 13.9 ms, two threads no faster than one), +14.8% shared and
--6.6% with arenas of their own (about 120 runs in each state, interleaved; measured with the paper
-design's stage graphs as ``benchmarks/bench_runtime.py`` makes them). Neither set is within 5% in both
+project's 2-core Zen 4 VM that state changes from outside every 10-30 s. Calm (the paper design's
+whole graph at 7.8 ms), its staged chain ran +4.7% over the whole graph with the shared arena and
++7.7% with an arena per session; slowed (13.7 ms; two threads no faster than one there), +9.6% and
+-5.1% (``benchmarks/bench_arena_choice.py``, 256 and 121 cycles). Neither set is within 5% in both
 states, so the runner keeps both and measures them as it runs: a run uses the set whose stages took
-less time lately (the median of its last ``WINDOW`` timings), and every ``EXPLORE_EVERY`` runs the other one for ``EXPLORE_RUNS`` runs in a row, so
-that a change of state is seen within a few dozen runs. Only a run that follows a run of the same set
-counts: the first run after a switch finds the other set's buffers in the caches, and it was timed
-slower enough that a set tried for one run at a time never won back (calm: the runner stayed with the
-slower set, +6.6% where the shared arena gave +2.7%; ``benchmarks/bench_arena_choice.py``).
+less time lately (the median of each stage's last ``WINDOW`` timings), and every ``EXPLORE_EVERY``
+runs the other one for ``EXPLORE_RUNS`` runs in a row, so that a change of state is seen within a
+few dozen runs. Only a run that follows a run of the same set counts: the first run after a switch
+finds the other set's buffers in the caches. So chosen, the runner ran +5.6% calm and -5.5% slowed,
+on the shared set in 71% of its calm runs and 12% of its slowed ones; a first version (running
+averages, the other set tried one run at a time, cold runs counted) ran it in 44-52% of calm runs.
 """
 
 from __future__ import annotations
