@@ -6,13 +6,14 @@ project's 2-core Zen 4 VM that state changes from outside every 10-30 s. Calm (t
 whole graph at 7.8 ms), its staged chain ran +4.7% over the whole graph with the shared arena and
 +7.7% with an arena per session; slowed (13.7 ms; two threads no faster than one there), +9.6% and
 -5.1% (``benchmarks/bench_arena_choice.py``, 256 and 121 cycles). Neither set is within 5% in both
-states, so the runner keeps both and measures them as it runs: a run uses the set whose stages took
-less time lately (the median of each stage's last ``WINDOW`` timings), and every ``EXPLORE_EVERY``
-runs the other one for ``EXPLORE_RUNS`` runs in a row, so that a change of state is seen within a
-few dozen runs. Only a run that follows a run of the same set counts: the first run after a switch
-finds the other set's buffers in the caches. So chosen, the runner ran +5.6% calm and -5.5% slowed,
-on the shared set in 71% of its calm runs and 12% of its slowed ones; a first version (running
-averages, the other set tried one run at a time, cold runs counted) ran it in 44-52% of calm runs.
+states, so the runner keeps both and measures them as it runs: a run uses the shared arena's set
+unless the other took ``MARGIN`` less time lately (the median of each stage's last ``WINDOW``
+timings), and every ``EXPLORE_EVERY`` runs the other set for ``EXPLORE_RUNS`` runs in a row, so that
+a change of state is seen within a few hundred runs. Only a run that follows a run of the same set
+counts: the first run after a switch finds the other set's buffers in the caches. So chosen, the
+runner ran +5.1% calm (the shared set alone +5.2%) and -6.5% slowed (arenas of their own alone
+-6.4%). Two earlier versions, which took whichever set looked faster, ran it in calm only 44-71% of
+the time and ran 0.9-6% slower than the shared set alone there.
 """
 
 from __future__ import annotations
@@ -21,11 +22,13 @@ import statistics
 from collections import deque
 
 #: every this many runs, the set not in favour is timed again ...
-EXPLORE_EVERY = 30
+EXPLORE_EVERY = 50
 #: ... for this many runs in a row (the first of them only warms it)
 EXPLORE_RUNS = 3
 #: a set's time for a stage: the median of its last this many warm timings
 WINDOW = 5
+#: another set takes over from the first (the shared arena's) only when it is this much faster
+MARGIN = 0.05
 
 
 class ArenaChoice:
@@ -45,13 +48,15 @@ class ArenaChoice:
         return statistics.median(recent) if recent else None
 
     def best(self) -> int:
-        """The set with the least total time over the stages every set has timed; before that, the
-        one with the fewest stages timed (so that it gets timed)."""
+        """The first set, unless another took ``MARGIN`` less total time over the stages every set has
+        timed; before that, the one with the fewest stages timed (so that it gets timed)."""
         options, stages = range(len(self.samples)), range(len(self.samples[0]))
         common = [k for k in stages if all(self.samples[o][k] for o in options)]
         if not common:
             return min(options, key=lambda o: sum(bool(s) for s in self.samples[o]))
-        return min(options, key=lambda o: sum(self.ms(o, k) for k in common))
+        total = [sum(self.ms(o, k) for k in common) for o in options]
+        fastest = min(options, key=total.__getitem__)
+        return fastest if total[fastest] < (1 - MARGIN) * total[0] else 0
 
     def pick(self) -> int:
         self._count += 1

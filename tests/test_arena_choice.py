@@ -112,3 +112,12 @@ def test_a_runner_can_be_held_to_one_set(tmp_path):
             assert uses == {"1"}     # the process's one arena
     with pytest.raises(UserError, match="arenas='none'"):
         AnytimeRunner(tmp_path / "m", arenas="none")
+
+
+def test_the_shared_set_keeps_its_place_unless_another_is_clearly_faster():
+    from explorer._arena_choice import MARGIN
+    choice = ArenaChoice(2, 1)
+    _serve(choice, [[1.0], [1.0 - MARGIN / 2]], 4 * EXPLORE_EVERY)   # within the margin: noise
+    assert choice.best() == 0
+    _serve(choice, [[1.0], [1.0 - 2 * MARGIN]], 4 * EXPLORE_EVERY)
+    assert choice.best() == 1
