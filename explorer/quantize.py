@@ -84,7 +84,8 @@ def _frames(data: str, input_size: tuple[int, int], count: int, split: str) -> l
 def stage_inputs(model_dir: Path, frames: list[dict]) -> list[list[dict[str, np.ndarray]]]:
     """For each stage graph of an exported model, the inputs it receives on each frame."""
     from explorer.runtime import AnytimeRunner
-    runner = AnytimeRunner(model_dir, warmup=False, blocked_handoff=False)   # the graphs' own inputs
+    # the graphs' own inputs; one set of sessions: nothing here is timed
+    runner = AnytimeRunner(model_dir, warmup=False, blocked_handoff=False, arenas="shared")
     per_stage: list[list[dict[str, np.ndarray]]] = [[] for _ in runner.sessions]
     for f in frames:
         img, scan = runner.check(f["image"].numpy(), f["scan"].numpy())
@@ -218,7 +219,7 @@ def compare_speed(fp32: Path, int8: Path, feeds: dict[str, np.ndarray], reps: in
 def path_metrics(model_dir: Path, frames: list[dict]) -> list[dict[str, float]]:
     """Per-path metrics of the export in ``model_dir`` as its graphs stand now (fp32 or int8)."""
     from explorer import runtime
-    return runtime.path_metrics(runtime.AnytimeRunner(model_dir, warmup=False), frames)
+    return runtime.path_metrics(runtime.AnytimeRunner(model_dir, warmup=False, arenas="shared"), frames)
 
 
 def quantize_export(model_dir: Path, data: str, calibration_frames: int = 32, eval_frames: int = 64,

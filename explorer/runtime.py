@@ -327,7 +327,8 @@ def write_depth(depth: np.ndarray, out: Path) -> None:
 
 def run_files(model_dir: Path, image: Path, scan: Path, deadline_ms: float, out: Path | None,
               threads: int | None = None, provider: str = "CPUExecutionProvider") -> dict:
-    runner = AnytimeRunner(model_dir, threads, provider=provider)
+    # one run: nothing to choose between sets by
+    runner = AnytimeRunner(model_dir, threads, provider=provider, arenas="shared")
     result = runner.run(read_image(image), read_scan(scan), deadline_ms)
     if out is not None:
         write_depth(result.depth, out)
