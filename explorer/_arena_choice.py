@@ -61,9 +61,8 @@ class ArenaChoice:
     def pick(self) -> int:
         self._count += 1
         option = self.best()
-        n = len(self.samples)
-        if n > 1 and (self._count - 1) % EXPLORE_EVERY >= EXPLORE_EVERY - EXPLORE_RUNS:
-            option = (option + 1 + ((self._count - 1) // EXPLORE_EVERY) % (n - 1)) % n
+        if (self._count - 1) % EXPLORE_EVERY >= EXPLORE_EVERY - EXPLORE_RUNS:
+            option = (option + 1) % len(self.samples)   # the other set (a runner has one or two)
         self._warm, self._last = option == self._last, option
         self.runs[option] += 1
         return option

@@ -134,6 +134,7 @@ class AnytimeRunner:
                    for (st, *_), (graph, optimize) in zip(self.sessions, self._graphs)]
             self.session_sets = [own] if arenas == "own" else [self.sessions, own]
             self.sessions = self.session_sets[0]
+        del self._graphs   # the sessions hold what they need
         self.arena_choice = ArenaChoice(len(self.session_sets), len(self.sessions))
         self._lock = threading.Lock()
         self._halt = threading.Event()
