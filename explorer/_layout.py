@@ -33,6 +33,14 @@ def _rename_input(graph, old: str, new: str) -> None:
                 node.input[k] = new
 
 
+def _rename(graph, old: str, new: str) -> None:
+    _rename_input(graph, old, new)
+    for node in graph.node:
+        for k, name in enumerate(node.output):
+            if name == old:
+                node.output[k] = new
+
+
 def hand_off_blocked(models: list[ModelProto], inputs: list[list[str]], outputs: list[list[str]]) -> list[str]:
     """Rewrites ``models`` (optimised stage graphs in run order; ``inputs`` and ``outputs``: the names
     each one reads and writes) in place; returns the names of the tensors now handed over blocked. A
@@ -51,9 +59,13 @@ def hand_off_blocked(models: list[ModelProto], inputs: list[list[str]], outputs:
             src = models[producer[name]].graph
             if not any(o.name == blocked for o in src.output):
                 own = next((n for n in src.node if _is_plain_reorder_in(n) and list(n.input) == [name]), None)
+                made = next((n for n in src.node if n.op_type == "ReorderOutput" and n.domain == NCHWC
+                             and list(n.output) == [name]), None)
                 if own is not None:        # the producer converts it already (for its exit head)
                     _rename_input(src, own.output[0], blocked)
                     own.output[0] = blocked
+                elif made is not None:     # the producer has it blocked, and converts it only to output it
+                    _rename(src, made.input[0], blocked)
                 else:
                     src.node.append(helper.make_node("ReorderInput", [name], [blocked], domain=NCHWC,
                                                      channels_last=0))
@@ -72,4 +84,8 @@ def hand_off_blocked(models: list[ModelProto], inputs: list[list[str]], outputs:
             kept = [o for o in src.output if o.name != name]
             del src.output[:]
             src.output.extend(kept)
+            unread = [n for n in src.node if n.op_type == "ReorderOutput" and list(n.output) == [name]
+                      and not any(name in m.input for m in src.node)]
+            for n in unread:   # the conversion that made it
+                src.node.remove(n)
     return handed

@@ -2,6 +2,7 @@
 
 import json
 import os
+import platform
 import shutil
 import subprocess
 import sys
@@ -9,6 +10,7 @@ import tarfile
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
 
@@ -394,3 +396,40 @@ def test_probe_runs_with_only_numpy_and_onnxruntime(bundle_tar, tmp_path, run_cl
     assert code == 0, err
     code, out, _ = run_cli("profile", "paper", "--device", tmp_path / "board.yaml", "--json")
     assert code == 0 and json.loads(out)["paths"][1]["latency_ms"] > 0
+
+
+def _skip_add_model(start: int, end: int, skip_channels: int = 32):
+    """x -> 1x1 conv (16 channels) + skip[:, start:end] -> 1x1 conv: the decoder's skip addition."""
+    from onnx import TensorProto, helper, numpy_helper
+    rng = np.random.default_rng(0)
+    inits = [numpy_helper.from_array(rng.standard_normal((16, 16, 1, 1)).astype(np.float32), "w1"),
+             numpy_helper.from_array(rng.standard_normal((16, 16, 1, 1)).astype(np.float32), "w2"),
+             numpy_helper.from_array(np.array([start], np.int64), "starts"),
+             numpy_helper.from_array(np.array([end], np.int64), "ends"),
+             numpy_helper.from_array(np.array([1], np.int64), "axes")]
+    nodes = [helper.make_node("Conv", ["x", "w1"], ["u"]),
+             helper.make_node("Slice", ["skip", "starts", "ends", "axes"], ["fit"]),
+             helper.make_node("Add", ["u", "fit"], ["sum"]),
+             helper.make_node("Conv", ["sum", "w2"], ["y"])]
+    vi = lambda n, c: helper.make_tensor_value_info(n, TensorProto.FLOAT, [1, c, 8, 8])  # noqa: E731
+    graph = helper.make_graph(nodes, "skip", [vi("x", 16), vi("skip", skip_channels)], [vi("y", 16)], inits)
+    return helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)]).SerializeToString()
+
+
+@pytest.mark.skipif(platform.machine() not in ("x86_64", "AMD64"), reason="onnxruntime blocks channels on x86")
+def test_skip_additions_stay_blocked_only_where_the_slice_keeps_whole_leading_blocks(tmp_path):
+    import onnx
+    from explorer.cost.probe_script import session
+    rng = np.random.default_rng(1)
+    feeds = {"x": rng.standard_normal((1, 16, 8, 8), dtype=np.float32),
+             "skip": rng.standard_normal((1, 32, 8, 8), dtype=np.float32)}
+    for start, end, rewritten in ((0, 16, True), (8, 24, False)):
+        model = _skip_add_model(start, end)
+        plain = session(model, blocked_skips=False, save_optimized=tmp_path / "plain.onnx")
+        blocked = session(model, save_optimized=tmp_path / "blocked.onnx")
+        reorders = [[n.op_type for n in onnx.load(str(tmp_path / f)).graph.node].count("ReorderOutput")
+                    for f in ("plain.onnx", "blocked.onnx")]
+        # rewritten, the sum is never converted back to NCHW: only y is (the skip, a graph input, is
+        # converted to the blocked layout instead of the sum)
+        assert reorders == ([2, 1] if rewritten else [2, 2])
+        np.testing.assert_array_equal(blocked.run(None, feeds)[0], plain.run(None, feeds)[0])

@@ -32,8 +32,9 @@ def test_blocked_handoff_gives_the_same_maps(paper_export):
     blocked, plain = AnytimeRunner(paper_export), AnytimeRunner(paper_export, blocked_handoff=False)
     assert plain.handed_off == []
     if platform.machine() in ("x86_64", "AMD64"):   # onnxruntime blocks channels on x86 (AVX2 and up)
-        # the decoder's running feature map, read by the next decoder: x0, x1, x2
-        assert blocked.handed_off == ["x0", "x1", "x2"]
+        # the decoder's running feature map, read by the next decoder (x0, x1, x2), and the encoder's skips,
+        # which each decoder adds blocked (``probe_script.blocked_skip_adds``)
+        assert blocked.handed_off == ["x0", "skip_s8", "x1", "skip_s4", "x2", "skip_s2"]
         assert any(n.endswith(SUFFIX) for _, _, ins, _ in blocked.sessions for n in ins)
     for seed in range(2):
         img, scan = _inputs(seed)
