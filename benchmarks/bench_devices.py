@@ -176,7 +176,8 @@ def host(n: int, seed: int, scale: float, reps: int = 3, save: Path | None = Non
               f"{prof.provenance['conditions']['threads']} threads, onnxruntime {prof.provenance['conditions']['onnxruntime']}; "
               f"body exponent {prof.body_exponent:g}, compute and memory {'overlap' if prof.overlap else 'add'}; "
               f"speed checks varied by {prof.provenance['conditions'].get('speed_drift', float('nan')):.0%}, "
-              f"{prof.provenance['conditions'].get('speed_remeasured', 0)} graphs timed again")
+              f"{prof.provenance['conditions'].get('speed_remeasured', 0)} graphs timed again, "
+              f"{prof.provenance['conditions'].get('retimed_outliers', 0)} more far above the fit")
         for fit in prof.provenance["fit"]:
             print(f"  fit on {fit['what']}: median |error| {fit['median_abs_error']:.1%}")
         for size in HOST_SIZES:

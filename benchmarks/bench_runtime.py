@@ -28,6 +28,8 @@ from explorer.runtime import AnytimeRunner, measured_anytime
 from explorer.space import paper_candidate
 from explorer.train import TrainConfig, train
 
+from _timing import time_interleaved
+
 if __name__ == "__main__":
     ap = argparse.ArgumentParser()
     ap.add_argument("--frames", type=int, default=16)
@@ -65,16 +67,23 @@ if __name__ == "__main__":
         shared_staged, own_staged = [], []
         img, scan = torch.from_numpy(env["image"]), torch.from_numpy(env["scan"])
         eager_ms = []
-        for rep in range(5):  # interleaved, so that all of them see the same machine
-            staged.append(time_call(lambda: runner.run(env["image"][0], env["scan"][0]), 2, 20))
-            with_deadline.append(time_call(lambda: runner.run(env["image"][0], env["scan"][0], 1e4), 2, 20))
-            plain_staged.append(time_call(lambda: plain.run(env["image"][0], env["scan"][0]), 2, 20))
-            bare_staged.append(time_call(bare_chain, 2, 20))
-            shared_staged.append(time_call(lambda: shared_only.run(env["image"][0], env["scan"][0]), 2, 20))
-            own_staged.append(time_call(lambda: own_only.run(env["image"][0], env["scan"][0]), 2, 20))
-            whole_ms.append(time_call(lambda: whole.run(None, feeds), 2, 20))
+        image, scan_np = env["image"][0], env["scan"][0]
+
+        def eager():
             with torch.no_grad():
-                eager_ms.append(time_call(lambda: net(img, scan), 2, 20))
+                net(img, scan)
+
+        series = {"staged": (staged, lambda: runner.run(image, scan_np)),
+                  "with a deadline": (with_deadline, lambda: runner.run(image, scan_np, 1e4)),
+                  "without the blocked handoff": (plain_staged, lambda: plain.run(image, scan_np)),
+                  "bare stage chain": (bare_staged, bare_chain),
+                  "held to the shared arena": (shared_staged, lambda: shared_only.run(image, scan_np)),
+                  "held to arenas of their own": (own_staged, lambda: own_only.run(image, scan_np)),
+                  "whole graph": (whole_ms, lambda: whole.run(None, feeds)),
+                  "eager": (eager_ms, eager)}
+        for rep in range(5):  # blocks of calls of each in turn, so that all of them see the same machine
+            for name, ms in time_interleaved({k: fn for k, (_, fn) in series.items()}, blocks=5).items():
+                series[name][0].append(ms)
             w = whole_ms[-1]
             print(f"  rep {rep + 1}: whole graph {w:.2f} ms; staged {staged[-1]:.2f} ms ({staged[-1] / w - 1:+.1%}), "
                   f"with a deadline {with_deadline[-1]:.2f} ({with_deadline[-1] / w - 1:+.1%}), without the blocked "
@@ -115,9 +124,11 @@ if __name__ == "__main__":
                   + "; ".join(f"{st['name']} {st['precision']}" + (f" ({st['ms_here']['int8']:.2f} vs "
                               f"{st['ms_here']['fp32']:.2f} ms)" if "ms_here" in st else "") for st in m["stages"]))
             fp32_ms, int8_ms = [], []
-            for rep in range(5):  # interleaved
-                fp32_ms.append(time_call(lambda: runner.run(env["image"][0], env["scan"][0]), 2, 20))
-                int8_ms.append(time_call(lambda: runner8.run(env["image"][0], env["scan"][0]), 2, 20))
+            for rep in range(5):  # interleaved in blocks
+                got = time_interleaved({"fp32": lambda: runner.run(image, scan_np),
+                                        "int8": lambda: runner8.run(image, scan_np)}, blocks=5)
+                fp32_ms.append(got["fp32"])
+                int8_ms.append(got["int8"])
                 print(f"  rep {rep + 1}: staged fp32 {fp32_ms[-1]:.2f} ms, int8 {int8_ms[-1]:.2f} ms: "
                       f"{fp32_ms[-1] / int8_ms[-1]:.2f}x")
             f, i = statistics.median(fp32_ms), statistics.median(int8_ms)
