@@ -91,6 +91,8 @@ def cmd_calibrate(args) -> None:
         console.print(f"  machine speed while measuring: varied by {drift:.0%} (fixed graphs timed every "
                       f"{SPEED_CHECK_EVERY} graphs)" + (f"; {again} graphs timed while it ran slow were timed again"
                                                         if again else "")
+                      + (f"; {cond['retimed_outliers']} graphs far above the fit of the others were timed again"
+                         if cond.get("retimed_outliers") else "")
                       + (f". Above {SPEED_DRIFT_WARN:.0%}: if the profile disagrees with later measurements, "
                          "calibrate again when the machine is idle" if drift > SPEED_DRIFT_WARN else ""))
     console.print(f"  energy: {prof.provenance['energy_note']}")
