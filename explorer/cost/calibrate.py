@@ -359,11 +359,12 @@ def calibrate(threads: int | None = None, repeats: int = 25, seed: int = 0, scal
               stage_candidates: int | None = None, exclude: set[str] = frozenset(),
               provider: str = DEFAULT_PROVIDER, energy: bool = True, sysfs_root: str = "/",
               log: Callable[[str], None] = lambda s: None, results_out: Path | None = None,
-              bundle_out: Path | None = None) -> DeviceProfile:
+              bundle_out: Path | None = None, remeasure_passes: int = _probe.REMEASURE_PASSES,
+              calm_wait_s: float = _probe.CALM_WAIT_S) -> DeviceProfile:
     """Bundle, probe and fit in one process (the numbers a separate probe run would give): layer
     sweep plus the stages of ``stage_candidates`` random default-space candidates (none of
     ``exclude``, candidate keys). ``results_out`` / ``bundle_out``: also keep the probe's results /
-    the bundle there."""
+    the bundle there. ``remeasure_passes``, ``calm_wait_s``: the probe's (``run_probe``)."""
     import tempfile
     from explorer.cost.bundle import write_bundle_dir
     try:
@@ -389,7 +390,8 @@ def calibrate(threads: int | None = None, repeats: int = 25, seed: int = 0, scal
         out = results_out or Path(tmp) / "results.json"
         try:
             results = _probe.run_probe(folder, out, provider, threads, repeats, energy, sysfs_root,
-                                       progress=measured, log=log)
+                                       progress=measured, log=log, remeasure_passes=remeasure_passes,
+                                       calm_wait_s=calm_wait_s)
             for _ in range(RETIME_ROUNDS):
                 slow = slow_outliers(fit_results(results), results)
                 if not slow:
@@ -403,8 +405,9 @@ def calibrate(threads: int | None = None, repeats: int = 25, seed: int = 0, scal
                 results.setdefault("speed", {})["retimed_outliers"] = \
                     results.get("speed", {}).get("retimed_outliers", 0) + len(slow)
                 _probe.write_atomically(out, results)
+                # those graphs once more each: the round itself is their second timing
                 results = _probe.run_probe(folder, out, provider, threads, repeats, False, sysfs_root,
-                                           progress=measured, log=log)
+                                           progress=measured, log=log, remeasure_passes=0)
         except _probe.ProbeError as exc:
             raise UserError(str(exc)) from None
     return fit_results(results, name=name, source=f"explorer calibrate on {platform.node()} at "

@@ -742,10 +742,11 @@ def slowness(speed: dict) -> list[float]:
     return [max(r) for r in zip(*ratios)]
 
 
-def wait_until_calm(latest: float, time_again: Callable[[], float], usual: float) -> float:
+def wait_until_calm(latest: float, time_again: Callable[[], float], usual: float,
+                    wait_s: float = CALM_WAIT_S) -> float:
     """While the fixed graph's ``latest`` time is ``SLOW`` or more above ``usual``, waits a second and
-    times it again (``time_again``), for at most ``CALM_WAIT_S``; returns its last time."""
-    calm_by = time.monotonic() + CALM_WAIT_S
+    times it again (``time_again``), for at most ``wait_s``; returns its last time."""
+    calm_by = time.monotonic() + wait_s
     while latest > usual * (1 + SLOW) and time.monotonic() < calm_by:
         time.sleep(1.0)   # still slow: give the other load time to finish
         latest = time_again()
@@ -772,10 +773,13 @@ def run_probe(bundle_dir: "str | Path", out: "str | Path", provider: str = DEFAU
               threads: int | None = None, repeats: int | None = None, energy: bool = True,
               root: str = "/", vcgencmd: str = "vcgencmd", idle_s: float = 2.0, window_s: float = 1.0,
               progress: Callable[[int, int, str], None] | None = None,
-              log: Callable[[str], None] = lambda s: None) -> dict:
+              log: Callable[[str], None] = lambda s: None, remeasure_passes: int = REMEASURE_PASSES,
+              calm_wait_s: float = CALM_WAIT_S) -> dict:
     """Times every graph of the bundle (single layers, then each candidate's stages in order, each
     fed by the one before), then, where a power sensor is readable, the energy of whole inferences.
-    Returns the results, also written (atomically, after every graph) to ``out``."""
+    Returns the results, also written (atomically, after every graph) to ``out``. Graphs timed while a
+    speed check showed the machine slow are timed again in up to ``remeasure_passes`` more passes, each
+    after waiting up to ``calm_wait_s`` for the machine's usual speed."""
     bundle_dir, out = Path(bundle_dir), Path(out)
     manifest = load_manifest(bundle_dir)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -842,7 +846,7 @@ def run_probe(bundle_dir: "str | Path", out: "str | Path", provider: str = DEFAU
         ms = time_call(lambda: sess.run(None, feeds), WARMUP, repeats)
         return min(ms, earlier.pop(label, ms))
 
-    for attempt in range(REMEASURE_PASSES + 1):
+    for attempt in range(remeasure_passes + 1):
         since_check[0] = SPEED_CHECK_EVERY   # each pass opens with a check
         timed_before = dict(timed_after)
         for kind, item in schedule(layers, cands):
@@ -872,14 +876,14 @@ def run_probe(bundle_dir: "str | Path", out: "str | Path", provider: str = DEFAU
         if timed_after == timed_before:
             break   # nothing timed in this pass (a finished run, resumed)
         check_speed()   # closes the last window
-        if reference is None or attempt == REMEASURE_PASSES:
+        if reference is None or attempt == remeasure_passes:
             break
         slow = set(slow_windows(slowness(speed)))
         again = [label for label, j in timed_after.items() if j in slow]
         if not again:
             break
         log(f"the machine ran slower for a while ({len(again)} graphs timed then): timing those again")
-        wait_until_calm(slowness(speed)[-1], check_speed, 1.0)
+        wait_until_calm(slowness(speed)[-1], check_speed, 1.0, calm_wait_s)
         for label in again:
             key, _, stage = label.partition("/")
             earlier[label] = res["stages"][key].pop(stage) if stage else res["layers"].pop(key)
