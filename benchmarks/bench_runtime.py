@@ -3,6 +3,9 @@ PyTorch eager, int8 against fp32 (speed and each path's RMSE), and the measured 
 the one the host profile predicts.
 
     .venv/bin/python benchmarks/bench_runtime.py [--frames 16] [--deadlines 40]
+
+What it compares is timed in interleaved blocks (``_timing.time_interleaved``): a shared machine that
+changes speed every few seconds would otherwise give one variant its slow spell and another its calm.
 """
 
 import argparse
