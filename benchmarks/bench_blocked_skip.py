@@ -68,6 +68,7 @@ if __name__ == "__main__":
         whole_t["blocked skip additions"].append(time_call(lambda: blocked.run(None, feeds), 3, 40))
         staged_t["neither"].append(time_call(lambda: runner_plain.run(img, scan), 3, 40))
         staged_t["blocked skip additions and handoff"].append(time_call(lambda: runner.run(img, scan), 3, 40))
-        print(f"  rep {rep + 1}: " + ", ".join(f"{k} {v[-1]:.2f} ms" for t in (whole_t, staged_t) for k, v in t.items()))
+        print(f"  rep {rep + 1}: "
+              + ", ".join(f"{k} {v[-1]:.2f} ms" for t in (whole_t, staged_t) for k, v in t.items()))
     report(whole_t, "paper design whole graph at 224x224")
     report(staged_t, "staged runtime at 224x224")

@@ -11,15 +11,16 @@ whole graph (+5.9% -> +2.8%, benchmarks/bench_runtime.py).
 producing graph also outputs its blocked copy (``NAME.nchwc``) and the reading graph takes that in place
 of its conversion. The encoder's skips go the same way, since each decoder adds its skip blocked
 (``probe_script.blocked_skip_adds``): where the producer has a tensor blocked and converts it only to
-output it, the blocked tensor is output instead and the conversion dropped. The rewritten graphs hold this machine's block size and fused kernels, so a runner
-makes them when it loads and never stores them.
+output it, the blocked tensor is output instead and the conversion dropped. The rewritten graphs hold
+this machine's block size and fused kernels, so a runner makes them when it loads and never stores them.
 """
 
 from __future__ import annotations
 
 from onnx import ModelProto, TensorProto, helper
 
-NCHWC = "com.microsoft.nchwc"
+from explorer.cost.probe_script import NCHWC_DOMAIN as NCHWC
+
 SUFFIX = ".nchwc"
 
 

@@ -398,12 +398,9 @@ def calibrate(threads: int | None = None, repeats: int = 25, seed: int = 0, scal
                     break
                 log(f"{len(slow)} graphs took {1 + RETIME_ABOVE:.2f}x or more of what the fit of all the others "
                     "predicts: timing those again")
-                for label in slow:   # the probe times them again, and keeps the faster timing
-                    key, _, stage = label.partition("/")
-                    taken = results["stages"][key].pop(stage) if stage else results["layers"].pop(key)
-                    results.setdefault("earlier", {})[label] = taken
-                results.setdefault("speed", {})["retimed_outliers"] = \
-                    results.get("speed", {}).get("retimed_outliers", 0) + len(slow)
+                _probe.set_aside(results, slow)
+                speed = results["speed"]
+                speed["retimed_outliers"] = speed.get("retimed_outliers", 0) + len(slow)
                 _probe.write_atomically(out, results)
                 # those graphs once more each: the round itself is their second timing
                 results = _probe.run_probe(folder, out, provider, threads, repeats, False, sysfs_root,

@@ -769,6 +769,15 @@ def slow_windows(ratios: list[float]) -> list[int]:
     return [j for j in range(len(slow) - 1) if slow[j] or slow[j + 1]]
 
 
+def set_aside(res: dict, labels: Iterable[str]) -> None:
+    """Moves the timings of the graphs ``labels`` (layer ids, or "candidate/stage") from ``res`` to
+    its ``earlier`` ones: a probe run on ``res`` times them again and keeps the faster timing."""
+    earlier = res.setdefault("earlier", {})
+    for label in labels:
+        key, _, stage = label.partition("/")
+        earlier[label] = res["stages"][key].pop(stage) if stage else res["layers"].pop(key)
+
+
 def run_probe(bundle_dir: "str | Path", out: "str | Path", provider: str = DEFAULT_PROVIDER,
               threads: int | None = None, repeats: int | None = None, energy: bool = True,
               root: str = "/", vcgencmd: str = "vcgencmd", idle_s: float = 2.0, window_s: float = 1.0,
@@ -884,9 +893,7 @@ def run_probe(bundle_dir: "str | Path", out: "str | Path", provider: str = DEFAU
             break
         log(f"the machine ran slower for a while ({len(again)} graphs timed then): timing those again")
         wait_until_calm(slowness(speed)[-1], check_speed, 1.0, calm_wait_s)
-        for label in again:
-            key, _, stage = label.partition("/")
-            earlier[label] = res["stages"][key].pop(stage) if stage else res["layers"].pop(key)
+        set_aside(res, again)
         speed["remeasured"] = speed.get("remeasured", 0) + len(again)
         done -= len(layers) + sum(len(c["graphs"]) for c in cands)   # the progress bar goes round again
     write_atomically(out, res)
