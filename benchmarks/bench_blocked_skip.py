@@ -51,7 +51,7 @@ if __name__ == "__main__":
         probe_session = probe.session
         probe.session = lambda *a, **k: probe_session(*a, **{**k, "blocked_skips": False})
         try:
-            runner_plain = AnytimeRunner(Path(tmp) / "model", blocked_handoff=False)
+            runner_plain = AnytimeRunner(Path(tmp) / "model", handoff=False)
         finally:
             probe.session = probe_session
     diff = max(float(np.abs(a - b).max()) for a, b in zip(plain.run(None, feeds), blocked.run(None, feeds)))

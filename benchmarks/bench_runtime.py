@@ -1,5 +1,6 @@
 """Deployment on this machine: staged execution against one whole graph, onnxruntime against
-PyTorch eager, int8 against fp32 (speed and each path's RMSE), and the measured anytime loss against
+PyTorch eager, int8 against fp32 (speed and each path's RMSE; the export's own choice of int8 stages,
+the same without the uint8 handoff between int8 stages, and every stage int8), and the measured anytime loss against
 the one the host profile predicts.
 
     .venv/bin/python benchmarks/bench_runtime.py [--frames 16] [--deadlines 40]
@@ -53,8 +54,9 @@ if __name__ == "__main__":
         out = Path(tmp)
         export_network(net, out, size)
         runner = AnytimeRunner(out)
-        plain = AnytimeRunner(out, blocked_handoff=False)
-        print(f"tensors handed between stages in onnxruntime's blocked layout: {', '.join(runner.handed_off) or 'none'}")
+        plain = AnytimeRunner(out, handoff=False)
+        print("tensors handed between stages as onnxruntime holds them: "
+              + (", ".join(f"{name} ({form})" for name, form in runner.handed_off.items()) or "none"))
         env = {k: v.numpy() for k, v in example_inputs(size).items()}
         staged, with_deadline, plain_staged, bare_staged, whole_ms = [], [], [], [], []
         whole = session(export_whole(net, size))
@@ -78,7 +80,7 @@ if __name__ == "__main__":
 
         series = {"staged": (staged, lambda: runner.run(image, scan_np)),
                   "with a deadline": (with_deadline, lambda: runner.run(image, scan_np, 1e4)),
-                  "without the blocked handoff": (plain_staged, lambda: plain.run(image, scan_np)),
+                  "without the handoff": (plain_staged, lambda: plain.run(image, scan_np)),
                   "bare stage chain": (bare_staged, bare_chain),
                   "held to the shared arena": (shared_staged, lambda: shared_only.run(image, scan_np)),
                   "held to arenas of their own": (own_staged, lambda: own_only.run(image, scan_np)),
@@ -89,7 +91,7 @@ if __name__ == "__main__":
                 series[name][0].append(ms)
             w = whole_ms[-1]
             print(f"  rep {rep + 1}: whole graph {w:.2f} ms; staged {staged[-1]:.2f} ms ({staged[-1] / w - 1:+.1%}), "
-                  f"with a deadline {with_deadline[-1]:.2f} ({with_deadline[-1] / w - 1:+.1%}), without the blocked "
+                  f"with a deadline {with_deadline[-1]:.2f} ({with_deadline[-1] / w - 1:+.1%}), without the "
                   f"handoff {plain_staged[-1]:.2f} ({plain_staged[-1] / w - 1:+.1%}), bare stage chain "
                   f"{bare_staged[-1]:.2f} ({bare_staged[-1] / w - 1:+.1%}), held to the shared arena "
                   f"{shared_staged[-1]:.2f} ({shared_staged[-1] / w - 1:+.1%}), held to arenas of their own "
@@ -99,7 +101,7 @@ if __name__ == "__main__":
         print(f"staged execution vs one whole graph ({w:.2f} ms), medians of 5: "
               + ", ".join(f"{label} {statistics.median(t):.2f} ms {statistics.median(t) / w - 1:+.1%}" for label, t in
                           (("staged", staged), ("with a deadline", with_deadline),
-                           ("without the blocked handoff", plain_staged), ("the stage sessions alone", bare_staged),
+                           ("without the handoff", plain_staged), ("the stage sessions alone", bare_staged),
                            ("held to the shared arena", shared_staged), ("held to arenas of their own", own_staged)))
               + " (goal <= 5%)")
         print(f"the runner's runs per session set (shared arena, arenas of their own): {runner.arena_choice.runs}")
@@ -126,19 +128,28 @@ if __name__ == "__main__":
             print("int8 export, per stage graph (kept int8 where it took at most 95% of its fp32 time here): "
                   + "; ".join(f"{st['name']} {st['precision']}" + (f" ({st['ms_here']['int8']:.2f} vs "
                               f"{st['ms_here']['fp32']:.2f} ms)" if "ms_here" in st else "") for st in m["stages"]))
-            fp32_ms, int8_ms = [], []
+            m_all = export_network(net, out / "int8-all", size,
+                                   quantization=Quantization(data="synthetic", max_degradation=1.0, stages="all"))
+            variants = {"fp32": runner, "int8": runner8, "int8, no uint8 handoff": AnytimeRunner(q8, handoff=False),
+                        "int8 all stages": AnytimeRunner(out / "int8-all")}
+            for label in ("int8", "int8 all stages"):
+                print(f"{label}: tensors handed over: "
+                      + (", ".join(f"{n} ({form})" for n, form in variants[label].handed_off.items()) or "none"))
+            times8: dict[str, list[float]] = {k: [] for k in variants}
             for rep in range(5):  # interleaved in blocks
-                got = time_interleaved({"fp32": lambda: runner.run(image, scan_np),
-                                        "int8": lambda: runner8.run(image, scan_np)}, blocks=5)
-                fp32_ms.append(got["fp32"])
-                int8_ms.append(got["int8"])
-                print(f"  rep {rep + 1}: staged fp32 {fp32_ms[-1]:.2f} ms, int8 {int8_ms[-1]:.2f} ms: "
-                      f"{fp32_ms[-1] / int8_ms[-1]:.2f}x")
-            f, i = statistics.median(fp32_ms), statistics.median(int8_ms)
-            deg = m["quantization"]["rmse_degradation"]
-            print(f"int8 (static QDQ) vs fp32, staged, medians of 5: {i:.2f} vs {f:.2f} ms, {f / i:.2f}x (goal >= 1.8x); "
-                  f"RMSE change per path on {m['quantization']['evaluation']['frames']} frames: "
-                  f"{' '.join(f'{100 * d:+.1f}%' for d in deg)} (goal: last path within 2%)")
+                got = time_interleaved({k: (lambda r=r: r.run(image, scan_np)) for k, r in variants.items()}, blocks=5)
+                for k, ms in got.items():
+                    times8[k].append(ms)
+                print(f"  rep {rep + 1}: staged " + ", ".join(f"{k} {ms:.2f} ms" for k, ms in got.items())
+                      + f"; int8 {got['fp32'] / got['int8']:.2f}x, all stages {got['fp32'] / got['int8 all stages']:.2f}x")
+            f, i = statistics.median(times8["fp32"]), statistics.median(times8["int8"])
+            print("medians of 5: " + ", ".join(f"{k} {statistics.median(t):.2f} ms ({f / statistics.median(t):.2f}x)"
+                                               for k, t in times8.items()))
+            for label, mm in (("int8", m), ("int8 all stages", m_all)):
+                deg = mm["quantization"]["rmse_degradation"]
+                print(f"{label}: RMSE change per path on {mm['quantization']['evaluation']['frames']} frames: "
+                      f"{' '.join(f'{100 * d:+.1f}%' for d in deg)} (goal: last path within 2%)")
+            print(f"int8 (static QDQ) vs fp32, staged, medians of 5: {i:.2f} vs {f:.2f} ms, {f / i:.2f}x (goal >= 1.8x)")
             print(f"int8 staged: {macs / (i * 1e6):.1f} GMAC/s, {peak.fraction(macs, i, 'int8'):.0%} of int8 peak")
 
         if args.skip_anytime:

@@ -14,7 +14,9 @@ up-sampling is kept channels-first (``resizes_kept_nchw``): onnxruntime's channe
 made every int8 decoder stage slower than fp32; so, on the Zen 4 VM, decoders 1-2 ran 1.3-1.5x faster
 in int8, but decoders 3-4, at full resolution with 8-16 channels, still 1.4x slower (onnxruntime's
 uint8 depthwise kernels are slower than its blocked fp32 ones). So an export keeps a stage int8 only
-where it runs at most ``INT8_KEEP_RATIO`` of its fp32 time on the exporting machine (``stages="all"``: every stage int8), and the cost model
+where int8 saves the staged runtime at least ``1 - INT8_KEEP_RATIO`` of that stage's fp32 time on the
+exporting machine, with int8 neighbours handing each other uint8 tensors (``compare_speed``;
+``stages="all"``: every stage int8), and the cost model
 prices an int8 candidate's stages the same way (``explorer.cost.devices``); then, where a path loses
 more RMSE than the export allows, it gives graphs back to fp32 one by one. Path 0 (the scan) has
 nothing to quantize.
@@ -85,7 +87,7 @@ def stage_inputs(model_dir: Path, frames: list[dict]) -> list[list[dict[str, np.
     """For each stage graph of an exported model, the inputs it receives on each frame."""
     from explorer.runtime import AnytimeRunner
     # the graphs' own inputs; one set of sessions: nothing here is timed
-    runner = AnytimeRunner(model_dir, warmup=False, blocked_handoff=False, arenas="shared")
+    runner = AnytimeRunner(model_dir, warmup=False, handoff=False, arenas="shared")
     per_stage: list[list[dict[str, np.ndarray]]] = [[] for _ in runner.sessions]
     for f in frames:
         img, scan = runner.check(f["image"].numpy(), f["scan"].numpy())
@@ -205,15 +207,88 @@ def _quantize(src: Path, dst: Path, feeds: list[dict[str, np.ndarray]]) -> bool:
     return True
 
 
-def compare_speed(fp32: Path, int8: Path, feeds: dict[str, np.ndarray], reps: int = 3) -> tuple[float, float]:
-    """Median ms of the two graphs on ``feeds`` on this machine, timed in turn ``reps`` times."""
-    from explorer.cost.measure import session, time_call
-    sessions = [session(fp32.read_bytes()), session(int8.read_bytes())]
-    times: list[list[float]] = [[], []]
+def share_edge_scales(graphs: list[Path]) -> int:
+    """Gives every quantized stage graph in ``graphs`` (files, rewritten in place) the scale and zero
+    point with which the graph that makes an input of it quantizes that tensor; returns how many inputs
+    changed. Both are calibrated on the same values, but a reader that first slices a skip quantizes
+    the slice with its own range. With one scale on both sides, the dequantize at the producer's end and
+    the quantize at the reader's cancel exactly, and the runtime hands the uint8 tensor over
+    (``explorer._layout.hand_off_quantized``). Done before an export measures its int8 paths."""
+    import onnx
+    from onnx import numpy_helper
+    models = {p: onnx.load(str(p)) for p in graphs}
+    made = {}   # tensor -> (scale, zero point) its producer dequantizes it with
+    for model in models.values():
+        inits = {i.name: i for i in model.graph.initializer}
+        outs = {o.name for o in model.graph.output}
+        for n in model.graph.node:
+            if (n.op_type == "DequantizeLinear" and n.output[0] in outs and len(n.input) == 3
+                    and n.input[1] in inits and n.input[2] in inits):
+                made[n.output[0]] = (numpy_helper.to_array(inits[n.input[1]]), numpy_helper.to_array(inits[n.input[2]]))
+    changed = 0
+    for path, model in models.items():
+        graph = model.graph
+        inits = {i.name: i for i in graph.initializer}
+        dirty = False
+        for name in (i.name for i in graph.input):
+            if name not in made:
+                continue
+            quantizers = []
+            for r in (n for n in graph.node if name in n.input):
+                if r.op_type == "QuantizeLinear":
+                    quantizers.append(r)
+                elif r.op_type in ("Slice", "Reshape", "Squeeze", "Unsqueeze"):   # moves values, keeps them
+                    quantizers += [n for n in graph.node if r.output[0] in n.input and n.op_type == "QuantizeLinear"]
+            aligned = False
+            for q in quantizers:
+                for value, param in zip(made[name], q.input[1:3]):
+                    old = inits.get(param)
+                    if old is None:
+                        continue
+                    was = numpy_helper.to_array(old)
+                    if was.shape != value.shape or was.dtype != value.dtype or (was == value).all():
+                        continue
+                    old.CopyFrom(numpy_helper.from_array(value, param))
+                    aligned = True
+            changed += aligned
+            dirty |= aligned
+        if dirty:
+            onnx.save(model, str(path))
+    return changed
+
+
+def compare_speed(model_dir: Path, manifest: dict, configs: list[dict[int, str]], frame: dict,
+                  reps: int = 5) -> list[tuple[float, dict[int, float]]]:
+    """For each of ``configs`` (stage index -> its int8 graph in ``model_dir``; the others fp32), the
+    staged runtime's median ms on ``frame`` over its stage graphs, and each stage's own median ms within
+    it. Timed in the chain, not graph by graph: int8 neighbours hand each other uint8 tensors
+    (``explorer._layout.hand_off_quantized``), so a stage's precision changes what its neighbours pay
+    too. The runners take turns, ``reps`` blocks of 5 timed runs each. Leaves the manifest as it was."""
+    import json
+    import time
+    from explorer.runtime import MANIFEST, AnytimeRunner
+    kept = (model_dir / MANIFEST).read_text()
+    runners = []
+    try:
+        for chosen in configs:
+            files = [{**st, "file": chosen.get(k, st["file"])} for k, st in enumerate(manifest["stages"])]
+            (model_dir / MANIFEST).write_text(json.dumps({**manifest, "stages": files}))
+            runners.append(AnytimeRunner(model_dir, arenas="shared"))
+    finally:
+        (model_dir / MANIFEST).write_text(kept)
+    image, scan = runners[0].check(frame["image"].numpy(), frame["scan"].numpy())
+    times: list[list[list[float]]] = [[[] for _ in r.sessions] for r in runners]
     for _ in range(reps):
-        for sess, t in zip(sessions, times):
-            t.append(time_call(lambda: sess.run(None, feeds), 2, 10))
-    return statistics.median(times[0]), statistics.median(times[1])
+        for runner, per_stage in zip(runners, times):
+            for run in range(6):   # the first of each block untimed: the other runner's buffers were in the caches
+                env = {"image": image, "scan": scan}
+                for k, (_, sess, ins, outs) in enumerate(runner.sessions):
+                    t0 = time.perf_counter()
+                    env.update(zip(outs, sess.run(outs, {n: env[n] for n in ins})))
+                    if run:
+                        per_stage[k].append((time.perf_counter() - t0) * 1000.0)
+    return [(statistics.median(map(sum, zip(*per_stage))), {k: statistics.median(t) for k, t in enumerate(per_stage)})
+            for per_stage in times]
 
 
 def path_metrics(model_dir: Path, frames: list[dict]) -> list[dict[str, float]]:
@@ -227,8 +302,8 @@ def quantize_export(model_dir: Path, data: str, calibration_frames: int = 32, ev
                     progress: Callable[[str], None] | None = None,
                     stages: "str | tuple[str, ...]" = "faster") -> dict:
     """Turns the fp32 export in ``model_dir`` (a scratch folder) into an int8 one in place and returns
-    what the manifest records: which stage graphs are int8 and why (``stages="faster"``: those that ran at
-    most ``INT8_KEEP_RATIO`` of their fp32 time here; ``"all"``: every one; a tuple: those named, as
+    what the manifest records: which stage graphs are int8 and why (``stages="faster"``: those whose int8
+    saved the staged runtime at least ``1 - INT8_KEEP_RATIO`` of their fp32 time here; ``"all"``: every one; a tuple: those named, as
     ``CandidateCost.int8_graphs`` names the ones a device profile prices int8), per-path metrics before and after
     on ``eval_frames`` validation frames, each path's RMSE degradation, the calibration. Refuses
     (UserError) when a path degrades by more than ``max_degradation`` unless ``force``; with
@@ -246,11 +321,12 @@ def quantize_export(model_dir: Path, data: str, calibration_frames: int = 32, ev
     size = tuple(manifest["input_size"])
     say = progress or (lambda _: None)
     say(f"calibrating on {calibration_frames} training frames of {data}")
-    calib = stage_inputs(model_dir, _frames(data, size, calibration_frames, "train"))
+    frames = _frames(data, size, calibration_frames, "train")
+    calib = stage_inputs(model_dir, frames)
     evaluation = _frames(data, size, eval_frames, "val")
     say(f"measuring the fp32 paths on {len(evaluation)} validation frames")
     before = path_metrics(model_dir, evaluation)
-    int8_files: dict[int, str] = {}   # stage index -> its int8 graph, for the graphs that stay int8
+    made: dict[int, Path] = {}   # stage index -> its int8 graph
     for k, stage in enumerate(manifest["stages"]):
         src = model_dir / stage["file"]
         dst = src.with_name(src.stem + ".int8.onnx")
@@ -260,20 +336,28 @@ def quantize_export(model_dir: Path, data: str, calibration_frames: int = 32, ev
         if not isinstance(stages, str) and stage["name"] not in stages:
             continue
         say(f"quantizing {stage['file']}")
-        if not quantize_graph(src, dst, calib[k]):
-            dst.unlink(missing_ok=True)
-            continue
-        keep = True
-        if stages == "faster":
-            fp32_ms, int8_ms = compare_speed(src, dst, calib[k][0])
-            keep = int8_ms <= INT8_KEEP_RATIO * fp32_ms
-            stage["ms_here"] = {"fp32": round(fp32_ms, 4), "int8": round(int8_ms, 4)}
-            say(f"  {stage['name']}: {int8_ms:.2f} ms in int8, {fp32_ms:.2f} ms in fp32 on this machine: "
-                + ("int8" if keep else "kept fp32"))
-        if keep:
-            int8_files[k] = dst.name
+        if quantize_graph(src, dst, calib[k]):
+            made[k] = dst
         else:
-            dst.unlink()
+            dst.unlink(missing_ok=True)
+    share_edge_scales(list(made.values()))
+    int8_files = {k: dst.name for k, dst in made.items()}
+    if stages == "faster" and made:
+        # from every quantized stage int8, each in turn goes back to fp32 unless int8 saves the staged
+        # runtime at least 1 - INT8_KEEP_RATIO of that stage's fp32 time
+        say("timing the staged runtime with each quantized stage int8 and fp32")
+        for k in list(made):
+            stage = manifest["stages"][k]
+            (with_ms, with_stages), (without_ms, without_stages) = compare_speed(
+                model_dir, manifest, [int8_files, {j: f for j, f in int8_files.items() if j != k}], frames[0])
+            fp32_ms, int8_ms = without_stages[k], with_stages[k]
+            keep = with_ms <= without_ms - (1 - INT8_KEEP_RATIO) * fp32_ms
+            stage["ms_here"] = {"fp32": round(fp32_ms, 4), "int8": round(int8_ms, 4),
+                                "staged_fp32": round(without_ms, 4), "staged_int8": round(with_ms, 4)}
+            say(f"  {stage['name']}: staged runtime {with_ms:.2f} ms with it int8, {without_ms:.2f} ms with it fp32 "
+                "on this machine: " + ("int8" if keep else "kept fp32"))
+            if not keep:
+                (model_dir / int8_files.pop(k)).unlink()
 
     def choose(chosen: dict[int, str]) -> None:
         for k, stage in enumerate(manifest["stages"]):
@@ -336,8 +420,8 @@ def _why(stages: "str | tuple[str, ...]") -> str:
     if stages == "all":
         return "all"
     if stages == "faster":
-        return (f"faster: int8 where a stage graph took at most {INT8_KEEP_RATIO:.0%} of its fp32 time on the "
-                "exporting machine (ms_here) and every path stayed within max_degradation")
+        return (f"faster: int8 where it saved the staged runtime at least {1 - INT8_KEEP_RATIO:.0%} of that stage "
+                "graph's fp32 time on the exporting machine (ms_here), and every path stayed within max_degradation")
     return "as searched: those the device profile prices faster in int8"
 
 

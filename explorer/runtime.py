@@ -79,10 +79,11 @@ class _Watchdog:
 
 class AnytimeRunner:
     def __init__(self, model_dir: str | Path, threads: int | None = None, warmup: bool = True,
-                 provider: str = "CPUExecutionProvider", blocked_handoff: bool = True,
+                 provider: str = "CPUExecutionProvider", handoff: bool = True,
                  arenas: str = "both") -> None:
-        """``blocked_handoff``: stages hand tensors over in onnxruntime's blocked layout where it
-        applies (``explorer._layout``); ``sessions`` then read and write ``NAME.nchwc`` tensors.
+        """``handoff``: stages hand tensors over as onnxruntime holds them where it applies
+        (``explorer._layout``): fp32 ones in its blocked layout (``NAME.nchwc``), ones that two int8 stages
+        pass uint8 (``NAME.uint8``, ``NAME.uint8_nhwc``); ``handed_off`` says which and how.
         ``session_sets``: ``sessions`` (one memory arena shared by the process's sessions) and, where
         that arena is in use, the same graphs each with an arena of its own; a run uses the set that
         ``arena_choice`` picks (``explorer._arena_choice``). ``arenas``: "both" (that), "shared" or
@@ -108,9 +109,9 @@ class AnytimeRunner:
         self.input_size = tuple(self.manifest["input_size"])
         self.scan_row = int(self.manifest["scan_row"])
         self.sessions: list[tuple[dict, object, list[str], list[str]]] = []
-        self.handed_off: list[str] = []   # tensors passed between stages in the blocked layout
+        self.handed_off: dict[str, str] = {}   # tensor passed between stages -> its form ("blocked", ...)
         self._graphs: list[tuple[bytes, bool]] = []   # each session's graph, and whether onnxruntime optimises it
-        blocked_handoff = blocked_handoff and provider == "CPUExecutionProvider"   # its NCHWc kernels
+        handoff = handoff and provider == "CPUExecutionProvider"   # its NCHWc kernels and QDQ fusions
         with tempfile.TemporaryDirectory() as tmp:
             optimized = Path(tmp)
             for k, st in enumerate(self.manifest["stages"]):
@@ -120,13 +121,13 @@ class AnytimeRunner:
                 try:
                     graph = f.read_bytes()
                     sess = session(graph, threads, provider,
-                                   save_optimized=optimized / f"{k}.onnx" if blocked_handoff else None)
+                                   save_optimized=optimized / f"{k}.onnx" if handoff else None)
                 except Exception as exc:  # onnxruntime raises its own types for corrupt graphs
                     raise UserError(f"{f}: not a loadable ONNX graph ({str(exc).splitlines()[0][:100]})") from None
                 self.sessions.append(_named(st, sess))
                 self._graphs.append((graph, True))
-            if blocked_handoff:
-                self.handed_off = self._hand_off_blocked(optimized, threads)
+            if handoff:
+                self.handed_off = self._hand_off(optimized, threads)
         # the same graphs again, each session with a memory arena of its own (``explorer._arena_choice``)
         self.session_sets = [self.sessions]
         if shared_arena() and arenas != "shared":
@@ -148,17 +149,20 @@ class AnytimeRunner:
             for sessions in self.session_sets:   # untimed: a first run is slower than the rest
                 self._depths(sessions, img, scan)
 
-    def _hand_off_blocked(self, optimized: Path, threads: int | None) -> list[str]:
+    def _hand_off(self, optimized: Path, threads: int | None) -> dict[str, str]:
         """Replaces the sessions by ones made from their optimised graphs rewritten to hand tensors over
-        blocked, when the rewrite applies and gives the same depth maps; the names handed over."""
+        as onnxruntime holds them, when a rewrite applies and gives the same depth maps; the names handed
+        over and how."""
         import onnx
-        from explorer._layout import hand_off_blocked
+        from explorer._layout import hand_off_blocked, hand_off_quantized
         from explorer.cost.measure import session
         try:
             models = [onnx.load(str(optimized / f"{k}.onnx")) for k in range(len(self.sessions))]
-            handed = hand_off_blocked(models, [s[2] for s in self.sessions], [s[3] for s in self.sessions])
+            ins, outs = [s[2] for s in self.sessions], [s[3] for s in self.sessions]
+            handed = dict.fromkeys(hand_off_blocked(models, ins, outs), "blocked")
+            handed.update(hand_off_quantized(models, ins, outs))
             if not handed:
-                return []
+                return {}
             rewritten = [_named(st, session(m.SerializeToString(), threads, self.provider, optimize=False))
                          for (st, *_), m in zip(self.sessions, models)]
             h, w = self.input_size
@@ -168,9 +172,9 @@ class AnytimeRunner:
             same = all(np.allclose(a, b, rtol=1e-5, atol=1e-6) for a, b in
                        zip(self._depths(self.sessions, img, scan), self._depths(rewritten, img, scan)))
         except Exception:   # an onnxruntime whose optimised graphs this rewrite does not know
-            return []
+            return {}
         if not same:
-            return []
+            return {}
         self.sessions = rewritten
         self._graphs = [(m.SerializeToString(), False) for m in models]
         return handed

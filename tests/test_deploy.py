@@ -161,6 +161,36 @@ def test_int8_runs_under_deadlines(int8_export, run_cli):
     assert "the model is int8" in text and json.loads((out / "anytime_curve.json").read_text())["precision"] == "int8"
 
 
+def test_int8_stages_hand_each_other_uint8(int8_export):
+    """The export quantizes a tensor two int8 stages pass with one scale on both sides (``share_edge_scales``),
+    so the runner hands it over uint8 and the maps are those of the float handoff."""
+    out, _ = int8_export
+    runner, plain = AnytimeRunner(out), AnytimeRunner(out, handoff=False)
+    assert plain.handed_off == {}
+    assert "x0" in runner.handed_off and all(form.startswith("uint8") for form in runner.handed_off.values())
+    handed = {n for _, _, ins, _ in runner.sessions for n in ins} - {"image", "scan"}
+    assert handed and all(".uint8" in n for n in handed)   # every tensor between the int8 stages
+    rng = np.random.default_rng(0)
+    img, scan = rng.random((3, 32, 48), dtype=np.float32), rng.uniform(0.5, 8.0, 48).astype(np.float32)
+    for a, b in zip(runner.depths(img, scan), plain.depths(img, scan)):
+        np.testing.assert_array_equal(a, b)
+
+
+def _stage_speeds(int8_ratio: dict[int, float], timed: list | None = None) -> "Callable":
+    """A stand-in for quantize.compare_speed: every stage 2 ms in fp32, ``int8_ratio`` of that in int8
+    (0.5 where not given); ``timed`` collects the stages of every configuration timed."""
+    def speeds(model_dir, manifest, configs, frame):
+        out = []
+        for chosen in configs:
+            if timed is not None:
+                timed.append(sorted(chosen))
+            per_stage = {k: 2.0 * (int8_ratio.get(k, 0.5) if k in chosen else 1.0)
+                         for k in range(len(manifest["stages"]))}
+            out.append((sum(per_stage.values()), per_stage))
+        return out
+    return speeds
+
+
 def _metrics_losing(loss: float, spoils) -> "Callable":
     """A stand-in for quantize.path_metrics: every path's RMSE 1.0, and ``1 + loss`` from the first path
     after an int8 stage graph for which ``spoils(stage)`` holds (what the export's manifest says now)."""
@@ -179,7 +209,7 @@ def test_int8_keeps_fp32_the_graph_that_costs_accuracy(exported, tmp_path, monke
     from conftest import TINY_DATA
     from explorer.deploy import Quantization
     _, net = exported
-    monkeypatch.setattr(quantize, "compare_speed", lambda fp32, int8, feeds: (2.0, 1.0))
+    monkeypatch.setattr(quantize, "compare_speed", _stage_speeds({}))
     monkeypatch.setattr(quantize, "path_metrics", _metrics_losing(0.10, lambda st: st["path"] == 2))
     m = export_network(net, tmp_path / "m", (32, 48), quantization=Quantization(
         data=TINY_DATA, calibration_frames=2, eval_frames=2, max_degradation=0.03))
@@ -201,7 +231,7 @@ def test_int8_past_the_degradation_limit_is_refused_and_changes_nothing(exported
     target = tmp_path / "kept"
     shutil.copytree(out, target)
     before = {f.name: f.read_bytes() for f in target.iterdir()}
-    monkeypatch.setattr(quantize, "compare_speed", lambda fp32, int8, feeds: (2.0, 1.0))   # every graph pays
+    monkeypatch.setattr(quantize, "compare_speed", _stage_speeds({}))   # every graph pays
     monkeypatch.setattr(quantize, "path_metrics", _metrics_losing(0.10, lambda stage: True))
     with pytest.raises(UserError, match=r"path \d's RMSE by 10\.0% even with only \S+ int8 .*--force"):
         export_network(net, target, (32, 48), quantization=Quantization(data=TINY_DATA, calibration_frames=2,
@@ -216,16 +246,17 @@ def test_int8_keeps_a_stage_fp32_where_int8_is_not_faster_here(exported, tmp_pat
     from explorer.deploy import Quantization
     _, net = exported
     timed = []
-
-    def speeds(fp32, int8, feeds):   # stage 1 runs twice as fast in int8; the others 0.97x their fp32 time
-        timed.append(fp32.name)
-        return (2.0, 1.0) if len(timed) == 1 else (1.0, 0.97)
-    monkeypatch.setattr(quantize, "compare_speed", speeds)
+    # stage 1 twice as fast in int8, the others 0.97x their fp32 time: less than the 5% asked
+    monkeypatch.setattr(quantize, "compare_speed", _stage_speeds({k: 0.97 for k in range(2, 9)}, timed))
     m = export_network(net, tmp_path / "m", (32, 48), quantization=Quantization(
         data=TINY_DATA, calibration_frames=2, eval_frames=2, max_degradation=10.0))
-    assert len(timed) == len(m["stages"]) - 1   # every stage graph but path 0's
+    quantized = list(range(1, len(m["stages"])))   # every stage graph but path 0's
+    # from all int8, each stage timed in the staged runtime int8 and fp32, the others as decided so far
+    assert timed[:2] == [quantized, quantized[1:]] and timed[2:4] == [quantized, [1] + quantized[2:]]
+    assert len(timed) == 2 * len(quantized)
     assert [s["precision"] for s in m["stages"]] == ["fp32", "int8"] + ["fp32"] * (len(m["stages"]) - 2)
-    assert m["stages"][1]["ms_here"] == {"fp32": 2.0, "int8": 1.0} and m["stages"][2]["ms_here"]["int8"] == 0.97
+    assert {k: m["stages"][1]["ms_here"][k] for k in ("fp32", "int8")} == {"fp32": 2.0, "int8": 1.0}
+    assert m["stages"][2]["ms_here"]["int8"] == pytest.approx(1.94)
     assert sorted(f.name for f in (tmp_path / "m").glob("*.onnx")) == sorted(s["file"] for s in m["stages"])
     assert m["quantization"]["quantized_graphs"] == [m["stages"][1]["file"].replace(".int8", "")]
     runner = AnytimeRunner(tmp_path / "m")   # fp32 and int8 stage graphs run together

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from explorer._layout import SUFFIX, hand_off_blocked
+from explorer._layout import SUFFIX, UINT8_NHWC_SUFFIX, UINT8_SUFFIX, hand_off_blocked, hand_off_quantized
 from explorer.deploy import export_network
 from explorer.model import build_network
 from explorer.runtime import AnytimeRunner
@@ -29,12 +29,12 @@ def _inputs(seed=0):
 
 
 def test_blocked_handoff_gives_the_same_maps(paper_export):
-    blocked, plain = AnytimeRunner(paper_export), AnytimeRunner(paper_export, blocked_handoff=False)
-    assert plain.handed_off == []
+    blocked, plain = AnytimeRunner(paper_export), AnytimeRunner(paper_export, handoff=False)
+    assert plain.handed_off == {}
     if platform.machine() in ("x86_64", "AMD64"):   # onnxruntime blocks channels on x86 (AVX2 and up)
         # the decoder's running feature map, read by the next decoder (x0, x1, x2), and the encoder's skips,
         # which each decoder adds blocked (``probe_script.blocked_skip_adds``)
-        assert blocked.handed_off == ["x0", "skip_s8", "x1", "skip_s4", "x2", "skip_s2"]
+        assert blocked.handed_off == dict.fromkeys(["x0", "skip_s8", "x1", "skip_s4", "x2", "skip_s2"], "blocked")
         assert any(n.endswith(SUFFIX) for _, _, ins, _ in blocked.sessions for n in ins)
     for seed in range(2):
         img, scan = _inputs(seed)
@@ -65,6 +65,61 @@ def test_hand_off_rewrites_only_tensors_every_reader_blocks():
     assert [n.op_type for n in producer.graph.node] == ["Relu", "Relu", "ReorderInput"]
     assert sorted(i.name for i in reader.graph.input) == ["x" + SUFFIX, "y"]
     assert [list(n.input) for n in reader.graph.node if n.op_type == "Relu"] == [["x" + SUFFIX]]
+
+
+def _quantized_pair(reader_scale=0.5, reader_extra=False, reader_transposes=True, producer_nhwc=True):
+    """A producer that dequantizes its uint8 tensor, made by transposing a channels-last one
+    (``producer_nhwc``) or channels-first and transposed for a head of its own, and a reader that
+    quantizes it again (with ``reader_scale``) and transposes it channels-last."""
+    from onnx import TensorProto, helper, numpy_helper
+    const = lambda name, v: numpy_helper.from_array(np.array(v), name)  # noqa: E731
+    made = ([helper.make_node("Identity", ["a"], ["h"]), helper.make_node("Transpose", ["h"], ["tq"], perm=[0, 3, 1, 2])]
+            if producer_nhwc else [helper.make_node("Identity", ["a"], ["tq"]),
+                                   helper.make_node("Transpose", ["tq"], ["th"], perm=[0, 2, 3, 1]),
+                                   helper.make_node("Identity", ["th"], ["head"])])
+    producer = helper.make_graph(
+        made + [helper.make_node("DequantizeLinear", ["tq", "s", "z"], ["x"])], "p",
+        [helper.make_tensor_value_info("a", TensorProto.UINT8, None)],
+        [helper.make_tensor_value_info(n, TensorProto.FLOAT, None) for n in ["x"] + ["head"] * (not producer_nhwc)],
+        [const("s", np.float32(0.5)), const("z", np.uint8(3))])
+    nodes = [helper.make_node("QuantizeLinear", ["x", "s2", "z2"], ["q"])]
+    nodes += ([helper.make_node("Transpose", ["q"], ["t"], perm=[0, 2, 3, 1])] if reader_transposes
+              else [helper.make_node("Identity", ["q"], ["t"])])
+    nodes.append(helper.make_node("Identity", ["t"], ["out"]))
+    if reader_extra:   # the float tensor is also read as it is
+        nodes.append(helper.make_node("Relu", ["x"], ["extra"]))
+    reader = helper.make_graph(
+        nodes, "r", [helper.make_tensor_value_info("x", TensorProto.FLOAT, None)],
+        [helper.make_tensor_value_info(n, TensorProto.UINT8, None) for n in ["out"] + ["extra"] * reader_extra],
+        [const("s2", np.float32(reader_scale)), const("z2", np.uint8(3))])
+    return helper.make_model(producer), helper.make_model(reader)
+
+
+def test_int8_stages_hand_over_uint8_where_both_sides_quantize_alike():
+    producer, reader = _quantized_pair()
+    assert hand_off_quantized([producer, reader], [["a"], ["x"]], [["x"], ["out"]]) == {"x": "uint8 nhwc"}
+    # the producer hands its channels-last tensor; neither the transposes nor the (de)quantize remain
+    assert [o.name for o in producer.graph.output] == ["x" + UINT8_NHWC_SUFFIX]
+    assert [n.op_type for n in producer.graph.node] == ["Identity"]
+    assert [i.name for i in reader.graph.input] == ["x" + UINT8_NHWC_SUFFIX]
+    assert [(n.op_type, list(n.input)) for n in reader.graph.node] == [("Identity", ["x" + UINT8_NHWC_SUFFIX])]
+
+    producer, reader = _quantized_pair(producer_nhwc=False)   # the producer's own transpose, for its head
+    assert hand_off_quantized([producer, reader], [["a"], ["x"]], [["x", "head"], ["out"]]) == {"x": "uint8 nhwc"}
+    assert [o.name for o in producer.graph.output] == ["head", "x" + UINT8_NHWC_SUFFIX]
+    assert [(n.op_type, list(n.output)) for n in producer.graph.node] == [
+        ("Identity", ["x" + UINT8_SUFFIX]), ("Transpose", ["x" + UINT8_NHWC_SUFFIX]), ("Identity", ["head"])]
+
+    producer, reader = _quantized_pair(reader_transposes=False)   # read channels-first: the plain uint8 tensor
+    assert hand_off_quantized([producer, reader], [["a"], ["x"]], [["x"], ["out"]]) == {"x": "uint8"}
+    assert [o.name for o in producer.graph.output] == ["x" + UINT8_SUFFIX]
+    assert [n.op_type for n in producer.graph.node] == ["Identity", "Transpose"]
+
+    for kwargs in ({"reader_scale": 0.25}, {"reader_extra": True}):   # another scale; the float read too
+        producer, reader = _quantized_pair(**kwargs)
+        before = (producer.SerializeToString(), reader.SerializeToString())
+        assert hand_off_quantized([producer, reader], [["a"], ["x"]], [["x"], ["out"]]) == {}
+        assert (producer.SerializeToString(), reader.SerializeToString()) == before
 
 
 def test_a_past_deadline_answers_with_the_scan_and_one_watchdog_serves_every_run(paper_export):
