@@ -175,6 +175,53 @@ def resizes_kept_nchw(model) -> int:
     return count
 
 
+def pads_kept_uint8(model) -> int:
+    """Makes every zero Pad between a DequantizeLinear and a QuantizeLinear of the same scale and zero
+    point pad the uint8 tensor with its zero point instead, in place; returns how many. The quantizer
+    leaves such a Pad float (the decoder's widening of a narrower skip: the paper design pads 256
+    channels to 768), and onnxruntime then dequantizes, pads and quantizes three times the skip's
+    size: 0.27 ms of the int8 decoder 1's 1.06 ms on the AVX-512 VNNI VM (onnxruntime's profiler)."""
+    from onnx import helper, numpy_helper
+    graph = model.graph
+    inits = {i.name: numpy_helper.to_array(i) for i in graph.initializer}
+    made = {o: n for n in graph.node for o in n.output}
+
+    def same(a: str, b: str) -> bool:
+        return a == b or (a in inits and b in inits and inits[a].dtype == inits[b].dtype
+                          and inits[a].shape == inits[b].shape and bool((inits[a] == inits[b]).all()))
+
+    count = 0
+    for pad in [n for n in graph.node if n.op_type == "Pad"]:
+        mode = next((helper.get_attribute_value(a) for a in pad.attribute if a.name == "mode"), b"constant")
+        dq = made.get(pad.input[0])
+        value = pad.input[2] if len(pad.input) > 2 else ""
+        readers = [n for n in graph.node if pad.output[0] in n.input]
+        if (mode != b"constant" or dq is None or dq.op_type != "DequantizeLinear" or len(dq.input) < 3
+                or (value and not (value in inits and not inits[value].any())) or len(pad.input) > 3
+                or pad.output[0] in {o.name for o in graph.output} or not readers
+                or not all(r.op_type == "QuantizeLinear" and len(r.input) == 3 and same(r.input[1], dq.input[1])
+                           and same(r.input[2], dq.input[2]) for r in readers)
+                or dq.input[2] not in inits):
+            continue
+        zero = pad.name + "_zero_point"
+        graph.initializer.append(numpy_helper.from_array(inits[dq.input[2]].reshape(()), zero))
+        pad.input[0] = dq.input[0]
+        del pad.input[2:]
+        pad.input.append(zero)
+        quantized = readers[0].output[0]
+        for r in readers:
+            graph.node.remove(r)
+            for n in graph.node:
+                for k, name in enumerate(n.input):
+                    if name == r.output[0]:
+                        n.input[k] = quantized
+        pad.output[0] = quantized
+        if not any(dq.output[0] in n.input for n in graph.node):
+            graph.node.remove(dq)
+        count += 1
+    return count
+
+
 def _quantize(src: Path, dst: Path, feeds: list[dict[str, np.ndarray]]) -> bool:
     import onnx
     from onnxruntime.quantization import CalibrationMethod, QuantFormat, QuantType, quantize_static
@@ -204,6 +251,9 @@ def _quantize(src: Path, dst: Path, feeds: list[dict[str, np.ndarray]]) -> bool:
             if "bins" not in str(exc):
                 raise
             quantize(CalibrationMethod.MinMax)
+    model = onnx.load(str(dst))
+    if pads_kept_uint8(model):
+        onnx.save(model, str(dst))
     return True
 
 

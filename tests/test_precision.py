@@ -318,3 +318,40 @@ def test_a_quantized_nearest_resize_runs_channels_first(tmp_path):
     q8 = session(dst.read_bytes()).run(None, {"x": x.numpy()})[0]
     ref = net(x).detach().numpy()
     assert np.abs(q8 - ref).max() < 0.05 * np.abs(ref).max()
+
+
+def test_a_zero_pad_between_quantize_nodes_pads_uint8():
+    """The decoder's widening of a narrower skip (a zero Pad) runs on the uint8 tensor, padded with its
+    zero point, instead of dequantized, padded in float and quantized again; same values either way."""
+    import numpy as np
+    from onnx import TensorProto, helper, numpy_helper
+    from explorer.cost.measure import session
+    from explorer.quantize import pads_kept_uint8
+    const = lambda name, v: numpy_helper.from_array(np.array(v), name)  # noqa: E731
+
+    def model(scale_after: str):
+        nodes = [helper.make_node("QuantizeLinear", ["x", "s", "z"], ["xq"]),
+                 helper.make_node("DequantizeLinear", ["xq", "s", "z"], ["xf"]),
+                 helper.make_node("Pad", ["xf", "pads"], ["p"], mode="constant"),
+                 helper.make_node("QuantizeLinear", ["p", scale_after, "z"], ["pq"]),
+                 helper.make_node("DequantizeLinear", ["pq", scale_after, "z"], ["y"])]
+        graph = helper.make_graph(nodes, "g", [helper.make_tensor_value_info("x", TensorProto.FLOAT, [1, 2, 3, 3])],
+                                  [helper.make_tensor_value_info("y", TensorProto.FLOAT, None)],
+                                  [const("s", np.float32(0.05)), const("s2", np.float32(0.1)),
+                                   const("z", np.uint8(7)), const("pads", np.array([0, 0, 0, 0, 0, 4, 0, 0]))])
+        return helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
+
+    x = {"x": np.random.default_rng(0).uniform(-0.3, 1.0, (1, 2, 3, 3)).astype(np.float32)}
+    padded = model("s")
+    before = session(padded.SerializeToString()).run(None, x)[0]
+    assert pads_kept_uint8(padded) == 1
+    assert [n.op_type for n in padded.graph.node] == ["QuantizeLinear", "Pad", "DequantizeLinear"]
+    pad = padded.graph.node[1]
+    assert pad.input[0] == "xq" and numpy_helper.to_array(
+        next(i for i in padded.graph.initializer if i.name == pad.input[2])) == 7
+    after = session(padded.SerializeToString()).run(None, x)[0]
+    assert after.shape == (1, 6, 3, 3) and not after[:, 2:].any()
+    np.testing.assert_array_equal(before, after)
+    other = model("s2")   # the padded tensor quantized with another scale: left alone
+    kept = other.SerializeToString()
+    assert pads_kept_uint8(other) == 0 and other.SerializeToString() == kept
