@@ -265,21 +265,37 @@ def share_edge_scales(graphs: list[Path]) -> int:
     the quantize at the reader's cancel exactly, and the runtime hands the uint8 tensor over
     (``explorer._layout.hand_off_quantized``). Done before an export measures its int8 paths."""
     import onnx
-    from onnx import numpy_helper
-    models = {p: onnx.load(str(p)) for p in graphs}
-    made = {}   # tensor -> (scale, zero point) its producer dequantizes it with
-    for model in models.values():
-        inits = {i.name: i for i in model.graph.initializer}
+    models = [onnx.load(str(p)) for p in graphs]
+    changed = _share_edge_scales(models)
+    for k in changed:
+        onnx.save(models[k], str(graphs[k]))
+    return sum(changed.values())
+
+
+def _dequantized_outputs(models) -> dict[str, tuple[int, object]]:
+    """Tensor -> (index of the model that outputs it through a DequantizeLinear, that node)."""
+    out = {}
+    for k, model in enumerate(models):
+        inits = {i.name for i in model.graph.initializer}
         outs = {o.name for o in model.graph.output}
         for n in model.graph.node:
             if (n.op_type == "DequantizeLinear" and n.output[0] in outs and len(n.input) == 3
                     and n.input[1] in inits and n.input[2] in inits):
-                made[n.output[0]] = (numpy_helper.to_array(inits[n.input[1]]), numpy_helper.to_array(inits[n.input[2]]))
-    changed = 0
-    for path, model in models.items():
+                out[n.output[0]] = (k, n)
+    return out
+
+
+def _share_edge_scales(models) -> dict[int, int]:
+    """``share_edge_scales`` on models in memory: {model index: inputs changed} for those changed."""
+    from onnx import numpy_helper
+    made = {}
+    for name, (k, dq) in _dequantized_outputs(models).items():
+        inits = {i.name: i for i in models[k].graph.initializer}
+        made[name] = tuple(numpy_helper.to_array(inits[p]) for p in dq.input[1:3])
+    changed: dict[int, int] = {}
+    for k, model in enumerate(models):
         graph = model.graph
         inits = {i.name: i for i in graph.initializer}
-        dirty = False
         for name in (i.name for i in graph.input):
             if name not in made:
                 continue
@@ -300,11 +316,71 @@ def share_edge_scales(graphs: list[Path]) -> int:
                         continue
                     old.CopyFrom(numpy_helper.from_array(value, param))
                     aligned = True
-            changed += aligned
-            dirty |= aligned
-        if dirty:
-            onnx.save(model, str(path))
+            if aligned:
+                changed[k] = changed.get(k, 0) + 1
     return changed
+
+
+def uint8_edges(models) -> list[str]:
+    """Rewrites quantized stage graphs (ModelProtos in run order, ``share_edge_scales`` done) so that a
+    tensor that one dequantizes to output and every reader quantizes again at once with the same scale
+    and zero point (or slices first, then quantizes) passes as uint8 under its own name; returns those
+    names. What the runtime makes of an int8 export on a CPU (``explorer._layout.hand_off_quantized``),
+    before onnxruntime's layout changes: the calibration bundle times int8 graphs so, as the runtime
+    runs them."""
+    from onnx import TensorProto, numpy_helper
+    done = []
+    for name, (p, dq) in _dequantized_outputs(models).items():
+        src = models[p].graph
+        params = [numpy_helper.to_array(next(i for i in src.initializer if i.name == n)) for n in dq.input[1:3]]
+
+        def quantizes_alike(graph, node, tensor: str) -> bool:
+            inits = {i.name: numpy_helper.to_array(i) for i in graph.initializer if i.name in node.input[1:3]}
+            return (node.op_type == "QuantizeLinear" and len(node.input) == 3 and node.input[0] == tensor
+                    and all(q in inits and inits[q].dtype == v.dtype and inits[q].shape == v.shape
+                            and bool((inits[q] == v).all()) for q, v in zip(node.input[1:3], params)))
+
+        plans = []   # per reading model: (graph, [(quantize node to drop, the tensor its output becomes)])
+        for m in models:
+            if m is models[p] or not any(i.name == name for i in m.graph.input):
+                continue
+            drops, graph = [], m.graph
+            for r in [n for n in graph.node if name in n.input]:
+                if quantizes_alike(graph, r, name):
+                    drops.append((r, name))
+                    continue
+                after = [n for n in graph.node if r.output[0] in n.input]
+                if (r.op_type not in ("Slice", "Reshape", "Squeeze", "Unsqueeze") or r.input[0] != name
+                        or not after or not all(quantizes_alike(graph, n, r.output[0]) for n in after)):
+                    drops = None
+                    break
+                drops += [(n, r.output[0]) for n in after]   # moves uint8 values as well as float ones
+            if not drops:
+                break
+            plans.append((graph, drops))
+        else:
+            if not plans:
+                continue
+            quantized, float_name = dq.input[0], name + "_dequantized"
+            for node in src.node:   # the uint8 tensor takes the name; the producer's readers keep the float one
+                node.input[:] = [float_name if x == name else name if x == quantized else x for x in node.input]
+                node.output[:] = [name if x == quantized else x for x in node.output]
+            dq.output[0] = float_name
+            if not any(float_name in n.input for n in src.node):
+                src.node.remove(dq)
+            next(o for o in src.output if o.name == name).type.tensor_type.elem_type = TensorProto.UINT8
+            for graph, drops in plans:
+                for q, becomes in drops:
+                    graph.node.remove(q)
+                    for node in graph.node:
+                        node.input[:] = [becomes if x == q.output[0] else x for x in node.input]
+                retyped = {becomes for _, becomes in drops}   # now uint8: shape inference's float entries go
+                kept = [v for v in graph.value_info if v.name not in retyped]
+                del graph.value_info[:]
+                graph.value_info.extend(kept)
+                next(i for i in graph.input if i.name == name).type.tensor_type.elem_type = TensorProto.UINT8
+            done.append(name)
+    return done
 
 
 def compare_speed(model_dir: Path, manifest: dict, configs: list[dict[int, str]], frame: dict,

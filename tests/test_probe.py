@@ -303,6 +303,23 @@ def test_bundle_int8_graphs_are_quantized_convolutions_and_stage_graphs(bundle_d
     assert lidar and not any(c.input[1] in made_by for c in lidar)   # kept fp32: weights read straight from initializers
     rest = [c for c in convs if c not in lidar]
     assert rest and all(made_by[c.input[0]].op_type == "DequantizeLinear" for c in rest)   # quantized whole
+    # the graphs hand each other uint8 tensors, as the runtime does between int8 graphs: no quantize or
+    # dequantize at those edges, and the chain runs
+    graphs = [onnx.load(str(bundle_dir / g["file"])).graph for g in cand["graphs"]]
+    floats = {"image", "scan", "lidar", "scan_fill"}   # inputs, and what fp32 stages (the LiDAR's) make
+    handed = {i.name for g in graphs[1:] for i in g.input} - floats
+    assert any(n.startswith("x") for n in handed) and any(n.startswith("skip") for n in handed)
+    assert all(i.type.tensor_type.elem_type == onnx.TensorProto.UINT8 for g in graphs[1:] for i in g.input
+               if i.name in handed)
+    assert all(o.type.tensor_type.elem_type == onnx.TensorProto.UINT8 for g in graphs for o in g.output
+               if o.name in handed)
+    assert not any(n.op_type == "QuantizeLinear" and n.input[0] in handed for g in graphs[1:] for n in g.node)
+    env = probe._candidate_inputs(manifest, np.random.default_rng(0), cand)
+    for g in cand["graphs"]:
+        sess = probe.session(bundle_dir / g["file"])
+        feeds = {i.name: env[i.name] for i in sess.get_inputs()}
+        env.update(zip([o.name for o in sess.get_outputs()], sess.run(None, feeds)))
+    assert {env[n].dtype for n in handed} == {np.dtype(np.uint8)}
 
 
 def test_probe_with_a_power_sensor_writes_measured_energy(bundle_dir, tmp_path):

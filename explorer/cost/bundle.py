@@ -67,9 +67,12 @@ def _int8(model: bytes, feeds: dict[str, np.ndarray]) -> bytes:
 
 def _int8_graphs(net, size: tuple[int, int]) -> list[tuple[str, bytes]]:
     """``net``'s deployed stage graphs (path 0's aside) quantized as an int8 export quantizes them, each
-    calibrated on what it reads on the example inputs: [(stages joined by '+', graph), ...]."""
+    calibrated on what it reads on the example inputs: [(stages joined by '+', graph), ...]. The tensors
+    they pass each other are uint8, as the runtime hands them between int8 graphs
+    (``explorer.quantize.uint8_edges``)."""
     import torch
     from explorer.onnx_stages import example_inputs, export_segments
+    from explorer.quantize import _share_edge_scales, uint8_edges
     graphs = export_segments(net, size)[1:]
     env = example_inputs(size)
     out = []
@@ -80,7 +83,10 @@ def _int8_graphs(net, size: tuple[int, int]) -> list[tuple[str, bytes]]:
             for spec in net.specs:
                 if spec.name in desc["stages"]:
                     net.run_stage(spec, env, size[0] // 2)
-    return out
+    models = [load_from_string(model) for _, model in out]
+    _share_edge_scales(models)
+    uint8_edges(models)
+    return [(name, model.SerializeToString()) for (name, _), model in zip(out, models)]
 
 
 def stage_candidates(count: int, seed: int, exclude: set[str] = frozenset()) -> list:
