@@ -480,3 +480,28 @@ def test_calibration_times_again_the_graphs_far_above_its_fit(tmp_path, monkeypa
     for label, ms in inflated.items():
         key, _, stage = label.partition("/")
         assert res["stages"][key][stage] < ms / 4   # timed again, the faster kept
+
+
+def test_chain_sessions_hand_tensors_over_blocked_with_the_same_results():
+    """The probe and the held-out timings run a candidate's stage graphs as the runtime does: tensors
+    pass from one to the next in onnxruntime's blocked layout where both sides hold them so."""
+    import torch
+    from explorer.model import build_network
+    from explorer.onnx_stages import example_inputs, export_stages
+    from explorer.space import paper_candidate
+    torch.manual_seed(0)
+    graphs = [model for _, model in export_stages(build_network(paper_candidate()).eval(), (64, 64))]
+    chained, plain = probe.chain_sessions(graphs), [probe.session(m) for m in graphs]
+    names = {n.name for s in chained for n in s.get_inputs()}
+    if platform.machine() in ("x86_64", "AMD64"):   # onnxruntime blocks channels on x86
+        assert any(n.endswith(probe.SUFFIX) for n in names)
+    results = []
+    for sessions in (chained, plain):
+        env = {k: v.numpy() for k, v in example_inputs((64, 64)).items()}
+        for s in sessions:
+            outs = [o.name for o in s.get_outputs()]
+            env.update(zip(outs, s.run(outs, {i.name: env[i.name] for i in s.get_inputs()})))
+        results.append([env[k] for k in sorted(env) if k.startswith("depth_")])
+    assert len(results[0]) == paper_candidate().num_paths
+    for a, b in zip(*results):
+        np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-5)

@@ -60,15 +60,17 @@ class Measurement:
 def measure_network(net: AnytimeDepthNet, input_size: tuple[int, int] = (224, 224),
                     threads: int | None = None, repeats: int = 15, warmup: int = 3,
                     whole: bool = True, provider: str = DEFAULT_PROVIDER) -> Measurement:
-    """Times every stage graph with onnxruntime, and (``whole``) the whole network as one graph."""
+    """Times every stage graph with onnxruntime, in one chain as the probe times them, and (``whole``)
+    the whole network as one graph."""
     from explorer.onnx_stages import example_inputs, export_stages, export_whole
     graphs = export_stages(net, input_size)
     env = {k: v.numpy() for k, v in example_inputs(input_size).items()}
     stage_ms: dict[str, float] = {}
     path_ms = [0.0]
     elapsed = 0.0
-    for spec, model in graphs:
-        sess = session(model, threads, provider)
+    # in one chain, handing tensors over blocked as the runtime does (``probe_script.chain_sessions``)
+    chain = _probe.chain_sessions([model for _, model in graphs], threads, provider)
+    for (spec, _), sess in zip(graphs, chain):
         names = [i.name for i in sess.get_inputs()]
         feeds = {n: env[n] for n in names}
         outs = sess.run(None, feeds)

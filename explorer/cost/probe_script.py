@@ -304,6 +304,108 @@ def blocked_skip_adds(model, block: "int | None" = None) -> int:
     return done
 
 
+# -- stage graphs that hand tensors over blocked, as the runtime runs them ------------------------
+SUFFIX = ".nchwc"
+
+
+def _is_plain_reorder_in(node) -> bool:
+    from onnx import helper
+    channels_last = next((helper.get_attribute_value(a) for a in node.attribute if a.name == "channels_last"), 0)
+    return node.op_type == "ReorderInput" and node.domain == NCHWC_DOMAIN and channels_last == 0
+
+
+def _rename_input(graph, old: str, new: str) -> None:
+    for node in graph.node:
+        for k, name in enumerate(node.input):
+            if name == old:
+                node.input[k] = new
+
+
+def _rename(graph, old: str, new: str) -> None:
+    _rename_input(graph, old, new)
+    for node in graph.node:
+        for k, name in enumerate(node.output):
+            if name == old:
+                node.output[k] = new
+
+
+def hand_off_blocked(models: list, inputs: list[list[str]], outputs: list[list[str]]) -> list[str]:
+    """Rewrites ``models`` (optimised stage graphs in run order; ``inputs`` and ``outputs``: the names
+    each one reads and writes) in place; returns the names of the tensors now handed over blocked. A
+    tensor is, when every node of its reader that reads it converts it to the blocked layout."""
+    from onnx import TensorProto, helper
+    producer = {name: i for i, outs in enumerate(outputs) for name in outs}
+    handed = []
+    for j, model in enumerate(models):
+        graph = model.graph
+        for name in inputs[j]:
+            if name not in producer:
+                continue
+            readers = [n for n in graph.node if name in n.input]
+            if not readers or not all(_is_plain_reorder_in(n) for n in readers):
+                continue
+            blocked = name + SUFFIX
+            src = models[producer[name]].graph
+            if not any(o.name == blocked for o in src.output):
+                own = next((n for n in src.node if _is_plain_reorder_in(n) and list(n.input) == [name]), None)
+                made = next((n for n in src.node if n.op_type == "ReorderOutput" and n.domain == NCHWC_DOMAIN
+                             and list(n.output) == [name]), None)
+                if own is not None:        # the producer converts it already (for its exit head)
+                    _rename_input(src, own.output[0], blocked)
+                    own.output[0] = blocked
+                elif made is not None:     # the producer has it blocked, and converts it only to output it
+                    _rename(src, made.input[0], blocked)
+                else:
+                    src.node.append(helper.make_node("ReorderInput", [name], [blocked], domain=NCHWC_DOMAIN,
+                                                     channels_last=0))
+                src.output.append(helper.make_tensor_value_info(blocked, TensorProto.FLOAT, None))
+            for node in readers:
+                graph.node.remove(node)
+                _rename_input(graph, node.output[0], blocked)
+            kept = [i for i in graph.input if i.name != name]
+            del graph.input[:]
+            graph.input.extend(kept)
+            graph.input.append(helper.make_tensor_value_info(blocked, TensorProto.FLOAT, None))
+            handed.append(name)
+    for name in handed:   # its plain form, where no graph reads it any more, stays inside its producer
+        if not any(i.name == name for m in models for i in m.graph.input):
+            src = models[producer[name]].graph
+            kept = [o for o in src.output if o.name != name]
+            del src.output[:]
+            src.output.extend(kept)
+            unread = [n for n in src.node if n.op_type == "ReorderOutput" and list(n.output) == [name]
+                      and not any(name in m.input for m in src.node)]
+            for n in unread:   # the conversion that made it
+                src.node.remove(n)
+    return handed
+
+
+
+def chain_sessions(models: Sequence["bytes | Path"], threads: "int | None" = None,
+                   provider: str = DEFAULT_PROVIDER) -> list:
+    """Sessions (``session``) for graphs that run one after another and feed each other by tensor name,
+    as the runtime runs a model's stage graphs: on the CPU provider, where this Python has ``onnx``, a
+    tensor that one graph outputs and the next converts into the blocked layout is handed over blocked
+    (``hand_off_blocked``; its name then ends in ``SUFFIX``). What the probe and the held-out timings
+    time a candidate's stage graphs with: timed alone, each stage paid the layout conversions at its
+    edges that the runtime does not, and the host profile predicted the paper design's paths 5-14% slow
+    on an AVX-512 VM (benchmarks/bench_runtime.py)."""
+    import tempfile
+    if provider != DEFAULT_PROVIDER or _onnx() is None:
+        return [session(m, threads, provider) for m in models]
+    with tempfile.TemporaryDirectory() as tmp:
+        sessions = [session(m, threads, provider, save_optimized=Path(tmp) / f"{k}.onnx") for k, m in enumerate(models)]
+        try:
+            graphs = [_onnx().load(str(Path(tmp) / f"{k}.onnx")) for k in range(len(models))]
+            handed = hand_off_blocked(graphs, [[i.name for i in s.get_inputs()] for s in sessions],
+                                      [[o.name for o in s.get_outputs()] for s in sessions])
+        except Exception:   # an onnxruntime whose optimised graphs the rewrite does not know
+            return sessions
+    if not handed:
+        return sessions
+    return [session(g.SerializeToString(), threads, provider, optimize=False) for g in graphs]
+
+
 def time_call(fn: Callable[[], object], warmup: int = WARMUP, repeats: int = 15) -> float:
     """Median wall time of ``fn`` in ms after ``warmup`` calls."""
     for _ in range(warmup):
@@ -872,8 +974,8 @@ def run_probe(bundle_dir: "str | Path", out: "str | Path", provider: str = DEFAU
                     tick("stages")
                 continue
             env = _candidate_inputs(manifest, rng, item)
-            for g in item["graphs"]:
-                sess = session(bundle_dir / g["file"], threads, provider)
+            chain = chain_sessions([bundle_dir / g["file"] for g in item["graphs"]], threads, provider)
+            for g, sess in zip(item["graphs"], chain):
                 names = [i.name for i in sess.get_inputs()]
                 feeds = {n: env[n] for n in names}
                 outs = sess.run(None, feeds)   # what later stages read (also when this one was kept)
