@@ -125,8 +125,8 @@ if __name__ == "__main__":
             q8 = out / "int8"   # inside the temporary folder: removed with it
             m = export_network(net, q8, size, quantization=Quantization(data="synthetic", max_degradation=1.0))
             runner8 = AnytimeRunner(q8)
-            print("int8 export, per stage graph (kept int8 where that saved the staged runtime at least 5% of the stage's "
-                  "fp32 time here; the stage's own ms in the chain, then the chain's): "
+            print("int8 export, per stage graph (kept int8 where that saved the staged runtime at least 5% of the "
+                  "stage's fp32 time here; the stage's own ms in the chain, then the chain's): "
                   + "; ".join(f"{st['name']} {st['precision']}" + (
                       f" ({st['ms_here']['int8']:.2f} vs {st['ms_here']['fp32']:.2f} ms; staged "
                       f"{st['ms_here']['staged_int8']:.2f} vs {st['ms_here']['staged_fp32']:.2f} ms)"
@@ -144,7 +144,8 @@ if __name__ == "__main__":
                 for k, ms in got.items():
                     times8[k].append(ms)
                 print(f"  rep {rep + 1}: staged " + ", ".join(f"{k} {ms:.2f} ms" for k, ms in got.items())
-                      + f"; int8 {got['fp32'] / got['int8']:.2f}x, all stages {got['fp32'] / got['int8 all stages']:.2f}x")
+                      + f"; int8 {got['fp32'] / got['int8']:.2f}x, "
+                      f"all stages {got['fp32'] / got['int8 all stages']:.2f}x")
             f, i = statistics.median(times8["fp32"]), statistics.median(times8["int8"])
             print("medians of 5: " + ", ".join(f"{k} {statistics.median(t):.2f} ms ({f / statistics.median(t):.2f}x)"
                                                for k, t in times8.items()))
@@ -152,7 +153,8 @@ if __name__ == "__main__":
                 deg = mm["quantization"]["rmse_degradation"]
                 print(f"{label}: RMSE change per path on {mm['quantization']['evaluation']['frames']} frames: "
                       f"{' '.join(f'{100 * d:+.1f}%' for d in deg)} (goal: last path within 2%)")
-            print(f"int8 (static QDQ) vs fp32, staged, medians of 5: {i:.2f} vs {f:.2f} ms, {f / i:.2f}x (goal >= 1.8x)")
+            print(f"int8 (static QDQ) vs fp32, staged, medians of 5: {i:.2f} vs {f:.2f} ms, {f / i:.2f}x "
+                  "(goal >= 1.8x)")
             print(f"int8 staged: {macs / (i * 1e6):.1f} GMAC/s, {peak.fraction(macs, i, 'int8'):.0%} of int8 peak")
 
         if args.skip_anytime:

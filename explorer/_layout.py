@@ -26,7 +26,8 @@ from __future__ import annotations
 from onnx import ModelProto, TensorProto, helper
 
 # in the probe script, which the calibration bundle carries: the probe hands tensors over blocked too
-from explorer.cost.probe_script import SUFFIX, _rename, _rename_input, hand_off_blocked  # noqa: F401
+from explorer.cost.probe_script import (SUFFIX, _read_instead, _rename, _rename_input,  # noqa: F401
+                                       hand_off_blocked)
 
 #: the suffixes of a tensor handed over quantized: plain (NCHW) and channels-last
 UINT8_SUFFIX, UINT8_NHWC_SUFFIX = ".uint8", ".uint8_nhwc"
@@ -47,13 +48,6 @@ def _perm(node) -> list[int] | None:
     if node.op_type != "Transpose" or node.domain not in ("", "ai.onnx"):
         return None
     return next((list(helper.get_attribute_value(a)) for a in node.attribute if a.name == "perm"), None)
-
-
-def _set_inputs(graph, drop: str, add: str, elem_type: int) -> None:
-    kept = [i for i in graph.input if i.name != drop]
-    del graph.input[:]
-    graph.input.extend(kept)
-    graph.input.append(helper.make_tensor_value_info(add, elem_type, None))
 
 
 def hand_off_quantized(models: list[ModelProto], inputs: list[list[str]], outputs: list[list[str]]) -> dict[str, str]:
@@ -88,12 +82,9 @@ def hand_off_quantized(models: list[ModelProto], inputs: list[list[str]], output
             if not any(o.name == quantized for o in src.output):
                 _rename(src, dq.input[0], quantized)
                 src.output.append(helper.make_tensor_value_info(quantized, TensorProto.UINT8, None))
-            for node in readers:
-                graph.node.remove(node)
-                _rename_input(graph, node.output[0], quantized)
-            _set_inputs(graph, name, quantized, TensorProto.UINT8)
+            _read_instead(graph, readers, name, quantized, TensorProto.UINT8)
             handed[name] = "uint8"
-            # channels-last: the producer transposes only to output it, every reader transposes back
+            # channels-last: every reader transposes it so, and the producer made it from or makes it into that
             made = next((n for n in src.node if list(n.output) == [quantized]), None)
             back = [n for n in graph.node if quantized in n.input]
             own = next((n for n in src.node if _perm(n) == _TO_NHWC and list(n.input) == [quantized]), None)
@@ -108,10 +99,7 @@ def hand_off_quantized(models: list[ModelProto], inputs: list[list[str]], output
                     _rename_input(src, own.output[0], nhwc)
                     own.output[0] = nhwc
                 src.output.append(helper.make_tensor_value_info(nhwc, TensorProto.UINT8, None))
-            for node in back:
-                graph.node.remove(node)
-                _rename_input(graph, node.output[0], nhwc)
-            _set_inputs(graph, quantized, nhwc, TensorProto.UINT8)
+            _read_instead(graph, back, quantized, nhwc, TensorProto.UINT8)
             handed[name] = "uint8 nhwc"
     for name in handed:   # forms no graph reads any more: their outputs and the nodes that made them
         src = models[producer[name]].graph

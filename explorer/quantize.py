@@ -429,7 +429,8 @@ def quantize_export(model_dir: Path, data: str, calibration_frames: int = 32, ev
                     stages: "str | tuple[str, ...]" = "faster") -> dict:
     """Turns the fp32 export in ``model_dir`` (a scratch folder) into an int8 one in place and returns
     what the manifest records: which stage graphs are int8 and why (``stages="faster"``: those whose int8
-    saved the staged runtime at least ``1 - INT8_KEEP_RATIO`` of their fp32 time here; ``"all"``: every one; a tuple: those named, as
+    saved the staged runtime at least ``1 - INT8_KEEP_RATIO`` of their fp32 time here; ``"all"``: every
+    one; a tuple: those named, as
     ``CandidateCost.int8_graphs`` names the ones a device profile prices int8), per-path metrics before and after
     on ``eval_frames`` validation frames, each path's RMSE degradation, the calibration. Refuses
     (UserError) when a path degrades by more than ``max_degradation`` unless ``force``; with

@@ -73,7 +73,8 @@ def _quantized_pair(reader_scale=0.5, reader_extra=False, reader_transposes=True
     quantizes it again (with ``reader_scale``) and transposes it channels-last."""
     from onnx import TensorProto, helper, numpy_helper
     const = lambda name, v: numpy_helper.from_array(np.array(v), name)  # noqa: E731
-    made = ([helper.make_node("Identity", ["a"], ["h"]), helper.make_node("Transpose", ["h"], ["tq"], perm=[0, 3, 1, 2])]
+    made = ([helper.make_node("Identity", ["a"], ["h"]),
+             helper.make_node("Transpose", ["h"], ["tq"], perm=[0, 3, 1, 2])]
             if producer_nhwc else [helper.make_node("Identity", ["a"], ["tq"]),
                                    helper.make_node("Transpose", ["tq"], ["th"], perm=[0, 2, 3, 1]),
                                    helper.make_node("Identity", ["th"], ["head"])])

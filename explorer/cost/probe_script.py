@@ -329,6 +329,19 @@ def _rename(graph, old: str, new: str) -> None:
                 node.output[k] = new
 
 
+def _read_instead(graph, dropped: list, old: str, new: str, elem_type: int) -> None:
+    """``graph`` takes the input ``new`` in place of ``old`` and reads it where the ``dropped`` nodes'
+    outputs were read."""
+    from onnx import helper
+    for node in dropped:
+        graph.node.remove(node)
+        _rename_input(graph, node.output[0], new)
+    kept = [i for i in graph.input if i.name != old]
+    del graph.input[:]
+    graph.input.extend(kept)
+    graph.input.append(helper.make_tensor_value_info(new, elem_type, None))
+
+
 def hand_off_blocked(models: list, inputs: list[list[str]], outputs: list[list[str]]) -> list[str]:
     """Rewrites ``models`` (optimised stage graphs in run order; ``inputs`` and ``outputs``: the names
     each one reads and writes) in place; returns the names of the tensors now handed over blocked. A
@@ -359,13 +372,7 @@ def hand_off_blocked(models: list, inputs: list[list[str]], outputs: list[list[s
                     src.node.append(helper.make_node("ReorderInput", [name], [blocked], domain=NCHWC_DOMAIN,
                                                      channels_last=0))
                 src.output.append(helper.make_tensor_value_info(blocked, TensorProto.FLOAT, None))
-            for node in readers:
-                graph.node.remove(node)
-                _rename_input(graph, node.output[0], blocked)
-            kept = [i for i in graph.input if i.name != name]
-            del graph.input[:]
-            graph.input.extend(kept)
-            graph.input.append(helper.make_tensor_value_info(blocked, TensorProto.FLOAT, None))
+            _read_instead(graph, readers, name, blocked, TensorProto.FLOAT)
             handed.append(name)
     for name in handed:   # its plain form, where no graph reads it any more, stays inside its producer
         if not any(i.name == name for m in models for i in m.graph.input):
