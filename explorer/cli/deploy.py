@@ -114,8 +114,9 @@ def register(sub, add, reports: dict) -> None:
                    help="refuse int8 if a path's RMSE grows by more than this (default 3%%)")
     s.add_argument("--force", action="store_true", help="export int8 even past --max-degradation")
     s.add_argument("--int8-stages", choices=("faster", "all"), default=None,
-                   help="faster (default): each stage graph is int8 only where it runs at least 5%% faster than "
-                   "in fp32 on this machine (timed at export), and graphs that take a path past "
+                   help="faster (default): each stage graph is int8 only where that makes the staged runtime "
+                   "faster by at least 5%% of the graph's fp32 time on this machine (timed at export, int8 "
+                   "neighbours handing each other uint8 tensors), and graphs that take a path past "
                    "--max-degradation go back to fp32 one by one; all: every stage int8 (for a target other "
                    "than this machine)")
     s.add_argument("--reports", **reports)
