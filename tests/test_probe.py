@@ -148,8 +148,13 @@ def test_interrupted_probe_resumes_without_measuring_again(bundle_dir, tmp_path,
     kept = json.loads(out.read_text())
     assert len(kept["layers"]) == 5
     calls = []
-    real = probe.time_call
+    real, real_chain = probe.time_call, probe.time_chain
     monkeypatch.setattr(probe, "time_call", lambda *a, **k: calls.append(1) or real(*a, **k))
+
+    def counted_chain(fns, warmup, repeats, timed, new_round):   # a stage graph timed in its chain counts
+        calls.extend(1 for on in timed if on)
+        return real_chain(fns, warmup, repeats, timed, new_round)
+    monkeypatch.setattr(probe, "time_chain", counted_chain)
     res = probe.run_probe(bundle_dir, out, repeats=2, energy=True, root=str(tmp_path), vcgencmd="none")
     total = len(res["bundle"]["layers"]) + sum(len(c["graphs"]) for c in res["bundle"]["candidates"])
     checks = len(res["speed"]["ms"]) - len(kept["speed"]["ms"])   # the machine's speed, re-timed as it went
@@ -203,6 +208,7 @@ def test_graphs_timed_while_the_machine_ran_slow_are_timed_again(bundle_dir, tmp
         return 2.0
 
     monkeypatch.setattr(probe, "time_call", fake_time_call)
+    monkeypatch.setattr(probe, "time_chain", _graph_by_graph(fake_time_call))
     logged = []
     res = probe.run_probe(bundle_dir, tmp_path / "r.json", repeats=2, energy=False, log=logged.append)
     total = len(res["bundle"]["layers"]) + sum(len(c["graphs"]) for c in res["bundle"]["candidates"])
@@ -252,6 +258,7 @@ def test_a_slow_stage_check_alone_retimes_and_the_faster_timing_is_kept(bundle_d
 
     total = _graph_count(bundle_dir)
     monkeypatch.setattr(probe, "time_call", fake_time_call)
+    monkeypatch.setattr(probe, "time_chain", _graph_by_graph(fake_time_call))
     res = probe.run_probe(bundle_dir, tmp_path / "r.json", repeats=2, energy=False)
     every = probe.SPEED_CHECK_EVERY
     assert res["speed"]["remeasured"] == 2 * every and len(timed) == total + 2 * every
@@ -278,12 +285,20 @@ def test_a_machine_slow_for_the_whole_first_pass_is_found_out_once_it_speeds_up(
         return 5.0 if first_pass else 1.0
 
     monkeypatch.setattr(probe, "time_call", fake_time_call)
+    monkeypatch.setattr(probe, "time_chain", _graph_by_graph(fake_time_call))
     res = probe.run_probe(bundle_dir, tmp_path / "r.json", repeats=2, energy=False)
     every = probe.SPEED_CHECK_EVERY
     assert len(timed) == 2 * total and res["speed"]["remeasured"] == total
     kept = _kept_timings(res)
     assert len(kept) == total and set(kept) == {1.0}
     assert total > 3 * every
+
+
+def _graph_by_graph(time_call):
+    """A stand-in for probe.time_chain that asks ``time_call`` for each graph it times, in order."""
+    def time_chain(fns, warmup, repeats, timed, new_round):
+        return [time_call(fn, warmup, repeats) if on else None for fn, on in zip(fns, timed)]
+    return time_chain
 
 
 def test_bundle_int8_graphs_are_quantized_convolutions_and_stage_graphs(bundle_dir):
@@ -522,3 +537,11 @@ def test_chain_sessions_hand_tensors_over_blocked_with_the_same_results():
     assert len(results[0]) == paper_candidate().num_paths
     for a, b in zip(*results):
         np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-5)
+
+
+def test_time_chain_runs_the_graphs_in_order_round_after_round():
+    calls = []
+    fns = [lambda k=k: calls.append(k) for k in range(3)]
+    got = probe.time_chain(fns, warmup=1, repeats=2, timed=[True, False, True], new_round=lambda: calls.append("new"))
+    assert calls == ["new", 0, 1, 2] * 3   # one untimed round, then two timed ones
+    assert got[1] is None and all(isinstance(ms, float) and ms >= 0 for ms in (got[0], got[2]))

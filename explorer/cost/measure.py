@@ -68,19 +68,15 @@ def measure_network(net: AnytimeDepthNet, input_size: tuple[int, int] = (224, 22
     stage_ms: dict[str, float] = {}
     path_ms = [0.0]
     elapsed = 0.0
-    # in one chain, handing tensors over blocked as the runtime does (``probe_script.chain_sessions``)
+    # in one chain that hands tensors over blocked, in sequence, as the probe times them and the runtime
+    # runs them (``probe_script.chain_sessions``, ``time_chain``)
     chain = _probe.chain_sessions([model for _, model in graphs], threads, provider)
-    for (spec, _), sess in zip(graphs, chain):
-        names = [i.name for i in sess.get_inputs()]
-        feeds = {n: env[n] for n in names}
-        outs = sess.run(None, feeds)
-        name = "path0" if spec is None else spec.name
-        ms = time_call(lambda: sess.run(None, feeds), warmup, repeats)
+    runs, new_round = _probe.chain_runs(chain, env)
+    for (spec, _), ms in zip(graphs, _probe.time_chain(runs, warmup, repeats, new_round=new_round)):
         if spec is None:
             path_ms[0] = ms
             continue
-        env.update({o.name: v for o, v in zip(sess.get_outputs(), outs)})
-        stage_ms[name] = ms
+        stage_ms[spec.name] = ms
         elapsed += ms
         if spec.path is not None:
             path_ms.append(elapsed)

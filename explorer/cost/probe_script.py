@@ -425,6 +425,47 @@ def time_call(fn: Callable[[], object], warmup: int = WARMUP, repeats: int = 15)
     return statistics.median(samples)
 
 
+def time_chain(fns: Sequence[Callable[[], object]], warmup: int = WARMUP, repeats: int = 15,
+               timed: "Sequence[bool] | None" = None,
+               new_round: "Callable[[], object] | None" = None) -> "list[float | None]":
+    """Median wall time in ms of each of ``fns`` (those ``timed``; None for the others), called in order
+    ``warmup`` rounds untimed, then ``repeats`` rounds timed, ``new_round`` (untimed) before each: a
+    model's stage graphs as the runtime runs them, one after another, each reading what the one before
+    it wrote. Timed each on its own, over and over, the paper design's 12 stage graphs
+    took 4-7% less in all than in sequence (the small ones, exit heads and the fusion unit, 13-60% less)
+    on an AVX-512 VM, and the host profile predicted the runtime's paths 4-7% fast."""
+    timed = list(timed) if timed is not None else [True] * len(fns)
+    for _ in range(warmup):
+        if new_round is not None:
+            new_round()
+        for fn in fns:
+            fn()
+    samples: list[list[float]] = [[] for _ in fns]
+    for _ in range(repeats):
+        if new_round is not None:
+            new_round()
+        for fn, kept in zip(fns, samples):
+            t0 = time.perf_counter()
+            fn()
+            kept.append((time.perf_counter() - t0) * 1000.0)
+    return [statistics.median(t) if on else None for t, on in zip(samples, timed)]
+
+
+def chain_runs(chain: list, start: dict) -> "tuple[list[Callable[[], object]], Callable[[], object]]":
+    """One call per session of ``chain``, each reading its inputs from what ``start`` and the sessions
+    before it hold, and the call that starts a new round from ``start``."""
+    env = dict(start)
+
+    def run(sess, ins, outs) -> None:
+        env.update(zip(outs, sess.run(outs, {n: env[n] for n in ins})))
+
+    def new_round() -> None:
+        env.clear()
+        env.update(start)
+    return ([lambda s=s, i=[x.name for x in s.get_inputs()], o=[x.name for x in s.get_outputs()]: run(s, i, o)
+             for s in chain], new_round)
+
+
 # -- power sensors -------------------------------------------------------------------------------
 def _read_number(path: str) -> float:
     with open(path) as f:
@@ -907,7 +948,7 @@ def run_probe(bundle_dir: "str | Path", out: "str | Path", provider: str = DEFAU
     threads = shared_pool_threads() or threads
     repeats = repeats or int(manifest["repeats"])
     cond = {"provider": provider, "threads": threads, "thread_pool": thread_pool(),
-            "repeats": repeats, "warmup": WARMUP, "statistic": "median"}
+            "repeats": repeats, "warmup": WARMUP, "statistic": "median", "stage_graphs": "timed in sequence"}
     if out.exists():
         res = read_results(out)
         if res["bundle"].get("id") != manifest["id"]:
@@ -980,17 +1021,22 @@ def run_probe(bundle_dir: "str | Path", out: "str | Path", provider: str = DEFAU
                 for _ in item["graphs"]:
                     tick("stages")
                 continue
-            env = _candidate_inputs(manifest, rng, item)
+            start = _candidate_inputs(manifest, rng, item)
             chain = chain_sessions([bundle_dir / g["file"] for g in item["graphs"]], threads, provider)
-            for g, sess in zip(item["graphs"], chain):
-                names = [i.name for i in sess.get_inputs()]
-                feeds = {n: env[n] for n in names}
-                outs = sess.run(None, feeds)   # what later stages read (also when this one was kept)
-                if g["stage"] not in kept:
-                    kept[g["stage"]] = measure(sess, feeds, f"{item['key']}/{g['stage']}")
-                    write_atomically(out, res)
-                env.update({o.name: v for o, v in zip(sess.get_outputs(), outs)})
+            runs, new_round = chain_runs(chain, start)
+            missing = [g["stage"] not in kept for g in item["graphs"]]
+            labels = [f"{item['key']}/{g['stage']}" for g, m in zip(item["graphs"], missing) if m]
+            if since_check[0] >= SPEED_CHECK_EVERY:
+                check_speed()
+            since_check[0] += len(labels)
+            for label in labels:
+                timed_after[label] = len(speed["ms"]) - 1
+            for g, ms in zip(item["graphs"], time_chain(runs, WARMUP, repeats, missing, new_round)):
+                if ms is not None:
+                    label = f"{item['key']}/{g['stage']}"
+                    kept[g["stage"]] = min(ms, earlier.pop(label, ms))
                 tick("stages")
+            write_atomically(out, res)
         if timed_after == timed_before:
             break   # nothing timed in this pass (a finished run, resumed)
         check_speed()   # closes the last window
