@@ -182,13 +182,13 @@ def pads_kept_uint8(model) -> int:
     channels to 768), and onnxruntime then dequantizes, pads and quantizes three times the skip's
     size: 0.27 ms of the int8 decoder 1's 1.06 ms on the AVX-512 VNNI VM (onnxruntime's profiler)."""
     from onnx import helper, numpy_helper
+    from explorer._layout import _same_constant
     graph = model.graph
     inits = {i.name: numpy_helper.to_array(i) for i in graph.initializer}
     made = {o: n for n in graph.node for o in n.output}
 
     def same(a: str, b: str) -> bool:
-        return a == b or (a in inits and b in inits and inits[a].dtype == inits[b].dtype
-                          and inits[a].shape == inits[b].shape and bool((inits[a] == inits[b]).all()))
+        return a == b or _same_constant(graph, a, graph, b)
 
     count = 0
     for pad in [n for n in graph.node if n.op_type == "Pad"]:
@@ -328,17 +328,15 @@ def uint8_edges(models) -> list[str]:
     names. What the runtime makes of an int8 export on a CPU (``explorer._layout.hand_off_quantized``),
     before onnxruntime's layout changes: the calibration bundle times int8 graphs so, as the runtime
     runs them."""
-    from onnx import TensorProto, numpy_helper
+    from onnx import TensorProto
+    from explorer._layout import _same_constant
     done = []
     for name, (p, dq) in _dequantized_outputs(models).items():
         src = models[p].graph
-        params = [numpy_helper.to_array(next(i for i in src.initializer if i.name == n)) for n in dq.input[1:3]]
 
         def quantizes_alike(graph, node, tensor: str) -> bool:
-            inits = {i.name: numpy_helper.to_array(i) for i in graph.initializer if i.name in node.input[1:3]}
             return (node.op_type == "QuantizeLinear" and len(node.input) == 3 and node.input[0] == tensor
-                    and all(q in inits and inits[q].dtype == v.dtype and inits[q].shape == v.shape
-                            and bool((inits[q] == v).all()) for q, v in zip(node.input[1:3], params)))
+                    and all(_same_constant(graph, q, src, d) for q, d in zip(node.input[1:3], dq.input[1:3])))
 
         plans = []   # per reading model: (graph, [(quantize node to drop, the tensor its output becomes)])
         for m in models:
@@ -389,9 +387,10 @@ def compare_speed(model_dir: Path, manifest: dict, configs: list[dict[int, str]]
     staged runtime's median ms on ``frame`` over its stage graphs, and each stage's own median ms within
     it. Timed in the chain, not graph by graph: int8 neighbours hand each other uint8 tensors
     (``explorer._layout.hand_off_quantized``), so a stage's precision changes what its neighbours pay
-    too. The runners take turns, ``reps`` blocks of 5 timed runs each. Leaves the manifest as it was."""
+    too. The runners take turns, ``reps`` blocks of 5 timed runs each (``probe_script.time_chain``).
+    Leaves the manifest as it was."""
     import json
-    import time
+    from explorer.cost.probe_script import chain_runs, time_chain
     from explorer.runtime import MANIFEST, AnytimeRunner
     kept = (model_dir / MANIFEST).read_text()
     runners = []
@@ -403,18 +402,14 @@ def compare_speed(model_dir: Path, manifest: dict, configs: list[dict[int, str]]
     finally:
         (model_dir / MANIFEST).write_text(kept)
     image, scan = runners[0].check(frame["image"].numpy(), frame["scan"].numpy())
-    times: list[list[list[float]]] = [[[] for _ in r.sessions] for r in runners]
+    chains = [chain_runs([sess for _, sess, _, _ in r.sessions], {"image": image, "scan": scan}) for r in runners]
+    blocks: list[list[list[float]]] = [[] for _ in runners]   # per runner, per block: each stage's median ms
     for _ in range(reps):
-        for runner, per_stage in zip(runners, times):
-            for run in range(6):   # the first of each block untimed: the other runner's buffers were in the caches
-                env = {"image": image, "scan": scan}
-                for k, (_, sess, ins, outs) in enumerate(runner.sessions):
-                    t0 = time.perf_counter()
-                    env.update(zip(outs, sess.run(outs, {n: env[n] for n in ins})))
-                    if run:
-                        per_stage[k].append((time.perf_counter() - t0) * 1000.0)
-    return [(statistics.median(map(sum, zip(*per_stage))), {k: statistics.median(t) for k, t in enumerate(per_stage)})
-            for per_stage in times]
+        for (runs, new_round), per_block in zip(chains, blocks):
+            # one untimed round first: the other runner's buffers were in the caches
+            per_block.append(time_chain(runs, 1, 5, new_round=new_round))
+    return [(statistics.median(map(sum, per_block)), {k: statistics.median(t) for k, t in enumerate(zip(*per_block))})
+            for per_block in blocks]
 
 
 def path_metrics(model_dir: Path, frames: list[dict]) -> list[dict[str, float]]:
