@@ -171,7 +171,7 @@ if __name__ == "__main__":
                         ready[path].append(ms)
                 per_rep.append([statistics.median(t) for t in ready])
             predicted = candidate_cost(c, size).path_latency_ms(prof)
-            errs = [[q / m - 1 for m, q in zip(rep_ms, predicted)] for rep_ms in per_rep]
+            errs = [[q / m - 1 if m else 0.0 for m, q in zip(rep_ms, predicted)] for rep_ms in per_rep]   # path 0: 0 ms
             print(f"{label} path ready times vs predicted by the host profile, 3 reps of 20 runs: "
                   + ", ".join(f"path {p} {statistics.median(rm[p] for rm in per_rep):.2f} vs {predicted[p]:.2f} ms "
                               f"({statistics.median(e[p] for e in errs):+.1%}; reps "
