@@ -22,10 +22,11 @@ from explorer.cost.fit import (PAPER_RPI4_TABLE2, PAPER_TX2_PATHS_MS, TX2_REFERE
                                kernel_workloads, rpi4_table2)
 from explorer.cost.measure import measure_candidate
 from explorer.cost.peak import host_peak
-from explorer.cost.probe_script import (DEFAULT_PROVIDER, REMEASURE_PASSES, SLOW, default_threads, fixed_graph_timer,
-                                       read_results, speed_layer, usual_speed, wait_until_calm)
+from explorer.cost.probe_script import read_results
 from explorer.model.reference import REFERENCES
 from explorer.space import SearchSpace, paper_candidate
+
+from _steady import speedometer as _speedometer, steadily
 
 
 def shipped(data: Path) -> None:
@@ -68,31 +69,18 @@ def _sentinel() -> "callable":
     return lambda: time_call(lambda: sess.run(None, feeds), 3, 15)
 
 
-def _speedometer(bundle: Path, results: dict) -> "callable":
-    """How much slower than during its calibration the machine runs now (1 = its usual speed then):
-    the probe's two speed-check graphs timed again, each against its usual time in the calibration."""
-    speed = results["speed"]
-    graphs = [(speed_layer(results["bundle"]["layers"])["file"], speed["ms"]), (speed["stage"], speed["stage_ms"])]
-    timers = [(fixed_graph_timer(bundle / file, default_threads(), DEFAULT_PROVIDER), usual_speed(times))
-              for file, times in graphs if file and times]
-    return lambda: max(timer() / usual for timer, usual in timers)
-
-
-def _measure_steadily(c, size, speedometer) -> tuple:
-    """``measure_candidate`` under the probe's rule, against the calibration's own speed: timed again
-    (after waiting for the machine to calm down) when its speed checks before or after ran ``SLOW``
-    slower than they usually did in the calibration; each path keeps its fastest timing. Returns the
+def _measure_steadily(c, size, slowness) -> tuple:
+    """``measure_candidate`` under the probe's rule, against the calibration's own speed
+    (``_steady.steadily``): each path keeps its fastest timing over the times it was taken. Returns the
     path timings, the whole graph's, and how many times it was timed again."""
-    path_ms, whole_ms = None, float("inf")
-    for again in range(REMEASURE_PASSES + 1):
-        before = speedometer()
+    def measure():
         m = measure_candidate(c, size, repeats=20)
-        after = speedometer()
-        path_ms = m.path_ms if path_ms is None else [min(a, b) for a, b in zip(path_ms, m.path_ms)]
-        whole_ms = min(whole_ms, m.whole_ms)
-        if max(before, after) <= 1 + SLOW or again == REMEASURE_PASSES:
-            return path_ms, whole_ms, again
-        wait_until_calm(after, speedometer, 1.0)
+        return m.path_ms, m.whole_ms
+
+    def fastest(kept, new):
+        return [min(a, b) for a, b in zip(kept[0], new[0])], min(kept[1], new[1])
+    (path_ms, whole_ms), again = steadily(measure, slowness, fastest)
+    return path_ms, whole_ms, again
 
 
 def _size_errors(prof, cands, size, timings: dict) -> list[float]:
@@ -127,24 +115,25 @@ def refit(folder: Path) -> None:
         print(f"refit {size_key}: {' '.join(f'{x:.1%}' for x in ms)} -> median {np.median(ms):.1%}")
 
 
-def _int8_errors(prof, cands, size) -> list[float]:
+def _int8_errors(prof, cands, size, slowness) -> list[float]:
     """Signed errors of ``prof``'s int8 section on the held-out candidates' deployed stage graphs, each
-    quantized whole (as ``explorer export --quantize int8 --int8-stages all`` does) and timed alone."""
+    quantized whole (as ``explorer export --quantize int8 --int8-stages all`` does), handing each other
+    uint8 tensors, and timed as the probe times them: in one chain, in sequence (under ``steadily``'s rule;
+    each graph keeps its fastest timing)."""
     from explorer.cost.bundle import _int8_graphs
-    from explorer.cost.measure import session, time_call
+    from explorer.cost.probe_script import WARMUP, chain_runs, chain_sessions, time_chain
     from explorer.model import build_network
     from explorer.onnx_stages import example_inputs
     obs = []
     for c in cands:
         cost = candidate_cost(c, size)
-        env = {k: v.numpy() for k, v in example_inputs(size).items()}
-        for name, model in _int8_graphs(build_network(c), size):
-            sess = session(model)
-            feeds = {i.name: env[i.name] for i in sess.get_inputs()}
-            ms = time_call(lambda: sess.run(None, feeds), 3, 20)
-            env.update(zip([o.name for o in sess.get_outputs()], sess.run(None, feeds)))
-            obs.append(Observation(f"{c.key}/{name}", [w for w in cost.workloads if w.stage in name.split("+")],
-                                   ms, stages=1))
+        graphs = _int8_graphs(build_network(c), size)
+        runs, new_round = chain_runs(chain_sessions([model for _, model in graphs]),
+                                     {k: v.numpy() for k, v in example_inputs(size).items()})
+        ms, _ = steadily(lambda: time_chain(runs, WARMUP, 20, new_round=new_round), slowness,
+                         lambda kept, new: [min(a, b) for a, b in zip(kept, new)])
+        obs += [Observation(f"{c.key}/{name}", [w for w in cost.workloads if w.stage in name.split("+")], t, stages=1)
+                for (name, _), t in zip(graphs, ms)]
     return list(errors(prof.int8, obs)["error"])
 
 
@@ -195,10 +184,10 @@ def host(n: int, seed: int, scale: float, reps: int = 3, save: Path | None = Non
                   f"whole graphs at {' '.join(f'{f:.0%}' for f in fractions)} of fp32 peak; "
                   f"{timed_again} timed again after the machine ran slow")
         if prof.int8 is not None:
-            errs = np.array(_int8_errors(prof, cands, HOST_SIZES[0]))
+            errs = np.array(_int8_errors(prof, cands, HOST_SIZES[0], speedometer))
             int8_medians.append(float(np.median(np.abs(errs))))
             print(f"  rep {rep} int8 at {HOST_SIZES[0][0]}x{HOST_SIZES[0][1]}: {len(errs)} deployed stage graphs of the "
-                  f"held-out candidates, each quantized whole: median |error| {np.median(np.abs(errs)):.1%}, within "
+                  f"held-out candidates, each quantized whole, timed in sequence: median |error| {np.median(np.abs(errs)):.1%}, within "
                   f"10%: {(np.abs(errs) <= 0.1).mean():.0%}, median signed {np.median(errs):+.1%}")
         if save:
             (save / f"rep{rep}-heldout.json").write_text(json.dumps(held))

@@ -7,7 +7,7 @@ from explorer.data import ScanConfig, open_dataset, parse_data_spec, scan_from_i
 from explorer.data.readers import KittiRaw
 from explorer.data.synthetic import render_scene
 from explorer.errors import UserError
-from explorer.metrics import MetricAverager, depth_metrics
+from explorer.metrics import MetricAverager, batch_depth_metrics, depth_metrics
 from explorer.model import interpolate_scan
 from conftest import TINY_DATA
 
@@ -152,3 +152,15 @@ def test_data_spec_parsing():
         parse_data_spec("nyu:/does/not/exist")
     with pytest.raises(UserError):
         parse_data_spec("synthetic:many")
+
+
+def test_metrics_of_tensors_and_arrays_agree_with_the_batch_metrics():
+    g = torch.Generator().manual_seed(0)
+    pred = torch.rand(2, 1, 8, 8, generator=g) * 5
+    target = torch.rand(2, 1, 8, 8, generator=g) * 5 * (torch.rand(2, 1, 8, 8, generator=g) > 0.3)
+    pred[0, 0, 0, 0] = 0.0   # a non-positive prediction: a failure in every delta
+    batch = batch_depth_metrics(pred, target)
+    for i in range(2):
+        from_tensor, from_array = depth_metrics(pred[i], target[i]), depth_metrics(pred[i].numpy(), target[i].numpy())
+        assert from_tensor == from_array
+        assert from_array == pytest.approx(batch[i], rel=1e-9)
