@@ -26,12 +26,11 @@ from __future__ import annotations
 from onnx import ModelProto, TensorProto, helper
 
 # in the probe script, which the calibration bundle carries: the probe hands tensors over blocked too
-from explorer.cost.probe_script import (SUFFIX, _read_instead, _rename, _rename_input,  # noqa: F401
+from explorer.cost.probe_script import (SUFFIX, _channels_last, _drop_unread, _read_instead, _rename,  # noqa: F401
                                        hand_off_blocked)
 
 #: the suffixes of a tensor handed over quantized: plain (NCHW) and channels-last
 UINT8_SUFFIX, UINT8_NHWC_SUFFIX = ".uint8", ".uint8_nhwc"
-_TO_NCHW, _TO_NHWC = [0, 3, 1, 2], [0, 2, 3, 1]
 
 
 def _same_constant(a_graph, a: str, b_graph, b: str) -> bool:
@@ -42,12 +41,6 @@ def _same_constant(a_graph, a: str, b_graph, b: str) -> bool:
         return False
     x, y = numpy_helper.to_array(ta), numpy_helper.to_array(tb)
     return x.dtype == y.dtype and x.shape == y.shape and bool((x == y).all())
-
-
-def _perm(node) -> list[int] | None:
-    if node.op_type != "Transpose" or node.domain not in ("", "ai.onnx"):
-        return None
-    return next((list(helper.get_attribute_value(a)) for a in node.attribute if a.name == "perm"), None)
 
 
 def hand_off_quantized(models: list[ModelProto], inputs: list[list[str]], outputs: list[list[str]]) -> dict[str, str]:
@@ -85,32 +78,9 @@ def hand_off_quantized(models: list[ModelProto], inputs: list[list[str]], output
             _read_instead(graph, readers, name, quantized, TensorProto.UINT8)
             handed[name] = "uint8"
             # channels-last: every reader transposes it so, and the producer made it from or makes it into that
-            made = next((n for n in src.node if list(n.output) == [quantized]), None)
-            back = [n for n in graph.node if quantized in n.input]
-            own = next((n for n in src.node if _perm(n) == _TO_NHWC and list(n.input) == [quantized]), None)
-            from_nhwc = made is not None and _perm(made) == _TO_NCHW
-            if not (from_nhwc or own) or not back or not all(_perm(n) == _TO_NHWC for n in back):
-                continue
-            nhwc = name + UINT8_NHWC_SUFFIX
-            if not any(o.name == nhwc for o in src.output):
-                if from_nhwc:
-                    _rename(src, made.input[0], nhwc)
-                else:   # the producer transposes it already (for its exit head)
-                    _rename_input(src, own.output[0], nhwc)
-                    own.output[0] = nhwc
-                src.output.append(helper.make_tensor_value_info(nhwc, TensorProto.UINT8, None))
-            _read_instead(graph, back, quantized, nhwc, TensorProto.UINT8)
-            handed[name] = "uint8 nhwc"
+            if _channels_last(src, graph, quantized, name + UINT8_NHWC_SUFFIX, TensorProto.UINT8):
+                handed[name] = "uint8 nhwc"
     for name in handed:   # forms no graph reads any more: their outputs and the nodes that made them
-        src = models[producer[name]].graph
-        read = {i.name for m in models for i in m.graph.input}
         for form in (name, name + UINT8_SUFFIX):
-            if form in read or not any(o.name == form for o in src.output):
-                continue
-            kept = [o for o in src.output if o.name != form]
-            del src.output[:]
-            src.output.extend(kept)
-            if not any(form in n.input for n in src.node):
-                for node in [n for n in src.node if list(n.output) == [form]]:
-                    src.node.remove(node)
+            _drop_unread(models[producer[name]].graph, models, form)
     return handed

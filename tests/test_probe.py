@@ -545,3 +545,62 @@ def test_time_chain_runs_the_graphs_in_order_round_after_round():
     got = probe.time_chain(fns, warmup=1, repeats=2, timed=[True, False, True], new_round=lambda: calls.append("new"))
     assert calls == ["new", 0, 1, 2] * 3   # one untimed round, then two timed ones
     assert got[1] is None and all(isinstance(ms, float) and ms >= 0 for ms in (got[0], got[2]))
+
+
+def _transposed_pair(reader_extra=False):
+    """A producer that outputs x by transposing a channels-last tensor channels-first, and a reader that
+    transposes x channels-last again (and, ``reader_extra``, also reads it as it is)."""
+    from onnx import TensorProto, helper
+    producer = helper.make_graph(
+        [helper.make_node("Identity", ["a"], ["h"]), helper.make_node("Transpose", ["h"], ["x"], perm=[0, 3, 1, 2])],
+        "p", [helper.make_tensor_value_info("a", TensorProto.UINT8, None)],
+        [helper.make_tensor_value_info("x", TensorProto.UINT8, None)])
+    nodes = [helper.make_node("Transpose", ["x"], ["t"], perm=[0, 2, 3, 1]), helper.make_node("Identity", ["t"], ["out"])]
+    if reader_extra:
+        nodes.append(helper.make_node("Identity", ["x"], ["extra"]))
+    reader = helper.make_graph(nodes, "r", [helper.make_tensor_value_info("x", TensorProto.UINT8, None)],
+                               [helper.make_tensor_value_info(n, TensorProto.UINT8, None)
+                                for n in ["out"] + ["extra"] * reader_extra])
+    return helper.make_model(producer), helper.make_model(reader)
+
+
+def test_tensors_made_and_read_channels_last_are_handed_over_so():
+    from onnx import TensorProto
+    producer, reader = _transposed_pair()
+    assert probe.hand_off_channels_last([producer, reader], [["a"], ["x"]], [["x"], ["out"]]) == ["x"]
+    handed = "x" + probe.NHWC_SUFFIX
+    assert [(o.name, o.type.tensor_type.elem_type) for o in producer.graph.output] == [(handed, TensorProto.UINT8)]
+    assert [n.op_type for n in producer.graph.node] == ["Identity"]   # neither transpose is left
+    assert [i.name for i in reader.graph.input] == [handed]
+    assert [(n.op_type, list(n.input)) for n in reader.graph.node] == [("Identity", [handed])]
+
+    producer, reader = _transposed_pair(reader_extra=True)   # also read channels-first: left as it is
+    before = (producer.SerializeToString(), reader.SerializeToString())
+    assert probe.hand_off_channels_last([producer, reader], [["a"], ["x"]], [["x"], ["out", "extra"]]) == []
+    assert (producer.SerializeToString(), reader.SerializeToString()) == before
+
+
+def test_chain_sessions_hand_the_bundles_int8_graphs_uint8_channels_last_with_the_same_results():
+    """Between int8 graphs the runtime hands uint8 tensors channels-last; the probe times the bundle's
+    int8 graphs so too."""
+    import torch
+    from explorer.cost.bundle import _int8_graphs
+    from explorer.model import build_network
+    from explorer.onnx_stages import example_inputs
+    from explorer.space import paper_candidate
+    torch.manual_seed(0)
+    graphs = [model for _, model in _int8_graphs(build_network(paper_candidate()).eval(), (64, 64))]
+    chained, plain = probe.chain_sessions(graphs), [probe.session(m) for m in graphs]
+    names = {n.name for s in chained for n in s.get_inputs()}
+    if platform.machine() in ("x86_64", "AMD64"):   # onnxruntime runs quantized convolutions channels-last there
+        assert any(n.endswith(probe.NHWC_SUFFIX) for n in names)
+    results = []
+    for sessions in (chained, plain):
+        env = {k: v.numpy() for k, v in example_inputs((64, 64)).items()}
+        for s in sessions:
+            outs = [o.name for o in s.get_outputs()]
+            env.update(zip(outs, s.run(outs, {i.name: env[i.name] for i in s.get_inputs()})))
+        results.append([env[k] for k in sorted(env) if k.startswith("depth_")])
+    assert len(results[0]) == paper_candidate().num_paths - 1   # path 0's graph is not quantized
+    for a, b in zip(*results):
+        np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-5)

@@ -388,12 +388,82 @@ def hand_off_blocked(models: list, inputs: list[list[str]], outputs: list[list[s
 
 
 
+#: the suffix of a tensor handed over channels-last (``hand_off_channels_last``)
+NHWC_SUFFIX = ".nhwc"
+_TO_NCHW, _TO_NHWC = [0, 3, 1, 2], [0, 2, 3, 1]
+
+
+def _perm(node) -> "list[int] | None":
+    from onnx import helper
+    if node.op_type != "Transpose" or node.domain not in ("", "ai.onnx"):
+        return None
+    return next((list(helper.get_attribute_value(a)) for a in node.attribute if a.name == "perm"), None)
+
+
+def _channels_last(src, graph, name: str, nhwc: str, elem_type: int) -> bool:
+    """Hands ``name`` (an output of graph ``src`` that ``graph`` reads) over channels-last as ``nhwc``
+    where every node of ``graph`` that reads it transposes it channels-last and ``src`` made it by
+    transposing a channels-last tensor or transposes it so itself (for its exit head); whether it did."""
+    from onnx import helper
+    back = [n for n in graph.node if name in n.input]
+    made = next((n for n in src.node if list(n.output) == [name]), None)
+    own = next((n for n in src.node if _perm(n) == _TO_NHWC and list(n.input) == [name]), None)
+    from_nhwc = made is not None and _perm(made) == _TO_NCHW
+    if not (from_nhwc or own) or not back or not all(_perm(n) == _TO_NHWC for n in back):
+        return False
+    if not any(o.name == nhwc for o in src.output):
+        if from_nhwc:
+            _rename(src, made.input[0], nhwc)
+        else:
+            _rename_input(src, own.output[0], nhwc)
+            own.output[0] = nhwc
+        src.output.append(helper.make_tensor_value_info(nhwc, elem_type, None))
+    _read_instead(graph, back, name, nhwc, elem_type)
+    return True
+
+
+def _drop_unread(src, models: list, name: str) -> None:
+    """Takes output ``name`` out of graph ``src`` where no graph of ``models`` reads it any more, and the
+    node that made it where nothing else reads that."""
+    if any(i.name == name for m in models for i in m.graph.input) or not any(o.name == name for o in src.output):
+        return
+    kept = [o for o in src.output if o.name != name]
+    del src.output[:]
+    src.output.extend(kept)
+    if not any(name in n.input for n in src.node):
+        for node in [n for n in src.node if list(n.output) == [name]]:
+            src.node.remove(node)
+
+
+def hand_off_channels_last(models: list, inputs: list[list[str]], outputs: list[list[str]]) -> list[str]:
+    """Rewrites ``models`` (optimised stage graphs in run order) in place so that a tensor one graph makes
+    channels-last and the next transposes channels-last again passes channels-last (``NAME.nhwc``):
+    onnxruntime runs quantized convolutions so, and the int8 graphs of a calibration bundle hand each
+    other uint8 tensors, which the producer transposed channels-first to output them and the reader
+    transposes back. The runtime hands them over so between int8 graphs (``explorer._layout``); timed
+    with both transposes, the host profile predicted the paper design's int8 paths 4-10% slower than
+    the runtime ran them on a Zen 4 VM. Returns the names now handed channels-last."""
+    producer = {name: i for i, outs in enumerate(outputs) for name in outs}
+    handed = []
+    for j, model in enumerate(models):
+        for name in inputs[j]:
+            if name in producer:
+                src = models[producer[name]].graph
+                elem = next((o.type.tensor_type.elem_type for o in src.output if o.name == name), 1)
+                if _channels_last(src, model.graph, name, name + NHWC_SUFFIX, elem):
+                    handed.append(name)
+    for name in handed:
+        _drop_unread(models[producer[name]].graph, models, name)
+    return handed
+
+
 def chain_sessions(models: Sequence["bytes | Path"], threads: "int | None" = None,
                    provider: str = DEFAULT_PROVIDER) -> list:
     """Sessions (``session``) for graphs that run one after another and feed each other by tensor name,
     as the runtime runs a model's stage graphs: on the CPU provider, where this Python has ``onnx``, a
     tensor that one graph outputs and the next converts into the blocked layout is handed over blocked
-    (``hand_off_blocked``; its name then ends in ``SUFFIX``). What the probe and the held-out timings
+    (``hand_off_blocked``; its name then ends in ``SUFFIX``), and one that it makes channels-last and the
+    next transposes channels-last again, channels-last (``hand_off_channels_last``). What the probe and the held-out timings
     time a candidate's stage graphs with: timed alone, each stage paid the layout conversions at its
     edges that the runtime does not, and the host profile predicted the paper design's paths 5-14% slow
     on an AVX-512 VM (benchmarks/bench_runtime.py)."""
@@ -404,8 +474,9 @@ def chain_sessions(models: Sequence["bytes | Path"], threads: "int | None" = Non
         sessions = [session(m, threads, provider, save_optimized=Path(tmp) / f"{k}.onnx") for k, m in enumerate(models)]
         try:
             graphs = [_onnx().load(str(Path(tmp) / f"{k}.onnx")) for k in range(len(models))]
-            handed = hand_off_blocked(graphs, [[i.name for i in s.get_inputs()] for s in sessions],
-                                      [[o.name for o in s.get_outputs()] for s in sessions])
+            ins = [[i.name for i in s.get_inputs()] for s in sessions]
+            outs = [[o.name for o in s.get_outputs()] for s in sessions]
+            handed = hand_off_blocked(graphs, ins, outs) + hand_off_channels_last(graphs, ins, outs)
         except Exception:   # an onnxruntime whose optimised graphs the rewrite does not know
             return sessions
     if not handed:
