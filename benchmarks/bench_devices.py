@@ -187,7 +187,8 @@ def host(n: int, seed: int, scale: float, reps: int = 3, save: Path | None = Non
             errs = np.array(_int8_errors(prof, cands, HOST_SIZES[0], speedometer))
             int8_medians.append(float(np.median(np.abs(errs))))
             print(f"  rep {rep} int8 at {HOST_SIZES[0][0]}x{HOST_SIZES[0][1]}: {len(errs)} deployed stage graphs of the "
-                  f"held-out candidates, each quantized whole, timed in sequence: median |error| {np.median(np.abs(errs)):.1%}, within "
+                  f"held-out candidates, each quantized whole, timed in sequence: median |error| "
+                  f"{np.median(np.abs(errs)):.1%}, within "
                   f"10%: {(np.abs(errs) <= 0.1).mean():.0%}, median signed {np.median(errs):+.1%}")
         if save:
             (save / f"rep{rep}-heldout.json").write_text(json.dumps(held))

@@ -555,7 +555,8 @@ def _transposed_pair(reader_extra=False):
         [helper.make_node("Identity", ["a"], ["h"]), helper.make_node("Transpose", ["h"], ["x"], perm=[0, 3, 1, 2])],
         "p", [helper.make_tensor_value_info("a", TensorProto.UINT8, None)],
         [helper.make_tensor_value_info("x", TensorProto.UINT8, None)])
-    nodes = [helper.make_node("Transpose", ["x"], ["t"], perm=[0, 2, 3, 1]), helper.make_node("Identity", ["t"], ["out"])]
+    nodes = [helper.make_node("Transpose", ["x"], ["t"], perm=[0, 2, 3, 1]),
+             helper.make_node("Identity", ["t"], ["out"])]
     if reader_extra:
         nodes.append(helper.make_node("Identity", ["x"], ["extra"]))
     reader = helper.make_graph(nodes, "r", [helper.make_tensor_value_info("x", TensorProto.UINT8, None)],

@@ -463,10 +463,10 @@ def chain_sessions(models: Sequence["bytes | Path"], threads: "int | None" = Non
     as the runtime runs a model's stage graphs: on the CPU provider, where this Python has ``onnx``, a
     tensor that one graph outputs and the next converts into the blocked layout is handed over blocked
     (``hand_off_blocked``; its name then ends in ``SUFFIX``), and one that it makes channels-last and the
-    next transposes channels-last again, channels-last (``hand_off_channels_last``). What the probe and the held-out timings
-    time a candidate's stage graphs with: timed alone, each stage paid the layout conversions at its
-    edges that the runtime does not, and the host profile predicted the paper design's paths 5-14% slow
-    on an AVX-512 VM (benchmarks/bench_runtime.py)."""
+    next transposes channels-last again, channels-last (``hand_off_channels_last``). What the probe and
+    the held-out timings time a candidate's stage graphs with: timed alone, each stage paid the layout
+    conversions at its edges that the runtime does not, and the host profile predicted the paper
+    design's paths 5-14% slow on an AVX-512 VM (benchmarks/bench_runtime.py)."""
     import tempfile
     if provider != DEFAULT_PROVIDER or _onnx() is None:
         return [session(m, threads, provider) for m in models]
