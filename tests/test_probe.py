@@ -514,12 +514,22 @@ def test_calibration_times_again_the_graphs_far_above_its_fit(tmp_path, monkeypa
     assert [label in labels for labels in set_aside for label in stubborn] == [True] + [False] * (len(set_aside) - 1)
 
 
+def _depth_maps(sessions: list, size: tuple[int, int]) -> list[np.ndarray]:
+    """Every depth map that stage ``sessions``, run in order on the example inputs, output."""
+    from explorer.onnx_stages import example_inputs
+    env = {k: v.numpy() for k, v in example_inputs(size).items()}
+    for s in sessions:
+        outs = [o.name for o in s.get_outputs()]
+        env.update(zip(outs, s.run(outs, {i.name: env[i.name] for i in s.get_inputs()})))
+    return [env[k] for k in sorted(env) if k.startswith("depth_")]
+
+
 def test_chain_sessions_hand_tensors_over_blocked_with_the_same_results():
     """The probe and the held-out timings run a candidate's stage graphs as the runtime does: tensors
     pass from one to the next in onnxruntime's blocked layout where both sides hold them so."""
     import torch
     from explorer.model import build_network
-    from explorer.onnx_stages import example_inputs, export_stages
+    from explorer.onnx_stages import export_stages
     from explorer.space import paper_candidate
     torch.manual_seed(0)
     graphs = [model for _, model in export_stages(build_network(paper_candidate()).eval(), (64, 64))]
@@ -527,13 +537,7 @@ def test_chain_sessions_hand_tensors_over_blocked_with_the_same_results():
     names = {n.name for s in chained for n in s.get_inputs()}
     if platform.machine() in ("x86_64", "AMD64"):   # onnxruntime blocks channels on x86
         assert any(n.endswith(probe.SUFFIX) for n in names)
-    results = []
-    for sessions in (chained, plain):
-        env = {k: v.numpy() for k, v in example_inputs((64, 64)).items()}
-        for s in sessions:
-            outs = [o.name for o in s.get_outputs()]
-            env.update(zip(outs, s.run(outs, {i.name: env[i.name] for i in s.get_inputs()})))
-        results.append([env[k] for k in sorted(env) if k.startswith("depth_")])
+    results = [_depth_maps(sessions, (64, 64)) for sessions in (chained, plain)]
     assert len(results[0]) == paper_candidate().num_paths
     for a, b in zip(*results):
         np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-5)
@@ -587,7 +591,6 @@ def test_chain_sessions_hand_the_bundles_int8_graphs_uint8_channels_last_with_th
     import torch
     from explorer.cost.bundle import _int8_graphs
     from explorer.model import build_network
-    from explorer.onnx_stages import example_inputs
     from explorer.space import paper_candidate
     torch.manual_seed(0)
     graphs = [model for _, model in _int8_graphs(build_network(paper_candidate()).eval(), (64, 64))]
@@ -595,13 +598,7 @@ def test_chain_sessions_hand_the_bundles_int8_graphs_uint8_channels_last_with_th
     names = {n.name for s in chained for n in s.get_inputs()}
     if platform.machine() in ("x86_64", "AMD64"):   # onnxruntime runs quantized convolutions channels-last there
         assert any(n.endswith(probe.NHWC_SUFFIX) for n in names)
-    results = []
-    for sessions in (chained, plain):
-        env = {k: v.numpy() for k, v in example_inputs((64, 64)).items()}
-        for s in sessions:
-            outs = [o.name for o in s.get_outputs()]
-            env.update(zip(outs, s.run(outs, {i.name: env[i.name] for i in s.get_inputs()})))
-        results.append([env[k] for k in sorted(env) if k.startswith("depth_")])
+    results = [_depth_maps(sessions, (64, 64)) for sessions in (chained, plain)]
     assert len(results[0]) == paper_candidate().num_paths - 1   # path 0's graph is not quantized
     for a, b in zip(*results):
         np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-5)
