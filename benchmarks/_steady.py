@@ -1,6 +1,6 @@
 """Held-out measurements taken at the speed a calibration measured at: on a shared VM whose speed
 changes from outside (this project's 2-core Zen 4 VM runs a while as if it had one core, every
-graph ~1.5x slower), a timing taken in such a spell says nothing about a profile fitted in calm.
+graph 1.5-1.8x slower), a timing taken in such a spell says nothing about a profile fitted in calm.
 The rule is the probe's own (``probe_script.SLOW``, ``REMEASURE_PASSES``, ``wait_until_calm``)."""
 
 from __future__ import annotations

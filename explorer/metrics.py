@@ -13,7 +13,7 @@ def depth_metrics(pred: torch.Tensor | np.ndarray, target: torch.Tensor | np.nda
     """Metrics of one image (any shape; pred and target the same size). Computed with NumPy: the
     runtime scores its maps between runs (``runtime.measured_anytime``), and a PyTorch operation there
     leaves PyTorch's OpenMP threads spinning for milliseconds on the cores onnxruntime's next run needs
-    (the paper design's runs with a 9 ms deadline reached path 4 in 1 of 20 instead of 20 of 20 here)."""
+    (the paper design's runs with a 9 ms deadline reached path 4 in 0 of 20 instead of 20 of 20 here)."""
     p = _float64(pred)
     t = _float64(target)
     if p.shape != t.shape:
