@@ -175,6 +175,107 @@ def resizes_kept_nchw(model) -> int:
     return count
 
 
+def _integer_factor(graph, resize, shapes: dict[str, list[int]]) -> "tuple[list[int], int] | None":
+    """(N, C, H, W) of a nearest ``resize``'s input and its integer up-sampling factor (the same for
+    height and width), where the output repeats each input pixel so; else None."""
+    from onnx import helper
+    attrs = {a.name: helper.get_attribute_value(a) for a in resize.attribute}
+    if (attrs.get("mode", b"nearest") != b"nearest" or attrs.get("antialias", 0)
+            or attrs.get("coordinate_transformation_mode", b"half_pixel") not in (b"asymmetric", b"half_pixel")):
+        return None
+    # asymmetric + floor (what torch exports) and half_pixel + round_prefer_floor (the defaults) both
+    # repeat each pixel f times for an integer factor f
+    if attrs.get("nearest_mode", b"round_prefer_floor") != (
+            b"floor" if attrs.get("coordinate_transformation_mode") == b"asymmetric" else b"round_prefer_floor"):
+        return None
+    src, dst = shapes.get(resize.input[0]), shapes.get(resize.output[0])
+    if not src or not dst or len(src) != 4 or len(dst) != 4 or 0 in src or 0 in dst or src[:2] != dst[:2]:
+        return None
+    factor = dst[2] // src[2]
+    if factor < 2 or dst[2] != factor * src[2] or dst[3] != factor * src[3]:
+        return None
+    return src, factor
+
+
+#: the suffix of the nodes ``upsamples_channels_last`` makes
+CHANNELS_LAST_UPSAMPLE_SUFFIX = "_channels_last_upsample"
+
+
+def upsamples_channels_last(model) -> int:
+    """Replaces each quantized nearest up-sampling by an integer factor (DequantizeLinear, Resize,
+    QuantizeLinear with the same scale and zero point, and the identity Reshape ``resizes_kept_nchw``
+    put after it, quantized the same way) by the same copy done on the uint8 tensor channels-last, in
+    place; returns how many. onnxruntime runs the quantized convolutions channels-last and transposes
+    their outputs channels-first for a Resize kept there (its channels-last uint8 Resize is slower
+    still) and back after it; copied channels-last (two Concats of ``factor`` copies, each followed by a
+    Reshape, between a Transpose pair that cancels against onnxruntime's own), the tensor never
+    leaves that layout. A Concat of uint8 tensors is a plain copy; quantized (QLinearConcat), it was
+    as slow as the transposes it saves."""
+    from onnx import helper, numpy_helper, shape_inference
+    from explorer._layout import _same_constant
+    graph = model.graph
+    inferred = shape_inference.infer_shapes(model).graph
+    shapes = {v.name: [d.dim_value if d.HasField("dim_value") else 0 for d in v.type.tensor_type.shape.dim]
+              for v in [*inferred.value_info, *inferred.output, *inferred.input]}
+    made = {o: n for n in graph.node for o in n.output}
+    outputs = {o.name for o in graph.output}
+
+    def only_reader(name: str, op_type: str):
+        readers = [n for n in graph.node if name in n.input]
+        if name in outputs or len(readers) != 1 or readers[0].op_type != op_type:
+            return None
+        return readers[0]
+
+    def same_scale(node, dq) -> bool:
+        return len(node.input) == 3 and all(a == b or _same_constant(graph, a, graph, b)
+                                            for a, b in zip(node.input[1:], dq.input[1:]))
+
+    replaced: dict[int, list] = {}
+    dropped: set[int] = set()
+    for resize in [n for n in graph.node if n.op_type == "Resize"]:
+        dq, shape = made.get(resize.input[0]), _integer_factor(graph, resize, shapes)
+        q = only_reader(resize.output[0], "QuantizeLinear")
+        if dq is None or dq.op_type != "DequantizeLinear" or len(dq.input) != 3 or not shape or q is None \
+                or not same_scale(q, dq):
+            continue
+        span = [resize, q]   # the nodes from the Resize to the last QuantizeLinear
+        dq2 = only_reader(q.output[0], "DequantizeLinear")
+        reshape = dq2 and only_reader(dq2.output[0], "Reshape")
+        q2 = reshape and reshape.name.endswith(KEEP_NCHW_SUFFIX) and only_reader(reshape.output[0], "QuantizeLinear")
+        if q2 and same_scale(dq2, dq) and same_scale(q2, dq):
+            span += [dq2, reshape, q2]
+        (n, c, h, w), f = shape
+        out = span[-1].output[0]
+        name = resize.name + CHANNELS_LAST_UPSAMPLE_SUFFIX
+
+        def const(suffix: str, value: list[int]) -> str:
+            graph.initializer.append(numpy_helper.from_array(np.array(value, np.int64), name + suffix))
+            return name + suffix
+        replaced[id(span[-1])] = [
+            helper.make_node("Transpose", [dq.input[0]], [name + "_nhwc"], perm=[0, 2, 3, 1], name=name + "_nhwc"),
+            helper.make_node("Concat", [name + "_nhwc"] * f, [name + "_wide"], axis=3, name=name + "_wide"),
+            helper.make_node("Reshape", [name + "_wide", const("_wide_shape", [n, h, f * w, c])], [name + "_w"],
+                             name=name + "_w"),
+            helper.make_node("Concat", [name + "_w"] * f, [name + "_tall"], axis=2, name=name + "_tall"),
+            helper.make_node("Reshape", [name + "_tall", const("_shape", [n, f * h, f * w, c])], [name + "_hw"],
+                             name=name + "_hw"),
+            helper.make_node("Transpose", [name + "_hw"], [out], perm=[0, 3, 1, 2], name=name + "_nchw")]
+        dropped |= {id(node) for node in span}
+        if all(id(r) in dropped or r is resize for r in graph.node if dq.output[0] in r.input) \
+                and dq.output[0] not in outputs:
+            dropped.add(id(dq))
+    if not replaced:
+        return 0
+    nodes = []
+    for node in graph.node:
+        nodes += replaced.get(id(node), [])
+        if id(node) not in dropped:
+            nodes.append(node)
+    del graph.node[:]
+    graph.node.extend(nodes)
+    return len(replaced)
+
+
 def pads_kept_uint8(model) -> int:
     """Makes every zero Pad between a DequantizeLinear and a QuantizeLinear of the same scale and zero
     point pad the uint8 tensor with its zero point instead, in place; returns how many. The quantizer
@@ -252,7 +353,7 @@ def _quantize(src: Path, dst: Path, feeds: list[dict[str, np.ndarray]]) -> bool:
                 raise
             quantize(CalibrationMethod.MinMax)
     model = onnx.load(str(dst))
-    if pads_kept_uint8(model):
+    if pads_kept_uint8(model) + upsamples_channels_last(model):
         onnx.save(model, str(dst))
     return True
 

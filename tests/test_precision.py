@@ -195,7 +195,7 @@ def test_int8_quantizes_a_stage_graph_whole_with_7_bit_weights(tmp_path):
     import onnx
     import torch
     from onnx import numpy_helper
-    from explorer.quantize import quantize_graph
+    from explorer.quantize import CHANNELS_LAST_UPSAMPLE_SUFFIX, quantize_graph
     net = torch.nn.Sequential(torch.nn.Conv2d(3, 32, 3, 2, 1), torch.nn.ReLU(),
                               torch.nn.Conv2d(32, 32, 3, 1, 1, groups=32), torch.nn.ReLU(),
                               torch.nn.Conv2d(32, 48, 1), torch.nn.ReLU(), torch.nn.Conv2d(48, 16, 1), torch.nn.ReLU(),
@@ -210,8 +210,10 @@ def test_int8_quantizes_a_stage_graph_whole_with_7_bit_weights(tmp_path):
     made_by = {o: n for n in g.node for o in n.output}
     convs = [n for n in g.node if n.op_type == "Conv"]
     assert len(convs) == 5 and all(made_by[c.input[0]].op_type == "DequantizeLinear" for c in convs)
-    resize = next(n for n in g.node if n.op_type == "Resize")
-    assert made_by[resize.input[0]].op_type == "DequantizeLinear"   # the resize runs on uint8 too
+    # the up-sampling copies the uint8 tensor (``upsamples_channels_last``)
+    assert not any(n.op_type == "Resize" for n in g.node)
+    copy = next(n for n in g.node if n.name.endswith(CHANNELS_LAST_UPSAMPLE_SUFFIX + "_nhwc"))
+    assert made_by[copy.input[0]].op_type == "QuantizeLinear"
     for conv in convs:
         w = weights[made_by[conv.input[1]].input[0]]
         # 255 x 64 x 2 < 2**15: a pair of products cannot saturate int16
@@ -288,36 +290,82 @@ def test_a_graph_without_convolutions_stays_fp32(tmp_path):
     assert dst.read_bytes() == src.read_bytes()
 
 
-def test_a_quantized_nearest_resize_runs_channels_first(tmp_path):
-    """onnxruntime carries a quantized graph's channels-last layout on through a uint8 Resize unless
-    something stops it (its channels-last kernel is 30x slower): the int8 graph keeps the decoder's
-    up-sampling channels-first, and computes what it computed before."""
+def _quantized_decoder(tmp_path, skip_channels: int):
+    """A decoder stage (32 -> 16 channels, skip of ``skip_channels``) quantized: (its graph, inputs)."""
+    import torch
+    from explorer.model.decoder import DecoderStageConfig
+    from explorer.quantize import quantize_graph
+    torch.manual_seed(0)   # the same weights, inputs and calibration frames on every call
+    net = DecoderStageConfig(32, 16, has_skip=True).build().eval()
+    src, dst = tmp_path / "f.onnx", tmp_path / f"q{skip_channels}.onnx"
+    x, skip = torch.rand(1, 32, 14, 14), torch.rand(1, skip_channels, 28, 28)
+    torch.onnx.export(net, (x, skip), str(src), input_names=["x", "skip"], output_names=["y"], dynamo=False)
+    feeds = [{"x": torch.rand(1, 32, 14, 14).numpy(), "skip": torch.rand(1, skip_channels, 28, 28).numpy()}
+             for _ in range(4)]
+    assert quantize_graph(src, dst, feeds)
+    return dst, {"x": x.numpy(), "skip": skip.numpy()}, net(x, skip).detach().numpy()
+
+
+@pytest.mark.parametrize("skip_channels", [8, 16, 24])   # padded, as it is, sliced
+def test_a_quantized_decoder_up_samples_and_adds_its_skip_channels_last(tmp_path, monkeypatch, skip_channels):
+    """onnxruntime runs the quantized convolutions channels-last; the decoder's nearest up-sampling is
+    copied on the uint8 tensor channels-last (``upsamples_channels_last``) and its skip added so
+    (``probe_script.channels_last_skip_adds``): the optimised graph transposes only where tensors enter
+    and leave it, and computes exactly what onnxruntime's channels-first Resize and addition computed."""
     import numpy as np
     import onnx
-    import torch
+    from explorer import quantize
+    from explorer.cost import probe_script
     from explorer.cost.measure import session
-    from explorer.model.decoder import DecoderStageConfig
-    from explorer.quantize import KEEP_NCHW_SUFFIX, quantize_graph, resizes_kept_nchw
-    torch.manual_seed(0)
-    net = DecoderStageConfig(32, 16, has_skip=False).build().eval()
-    src, dst = tmp_path / "f.onnx", tmp_path / "q.onnx"
-    x = torch.rand(1, 32, 28, 28)
-    torch.onnx.export(net, (x,), str(src), input_names=["x"], output_names=["y"], dynamo=False)
-    kept = onnx.load(str(src))
-    assert resizes_kept_nchw(kept) == 1
-    before, after = session(src.read_bytes()), session(kept.SerializeToString())
-    np.testing.assert_array_equal(before.run(None, {"x": x.numpy()})[0], after.run(None, {"x": x.numpy()})[0])
-
-    assert quantize_graph(src, dst, [{"x": torch.rand(1, 32, 28, 28).numpy()} for _ in range(4)])
-    assert sum(n.name.endswith(KEEP_NCHW_SUFFIX) for n in onnx.load(str(dst)).graph.node) == 1
+    dst, feed, ref = _quantized_decoder(tmp_path, skip_channels)
+    assert not any(n.op_type == "Resize" for n in onnx.load(str(dst)).graph.node)
     session(dst.read_bytes(), save_optimized=tmp_path / "opt.onnx")
     graph = onnx.load(str(tmp_path / "opt.onnx")).graph
-    producer = {o: n for n in graph.node for o in n.output}
-    resize = next(n for n in graph.node if n.op_type == "Resize")
-    assert producer[resize.input[0]].op_type == "Transpose"   # channels-last -> first before it
-    q8 = session(dst.read_bytes()).run(None, {"x": x.numpy()})[0]
-    ref = net(x).detach().numpy()
+    made_by = {o: n for n in graph.node for o in n.output}
+    inputs = {i.name for i in graph.input}
+    perm = lambda n: list(onnx.helper.get_attribute_value(n.attribute[0]))  # noqa: E731
+    transposes = sorted((perm(n), made_by[n.input[0]].op_type) for n in graph.node if n.op_type == "Transpose")
+    # x and the skip channels-last once quantized, the sum channels-first to leave: nothing in between
+    assert transposes == [([0, 2, 3, 1], "QuantizeLinear")] * 2 + [([0, 3, 1, 2], "QLinearAdd")]
+    add = next(n for n in graph.node if n.op_type == "QLinearAdd")
+    assert all(made_by[add.input[k]].op_type != "Transpose" or perm(made_by[add.input[k]]) == [0, 2, 3, 1]
+               for k in (0, 3))
+    q8 = session(dst.read_bytes()).run(None, feed)[0]
     assert np.abs(q8 - ref).max() < 0.05 * np.abs(ref).max()
+
+    # onnxruntime's own channels-first addition: the same numbers
+    monkeypatch.setattr(probe_script, "channels_last_skip_adds", lambda model: 0)
+    np.testing.assert_array_equal(session(dst.read_bytes()).run(None, feed)[0], q8)
+
+
+@pytest.mark.parametrize("factor,mode,rewritten", [(2, "nearest", True), (3, "nearest", True), (2, "linear", False)])
+def test_a_uint8_nearest_upsampling_is_copied_channels_last_with_the_same_values(factor, mode, rewritten):
+    """DequantizeLinear, nearest Resize by an integer factor, QuantizeLinear of the same scale: the same
+    uint8 values as the copy ``upsamples_channels_last`` makes; a bilinear one is left as it is."""
+    import numpy as np
+    from onnx import TensorProto, helper, numpy_helper
+    from explorer.cost.measure import session
+    from explorer.quantize import upsamples_channels_last
+    const = lambda name, v: numpy_helper.from_array(np.array(v), name)  # noqa: E731
+    nodes = [helper.make_node("DequantizeLinear", ["a", "s", "z"], ["af"]),
+             helper.make_node("Resize", ["af", "", "scales"], ["rf"], mode=mode,
+                              coordinate_transformation_mode="asymmetric",
+                              **({"nearest_mode": "floor"} if mode == "nearest" else {})),
+             helper.make_node("QuantizeLinear", ["rf", "s", "z"], ["y"])]
+    graph = helper.make_graph(
+        nodes, "up", [helper.make_tensor_value_info("a", TensorProto.UINT8, [1, 5, 3, 4])],
+        [helper.make_tensor_value_info("y", TensorProto.UINT8, [1, 5, 3 * factor, 4 * factor])],
+        [const("s", np.float32(0.1)), const("z", np.uint8(7)),
+         const("scales", np.array([1, 1, factor, factor], np.float32))])
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
+    before = model.SerializeToString()
+    assert upsamples_channels_last(model) == int(rewritten)
+    assert any(n.op_type == "Resize" for n in model.graph.node) != rewritten
+    a = np.random.default_rng(0).integers(0, 256, (1, 5, 3, 4), dtype=np.uint8)
+    expected = session(before).run(None, {"a": a})[0]
+    if rewritten:
+        np.testing.assert_array_equal(expected, a.repeat(factor, axis=2).repeat(factor, axis=3))
+    np.testing.assert_array_equal(session(model.SerializeToString()).run(None, {"a": a})[0], expected)
 
 
 def test_a_zero_pad_between_quantize_nodes_pads_uint8():
