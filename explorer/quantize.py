@@ -9,11 +9,13 @@ that its tensors stay uint8 from one layer to the next and it quantizes and dequ
 edges; only the LiDAR encoder stays fp32 (``FLOAT_STAGES``). Quantizing only the wide convolutions,
 with float depthwise layers between them, paid for nothing: on this project's AVX-512 VNNI VM the
 encoder stage ran 1.04x its fp32 speed that way and 1.68x quantized whole
-(benchmarks/bench_runtime.py). Whole quantization does not pay everywhere. The decoder's nearest
-up-sampling is kept channels-first (``resizes_kept_nchw``): onnxruntime's channels-last uint8 Resize
-made every int8 decoder stage slower than fp32; so, on the Zen 4 VM, decoders 1-2 ran 1.3-1.5x faster
-in int8, but decoders 3-4, at full resolution with 8-16 channels, still 1.4x slower (onnxruntime's
-uint8 depthwise kernels are slower than its blocked fp32 ones). So an export keeps a stage int8 only
+(benchmarks/bench_runtime.py). The decoder stays channels-last, as onnxruntime runs quantized
+convolutions: its nearest up-sampling becomes a uint8 copy done so (``upsamples_channels_last``; a
+Resize left to onnxruntime is kept channels-first, ``resizes_kept_nchw``, its channels-last uint8
+kernel being 30x slower) and its skip additions add so (``probe_script.channels_last_skip_adds``).
+Whole quantization does not pay everywhere: on the Zen 4 VM the full-resolution decoders 3-4 ran no
+faster in int8 alone (onnxruntime's uint8 depthwise kernels are slower than its blocked fp32 ones).
+So an export keeps a stage int8 only
 where int8 saves the staged runtime at least ``1 - INT8_KEEP_RATIO`` of that stage's fp32 time on the
 exporting machine, with int8 neighbours handing each other uint8 tensors (``compare_speed``;
 ``stages="all"``: every stage int8), and the cost model
