@@ -111,30 +111,46 @@ def refit(folder: Path) -> None:
             medians.setdefault(size_key, []).append(float(np.median(a)))
             print(f"  {size_key}: median |error| {np.median(a):.1%}, median signed {np.median(errs):+.1%}, "
                   f"within 10%: {(a <= 0.1).mean():.0%}")
+        if held.get("int8_timings") and prof.int8 is not None:   # saved since stop 37
+            size_key = next(iter(held["timings"]))
+            size = tuple(int(x) for x in size_key.split("x"))
+            errs = np.array(errors(prof.int8, _int8_observations(cands, size, held["int8_timings"]))["error"])
+            a = np.abs(errs)
+            medians.setdefault(f"int8 {size_key}", []).append(float(np.median(a)))
+            print(f"  int8 {size_key}: {len(a)} deployed stage graphs, median |error| {np.median(a):.1%}, "
+                  f"median signed {np.median(errs):+.1%}, within 10%: {(a <= 0.1).mean():.0%}")
     for size_key, ms in medians.items():
         print(f"refit {size_key}: {' '.join(f'{x:.1%}' for x in ms)} -> median {np.median(ms):.1%}")
 
 
-def _int8_errors(prof, cands, size, slowness) -> list[float]:
+def _int8_observations(cands, size, timings: dict) -> list:
+    """``Observation``s of held-out int8 stage graphs from {candidate key: {graph name: ms}}."""
+    obs = []
+    for c in cands:
+        cost = candidate_cost(c, size)
+        obs += [Observation(f"{c.key}/{name}", [w for w in cost.workloads if w.stage in name.split("+")], ms, stages=1)
+                for name, ms in timings.get(c.key, {}).items()]
+    return obs
+
+
+def _int8_errors(prof, cands, size, slowness) -> tuple[list[float], dict]:
     """Signed errors of ``prof``'s int8 section on the held-out candidates' deployed stage graphs, each
     quantized whole (as ``explorer export --quantize int8 --int8-stages all`` does), handing each other
     uint8 tensors, and timed as the probe times them: in one chain, in sequence (under ``steadily``'s rule;
-    each graph keeps its fastest timing)."""
+    each graph keeps its fastest timing); and those timings, {candidate key: {graph name: ms}}."""
     from explorer.cost.bundle import _int8_graphs
     from explorer.cost.probe_script import WARMUP, chain_runs, chain_sessions, time_chain
     from explorer.model import build_network
     from explorer.onnx_stages import example_inputs
-    obs = []
+    timings = {}
     for c in cands:
-        cost = candidate_cost(c, size)
         graphs = _int8_graphs(build_network(c), size)
         runs, new_round = chain_runs(chain_sessions([model for _, model in graphs]),
                                      {k: v.numpy() for k, v in example_inputs(size).items()})
         ms, _ = steadily(lambda: time_chain(runs, WARMUP, 20, new_round=new_round), slowness,
                          lambda kept, new: [min(a, b) for a, b in zip(kept, new)])
-        obs += [Observation(f"{c.key}/{name}", [w for w in cost.workloads if w.stage in name.split("+")], t, stages=1)
-                for (name, _), t in zip(graphs, ms)]
-    return list(errors(prof.int8, obs)["error"])
+        timings[c.key] = {name: t for (name, _), t in zip(graphs, ms)}
+    return list(errors(prof.int8, _int8_observations(cands, size, timings))["error"]), timings
 
 
 def host(n: int, seed: int, scale: float, reps: int = 3, save: Path | None = None) -> None:
@@ -184,7 +200,8 @@ def host(n: int, seed: int, scale: float, reps: int = 3, save: Path | None = Non
                   f"whole graphs at {' '.join(f'{f:.0%}' for f in fractions)} of fp32 peak; "
                   f"{timed_again} timed again after the machine ran slow")
         if prof.int8 is not None:
-            errs = np.array(_int8_errors(prof, cands, HOST_SIZES[0], speedometer))
+            errs, held["int8_timings"] = _int8_errors(prof, cands, HOST_SIZES[0], speedometer)
+            errs = np.array(errs)
             int8_medians.append(float(np.median(np.abs(errs))))
             print(f"  rep {rep} int8 at {HOST_SIZES[0][0]}x{HOST_SIZES[0][1]}: {len(errs)} deployed stage graphs of the "
                   f"held-out candidates, each quantized whole, timed in sequence: median |error| "

@@ -144,6 +144,14 @@ def _quantize_in_child(src: Path, dst: Path, feeds: list[dict[str, np.ndarray]])
     return result
 
 
+def _static_shapes(model) -> dict[str, list[int]]:
+    """Each tensor's shape as onnx infers it, 0 for a dimension it cannot tell."""
+    from onnx import shape_inference
+    inferred = shape_inference.infer_shapes(model).graph
+    return {v.name: [d.dim_value if d.HasField("dim_value") else 0 for d in v.type.tensor_type.shape.dim]
+            for v in [*inferred.value_info, *inferred.output, *inferred.input]}
+
+
 #: the identity Reshape ``resizes_kept_nchw`` puts after a nearest Resize
 KEEP_NCHW_SUFFIX = "_keep_nchw"
 
@@ -155,10 +163,8 @@ def resizes_kept_nchw(model) -> int:
     channels-last kernel is slow (paper design, 16 channels to 224x224: 0.75 ms against 0.023 ms
     channels-first); it does not carry a layout through a Reshape, so the Resize stays channels-first.
     The paper design's int8 decoder graphs ran 1.2-1.6x faster so (each alone, 5 interleaved reps)."""
-    from onnx import helper, numpy_helper, shape_inference
-    inferred = shape_inference.infer_shapes(model).graph
-    shapes = {v.name: [d.dim_value if d.HasField("dim_value") else 0 for d in v.type.tensor_type.shape.dim]
-              for v in [*inferred.value_info, *inferred.output]}
+    from onnx import helper, numpy_helper
+    shapes = _static_shapes(model)
     nodes, count = [], 0
     for node in model.graph.node:
         nodes.append(node)
@@ -177,7 +183,7 @@ def resizes_kept_nchw(model) -> int:
     return count
 
 
-def _integer_factor(graph, resize, shapes: dict[str, list[int]]) -> "tuple[list[int], int] | None":
+def _integer_factor(resize, shapes: dict[str, list[int]]) -> "tuple[list[int], int] | None":
     """(N, C, H, W) of a nearest ``resize``'s input and its integer up-sampling factor (the same for
     height and width), where the output repeats each input pixel so; else None."""
     from onnx import helper
@@ -213,12 +219,10 @@ def upsamples_channels_last(model) -> int:
     Reshape, between a Transpose pair that cancels against onnxruntime's own), the tensor never
     leaves that layout. A Concat of uint8 tensors is a plain copy; quantized (QLinearConcat), it was
     as slow as the transposes it saves."""
-    from onnx import helper, numpy_helper, shape_inference
+    from onnx import helper, numpy_helper
     from explorer._layout import _same_constant
     graph = model.graph
-    inferred = shape_inference.infer_shapes(model).graph
-    shapes = {v.name: [d.dim_value if d.HasField("dim_value") else 0 for d in v.type.tensor_type.shape.dim]
-              for v in [*inferred.value_info, *inferred.output, *inferred.input]}
+    shapes = _static_shapes(model)
     made = {o: n for n in graph.node for o in n.output}
     outputs = {o.name for o in graph.output}
 
@@ -235,7 +239,7 @@ def upsamples_channels_last(model) -> int:
     replaced: dict[int, list] = {}
     dropped: set[int] = set()
     for resize in [n for n in graph.node if n.op_type == "Resize"]:
-        dq, shape = made.get(resize.input[0]), _integer_factor(graph, resize, shapes)
+        dq, shape = made.get(resize.input[0]), _integer_factor(resize, shapes)
         q = only_reader(resize.output[0], "QuantizeLinear")
         if dq is None or dq.op_type != "DequantizeLinear" or len(dq.input) != 3 or not shape or q is None \
                 or not same_scale(q, dq):
@@ -243,7 +247,8 @@ def upsamples_channels_last(model) -> int:
         span = [resize, q]   # the nodes from the Resize to the last QuantizeLinear
         dq2 = only_reader(q.output[0], "DequantizeLinear")
         reshape = dq2 and only_reader(dq2.output[0], "Reshape")
-        q2 = reshape and reshape.name.endswith(KEEP_NCHW_SUFFIX) and only_reader(reshape.output[0], "QuantizeLinear")
+        q2 = (reshape and reshape.name.endswith(KEEP_NCHW_SUFFIX)
+              and only_reader(reshape.output[0], "QuantizeLinear"))
         if q2 and same_scale(dq2, dq) and same_scale(q2, dq):
             span += [dq2, reshape, q2]
         (n, c, h, w), f = shape
