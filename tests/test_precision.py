@@ -251,6 +251,36 @@ def test_int8_keeps_the_lidar_encoder_fp32_inside_a_quantized_graph(tmp_path):
     assert made_by[image[0].input[1]] == "DequantizeLinear"
 
 
+def test_an_int8_section_is_fitted_from_the_fp32_profile_on_whole_int8_stage_graphs():
+    """Stage graphs that run int8 in half their fp32 time give an int8 section that prices other
+    candidates' graphs at half too; kinds that no int8 graph quantizes keep their fp32 price, and so do
+    the body exponent and the per-stage overhead."""
+    from explorer.cost.calibrate import with_int8
+    from explorer.cost.fit import MEMORY_KINDS, Observation, errors, predict_ms
+    from explorer.quantize import workload_quantized
+    fp32 = get_device("tx2")
+
+    def halved(cands) -> list:
+        obs = []
+        for c in cands:
+            cost = candidate_cost(c, (224, 224))
+            for stage in sorted({w.stage for w in cost.workloads}):
+                wl = [w for w in cost.workloads if w.stage == stage]
+                ms = 0.5 * predict_ms(fp32, Observation(stage, wl, 1.0, stages=1))
+                obs.append(Observation(f"{c.key}/{stage}", wl, ms, weight=4.0, stages=1))
+        return obs
+    cands = SearchSpace.from_yaml("anytime_depth").random_candidates(8, 0)
+    fitted_on, held_out = halved(cands[:5]), halved(cands[5:])
+    layers = [(w, 0.5 * fp32.layer_ms(w)) for o in fitted_on for w in o.workloads if workload_quantized(w)]
+    prof = with_int8(fp32, [], layers, fitted_on)
+    assert prof.precisions == ("fp32", "int8")
+    assert errors(prof.int8, held_out)["error"].abs().median() < 0.05
+    assert errors(fp32, held_out)["error"].median() > 0.8   # fp32 prices them at twice that
+    unquantized = set(fp32.kinds) - {w.kind for w, _ in layers} - set(MEMORY_KINDS)
+    assert unquantized and all(prof.int8.kinds[k] == fp32.kinds[k] for k in unquantized)
+    assert (prof.int8.body_exponent, prof.int8.stage_overhead_ms) == (fp32.body_exponent, fp32.stage_overhead_ms)
+
+
 def test_an_int8_graph_prices_its_lidar_encoder_at_fp32(tmp_path):
     from explorer.cost.devices import _stage_ms
     dev = get_device(_with_int8(tmp_path, slower=0.25))   # every int8 layer 4x as fast
