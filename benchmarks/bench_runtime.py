@@ -143,7 +143,8 @@ if __name__ == "__main__":
                 print(f"{label}: tensors handed over: "
                       + (", ".join(f"{n} ({form})" for n, form in variants[label].handed_off.items()) or "none"))
             # PyTorch eager (fp32) in the same blocks: what a user deploying int8 gains over running the model
-            calls = {**{k: (lambda r=r: r.run(image, scan_np)) for k, r in variants.items()}, "PyTorch eager": eager}
+            calls = {**{k: (lambda r=r: r.run(image, scan_np)) for k, r in variants.items()},
+                     "PyTorch eager": series["eager"][1]}
             times8: dict[str, list[float]] = {k: [] for k in calls}
             for rep in range(5):  # interleaved in blocks
                 got = time_interleaved(calls, blocks=5)
