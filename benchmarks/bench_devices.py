@@ -111,10 +111,9 @@ def refit(folder: Path) -> None:
             medians.setdefault(size_key, []).append(float(np.median(a)))
             print(f"  {size_key}: median |error| {np.median(a):.1%}, median signed {np.median(errs):+.1%}, "
                   f"within 10%: {(a <= 0.1).mean():.0%}")
-        if held.get("int8_timings") and prof.int8 is not None:   # saved since stop 37
-            size_key = next(iter(held["timings"]))
-            size = tuple(int(x) for x in size_key.split("x"))
-            errs = np.array(errors(prof.int8, _int8_observations(cands, size, held["int8_timings"]))["error"])
+        if held.get("int8_timings") and prof.int8 is not None:   # saved since stop 37, at HOST_SIZES[0]
+            size_key = f"{HOST_SIZES[0][0]}x{HOST_SIZES[0][1]}"
+            errs = np.array(errors(prof.int8, _int8_observations(cands, HOST_SIZES[0], held["int8_timings"]))["error"])
             a = np.abs(errs)
             medians.setdefault(f"int8 {size_key}", []).append(float(np.median(a)))
             print(f"  int8 {size_key}: {len(a)} deployed stage graphs, median |error| {np.median(a):.1%}, "

@@ -158,10 +158,10 @@ def layer_graph(layer: SweepLayer) -> tuple[bytes, dict[str, np.ndarray], Worklo
 def fit_host(measured: list[tuple[Workload, float]], name: str = "host",
              description: str | None = None, cond: dict | None = None,
              stage_obs: list[Observation] = (), energy: dict | None = None,
-             source: str | None = None, layer_weight: float = 1.0) -> DeviceProfile:
-    """A CPU-style profile fitted to single-layer (each weighing ``layer_weight``) and stage timings;
+             source: str | None = None) -> DeviceProfile:
+    """A CPU-style profile fitted to single-layer and stage timings;
     with ``energy`` (the probe's energy section), also its fixed energy and active power."""
-    obs = [Observation(w.layer, [w], ms, weight=layer_weight, stages=1) for w, ms in measured] + list(stage_obs)
+    obs = [Observation(w.layer, [w], ms, stages=1) for w, ms in measured] + list(stage_obs)
     base = DeviceProfile(
         name=name, description=description or f"{platform.node() or 'this machine'} CPU, onnxruntime",
         overlap=False, bandwidth_gbs=10.0, kinds={k: KindCost(20.0, 0.005) for k in HOST_KINDS},
