@@ -67,9 +67,12 @@ def workload_quantized(w) -> bool:
 
 
 def _float_nodes(model) -> list[str]:
-    """The nodes of ``FLOAT_STAGES`` in an exported graph (torch names them /STAGE/...)."""
+    """The nodes of ``FLOAT_STAGES`` in an exported graph (torch names them /STAGE/...), and the
+    exit heads' bilinear up-sampling (two matrix products with constant interpolation weights, which
+    int8 would round: ``ops.Resize``)."""
     prefixes = tuple(f"/{s}/" for s in FLOAT_STAGES)
-    return [n.name for n in model.graph.node if n.name.startswith(prefixes)]
+    return [n.name for n in model.graph.node
+            if n.name.startswith(prefixes) or (n.op_type == "MatMul" and "/resize/" in n.name)]
 
 
 #: a path may lose at most this fraction of its RMSE to quantization unless --force

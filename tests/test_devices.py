@@ -76,9 +76,11 @@ def test_tx2_reproduces_its_calibration(shared_data):
     obs = [Observation(w.layer, [w], ms) for w, ms in kernel_workloads(shared_data / "tx2-tvm-kernels" / "kernels.csv", "gpu")]
     assert len(obs) == 71
     assert errors(tx2, obs)["error"].abs().median() <= 0.20
-    ms = candidate_cost(paper_candidate()).path_latency_ms(tx2)[1:]
+    ms = candidate_cost(paper_candidate(), deferred_upsampling=False).path_latency_ms(tx2)[1:]
     for got, want in zip(ms, PAPER_TX2_PATHS_MS):
         assert abs(got / want - 1) <= 0.10
+    # this project's graph leaves the last up-sampling to the exit head: the same values, less work
+    assert candidate_cost(paper_candidate()).path_latency_ms(tx2)[-1] < ms[-1]
     cpu = get_device("tx2-cpu")
     obs = [Observation(w.layer, [w], ms) for w, ms in kernel_workloads(shared_data / "tx2-tvm-kernels" / "kernels.csv", "cpu")]
     assert errors(cpu, obs)["error"].abs().median() <= 0.20

@@ -67,3 +67,57 @@ def test_path0_nearest_fill():
     assert out[0, 0, 0].tolist() == [2.0, 2.0, 2.0, 5.0, 5.0, 5.0]
     assert torch.equal(out[0, 0, 0], out[0, 0, 2])
     assert interpolate_scan(torch.zeros(1, 4), 2).abs().sum() == 0
+
+
+def _upsampling_first(net):
+    """``net`` with its last decoder stage up-sampling before the exit head, as written in the paper."""
+    for spec in net.specs:
+        stage = net.stages[spec.name]
+        if spec.name.startswith("decoder_"):
+            stage.upsample.factor = 2
+        elif spec.name.startswith("exit_"):
+            stage.nearest.factor = 1
+    return net
+
+
+@pytest.mark.parametrize("depth", [1, 2])
+def test_the_last_exit_head_up_samples_after_its_1x1_layers_with_the_same_values(depth):
+    from dataclasses import replace
+    cand = replace(paper_candidate(), head_depth=depth, head_width=8)
+    torch.manual_seed(0)
+    net = build_network(cand).eval()
+    for m in net.modules():   # BatchNorm statistics away from identity, so that they take part
+        if isinstance(m, torch.nn.BatchNorm2d):
+            m.running_mean.uniform_(-1, 1)
+            m.running_var.uniform_(0.5, 2)
+            m.bias.data.uniform_(-1, 1)
+    specs = {s.name: s.config for s in net.specs}
+    assert not specs["decoder_4"].upsample and specs["exit_4"].nearest == 2
+    assert all(specs[f"decoder_{k}"].upsample for k in (1, 2, 3))
+    reference = _upsampling_first(build_network(cand).eval())
+    reference.load_state_dict(net.state_dict())
+    image, scan = torch.rand(2, 3, 64, 96), torch.rand(2, 96) * 5 + 0.5
+    with torch.no_grad():
+        got, want = net(image, scan), reference(image, scan)
+    for g, w in zip(got, want):
+        assert g.shape == w.shape == (2, 1, 64, 96)
+        torch.testing.assert_close(g, w, rtol=1e-5, atol=1e-5)
+
+
+def test_a_last_decoder_stage_with_a_skip_or_without_an_exit_up_samples_itself():
+    for cand in SearchSpace.from_yaml("anytime_depth").random_candidates(20, seed=3):
+        for spec in stage_specs(cand):
+            cfg = spec.config
+            if spec.name.startswith("decoder_") and not cfg.upsample:
+                last = f"decoder_{len(cand.decoder_widths)}"
+                assert spec.name == last and not cfg.has_skip and len(cand.decoder_widths) in cand.exits
+
+
+@pytest.mark.parametrize("shape,factor", [((2, 1, 14, 14), 16), ((1, 1, 7, 9), 3), ((1, 3, 5, 1), 2)])
+def test_bilinear_up_sampling_as_matrix_products_matches_interpolate(shape, factor):
+    import torch.nn.functional as F
+
+    from explorer.model.ops import Resize
+    x = torch.randn(shape)
+    want = F.interpolate(x, scale_factor=float(factor), mode="bilinear", align_corners=False)
+    torch.testing.assert_close(Resize(factor, "bilinear")(x), want, rtol=1e-5, atol=1e-5)

@@ -73,8 +73,11 @@ class CandidateCost:
         return self.path_latency_ms(device) if kind == "time" else self.path_energy_j(device)
 
 
-def candidate_cost(candidate: Candidate, input_size: tuple[int, int] = (224, 224)) -> CandidateCost:
-    specs = stage_specs(candidate)
+def candidate_cost(candidate: Candidate, input_size: tuple[int, int] = (224, 224),
+                   deferred_upsampling: bool = True) -> CandidateCost:
+    """``deferred_upsampling=False``: the costs of the paper's graph of ``candidate``, whose last
+    decoder stage up-samples before its exit head (``stage_specs``), for the paper's figures."""
+    specs = stage_specs(candidate, deferred_upsampling)
     workloads = candidate_workloads(candidate, input_size, specs)
     path_stages, exits, done = [], [], []
     for spec in specs:

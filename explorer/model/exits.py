@@ -25,6 +25,7 @@ class ExitHeadConfig:
     upscale: int
     lidar_channels: int = 0      # > 0: the LiDAR feature at this stride is added to every row first
     residual: bool = False       # the output corrects path 0 (its last input) instead of replacing it
+    nearest: int = 1             # > 1: the decoder stage before left its nearest up-sampling to the head
 
     def build(self) -> "ExitHead":
         return ExitHead(self)
@@ -47,6 +48,7 @@ class ExitHead(nn.Module):
         nn.init.constant_(out.bias, 0.0 if config.residual else DEPTH_INIT_M)
         layers.append(out)
         self.layers = nn.Sequential(*layers)
+        self.nearest = Resize(config.nearest, "nearest")
         self.resize = Resize(config.upscale, "bilinear")
         if config.residual:
             self.correct = SkipAdd()
@@ -56,6 +58,8 @@ class ExitHead(nn.Module):
         if self.config.lidar_channels:
             x = self.add(x, self.fuse(extra[0]).unsqueeze(2))
         depth = self.layers(x)
+        if self.config.nearest > 1:
+            depth = self.nearest(one_channel_unblocked(depth))
         if self.config.upscale > 1:
             depth = self.resize(one_channel_unblocked(depth))
         return self.correct(depth, extra[-1]) if self.config.residual else depth

