@@ -1,5 +1,8 @@
-"""What keeping the exit heads' resizes out of onnxruntime's blocked layout saves
-(``explorer.model.ops.one_channel_unblocked``): the paper design's whole graph and each exit head
+"""What the exit heads' export choices save: the last exit head up-sampling after its 1x1 layers
+(``explorer.model.decoder``) and the bilinear up-sampling as two matrix products (``ops.Resize``), on
+the paper design's whole graph and in PyTorch eager, against the paper's order with resizes
+(interleaved blocks, ``--reps`` of them); then keeping the exit heads' resizes out of onnxruntime's
+blocked layout (``explorer.model.ops.one_channel_unblocked``): the whole graph and each exit head
 alone, exported with that step and without it, timed in turn.
 
     .venv/bin/python benchmarks/bench_exit_heads.py [--reps 5]
@@ -12,12 +15,79 @@ from unittest import mock
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 
 from explorer.cost.measure import session, time_call
 from explorer.model import build_network
+from explorer.model.decoder import DecoderStageConfig
 from explorer.model.exits import ExitHead, ExitHeadConfig
+from explorer.model.ops import Resize
 from explorer.onnx_stages import example_inputs, export_whole
 from explorer.space import paper_candidate
+
+from _timing import time_interleaved
+
+
+def _interpolate(self, x: torch.Tensor) -> torch.Tensor:
+    """``ops.Resize.forward`` as it was: ``F.interpolate``, a Resize operator in the exported graph."""
+    if self.factor == 1:
+        return x
+    kwargs = {"align_corners": False} if self.mode == "bilinear" else {}
+    return F.interpolate(x, scale_factor=float(self.factor), mode=self.mode, **kwargs)
+
+
+def _paper_order(net):
+    """``net`` (built anew) with its last decoder stage up-sampling before the exit head, as the paper's."""
+    for spec in net.specs:
+        stage = net.stages[spec.name]
+        if isinstance(spec.config, DecoderStageConfig) and not spec.config.upsample:
+            stage.upsample.factor = 2
+        elif isinstance(spec.config, ExitHeadConfig) and spec.config.nearest > 1:
+            stage.nearest.factor = 1
+    return net
+
+
+def _order_and_products(reps: int, size: tuple[int, int]) -> None:
+    torch.manual_seed(0)
+    net = build_network(paper_candidate()).eval()
+    paper = _paper_order(build_network(paper_candidate()).eval())
+    paper.load_state_dict(net.state_dict())
+    feeds = {k: v.numpy() for k, v in example_inputs(size).items()}
+    img, scan = (torch.from_numpy(feeds[k]) for k in ("image", "scan"))
+    with mock.patch("explorer.model.ops.Resize.forward", _interpolate):
+        paper_graph = session(export_whole(paper, size))
+        deferred_resize = session(export_whole(net, size))
+    graphs = {"paper order, Resize": paper_graph, "deferred, Resize": deferred_resize,
+              "deferred, products (HEAD)": session(export_whole(net, size))}
+    outs = {k: s.run(None, feeds) for k, s in graphs.items()}
+    ref = outs["paper order, Resize"]
+    print("largest difference per path against the paper's order with resizes: "
+          + "; ".join(f"{k} " + " ".join(f"{float(np.abs(a - b).max()):.1e}" for a, b in zip(o, ref))
+                      for k, o in outs.items() if k != "paper order, Resize"))
+
+    def eager(model, forward):
+        def run():   # both patched, so that both pay the patching
+            with torch.no_grad(), mock.patch("explorer.model.ops.Resize.forward", forward):
+                model(img, scan)
+        return run
+    fns = {**{k: (lambda s=s: s.run(None, feeds)) for k, s in graphs.items()},
+           "eager, paper order with F.interpolate": eager(paper, _interpolate),
+           "eager, HEAD": eager(net, Resize.forward)}
+    times = {k: [] for k in fns}
+    for rep in range(reps):
+        for k, ms in time_interleaved(fns, blocks=5).items():
+            times[k].append(ms)
+        print(f"  rep {rep + 1}: " + ", ".join(f"{k} {t[-1]:.2f} ms" for k, t in times.items()))
+    med = {k: statistics.median(t) for k, t in times.items()}
+    base = times["paper order, Resize"]
+    print(f"paper design whole graph at {size[0]}x{size[1]}, medians of {reps} (change per rep against the paper's "
+          "order with resizes): " + "; ".join(
+              f"{k} {med[k]:.2f} ms ({statistics.median(r):+.1%}, {min(r):+.1%}..{max(r):+.1%})"
+              for k in graphs for r in [[b / a - 1 for a, b in zip(base, times[k])]]))
+    for k, e in (("paper order, Resize", "eager, paper order with F.interpolate"),
+                 ("deferred, products (HEAD)", "eager, HEAD")):
+        r = [a / b for a, b in zip(times[e], times[k])]
+        print(f"{e} / {k}: {statistics.median(r):.2f}x ({min(r):.2f}-{max(r):.2f})")
 
 
 def _exported(fn, without: bool) -> bytes:
@@ -44,6 +114,7 @@ if __name__ == "__main__":
     ap.add_argument("--reps", type=int, default=5)
     args = ap.parse_args()
     size = (224, 224)
+    _order_and_products(args.reps, size)
     torch.manual_seed(0)
     net = build_network(paper_candidate()).eval()
     feeds = {k: v.numpy() for k, v in example_inputs(size).items()}
