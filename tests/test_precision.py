@@ -251,6 +251,43 @@ def test_int8_keeps_the_lidar_encoder_fp32_inside_a_quantized_graph(tmp_path):
     assert made_by[image[0].input[1]] == "DequantizeLinear"
 
 
+def test_int8_keeps_an_exit_heads_bilinear_products_float(tmp_path):
+    """The interpolation weights of the exit's up-sampling (two matrix products) are not rounded to int8."""
+    import numpy as np
+    import onnx
+    import torch
+    from explorer.model.exits import ExitHeadConfig
+    from explorer.quantize import quantize_graph
+
+    class Exit(torch.nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.exit_1 = ExitHeadConfig(in_channels=16, depth=1, width=16, upscale=4).build()
+
+        def forward(self, x):
+            return self.exit_1(x)
+
+    src, dst = tmp_path / "f.onnx", tmp_path / "q.onnx"
+    torch.onnx.export(Exit().eval(), (torch.rand(1, 16, 8, 8),), str(src), input_names=["x"],
+                      output_names=["depth"], dynamo=False)
+    feeds = [{"x": torch.rand(1, 16, 8, 8).numpy()} for _ in range(4)]
+    assert quantize_graph(src, dst, feeds)
+    g = onnx.load(str(dst)).graph
+    made_by = {o: n for n in g.node for o in n.output}
+    products = [n for n in g.node if n.op_type == "MatMul"]
+    assert len(products) == 2 and all("/resize/" in n.name for n in products)
+    constants = {i.name for i in g.initializer} | {n.output[0] for n in g.node if n.op_type == "Constant"}
+    for n in products:   # the interpolation weights reach the products as float constants, not dequantized
+        assert any(i in constants or made_by[i].op_type == "Transpose" for i in n.input)
+        assert not any(i in made_by and made_by[i].op_type == "DequantizeLinear" and made_by[i].input[0] in constants
+                       for i in n.input)
+    assert any(n.op_type == "DequantizeLinear" for n in g.node)   # the convolution is int8
+    import onnxruntime as ort
+    want = ort.InferenceSession(str(src), providers=["CPUExecutionProvider"]).run(None, feeds[0])[0]
+    got = ort.InferenceSession(str(dst), providers=["CPUExecutionProvider"]).run(None, feeds[0])[0]
+    assert np.abs(got - want).max() < 0.05 * np.abs(want).max()
+
+
 def test_an_int8_section_is_fitted_from_the_fp32_profile_on_whole_int8_stage_graphs():
     """Stage graphs that run int8 in half their fp32 time give an int8 section that prices other
     candidates' graphs at half too; kinds that no int8 graph quantizes keep their fp32 price, and so do
