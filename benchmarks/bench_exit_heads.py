@@ -19,7 +19,6 @@ import torch.nn.functional as F
 
 from explorer.cost.measure import session, time_call
 from explorer.model import build_network
-from explorer.model.decoder import DecoderStageConfig
 from explorer.model.exits import ExitHead, ExitHeadConfig
 from explorer.model.ops import Resize
 from explorer.onnx_stages import example_inputs, export_whole
@@ -36,21 +35,10 @@ def _interpolate(self, x: torch.Tensor) -> torch.Tensor:
     return F.interpolate(x, scale_factor=float(self.factor), mode=self.mode, **kwargs)
 
 
-def _paper_order(net):
-    """``net`` (built anew) with its last decoder stage up-sampling before the exit head, as the paper's."""
-    for spec in net.specs:
-        stage = net.stages[spec.name]
-        if isinstance(spec.config, DecoderStageConfig) and not spec.config.upsample:
-            stage.upsample.factor = 2
-        elif isinstance(spec.config, ExitHeadConfig) and spec.config.nearest > 1:
-            stage.nearest.factor = 1
-    return net
-
-
 def _order_and_products(reps: int, size: tuple[int, int]) -> None:
     torch.manual_seed(0)
     net = build_network(paper_candidate()).eval()
-    paper = _paper_order(build_network(paper_candidate()).eval())
+    paper = build_network(paper_candidate(), deferred_upsampling=False).eval()
     paper.load_state_dict(net.state_dict())
     feeds = {k: v.numpy() for k, v in example_inputs(size).items()}
     img, scan = (torch.from_numpy(feeds[k]) for k in ("image", "scan"))

@@ -122,10 +122,10 @@ class AnytimeDepthNet(nn.Module):
     (N, 1, H, W) metres. ``image`` is (N, 3, H, W) RGB in [0, 1], H and W divisible by the stride;
     ``scan`` is (N, W) metres (0 = no return) lying on image row ``scan_row`` (default H // 2)."""
 
-    def __init__(self, candidate: Candidate) -> None:
+    def __init__(self, candidate: Candidate, deferred_upsampling: bool = True) -> None:
         super().__init__()
         self.candidate = candidate
-        self.specs = stage_specs(candidate)
+        self.specs = stage_specs(candidate, deferred_upsampling)
         self.stages = nn.ModuleDict({s.name: s.config.build() for s in self.specs})
 
     @property
@@ -162,6 +162,7 @@ class AnytimeDepthNet(nn.Module):
         return depths
 
 
-def build_network(candidate: Candidate) -> AnytimeDepthNet:
-    """The PyTorch network of ``candidate`` (randomly initialised)."""
-    return AnytimeDepthNet(candidate)
+def build_network(candidate: Candidate, deferred_upsampling: bool = True) -> AnytimeDepthNet:
+    """The PyTorch network of ``candidate`` (randomly initialised); ``deferred_upsampling=False``: in
+    the paper's order (``stage_specs``), with the same parameters."""
+    return AnytimeDepthNet(candidate, deferred_upsampling)

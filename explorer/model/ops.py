@@ -43,21 +43,17 @@ class Resize(nn.Module):
         if self.factor == 1:
             return x
         if self.mode == "bilinear":
-            rows = bilinear_matrix(x.shape[-2], self.factor).to(x)
-            cols = bilinear_matrix(x.shape[-1], self.factor).to(x)
+            rows = bilinear_matrix(int(x.shape[-2]), self.factor).to(x)
+            cols = bilinear_matrix(int(x.shape[-1]), self.factor).to(x)
             return torch.matmul(torch.matmul(rows, x), cols.t())
         return F.interpolate(x, scale_factor=float(self.factor), mode=self.mode)
 
 
+@lru_cache(maxsize=None)
 def bilinear_matrix(n: int, factor: int) -> torch.Tensor:
     """(n * factor, n): row i holds the weights with which output i of a bilinear up-sampling of n
     values by ``factor`` mixes its inputs (pixel centres aligned as ``align_corners=False``). Built
     from plain numbers, so that an exported graph holds it as a constant."""
-    return _bilinear_weights(int(n), int(factor))
-
-
-@lru_cache(maxsize=None)
-def _bilinear_weights(n: int, factor: int) -> torch.Tensor:
     src = np.maximum((np.arange(n * factor) + 0.5) / factor - 0.5, 0.0)
     low = np.minimum(np.floor(src).astype(np.int64), n - 1)
     high = np.minimum(low + 1, n - 1)
