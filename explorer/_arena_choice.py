@@ -8,10 +8,13 @@ whole graph at 7.8 ms), its staged chain ran +4.7% over the whole graph with the
 -5.1% (``benchmarks/bench_arena_choice.py``, 256 and 121 cycles). Neither set is within 5% in both
 states, so the runner keeps both and measures them as it runs: a run uses the shared arena's set
 unless the other took ``MARGIN`` less time lately (the median of each stage's last ``WINDOW``
-timings), and every ``EXPLORE_EVERY`` runs the other set for ``EXPLORE_RUNS`` runs in a row, so that
-a change of state is seen within a few hundred runs. Only a run that follows a run of the same set
-counts: the first run after a switch finds the other set's buffers in the caches. So chosen, the
-runner ran +5.1% calm (the shared set alone +5.2%) and -6.5% slowed (arenas of their own alone
+timings), and the other set for ``EXPLORE_RUNS`` runs in a row, ``EXPLORE_EVERY`` runs after the
+choice last changed, then at twice the last interval each time it stays (up to ``EXPLORE_EVERY_MAX``),
+so that a change of state is seen within a few hundred runs and a machine where one set stays faster
+pays little for looking (on the 2-core Zen 5 VM of stop 39, arenas of their own ran 10-11% slower
+in every block: exploring at a fixed pace ran that set 7% of the time). Only a run that follows a
+run of the same set counts: the first run after a switch finds the other set's buffers in the
+caches. So chosen (at a fixed pace, every 50 runs), the runner ran +5.1% calm (the shared set alone +5.2%) and -6.5% slowed (arenas of their own alone
 -6.4%). Two earlier versions, which took whichever set looked faster, ran it in calm only 44-71% of
 the time and ran 0.9-6% slower than the shared set alone there.
 """
@@ -21,9 +24,11 @@ from __future__ import annotations
 import statistics
 from collections import deque
 
-#: every this many runs, the set not in favour is timed again ...
+#: this many runs after the choice changed, the set not in favour is timed again ...
 EXPLORE_EVERY = 50
-#: ... for this many runs in a row (the first of them only warms it)
+#: ... for this many runs in a row (the first of them only warms it); then again after twice the
+#: interval, as long as the choice stays, up to this many runs apart
+EXPLORE_EVERY_MAX = 400
 EXPLORE_RUNS = 3
 #: a set's time for a stage: the median of its last this many warm timings
 WINDOW = 5
@@ -41,6 +46,9 @@ class ArenaChoice:
         self._count = 0
         self._last: int | None = None
         self._warm = False   # whether the run picked last follows one of the same set
+        self._favoured: int | None = None   # the set ``best`` gave last
+        self._every = EXPLORE_EVERY         # the interval before the coming exploration
+        self._explore_at = EXPLORE_EVERY - EXPLORE_RUNS + 1   # the run that starts it
 
     def ms(self, option: int, stage: int) -> "float | None":
         """The set's time for the stage (the median of its recent warm timings); None before any."""
@@ -61,11 +69,28 @@ class ArenaChoice:
     def pick(self) -> int:
         self._count += 1
         option = self.best()
-        if (self._count - 1) % EXPLORE_EVERY >= EXPLORE_EVERY - EXPLORE_RUNS:
-            option = (option + 1) % len(self.samples)   # the other set (a runner has one or two)
+        other = (option + 1) % len(self.samples)   # a runner has one or two sets
+        if self._count == self._explore_at + EXPLORE_RUNS:   # an exploration just ended: when the next one
+            if option != self._favoured or self._latest_faster(other, option):
+                self._every = EXPLORE_EVERY   # the choice changed, or may soon: look again soon
+            self._explore_at = self._count + self._every - EXPLORE_RUNS
+            self._every = min(2 * self._every, EXPLORE_EVERY_MAX)
+        elif option != self._favoured:   # changed on the favoured set's own timings
+            self._every = EXPLORE_EVERY
+            self._explore_at = min(self._explore_at, self._count + EXPLORE_EVERY - EXPLORE_RUNS)
+        self._favoured = option
+        if self._explore_at <= self._count < self._explore_at + EXPLORE_RUNS:
+            option = other
         self._warm, self._last = option == self._last, option
         self.runs[option] += 1
         return option
+
+    def _latest_faster(self, option: int, than: int) -> bool:
+        """Whether the latest warm timings of ``option`` took ``MARGIN`` less than ``than``'s recent ones,
+        over the stages both have timed: its median may not show it yet."""
+        common = [k for k in range(len(self.samples[0])) if self.samples[option][k] and self.samples[than][k]]
+        latest = sum(self.samples[option][k][-1] for k in common)
+        return bool(common) and latest < (1 - MARGIN) * sum(self.ms(than, k) for k in common)
 
     def record(self, option: int, stage: int, ms: float) -> None:
         """A stage of the run ``pick`` gave ``option`` took ``ms``; kept if that run was warm."""

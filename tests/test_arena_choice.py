@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from explorer._arena_choice import EXPLORE_EVERY, EXPLORE_RUNS, ArenaChoice
+from explorer._arena_choice import EXPLORE_EVERY, EXPLORE_EVERY_MAX, EXPLORE_RUNS, ArenaChoice
 
 
 def _serve(choice: ArenaChoice, stage_ms: list[list[float]], runs: int) -> list[int]:
@@ -21,8 +21,24 @@ def test_it_times_both_sets_then_keeps_to_the_faster_one_exploring_the_other():
     picked = _serve(choice, [[1.0, 2.0, 1.0], [1.0, 1.5, 1.0]], 10 * EXPLORE_EVERY)
     assert picked[:4] == [0, 0, 1, 1]   # each set warmed, then timed, before any comparison
     later = picked[EXPLORE_EVERY:]
-    assert later.count(0) == EXPLORE_RUNS * (len(later) // EXPLORE_EVERY)   # the slower set: its explorations
+    assert EXPLORE_RUNS <= later.count(0) < EXPLORE_RUNS * (len(later) // EXPLORE_EVERY)   # explored, less and less
     assert choice.best() == 1
+
+
+def _explorations(picked: list[int], favoured: int) -> list[int]:
+    """The runs (0-based) that start a spell of the set not in favour."""
+    return [i for i, o in enumerate(picked) if o != favoured and (i == 0 or picked[i - 1] == favoured)]
+
+
+def test_while_the_choice_stays_it_looks_at_the_other_set_less_and_less_often():
+    choice = ArenaChoice(2, 2)
+    _serve(choice, [[1.0, 1.0], [1.3, 1.3]], 2 * EXPLORE_EVERY)
+    picked = _serve(choice, [[1.0, 1.0], [1.3, 1.3]], 6 * EXPLORE_EVERY_MAX)
+    starts = _explorations(picked, 0)
+    gaps = np.diff(starts)
+    assert all(b >= a for a, b in zip(gaps, gaps[1:])) and gaps[0] < EXPLORE_EVERY_MAX
+    assert gaps[-1] == EXPLORE_EVERY_MAX and max(gaps) == EXPLORE_EVERY_MAX
+    assert all(picked[s:s + EXPLORE_RUNS] == [1] * EXPLORE_RUNS for s in starts[:-1])
 
 
 def test_a_run_after_a_switch_of_set_does_not_count():
@@ -41,9 +57,12 @@ def test_it_follows_the_machine_when_the_faster_set_changes():
     choice = ArenaChoice(2, 2)
     _serve(choice, [[1.0, 1.0], [1.3, 1.3]], 5 * EXPLORE_EVERY)
     assert choice.best() == 0
-    picked = _serve(choice, [[1.4, 1.4], [1.1, 1.1]], 5 * EXPLORE_EVERY)   # the machine changed state
+    picked = _serve(choice, [[1.4, 1.4], [1.1, 1.1]], EXPLORE_EVERY_MAX + 3 * EXPLORE_EVERY)   # the machine changed
     assert choice.best() == 1
     assert picked[-3 * EXPLORE_EVERY:].count(1) > 2 * EXPLORE_EVERY
+    # once it switched, it looks back at the other set within EXPLORE_EVERY runs again
+    switched = picked.index(1) + EXPLORE_RUNS
+    assert 0 in picked[switched:switched + EXPLORE_EVERY + EXPLORE_RUNS]
 
 
 def test_stages_timed_in_only_one_set_do_not_decide():
@@ -119,5 +138,5 @@ def test_the_shared_set_keeps_its_place_unless_another_is_clearly_faster():
     choice = ArenaChoice(2, 1)
     _serve(choice, [[1.0], [1.0 - MARGIN / 2]], 4 * EXPLORE_EVERY)   # within the margin: noise
     assert choice.best() == 0
-    _serve(choice, [[1.0], [1.0 - 2 * MARGIN]], 4 * EXPLORE_EVERY)
+    _serve(choice, [[1.0], [1.0 - 2 * MARGIN]], EXPLORE_EVERY_MAX + EXPLORE_EVERY)   # its explorations show it
     assert choice.best() == 1

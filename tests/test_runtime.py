@@ -147,3 +147,33 @@ def _timed(fn):
     t0 = time.perf_counter()
     fn()
     return time.perf_counter() - t0
+
+
+def test_the_watchdog_halts_at_each_deadline_and_is_woken_only_for_an_earlier_one():
+    from explorer.runtime import _Watchdog
+    halted = []
+    dog = _Watchdog(lambda: halted.append(time.perf_counter()))
+    wakes = []
+    notify = dog._cond.notify
+    dog._cond.notify = lambda *a: (wakes.append(1), notify(*a))
+    try:
+        start = time.perf_counter()
+        dog.arm(start + 0.4)
+        time.sleep(0.1)        # the thread starts and waits for that deadline
+        dog.disarm()
+        dog.arm(start + 0.7)   # later than the wait it is in: it finds this deadline when that wait ends
+        assert len(wakes) == 1
+        while not halted and time.perf_counter() < start + 10:
+            time.sleep(0.01)
+        assert len(halted) == 1 and halted[0] >= start + 0.7
+        far = time.perf_counter() + 30
+        dog.arm(far)
+        dog.disarm()
+        soon = time.perf_counter() + 0.1
+        dog.arm(soon)          # earlier than the wait it is in: woken
+        assert len(wakes) == 3
+        while len(halted) < 2 and time.perf_counter() < soon + 10:
+            time.sleep(0.01)
+        assert len(halted) == 2 and soon <= halted[1] < far
+    finally:
+        dog.stop()
