@@ -1,4 +1,5 @@
 
+import numpy as np
 import pytest
 import torch
 
@@ -67,6 +68,42 @@ def test_path0_nearest_fill():
     assert out[0, 0, 0].tolist() == [2.0, 2.0, 2.0, 5.0, 5.0, 5.0]
     assert torch.equal(out[0, 0, 0], out[0, 0, 2])
     assert interpolate_scan(torch.zeros(1, 4), 2).abs().sum() == 0
+
+
+def _nearest_by_search(scan: torch.Tensor) -> torch.Tensor:
+    """Each column's nearest return by searching all columns (the first, so the left one, on a tie)."""
+    n, w = scan.shape
+    cols = torch.arange(w, dtype=scan.dtype)
+    distance = (cols[:, None] - cols[None, :]).abs()[None] + (scan <= 0).to(scan.dtype)[:, None, :] * 4 * w
+    return torch.gather(scan, 1, distance.argmin(dim=2))
+
+
+def test_path0_takes_each_columns_nearest_return_as_a_search_of_all_columns_would():
+    g = torch.Generator().manual_seed(0)
+    for trial in range(300):
+        n, w = int(torch.randint(1, 4, (1,), generator=g)), int(torch.randint(1, 40, (1,), generator=g))
+        scan = torch.rand(n, w, generator=g) * 10
+        scan[torch.rand(n, w, generator=g) < float(torch.rand(1, generator=g))] = 0.0   # gaps, up to none left
+        if trial % 5 == 0:
+            scan[:, ::2] = 0.0   # every gap between two returns: a tie, taken from the left
+        assert torch.equal(interpolate_scan(scan, 2)[:, 0, 1], _nearest_by_search(scan)), scan
+
+
+def test_path0_in_onnxruntime_matches_torch():
+    import io
+    from explorer.cost.measure import session   # the process's thread pool, as the suite sets it up
+
+    class Path0(torch.nn.Module):
+        def forward(self, scan):
+            return interpolate_scan(scan, 5)
+    buf = io.BytesIO()
+    torch.onnx.export(Path0(), (torch.rand(2, 37),), buf, opset_version=17, dynamo=False)
+    sess = session(buf.getvalue())
+    scan = torch.rand(2, 37, generator=torch.Generator().manual_seed(1)) * 10
+    scan[0, ::2] = 0.0
+    scan[1, 3:30] = 0.0
+    np.testing.assert_array_equal(sess.run(None, {sess.get_inputs()[0].name: scan.numpy()})[0],
+                                  interpolate_scan(scan, 5).numpy())
 
 
 @pytest.mark.parametrize("depth", [1, 2])

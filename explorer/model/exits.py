@@ -85,9 +85,20 @@ def interpolate_scan(scan: torch.Tensor, height: int) -> torch.Tensor:
     return at all gives zeros.
     """
     n, w = scan.shape
-    cols = torch.arange(w, device=scan.device, dtype=scan.dtype)
-    distance = (cols[:, None] - cols[None, :]).abs()  # (W, W)
-    invalid = (scan <= 0).to(scan.dtype) * (4.0 * w)  # (N, W): pushes missing columns away
-    nearest = (distance[None] + invalid[:, None, :]).argmin(dim=2)  # (N, W)
+    # In O(W), with fixed shapes (a W x W matrix of distances searched by argmin took 0.25 ms at W 640 on
+    # a 2-core Zen 5 VM): the nearest return on the left and on the right, and the closer of the two
+    # (the left one on a tie, as argmin's first minimum).
+    valid = scan > 0
+    cols = torch.arange(w, device=scan.device).expand(n, w)
+    count = torch.cumsum(valid.to(torch.int64), dim=1)   # returns at or left of each column
+    # positions[:, k]: the column of the k-th return (k from 1); slot 0 takes the columns without one
+    positions = torch.zeros(n, w + 1, dtype=torch.int64, device=scan.device).scatter(
+        1, torch.where(valid, count, 0), cols)
+    after = count + (~valid).to(torch.int64)             # k of the first return at or right of the column
+    left = positions.gather(1, count)
+    right = positions.gather(1, after.clamp(max=w))
+    has_left, has_right = count > 0, after <= count[:, -1:]
+    take_left = has_left & (~has_right | (cols - left <= right - cols))
+    nearest = torch.where(take_left, left, torch.where(has_right, right, cols))   # no return at all: itself
     filled = torch.gather(scan, 1, nearest)
     return filled[:, None, None, :].expand(n, 1, height, w)
