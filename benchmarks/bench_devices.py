@@ -38,7 +38,7 @@ def shipped(data: Path) -> None:
         print(f"{name}: {len(obs)} measured kernels, median |error| {err.median():.1%} (target <= 20%), "
               f"within 10%: {(err <= 0.1).mean():.0%}")
     tx2 = get_device("tx2")
-    ms = candidate_cost(paper_candidate(), deferred_upsampling=False).path_latency_ms(tx2)[1:]   # the paper's graph
+    ms = candidate_cost(paper_candidate(), paper_graph=True).path_latency_ms(tx2)[1:]   # the paper's graph
     for i, (got, want) in enumerate(zip(ms, PAPER_TX2_PATHS_MS), start=1):
         print(f"tx2 paper design path {i}: {got:.2f} ms vs {want} ms ({got / want - 1:+.1%}, target within 10%)")
     for name in TX2_REFERENCES:

@@ -38,7 +38,7 @@ def _interpolate(self, x: torch.Tensor) -> torch.Tensor:
 def _order_and_products(reps: int, size: tuple[int, int]) -> None:
     torch.manual_seed(0)
     net = build_network(paper_candidate()).eval()
-    paper = build_network(paper_candidate(), deferred_upsampling=False).eval()
+    paper = build_network(paper_candidate(), paper_graph=True).eval()
     paper.load_state_dict(net.state_dict())
     feeds = {k: v.numpy() for k, v in example_inputs(size).items()}
     img, scan = (torch.from_numpy(feeds[k]) for k in ("image", "scan"))

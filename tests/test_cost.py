@@ -10,12 +10,13 @@ from explorer.model import build_network
 from explorer.space import SearchSpace, fastdepth_candidate, paper_candidate
 
 
-def _torch_conv_macs(cand, h, w):
+def _torch_macs(cand, h, w):
+    """Multiply-adds of the convolutions and matrix products (the exits' bilinear up-sampling)."""
     net = build_network(cand).eval()
     with FlopCounterMode(display=False) as counter, torch.no_grad():
         net(torch.rand(1, 3, h, w), torch.rand(1, w) + 1)
-    # convolutions only: the exits' bilinear up-sampling runs as matrix products (ops.Resize)
-    return sum(n for op, n in counter.get_flop_counts()["Global"].items() if "convolution" in str(op)) // 2
+    return sum(n for op, n in counter.get_flop_counts()["Global"].items()
+               if any(name in str(op) for name in ("convolution", "mm", "matmul"))) // 2
 
 
 @pytest.mark.parametrize("cand", [paper_candidate(), fastdepth_candidate()]
@@ -23,8 +24,8 @@ def _torch_conv_macs(cand, h, w):
 def test_workloads_match_torch(cand):
     h, w = 224, 224
     wl = candidate_workloads(cand, (h, w))
-    conv_macs = sum(x.macs for x in wl if x.kind != "resize")  # flop_counter counts convolutions only
-    assert conv_macs == _torch_conv_macs(cand, h, w)
+    assert not any(x.macs for x in wl if x.kind == "resize")   # nearest: no arithmetic
+    assert sum(x.macs for x in wl) == _torch_macs(cand, h, w)
     assert sum(x.params for x in wl) == sum(p.numel() for p in build_network(cand).parameters())
 
 

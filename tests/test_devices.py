@@ -1,5 +1,6 @@
 import dataclasses
 
+import numpy as np
 import pytest
 import yaml
 
@@ -76,7 +77,7 @@ def test_tx2_reproduces_its_calibration(shared_data):
     obs = [Observation(w.layer, [w], ms) for w, ms in kernel_workloads(shared_data / "tx2-tvm-kernels" / "kernels.csv", "gpu")]
     assert len(obs) == 71
     assert errors(tx2, obs)["error"].abs().median() <= 0.20
-    ms = candidate_cost(paper_candidate(), deferred_upsampling=False).path_latency_ms(tx2)[1:]
+    ms = candidate_cost(paper_candidate(), paper_graph=True).path_latency_ms(tx2)[1:]
     for got, want in zip(ms, PAPER_TX2_PATHS_MS):
         assert abs(got / want - 1) <= 0.10
     # this project's graph leaves the last up-sampling to the exit head: the same values, less work
@@ -127,6 +128,45 @@ def test_one_channel_pointwise_layers_have_their_own_kind(tmp_path):
     fitted = fit_host(measured)
     for wl, ms in measured:
         if wl.kind.startswith("pointwise"):
+            assert fitted.layer_ms(wl) + fitted.stage_overhead_ms == pytest.approx(ms, rel=0.10), wl.layer
+
+
+def test_the_exits_bilinear_products_have_their_own_kind(tmp_path):
+    from explorer.cost.calibrate import HOST_KINDS, SweepLayer, fit_host, layer_graph
+    from explorer.cost.measure import session
+    import torch
+    from explorer.model.ops import Resize
+    cost, paper = candidate_cost(paper_candidate()), candidate_cost(paper_candidate(), paper_graph=True)
+    products = [w for w in cost.workloads if w.kind == "bilinear"]
+    assert {w.stage for w in products} == {"exit_0", "exit_1", "exit_2"}   # exit 4 up-samples nearest, x2
+    assert not any(w.kind == "bilinear" for w in paper.workloads)   # the paper's graph: Resize operators
+    exit_2 = next(w for w in products if w.stage == "exit_2")   # 56x56 -> 224x224: rows, then columns
+    assert exit_2.in_shape == (1, 56, 56) and exit_2.macs == 224 * 56 * 56 + 224 * 56 * 224 and exit_2.params == 0
+    # the calibration times them as the model exports them
+    graph, feeds, wl = layer_graph(SweepLayer("bilinear", (1, 7, 14), 1, 0, 8))
+    np.testing.assert_allclose(session(graph).run(None, feeds)[0],
+                               Resize(8, "bilinear")(torch.from_numpy(feeds["x"])).numpy(), rtol=1e-6, atol=1e-6)
+    assert (wl.kind, wl.out_shape) == ("bilinear", (1, 56, 112))
+    # a profile written before the kind existed prices them as pointwise layers
+    data = get_device("tx2").to_dict()
+    data["kinds"].pop("bilinear", None)
+    f = tmp_path / "old.yaml"
+    f.write_text(yaml.safe_dump(data))
+    assert get_device(str(f)).kinds["bilinear"] == get_device(str(f)).kinds["pointwise"]
+    # the host fit tells them apart: a device where they run at a quarter of the pointwise rate
+    truth = DeviceProfile("truth", "", False, 10.0, {k: KindCost(20.0, 0.01) for k in HOST_KINDS},
+                          stage_overhead_ms=0.02)
+    truth = dataclasses.replace(truth, kinds={**truth.kinds, "bilinear": KindCost(5.0, 0.01)})
+    layers = [SweepLayer("pointwise", (c, s, s), o) for c in (16, 64, 256) for s in (14, 56, 112) for o in (16, 128)]
+    layers += [SweepLayer("bilinear", (1, s, s), 1, 0, f) for s in (7, 14, 28) for f in (2, 4, 8)]
+    layers += [SweepLayer(k, (32, 28, 28), 32, 3, 1) for k in ("depthwise", "conv")]
+    layers += [SweepLayer("pointwise_1ch", (16, 56, 56), 1), SweepLayer("conv1d", (16, 224), 16, 3, 1),
+               SweepLayer("resize", (16, 28, 28), 16, 0, 2), SweepLayer("add", (16, 28, 28), 16),
+               SweepLayer("concat", (16, 28), 0, extra=16), SweepLayer("slice", (16, 28, 28), 16, extra=3)]
+    measured = [(wl, truth.layer_ms(wl) + truth.stage_overhead_ms) for wl in (layer_graph(l)[2] for l in layers)]
+    fitted = fit_host(measured)
+    for wl, ms in measured:
+        if wl.kind == "bilinear":
             assert fitted.layer_ms(wl) + fitted.stage_overhead_ms == pytest.approx(ms, rel=0.10), wl.layer
 
 

@@ -120,7 +120,7 @@ def test_the_last_exit_head_up_samples_after_its_1x1_layers_with_the_same_values
     specs = {s.name: s.config for s in net.specs}
     assert not specs["decoder_4"].upsample and specs["exit_4"].nearest == 2
     assert all(specs[f"decoder_{k}"].upsample for k in (1, 2, 3))
-    reference = build_network(cand, deferred_upsampling=False).eval()   # the paper's order
+    reference = build_network(cand, paper_graph=True).eval()   # the paper's order
     reference.load_state_dict(net.state_dict())
     image, scan = torch.rand(2, 3, 64, 96), torch.rand(2, 96) * 5 + 0.5
     with torch.no_grad():

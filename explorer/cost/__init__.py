@@ -74,10 +74,11 @@ class CandidateCost:
 
 
 def candidate_cost(candidate: Candidate, input_size: tuple[int, int] = (224, 224),
-                   deferred_upsampling: bool = True) -> CandidateCost:
-    """``deferred_upsampling=False``: the costs of the paper's graph of ``candidate``, whose last
-    decoder stage up-samples before its exit head (``stage_specs``), for the paper's figures."""
-    specs = stage_specs(candidate, deferred_upsampling)
+                   paper_graph: bool = False) -> CandidateCost:
+    """``paper_graph``: the costs of the graph of ``candidate`` that the paper measured, whose last
+    decoder stage up-samples before its exit head and whose exits up-sample with a bilinear resize
+    operator (``stage_specs``), for the paper's figures."""
+    specs = stage_specs(candidate, paper_graph)
     workloads = candidate_workloads(candidate, input_size, specs)
     path_stages, exits, done = [], [], []
     for spec in specs:

@@ -76,6 +76,12 @@ def _rng_layers(seed: int, counts: dict[str, int]) -> list[SweepLayer]:
         f = rng.choice((2, 4, 8, 16)) if linear else 2
         if side * f <= 224 and c * side * side <= 2_000_000:
             out.append(SweepLayer("resize", spatial(c, side), c, 0, f, "linear" if linear else "nearest"))
+    while len([l for l in out if l.kind == "bilinear"]) < counts["bilinear"]:
+        # exit heads' up-sampling to full resolution: one channel, from 1/2 to 1/32 of it, as two products
+        side, f = rng.choice(SIDES[:-1]), rng.choice((2, 4, 8, 16, 32))
+        shape = spatial(1, side)
+        if side * f <= 224 and shape[2] * f <= 640:
+            out.append(SweepLayer("bilinear", shape, 1, 0, f))
     while len([l for l in out if l.kind == "add"]) < counts["add"]:
         c, side = rng.choice(CHANNELS[:10]), rng.choice(SIDES[:-1])
         out.append(SweepLayer("add", spatial(c, side), c))
@@ -88,18 +94,20 @@ def _rng_layers(seed: int, counts: dict[str, int]) -> list[SweepLayer]:
 
 
 DEFAULT_COUNTS = {"pointwise": 80, "pointwise_1ch": 16, "depthwise": 60, "conv": 12, "conv1d": 24, "resize": 30,
-                  "add": 20, "concat": 8, "slice": 8}
+                  "bilinear": 16, "add": 20, "concat": 8, "slice": 8}
 #: Kinds a host profile prices (transposed convolutions, in no candidate, fall back to conv).
-HOST_KINDS = KINDS + ("pointwise_1ch",)
+HOST_KINDS = KINDS + ("pointwise_1ch", "bilinear")
 
 
 def layer_graph(layer: SweepLayer) -> tuple[bytes, dict[str, np.ndarray], Workload]:
-    """A one-node ONNX graph for ``layer``, its feeds, and its workload."""
+    """A one-node ONNX graph for ``layer`` (two for a bilinear one), its feeds, and its workload."""
     rng = np.random.default_rng(0)
     x_shape = (1, *layer.in_shape)
     inits, inputs = [], [helper.make_tensor_value_info("x", TensorProto.FLOAT, list(x_shape))]
     feeds = {"x": rng.random(x_shape, dtype=np.float32)}
     k, s, kind = layer.kernel, layer.stride, layer.kind
+    if kind == "bilinear":
+        return _bilinear_graph(layer, inputs, feeds)
     params, macs = 0, 0
     if kind in ("pointwise", "pointwise_1ch", "depthwise", "conv", "conv1d"):
         cin = layer.in_shape[0]
@@ -155,6 +163,23 @@ def layer_graph(layer: SweepLayer) -> tuple[bytes, dict[str, np.ndarray], Worklo
     return model.SerializeToString(), feeds, wl
 
 
+def _bilinear_graph(layer: SweepLayer, inputs: list, feeds: dict[str, np.ndarray]) -> tuple[bytes, dict, Workload]:
+    """The two matrix products of a bilinear up-sampling, as an exported ``ops.Resize`` holds them."""
+    from explorer.cost.workloads import bilinear_products
+    from explorer.model.ops import bilinear_matrix
+    c, h, w = layer.in_shape
+    f = layer.stride
+    rows, cols = bilinear_matrix(h, f).numpy(), bilinear_matrix(w, f).numpy()
+    nodes = [helper.make_node("MatMul", ["rows", "x"], ["between"]), helper.make_node("MatMul", ["between", "cols"], ["y"])]
+    out = helper.make_tensor_value_info("y", TensorProto.FLOAT, [1, c, h * f, w * f])
+    graph = helper.make_graph(nodes, "bilinear", inputs, [out], initializer=[
+        numpy_helper.from_array(rows, "rows"), numpy_helper.from_array(np.ascontiguousarray(cols.T), "cols")])
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
+    model.ir_version = 8
+    wl = bilinear_products("sweep", f"bilinear {layer.in_shape} x{f}", layer.in_shape, f)
+    return model.SerializeToString(), feeds, wl
+
+
 def fit_host(measured: list[tuple[Workload, float]], name: str = "host",
              description: str | None = None, cond: dict | None = None,
              stage_obs: list[Observation] = (), energy: dict | None = None,
@@ -167,7 +192,7 @@ def fit_host(measured: list[tuple[Workload, float]], name: str = "host",
         overlap=False, bandwidth_gbs=10.0, kinds={k: KindCost(20.0, 0.005) for k in HOST_KINDS},
         stage_overhead_ms=0.02)
     ident = {k: k for k in HOST_KINDS}
-    rate_of = {k: k for k in ("conv", "pointwise", "pointwise_1ch", "depthwise", "conv1d", "resize")}
+    rate_of = {k: k for k in ("conv", "pointwise", "pointwise_1ch", "depthwise", "conv1d", "resize", "bilinear")}
 
     def fit(start: DeviceProfile, overlap: bool, exponent: float) -> DeviceProfile:
         return fit_profile(dataclasses.replace(start, overlap=overlap, body_exponent=exponent), obs, rate_of, ident,

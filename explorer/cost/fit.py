@@ -168,7 +168,7 @@ def _path_observations(weight: float, targets) -> list[Observation]:
     from explorer.cost import candidate_cost
     obs = []
     for label, candidate, paths_ms in targets:
-        cost = candidate_cost(candidate, deferred_upsampling=False)   # the graph the paper measured
+        cost = candidate_cost(candidate, paper_graph=True)   # the graph the paper measured
         for i, (stages, ms) in enumerate(zip(cost.path_stages, paths_ms), start=1):
             wl = [w for w in cost.workloads if w.stage in stages]
             obs.append(Observation(f"{label} path {i}", wl, ms, weight, end_to_end=True))
@@ -317,7 +317,7 @@ def rpi4_table2(profile: DeviceProfile) -> dict[str, float]:
     from explorer.anytime import anytime_loss, parse_budget
     from explorer.cost import candidate_cost
     from explorer.space import paper_candidate
-    cost = candidate_cost(paper_candidate(), deferred_upsampling=False)   # the graph the paper measured
+    cost = candidate_cost(paper_candidate(), paper_graph=True)   # the graph the paper measured
     out = {}
     for spec in PAPER_RPI4_TABLE2:
         dist = parse_budget(spec)

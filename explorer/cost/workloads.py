@@ -32,7 +32,9 @@ KINDS = ("conv", "pointwise", "depthwise", "conv1d", "resize", "add", "concat", 
 #: A 1x1 convolution to one channel (every exit head's last layer) is a matrix-vector product:
 #: memory-bound where other pointwise layers are not (on this project's CPU, 3x slower than the
 #: pointwise rate says at full resolution), so it has its own kind.
-OPTIONAL_KINDS = {"deconv": "conv", "pointwise_1ch": "pointwise"}
+#: Bilinear up-sampling as two matrix products (``ops.Resize``, an exit's last step) is one more:
+#: a profile that does not price it prices it as the matrix products of pointwise layers.
+OPTIONAL_KINDS = {"deconv": "conv", "pointwise_1ch": "pointwise", "bilinear": "pointwise"}
 ALL_KINDS = KINDS + tuple(OPTIONAL_KINDS)
 
 
@@ -71,6 +73,19 @@ def _numel(shape: tuple[int, ...]) -> int:
     return math.prod(shape)
 
 
+def bilinear_products(stage: str, layer: str, in_shape: tuple[int, int, int], factor: int) -> Workload:
+    """A bilinear up-sampling by ``factor`` as ``ops.Resize`` computes it: two matrix products, rows then
+    columns. Each output row mixes every input row, then each output value every column of its row
+    (most weights 0, all multiplied); the interpolation matrices (constants, not parameters) are
+    read, the rows-first product written and read again."""
+    c, hi, wi = in_shape
+    ho, wo = hi * factor, wi * factor
+    between = c * ho * wi
+    return Workload(stage, layer, "bilinear", tuple(in_shape), (c, ho, wo), 0, factor,
+                    c * (ho * hi * wi + ho * wi * wo), 0,
+                    (c * hi * wi + ho * hi + wo * wi + between) * BYTES_PER_VALUE, (c * ho * wo + between) * BYTES_PER_VALUE)
+
+
 def trace_stage(module: nn.Module, stage: str, inputs: list) -> tuple[list[Workload], list[tuple[int, ...]]]:
     """Run ``module`` on meta tensors of the given shapes (ints pass through) and record layers."""
     records: list[Workload] = []
@@ -98,6 +113,9 @@ def trace_stage(module: nn.Module, stage: str, inputs: list) -> tuple[list[Workl
                 kernel = math.prod(m.kernel_size)
                 macs = n_in * (m.out_channels // m.groups) * kernel
                 kind, k, s = "deconv", m.kernel_size[0], m.stride[0]
+            elif isinstance(m, ops.Resize) and m.products and in_shape != out_shape:
+                records.append(bilinear_products(stage, name, in_shape, m.factor))
+                return
             elif isinstance(m, (ops.Resize, nn.Upsample)):
                 if in_shape == out_shape:
                     return

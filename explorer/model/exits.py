@@ -26,6 +26,7 @@ class ExitHeadConfig:
     lidar_channels: int = 0      # > 0: the LiDAR feature at this stride is added to every row first
     residual: bool = False       # the output corrects path 0 (its last input) instead of replacing it
     nearest: int = 1             # > 1: the decoder stage before left its nearest up-sampling to the head
+    bilinear_products: bool = True   # False: a bilinear resize operator, as the paper's graph (``ops.Resize``)
 
     def build(self) -> "ExitHead":
         return ExitHead(self)
@@ -49,7 +50,7 @@ class ExitHead(nn.Module):
         layers.append(out)
         self.layers = nn.Sequential(*layers)
         self.nearest = Resize(config.nearest, "nearest")
-        self.resize = Resize(config.upscale, "bilinear")
+        self.resize = Resize(config.upscale, "bilinear", products=config.bilinear_products)
         if config.residual:
             self.correct = SkipAdd()
 

@@ -41,13 +41,14 @@ def _encoder_tensor(block: int, encoder_blocks: int) -> str:
     return f"enc_b{block}"
 
 
-def stage_specs(candidate: Candidate, deferred_upsampling: bool = True) -> list[StageSpec]:
+def stage_specs(candidate: Candidate, paper_graph: bool = False) -> list[StageSpec]:
     """The execution order of ``candidate``'s stages (path 0 needs none): the interpolated scan as
     a tensor when the exits correct it, the LiDAR-only exit, the LiDAR encoder when it runs first,
     the image encoder (split by its exits), the LiDAR encoder otherwise, the ECU, then decoder
-    stages, each exit head right after what it reads. ``deferred_upsampling``: the last decoder
-    stage leaves its up-sampling to its exit head where that gives the same values
-    (``explorer.model.decoder``); False: the paper's graph, for its measured figures."""
+    stages, each exit head right after what it reads. The last decoder stage leaves its up-sampling
+    to its exit head where that gives the same values (``explorer.model.decoder``), and exit heads
+    up-sample bilinearly as two matrix products (``ops.Resize``); ``paper_graph``: neither, the graph
+    the paper measured, for its figures (the same parameters, the same values to float rounding)."""
     stride = candidate.stride
     specs: list[StageSpec] = []
     path = 1
@@ -97,7 +98,8 @@ def stage_specs(candidate: Candidate, deferred_upsampling: bool = True) -> list[
     channels = enc.out_channels()
 
     def exit_cfg(cin: int, scale: int) -> ExitHeadConfig:
-        return ExitHeadConfig(cin, candidate.head_depth, candidate.head_width, scale, residual=residual)
+        return ExitHeadConfig(cin, candidate.head_depth, candidate.head_width, scale, residual=residual,
+                              bilinear_products=not paper_graph)
 
     if 0 in candidate.exits:
         add_exit("exit_0", exit_cfg(channels, stride), (x,))
@@ -106,7 +108,7 @@ def stage_specs(candidate: Candidate, deferred_upsampling: bool = True) -> list[
         out_stride = stride // 2 ** k
         has_skip = out_stride in skips
         # the last stage's output feeds its exit head alone: the head up-samples after its 1x1 layers
-        deferred = deferred_upsampling and k == last and not has_skip and k in candidate.exits
+        deferred = not paper_graph and k == last and not has_skip and k in candidate.exits
         cfg = DecoderStageConfig(channels, width, has_skip, upsample=not deferred)
         inputs = (x, f"skip_s{out_stride}") if has_skip else (x,)
         x, channels = f"x{k}", width
@@ -122,10 +124,10 @@ class AnytimeDepthNet(nn.Module):
     (N, 1, H, W) metres. ``image`` is (N, 3, H, W) RGB in [0, 1], H and W divisible by the stride;
     ``scan`` is (N, W) metres (0 = no return) lying on image row ``scan_row`` (default H // 2)."""
 
-    def __init__(self, candidate: Candidate, deferred_upsampling: bool = True) -> None:
+    def __init__(self, candidate: Candidate, paper_graph: bool = False) -> None:
         super().__init__()
         self.candidate = candidate
-        self.specs = stage_specs(candidate, deferred_upsampling)
+        self.specs = stage_specs(candidate, paper_graph)
         self.stages = nn.ModuleDict({s.name: s.config.build() for s in self.specs})
 
     @property
@@ -162,7 +164,7 @@ class AnytimeDepthNet(nn.Module):
         return depths
 
 
-def build_network(candidate: Candidate, deferred_upsampling: bool = True) -> AnytimeDepthNet:
-    """The PyTorch network of ``candidate`` (randomly initialised); ``deferred_upsampling=False``: in
-    the paper's order (``stage_specs``), with the same parameters."""
-    return AnytimeDepthNet(candidate, deferred_upsampling)
+def build_network(candidate: Candidate, paper_graph: bool = False) -> AnytimeDepthNet:
+    """The PyTorch network of ``candidate`` (randomly initialised); ``paper_graph``: the graph the paper
+    measured (``stage_specs``), with the same parameters."""
+    return AnytimeDepthNet(candidate, paper_graph)

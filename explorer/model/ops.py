@@ -32,17 +32,19 @@ class Resize(nn.Module):
     ``F.interpolate(..., align_corners=False)`` (``bilinear_matrix``): the same values to float
     rounding, and onnxruntime runs the products faster than its Resize kernel (each of the paper design's
     exits to 224x224: 0.11 ms as a Resize, 0.04 ms as the two products, onnxruntime's profiler on an
-    Intel Xeon VM); so does PyTorch (one channel 14x14 -> 224x224: 0.036 against 0.092-0.101 ms)."""
+    Intel Xeon VM); so does PyTorch (one channel 14x14 -> 224x224: 0.036 against 0.092-0.101 ms).
+    ``products=False``: bilinear by interpolation (a Resize operator once exported), as the paper's graph."""
 
-    def __init__(self, factor: int, mode: str = "nearest") -> None:
+    def __init__(self, factor: int, mode: str = "nearest", products: bool = True) -> None:
         super().__init__()
         self.factor = int(factor)
         self.mode = mode
+        self.products = products and mode == "bilinear"
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         if self.factor == 1:
             return x
-        if self.mode == "bilinear":
+        if self.products:
             rows = bilinear_matrix(int(x.shape[-2]), self.factor).to(x)
             cols = bilinear_matrix(int(x.shape[-1]), self.factor).to(x)
             return torch.matmul(torch.matmul(rows, x), cols.t())
