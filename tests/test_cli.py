@@ -15,6 +15,40 @@ def test_help_lists_every_command(run_cli):
         assert cmd in out
 
 
+def _options(parser, path=()):
+    import argparse
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for name, sub in action.choices.items():
+                yield from _options(sub, path + (name,))
+        elif not isinstance(action, (argparse._HelpAction, argparse._VersionAction)):
+            yield " ".join(path), action
+
+
+def test_every_option_of_every_command_is_explained_with_its_default():
+    from explorer.cli import build_parser
+    options = list(_options(build_parser()))
+    assert len(options) > 100
+    assert not [(cmd, a.option_strings or a.dest) for cmd, a in options if not a.help]
+    for cmd, a in options:   # a default worth stating is stated, in the text's own words or appended
+        if a.default not in (None, False, True) and not isinstance(a.default, list) and a.nargs is None:
+            assert "default" in a.help, (cmd, a.option_strings)
+    helps = {(cmd, a.option_strings[-1]): a.help for cmd, a in options if a.option_strings}
+    assert helps[("evaluate", "--input")] == "input HxW (default: the training size)"   # a command's own wins
+    assert helps[("enumerate", "--input")].endswith("(default 224x224)")
+    assert helps[("rescore", "--json")] == helps[("curve", "--json")]   # one explanation per flag
+
+
+def test_help_renders_for_every_command(run_cli):
+    from explorer.cli import build_parser
+    commands = {cmd for cmd, _ in _options(build_parser()) if cmd}
+    for cmd in commands:
+        code, out, _ = run_cli(*cmd.split(), "--help")
+        assert code == 0 and "usage: explorer" in out, cmd
+    code, out, _ = run_cli("export", "--help")
+    assert "(default 3%)" in out and "(default 32)" in out
+
+
 def test_space_show_and_profile_json(run_cli):
     code, out, _ = run_cli("space", "show", "anytime_depth", "--json")
     assert code == 0 and json.loads(out)["size"] >= 10_000

@@ -9,7 +9,7 @@ import warnings
 from typing import Sequence
 
 from explorer.cli import deploy, devices, inspect, study, training
-from explorer.cli._common import _Parser
+from explorer.cli._common import _Parser, explain
 from explorer.cli.study import _print_outcome  # noqa: F401  (the closing summary, for tests and notebooks)
 from explorer.errors import UserError
 
@@ -32,6 +32,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     for group in GROUPS:
         group.register(sub, add, reports)
+    explain(p)
     return p
 
 

@@ -64,3 +64,63 @@ def _add_supervision(s: argparse.ArgumentParser) -> None:
                    "depth is first optimised on the photometric loss from the scan, then pulls every exit "
                    "where it explains the neighbouring frames better (computed once per data set, cached)")
 
+
+
+#: One explanation per flag, for every command that takes it; a command's own ``help=`` wins (a flag
+#: whose meaning narrows there, e.g. ``--device`` for ``train --exit-weights anytime``).
+FLAG_HELP = {
+    "--json": "print the result as JSON (for scripts) instead of tables",
+    "--study": "study name, as explorer search named it (DEVICE-SPACE unless given --study)",
+    "--storage": "Optuna storage URL (default: reports/<study>/study.db; postgresql://... for several machines)",
+    "--space": "search space: a shipped name (anytime_depth, paper, tiny) or a YAML file",
+    "--data": "data set: synthetic (generated here, cached), synthetic:TRAIN:VAL, nyu:PATH (h5 folder or CSV), "
+              "kitti:PATH; sequences: synthetic-seq[:TRAIN:VAL], kitti-seq:DRIVE, frames:FOLDER",
+    "--device": "device profile: a built-in name (see explorer devices) or a YAML file from explorer calibrate",
+    "--budget": "budget distribution, e.g. time:uniform:33ms or energy:uniform:0.5J",
+    "--metric": "the per-path error the anytime loss averages: rmse (m), mae (m) or rel",
+    "--input-size": "input HxW, e.g. 224x224",
+    "--split": "which split of the data set",
+    "--limit": "at most this many frames (default: all)",
+    "--seed": "random seed (candidates sampled, weights initialised, batches drawn)",
+    "--accelerator": "where to train: auto (CUDA when PyTorch sees a GPU, else the CPU), cpu or cuda",
+    "--threads": "onnxruntime intra-op threads (default: every core this process may use)",
+    "--repeats": "timed runs of each graph",
+    "--lr": "learning rate",
+    "--batch-size": "frames per training step",
+    "--steps": "training steps (default: the recipe's)",
+    "--recipe": "training recipe: proxy (the search's short one, at 64x64) or paper (Sec. 5.1: SGD, 20,000 steps "
+                "of 96 frames at 224x224)",
+    "--top": "rows to print",
+    "--csv": "also write the whole table to this CSV file",
+    "--image": "RGB image (PNG or JPEG), resized to the model's input size",
+    "--frames": "validation frames, each run at every deadline",
+    "--deadlines": "deadlines spread evenly over U(0, 1.25 x the last path's predicted time)",
+    "--no-pruning": "train every proxy candidate to the end (no Optuna pruning of the worst quarter)",
+    "checkpoint": "checkpoint file written by explorer train",
+    "file": "supernet file (explorer supernet train --out, or the cache)",
+}
+
+
+def _default_text(value) -> str:
+    if isinstance(value, tuple) and len(value) == 2 and all(isinstance(v, int) for v in value):
+        return f"{value[0]}x{value[1]}"
+    return str(value)
+
+
+def explain(parser: argparse.ArgumentParser) -> None:
+    """Every option of ``parser`` and of its subcommands gets its help: its own, else ``FLAG_HELP``'s,
+    with its default said where the text does not say it."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for sub in action.choices.values():
+                explain(sub)
+            continue
+        if action.help == argparse.SUPPRESS or isinstance(action, (argparse._HelpAction, argparse._VersionAction)):
+            continue
+        name = max(action.option_strings, key=len) if action.option_strings else action.dest
+        text = action.help or FLAG_HELP.get(name, "")
+        default = action.default
+        if (text and "default" not in text and default not in (None, False, True)
+                and not isinstance(action, argparse._AppendAction)):
+            text += f" (default {_default_text(default)})"
+        action.help = text.replace("%", "%%") if "%" in text and "%%" not in text else text

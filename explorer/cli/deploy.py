@@ -98,7 +98,7 @@ def register(sub, add, reports: dict) -> None:
     s.add_argument("--trial", type=int, help="trial number (default: the best)")
     s.add_argument("--checkpoint", help="export a checkpoint instead of a study trial")
     s.add_argument("--storage")
-    s.add_argument("--out", required=True)
+    s.add_argument("--out", required=True, help="folder for the stage graphs and manifest.json (explorer run reads it)")
     s.add_argument("--input-size", "--input", dest="input", type=_size, default=None,
                    help="input HxW (default: the study's input size)")
     s.add_argument("--device", action="append", help="devices whose expected costs go in the manifest")

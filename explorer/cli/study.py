@@ -264,8 +264,10 @@ def register(sub, add, reports: dict) -> None:
     s = add("rescore", cmd_rescore, "rank a finished study's trials for another device or budget")
     s.add_argument("--study", required=True)
     s.add_argument("--storage")
-    s.add_argument("--device", required=True)
-    s.add_argument("--budget", action="append", required=True)
+    s.add_argument("--device", required=True, help="device profile to re-score for: a built-in name (see "
+                   "explorer devices) or a YAML file from explorer calibrate")
+    s.add_argument("--budget", action="append", required=True, help="budget distribution, e.g. time:uniform:100ms; "
+                   "repeatable, the table is sorted by the first")
     s.add_argument("--metric", default="rmse", choices=["rmse", "mae", "rel"])
     s.add_argument("--top", type=int, default=15)
     s.add_argument("--csv")
