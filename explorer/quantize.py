@@ -30,6 +30,8 @@ machine (AVX2), full range degraded the paper design's last path by 29% RMSE, 7 
 
 from __future__ import annotations
 
+import contextlib
+import io
 import statistics
 import tempfile
 from pathlib import Path
@@ -352,9 +354,12 @@ def _quantize(src: Path, dst: Path, feeds: list[dict[str, np.ndarray]]) -> bool:
         # the 99.999th percentile, not the extremes: on the paper design (32 and 128 calibration
         # frames) the last path lost 1.7-1.8% RMSE against 2.3-2.4% with min / max ranges
         def quantize(method: CalibrationMethod) -> None:
-            quantize_static(str(prepared), str(dst), _Feeds(feeds), quant_format=QuantFormat.QDQ,
-                            activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8, per_channel=True,
-                            reduce_range=True, calibrate_method=method, nodes_to_exclude=float_nodes)
+            # its calibrator prints five lines per graph ("Collecting tensor data ...") into the
+            # terminal's progress bars: hundreds of lines for one calibration bundle
+            with contextlib.redirect_stdout(io.StringIO()):
+                quantize_static(str(prepared), str(dst), _Feeds(feeds), quant_format=QuantFormat.QDQ,
+                                activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8, per_channel=True,
+                                reduce_range=True, calibrate_method=method, nodes_to_exclude=float_nodes)
         try:
             quantize(CalibrationMethod.Percentile)
         except ValueError as exc:

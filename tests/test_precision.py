@@ -346,6 +346,20 @@ def test_int8_quantizes_a_graph_whose_tensor_barely_varies(tmp_path):
     assert "QuantizeLinear" in {n.op_type for n in onnx.load(str(dst)).graph.node}
 
 
+def test_quantizing_in_this_process_prints_nothing(tmp_path, capfd):
+    """onnxruntime's calibrator prints five lines per graph; a calibration bundle quantizes a hundred."""
+    import onnx
+    import torch
+    from explorer.quantize import _quantize
+    net = torch.nn.Sequential(torch.nn.Conv2d(3, 4, 3, padding=1), torch.nn.ReLU(), torch.nn.Conv2d(4, 1, 1)).eval()
+    src, dst = tmp_path / "f.onnx", tmp_path / "q.onnx"
+    torch.onnx.export(net, torch.rand(1, 3, 32, 32), str(src), input_names=["x"], output_names=["y"], dynamo=False)
+    capfd.readouterr()
+    assert _quantize(src, dst, [{"x": torch.rand(1, 3, 32, 32).numpy()} for _ in range(2)])
+    assert capfd.readouterr().out == ""
+    assert "QuantizeLinear" in {n.op_type for n in onnx.load(str(dst)).graph.node}
+
+
 def test_a_graph_without_convolutions_stays_fp32(tmp_path):
     import torch
     from explorer.quantize import quantize_graph
