@@ -18,6 +18,25 @@ def _profile(overlap):
                          energy_fixed_j=0.1, active_power_w=10.0)
 
 
+@pytest.mark.parametrize("overlap,exponent,weight_traffic", [(False, 1.0, True), (True, 1.0, True),
+                                                             (False, 1.15, False), (True, 0.95, False)])
+def test_a_batch_of_observations_is_priced_as_each_one_alone(overlap, exponent, weight_traffic):
+    from explorer.cost.fit import Observation, ObservationBatch, errors, predict_ms
+    rng = np.random.default_rng(0)
+    kinds = {k: KindCost(gmacs=float(rng.uniform(1, 50)), overhead_ms=float(rng.uniform(0, 0.1)),
+                         bandwidth_gbs=None if i % 2 else float(rng.uniform(2, 20)),
+                         weight_traffic=weight_traffic or i % 3 == 0) for i, k in enumerate(KINDS)}
+    prof = dataclasses.replace(get_device("rpi4"), overlap=overlap, body_exponent=exponent, kinds=kinds,
+                               stage_overhead_ms=0.07, inference_overhead_ms=0.4)
+    cost = candidate_cost(paper_candidate(), (96, 128))
+    obs = [Observation(f"{i}", cost.workloads[i:i + n], 1.0 + i, stages=i % 3, end_to_end=i % 2 == 0)
+           for i, n in ((0, 1), (3, 7), (10, 0), (5, len(cost.workloads) - 5), (40, 2))]
+    alone = [predict_ms(prof, o) for o in obs]
+    assert ObservationBatch(obs).predict_ms(prof) == pytest.approx(alone, rel=1e-12)
+    assert errors(prof, obs)["predicted_ms"].tolist() == pytest.approx(alone, rel=1e-12)
+    assert alone[2] == pytest.approx(0.07 + 0.4)   # no workloads (one stage, end to end): its overheads alone
+
+
 def test_cost_arithmetic_on_hand_workloads():
     w = Workload("s", "l", "pointwise", (1,), (1,), 1, 1, macs=4_000_000, params=0,
                  bytes_read=1_000_000, bytes_written=1_000_000)
