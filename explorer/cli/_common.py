@@ -65,9 +65,9 @@ def _add_supervision(s: argparse.ArgumentParser) -> None:
                    "where it explains the neighbouring frames better (computed once per data set, cached)")
 
 
-
 #: One explanation per flag, for every command that takes it; a command's own ``help=`` wins (a flag
-#: whose meaning narrows there, e.g. ``--device`` for ``train --exit-weights anytime``).
+#: whose meaning narrows there, e.g. ``--device`` for ``train --exit-weights anytime``). argparse formats
+#: help texts with %: a percent sign is written %%.
 FLAG_HELP = {
     "--json": "print the result as JSON (for scripts) instead of tables",
     "--study": "study name, as explorer search named it (DEVICE-SPACE unless given --study)",
@@ -123,4 +123,4 @@ def explain(parser: argparse.ArgumentParser) -> None:
         if (text and "default" not in text and default not in (None, False, True)
                 and not isinstance(action, argparse._AppendAction)):
             text += f" (default {_default_text(default)})"
-        action.help = text.replace("%", "%%") if "%" in text and "%%" not in text else text
+        action.help = text

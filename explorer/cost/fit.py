@@ -120,7 +120,7 @@ class ObservationBatch:
     """Observations' workloads as arrays, priced by a profile all at once: ``predict_ms`` as
     ``DeviceProfile.layer_ms`` computes it, one observation per entry. A fit prices every observation
     for each of its thousands of residual evaluations; one Python call per workload made the host fit
-    most of a quick calibration (30 of 93 s, 1.8 million calls)."""
+    a third of a quick calibration (30 of 93 s, 1.8 million calls, in one profiled run)."""
 
     def __init__(self, observations: Sequence[Observation]) -> None:
         rows = [(i, w) for i, o in enumerate(observations) for w in o.workloads]
