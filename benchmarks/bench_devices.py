@@ -4,7 +4,7 @@ random default-space candidates that were not in the sweep at those three sizes,
 measurement.
 
     .venv/bin/python benchmarks/bench_devices.py [--candidates 8] [--scale 1] [--skip-host] [--data ../shared/data]
-        [--save DIR]     # also keep each repetition's probe results and held-out timings in DIR
+        [--reps 3] [--rounds 3] [--save DIR]     # also keep each repetition's probe results and held-out timings in DIR
     .venv/bin/python benchmarks/bench_devices.py --refit DIR   # the fit again on those, no measuring
 """
 
@@ -20,7 +20,8 @@ from explorer.cost import candidate_cost, get_device, profile_reference
 from explorer.cost.calibrate import calibrate, fit_results
 from explorer.cost.fit import (PAPER_RPI4_TABLE2, PAPER_TX2_PATHS_MS, TX2_REFERENCES, Observation, errors,
                                kernel_workloads, rpi4_table2)
-from explorer.cost.measure import measure_candidate
+from explorer.cost.measure import CandidateTimer
+from explorer.model import build_network
 from explorer.cost.peak import host_peak
 from explorer.cost.probe_script import read_results
 from explorer.model.reference import REFERENCES
@@ -69,18 +70,21 @@ def _sentinel() -> "callable":
     return lambda: time_call(lambda: sess.run(None, feeds), 3, 15)
 
 
-def _measure_steadily(c, size, slowness) -> tuple:
-    """``measure_candidate`` under the probe's rule, against the calibration's own speed
-    (``_steady.steadily``): each path keeps its fastest timing over the times it was taken. Returns the
-    path timings, the whole graph's, and how many times it was timed again."""
+def _measure_steadily(timer, slowness) -> tuple:
+    """``timer.measure`` (a ``CandidateTimer``) under the probe's rule, against the calibration's own
+    speed (``_steady.steadily``): each path keeps its fastest timing over the times it was taken.
+    Returns the path timings, the whole graph's, and how many times it was timed again."""
     def measure():
-        m = measure_candidate(c, size, repeats=20)
+        m = timer.measure(repeats=20)
         return m.path_ms, m.whole_ms
 
-    def fastest(kept, new):
-        return [min(a, b) for a, b in zip(kept[0], new[0])], min(kept[1], new[1])
-    (path_ms, whole_ms), again = steadily(measure, slowness, fastest)
+    (path_ms, whole_ms), again = steadily(measure, slowness, _fastest)
     return path_ms, whole_ms, again
+
+
+def _fastest(kept, new):
+    """Per path (and the whole graph), the faster of two measurements."""
+    return [min(a, b) for a, b in zip(kept[0], new[0])], min(kept[1], new[1])
 
 
 def _size_errors(prof, cands, size, timings: dict) -> list[float]:
@@ -132,30 +136,36 @@ def _int8_observations(cands, size, timings: dict) -> list:
     return obs
 
 
-def _int8_errors(prof, cands, size, slowness) -> tuple[list[float], dict]:
+def _int8_errors(prof, cands, size, slowness, rounds: int) -> tuple[list[float], dict]:
     """Signed errors of ``prof``'s int8 section on the held-out candidates' deployed stage graphs, each
     quantized whole (as ``explorer export --quantize int8 --int8-stages all`` does), handing each other
-    uint8 tensors, and timed as the probe times them: in one chain, in sequence (under ``steadily``'s rule;
-    each graph keeps its fastest timing); and those timings, {candidate key: {graph name: ms}}."""
+    uint8 tensors, and timed as the probe times them: in one chain, in sequence (under ``steadily``'s rule),
+    in ``rounds`` interleaved rounds over the candidates (each graph keeps its fastest timing); and those
+    timings, {candidate key: {graph name: ms}}."""
     from explorer.cost.bundle import _int8_graphs
     from explorer.cost.probe_script import WARMUP, chain_runs, chain_sessions, time_chain
     from explorer.model import build_network
     from explorer.onnx_stages import example_inputs
-    timings = {}
+    chains = {}
     for c in cands:
         graphs = _int8_graphs(build_network(c), size)
-        runs, new_round = chain_runs(chain_sessions([model for _, model in graphs]),
-                                     {k: v.numpy() for k, v in example_inputs(size).items()})
-        ms, _ = steadily(lambda: time_chain(runs, WARMUP, 20, new_round=new_round), slowness,
-                         lambda kept, new: [min(a, b) for a, b in zip(kept, new)])
-        timings[c.key] = {name: t for (name, _), t in zip(graphs, ms)}
+        chains[c.key] = ([name for name, _ in graphs],
+                         chain_runs(chain_sessions([model for _, model in graphs]),
+                                    {k: v.numpy() for k, v in example_inputs(size).items()}))
+    kept: dict = {}
+    for _ in range(rounds):
+        for key, (names, (runs, new_round)) in chains.items():
+            ms, _ = steadily(lambda: time_chain(runs, WARMUP, 20, new_round=new_round), slowness,
+                             lambda old, new: [min(a, b) for a, b in zip(old, new)])
+            kept[key] = ms if key not in kept else [min(a, b) for a, b in zip(kept[key], ms)]
+    timings = {key: dict(zip(chains[key][0], ms)) for key, ms in kept.items()}
     return list(errors(prof.int8, _int8_observations(cands, size, timings))["error"]), timings
 
 
-def host(n: int, seed: int, scale: float, reps: int = 3, save: Path | None = None) -> None:
+def host(n: int, seed: int, scale: float, reps: int = 3, save: Path | None = None, rounds: int = 3) -> None:
     """Each repetition is what a user does: calibrate (stage graphs at every size of ``STAGE_SIZES``),
-    then measure ``n`` held-out candidates at each of ``HOST_SIZES`` at once, and report the median
-    per-path error of each size. A fixed graph timed before and after each step shows whether the
+    then measure ``n`` held-out candidates at each of ``HOST_SIZES`` (in ``rounds`` interleaved rounds,
+    each path keeping its fastest timing), and report the median per-path error of each size. A fixed graph timed before and after each step shows whether the
     machine itself changed speed in between (a shared machine does, by up to 4x here); held-out
     candidates are measured under the rule the probe follows, against the speed the calibration
     measured at (``_measure_steadily``): a profile describes the machine undisturbed, and a held-out
@@ -184,26 +194,44 @@ def host(n: int, seed: int, scale: float, reps: int = 3, save: Path | None = Non
               f"{prof.provenance['conditions'].get('retimed_outliers', 0)} more far above the fit")
         for fit in prof.provenance["fit"]:
             print(f"  fit on {fit['what']}: median |error| {fit['median_abs_error']:.1%}")
+        # Every held-out candidate at every size, measured in interleaved rounds (each path keeps its
+        # fastest timing): a spell of another load, or a drift of the machine's speed, then touches no
+        # one size or candidate alone. The calibration's graphs are timed more than once too (those in
+        # slow spells and those far above the fit, keeping the faster timing)
+        timers = {(c.key, size): CandidateTimer(net, size) for c, net in ((c, build_network(c)) for c in cands)
+                  for size in HOST_SIZES}
+        kept: dict = {}
+        timed_again = {size: 0 for size in HOST_SIZES}
+        for round_ in range(1, rounds + 1):
+            for size in HOST_SIZES:
+                for c in cands:
+                    path_ms, whole_ms, again = _measure_steadily(timers[c.key, size], speedometer)
+                    timed_again[size] += again
+                    got = (path_ms, whole_ms)
+                    kept[c.key, size] = got if round_ == 1 else _fastest(kept[c.key, size], got)
+            if round_ == 1 and rounds > 1:
+                for size in HOST_SIZES:
+                    errs = np.abs(_size_errors(prof, cands, size, {c.key: kept[c.key, size][0] for c in cands}))
+                    print(f"  rep {rep} {size[0]}x{size[1]} after round 1 of {rounds}: median |error| {np.median(errs):.1%}")
+        del timers
         for size in HOST_SIZES:
-            fractions, timed_again, timings = [], 0, {}
-            for c in cands:
-                timings[c.key], whole_ms, again = _measure_steadily(c, size, speedometer)
-                timed_again += again
-                fractions.append(peak.fraction(candidate_cost(c, size).path_params_macs()[-1][1], whole_ms))
+            timings = {c.key: kept[c.key, size][0] for c in cands}
+            fractions = [peak.fraction(candidate_cost(c, size).path_params_macs()[-1][1], kept[c.key, size][1])
+                         for c in cands]
             held["timings"][f"{size[0]}x{size[1]}"] = timings
             errs = _size_errors(prof, cands, size, timings)
             a = np.abs(errs)
             medians[size].append(float(np.median(a)))
-            print(f"  rep {rep} {size[0]}x{size[1]}: {n} held-out candidates, {len(a)} paths, median |error| "
+            print(f"  rep {rep} {size[0]}x{size[1]}: {n} held-out candidates, {len(a)} paths, {rounds} rounds, median |error| "
                   f"{np.median(a):.1%}, within 10%: {(a <= 0.1).mean():.0%}, median signed {np.median(errs):+.1%}; "
                   f"whole graphs at {' '.join(f'{f:.0%}' for f in fractions)} of fp32 peak; "
-                  f"{timed_again} timed again after the machine ran slow")
+                  f"{timed_again[size]} timed again after the machine ran slow")
         if prof.int8 is not None:
-            errs, held["int8_timings"] = _int8_errors(prof, cands, HOST_SIZES[0], speedometer)
+            errs, held["int8_timings"] = _int8_errors(prof, cands, HOST_SIZES[0], speedometer, rounds)
             errs = np.array(errs)
             int8_medians.append(float(np.median(np.abs(errs))))
             print(f"  rep {rep} int8 at {HOST_SIZES[0][0]}x{HOST_SIZES[0][1]}: {len(errs)} deployed stage graphs of the "
-                  f"held-out candidates, each quantized whole, timed in sequence: median |error| "
+                  f"held-out candidates, each quantized whole, timed in sequence, {rounds} rounds: median |error| "
                   f"{np.median(np.abs(errs)):.1%}, within "
                   f"10%: {(np.abs(errs) <= 0.1).mean():.0%}, median signed {np.median(errs):+.1%}")
         if save:
@@ -228,6 +256,9 @@ if __name__ == "__main__":
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--scale", type=float, default=1.0, help="calibration sweep size (1 = explorer calibrate's)")
     ap.add_argument("--skip-host", action="store_true", help="only the shipped profiles")
+    ap.add_argument("--reps", type=int, default=3, help="calibrations, each with its held-out measurement")
+    ap.add_argument("--rounds", type=int, default=3,
+                    help="interleaved rounds of the held-out measurement (each path keeps its fastest)")
     ap.add_argument("--save", type=Path, help="keep each repetition's probe results and held-out timings here")
     ap.add_argument("--refit", type=Path, help="no measuring: fit --save's results again and compare")
     args = ap.parse_args()
@@ -239,4 +270,4 @@ if __name__ == "__main__":
     if Path(args.data).is_dir():
         shipped(Path(args.data))
     if not args.skip_host:
-        host(args.candidates, args.seed, args.scale, save=args.save)
+        host(args.candidates, args.seed, args.scale, reps=args.reps, save=args.save, rounds=args.rounds)

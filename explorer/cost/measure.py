@@ -12,7 +12,7 @@ from explorer.errors import UserError
 from explorer.model.network import AnytimeDepthNet, build_network
 from explorer.space import Candidate
 
-__all__ = ["session", "default_threads", "time_call", "conditions", "Measurement", "measure_network",
+__all__ = ["session", "default_threads", "time_call", "conditions", "Measurement", "CandidateTimer", "measure_network",
            "measure_candidate", "DEFAULT_PROVIDER"]
 
 
@@ -57,36 +57,51 @@ class Measurement:
         return self.staged_total_ms / self.whole_ms - 1.0
 
 
+class CandidateTimer:
+    """A network's stage graphs in one chain, as the probe times them and the runtime runs them
+    (tensors handed over blocked, in sequence: ``probe_script.chain_sessions``, ``time_chain``), and
+    (``whole``) the whole network as one graph, with their sessions built once: ``measure`` times them
+    again as often as asked, so that several candidates can be measured in interleaved rounds."""
+
+    def __init__(self, net: AnytimeDepthNet, input_size: tuple[int, int] = (224, 224), threads: int | None = None,
+                 whole: bool = True, provider: str = DEFAULT_PROVIDER) -> None:
+        from explorer.onnx_stages import example_inputs, export_stages, export_whole
+        self.candidate, self.input_size = net.candidate, tuple(input_size)
+        self.threads, self.provider = threads, provider
+        graphs = export_stages(net, input_size)
+        self._specs = [spec for spec, _ in graphs]
+        env = {k: v.numpy() for k, v in example_inputs(input_size).items()}
+        chain = _probe.chain_sessions([model for _, model in graphs], threads, provider)
+        self._runs, self._new_round = _probe.chain_runs(chain, env)
+        self._whole = None
+        if whole:
+            sess = session(export_whole(net, input_size), threads, provider)
+            feeds = {"image": env["image"], "scan": env["scan"]}
+            self._whole = lambda: sess.run(None, feeds)
+
+    def measure(self, repeats: int = 15, warmup: int = 3) -> Measurement:
+        stage_ms: dict[str, float] = {}
+        path_ms = [0.0]
+        elapsed = 0.0
+        for spec, ms in zip(self._specs, _probe.time_chain(self._runs, warmup, repeats, new_round=self._new_round)):
+            if spec is None:
+                path_ms[0] = ms
+                continue
+            stage_ms[spec.name] = ms
+            elapsed += ms
+            if spec.path is not None:
+                path_ms.append(elapsed)
+        whole_ms = time_call(self._whole, warmup, repeats) if self._whole is not None else float("nan")
+        return Measurement(self.candidate, self.input_size, stage_ms, path_ms, whole_ms,
+                           conditions(self.threads, repeats, warmup, self.provider))
+
+
 def measure_network(net: AnytimeDepthNet, input_size: tuple[int, int] = (224, 224),
                     threads: int | None = None, repeats: int = 15, warmup: int = 3,
                     whole: bool = True, provider: str = DEFAULT_PROVIDER) -> Measurement:
     """Times every stage graph with onnxruntime, in one chain as the probe times them, and (``whole``)
-    the whole network as one graph."""
-    from explorer.onnx_stages import example_inputs, export_stages, export_whole
-    graphs = export_stages(net, input_size)
-    env = {k: v.numpy() for k, v in example_inputs(input_size).items()}
-    stage_ms: dict[str, float] = {}
-    path_ms = [0.0]
-    elapsed = 0.0
-    # in one chain that hands tensors over blocked, in sequence, as the probe times them and the runtime
-    # runs them (``probe_script.chain_sessions``, ``time_chain``)
-    chain = _probe.chain_sessions([model for _, model in graphs], threads, provider)
-    runs, new_round = _probe.chain_runs(chain, env)
-    for (spec, _), ms in zip(graphs, _probe.time_chain(runs, warmup, repeats, new_round=new_round)):
-        if spec is None:
-            path_ms[0] = ms
-            continue
-        stage_ms[spec.name] = ms
-        elapsed += ms
-        if spec.path is not None:
-            path_ms.append(elapsed)
-    whole_ms = float("nan")
-    if whole:
-        sess = session(export_whole(net, input_size), threads, provider)
-        feeds = {"image": env["image"], "scan": env["scan"]}
-        whole_ms = time_call(lambda: sess.run(None, feeds), warmup, repeats)
-    return Measurement(net.candidate, tuple(input_size), stage_ms, path_ms, whole_ms,
-                       conditions(threads, repeats, warmup, provider))
+    the whole network as one graph (``CandidateTimer``, measured once)."""
+    return CandidateTimer(net, input_size, threads, whole, provider).measure(repeats, warmup)
 
 
 def measure_candidate(candidate: Candidate, input_size: tuple[int, int] = (224, 224),
