@@ -6,7 +6,7 @@ The rule is the probe's own (``probe_script.SLOW``, ``REMEASURE_PASSES``, ``wait
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Callable, TypeVar
+from typing import Callable, NamedTuple, TypeVar
 
 from explorer.cost.probe_script import (DEFAULT_PROVIDER, REMEASURE_PASSES, SLOW, default_threads, fixed_graph_timer,
                                        speed_layer, usual_speed, wait_until_calm)
@@ -25,12 +25,25 @@ def speedometer(bundle: Path, results: dict) -> Callable[[], float]:
     return lambda: max(timer() / usual for timer, usual in timers)
 
 
+class Steady(NamedTuple):
+    """What ``steadily`` took: the result, how many times it was taken again, and how much slower than
+    during the calibration the machine ran around the last time (the slower of the two checks; above
+    ``1 + SLOW`` when it stayed slow past the re-timing, and the result with it)."""
+
+    result: object
+    again: int
+    slowness: float
+
+    def note(self) -> str:
+        """'' at the calibration's speed, else a few words saying how slow the machine still ran."""
+        return "" if self.slowness <= 1 + SLOW else f" (machine {self.slowness:.2f}x slow)"
+
+
 def steadily(measure: Callable[[], T], slowness: Callable[[], float],
-             combine: Callable[[T, T], T] = lambda kept, new: new) -> tuple[T, int]:
+             combine: Callable[[T, T], T] = lambda kept, new: new) -> Steady:
     """``measure()`` between two ``slowness`` checks; taken again (after waiting for the machine to calm
     down) while either check ran ``SLOW`` or more slower than usual, at most ``REMEASURE_PASSES`` times.
-    ``combine`` folds a new result into the kept one (default: the new one replaces it). Returns the
-    result and how many times it was taken again."""
+    ``combine`` folds a new result into the kept one (default: the new one replaces it)."""
     kept = None
     for again in range(REMEASURE_PASSES + 1):
         before = slowness()
@@ -38,6 +51,6 @@ def steadily(measure: Callable[[], T], slowness: Callable[[], float],
         after = slowness()
         kept = got if kept is None else combine(kept, got)
         if max(before, after) <= 1 + SLOW or again == REMEASURE_PASSES:
-            return kept, again
+            return Steady(kept, again, max(before, after))
         wait_until_calm(after, slowness, 1.0)
     raise AssertionError("unreachable")

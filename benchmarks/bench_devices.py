@@ -70,21 +70,16 @@ def _sentinel() -> "callable":
     return lambda: time_call(lambda: sess.run(None, feeds), 3, 15)
 
 
-def _measure_steadily(timer, slowness) -> tuple:
-    """``timer.measure`` (a ``CandidateTimer``) under the probe's rule, against the calibration's own
-    speed (``_steady.steadily``): each path keeps its fastest timing over the times it was taken.
-    Returns the path timings, the whole graph's, and how many times it was timed again."""
-    def measure():
-        m = timer.measure(repeats=20)
-        return m.path_ms, m.whole_ms
-
-    (path_ms, whole_ms), again = steadily(measure, slowness, _fastest)
-    return path_ms, whole_ms, again
+def _measure_steadily(measure, slowness) -> tuple:
+    """``measure()`` under the probe's rule, against the calibration's own speed (``_steady.steadily``:
+    taken again while the machine ran slow). Returns its last result, how many times it was taken
+    again, and whether the machine still ran slow at the end (``Steady.slowness`` above ``1 + SLOW``)."""
+    got = steadily(measure, slowness)
+    return got.result, got.again, bool(got.note())
 
 
-def _fastest(kept, new):
-    """Per path (and the whole graph), the faster of two measurements."""
-    return [min(a, b) for a, b in zip(kept[0], new[0])], min(kept[1], new[1])
+def _per_path_median(rounds: list[list[float]]) -> list[float]:
+    return [float(np.median(t)) for t in zip(*rounds)]
 
 
 def _size_errors(prof, cands, size, timings: dict) -> list[float]:
@@ -136,15 +131,13 @@ def _int8_observations(cands, size, timings: dict) -> list:
     return obs
 
 
-def _int8_errors(prof, cands, size, slowness, rounds: int) -> tuple[list[float], dict]:
-    """Signed errors of ``prof``'s int8 section on the held-out candidates' deployed stage graphs, each
-    quantized whole (as ``explorer export --quantize int8 --int8-stages all`` does), handing each other
-    uint8 tensors, and timed as the probe times them: in one chain, in sequence (under ``steadily``'s rule),
-    in ``rounds`` interleaved rounds over the candidates (each graph keeps its fastest timing); and those
-    timings, {candidate key: {graph name: ms}}."""
+def _int8_timings(cands, size, slowness, rounds: int) -> dict:
+    """The held-out candidates' deployed stage graphs, each quantized whole (as ``explorer export
+    --quantize int8 --int8-stages all`` does), handing each other uint8 tensors, timed as the probe
+    times them (in one chain, in sequence, under ``steadily``'s rule) in ``rounds`` interleaved rounds
+    over the candidates: {candidate key: {graph name: median ms over the rounds}}."""
     from explorer.cost.bundle import _int8_graphs
     from explorer.cost.probe_script import WARMUP, chain_runs, chain_sessions, time_chain
-    from explorer.model import build_network
     from explorer.onnx_stages import example_inputs
     chains = {}
     for c in cands:
@@ -152,24 +145,24 @@ def _int8_errors(prof, cands, size, slowness, rounds: int) -> tuple[list[float],
         chains[c.key] = ([name for name, _ in graphs],
                          chain_runs(chain_sessions([model for _, model in graphs]),
                                     {k: v.numpy() for k, v in example_inputs(size).items()}))
-    kept: dict = {}
+    taken: dict = {key: [] for key in chains}
     for _ in range(rounds):
-        for key, (names, (runs, new_round)) in chains.items():
-            ms, _ = steadily(lambda: time_chain(runs, WARMUP, 20, new_round=new_round), slowness,
-                             lambda old, new: [min(a, b) for a, b in zip(old, new)])
-            kept[key] = ms if key not in kept else [min(a, b) for a, b in zip(kept[key], ms)]
-    timings = {key: dict(zip(chains[key][0], ms)) for key, ms in kept.items()}
-    return list(errors(prof.int8, _int8_observations(cands, size, timings))["error"]), timings
+        for key, (_, (runs, new_round)) in chains.items():
+            ms, _, _ = _measure_steadily(lambda: time_chain(runs, WARMUP, 20, new_round=new_round), slowness)
+            taken[key].append(ms)
+    return {key: dict(zip(chains[key][0], _per_path_median(r))) for key, r in taken.items()}
 
 
 def host(n: int, seed: int, scale: float, reps: int = 3, save: Path | None = None, rounds: int = 3) -> None:
     """Each repetition is what a user does: calibrate (stage graphs at every size of ``STAGE_SIZES``),
-    then measure ``n`` held-out candidates at each of ``HOST_SIZES`` (in ``rounds`` interleaved rounds,
-    each path keeping its fastest timing), and report the median per-path error of each size. A fixed graph timed before and after each step shows whether the
-    machine itself changed speed in between (a shared machine does, by up to 4x here); held-out
-    candidates are measured under the rule the probe follows, against the speed the calibration
-    measured at (``_measure_steadily``): a profile describes the machine undisturbed, and a held-out
-    timing taken while another load slows it says nothing about the profile."""
+    then measure ``n`` held-out candidates at each of ``HOST_SIZES``, and report the median per-path
+    error of each size. A fixed graph timed before and after each step shows whether the machine
+    itself changed speed in between (a shared machine does, by up to 4x here). Held-out candidates are
+    measured under the rule the probe follows, against the speed the calibration measured at
+    (``_measure_steadily``: a profile describes the machine undisturbed, and a held-out timing taken
+    while another load slows it says nothing about the profile), every candidate at every size in
+    ``rounds`` interleaved rounds, each path keeping its median over them: a spell of another load,
+    or a drift of the machine's speed, then touches no one size or candidate alone."""
     cands = SearchSpace.from_yaml("anytime_depth").random_candidates(n, seed + 1)
     peak = host_peak()
     print(f"\nthis machine's peak: {peak.describe()}")
@@ -183,8 +176,8 @@ def host(n: int, seed: int, scale: float, reps: int = 3, save: Path | None = Non
         results_out = save / f"rep{rep}-results.json" if save else Path(tmp.name) / "results.json"
         prof = calibrate(seed=seed + rep - 1, scale=scale, exclude={c.key for c in cands},   # held out: never in the sweep
                          results_out=results_out, bundle_out=Path(tmp.name) / "bundle")
-        speedometer = _speedometer(Path(tmp.name) / "bundle", read_results(results_out))
-        held = {"candidates": [c.to_dict() for c in cands], "timings": {}}
+        slowness = _speedometer(Path(tmp.name) / "bundle", read_results(results_out))
+        held = {"candidates": [c.to_dict() for c in cands], "rounds": rounds, "timings": {}}
         speed.append(sentinel())
         print(f"rep {rep}: host calibration (scale {scale}, seed {seed + rep - 1}): {time.perf_counter() - t0:.0f} s; "
               f"{prof.provenance['conditions']['threads']} threads, onnxruntime {prof.provenance['conditions']['onnxruntime']}; "
@@ -194,46 +187,45 @@ def host(n: int, seed: int, scale: float, reps: int = 3, save: Path | None = Non
               f"{prof.provenance['conditions'].get('retimed_outliers', 0)} more far above the fit")
         for fit in prof.provenance["fit"]:
             print(f"  fit on {fit['what']}: median |error| {fit['median_abs_error']:.1%}")
-        # Every held-out candidate at every size, measured in interleaved rounds (each path keeps its
-        # fastest timing): a spell of another load, or a drift of the machine's speed, then touches no
-        # one size or candidate alone. The calibration's graphs are timed more than once too (those in
-        # slow spells and those far above the fit, keeping the faster timing)
         timers = {(c.key, size): CandidateTimer(net, size) for c, net in ((c, build_network(c)) for c in cands)
                   for size in HOST_SIZES}
-        kept: dict = {}
+        taken: dict = {key: [] for key in timers}   # per round: (path ms, whole ms)
         timed_again = {size: 0 for size in HOST_SIZES}
-        for round_ in range(1, rounds + 1):
+        still_slow = {size: 0 for size in HOST_SIZES}
+        for _ in range(rounds):
             for size in HOST_SIZES:
                 for c in cands:
-                    path_ms, whole_ms, again = _measure_steadily(timers[c.key, size], speedometer)
+                    def measure(timer=timers[c.key, size]):
+                        m = timer.measure(repeats=20)
+                        return m.path_ms, m.whole_ms
+                    got, again, slow = _measure_steadily(measure, slowness)
                     timed_again[size] += again
-                    got = (path_ms, whole_ms)
-                    kept[c.key, size] = got if round_ == 1 else _fastest(kept[c.key, size], got)
-            if round_ == 1 and rounds > 1:
-                for size in HOST_SIZES:
-                    errs = np.abs(_size_errors(prof, cands, size, {c.key: kept[c.key, size][0] for c in cands}))
-                    print(f"  rep {rep} {size[0]}x{size[1]} after round 1 of {rounds}: median |error| {np.median(errs):.1%}")
+                    still_slow[size] += slow
+                    taken[c.key, size].append(got)
         del timers
         for size in HOST_SIZES:
-            timings = {c.key: kept[c.key, size][0] for c in cands}
-            fractions = [peak.fraction(candidate_cost(c, size).path_params_macs()[-1][1], kept[c.key, size][1])
-                         for c in cands]
-            held["timings"][f"{size[0]}x{size[1]}"] = timings
+            key = f"{size[0]}x{size[1]}"
+            held["timings"][key] = timings = {c.key: _per_path_median([p for p, _ in taken[c.key, size]]) for c in cands}
             errs = _size_errors(prof, cands, size, timings)
             a = np.abs(errs)
             medians[size].append(float(np.median(a)))
-            print(f"  rep {rep} {size[0]}x{size[1]}: {n} held-out candidates, {len(a)} paths, {rounds} rounds, median |error| "
-                  f"{np.median(a):.1%}, within 10%: {(a <= 0.1).mean():.0%}, median signed {np.median(errs):+.1%}; "
-                  f"whole graphs at {' '.join(f'{f:.0%}' for f in fractions)} of fp32 peak; "
-                  f"{timed_again[size]} timed again after the machine ran slow")
+            per_round = [np.median(np.abs(_size_errors(prof, cands, size, {c.key: taken[c.key, size][r][0] for c in cands})))
+                         for r in range(rounds)]
+            fractions = [peak.fraction(candidate_cost(c, size).path_params_macs()[-1][1],
+                                       float(np.median([w for _, w in taken[c.key, size]]))) for c in cands]
+            print(f"  rep {rep} {key}: {n} held-out candidates, {len(a)} paths, median over {rounds} rounds: median "
+                  f"|error| {np.median(a):.1%}, within 10%: {(a <= 0.1).mean():.0%}, median signed {np.median(errs):+.1%} "
+                  f"(each round alone: {' / '.join(f'{x:.1%}' for x in per_round)}); whole graphs at "
+                  f"{' '.join(f'{f:.0%}' for f in fractions)} of fp32 peak; {timed_again[size]} taken again after the "
+                  f"machine ran slow, {still_slow[size]} of {n * rounds} measurements still slow after it")
         if prof.int8 is not None:
-            errs, held["int8_timings"] = _int8_errors(prof, cands, HOST_SIZES[0], speedometer, rounds)
-            errs = np.array(errs)
+            held["int8_timings"] = _int8_timings(cands, HOST_SIZES[0], slowness, rounds)
+            errs = np.array(errors(prof.int8, _int8_observations(cands, HOST_SIZES[0], held["int8_timings"]))["error"])
             int8_medians.append(float(np.median(np.abs(errs))))
             print(f"  rep {rep} int8 at {HOST_SIZES[0][0]}x{HOST_SIZES[0][1]}: {len(errs)} deployed stage graphs of the "
-                  f"held-out candidates, each quantized whole, timed in sequence, {rounds} rounds: median |error| "
-                  f"{np.median(np.abs(errs)):.1%}, within "
-                  f"10%: {(np.abs(errs) <= 0.1).mean():.0%}, median signed {np.median(errs):+.1%}")
+                  f"held-out candidates, each quantized whole, timed in sequence, median over {rounds} rounds: median "
+                  f"|error| {np.median(np.abs(errs)):.1%}, within 10%: {(np.abs(errs) <= 0.1).mean():.0%}, median signed "
+                  f"{np.median(errs):+.1%}")
         if save:
             (save / f"rep{rep}-heldout.json").write_text(json.dumps(held))
         tmp.cleanup()
@@ -258,7 +250,7 @@ if __name__ == "__main__":
     ap.add_argument("--skip-host", action="store_true", help="only the shipped profiles")
     ap.add_argument("--reps", type=int, default=3, help="calibrations, each with its held-out measurement")
     ap.add_argument("--rounds", type=int, default=3,
-                    help="interleaved rounds of the held-out measurement (each path keeps its fastest)")
+                    help="interleaved rounds of the held-out measurement (each path keeps its median)")
     ap.add_argument("--save", type=Path, help="keep each repetition's probe results and held-out timings here")
     ap.add_argument("--refit", type=Path, help="no measuring: fit --save's results again and compare")
     args = ap.parse_args()

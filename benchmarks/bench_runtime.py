@@ -184,11 +184,13 @@ if __name__ == "__main__":
                     for path, ms in r.run(env["image"][0], env["scan"][0]).completed:
                         ready[path].append(ms)
                 return [statistics.median(t) for t in ready]
-            per_rep, again = zip(*(steadily(ready_times, slowness) for _ in range(3)))
+            steady = [steadily(ready_times, slowness) for _ in range(3)]
+            per_rep = [x.result for x in steady]
             predicted = candidate_cost(c, size).path_latency_ms(prof)
             errs = [[q / m - 1 if m else 0.0 for m, q in zip(rep_ms, predicted)] for rep_ms in per_rep]   # path 0: 0 ms
             print(f"{label} path ready times vs predicted by the host profile, 3 reps of 20 runs "
-                  f"({sum(again)} taken again after the machine ran slow): "
+                  f"({sum(x.again for x in steady)} taken again after the machine ran slow"
+                  f"{''.join(f'; rep {k + 1}{x.note()}' for k, x in enumerate(steady) if x.note())}): "
                   + ", ".join(f"path {p} {statistics.median(rm[p] for rm in per_rep):.2f} vs {predicted[p]:.2f} ms "
                               f"({statistics.median(e[p] for e in errs):+.1%}; reps "
                               f"{' '.join(f'{e[p]:+.1%}' for e in errs)})" for p in range(1, cand.num_paths)))
@@ -205,9 +207,9 @@ if __name__ == "__main__":
         predicted = anytime_loss(pred_ms, losses, f"time:uniform:{b_max}ms")
         grid = (np.arange(args.deadlines) + 0.5) * b_max / args.deadlines
         print(f"predicted path times (host profile): {' '.join(f'{x:.2f}' for x in pred_ms[1:])} ms")
-        losses, again = zip(*(steadily(lambda: measured_anytime(runner, frames, grid)["anytime_loss"], slowness)
-                              for _ in range(3)))
+        steady = [steadily(lambda: measured_anytime(runner, frames, grid)["anytime_loss"], slowness) for _ in range(3)]
+        losses = [x.result for x in steady]
         gaps = [x / predicted - 1 for x in losses]
         print(f"anytime loss U(0, {b_max:.1f} ms), measured vs predicted {predicted:.4f}, 3 reps "
-              f"({sum(again)} taken again after the machine ran slow): "
-              f"{' '.join(f'{g:+.1%}' for g in gaps)}, median {statistics.median(gaps):+.1%} (goal within 5%)")
+              f"({sum(x.again for x in steady)} taken again after the machine ran slow): "
+              f"{' '.join(f'{g:+.1%}{x.note()}' for g, x in zip(gaps, steady))}, median {statistics.median(gaps):+.1%} (goal within 5%)")
