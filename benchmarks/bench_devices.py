@@ -4,7 +4,7 @@ random default-space candidates that were not in the sweep at those three sizes,
 measurement.
 
     .venv/bin/python benchmarks/bench_devices.py [--candidates 8] [--scale 1] [--skip-host] [--data ../shared/data]
-        [--reps 3] [--rounds 3] [--save DIR]     # also keep each repetition's probe results and held-out timings in DIR
+        [--reps 3] [--rounds 1] [--save DIR]     # also keep each repetition's probe results and held-out timings in DIR
     .venv/bin/python benchmarks/bench_devices.py --refit DIR   # the fit again on those, no measuring
 """
 
@@ -70,12 +70,18 @@ def _sentinel() -> "callable":
     return lambda: time_call(lambda: sess.run(None, feeds), 3, 15)
 
 
-def _measure_steadily(measure, slowness) -> tuple:
+def _measure_steadily(measure, slowness, combine) -> tuple:
     """``measure()`` under the probe's rule, against the calibration's own speed (``_steady.steadily``:
-    taken again while the machine ran slow). Returns its last result, how many times it was taken
-    again, and whether the machine still ran slow at the end (``Steady.slowness`` above ``1 + SLOW``)."""
-    got = steadily(measure, slowness)
+    taken again while the machine ran slow, ``combine`` folding each new result into the kept one).
+    Returns the kept result, how many times it was taken again, and whether the machine still ran
+    slow at the end (``Steady.slowness`` above ``1 + SLOW``)."""
+    got = steadily(measure, slowness, combine)
     return got.result, got.again, bool(got.note())
+
+
+def _fastest(kept: list[float], new: list[float]) -> list[float]:
+    """Per path (or graph), the faster of two timings: the probe keeps a graph's faster timing too."""
+    return [min(a, b) for a, b in zip(kept, new)]
 
 
 def _per_path_median(rounds: list[list[float]]) -> list[float]:
@@ -148,12 +154,12 @@ def _int8_timings(cands, size, slowness, rounds: int) -> dict:
     taken: dict = {key: [] for key in chains}
     for _ in range(rounds):
         for key, (_, (runs, new_round)) in chains.items():
-            ms, _, _ = _measure_steadily(lambda: time_chain(runs, WARMUP, 20, new_round=new_round), slowness)
+            ms, _, _ = _measure_steadily(lambda: time_chain(runs, WARMUP, 20, new_round=new_round), slowness, _fastest)
             taken[key].append(ms)
     return {key: dict(zip(chains[key][0], _per_path_median(r))) for key, r in taken.items()}
 
 
-def host(n: int, seed: int, scale: float, reps: int = 3, save: Path | None = None, rounds: int = 3) -> None:
+def host(n: int, seed: int, scale: float, reps: int = 3, save: Path | None = None, rounds: int = 1) -> None:
     """Each repetition is what a user does: calibrate (stage graphs at every size of ``STAGE_SIZES``),
     then measure ``n`` held-out candidates at each of ``HOST_SIZES``, and report the median per-path
     error of each size. A fixed graph timed before and after each step shows whether the machine
@@ -189,7 +195,7 @@ def host(n: int, seed: int, scale: float, reps: int = 3, save: Path | None = Non
             print(f"  fit on {fit['what']}: median |error| {fit['median_abs_error']:.1%}")
         timers = {(c.key, size): CandidateTimer(net, size) for c, net in ((c, build_network(c)) for c in cands)
                   for size in HOST_SIZES}
-        taken: dict = {key: [] for key in timers}   # per round: (path ms, whole ms)
+        taken: dict = {key: [] for key in timers}   # per round: (path ms, whole graph ms)
         timed_again = {size: 0 for size in HOST_SIZES}
         still_slow = {size: 0 for size in HOST_SIZES}
         for _ in range(rounds):
@@ -197,11 +203,11 @@ def host(n: int, seed: int, scale: float, reps: int = 3, save: Path | None = Non
                 for c in cands:
                     def measure(timer=timers[c.key, size]):
                         m = timer.measure(repeats=20)
-                        return m.path_ms, m.whole_ms
-                    got, again, slow = _measure_steadily(measure, slowness)
+                        return m.path_ms + [m.whole_ms]
+                    ms, again, slow = _measure_steadily(measure, slowness, _fastest)
                     timed_again[size] += again
                     still_slow[size] += slow
-                    taken[c.key, size].append(got)
+                    taken[c.key, size].append((ms[:-1], ms[-1]))
         del timers
         for size in HOST_SIZES:
             key = f"{size[0]}x{size[1]}"
@@ -213,9 +219,11 @@ def host(n: int, seed: int, scale: float, reps: int = 3, save: Path | None = Non
                          for r in range(rounds)]
             fractions = [peak.fraction(candidate_cost(c, size).path_params_macs()[-1][1],
                                        float(np.median([w for _, w in taken[c.key, size]]))) for c in cands]
-            print(f"  rep {rep} {key}: {n} held-out candidates, {len(a)} paths, median over {rounds} rounds: median "
-                  f"|error| {np.median(a):.1%}, within 10%: {(a <= 0.1).mean():.0%}, median signed {np.median(errs):+.1%} "
-                  f"(each round alone: {' / '.join(f'{x:.1%}' for x in per_round)}); whole graphs at "
+            print(f"  rep {rep} {key}: {n} held-out candidates, {len(a)} paths"
+                  + (f", median over {rounds} rounds" if rounds > 1 else "") + ": median "
+                  f"|error| {np.median(a):.1%}, within 10%: {(a <= 0.1).mean():.0%}, median signed {np.median(errs):+.1%}"
+                  + (f" (each round alone: {' / '.join(f'{x:.1%}' for x in per_round)})" if rounds > 1 else "")
+                  + f"; whole graphs at "
                   f"{' '.join(f'{f:.0%}' for f in fractions)} of fp32 peak; {timed_again[size]} taken again after the "
                   f"machine ran slow, {still_slow[size]} of {n * rounds} measurements still slow after it")
         if prof.int8 is not None:
@@ -223,7 +231,8 @@ def host(n: int, seed: int, scale: float, reps: int = 3, save: Path | None = Non
             errs = np.array(errors(prof.int8, _int8_observations(cands, HOST_SIZES[0], held["int8_timings"]))["error"])
             int8_medians.append(float(np.median(np.abs(errs))))
             print(f"  rep {rep} int8 at {HOST_SIZES[0][0]}x{HOST_SIZES[0][1]}: {len(errs)} deployed stage graphs of the "
-                  f"held-out candidates, each quantized whole, timed in sequence, median over {rounds} rounds: median "
+                  f"held-out candidates, each quantized whole, timed in sequence"
+                  + (f", median over {rounds} rounds" if rounds > 1 else "") + ": median "
                   f"|error| {np.median(np.abs(errs)):.1%}, within 10%: {(np.abs(errs) <= 0.1).mean():.0%}, median signed "
                   f"{np.median(errs):+.1%}")
         if save:
@@ -249,8 +258,10 @@ if __name__ == "__main__":
     ap.add_argument("--scale", type=float, default=1.0, help="calibration sweep size (1 = explorer calibrate's)")
     ap.add_argument("--skip-host", action="store_true", help="only the shipped profiles")
     ap.add_argument("--reps", type=int, default=3, help="calibrations, each with its held-out measurement")
-    ap.add_argument("--rounds", type=int, default=3,
-                    help="interleaved rounds of the held-out measurement (each path keeps its median)")
+    ap.add_argument("--rounds", type=int, default=1,
+                    help="interleaved rounds of the held-out measurement (each path keeps its median); each "
+                         "measurement waits for a calm machine, so on a machine slow most of the time this "
+                         "multiplies the waiting")
     ap.add_argument("--save", type=Path, help="keep each repetition's probe results and held-out timings here")
     ap.add_argument("--refit", type=Path, help="no measuring: fit --save's results again and compare")
     args = ap.parse_args()

@@ -228,3 +228,21 @@ def test_host_fit_finds_the_body_exponent_from_stage_graphs_at_several_sizes():
     assert fitted.body_exponent > 1.0
     flat = fit_host(measured, stage_obs=[dataclasses.replace(o, group="one size") for o in stage_obs])
     assert flat.body_exponent == 1.0   # one size cannot tell an exponent from rates
+
+
+def test_a_candidate_timer_times_its_paths_again_with_the_same_sessions():
+    import math
+    from explorer.cost.measure import CandidateTimer
+    from explorer.model import build_network
+    cand = paper_candidate()
+    net = build_network(cand)
+    timer = CandidateTimer(net, (32, 64))
+    first, again = timer.measure(repeats=2, warmup=1), timer.measure(repeats=2, warmup=1)
+    for m in (first, again):
+        assert len(m.path_ms) == cand.num_paths and m.input_size == (32, 64)
+        assert list(m.stage_ms) == [spec.name for spec in net.specs]
+        # a path is ready when the stages up to its exit are done: cumulative stage times
+        ends = [k for k, spec in enumerate(net.specs) if spec.path is not None]
+        assert m.path_ms[1:] == pytest.approx([sum(list(m.stage_ms.values())[:k + 1]) for k in ends])
+        assert m.whole_ms > 0 and all(ms > 0 for ms in m.stage_ms.values())
+    assert math.isnan(CandidateTimer(net, (32, 64), whole=False).measure(repeats=1, warmup=0).whole_ms)
