@@ -21,9 +21,9 @@ from explorer.cost.calibrate import calibrate, fit_results
 from explorer.cost.fit import (PAPER_RPI4_TABLE2, PAPER_TX2_PATHS_MS, TX2_REFERENCES, Observation, errors,
                                kernel_workloads, rpi4_table2)
 from explorer.cost.measure import CandidateTimer
-from explorer.model import build_network
 from explorer.cost.peak import host_peak
 from explorer.cost.probe_script import read_results
+from explorer.model import build_network
 from explorer.model.reference import REFERENCES
 from explorer.space import SearchSpace, paper_candidate
 
@@ -85,6 +85,7 @@ def _fastest(kept: list[float], new: list[float]) -> list[float]:
 
 
 def _per_path_median(rounds: list[list[float]]) -> list[float]:
+    """Per path (or graph), its median timing over the rounds."""
     return [float(np.median(t)) for t in zip(*rounds)]
 
 
@@ -216,7 +217,7 @@ def host(n: int, seed: int, scale: float, reps: int = 3, save: Path | None = Non
             a = np.abs(errs)
             medians[size].append(float(np.median(a)))
             per_round = [np.median(np.abs(_size_errors(prof, cands, size, {c.key: taken[c.key, size][r][0] for c in cands})))
-                         for r in range(rounds)]
+                         for r in range(rounds)] if rounds > 1 else []
             fractions = [peak.fraction(candidate_cost(c, size).path_params_macs()[-1][1],
                                        float(np.median([w for _, w in taken[c.key, size]]))) for c in cands]
             print(f"  rep {rep} {key}: {n} held-out candidates, {len(a)} paths"
