@@ -17,7 +17,7 @@ from explorer.cost import candidate_cost, get_device
 from explorer.data import open_dataset
 from explorer.model import build_network
 from explorer.space import Candidate
-from explorer.train import TrainConfig, train
+from explorer.training.train import TrainConfig, train
 
 CACHE_DIR = Path(os.environ.get("ANYTIME_BENCH_CACHE") or Path(__file__).resolve().parents[1] / "reports" / "bench")
 BUDGET = "time:uniform:33ms"
@@ -95,8 +95,8 @@ def candidates_of(args) -> dict[str, Candidate]:
     if args.candidate:
         cands["candidate"] = Candidate.from_yaml(args.candidate)
     elif args.study:
-        from explorer.results import winner
-        from explorer.storage import load_study
+        from explorer.study.results import winner
+        from explorer.study.storage import load_study
         win = winner(load_study(args.study, None, Path(args.reports)))
         cands["winner"] = Candidate.from_dict(win.user_attrs["candidate"])
     return cands

@@ -8,7 +8,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Callable, NamedTuple, TypeVar
 
-from explorer.cost.probe_script import (DEFAULT_PROVIDER, REMEASURE_PASSES, SLOW, default_threads, fixed_graph_timer,
+from explorer.probe import (DEFAULT_PROVIDER, REMEASURE_PASSES, SLOW, default_threads, fixed_graph_timer,
                                        speed_layer, usual_speed, wait_until_calm)
 
 T = TypeVar("T")

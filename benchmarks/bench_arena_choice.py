@@ -1,5 +1,5 @@
 """The runner's two sets of stage sessions (one memory arena shared by all, or an arena each) against
-the whole graph, in each state the machine was in while it ran (`explorer._arena_choice`).
+the whole graph, in each state the machine was in while it ran (`explorer.deploy._arena_choice`).
 
 A shared 2-core VM switches from outside between states (on the Zen 4 VM: calm, the paper design's
 whole graph at 7.7 ms; slowed, 13.9 ms, where two threads run it no faster than one), so the figures
@@ -19,11 +19,11 @@ from pathlib import Path
 
 import torch
 
-from explorer.cost.measure import session, time_call
-from explorer.deploy import export_network
+from explorer.calibration.measure import session, time_call
+from explorer.deploy.export import export_network
 from explorer.model import build_network
-from explorer.onnx_stages import example_inputs, export_whole
-from explorer.runtime import AnytimeRunner
+from explorer.model.onnx import example_inputs, export_whole
+from explorer.deploy.runtime import AnytimeRunner
 from explorer.space import paper_candidate
 
 CALM, SLOWED = 1.25, 1.5

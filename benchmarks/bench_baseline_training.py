@@ -1,7 +1,7 @@
 """How long a reference network takes to retrain as a study's baseline, as `--time-limit` measures it,
 beside the estimate it falls back on without a measurement (MACs at the training size over the paper
 design's, `search.baseline_load`): seconds per training step (batch 16 at 64x64, the finalists' recipe) of the paper design and of
-each reference network, measured by the same call the plan makes (explorer.planning.measure_speeds),
+each reference network, measured by the same call the plan makes (explorer.study.planning.measure_speeds),
 --reps times; every repetition and the medians are printed. With --study, also the finalists that
 study would retrain (what the plan measures when sampling ends).
 
@@ -17,8 +17,8 @@ import statistics
 import torch
 
 from explorer.data import open_dataset
-from explorer.planning import measure_speeds
-from explorer.search import SearchConfig, baseline_load
+from explorer.study.planning import measure_speeds
+from explorer.study.search import SearchConfig, baseline_load
 
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -32,7 +32,7 @@ if __name__ == "__main__":
     finalists = ()
     if args.study:
         import optuna
-        from explorer.finalists import choose_finalists
+        from explorer.study.finalists import choose_finalists
         from explorer.space import Candidate
         study = optuna.load_study(study_name=None, storage=f"sqlite:///{args.study}")
         finalists = tuple(Candidate.from_dict(t.user_attrs["candidate"])

@@ -1,6 +1,6 @@
 """What keeping the decoder's skip additions in onnxruntime's blocked layout saves: the paper
 design's whole graph as every session of the package makes it (``session``, which rewrites the skip
-additions: ``explorer.cost.probe_script.blocked_skip_adds``) against the same graph as onnxruntime
+additions: ``explorer.probe.blocked_skip_adds``) against the same graph as onnxruntime
 optimises it (``blocked_skips=False``), interleaved; then the staged runtime, whose stages also hand
 their skips over blocked, against one built with neither. The depth maps are compared.
 
@@ -16,12 +16,12 @@ import numpy as np
 import onnx
 import torch
 
-import explorer.cost.probe_script as probe
-from explorer.cost.measure import session, time_call
-from explorer.deploy import export_network
+import explorer.probe as probe
+from explorer.calibration.measure import session, time_call
+from explorer.deploy.export import export_network
 from explorer.model import build_network
-from explorer.onnx_stages import example_inputs, export_whole
-from explorer.runtime import AnytimeRunner
+from explorer.model.onnx import example_inputs, export_whole
+from explorer.deploy.runtime import AnytimeRunner
 from explorer.space import paper_candidate
 
 

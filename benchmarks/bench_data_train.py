@@ -21,9 +21,9 @@ from explorer.data import open_dataset
 from explorer.data.synthetic import SyntheticConfig, generate
 from explorer.metrics import MetricAverager, depth_metrics
 from explorer.model import build_network, interpolate_scan
-from explorer.search import SearchConfig
+from explorer.study.search import SearchConfig
 from explorer.space import SearchSpace, paper_candidate
-from explorer.train import TrainConfig, train
+from explorer.training.train import TrainConfig, train
 
 
 def throughput(size, steps=8, batch=16):

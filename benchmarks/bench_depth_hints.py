@@ -1,4 +1,4 @@
-"""What depth hints cost to compute (issue 13): seconds per frame of :func:`explorer.depth_hints.compute_hints`
+"""What depth hints cost to compute (issue 13): seconds per frame of :func:`explorer.training.depth_hints.compute_hints`
 (200 Adam steps, a batch of 16 frames as ``with_hints`` runs them) at each input size, sizes interleaved,
 every repetition and the median printed. Multiply by the training frames for the one-off cost before a
 ``--depth-hints`` training or study (cached afterwards).
@@ -15,7 +15,7 @@ from torch.utils.data import DataLoader
 
 from explorer.data.sequences import (SequenceDataset, SyntheticSequenceConfig, SyntheticSequences,
                                      ensure_synthetic_sequences)
-from explorer.depth_hints import BATCH, STEPS, compute_hints
+from explorer.training.depth_hints import BATCH, STEPS, compute_hints
 
 if __name__ == "__main__":
     ap = argparse.ArgumentParser()

@@ -17,12 +17,12 @@ from pathlib import Path
 import numpy as np
 
 from explorer.cost import candidate_cost, get_device, profile_reference
-from explorer.cost.calibrate import calibrate, fit_results
+from explorer.calibration.calibrate import calibrate, fit_results
 from explorer.cost.fit import (PAPER_RPI4_TABLE2, PAPER_TX2_PATHS_MS, TX2_REFERENCES, Observation, errors,
                                kernel_workloads, rpi4_table2)
-from explorer.cost.measure import CandidateTimer
-from explorer.cost.peak import host_peak
-from explorer.cost.probe_script import read_results
+from explorer.calibration.measure import CandidateTimer
+from explorer.calibration.peak import host_peak
+from explorer.probe import read_results
 from explorer.model import build_network
 from explorer.model.reference import REFERENCES
 from explorer.space import SearchSpace, paper_candidate
@@ -62,9 +62,9 @@ HOST_SIZES = ((224, 224), (224, 320), (192, 640))
 
 def _sentinel() -> "callable":
     """Times one fixed graph (the paper design at 224x224, whole): the machine's speed at that moment."""
-    from explorer.cost.measure import session, time_call
+    from explorer.calibration.measure import session, time_call
     from explorer.model import build_network
-    from explorer.onnx_stages import example_inputs, export_whole
+    from explorer.model.onnx import example_inputs, export_whole
     sess = session(export_whole(build_network(paper_candidate()), (224, 224)))
     feeds = {k: v.numpy() for k, v in example_inputs((224, 224)).items()}
     return lambda: time_call(lambda: sess.run(None, feeds), 3, 15)
@@ -143,9 +143,9 @@ def _int8_timings(cands, size, slowness, rounds: int) -> dict:
     --quantize int8 --int8-stages all`` does), handing each other uint8 tensors, timed as the probe
     times them (in one chain, in sequence, under ``steadily``'s rule) in ``rounds`` interleaved rounds
     over the candidates: {candidate key: {graph name: median ms over the rounds}}."""
-    from explorer.cost.bundle import _int8_graphs
-    from explorer.cost.probe_script import WARMUP, chain_runs, chain_sessions, time_chain
-    from explorer.onnx_stages import example_inputs
+    from explorer.calibration.bundle import _int8_graphs
+    from explorer.probe import WARMUP, chain_runs, chain_sessions, time_chain
+    from explorer.model.onnx import example_inputs
     chains = {}
     for c in cands:
         graphs = _int8_graphs(build_network(c), size)

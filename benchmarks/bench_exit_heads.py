@@ -17,11 +17,11 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from explorer.cost.measure import session, time_call
+from explorer.calibration.measure import session, time_call
 from explorer.model import build_network
 from explorer.model.exits import ExitHead, ExitHeadConfig
 from explorer.model.ops import Resize
-from explorer.onnx_stages import example_inputs, export_whole
+from explorer.model.onnx import example_inputs, export_whole
 from explorer.space import paper_candidate
 
 from _timing import time_interleaved

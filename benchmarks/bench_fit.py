@@ -20,7 +20,7 @@ import numpy as np
 
 import explorer.cost.fit as fit
 from explorer.cost import candidate_cost
-from explorer.cost.calibrate import calibrate, fit_results, read_results
+from explorer.calibration.calibrate import calibrate, fit_results, read_results
 from explorer.space import paper_candidate
 
 

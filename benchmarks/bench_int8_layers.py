@@ -2,7 +2,7 @@
 sizes, each timed in float and quantized as `explorer export --quantize int8` quantizes (static QDQ,
 7-bit per-channel weights, uint8 activations, the quantize / dequantize at its input and output
 included). An export quantizes whole stage graphs, where a layer pays these edges only at the graph's
-own (`explorer.quantize`); this shows what each kind costs alone. Interleaved, --reps repetitions in one invocation; every repetition and the median.
+own (`explorer.deploy.quantize`); this shows what each kind costs alone. Interleaved, --reps repetitions in one invocation; every repetition and the median.
 
     .venv/bin/python benchmarks/bench_int8_layers.py [--reps 3]
 """
@@ -17,9 +17,9 @@ os.environ.setdefault("EXPLORER_ORT_POOL", "session")   # quantize_static makes 
 
 from onnxruntime.quantization import CalibrationMethod, QuantFormat, QuantType, quantize_static  # noqa: E402
 
-from explorer.cost.calibrate import SweepLayer, layer_graph  # noqa: E402
-from explorer.cost.measure import session, time_call  # noqa: E402
-from explorer.quantize import _Feeds  # noqa: E402
+from explorer.calibration.calibrate import SweepLayer, layer_graph  # noqa: E402
+from explorer.calibration.measure import session, time_call  # noqa: E402
+from explorer.deploy.int8_graphs import _Feeds  # noqa: E402
 
 #: (label, layer): the paper design's layers at 224x224
 LAYERS = [

@@ -13,7 +13,7 @@ import torch
 from explorer.model import build_network
 from explorer.space import SearchSpace, paper_candidate
 from explorer.supernet import Supernet, largest_candidate
-from explorer.train import multi_exit_loss
+from explorer.training.train import multi_exit_loss
 
 torch.set_num_threads(2)
 torch.manual_seed(0)

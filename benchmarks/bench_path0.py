@@ -14,7 +14,7 @@ import statistics
 import numpy as np
 import torch
 
-from explorer.cost.measure import session
+from explorer.calibration.measure import session
 from explorer.model.exits import interpolate_scan
 
 from _timing import time_interleaved

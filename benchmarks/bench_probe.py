@@ -18,8 +18,8 @@ from pathlib import Path
 import numpy as np
 
 from explorer.cost import candidate_cost
-from explorer.cost.bundle import write_bundle
-from explorer.cost.calibrate import calibrate, fit_results, read_results
+from explorer.calibration.bundle import write_bundle
+from explorer.calibration.calibrate import calibrate, fit_results, read_results
 from explorer.space import SearchSpace
 
 

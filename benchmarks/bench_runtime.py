@@ -23,17 +23,17 @@ import torch
 
 from explorer.anytime import anytime_loss
 from explorer.cost import candidate_cost
-from explorer.cost.calibrate import calibrate, read_results
-from explorer.cost.measure import session, time_call
-from explorer.cost.peak import gemm_gmacs, host_peak
+from explorer.calibration.calibrate import calibrate, read_results
+from explorer.calibration.measure import session, time_call
+from explorer.calibration.peak import gemm_gmacs, host_peak
 from explorer.data import open_dataset
-from explorer.deploy import Quantization, export_network
+from explorer.deploy.export import Quantization, export_network
 from explorer.metrics import MetricAverager, depth_metrics
 from explorer.model import build_network
-from explorer.onnx_stages import example_inputs, export_whole
-from explorer.runtime import AnytimeRunner, measured_anytime
+from explorer.model.onnx import example_inputs, export_whole
+from explorer.deploy.runtime import AnytimeRunner, measured_anytime
 from explorer.space import paper_candidate
-from explorer.train import TrainConfig, train
+from explorer.training.train import TrainConfig, train
 
 from _steady import speedometer, steadily
 from _timing import time_interleaved

@@ -21,9 +21,9 @@ import optuna
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _labels import recipe, score, standalone, with_seed  # noqa: E402
 
-from explorer.results import baseline_trial, best_trial, finalists_frame, winner  # noqa: E402
+from explorer.study.results import baseline_trial, best_trial, finalists_frame, winner  # noqa: E402
 from explorer.space import Candidate, paper_candidate  # noqa: E402
-from explorer.storage import load_study  # noqa: E402
+from explorer.study.storage import load_study  # noqa: E402
 
 if __name__ == "__main__":
     ap = argparse.ArgumentParser()

@@ -22,12 +22,12 @@ import time
 import torch
 from torch.utils.data import DataLoader
 
-from explorer.depth_hints import with_hints
+from explorer.training.depth_hints import with_hints
 from explorer.data.sequences import (SequenceDataset, SyntheticSequenceConfig, SyntheticSequences,
                                      ensure_synthetic_sequences)
 from explorer.model import build_network
 from explorer.space import paper_candidate
-from explorer.train import PROXY, evaluate, train
+from explorer.training.train import PROXY, evaluate, train
 
 SIZE = (64, 64)
 
@@ -75,9 +75,9 @@ if __name__ == "__main__":
     ap.add_argument("--train", type=int, default=480, help="target frames (3 per rendered room)")
     ap.add_argument("--val", type=int, default=48)
     ap.add_argument("--scan-weight", type=float, default=None,
-                    help="weight of the scan term (default: explorer.selfsup.SCAN_WEIGHT)")
+                    help="weight of the scan term (default: explorer.training.selfsup.SCAN_WEIGHT)")
     ap.add_argument("--smoothness-weight", type=float, default=None,
-                    help="weight of the edge-aware smoothness (default: explorer.selfsup.SMOOTHNESS_WEIGHT)")
+                    help="weight of the edge-aware smoothness (default: explorer.training.selfsup.SMOOTHNESS_WEIGHT)")
     ap.add_argument("--poses", default="net", choices=["net", "given"],
                     help="self-supervision's camera motion: the pose network (default) or the data's poses")
     ap.add_argument("--kinds", default="supervised,self+scan,hints,noscan",
@@ -85,12 +85,12 @@ if __name__ == "__main__":
                     "hints and the data's poses), noscan (default: all four)")
     args = ap.parse_args()
     torch.set_num_threads(2)
-    import explorer.selfsup
+    import explorer.training.selfsup
     if args.scan_weight is not None:
-        explorer.selfsup.SCAN_WEIGHT = args.scan_weight
+        explorer.training.selfsup.SCAN_WEIGHT = args.scan_weight
     if args.smoothness_weight is not None:
-        explorer.selfsup.SMOOTHNESS_WEIGHT = args.smoothness_weight
-    print(f"scan term weight {explorer.selfsup.SCAN_WEIGHT}, smoothness weight {explorer.selfsup.SMOOTHNESS_WEIGHT}")
+        explorer.training.selfsup.SMOOTHNESS_WEIGHT = args.smoothness_weight
+    print(f"scan term weight {explorer.training.selfsup.SCAN_WEIGHT}, smoothness weight {explorer.training.selfsup.SMOOTHNESS_WEIGHT}")
 
     # rendered at 128x128 (a third of the default's pixels) since training runs at 64x64
     cfg = SyntheticSequenceConfig(train=args.train, val=args.val, height=128, width=128)

@@ -1,7 +1,7 @@
 """Where does the self-supervised objective (issue 13) put its minimum, without any network?
 
 For validation frames of the synthetic sequences, one free depth value per pixel is optimised
-(Adam; :func:`explorer.depth_hints.compute_hints`, which makes depth hints) on exactly the loss training uses (:mod:`explorer.selfsup`: photometric reprojection with the
+(Adam; :func:`explorer.training.depth_hints.compute_hints`, which makes depth hints) on exactly the loss training uses (:mod:`explorer.training.selfsup`: photometric reprojection with the
 data's poses, per-pixel minimum, auto-masking, edge-aware smoothness, the scan term), starting from
 path 0 (the scan filled column-wise) or from a constant 2.5 m. If the objective's minimum were the
 true depth, RMSE would fall; if it rises while the photometric error falls below the true depth's,
@@ -21,9 +21,9 @@ from torch.utils.data import DataLoader
 
 from explorer.data.sequences import (SequenceDataset, SyntheticSequenceConfig, SyntheticSequences,
                                      ensure_synthetic_sequences)
-from explorer.depth_hints import compute_hints
+from explorer.training.depth_hints import compute_hints
 from explorer.model.exits import DEPTH_INIT_M, interpolate_scan
-from explorer.selfsup import SCAN_WEIGHT, reprojection_loss, warp
+from explorer.training.selfsup import SCAN_WEIGHT, reprojection_loss, warp
 
 SIZE = (64, 64)
 

@@ -17,7 +17,7 @@ import time
 import pandas as pd
 
 from explorer.cost import candidate_cost, get_device
-from explorer.enumerate import enumerate_space
+from explorer.study.enumerate import enumerate_space
 from explorer.space import SearchSpace, paper_candidate
 
 if __name__ == "__main__":

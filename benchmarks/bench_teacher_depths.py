@@ -26,8 +26,8 @@ from _labels import recipe, score, standalone  # noqa: E402
 from explorer.anytime import anytime_loss  # noqa: E402
 from explorer.cost import candidate_cost, get_device  # noqa: E402
 from explorer.data import open_dataset  # noqa: E402
-from explorer.evaluators import SupernetEvaluator  # noqa: E402
-from explorer.search import SearchConfig  # noqa: E402
+from explorer.study.evaluators import SupernetEvaluator  # noqa: E402
+from explorer.study.search import SearchConfig  # noqa: E402
 from explorer.space import SearchSpace, paper_candidate, paper_nee_candidate  # noqa: E402
 from explorer.supernet import default_path, train_supernet  # noqa: E402
 

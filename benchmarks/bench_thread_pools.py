@@ -1,7 +1,7 @@
 """Thread pools for the staged runtime (issue 11): the paper design's stage graphs chained, and its
-whole graph, with one intra-op pool per session (spinning off, what explorer.runtime did before), a
+whole graph, with one intra-op pool per session (spinning off, what explorer.deploy.runtime did before), a
 pool per session with spinning on, onnxruntime's global thread pool shared by every session (what
-``explorer.cost.probe_script.session`` does now), and a pool
+``explorer.probe.session`` does now), and a pool
 per session without the NCHWc layout transforms (what the stage boundaries cost them). A
 process can use the global pool only for all its sessions, so each variant runs in its own fresh
 process (staged and whole interleaved call by call), alternating, --reps times; every repetition
@@ -79,9 +79,9 @@ if __name__ == "__main__":
     if args.child:
         print(*_chain_ms(Path(args.child[0]), args.child[1], args.threads))
         raise SystemExit(0)
-    from explorer.deploy import export_network
+    from explorer.deploy.export import export_network
     from explorer.model import build_network
-    from explorer.onnx_stages import export_whole
+    from explorer.model.onnx import export_whole
     from explorer.space import paper_candidate
     variants = [v for v in args.variants.split(",") if v in VARIANTS]
     staged: dict[str, list[float]] = {v: [] for v in variants}

@@ -187,7 +187,7 @@ class Trace(BudgetDistribution):
         return cls(tuple(float(v) * scale for v in values), kind=kind, source=str(path))
 
 
-def _parse_quantity(text: str, kind: str) -> float:
+def parse_quantity(text: str, kind: str) -> float:
     m = re.fullmatch(r"\s*([0-9]*\.?[0-9]+(?:e-?[0-9]+)?)\s*([a-zA-Z]*)\s*", text)
     if not m:
         raise UserError(f"'{text}' is not a {kind} quantity (e.g. {'33ms' if kind == 'time' else '0.5J'})")
@@ -200,8 +200,8 @@ def _parse_quantity(text: str, kind: str) -> float:
 
 
 DISTRIBUTIONS: dict[str, Callable[[list[str], str], BudgetDistribution]] = {
-    "uniform": lambda args, kind: Uniform(_parse_quantity(_one(args, "uniform", "MAX"), kind), kind),
-    "exponential": lambda args, kind: Exponential(_parse_quantity(_one(args, "exponential", "MEAN"), kind), kind),
+    "uniform": lambda args, kind: Uniform(parse_quantity(_one(args, "uniform", "MAX"), kind), kind),
+    "exponential": lambda args, kind: Exponential(parse_quantity(_one(args, "exponential", "MEAN"), kind), kind),
     "truncnormal": lambda args, kind: TruncatedNormal(*_two(args, kind), kind=kind),
     "trace": lambda args, kind: Trace.from_csv(":".join(args), kind, 1.0),
 }
@@ -216,7 +216,7 @@ def _one(args: list[str], name: str, what: str) -> str:
 def _two(args: list[str], kind: str) -> tuple[float, float]:
     if len(args) != 2:
         raise UserError(f"truncnormal budget takes MEAN:STD: {SPEC_HELP}")
-    return _parse_quantity(args[0], kind), _parse_quantity(args[1], kind)
+    return parse_quantity(args[0], kind), parse_quantity(args[1], kind)
 
 
 def parse_budget(spec: str | BudgetDistribution) -> BudgetDistribution:

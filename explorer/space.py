@@ -188,7 +188,7 @@ class Candidate:
 
     @classmethod
     def from_yaml(cls, path: str | Path) -> "Candidate":
-        data = _load_yaml(path)
+        data = load_yaml(path)
         if isinstance(data, dict) and "candidate" in data:
             data = data["candidate"]
         return cls.from_dict(data, source=str(path))
@@ -236,7 +236,7 @@ _SPACE_SCHEMA: dict[str, dict[str, str]] = {
 _TOP_KEYS = set(_SPACE_SCHEMA) | {"name", "description", "precision"}
 
 
-def _load_yaml(path: str | Path) -> Any:
+def load_yaml(path: str | Path) -> Any:
     p = Path(path)
     if not p.is_file():
         raise UserError(f"{p}: no such file")
@@ -290,7 +290,7 @@ class SearchSpace:
     @classmethod
     def from_yaml(cls, path: str | Path) -> "SearchSpace":
         path = resolve_space_path(path)
-        data = _load_yaml(path)
+        data = load_yaml(path)
         return cls.from_dict(data, source=str(path))
 
     @classmethod

@@ -3,7 +3,7 @@ from pathlib import Path
 import nbformat
 from nbclient import NotebookClient
 
-from explorer.search import SearchConfig, search
+from explorer.study.search import SearchConfig, search
 from conftest import TINY_DATA
 
 NOTEBOOK = Path(__file__).resolve().parents[1] / "notebooks" / "analysis.ipynb"

@@ -35,9 +35,9 @@ def _count(text: str) -> float:
 
 
 def _ms(text: str) -> float:
-    from explorer.anytime import _parse_quantity
+    from explorer.anytime import parse_quantity
     try:
-        return _parse_quantity(text, "time")
+        return parse_quantity(text, "time")
     except UserError as exc:
         raise argparse.ArgumentTypeError(str(exc)) from None
 

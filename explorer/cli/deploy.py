@@ -20,8 +20,9 @@ def _percent(text: str) -> float:
 
 
 def cmd_export(args) -> None:
-    from explorer._console import console, err_console, print_frame
-    from explorer.deploy import AS_SEARCHED, Quantization, export_from_checkpoint, export_from_study
+    from explorer.console import console, err_console, print_frame
+    from explorer.deploy.export import Quantization, export_from_checkpoint
+    from explorer.study.export import AS_SEARCHED, export_from_study
     if bool(args.study) == bool(args.checkpoint):
         raise UserError("give either --study S (optionally --trial N) or --checkpoint FILE")
     if args.quantize not in (None, "none", "int8"):
@@ -62,8 +63,8 @@ def cmd_export(args) -> None:
 
 
 def cmd_run(args) -> None:
-    from explorer._console import console, print_json
-    from explorer.runtime import run_files
+    from explorer.console import console, print_json
+    from explorer.deploy.runtime import run_files
     res = run_files(Path(args.model), Path(args.image), Path(args.scan), args.deadline,
                     Path(args.out) if args.out else None, args.threads, args.provider)
     if args.json:
@@ -74,8 +75,8 @@ def cmd_run(args) -> None:
 
 
 def cmd_curve(args) -> None:
-    from explorer._console import console, print_json, progress
-    from explorer.runtime import curve_check
+    from explorer.console import console, print_json, progress
+    from explorer.calibration.curve import curve_check
     with progress(transient=True) as bar:
         task = bar.add_task("deadlines", total=args.deadlines, status="")
         res = curve_check(Path(args.model), args.data, args.device, args.frames, args.deadlines,

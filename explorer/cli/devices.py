@@ -8,7 +8,7 @@ from explorer.errors import UserError
 
 
 def cmd_devices(args) -> None:
-    from explorer._console import console, print_json
+    from explorer.console import console, print_json
     from explorer.cost.devices import available_devices, get_device
     if args.name:
         p = get_device(args.name)
@@ -38,13 +38,13 @@ def cmd_devices(args) -> None:
 
 
 def cmd_calibrate(args) -> None:
-    from explorer._console import console, progress
-    from explorer.cost.calibrate import calibrate, fit_results, read_results
-    from explorer.cost.probe_script import SPEED_CHECK_EVERY, SPEED_DRIFT_WARN
+    from explorer.console import console, progress
+    from explorer.calibration.calibrate import calibrate, fit_results, read_results
+    from explorer.probe import SPEED_CHECK_EVERY, SPEED_DRIFT_WARN
     if args.bundle and args.fit:
         raise UserError("--bundle writes graphs for a device, --fit reads what the probe measured there: give one")
     if args.bundle:
-        from explorer.cost.bundle import write_bundle
+        from explorer.calibration.bundle import write_bundle
         bundle = Path(args.bundle)
         if bundle.exists() and not args.force:
             raise UserError(f"{bundle} exists: pass --force to overwrite it")
@@ -54,7 +54,7 @@ def cmd_calibrate(args) -> None:
                                     progress=lambda i, n: bar.update(task, completed=i, total=n))
         console.print(f"wrote {bundle} ({bundle.stat().st_size / 1e6:.1f} MB, {len(manifest['layers'])} layer "
                       f"graphs, {len(manifest['candidates'])} candidates' stages, bundle {manifest['id']}); on the "
-                      f"device: tar xf {bundle.name} && python3 probe.py --out results.json")
+                      f"device: tar xf {bundle.name} && python3 probe.pyz --out results.json")
         return
     if not args.out:
         raise UserError("give --out PROFILE.yaml (or --bundle FILE to measure another device)")
@@ -64,7 +64,7 @@ def cmd_calibrate(args) -> None:
     if args.fit:
         prof = fit_results(read_results(args.fit), name=args.name or out.stem)
     else:
-        from explorer.cost.probe_script import ProbeError, check_provider
+        from explorer.probe import ProbeError, check_provider
         try:
             check_provider(args.provider)  # before the progress bar: one line, nothing else
         except ProbeError as exc:
@@ -113,9 +113,9 @@ def register(sub, add, reports: dict) -> None:
     s = add("calibrate", cmd_calibrate, "measure this machine with onnxruntime and write a device profile; "
             "or pack the measurement for another device (--bundle) and fit what it measured (--fit)")
     s.add_argument("--out", help="profile YAML to write")
-    s.add_argument("--bundle", metavar="FILE.tar", help="write the graphs and probe.py (needs only python3, numpy "
+    s.add_argument("--bundle", metavar="FILE.tar", help="write the graphs and probe.pyz (needs only python3, numpy "
                    "and onnxruntime) for a device, instead of measuring here")
-    s.add_argument("--fit", metavar="RESULTS.json", help="fit --out to what probe.py measured on a device")
+    s.add_argument("--fit", metavar="RESULTS.json", help="fit --out to what probe.pyz measured on a device")
     s.add_argument("--name", help="profile name (default: the file's stem)")
     s.add_argument("--threads", type=int, default=None)
     s.add_argument("--repeats", type=int, default=25)

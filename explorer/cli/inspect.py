@@ -11,7 +11,7 @@ from explorer.cli._common import _Parser, _size
 
 
 def cmd_space_show(args) -> None:
-    from explorer._console import console, print_json
+    from explorer.console import console, print_json
     from explorer.space import SearchSpace
     space = SearchSpace.from_yaml(args.space)
     dims = space.dimensions()
@@ -30,9 +30,9 @@ def cmd_space_show(args) -> None:
 
 def _candidates_of(path: str) -> list:
     """A candidate file, or every candidate of a (small) space."""
-    from explorer.space import Candidate, SearchSpace, resolve_space_path, _load_yaml
+    from explorer.space import Candidate, SearchSpace, resolve_space_path, load_yaml
     p = resolve_space_path(path) if not Path(path).is_file() else Path(path)
-    data = _load_yaml(p)
+    data = load_yaml(p)
     if isinstance(data, dict) and "candidate" in data:
         return [Candidate.from_dict(data["candidate"], str(p))]
     space = SearchSpace.from_yaml(p)
@@ -43,7 +43,7 @@ def _candidates_of(path: str) -> list:
 
 
 def _profile_reference(args, device) -> None:
-    from explorer._console import console, print_frame, print_json
+    from explorer.console import console, print_frame, print_json
     from explorer.cost import profile_reference
     from explorer.model.reference import get_reference
     ref = get_reference(args.target)
@@ -60,7 +60,7 @@ def _profile_reference(args, device) -> None:
 
 
 def cmd_profile(args) -> None:
-    from explorer._console import console, print_frame, print_json
+    from explorer.console import console, print_frame, print_json
     from explorer.cost import get_device, profile_candidate
     from explorer.space import SPACES_DIR
     out = []
@@ -73,7 +73,7 @@ def cmd_profile(args) -> None:
         entry = {"candidate": cand.to_dict(), "key": cand.key, "input_size": list(args.input),
                  "paths": frame.to_dict("records")}
         if args.measure:
-            from explorer.cost.measure import measure_candidate
+            from explorer.calibration.measure import measure_candidate
             m = measure_candidate(cand, args.input, threads=args.threads, repeats=args.repeats)
             frame["measured_ms"] = m.path_ms
             frame.loc[0, "measured_ms"] = 0.0
@@ -95,7 +95,7 @@ def cmd_profile(args) -> None:
 
 
 def cmd_anytime(args) -> None:
-    from explorer._console import console, print_json
+    from explorer.console import console, print_json
     from explorer.anytime import anytime_loss, interval_probabilities, parse_budget
     if not args.path:
         raise UserError("give at least one --path COST:LOSS (path 0 is added with cost 0 if missing)")
@@ -121,8 +121,8 @@ def cmd_anytime(args) -> None:
 
 
 def cmd_enumerate(args) -> None:
-    from explorer._console import console, print_frame, progress
-    from explorer.enumerate import enumerate_space
+    from explorer.console import console, print_frame, progress
+    from explorer.study.enumerate import enumerate_space
     from explorer.space import SearchSpace
     space = SearchSpace.from_yaml(args.space)
     t0 = time.perf_counter()
@@ -142,7 +142,7 @@ def cmd_enumerate(args) -> None:
 
 def cmd_data_inspect(args) -> None:
     import numpy as np
-    from explorer._console import console, print_json, progress
+    from explorer.console import console, print_json, progress
     from explorer.data import open_dataset
     from explorer.metrics import MetricAverager, depth_metrics
     from explorer.model import interpolate_scan

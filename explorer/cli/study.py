@@ -11,11 +11,11 @@ from explorer.cli._common import _size, _count, _ms, _duration_s, _add_supervisi
 
 def cmd_search(args) -> None:
     import optuna
-    from explorer._console import err_console, progress
-    from explorer.search import SearchConfig, search
+    from explorer.console import err_console, progress
+    from explorer.study.search import SearchConfig, search
     from explorer.space import SearchSpace
     optuna.logging.set_verbosity(optuna.logging.WARNING)
-    from explorer.planning import TimeLimit
+    from explorer.study.planning import TimeLimit
     started = time.time()  # the time limit counts from here: data generation is part of the run
     space_name = SearchSpace.from_yaml(args.space).name
     study = args.study or f"{Path(str(args.device)).stem}-{space_name}"
@@ -64,7 +64,7 @@ def cmd_search(args) -> None:
             nonlocal t0
             if "search_start" not in phases:
                 phases["search_start"], t0 = True, time.time()
-            from explorer.retry import counted_trials
+            from explorer.study.retry import counted_trials
             complete = study_obj.get_trials(deepcopy=False, states=(optuna.trial.TrialState.COMPLETE,))
             complete = [t for t in complete if t.values]
             best = min((t.values[0] for t in complete), default=float("nan"))
@@ -101,7 +101,7 @@ def cmd_search(args) -> None:
 
 
 def _baselines(args) -> tuple[str, ...]:
-    from explorer.search import DEFAULT_BASELINES
+    from explorer.study.config import DEFAULT_BASELINES
     if args.no_baselines:
         if args.baselines:
             raise UserError("give --baselines NAMES or --no-baselines, not both")
@@ -115,8 +115,8 @@ def _baselines(args) -> tuple[str, ...]:
 
 
 def _print_retries(outcome, cfg) -> None:
-    from explorer._console import err_console
-    from explorer.results import baseline_label
+    from explorer.console import err_console
+    from explorer.study.results import baseline_label
     trials = {t.number: t for t in outcome.study.get_trials(deepcopy=False)}
     def what(n: int) -> str:
         b = trials[n].user_attrs.get("baseline") if n in trials else None
@@ -130,9 +130,9 @@ def _print_retries(outcome, cfg) -> None:
 
 def _print_outcome(study, cfg, storage_url: str, reports: Path, write_report: bool) -> None:
     import optuna
-    from explorer._console import console, print_frame
+    from explorer.console import console, print_frame
     from explorer.cost import get_device
-    from explorer.results import (baseline_trial, best_trial, finalists_frame, is_retrained, missing_baselines,
+    from explorer.study.results import (baseline_trial, best_trial, finalists_frame, is_retrained, missing_baselines,
                                   path_table, winner)
     from explorer.space import Candidate
     states = [t.state for t in study.get_trials(deepcopy=False)]
@@ -180,9 +180,9 @@ def _print_outcome(study, cfg, storage_url: str, reports: Path, write_report: bo
 
 
 def cmd_rescore(args) -> None:
-    from explorer._console import print_frame, print_json
-    from explorer.results import rescore
-    from explorer.storage import load_study
+    from explorer.console import print_frame, print_json
+    from explorer.study.results import rescore
+    from explorer.study.storage import load_study
     study = load_study(args.study, args.storage, Path(args.reports))
     frame = rescore(study, args.device, args.budget, args.metric)
     if frame.empty:
@@ -196,9 +196,9 @@ def cmd_rescore(args) -> None:
 
 
 def cmd_report(args) -> None:
-    from explorer._console import console
+    from explorer.console import console
     from explorer.report import write_report
-    from explorer.storage import load_study
+    from explorer.study.storage import load_study
     study = load_study(args.study, args.storage, Path(args.reports))
     out = Path(args.out) if args.out else Path(args.reports) / args.study
     path = write_report(study, out_dir=out, devices=args.device, budgets=args.budget, data=args.data,

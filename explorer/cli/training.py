@@ -11,10 +11,10 @@ from explorer.cli._common import _Parser, _size, _add_supervision
 
 def cmd_train(args) -> None:
     import dataclasses
-    from explorer._console import console, print_frame, progress
+    from explorer.console import console, print_frame, progress
     from explorer.data import open_dataset
     from explorer.model import build_network
-    from explorer.train import RECIPES, check_data_for, load_encoder_weights, resolve_device, train
+    from explorer.training.train import RECIPES, check_data_for, load_encoder_weights, resolve_device, train
     candidate = _candidates_of(args.candidate)
     if len(candidate) != 1:
         raise UserError(f"{args.candidate} holds {len(candidate)} candidates: train takes one")
@@ -37,7 +37,7 @@ def cmd_train(args) -> None:
     val_set = open_dataset(args.data, "val", cfg.input_size, train_augment=False)
     check_data_for(cfg, train_set)
     if cfg.hints:
-        from explorer.depth_hints import with_hints
+        from explorer.training.depth_hints import with_hints
         with progress(transient=True) as bar:
             task = bar.add_task("depth hints (once per data set, then cached)", total=len(train_set), status="")
             train_set = with_hints(train_set, progress=lambda i, n: bar.update(task, completed=i))
@@ -76,9 +76,9 @@ def _exit_weights(spec: str, candidate, device: str, budget: str) -> tuple[float
 
 
 def cmd_evaluate(args) -> None:
-    from explorer._console import print_frame, print_json
+    from explorer.console import print_frame, print_json
     from explorer.data import open_dataset
-    from explorer.train import TrainConfig, evaluate, network_from_checkpoint
+    from explorer.training.train import TrainConfig, evaluate, network_from_checkpoint
     net, state = network_from_checkpoint(args.checkpoint)
     recipe = TrainConfig.from_dict(state["train_config"])
     size = args.input or recipe.input_size
@@ -95,11 +95,11 @@ def cmd_evaluate(args) -> None:
 
 
 def cmd_supernet_train(args) -> None:
-    from explorer._console import console, progress
+    from explorer.console import console, progress
     from explorer.space import SearchSpace
     from explorer.supernet import SupernetRecipe, default_path, train_supernet
     from explorer.supernet.train import read
-    from explorer.train import resolve_device
+    from explorer.training.train import resolve_device
     space = SearchSpace.from_yaml(args.space)
     if args.steps < 1 or args.random_subnets < 0 or args.micro_batches < 1 or args.batch_size < 1:
         raise UserError("--steps, --batch-size and --micro-batches must be at least 1, --random-subnets at least 0")
@@ -123,7 +123,7 @@ def cmd_supernet_train(args) -> None:
 
 
 def cmd_supernet_show(args) -> None:
-    from explorer._console import console, print_json
+    from explorer.console import console, print_json
     from explorer.supernet.train import read
     state = read(args.file)
     info = {k: state[k] for k in ("space_name", "space_key", "data", "recipe", "step", "complete", "seconds")}

@@ -11,7 +11,7 @@ A profile may also price int8 graphs (statically quantized, as ``explorer export
 writes them): its ``int8`` section holds their own kinds, bandwidth and overheads (what it leaves
 out is the fp32 one's), fitted by ``explorer calibrate`` on quantized layer and stage graphs. Such an
 export quantizes each stage graph whole and keeps it int8 only where that runs faster
-(``explorer.quantize``), so an int8 candidate's path times take, per deployed stage graph, the int8
+(``explorer.deploy.quantize``), so an int8 candidate's path times take, per deployed stage graph, the int8
 price where it is at most ``INT8_KEEP_RATIO`` of the fp32 one, else the fp32 price.
 
 Built-in profiles live in ``explorer/cost/profiles/*.yaml``; any YAML file with the same fields
@@ -29,7 +29,7 @@ import yaml
 
 from explorer.cost.workloads import ALL_KINDS, BYTES_PER_VALUE, KINDS, OPTIONAL_KINDS, Workload
 from explorer.errors import UserError
-from explorer.quantize import FLOAT_STAGES, INT8_KEEP_RATIO
+from explorer.cost.precision import FLOAT_STAGES, INT8_KEEP_RATIO
 
 PROFILES_DIR = Path(__file__).resolve().parent / "profiles"
 

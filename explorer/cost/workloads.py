@@ -165,7 +165,7 @@ def trace_stage(module: nn.Module, stage: str, inputs: list) -> tuple[list[Workl
 
 
 @lru_cache(maxsize=8192)
-def _stage_cost(config: Hashable, name: str, in_shapes: tuple, scan_row: int | None):
+def stage_cost(config: Hashable, name: str, in_shapes: tuple, scan_row: int | None):
     with torch.device("meta"):
         module = config.build().eval()
         inputs: list = [torch.empty(s) for s in in_shapes]
@@ -187,7 +187,7 @@ def candidate_workloads(candidate: Candidate, input_size: tuple[int, int] = (224
     out: list[Workload] = []
     for spec in specs or stage_specs(candidate):
         in_shapes = tuple(shapes[n] for n in spec.inputs)
-        records, out_shapes = _stage_cost(spec.config, spec.name, in_shapes,
+        records, out_shapes = stage_cost(spec.config, spec.name, in_shapes,
                                           h // 2 if spec.uses_scan_row else None)
         shapes.update(zip(spec.outputs, out_shapes))
         out.extend(records)

@@ -19,7 +19,7 @@ import torch
 from torch.utils.data import Dataset
 
 from explorer.data import transforms as T
-from explorer.data.lidar import ScanConfig, simulate_scan
+from explorer.data.lidar import ScanConfig, scan_from_image, simulate_scan
 from explorer.data.readers import KittiH5, KittiRaw, NYUH5, PairCSV, RawFrame
 from explorer.data.synthetic import SyntheticConfig, ensure_synthetic
 from explorer.errors import UserError
@@ -74,20 +74,6 @@ def parse_data_spec(spec: str | DataSpec) -> DataSpec:
             raise UserError(f"data '{spec}': {rest} does not exist")
         return DataSpec(kind, rest)
     raise UserError(f"unknown data set '{spec}': {SPEC_HELP}")
-
-
-def scan_from_image(scan_image: np.ndarray) -> tuple[np.ndarray, int]:
-    """Collapse a sparse image of one scan's returns to (scan vector, its median row)."""
-    mask = scan_image > 0
-    if not mask.any():
-        return np.zeros(scan_image.shape[1], np.float32), scan_image.shape[0] // 2
-    rows = np.nonzero(mask)[0]
-    row = int(np.median(rows))
-    dist = np.where(mask, np.abs(np.arange(scan_image.shape[0])[:, None] - row), 10 ** 9)
-    pick = dist.argmin(axis=0)
-    scan = scan_image[pick, np.arange(scan_image.shape[1])].astype(np.float32)
-    scan[~mask.any(axis=0)] = 0.0
-    return scan, row
 
 
 class _SyntheticFrames:

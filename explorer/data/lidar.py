@@ -41,3 +41,17 @@ def simulate_scan(depth: np.ndarray, config: ScanConfig = ScanConfig(),
         scan[rng.random(w) < config.dropout] = 0.0
     scan[(scan > config.max_range) | (scan < 0)] = 0.0
     return scan.astype(np.float32), row
+
+
+def scan_from_image(scan_image: np.ndarray) -> tuple[np.ndarray, int]:
+    """Collapse a sparse image of one scan's returns to (scan vector, its median row)."""
+    mask = scan_image > 0
+    if not mask.any():
+        return np.zeros(scan_image.shape[1], np.float32), scan_image.shape[0] // 2
+    rows = np.nonzero(mask)[0]
+    row = int(np.median(rows))
+    dist = np.where(mask, np.abs(np.arange(scan_image.shape[0])[:, None] - row), 10 ** 9)
+    pick = dist.argmin(axis=0)
+    scan = scan_image[pick, np.arange(scan_image.shape[1])].astype(np.float32)
+    scan[~mask.any(axis=0)] = 0.0
+    return scan, row

@@ -25,7 +25,7 @@ import torch
 from torch.utils.data import Dataset
 
 from explorer.data import transforms as T
-from explorer.data.lidar import ScanConfig, simulate_scan
+from explorer.data.lidar import ScanConfig, scan_from_image, simulate_scan
 from explorer.data.synthetic import (MAX_DEPTH, Room, _pool, cache_dir, camera_to_world, intrinsics,
                                      render_room, sample_room)
 
@@ -231,7 +231,6 @@ class SequenceDataset(Dataset):
         return T.resize_nearest(a, self.input_size) if sparse else T.resize_rgb(np.ascontiguousarray(a), self.input_size)
 
     def __getitem__(self, i: int) -> dict:
-        from explorer.data import scan_from_image
         s = self.source[i]
         box = _crop_box(self.source.kind, s.depth.shape)
         frames = [self._fit(f, box, sparse=False) for f in s.frames]

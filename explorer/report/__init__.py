@@ -27,7 +27,7 @@ from explorer import __version__  # noqa: E402
 from explorer.anytime import anytime_curve, parse_budget  # noqa: E402
 from explorer.cost.devices import DeviceProfile, get_device  # noqa: E402
 from explorer.errors import UserError  # noqa: E402
-from explorer.results import (baseline_label, baseline_trial, finalists_frame,  # noqa: E402
+from explorer.study.results import (baseline_label, baseline_trial, finalists_frame,  # noqa: E402
                               is_retrained, missing_baselines, path_table, scored_trials, study_baselines,
                               trial_anytime_loss,
                               trial_losses, trial_path_costs, trial_precision, trials_frame, winner)
@@ -132,7 +132,7 @@ def _depth_maps(study: optuna.Study, trial: optuna.trial.FrozenTrial, data: str 
     """Every path's depth map on a few validation images (needs the trial's stored weights)."""
     import torch
     from explorer.data import open_dataset
-    from explorer.results import trial_network
+    from explorer.study.results import trial_network
     cfg = study.user_attrs.get("config", {})
     try:
         net = trial_network(study, trial)
@@ -205,7 +205,7 @@ def build_context(study: optuna.Study, devices: Sequence[str] | None = None,
                  "generated": time.strftime("%Y-%m-%d %H:%M:%S"), "figures": {}, "notes": [],
                  "evaluator": cfg.get("evaluator", "proxy"), "finalist_steps": cfg.get("finalist_steps"),
                  "plan": study.user_attrs.get("plan")}
-    from explorer.finalists import finalist_trials
+    from explorer.study.finalists import finalist_trials
     recipes = sorted({t.user_attrs["finalist"]["recipe"]["steps"] for t in finalist_trials(study)})
     if recipes:   # a --time-limit plan may have sized them after the study was created
         ctx["finalist_steps"] = ", ".join(map(str, recipes))

@@ -31,7 +31,7 @@ from explorer.errors import UserError
 from explorer.space import Candidate, SearchSpace
 from explorer.supernet.network import (Supernet, largest_candidate, random_training_subnet, smallest_candidate,
                                        space_identity, space_key)
-from explorer.train import _batch_row, _lr_at, TrainConfig, multi_exit_loss
+from explorer.training.train import batch_row, lr_at, TrainConfig, multi_exit_loss
 
 FORMAT = "anytime-explorer-supernet/1"
 TEACHER_DEPTHS = ("cycle", "max")
@@ -239,13 +239,13 @@ def train_supernet(space: SearchSpace, data: str, recipe: SupernetRecipe = Super
             subnets = [_teacher(largest, space, recipe, step), smallest] + \
                 [random_training_subnet(space, rng) for _ in range(recipe.random_subnets)]
             for g in opt.param_groups:
-                g["lr"] = _lr_at(lr_cfg, step)
+                g["lr"] = lr_at(lr_cfg, step)
             net.train()
             opt.zero_grad(set_to_none=True)
             lo = rank * per_rank
             image, scan, depth = (batch[k][lo:lo + per_rank].to(device) for k in ("image", "scan", "depth"))
             image = image.contiguous(memory_format=torch.channels_last)
-            row = _batch_row(batch)
+            row = batch_row(batch)
             losses = [0.0] * len(subnets)
             for chunk in range(recipe.micro_batches):
                 part = slice(chunk * per_rank // recipe.micro_batches, (chunk + 1) * per_rank // recipe.micro_batches)

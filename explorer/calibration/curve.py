@@ -1,0 +1,56 @@
+"""The anytime curve of an exported model measured on this machine beside the one the cost model
+predicts for it (``explorer curve``): how far the prediction can be trusted here."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from explorer.anytime import anytime_loss
+from explorer.calibration.calibrate import calibrate
+from explorer.cost import candidate_cost, get_device
+from explorer.data import open_dataset
+from explorer.deploy.runtime import AnytimeRunner, measured_anytime, path_metrics
+from explorer.space import Candidate
+
+
+def curve_check(model_dir: Path, data: str, device: str | None = None, frames: int = 16,
+                deadlines: int = 40, progress: Callable[[int, int], None] | None = None,
+                provider: str = "CPUExecutionProvider") -> dict:
+    """The anytime curve measured on this machine next to the one a host profile predicts.
+
+    Per-path losses come from the exported graphs on ``frames`` validation frames; the prediction
+    prices the paths with ``device`` (a profile from ``explorer calibrate``; calibrated now, with
+    ``provider``, if None); the graphs run on ``provider``;
+    the measurement runs every frame under ``deadlines`` deadlines spread evenly over (0, B_max),
+    B_max = 1.25 x the predicted last path. Written to ``model_dir/anytime_curve.json``.
+    """
+    runner = AnytimeRunner(model_dir, provider=provider)
+    cand = Candidate.from_dict(runner.manifest["candidate"])
+    ds = open_dataset(data, "val", runner.input_size, train_augment=False)
+    items = [ds[i] for i in range(min(frames, len(ds)))]
+    losses = [m["rmse"] for m in path_metrics(runner, items)]
+    profile = get_device(device) if device else calibrate(scale=0.5, provider=provider)
+    precision = runner.manifest.get("precision", "fp32")
+    priced = precision if precision in profile.precisions else "fp32"   # else the fp32 prediction, said so
+    costs = candidate_cost(dataclasses.replace(cand, precision=priced), runner.input_size).path_latency_ms(profile)
+    b_max = 1.25 * costs[-1]
+    grid = (np.arange(deadlines) + 0.5) * b_max / deadlines
+    measured = {"deadlines_ms": [], "loss": [], "mean_path": []}
+    for i, d in enumerate(grid):
+        part = measured_anytime(runner, items, np.array([d]))
+        for k in ("deadlines_ms", "loss", "mean_path"):
+            measured[k] += part[k]
+        if progress:
+            progress(i + 1, len(grid))
+    result = {"candidate_key": cand.key, "device": profile.name, "provider": provider,
+              "precision": precision, "priced_precision": priced, "frames": len(items), "b_max_ms": b_max,
+              "path_losses": losses, "predicted_costs_ms": costs,
+              "predicted_anytime_loss": anytime_loss(costs, losses, f"time:uniform:{b_max}ms"),
+              "measured": measured, "measured_anytime_loss": float(np.mean(measured["loss"]))}
+    (Path(model_dir) / "anytime_curve.json").write_text(json.dumps(result, indent=2))
+    return result

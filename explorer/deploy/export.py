@@ -1,0 +1,157 @@
+"""``explorer export``: a trained candidate as ONNX graphs in execution order, cut so that every
+exit's depth map is available as soon as its stage ends (one graph per group of stages ending with
+an exit, path 0 on its own), plus a manifest. Verified against PyTorch at export time."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+import torch
+
+from explorer import __version__
+from explorer.cost import candidate_cost, get_device
+from explorer.errors import UserError
+from explorer.model import AnytimeDepthNet
+from explorer.model.onnx import OPSET, example_inputs, export_segments
+from explorer.deploy.quantize import MAX_DEGRADATION
+
+TOLERANCE = 1e-4
+MANIFEST = "manifest.json"
+
+
+def verify(graphs, net: AnytimeDepthNet, input_size: tuple[int, int], scan_row: int) -> float:
+    """Max |onnxruntime - torch| over every path's depth map on a random input."""
+    from explorer.deploy.sessions import session
+    env = example_inputs(input_size)
+    with torch.no_grad():
+        ref = [d.numpy() for d in net.eval()(env["image"], env["scan"], scan_row)]
+    feeds = {k: v.numpy() for k, v in env.items()}
+    outs: dict[str, np.ndarray] = {}
+    for _, model in graphs:
+        sess = session(model)   # the process's shared pool: its first session sizes it
+        res = sess.run(None, {i.name: (outs | feeds)[i.name] for i in sess.get_inputs()})
+        outs.update({o.name: v for o, v in zip(sess.get_outputs(), res)})
+    return max(float(np.abs(outs[f"depth_{p}"] - r).max()) for p, r in enumerate(ref))
+
+
+@dataclass(frozen=True)
+class Quantization:
+    """What ``explorer export --quantize int8`` asks for (see :mod:`explorer.deploy.quantize`)."""
+
+    data: str = "synthetic"
+    calibration_frames: int = 32
+    eval_frames: int = 64
+    max_degradation: float = MAX_DEGRADATION
+    force: bool = False
+    # which stage graphs are int8: "faster" (measured here), "all", or those named (as searched)
+    stages: "str | tuple[str, ...]" = "faster"
+
+
+def export_network(net: AnytimeDepthNet, out_dir: Path, input_size: tuple[int, int],
+                   scan_row: int | None = None, path_metrics: list[dict] | None = None,
+                   devices: Sequence[str] = ("tx2", "rpi4"), source: dict | None = None,
+                   quantization: Quantization | None = None,
+                   progress: Callable[[str], None] | None = None) -> dict:
+    """Writes the stage graphs and the manifest to ``out_dir``. With ``quantization`` the graphs are
+    int8, built and measured in a scratch folder first: a refused quantization leaves ``out_dir`` as
+    it was."""
+    if quantization is None:
+        return _export_fp32(net, out_dir, input_size, scan_row, path_metrics, devices, source)
+    from explorer.deploy.quantize import quantize_export  # onnxruntime.quantization: only when asked for
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(dir=out_dir.parent, prefix=f".{out_dir.name}.") as tmp:
+        scratch = Path(tmp)
+        manifest = _export_fp32(net, scratch, input_size, scan_row, path_metrics, devices, source)
+        q = quantization
+        manifest.update(quantize_export(scratch, q.data, q.calibration_frames, q.eval_frames, q.max_degradation,
+                                        q.force, progress, q.stages))
+        manifest["path_metrics_trained"] = manifest["path_metrics"]
+        manifest["path_metrics"] = manifest["path_metrics_int8"]
+        (scratch / MANIFEST).write_text(json.dumps(manifest, indent=2))
+        out_dir.mkdir(parents=True, exist_ok=True)
+        old = out_dir / MANIFEST
+        old.unlink(missing_ok=True)    # a half-replaced folder never passes for a complete export
+        for f in sorted(scratch.iterdir(), key=lambda f: f.name == MANIFEST):
+            shutil.move(str(f), out_dir / f.name)
+    return manifest
+
+
+def _export_fp32(net: AnytimeDepthNet, out_dir: Path, input_size: tuple[int, int], scan_row: int | None,
+                 path_metrics: list[dict] | None, devices: Sequence[str], source: dict | None) -> dict:
+    h, w = input_size
+    if h % net.stride or w % net.stride:
+        raise UserError(f"input {h}x{w} does not divide by the encoder stride {net.stride}")
+    scan_row = h // 2 if scan_row is None else scan_row
+    net = net.eval()
+    graphs = export_segments(net, input_size, scan_row)
+    diff = verify(graphs, net, input_size, scan_row)
+    if diff > TOLERANCE:
+        raise RuntimeError(f"ONNX export differs from PyTorch by {diff:.2e} (> {TOLERANCE:g}): not written")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    stages = []
+    for i, (seg, model) in enumerate(graphs):
+        file = f"{i:02d}_path{seg['path']}.onnx"
+        (out_dir / file).write_bytes(model)
+        stages.append({"file": file, **seg})
+    cost = candidate_cost(net.candidate, input_size)
+    expected = {}
+    for d in devices:
+        prof = get_device(d)
+        if cost.precision not in prof.precisions:
+            continue      # this profile cannot price the candidate's precision
+        expected[prof.name] = {"latency_ms": cost.path_latency_ms(prof), "energy_j": cost.path_energy_j(prof),
+                               "calibrated": prof.calibrated}
+    manifest = {
+        "format": "anytime-explorer/1", "explorer_version": __version__, "opset": OPSET,
+        "candidate": net.candidate.to_dict(), "candidate_key": net.candidate.key,
+        "architecture": net.candidate.describe(), "input_size": [h, w], "scan_row": scan_row,
+        "image": "RGB in [0, 1], (1, 3, H, W) float32", "scan": "(1, W) float32 metres, 0 = no return",
+        "stages": stages, "paths": net.candidate.num_paths,
+        "path_metrics": path_metrics or [], "expected_cost": expected,
+        "params": [p for p, _ in cost.path_params_macs()], "macs": [m for _, m in cost.path_params_macs()],
+        "verification": {"max_abs_diff": diff, "tolerance": TOLERANCE}, "source": source or {},
+        "precision": "fp32",
+    }
+    (out_dir / MANIFEST).write_text(json.dumps(manifest, indent=2))
+    return manifest
+
+
+def export_from_checkpoint(ckpt: Path, out_dir: Path, input_size: tuple[int, int] | None = None,
+                           devices: Sequence[str] | None = None, quantization: Quantization | None = None,
+                           progress: Callable[[str], None] | None = None) -> dict:
+    from explorer.training.train import network_from_checkpoint
+    net, state = network_from_checkpoint(ckpt)
+    size = tuple(input_size or state["train_config"]["input_size"])
+    return export_network(net, out_dir, size, devices=devices or ("tx2", "rpi4"),
+                          source={"checkpoint": str(ckpt)}, quantization=quantization, progress=progress)
+
+
+def quantization_effect(net, input_size: tuple[int, int], data: str, calibration_frames: int = 16,
+                        eval_frames: int = 32, stages: "str | tuple[str, ...]" = "faster") -> dict:
+    """How quantizing ``net``'s stage graphs to int8 (``stages``, as ``quantize_export`` reads it)
+    changes each path's metrics, measured with onnxruntime on ``eval_frames`` validation frames of
+    ``data`` (fp32 and int8 graphs alike): per path, each metric's int8 / fp32 ratio. What a search
+    applies to an int8 candidate's estimate, so that it is compared with fp32 ones on the same frames."""
+    import math
+    if stages == ():   # no graph int8 (none pays on the device): its fp32 metrics
+        paths = net.candidate.num_paths
+        return {"ratios": [{}] * paths, "rmse_degradation": [0.0] * paths, "frames": 0, "int8_graphs": []}
+    with tempfile.TemporaryDirectory(prefix="explorer-int8-") as tmp:
+        m = export_network(net, Path(tmp) / "model", input_size, devices=(),
+                           quantization=Quantization(data=data, calibration_frames=calibration_frames,
+                                                     eval_frames=eval_frames, max_degradation=math.inf, force=True,
+                                                     stages=stages))
+    before, after = m["path_metrics_fp32"], m["path_metrics_int8"]
+    ratios = [{k: (a[k] / b[k] if b[k] else 1.0) for k in b if isinstance(b[k], (int, float))}
+              for a, b in zip(after, before)]
+    return {"ratios": ratios, "rmse_degradation": m["quantization"]["rmse_degradation"],
+            "frames": m["quantization"]["evaluation"]["frames"],
+            "int8_graphs": [s["name"] for s in m["stages"] if s["precision"] == "int8"]}
+
+

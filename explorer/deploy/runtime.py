@@ -1,0 +1,378 @@
+"""The anytime runtime: runs exported stage graphs in order with onnxruntime and returns the best
+depth map completed within a deadline (path 0, the interpolated scan, at worst). Another thread can
+halt it at any moment (``AnytimeRunner.halt``) and get the best map so far."""
+
+from __future__ import annotations
+
+
+import json
+import math
+import tempfile
+import threading
+import time
+import weakref
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from explorer.deploy._arena_choice import ArenaChoice
+from explorer.errors import UserError
+
+MANIFEST = "manifest.json"
+#: ``AnytimeRunner(arenas=...)``
+ARENAS = ("both", "shared", "own")
+
+
+@dataclass
+class AnytimeResult:
+    depth: np.ndarray                 # (H, W) metres
+    path: int                         # which path it is
+    ready_ms: float                   # when that path was ready, from the start of the run
+    completed: list[tuple[int, float]] = field(default_factory=list)  # (path, ready ms)
+    halted: bool = False
+
+
+class _Watchdog:
+    """One thread per runner that halts its run at the deadline. A timer thread started for every
+    run cost ~0.45 ms (7% of the paper design's 6.2 ms) on this project's 2-core VM
+    (benchmarks/bench_runtime.py); this thread is started once, and woken only when a run's deadline
+    comes before the end of the wait it is in: runs with one deadline each, one after another, wake it
+    about once per deadline instead of once per run (each wake takes the interpreter's lock from the
+    thread that is about to start a stage)."""
+
+    def __init__(self, halt: Callable[[], None]) -> None:
+        self._halt = halt
+        self._cond = threading.Condition()
+        self._at: float | None = None     # perf_counter() time to halt at
+        self._stopped = False
+        self._thread: threading.Thread | None = None
+        self._until = math.inf            # when the thread's current wait ends (inf: it waits to be woken)
+
+    def arm(self, at: float) -> None:
+        with self._cond:
+            self._at = at
+            if self._thread is None:
+                self._thread = threading.Thread(target=self._loop, name="anytime-deadline", daemon=True)
+                self._thread.start()
+            if at < self._until:   # else it wakes before the deadline anyway and waits again till then
+                self._cond.notify()
+
+    def disarm(self) -> None:
+        with self._cond:
+            self._at = None      # not woken: it finds nothing to do at the old deadline
+
+    def stop(self) -> None:
+        with self._cond:
+            self._stopped = True
+            self._cond.notify()
+
+    def _loop(self) -> None:
+        with self._cond:
+            while not self._stopped:
+                if self._at is None:
+                    self._until = math.inf
+                    self._cond.wait()
+                    continue
+                left = self._at - time.perf_counter()
+                if left > 0:
+                    self._until = self._at
+                    self._cond.wait(left)
+                    continue
+                self._at = None
+                self._halt()
+
+
+class AnytimeRunner:
+    def __init__(self, model_dir: str | Path, threads: int | None = None, warmup: bool = True,
+                 provider: str = "CPUExecutionProvider", handoff: bool = True,
+                 arenas: str = "both") -> None:
+        """``handoff``: stages hand tensors over as onnxruntime holds them where it applies
+        (``explorer.probe.rewrites``): fp32 ones in its blocked layout (``NAME.nchwc``), ones that two int8 stages
+        pass uint8 (``NAME.uint8``, ``NAME.uint8_nhwc``); ``handed_off`` says which and how.
+        ``session_sets``: ``sessions`` (one memory arena shared by the process's sessions) and, where
+        that arena is in use, the same graphs each with an arena of its own; a run uses the set that
+        ``arena_choice`` picks (``explorer.deploy._arena_choice``). ``arenas``: "both" (that), "shared" or
+        "own" (only that set: for timing one of them)."""
+        import onnxruntime as ort
+        from explorer.deploy.sessions import session
+        from explorer.probe import ProbeError, check_provider, shared_arena
+        try:
+            check_provider(provider)
+        except ProbeError as exc:
+            raise UserError(str(exc)) from None
+        if arenas not in ARENAS:
+            raise UserError(f"arenas={arenas!r}: use one of {', '.join(ARENAS)}")
+        self.provider = provider
+        self.dir = Path(model_dir)
+        mpath = self.dir / MANIFEST
+        if not mpath.is_file():
+            raise UserError(f"{self.dir}: no {MANIFEST} (export a model with `explorer export --out DIR`)")
+        try:
+            self.manifest = json.loads(mpath.read_text())
+        except json.JSONDecodeError as exc:
+            raise UserError(f"{mpath}: not valid JSON ({exc.msg})") from None
+        self.input_size = tuple(self.manifest["input_size"])
+        self.scan_row = int(self.manifest["scan_row"])
+        self.sessions: list[tuple[dict, object, list[str], list[str]]] = []
+        self.handed_off: dict[str, str] = {}   # tensor passed between stages -> its form ("blocked", ...)
+        self._graphs: list[tuple[bytes, bool]] = []   # each session's graph, and whether onnxruntime optimises it
+        handoff = handoff and provider == "CPUExecutionProvider"   # its NCHWc kernels and QDQ fusions
+        with tempfile.TemporaryDirectory() as tmp:
+            optimized = Path(tmp)
+            for k, st in enumerate(self.manifest["stages"]):
+                f = self.dir / st["file"]
+                if not f.is_file():
+                    raise UserError(f"{f}: stage graph listed in the manifest is missing")
+                try:
+                    graph = f.read_bytes()
+                    sess = session(graph, threads, provider,
+                                   save_optimized=optimized / f"{k}.onnx" if handoff else None)
+                except Exception as exc:  # onnxruntime raises its own types for corrupt graphs
+                    raise UserError(f"{f}: not a loadable ONNX graph ({str(exc).splitlines()[0][:100]})") from None
+                self.sessions.append(_named(st, sess))
+                self._graphs.append((graph, True))
+            if handoff:
+                self.handed_off = self._hand_off(optimized, threads)
+        # the same graphs again, each session with a memory arena of its own (``explorer.deploy._arena_choice``)
+        self.session_sets = [self.sessions]
+        if shared_arena() and arenas != "shared":
+            own = [_named(st, session(graph, threads, provider, optimize=optimize, own_arena=True))
+                   for (st, *_), (graph, optimize) in zip(self.sessions, self._graphs)]
+            self.session_sets = [own] if arenas == "own" else [self.sessions, own]
+            self.sessions = self.session_sets[0]
+        del self._graphs   # the sessions hold what they need
+        self.arena_choice = ArenaChoice(len(self.session_sets), len(self.sessions))
+        self._lock = threading.Lock()
+        self._halt = threading.Event()
+        self._options: "ort.RunOptions | None" = None
+        halt = weakref.WeakMethod(self.halt)   # the watchdog's thread must not keep the runner alive
+        self._watchdog = _Watchdog(lambda: (h := halt()) is not None and h())
+        weakref.finalize(self, self._watchdog.stop)
+        if warmup:
+            h, w = self.input_size
+            img, scan = self.check(np.zeros((3, h, w), np.float32), np.ones(w, np.float32))
+            for sessions in self.session_sets:   # untimed: a first run is slower than the rest
+                self._depths(sessions, img, scan)
+
+    def _hand_off(self, optimized: Path, threads: int | None) -> dict[str, str]:
+        """Replaces the sessions by ones made from their optimised graphs rewritten to hand tensors over
+        as onnxruntime holds them, when a rewrite applies and gives the same depth maps; the names handed
+        over and how."""
+        import onnx
+        from explorer.probe import hand_off_blocked, hand_off_quantized
+        from explorer.deploy.sessions import session
+        try:
+            models = [onnx.load(str(optimized / f"{k}.onnx")) for k in range(len(self.sessions))]
+            ins, outs = [s[2] for s in self.sessions], [s[3] for s in self.sessions]
+            handed = dict.fromkeys(hand_off_blocked(models, ins, outs), "blocked")
+            handed.update(hand_off_quantized(models, ins, outs))
+            if not handed:
+                return {}
+            rewritten = [_named(st, session(m.SerializeToString(), threads, self.provider, optimize=False))
+                         for (st, *_), m in zip(self.sessions, models)]
+            h, w = self.input_size
+            rng = np.random.default_rng(0)
+            img = rng.random((1, 3, h, w), dtype=np.float32)
+            scan = rng.uniform(0.5, 10.0, (1, w)).astype(np.float32)
+            same = all(np.allclose(a, b, rtol=1e-5, atol=1e-6) for a, b in
+                       zip(self._depths(self.sessions, img, scan), self._depths(rewritten, img, scan)))
+        except Exception:   # an onnxruntime whose optimised graphs this rewrite does not know
+            return {}
+        if not same:
+            return {}
+        self.sessions = rewritten
+        self._graphs = [(m.SerializeToString(), False) for m in models]
+        return handed
+
+    def _depths(self, sessions: list, img: np.ndarray, scan: np.ndarray) -> list[np.ndarray]:
+        env = {"image": img, "scan": scan}
+        for _, sess, ins, outs_names in sessions:
+            env.update(zip(outs_names, sess.run(outs_names, {n: env[n] for n in ins})))
+        return [env[f"depth_{p}"][0, 0] for p in range(self.manifest["paths"])]
+
+    def depths(self, image: np.ndarray, scan: np.ndarray) -> list[np.ndarray]:
+        """Every path's depth map (no deadline), in order."""
+        return self._depths(self.sessions, *self.check(image, scan))
+
+    def check(self, image: np.ndarray, scan: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        h, w = self.input_size
+        img = np.asarray(image)
+        if img.ndim == 3 and img.shape[2] == 3 and img.shape[0] != 3:
+            img = img.transpose(2, 0, 1)
+        if img.ndim != 3 or img.shape != (3, h, w):
+            raise UserError(f"image has shape {tuple(np.asarray(image).shape)}, the model takes {h}x{w} RGB "
+                            f"(resize it to {w}x{h} first)")
+        if img.dtype == np.uint8:
+            img = img.astype(np.float32) / 255.0
+        s = np.asarray(scan, dtype=np.float32).reshape(-1)
+        if s.shape != (w,):
+            raise UserError(f"scan has {s.size} values, the model takes one per image column ({w})")
+        if not np.isfinite(s).all() or (s < 0).any():
+            raise UserError("scan must hold finite depths >= 0 (0 = no return)")
+        return np.ascontiguousarray(img[None], dtype=np.float32), s[None]   # no copy when it is already so
+
+    def halt(self) -> None:
+        """Stops the current run as soon as possible; it returns the best map completed so far."""
+        self._halt.set()
+        with self._lock:
+            if self._options is not None:
+                self._options.terminate = True
+
+    def run(self, image: np.ndarray, scan: np.ndarray, deadline_ms: float | None = None,
+            on_path: "Callable[[int, float], None] | None" = None) -> AnytimeResult:
+        """Runs the stages in order; returns the last path ready within ``deadline_ms`` (None: all).
+        ``on_path(path, ready_ms)`` is called as each path becomes ready."""
+        import onnxruntime as ort
+        img, s = self.check(image, scan)
+        self._halt.clear()
+        env = {"image": img, "scan": s}
+        t0 = time.perf_counter()
+        if deadline_ms is not None:
+            self._watchdog.arm(t0 + max(deadline_ms, 0.0) / 1000.0)
+        best: tuple[int, np.ndarray | None, float] | None = None
+        completed = []
+        halted = False
+        opts = ort.RunOptions()
+        path0 = None
+        option = self.arena_choice.pick()
+        try:
+            for k, (st, sess, ins, out_names) in enumerate(self.session_sets[option]):
+                if _is_scan_path(st):
+                    # the scan's own map is available at once (its cost is ~0) and is computed only
+                    # if it is the answer: a run that reaches path 1 never needs it
+                    path0 = (sess, ins, out_names)
+                    best = (0, None, 0.0)
+                    completed.append((0, 0.0))
+                    if on_path is not None:
+                        on_path(0, 0.0)
+                    continue
+                if best is not None and self._halt.is_set():
+                    halted = True
+                    break
+                if best is not None and self._options is None:
+                    # path 0 always completes (the floor of every answer); later stages can be cut
+                    with self._lock:
+                        self._options = opts
+                    if self._halt.is_set():
+                        halted = True
+                        break
+                started = time.perf_counter()
+                try:
+                    outs = sess.run(out_names, {n: env[n] for n in ins}, opts)
+                except Exception:
+                    if self._halt.is_set() and best is not None:
+                        halted = True
+                        break  # terminated mid-stage: keep what was ready
+                    raise
+                done = time.perf_counter()
+                self.arena_choice.record(option, k, (done - started) * 1000.0)
+                ready = (done - t0) * 1000.0
+                env.update(zip(out_names, outs))
+                path = st["path"]
+                if path is not None:
+                    if path == 0:
+                        ready = 0.0  # the scan itself: available at once (its cost is ~0)
+                    within = deadline_ms is None or ready <= deadline_ms or path == 0
+                    if within:
+                        best = (path, env[f"depth_{path}"], ready)
+                        completed.append((path, ready))
+                        if on_path is not None:
+                            on_path(path, ready)
+                    else:
+                        halted = True
+                        break
+        finally:
+            if deadline_ms is not None:
+                self._watchdog.disarm()
+            with self._lock:
+                self._options = None
+        path, depth, ready = best
+        if depth is None:
+            sess, ins, out_names = path0
+            depth = sess.run(out_names, {n: env[n] for n in ins})[0]   # a RunOptions of its own: never cut
+        return AnytimeResult(depth[0, 0], path, ready, completed, halted)
+
+
+def _named(stage: dict, sess) -> tuple[dict, object, list[str], list[str]]:
+    # names looked up once: get_inputs() builds new objects on every call
+    return stage, sess, [i.name for i in sess.get_inputs()], [o.name for o in sess.get_outputs()]
+
+
+def _is_scan_path(stage: dict) -> bool:
+    """Path 0's graph: the interpolated scan, read by no later stage."""
+    return stage["path"] == 0 and list(stage["outputs"]) == ["depth_0"]
+
+
+def read_scan(path: Path) -> np.ndarray:
+    if not path.is_file():
+        raise UserError(f"{path}: no such scan file")
+    try:
+        if path.suffix == ".npy":
+            return np.load(path).astype(np.float32).reshape(-1)
+        text = path.read_text().replace(",", " ").split()
+        return np.array([float(x) for x in text], dtype=np.float32)
+    except (ValueError, OSError) as exc:
+        raise UserError(f"{path}: unreadable scan ({exc}); give one depth in metres per image column") from None
+
+
+def read_image(path: Path) -> np.ndarray:
+    from PIL import Image
+    if not path.is_file():
+        raise UserError(f"{path}: no such image")
+    try:
+        return np.asarray(Image.open(path).convert("RGB"))
+    except OSError as exc:
+        raise UserError(f"{path}: unreadable image ({exc})") from None
+
+
+def write_depth(depth: np.ndarray, out: Path) -> None:
+    out.parent.mkdir(parents=True, exist_ok=True)
+    if out.suffix == ".npy":
+        np.save(out, depth.astype(np.float32))
+    else:
+        from PIL import Image
+        mm = np.clip(depth * 1000.0, 0, 65535).astype(np.uint16)
+        Image.fromarray(mm).save(out)
+
+
+def run_files(model_dir: Path, image: Path, scan: Path, deadline_ms: float, out: Path | None,
+              threads: int | None = None, provider: str = "CPUExecutionProvider") -> dict:
+    # one run: nothing to choose between sets by
+    runner = AnytimeRunner(model_dir, threads, provider=provider, arenas="shared")
+    result = runner.run(read_image(image), read_scan(scan), deadline_ms)
+    if out is not None:
+        write_depth(result.depth, out)
+    return {"path": result.path, "ready_ms": result.ready_ms, "deadline_ms": deadline_ms,
+            "completed_paths": len(result.completed), "timeline": result.completed,
+            "out": str(out) if out else None, "provider": provider}
+
+
+def measured_anytime(runner: AnytimeRunner, frames: list[dict], deadlines_ms: np.ndarray,
+                     metric: str = "rmse") -> dict:
+    """Runs every frame under every deadline; returns the mean loss of what came back per deadline
+    and the measured anytime loss for U(0, max deadline) (deadlines on a uniform grid)."""
+    from explorer.metrics import depth_metrics
+    per_deadline = []
+    paths = []
+    for d in deadlines_ms:
+        losses, ps = [], []
+        for f in frames:
+            res = runner.run(f["image"].numpy(), f["scan"].numpy(), float(d))
+            losses.append(depth_metrics(res.depth, f["depth"][0].numpy())[metric])
+            ps.append(res.path)
+        per_deadline.append(float(np.mean(losses)))
+        paths.append(float(np.mean(ps)))
+    return {"deadlines_ms": [float(d) for d in deadlines_ms], "loss": per_deadline, "mean_path": paths,
+            "anytime_loss": float(np.mean(per_deadline))}
+
+
+def path_metrics(runner: AnytimeRunner, frames: list[dict]) -> list[dict[str, float]]:
+    """Per-path metrics (FastDepth's conventions) of an exported model on ``frames`` (data set items)."""
+    from explorer.metrics import MetricAverager, depth_metrics
+    averagers = [MetricAverager() for _ in range(runner.manifest["paths"])]
+    for f in frames:
+        for p, depth in enumerate(runner.depths(f["image"].numpy(), f["scan"].numpy())):
+            averagers[p].add(depth_metrics(depth, f["depth"][0].numpy()))
+    return [{"path": p, **a.result()} for p, a in enumerate(averagers)]

@@ -1,0 +1,73 @@
+"""What the probe reads and writes: the bundle manifest and the results file, their format and
+version, and the one error type the probe raises for a mistake the user can fix."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+try:
+    import numpy as np
+except ImportError:  # the probe's main() says what to install, in one line
+    np = None
+
+BUNDLE_FORMAT = "explorer-probe-bundle"
+RESULTS_FORMAT = "explorer-probe-results"
+VERSION = 1                       # of both the bundle layout and the results file
+DEFAULT_PROVIDER = "CPUExecutionProvider"
+WARMUP = 3
+
+
+class ProbeError(Exception):
+    """A mistake the user can fix: printed as one line, exit status 2."""
+
+
+
+# -- results -------------------------------------------------------------------------------------
+def load_manifest(bundle_dir: Path) -> dict:
+    path = Path(bundle_dir) / "manifest.json"
+    try:
+        manifest = json.loads(path.read_text())
+    except OSError:
+        raise ProbeError(f"{path}: no bundle manifest here (unpack the bundle and run probe.pyz inside it, "
+                         "or pass --bundle DIR)") from None
+    except json.JSONDecodeError:
+        raise ProbeError(f"{path}: the bundle manifest is not valid JSON (unpack the bundle again)") from None
+    if manifest.get("format") != BUNDLE_FORMAT or manifest.get("version") != VERSION:
+        raise ProbeError(f"{path}: bundle format {manifest.get('format')} v{manifest.get('version')}, this probe "
+                         f"reads {BUNDLE_FORMAT} v{VERSION}: use the probe.pyz that came in the bundle")
+    return manifest
+
+
+def read_results(path: Path) -> dict:
+    """A results file, checked: whole JSON, this format and version."""
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text())
+    except OSError as exc:
+        raise ProbeError(f"{path}: cannot read results ({exc.strerror})") from None
+    except (json.JSONDecodeError, UnicodeDecodeError):
+        raise ProbeError(f"{path}: not a whole results file (truncated or corrupt JSON): run the probe again "
+                         "with another --out") from None
+    if not isinstance(data, dict) or data.get("format") != RESULTS_FORMAT:
+        raise ProbeError(f"{path}: not a probe results file (write one with `python3 probe.pyz --out FILE`)")
+    if data.get("version") != VERSION:
+        raise ProbeError(f"{path}: results of probe format v{data.get('version')}, this version reads v{VERSION}: "
+                         "make a new bundle with `explorer calibrate --bundle` and probe again")
+    for key in ("bundle", "device", "conditions", "layers", "stages"):
+        if key not in data:
+            raise ProbeError(f"{path}: results file lacks '{key}' (truncated or edited): run the probe again")
+    return data
+
+
+def write_atomically(path: Path, data: dict) -> None:
+    """Whole file or the previous one, never half of one: an interrupt loses at most one graph."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.tmp")
+    with open(tmp, "w") as f:
+        json.dump(data, f, indent=1)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+

@@ -1,0 +1,177 @@
+"""A search's settings (``SearchConfig``: what a study is and how it runs) and the baselines it compares
+against."""
+
+
+import dataclasses
+import json
+from dataclasses import dataclass
+from typing import Callable
+
+
+from explorer.anytime import parse_budget
+from explorer.cost import get_device
+from explorer.errors import UserError
+from explorer.space import (Candidate, SearchSpace, fastdepth_candidate, paper_candidate,
+                            paper_nee_candidate)
+from explorer.study.evaluators import EVALUATORS
+from explorer.training.train import PROXY, TrainConfig
+
+BASELINES: dict[str, Callable[[], Candidate]] = {
+    "paper": paper_candidate, "paper-nee": paper_nee_candidate, "fastdepth": fastdepth_candidate}
+#: what a study compares against unless told otherwise (--baselines)
+DEFAULT_BASELINES = tuple(BASELINES)
+
+
+def baseline_model(name: str):
+    """The candidate, or the reference network (:class:`~explorer.model.reference.ReferenceModel`),
+    that the baseline ``name`` stands for."""
+    from explorer.model.reference import REFERENCES, ReferenceModel
+    if name in BASELINES:
+        return BASELINES[name]()
+    if name in REFERENCES:
+        return ReferenceModel(name)
+    raise UserError(f"unknown baseline '{name}': use {', '.join(BASELINES)} or a reference network "
+                    f"({', '.join(REFERENCES)})")
+OBJECTIVES = ("anytime_loss", "params", "macs", "first_exit_ms")
+
+
+def objective_names(config: "SearchConfig") -> list[str]:
+    """What each objective is, for optuna-dashboard and Optuna's plots: anytime_loss[time:uniform:33ms]."""
+    return [f"anytime_loss[{config.budgets[0]}]" if o == "anytime_loss" else o for o in config.objectives]
+
+
+@dataclass(frozen=True)
+class SearchConfig:
+    study: str
+    space: str = "anytime_depth"
+    device: str = "tx2"
+    budgets: tuple[str, ...] = ("time:uniform:33ms",)
+    data: str = "synthetic"
+    objectives: tuple[str, ...] = ("anytime_loss",)
+    metric: str = "rmse"
+    input_size: tuple[int, int] = (224, 224)     # deployment size: costs are computed here
+    train_size: tuple[int, int] = (64, 64)       # proxy training resolution
+    train_steps: int = 150
+    batch_size: int = 16
+    lr: float = PROXY.lr
+    val_limit: int | None = 96
+    seed: int = 0
+    max_params: float | None = None
+    max_first_exit_ms: float | None = None
+    baselines: tuple[str, ...] = DEFAULT_BASELINES   # () = none (--no-baselines)
+    pruning: bool = True
+    keep_weights: bool = True
+    accelerator: str = "auto"
+    evaluator: str = "auto"                      # supernet for dense labels, proxy for self-supervision
+    supernet: str | None = None                  # a supernet file (default: the cached one)
+    supernet_steps: int = 600
+    finalists: int = 3                           # retrained stand-alone at the end (0 = none)
+    finalist_steps: int = 300
+    max_retries: int = 2          # an interrupted trial (killed, Ctrl-C, lost worker) is tried again
+    supervision: str = "supervised"              # supervised | self | mixed (see explorer.training.selfsup)
+    poses: str = "net"                           # self-supervision's camera motion: net | given
+    hints: bool = False                          # depth hints (explorer.training.depth_hints; poses given)
+
+    def __post_init__(self) -> None:
+        if self.evaluator == "auto":  # the supernet is trained with dense labels; self-supervision trains alone
+            object.__setattr__(self, "evaluator", "supernet" if self.supervision == "supervised" else "proxy")
+        # studies made before --baselines stored on (True) or off (False)
+        baselines = self.baselines
+        if isinstance(baselines, bool):
+            baselines = DEFAULT_BASELINES if baselines else ()
+        object.__setattr__(self, "baselines", tuple(baselines))
+
+    def to_dict(self) -> dict:
+        d = dataclasses.asdict(self)
+        for k in ("budgets", "objectives", "input_size", "train_size", "baselines"):
+            d[k] = list(d[k])
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "SearchConfig":
+        d = dict(d)
+        for k in ("budgets", "objectives", "input_size", "train_size"):
+            d[k] = tuple(d[k])
+        known = {f.name for f in dataclasses.fields(cls)}
+        return cls(**{k: v for k, v in d.items() if k in known})
+
+    def train_config(self) -> TrainConfig:
+        return dataclasses.replace(PROXY, steps=self.train_steps, batch_size=self.batch_size,
+                                   input_size=self.train_size, lr=self.lr, lr_end=self.lr / 10,
+                                   seed=self.seed, supervision=self.supervision, poses=self.poses,
+                                   hints=self.hints,
+                                   eval_every=max(2 * self.train_steps // 3, 1) if self.pruning else 0)
+
+    def finalist_config(self, seed: int | None = None) -> TrainConfig:
+        """The longer stand-alone recipe of the finalists (and of the baselines beside them)."""
+        return dataclasses.replace(self.train_config(), steps=self.finalist_steps, eval_every=0,
+                                   seed=self.seed if seed is None else seed)
+
+    def supernet_recipe(self):
+        from explorer.supernet import SupernetRecipe
+        return SupernetRecipe(steps=self.supernet_steps, batch_size=self.batch_size, input_size=self.train_size,
+                              lr=self.lr, lr_end=self.lr / 10, seed=self.seed)
+
+    def validate(self) -> None:
+        SearchSpace.from_yaml(self.space)
+        get_device(self.device)
+        if not self.budgets:
+            raise UserError("give at least one --budget")
+        for b in self.budgets:
+            parse_budget(b)
+        bad = [o for o in self.objectives if o not in OBJECTIVES]
+        if bad or not self.objectives or self.objectives[0] != "anytime_loss":
+            raise UserError(f"--objectives must start with anytime_loss and use only {list(OBJECTIVES)}")
+        if self.metric not in ("rmse", "mae", "rel"):
+            raise UserError(f"--metric {self.metric}: use rmse, mae or rel")
+        for name, size in (("--input-size", self.input_size), ("--train-size", self.train_size)):
+            if len(size) != 2 or min(size) < 8:
+                raise UserError(f"{name} {size}: give HxW, e.g. 224x224")
+        if self.train_steps < 1:
+            raise UserError("--train-steps must be at least 1")
+        if self.evaluator not in EVALUATORS:
+            raise UserError(f"--evaluator {self.evaluator}: use one of {list(EVALUATORS)}")
+        if self.supernet and self.evaluator != "supernet":
+            raise UserError("--supernet FILE is read by the supernet evaluator only: drop --evaluator proxy "
+                            "(or give --evaluator supernet)")
+        if self.supernet_steps < 1 or self.finalist_steps < 1:
+            raise UserError("--supernet-steps and --finalist-steps must be at least 1")
+        if self.finalists < 0:
+            raise UserError("--finalists must be 0 (none) or more")
+        if self.max_retries < 0:
+            raise UserError("--max-retries must be 0 or more")
+        if len(set(self.baselines)) != len(self.baselines):
+            raise UserError(f"--baselines {','.join(self.baselines)}: a baseline is named twice")
+        for name in self.baselines:
+            model = baseline_model(name)
+            if not isinstance(model, Candidate):
+                h, w = self.train_size
+                if h % model.stride or w % model.stride or min(h, w) < model.min_side:
+                    raise UserError(f"--baselines {name} needs --train-size sides divisible by {model.stride} and "
+                                    f"at least {model.min_side}, got {h}x{w} (e.g. 64x64)")
+        self.train_config().validate()
+        space = SearchSpace.from_yaml(self.space)
+        if "int8" in space.precision and "int8" not in get_device(self.device).precisions:
+            raise UserError(f"the space {space.name} lists precision int8, but the {self.device} profile prices no "
+                            "int8 graphs: give --device a profile that does (`explorer calibrate --out mybox.yaml` "
+                            "times int8 layers) or keep the space's precision at fp32")
+        from explorer.data import parse_data_spec
+        if self.supervision != "supervised" and not parse_data_spec(self.data).is_sequence:
+            raise UserError(f"--supervision {self.supervision} needs sequence data (--data synthetic-seq, "
+                            "kitti-seq:DRIVE or frames:FOLDER)")
+        if self.supervision != "supervised" and self.evaluator == "supernet":
+            raise UserError(f"--supervision {self.supervision}: the supernet is trained with dense labels; "
+                            "add --evaluator proxy to search with self-supervised training")
+
+    # settings that change what a trial's value means: a resumed study must keep them
+    IDENTITY = ("space", "device", "budgets", "data", "objectives", "metric", "input_size", "train_size",
+                "train_steps", "batch_size", "lr", "evaluator", "supernet_steps", "supervision", "poses", "hints")
+
+    @classmethod
+    def defaults_of_older_studies(cls) -> dict:
+        """Settings a study made before they existed was run with."""
+        return {"evaluator": "proxy", "finalists": 0, "supervision": "supervised", "poses": "net", "hints": False}
+
+
+def json_safe(x):
+    return json.loads(json.dumps(x, default=float))

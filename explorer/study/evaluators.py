@@ -1,0 +1,123 @@
+"""How a candidate's accuracy is estimated during a search: two evaluators, one interface.
+
+- ``proxy``: train the candidate alone with a short recipe (about 20 s at 64x64 on 2 cores).
+- ``supernet``: take the candidate's slice of a trained weight-sharing supernet, recalibrate its
+  BatchNorm statistics on a few training batches, evaluate (about a second).
+
+Both return an :class:`Evaluation`: per-path metrics on the validation set plus what produced them.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import pandas as pd
+import torch
+
+from explorer.model import AnytimeDepthNet, build_network
+from explorer.space import Candidate
+from explorer.training.train import TrainConfig, batch_row, evaluate, image_batch, train
+
+EVALUATORS = ("supernet", "proxy")
+
+
+@dataclass
+class Evaluation:
+    metrics: pd.DataFrame                 # one row per path (path 0 included)
+    info: dict = field(default_factory=dict)   # evaluator name, seconds, and what it used
+    network: AnytimeDepthNet | None = None
+    checkpoint: Path | None = None       # trained weights on disk, when the evaluator trained
+
+
+class ProxyEvaluator:
+    """Stand-alone training with a short recipe. ``report(step, metrics)`` may raise
+    :class:`explorer.training.train.Pruned` to stop a hopeless candidate."""
+
+    name = "proxy"
+
+    def __init__(self, train_set, val_set, recipe: TrainConfig, device: torch.device,
+                 val_limit: int | None = None, seed: int = 0) -> None:
+        self.train_set, self.val_set, self.recipe = train_set, val_set, recipe
+        self.device, self.val_limit, self.seed = device, val_limit, seed
+
+    def __call__(self, candidate: Candidate, checkpoint: Path | None = None,
+                 report: Callable[[int, pd.DataFrame], None] | None = None) -> Evaluation:
+        torch.manual_seed(self.seed)  # same candidate, same initial weights: results are repeatable
+        net = build_network(candidate)
+        result = train(net, self.train_set, self.val_set, self.recipe, self.device, checkpoint=checkpoint,
+                       report=report, val_limit=self.val_limit, checkpoint_every=10 ** 9)
+        info = {"evaluator": self.name, "seconds": result.seconds, "steps": result.steps,
+                "images_per_second": result.images_per_second}
+        return Evaluation(result.metrics, info, net, checkpoint)
+
+
+def recalibrate_batchnorm(net: torch.nn.Module, batches: list[dict]) -> None:
+    """Re-estimates every BatchNorm's running statistics as the plain average over ``batches`` (the
+    supernet's statistics mix many subnets); weights are left untouched."""
+    from explorer.study._stagewise import recalibrating
+    device = next(net.parameters()).device
+    with recalibrating(net):
+        for b in batches:
+            net(image_batch(b, device), b["scan"].to(device), batch_row(b))
+
+
+def _batches(dataset, count: int, batch_size: int) -> list[dict]:
+    """The first ``count`` items of ``dataset`` as in-memory batches (loaded once, reused)."""
+    from torch.utils.data import DataLoader
+    items = [dataset[i] for i in range(min(count, len(dataset)))]
+    return list(DataLoader(items, batch_size=batch_size, shuffle=False))
+
+
+class SupernetEvaluator:
+    """A candidate's slice of a trained supernet, BatchNorm recalibrated, evaluated.
+
+    ``stagewise`` (the default) evaluates stage by stage and keeps each stage's results for the
+    candidates that share it (:mod:`explorer.study._stagewise`: the image encoder per width, decoder
+    stages and exit heads by what they read, up to ``memo_bytes`` of kept outputs); the result is
+    the same as recalibrating and evaluating each candidate whole (``stagewise=False``)."""
+
+    name = "supernet"
+
+    def __init__(self, supernet_file: str | Path, space, train_set, val_set, device: torch.device,
+                 val_limit: int | None = None, calibration_images: int = 256, batch_size: int = 32,
+                 stagewise: bool = True, memo_bytes: int = 2 * 2 ** 30) -> None:
+        from explorer.study._stagewise import Frames, StageMemo
+        from explorer.supernet import load_supernet
+        self.file = Path(supernet_file)
+        self.supernet, state = load_supernet(self.file, space)
+        self.supernet.to(device).eval()
+        self.key = state["space_key"] + "-" + self.file.stem
+        self.device = device
+        self.calibration = _batches(train_set, calibration_images, batch_size)
+        self.validation = _batches(val_set, val_limit or len(val_set), batch_size)
+        self.stagewise = stagewise
+        if stagewise:
+            self._frames = Frames.of(self.calibration, device), Frames.of(self.validation, device)
+            self.memo = StageMemo(memo_bytes)
+        self._encoders: dict = {}
+
+    def __call__(self, candidate: Candidate, checkpoint: Path | None = None,
+                 report: Callable | None = None) -> Evaluation:
+        from explorer.study._stagewise import evaluate_stagewise
+        t0 = time.perf_counter()
+        net = self.supernet.extract(candidate).to(memory_format=torch.channels_last)  # see train.image_batch
+        if self.stagewise:
+            metrics = evaluate_stagewise(net, self.shared_encoder(candidate.width_mult), *self._frames, self.memo)
+        else:
+            recalibrate_batchnorm(net, self.calibration)
+            metrics = evaluate(net, self.validation, device=self.device)
+        net.to(memory_format=torch.contiguous_format)
+        info = {"evaluator": self.name, "seconds": time.perf_counter() - t0, "supernet": str(self.file),
+                "supernet_key": self.key}
+        return Evaluation(metrics, info, net)
+
+    def shared_encoder(self, width_mult: float):
+        """The image encoder of ``width_mult``, recalibrated, with its features (made on first use)."""
+        from explorer.study._stagewise import SharedEncoder, feature_blocks
+        if width_mult not in self._encoders:
+            encoder = self.supernet.extract_encoder(width_mult).to(memory_format=torch.channels_last)
+            self._encoders[width_mult] = SharedEncoder(encoder, feature_blocks(self.supernet.space), *self._frames)
+        return self._encoders[width_mult]

@@ -1,0 +1,46 @@
+"""Exporting a study's trial (its winner by default) as ONNX stage graphs, with what the study knows
+of it: its data, its device, whether it was searched as int8."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Callable, Sequence
+
+from explorer.deploy.export import Quantization, export_network
+from explorer.errors import UserError
+from explorer.study.results import best_trial, scored_trials, trial_network, winner
+from explorer.study.storage import load_study
+
+#: ``export_from_study(quantization=AS_SEARCHED)``: int8 if the trial's candidate was searched as int8
+AS_SEARCHED = "as-searched"
+
+
+def export_from_study(study_name: str, trial_number: int | None, out_dir: Path, storage: str | None,
+                      reports: Path, input_size: tuple[int, int] | None = None,
+                      devices: Sequence[str] | None = None, quantization: Quantization | str | None = None,
+                      progress: Callable[[str], None] | None = None) -> dict:
+    """Exports trial ``trial_number`` of study ``study_name`` (default: the winner, else the best
+    baseline) to ``out_dir``; ``quantization=AS_SEARCHED``: int8 where the trial was searched as int8."""
+    study = load_study(study_name, storage, reports)
+    trials = {t.number: t for t in scored_trials(study)}
+    if trial_number is None:
+        trial = winner(study) or best_trial(study, baseline=True)
+        if trial is None:
+            raise UserError(f"study '{study_name}' has no completed trial to export")
+    elif trial_number not in trials:
+        raise UserError(f"trial {trial_number} of '{study_name}' is not a completed trial (completed: "
+                        f"{sorted(trials)[:20]})")
+    else:
+        trial = trials[trial_number]
+    net = trial_network(study, trial)
+    cfg = study.user_attrs.get("config", {})
+    if quantization == AS_SEARCHED:   # an int8 candidate was costed and measured as int8: export it so
+        searched = trial.user_attrs.get("int8_graphs")   # the stage graphs its device priced int8
+        quantization = Quantization(data=cfg.get("data", "synthetic"),
+                                    stages="faster" if searched is None else tuple(searched)) \
+            if net.candidate.precision == "int8" else None
+    size = tuple(input_size or cfg.get("input_size", (224, 224)))
+    devs = list(devices or dict.fromkeys([cfg.get("device", "tx2"), "tx2", "rpi4"]))
+    return export_network(net, out_dir, size, path_metrics=trial.user_attrs.get("path_metrics"), devices=devs,
+                          source={"study": study_name, "trial": trial.number, "objective": trial.values[0]},
+                          quantization=quantization, progress=progress)

@@ -1,0 +1,189 @@
+"""One trial of a search: sample a candidate, cost its paths on the device, check the constraints,
+estimate its accuracy with the evaluator, and store everything re-scoring needs."""
+
+
+import math
+import tempfile
+from pathlib import Path
+from typing import Callable
+
+import optuna
+
+from explorer.anytime import anytime_loss, parse_budget
+from explorer.cost import get_device, model_cost
+from explorer.study.results import compact_workloads
+from explorer.space import (Candidate, SearchSpace)
+from explorer.study.evaluators import ProxyEvaluator, SupernetEvaluator
+from explorer.training.train import Pruned, resolve_device
+
+from explorer.study.config import SearchConfig, baseline_model, json_safe
+
+
+def hinted_if_asked(config: SearchConfig, train_set, progress: Callable[[int, int], None] | None):
+    """The training frames with their depth hints when the study uses them: computed once, before the
+    first trial (with progress), then read from the cache by every trial and worker."""
+    if not config.hints:
+        return train_set
+    from explorer.training.depth_hints import with_hints
+    return with_hints(train_set, progress=progress)
+
+
+class Objective:
+    """Callable for ``study.optimize``: everything a worker needs, data loaded once."""
+
+    def __init__(self, config: SearchConfig, study_path: Path | None,
+                 data_progress: Callable[[int, int], None] | None = None) -> None:
+        from explorer.data import open_dataset
+        self.config = config
+        self.space = SearchSpace.from_yaml(config.space)
+        self.device_profile = get_device(config.device)
+        self.budgets = [parse_budget(b) for b in config.budgets]
+        self.train_cfg = config.train_config()
+        self.torch_device = resolve_device(config.accelerator)
+        self.train_set = hinted_if_asked(config, open_dataset(config.data, "train", config.train_size, seed=config.seed,
+                                                          progress=data_progress), data_progress)
+        self.val_set = open_dataset(config.data, "val", config.train_size, train_augment=False)
+        if config.evaluator == "supernet":
+            from explorer.supernet import default_path
+            file = config.supernet or default_path(self.space, config.data, config.supernet_recipe())
+            calibration = open_dataset(config.data, "train", config.train_size, train_augment=False)
+            self.evaluator = SupernetEvaluator(file, self.space, calibration, self.val_set, self.torch_device,
+                                               val_limit=config.val_limit)
+        else:
+            self.evaluator = ProxyEvaluator(self.train_set, self.val_set, self.train_cfg, self.torch_device,
+                                            val_limit=config.val_limit, seed=config.seed)
+        self.artifacts = None
+        if config.keep_weights and study_path is not None:
+            from optuna.artifacts import FileSystemArtifactStore
+            (study_path / "artifacts").mkdir(parents=True, exist_ok=True)
+            self.artifacts = FileSystemArtifactStore(str(study_path / "artifacts"))
+
+    def candidate_for(self, trial: optuna.Trial) -> tuple[Candidate, str]:
+        baseline = trial.user_attrs.get("baseline", "")
+        if baseline:
+            return baseline_model(baseline), baseline
+        return self.space.sample(trial), ""
+
+    def losses_for(self, cost, path_losses: list[float]) -> dict[str, float]:
+        out = {}
+        for dist in self.budgets:
+            out[dist.spec] = anytime_loss(cost.path_costs(self.device_profile, dist.kind), path_losses, dist)
+        return out
+
+    def describe(self, trial, candidate):
+        """Costs every path of ``candidate`` (or of a reference network) and stores what re-scoring
+        needs on ``trial``."""
+        cost = model_cost(candidate, self.config.input_size)
+        pm = cost.path_params_macs()
+        latency = cost.path_latency_ms(self.device_profile)
+        what = {"candidate": candidate.to_dict()} if isinstance(candidate, Candidate) else {"reference": candidate.name}
+        attrs = {**what, "candidate_key": candidate.key, "params": [p for p, _ in pm],
+                 "macs": [m for _, m in pm], "latency_ms": latency,
+                 "energy_j": cost.path_energy_j(self.device_profile), "workloads": compact_workloads(cost)}
+        for k, v in attrs.items():
+            trial.set_user_attr(k, v)
+        return cost, pm, latency
+
+    def values(self, losses: dict[str, float], pm, latency):
+        values = []
+        for obj in self.config.objectives:
+            if obj == "anytime_loss":
+                values.append(losses[self.budgets[0].spec])
+            elif obj == "params":
+                values.append(float(pm[-1][0]))
+            elif obj == "macs":
+                values.append(float(pm[-1][1]))
+            else:
+                values.append(latency[1] if len(latency) > 1 else 0.0)
+        return values[0] if len(values) == 1 else tuple(values)
+
+    def __call__(self, trial: optuna.Trial):
+        cfg = self.config
+        candidate, baseline = self.candidate_for(trial)
+        cost, pm, latency = self.describe(trial, candidate)
+        if not baseline:
+            reason = self._rejection(pm, latency)
+            if reason:
+                trial.set_user_attr("rejected", reason)
+                raise optuna.TrialPruned(reason)
+            done = self._finished_twin(trial, candidate.key)
+            if done is not None:
+                # the sampler proposed a candidate already evaluated: reuse what was paid for
+                for key in ("path_metrics", "train", "losses", "weights_artifact", "evaluator", "path_metrics_fp32",
+                            "quantization", "int8_graphs"):
+                    if key in done.user_attrs:
+                        trial.set_user_attr(key, done.user_attrs[key])
+                trial.set_user_attr("duplicate_of", done.number)
+                return done.values[0] if len(done.values) == 1 else tuple(done.values)
+        primary = self.budgets[0]
+        costs = cost.path_costs(self.device_profile, primary.kind)
+
+        def report(step: int, metrics) -> None:
+            if baseline or len(cfg.objectives) > 1:
+                return
+            value = anytime_loss(costs, list(metrics[cfg.metric]), primary)
+            trial.report(value, step)
+            if trial.should_prune():
+                reason = f"pruned: anytime loss {value:.4f} at step {step} (worst quarter)"
+                trial.set_user_attr("pruned", reason)
+                raise Pruned(reason)
+
+        keep = self.artifacts is not None and self.evaluator.name == "proxy"
+        with tempfile.TemporaryDirectory() as tmp:
+            ckpt = Path(tmp) / f"{candidate.key}.pt"
+            try:
+                result = self.evaluator(candidate, checkpoint=ckpt if keep else None, report=report)
+            except Pruned as exc:
+                raise optuna.TrialPruned(str(exc)) from None
+            path_metrics = json_safe(result.metrics.drop(columns=["path"]).to_dict("records"))
+            if candidate.precision == "int8":
+                if result.info["evaluator"] == "supernet":   # stage-by-stage evaluation left the slice's BN as it was
+                    from explorer.study.evaluators import recalibrate_batchnorm
+                    recalibrate_batchnorm(result.network, self.evaluator.calibration)
+                path_metrics = self.quantized(trial, result.network, path_metrics, cost)
+            trial.set_user_attr("path_metrics", path_metrics)
+            trial.set_user_attr("evaluator", json_safe(result.info))
+            if result.info["evaluator"] == "proxy":
+                trial.set_user_attr("train", {k: result.info[k] for k in ("seconds", "steps", "images_per_second")})
+            path_losses = [m[cfg.metric] for m in path_metrics]
+            if any(not math.isfinite(v) for v in path_losses):
+                raise FloatingPointError(f"non-finite validation {cfg.metric}: {path_losses}")
+            losses = self.losses_for(cost, path_losses)
+            trial.set_user_attr("losses", losses)
+            if keep:
+                artifact = optuna.artifacts.upload_artifact(
+                    artifact_store=self.artifacts, file_path=str(ckpt), study_or_trial=trial)
+                trial.set_user_attr("weights_artifact", artifact)
+        return self.values(losses, pm, latency)
+
+    def quantized(self, trial, net, path_metrics: list[dict], cost) -> list[dict]:
+        """An int8 candidate's metrics: those of its fp32 weights ``net`` (on the frames every trial
+        uses) times what quantizing its graphs does to each path, measured with onnxruntime
+        (explorer.deploy.quantize); both, and the change, are kept on ``trial``. The graphs quantized are those
+        the device profile prices int8 (``CandidateCost.int8_graphs``), as its latency assumes."""
+        from explorer.deploy.quantize import quantization_effect
+        net.eval()
+        graphs = cost.int8_graphs(self.device_profile)
+        effect = quantization_effect(net, self.config.train_size, self.config.data,
+                                     eval_frames=self.config.val_limit or 32, stages=graphs)
+        trial.set_user_attr("int8_graphs", list(graphs))
+        trial.set_user_attr("path_metrics_fp32", path_metrics)
+        trial.set_user_attr("quantization", json_safe({k: effect[k] for k in ("rmse_degradation", "frames")}))
+        return [{k: v * r.get(k, 1.0) if isinstance(v, (int, float)) else v for k, v in m.items()}
+                for m, r in zip(path_metrics, effect["ratios"])]
+
+    @staticmethod
+    def _finished_twin(trial: optuna.Trial, key: str) -> optuna.trial.FrozenTrial | None:
+        for t in trial.study.get_trials(deepcopy=False, states=(optuna.trial.TrialState.COMPLETE,)):
+            if t.user_attrs.get("candidate_key") == key and not t.user_attrs.get("baseline") and \
+                    "path_metrics" in t.user_attrs and "finalist" not in t.user_attrs:
+                return t
+        return None
+
+    def _rejection(self, pm, latency) -> str:
+        cfg = self.config
+        if cfg.max_params is not None and pm[-1][0] > cfg.max_params:
+            return f"{pm[-1][0] / 1e6:.3f}M parameters > --max-params {cfg.max_params / 1e6:g}M"
+        if cfg.max_first_exit_ms is not None and len(latency) > 1 and latency[1] > cfg.max_first_exit_ms:
+            return f"first exit at {latency[1]:.2f} ms > --max-first-exit {cfg.max_first_exit_ms:g}ms"
+        return ""

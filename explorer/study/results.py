@@ -1,0 +1,329 @@
+"""Reading a study: trials as a pandas table, per-path costs re-computed from stored workloads, and
+re-scoring for another device or budget without training anything again."""
+
+from __future__ import annotations
+
+import math
+
+from typing import Sequence
+
+import numpy as np
+import optuna
+import pandas as pd
+
+from explorer.anytime import anytime_loss, parse_budget
+from explorer.cost.devices import DeviceProfile, get_device, path_latencies_ms
+from explorer.cost.workloads import Workload
+from explorer.space import Candidate
+
+BASELINE_LABELS = {"paper": "paper design", "paper-nee": "paper design, no early exit",
+                   "fastdepth": "FastDepth-like"}
+
+
+def baseline_label(name: str) -> str:
+    """How summaries and reports name a baseline (a reference network by its own name)."""
+    return BASELINE_LABELS.get(name, name)
+
+
+def study_baselines(study: optuna.Study) -> list[str]:
+    """The baselines a study was created to compare against (--baselines), in order; for a study made
+    with --no-baselines, the default ones (so that summaries can say why they are missing)."""
+    from explorer.study.config import DEFAULT_BASELINES
+    chosen = study.user_attrs.get("config", {}).get("baselines", True)
+    names = list(DEFAULT_BASELINES) if isinstance(chosen, bool) or not chosen else list(chosen)
+    # a resumed run may have been given more (--baselines): they have trials of their own
+    tagged = (t.user_attrs.get("baseline") for t in study.get_trials(deepcopy=False))
+    return list(dict.fromkeys(names + [b for b in tagged if b]))
+
+
+def compact_workloads(cost) -> dict:
+    """What re-costing on any profile needs: per layer (stage, kind, MACs, bytes, params, in-channels
+    and kernel)."""
+    stages = list(dict.fromkeys(w.stage for w in cost.workloads))
+    return {"input_size": list(cost.input_size), "stages": stages,
+            "path_stages": [[stages.index(s) for s in ps] for ps in cost.path_stages],
+            "layers": [[stages.index(w.stage), w.kind, w.macs, w.bytes_read, w.bytes_written, w.params,
+                        w.in_shape[0] if w.in_shape else 0, w.kernel] for w in cost.workloads]}
+
+
+def expand_workloads(compact: dict) -> tuple[list[Workload], list[list[str]]]:
+    stages = compact["stages"]
+    # rows stored before in-channels and kernel were kept have 6 fields: their shape stays unknown
+    wl = [Workload(stages[s], "", kind, tuple(int(c) for c in shape[:1]), (), int(shape[1]) if shape else 0, 0,
+                   int(macs), int(params), int(br), int(bw))
+          for s, kind, macs, br, bw, params, *shape in compact["layers"]]
+    return wl, [[stages[i] for i in ps] for ps in compact["path_stages"]]
+
+
+def trial_precision(trial: optuna.trial.FrozenTrial) -> str:
+    return (trial.user_attrs.get("candidate") or {}).get("precision", "fp32")
+
+
+def trial_path_costs(trial: optuna.trial.FrozenTrial, device: DeviceProfile, kind: str) -> list[float]:
+    """Per-path cost (path 0 included) of a stored trial on ``device``: ms for time, J for energy;
+    NaN where the device cannot price the trial's precision (int8 on a profile without int8 rates)."""
+    wl, path_stages = expand_workloads(trial.user_attrs["workloads"])
+    precision = trial_precision(trial)
+    if precision not in device.precisions:
+        return [0.0] + [math.nan] * len(path_stages)
+    ms = [0.0] + path_latencies_ms(device.at_precision(precision), wl, path_stages)
+    if kind == "time":
+        return ms
+    return [float(device.energy_j(t)) for t in ms]
+
+
+def trial_losses(trial: optuna.trial.FrozenTrial, metric: str = "rmse") -> list[float]:
+    return [float(m[metric]) for m in trial.user_attrs["path_metrics"]]
+
+
+def trial_anytime_loss(trial: optuna.trial.FrozenTrial, device: DeviceProfile, budget, metric: str = "rmse") -> float:
+    dist = parse_budget(budget)
+    if trial_precision(trial) not in device.precisions:
+        return math.nan
+    return anytime_loss(trial_path_costs(trial, device, dist.kind), trial_losses(trial, metric), dist)
+
+
+def scored_trials(study: optuna.Study) -> list[optuna.trial.FrozenTrial]:
+    """Completed trials that carry per-path metrics and workloads (everything re-scoring needs)."""
+    return [t for t in study.get_trials(deepcopy=False, states=(optuna.trial.TrialState.COMPLETE,))
+            if "path_metrics" in t.user_attrs and "workloads" in t.user_attrs]
+
+
+def _reason(t: optuna.trial.FrozenTrial, interrupted: dict[int, str], retries: dict) -> str:
+    ua = t.user_attrs
+    reason = (ua.get("rejected") or ua.get("pruned") or interrupted.get(t.number)
+              or t.system_attrs.get("fail_reason", "")
+              or (f"same candidate as trial {ua['duplicate_of']}" if "duplicate_of" in ua else ""))
+    if t.number in interrupted:
+        retry = retries.get(t.number)
+        reason += f"; tried again as trial {retry.number}" if retry is not None else "; not tried again"
+    if "retry_of" in ua:
+        reason = f"retry of trial {ua['retry_of']}" + (f"; {reason}" if reason else "")
+    return reason
+
+
+def _reference_description(name: str | None) -> str:
+    from explorer.model.reference import REFERENCES
+    return REFERENCES[name].description if name in REFERENCES else ""
+
+
+def trials_frame(study: optuna.Study) -> pd.DataFrame:
+    """One row per trial: state, objective value(s), baseline tag, candidate, params, MACs,
+    per-path metrics and costs as stored, every recorded budget's anytime loss, and why a trial
+    did not complete (rejected, pruned, failed, interrupted and tried again as which trial)."""
+    from explorer.study.retry import interrupted_trials, retries_by_origin
+    rows = []
+    trials = study.get_trials(deepcopy=False)
+    interrupted, retries = interrupted_trials(study, trials), retries_by_origin(trials)
+    for t in trials:
+        ua = t.user_attrs
+        row = {"number": t.number, "state": t.state.name,
+               "value": (t.values[0] if t.values else np.nan),
+               "baseline": ua.get("baseline", ""),
+               "evaluator": (ua.get("evaluator") or {}).get("evaluator", "proxy" if "train" in ua else ""),
+               "candidate_key": ua.get("candidate_key", ""),
+               "architecture": (Candidate.from_dict(ua["candidate"]).describe() if "candidate" in ua
+                                else _reference_description(ua.get("reference"))),
+               "params": (ua.get("params") or [np.nan])[-1],
+               "macs": (ua.get("macs") or [np.nan])[-1],
+               "paths": len(ua.get("path_metrics", [])) or np.nan,
+               "first_exit_ms": (ua.get("latency_ms") or [0, np.nan])[1] if len(ua.get("latency_ms") or []) > 1 else np.nan,
+               "last_exit_ms": (ua.get("latency_ms") or [np.nan])[-1],
+               "last_rmse": (ua.get("path_metrics") or [{"rmse": np.nan}])[-1]["rmse"],
+               "duration_s": t.duration.total_seconds() if t.duration else np.nan,
+               "retry_of": ua.get("retry_of", np.nan),
+               "reason": _reason(t, interrupted, retries)}
+        if t.values and len(t.values) > 1:
+            for i, v in enumerate(t.values):
+                row[f"value_{i}"] = v
+        for spec, v in (ua.get("losses") or {}).items():
+            row[f"L[{spec}]"] = v
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def rescore(study: optuna.Study, device: str | DeviceProfile, budgets: Sequence[str],
+            metric: str = "rmse") -> pd.DataFrame:
+    """Ranks the finished trials for ``device`` and ``budgets`` (sorted by the first budget) from
+    what the study stored: no network is built or trained."""
+    profile = get_device(device)
+    dists = [parse_budget(b) for b in budgets]
+    rows = []
+    for t in scored_trials(study):
+        row = {"number": t.number, "baseline": t.user_attrs.get("baseline", ""),
+               "candidate_key": t.user_attrs.get("candidate_key", "")}
+        for d in dists:
+            row[d.spec] = trial_anytime_loss(t, profile, d, metric)
+        ms = trial_path_costs(t, profile, "time")
+        row["first_exit_ms"] = ms[1] if len(ms) > 1 else np.nan
+        row["last_exit_ms"] = ms[-1]
+        row["params"] = t.user_attrs["params"][-1]
+        rows.append(row)
+    frame = pd.DataFrame(rows)
+    if frame.empty:
+        return frame
+    return frame.sort_values(dists[0].spec, kind="stable").reset_index(drop=True)
+
+
+def is_retrained(trial: optuna.trial.FrozenTrial) -> bool:
+    """A finalist: retrained stand-alone with the study's longer recipe (see explorer.study.finalists)."""
+    return "finalist" in trial.user_attrs
+
+
+def best_trial(study: optuna.Study, baseline: bool = False) -> optuna.trial.FrozenTrial | None:
+    """The search's lowest estimate among scored trials (baselines excluded unless ``baseline``;
+    retrained finalists excluded: see :func:`winner`)."""
+    pool = [t for t in scored_trials(study) if (baseline or not t.user_attrs.get("baseline")) and not is_retrained(t)]
+    return min(pool, key=lambda t: t.values[0], default=None)
+
+
+def winner(study: optuna.Study) -> optuna.trial.FrozenTrial | None:
+    """The study's answer: the best retrained finalist, or the best estimate while none is retrained."""
+    retrained = [t for t in scored_trials(study) if is_retrained(t) and not t.user_attrs.get("baseline")]
+    return min(retrained, key=lambda t: t.values[0], default=None) or best_trial(study)
+
+
+def baseline_trial(study: optuna.Study, name: str, retrained: bool = False) -> optuna.trial.FrozenTrial | None:
+    """Baseline ``name``'s trial: its search estimate, or its retraining with ``retrained``."""
+    return next((t for t in scored_trials(study) if t.user_attrs.get("baseline") == name
+                 and is_retrained(t) == retrained), None)
+
+
+def finalists_frame(study: optuna.Study) -> pd.DataFrame:
+    """Per retrained finalist and baseline: the search's estimate beside the retrained anytime loss,
+    with both ranks (how far the estimate can be trusted)."""
+    rows = []
+    for t in scored_trials(study):
+        if not is_retrained(t):
+            continue
+        fin = t.user_attrs["finalist"]
+        rows.append({"model": baseline_label(t.user_attrs["baseline"]) if t.user_attrs.get("baseline") else "finalist",
+                     "candidate_key": t.user_attrs["candidate_key"], "estimate_trial": fin.get("estimate_trial"),
+                     "estimated": fin.get("estimated"), "retrained": t.values[0], "trial": t.number})
+    frame = pd.DataFrame(rows)
+    if frame.empty:
+        return frame
+    frame = frame.sort_values("retrained", kind="stable").reset_index(drop=True)
+    frame["retrained_rank"] = range(1, len(frame) + 1)
+    frame["estimated_rank"] = frame["estimated"].rank(method="min").astype("Int64")
+    return frame
+
+
+def missing_baselines(study: optuna.Study) -> list[dict]:
+    """The baselines that have no scored trial, each as {"name", "label", "why"}, "why" saying what
+    happened to it: not run (--no-baselines, or not yet: queued), still running, failed (its reason),
+    interrupted and not tried again. Summaries and reports print these instead of dropping a row."""
+    from explorer.study.retry import interrupted_trials
+    trials = study.get_trials(deepcopy=False)
+    scored = {t.user_attrs.get("baseline") for t in scored_trials(study)}
+    interrupted = interrupted_trials(study, trials)
+    with_baselines = bool(study.user_attrs.get("config", {}).get("baselines", True))
+    out = []
+    for name in study_baselines(study):
+        label = baseline_label(name)
+        if name in scored:
+            continue
+        tagged = [t for t in trials if t.user_attrs.get("baseline") == name]
+        if not tagged:
+            skipped = (study.user_attrs.get("baselines_not_estimated") or {}).get(name)
+            why = ("not run: the study was created with --no-baselines" if not with_baselines
+                   else f"not estimated: {skipped}; not retrained yet (--finalists 0, or the study has "
+                   "not ended)" if skipped else "not run: it is not in this study")
+            out.append({"name": name, "label": label, "why": why})
+            continue
+        t = tagged[-1]  # the latest attempt
+        ua, state = t.user_attrs, t.state
+        earlier = f" (trial {ua['retry_of']} was {interrupted.get(ua['retry_of'], 'interrupted')})" \
+            if "retry_of" in ua else ""
+        if state == optuna.trial.TrialState.WAITING:
+            why = f"not run yet: queued as trial {t.number}{earlier}; run the search longer"
+        elif state == optuna.trial.TrialState.RUNNING:
+            why = (f"still running as trial {t.number}{earlier}, or its process was killed: resume the "
+                   "search to try it again")
+        elif t.number in interrupted:
+            attempts = len(t.system_attrs.get("retry_history", [])) + 1
+            why = (f"trial {t.number} was {interrupted[t.number]} and was not tried again ({attempts} "
+                   f"interrupted attempt(s)); resume the search with --max-retries {attempts} or more")
+        elif state == optuna.trial.TrialState.FAIL:
+            why = f"failed in trial {t.number}: {t.system_attrs.get('fail_reason') or 'no reason recorded'}"
+        elif state == optuna.trial.TrialState.PRUNED:
+            why = f"pruned in trial {t.number}: {ua.get('pruned') or ua.get('rejected') or 'no reason recorded'}"
+        else:
+            why = f"trial {t.number} finished without per-path metrics"
+        out.append({"name": name, "label": label, "why": why})
+    return out
+
+
+def path_table(trial: optuna.trial.FrozenTrial, devices: Sequence[DeviceProfile] = ()) -> pd.DataFrame:
+    """Table 1 of the paper for one trial: per path, cost per device, RMSE, REL, delta1, params, MACs."""
+    metrics = trial.user_attrs["path_metrics"]
+    frame = pd.DataFrame({"path": range(len(metrics))})
+    for dev in devices:
+        frame[f"{dev.name} ms"] = trial_path_costs(trial, dev, "time")
+        if dev.active_power_w > 0:
+            frame[f"{dev.name} J"] = trial_path_costs(trial, dev, "energy")
+    for m in ("rmse", "rel", "delta1"):
+        frame[m] = [pm[m] for pm in metrics]
+    frame["params"] = trial.user_attrs["params"]
+    frame["macs"] = trial.user_attrs["macs"]
+    return frame
+
+
+def study_frame(study: str, storage: str | None = None, reports: str = "reports") -> pd.DataFrame:
+    """One call for notebooks: a stored study's trials as a table (see :func:`trials_frame`); the
+    study object itself is in ``frame.attrs['study']``."""
+    from pathlib import Path
+    from explorer.study.storage import load_study
+    s = load_study(study, storage, Path(reports))
+    frame = trials_frame(s)
+    frame.attrs["study"] = s
+    return frame
+
+
+def trial_network(study: optuna.Study, trial: optuna.trial.FrozenTrial):
+    """The trained network of a trial, from the study's artifact store (raises UserError when its
+    weights are not stored on this machine)."""
+    import tempfile
+    from pathlib import Path
+    from optuna.artifacts import FileSystemArtifactStore, download_artifact
+    from explorer.errors import UserError
+    from explorer.training.train import network_from_checkpoint
+    if trial.user_attrs.get("reference"):
+        raise UserError(f"trial {trial.number} is the reference network {trial.user_attrs['reference']}, a baseline "
+                        "for comparison: export a candidate's trial")
+    artifact = trial.user_attrs.get("weights_artifact")
+    root = study.user_attrs.get("artifacts_dir")
+    if not artifact and (trial.user_attrs.get("evaluator") or {}).get("evaluator") == "supernet":
+        return _supernet_network(study, trial)
+    if not artifact or not root or not Path(root).is_dir():
+        raise UserError(f"trial {trial.number} has no stored weights here (searched with --no-weights, or its "
+                        "artifacts live on another machine): train it with `explorer train` and use the checkpoint")
+    with tempfile.TemporaryDirectory() as tmp:
+        f = Path(tmp) / "w.pt"
+        try:
+            download_artifact(artifact_store=FileSystemArtifactStore(root), file_path=str(f), artifact_id=artifact)
+        except Exception as exc:  # a missing or damaged artifact file
+            raise UserError(f"trial {trial.number}: its weights could not be read ({exc})") from None
+        net, _ = network_from_checkpoint(f)
+    return net
+
+
+def _supernet_network(study: optuna.Study, trial: optuna.trial.FrozenTrial):
+    """A supernet-estimated trial's network: its slice of the supernet, BatchNorm recalibrated on
+    the study's training data, exactly as the search evaluated it."""
+    from pathlib import Path
+    from explorer.data import open_dataset
+    from explorer.errors import UserError
+    from explorer.study.evaluators import _batches, recalibrate_batchnorm
+    from explorer.supernet import load_supernet
+    file = Path(trial.user_attrs["evaluator"]["supernet"])
+    if not file.is_file():
+        raise UserError(f"trial {trial.number} was estimated with supernet {file}, which is not on this machine: "
+                        "export a retrained finalist instead (the default)")
+    net, _ = load_supernet(file)
+    cfg = study.user_attrs.get("config", {})
+    calibration = open_dataset(cfg.get("data", "synthetic"), "train", tuple(cfg.get("train_size", (64, 64))),
+                               train_augment=False)
+    sub = net.extract(Candidate.from_dict(trial.user_attrs["candidate"]))
+    recalibrate_batchnorm(sub, _batches(calibration, 64, 32))
+    return sub

@@ -1,0 +1,380 @@
+"""The search: Optuna over a search space, minimising the anytime loss on a device.
+
+Each trial samples a candidate, costs its paths on the device (no training), rejects it if a
+constraint rules it out, estimates its per-path accuracy with an evaluator (a slice of the space's
+trained supernet, about a second; or proxy training, reporting the anytime loss so hopeless ones are
+pruned), and stores everything re-scoring needs. The paper's design, the same without early exits,
+and a FastDepth-like network are the study's first trials (when the evaluator can estimate them),
+tagged as baselines. A study ends by retraining its best candidates and the baselines stand-alone
+with a longer recipe (the finalists): the winner a user reads about is always a retrained one.
+"""
+
+
+import dataclasses
+import gc
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import optuna
+
+from explorer import __version__
+from explorer.cost import candidate_cost, get_device, model_cost
+from explorer.errors import UserError
+from explorer.space import (Candidate, SearchSpace, paper_candidate)
+from explorer.study.planning import Plan, TimeLimit
+from explorer.study.retry import StopAfterTrials, counted_trials, guarded, resume_interrupted, set_objective_names
+from explorer.study.storage import REPORTS_DIR, open_storage, study_dir
+from explorer.training.train import resolve_device
+
+from explorer.study.config import (BASELINES, DEFAULT_BASELINES, OBJECTIVES, SearchConfig, baseline_model,  # noqa: F401
+                                   json_safe, objective_names)
+from explorer.study.objective import Objective, hinted_if_asked
+
+
+def make_sampler(config: SearchConfig, worker: int = 0) -> optuna.samplers.BaseSampler:
+    seed = config.seed + 1000 * worker
+    if len(config.objectives) > 1:
+        return optuna.samplers.NSGAIISampler(seed=seed)
+    import warnings
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
+        # multivariate + group: the conditional LiDAR/ECU dimensions are modelled jointly
+        return optuna.samplers.TPESampler(seed=seed, n_startup_trials=8, multivariate=True, group=True)
+
+
+def make_pruner(config: SearchConfig) -> optuna.pruners.BasePruner:
+    if not config.pruning or len(config.objectives) > 1:
+        return optuna.pruners.NopPruner()
+    # Early proxy losses rank candidates poorly: judge only in the second half of training, and
+    # only prune the worst quarter (the baselines count towards the startup trials).
+    return optuna.pruners.PercentilePruner(75.0, n_startup_trials=6,
+                                           n_warmup_steps=max(config.train_steps // 2, 0))
+
+
+def create_or_resume(config: SearchConfig, storage: optuna.storages.BaseStorage) -> optuna.Study:
+    """Creates the study (and enqueues the baselines, once) or resumes it after checking that its
+    settings match. Only the process that creates the study enqueues, so concurrent starts on one
+    database never duplicate the baselines."""
+    directions = ["minimize"] * len(config.objectives)
+    try:
+        study = optuna.create_study(study_name=config.study, storage=storage, directions=directions,
+                                    sampler=make_sampler(config), pruner=make_pruner(config))
+        created = True
+    except optuna.exceptions.DuplicatedStudyError:
+        study = optuna.load_study(study_name=config.study, storage=storage, sampler=make_sampler(config),
+                                  pruner=make_pruner(config))
+        created = False
+    if created:
+        space = SearchSpace.from_yaml(config.space)
+        study.set_user_attr("config", config.to_dict())
+        study.set_user_attr("explorer_version", __version__)
+        study.set_user_attr("space_yaml", Path(space.source).read_text())
+        study.set_user_attr("device_profile", get_device(config.device).to_dict())
+        study.set_user_attr("created", time.strftime("%Y-%m-%d %H:%M:%S"))
+        if config.baselines:
+            skipped = {}
+            for name in config.baselines:
+                model = baseline_model(name)
+                if not isinstance(model, Candidate):
+                    skipped[name] = ("a reference network, outside every space: it is compared after retraining "
+                                     "(finalists) only")
+                    continue
+                if config.evaluator == "supernet" and not space.contains(model):
+                    skipped[name] = (f"outside the space '{space.name}': the supernet cannot estimate it, so it "
+                                     "is compared after retraining (finalists) only")
+                    continue
+                study.enqueue_trial({}, user_attrs={"baseline": name})
+            study.set_user_attr("baselines_not_estimated", skipped)
+        set_objective_names(study, objective_names(config))
+    else:
+        old = study.user_attrs.get("config")
+        if old:
+            prev = SearchConfig.from_dict({**SearchConfig.defaults_of_older_studies(), **old})
+            diff = [k for k in SearchConfig.IDENTITY if getattr(prev, k) != getattr(config, k)]
+            if diff:
+                k = diff[0]
+                raise UserError(
+                    f"study '{config.study}' was created with {k}={getattr(prev, k)!r}, not "
+                    f"{getattr(config, k)!r}: resume with the same settings, pick another --study, or "
+                    "use `explorer rescore` for another device or budget")
+        set_objective_names(study, objective_names(config))  # studies made before objectives had names
+    return study
+
+
+@dataclass
+class SearchOutcome:
+    study: optuna.Study
+    storage_url: str
+    seconds: float
+    interrupted_failed: int = 0
+    retried: dict[int, int] = dataclasses.field(default_factory=dict)   # interrupted trial -> its retry
+    not_retried: list[int] = dataclasses.field(default_factory=list)    # interrupted past --max-retries
+    config: SearchConfig | None = None     # as run: a --time-limit plan may have sized its steps
+    plan: "Plan | None" = None
+
+
+def run_worker(config_dict: dict, storage_url: str | None, n_trials: int | None, deadline: float | None,
+               worker: int, reports: str, threads: int) -> None:
+    """One worker process of a multi-process search (spawned)."""
+    import torch
+    torch.set_num_threads(max(threads, 1))
+    config = SearchConfig.from_dict(config_dict)
+    storage = open_storage(storage_url, config.study, workers=2, reports=Path(reports), max_retries=config.max_retries)
+    study = optuna.load_study(study_name=config.study, storage=storage, sampler=make_sampler(config, worker),
+                              pruner=make_pruner(config))
+    objective = Objective(config, study_dir(config.study, Path(reports)))
+    _optimize(study, objective, n_trials, deadline)
+
+
+def _optimize(study: optuna.Study, objective: Objective, n_trials: int | None, deadline: float | None,
+              callbacks: list | None = None) -> None:
+    cbs = list(callbacks or [])
+    if n_trials is not None:
+        # interrupted trials do not count (their retries do): see explorer.study.retry
+        cbs.append(StopAfterTrials(n_trials))
+        if counted_trials(study) >= n_trials:
+            return
+    timeout = None if deadline is None else max(deadline - time.time(), 0.0)
+    if timeout is not None and timeout <= 0:
+        return
+    # everything loaded so far (torch, data, the evaluator's batches) lives as long as the worker:
+    # frozen, the collection after each trial skips it (0.1-0.25 s a trial otherwise)
+    gc.freeze()
+    study.optimize(guarded(objective, objective.config.max_retries), timeout=timeout, callbacks=cbs,
+                   catch=(Exception,), gc_after_trial=True)
+
+
+def ensure_supernet(config: SearchConfig, progress: Callable[[int, int, dict], None] | None = None,
+                    data_progress: Callable[[int, int], None] | None = None) -> Path | None:
+    """The supernet file the study's evaluator reads: the given one (checked), or the cached one for
+    (space, data, recipe), trained here first if it is missing or unfinished."""
+    if config.evaluator != "supernet":
+        return None
+    from explorer.supernet import default_path, load_supernet, train_supernet
+    space = SearchSpace.from_yaml(config.space)
+    if config.supernet:
+        load_supernet(config.supernet, space)  # one clear line if it is foreign, corrupt or unfinished
+        return Path(config.supernet)
+    return train_supernet(space, config.data, config.supernet_recipe(), default_path(
+        space, config.data, config.supernet_recipe()), resolve_device(config.accelerator),
+        progress=progress, data_progress=data_progress)
+
+
+def _existing_config(storage: optuna.storages.BaseStorage, name: str) -> dict | None:
+    try:
+        return optuna.load_study(study_name=name, storage=storage).user_attrs.get("config")
+    except KeyError:
+        return None
+
+
+def _cached_supernet_steps(config: SearchConfig) -> list[int]:
+    """Step counts of the finished supernets cached for this space, data and recipe (steps aside)."""
+    from explorer.study.planning import MAX_SUPERNET_STEPS, STEP_GRID
+    from explorer.supernet import default_path, read_supernet
+    space = SearchSpace.from_yaml(config.space)
+    found = []
+    for steps in sorted({*range(STEP_GRID, MAX_SUPERNET_STEPS + 1, STEP_GRID), config.supernet_steps}):
+        path = default_path(space, config.data, dataclasses.replace(config.supernet_recipe(), steps=steps))
+        try:
+            if path.is_file() and read_supernet(path).get("complete"):
+                found.append(steps)
+        except UserError:
+            continue  # a broken file is trained again in its place
+    return found
+
+
+def baseline_load(config: SearchConfig, speeds=None) -> float:
+    """The baselines' retraining in paper designs' worth, for the time plan: each its measured training
+    step over the paper design's (``speeds``), or without a measurement one for a candidate and for a
+    reference network its MACs at the training size over the paper design's (which over-counts the
+    ResNets: about 1.5x measured against 3.34x by MACs for S2D-ResNet-18,
+    benchmarks/bench_baseline_training.py)."""
+    paper = candidate_cost(paper_candidate(), config.train_size).path_params_macs()[-1][1]
+    load = 0.0
+    for name in config.baselines:
+        measured = speeds.relative_training(name) if speeds is not None else None
+        model = baseline_model(name)
+        if measured is not None:
+            load += measured
+        elif isinstance(model, Candidate):
+            load += 1.0
+        else:
+            load += max(1.0, model_cost(model, config.train_size).path_params_macs()[-1][1] / paper)
+    return load
+
+
+def plan_search(config: SearchConfig, storage: optuna.storages.BaseStorage, limit: "TimeLimit",
+                sampling_s: float | None, on_data: Callable[[int, int], None] | None = None):
+    """(config as it will run, plan, speeds): the data generated, the machine measured, the run sized
+    to what is left of ``limit`` (see explorer.study.planning)."""
+    from explorer.study import planning
+    from explorer.data import open_dataset
+    free = set(limit.free)
+    old = _existing_config(storage, config.study)
+    if old and "supernet_steps" in free and "supernet_steps" in old:
+        config = dataclasses.replace(config, supernet_steps=int(old["supernet_steps"]))  # the study's supernet
+        free.discard("supernet_steps")
+    train_set = hinted_if_asked(config, open_dataset(config.data, "train", config.train_size, seed=config.seed,
+                                                 progress=on_data), on_data)
+    val_set = open_dataset(config.data, "val", config.train_size, train_augment=False)
+    os.sync()  # data just generated is still being written back: measured then, steps read 1.6-2x slow
+    trains_supernet = config.evaluator == "supernet" and not config.supernet
+    cached = _cached_supernet_steps(config) if trains_supernet else []
+    must_measure_supernet = trains_supernet and ("supernet_steps" in free or config.supernet_steps not in cached)
+    speeds = planning.measure_speeds(config, train_set, val_set, resolve_device(config.accelerator),
+                                     supernet=must_measure_supernet,
+                                     baselines=_measured_baselines(config) if config.finalists else ())
+    trial_s = 0.0 if config.evaluator == "supernet" else planning.SAFETY * (
+        config.train_steps * speeds.retrain_step_s + speeds.retrain_eval_s)
+
+    def plan(steps: int, steps_free: bool, is_cached: bool):
+        return planning.plan_run(
+            limit.remaining(), limit.seconds, speeds, sampling_s=sampling_s, supernet_steps=steps,
+            supernet_free=steps_free, supernet_cached=is_cached or not trains_supernet,
+            finalists=config.finalists, finalists_free="finalists" in free, finalist_steps=config.finalist_steps,
+            finalist_steps_free="finalist_steps" in free,
+            baselines=baseline_load(config, speeds), baseline_count=len(config.baselines), trial_s=trial_s)
+
+    chosen = plan(config.supernet_steps, "supernet_steps" in free, config.supernet_steps in cached)
+    larger = [s for s in cached if s >= chosen.supernet_steps]
+    if "supernet_steps" in free and larger:  # a cached supernet at least as trained costs nothing
+        chosen = plan(max(larger), False, True)
+    config = dataclasses.replace(config, supernet_steps=chosen.supernet_steps, finalists=chosen.finalists,
+                                 finalist_steps=chosen.finalist_steps)
+    return config, chosen, speeds
+
+
+def _measured_baselines(config: SearchConfig) -> tuple[str, ...]:
+    """The baselines whose training is measured for the plan (the paper design's is the step itself)."""
+    return tuple(n for n in config.baselines if baseline_model(n) != paper_candidate())
+
+
+def _measure_again(config: SearchConfig, speeds, finalists: tuple[Candidate, ...] = ()):
+    """The retraining speeds measured again, the ``finalists`` chosen by now with them (the supernet's
+    is kept: it is trained by now)."""
+    from explorer.study import planning
+    from explorer.data import open_dataset
+    train_set = open_dataset(config.data, "train", config.train_size, seed=config.seed)
+    val_set = open_dataset(config.data, "val", config.train_size, train_augment=False)
+    fresh = planning.measure_speeds(config, train_set, val_set, resolve_device(config.accelerator), supernet=False,
+                                    baselines=_measured_baselines(config), finalists=finalists)
+    return dataclasses.replace(fresh, supernet_step_s=speeds.supernet_step_s)
+
+
+def search(config: SearchConfig, storage_url: str | None = None, workers: int = 1,
+           n_trials: int | None = None, timeout_s: float | None = 600.0, reports: Path = REPORTS_DIR,
+           on_trial: Callable[[optuna.Study, optuna.trial.FrozenTrial], None] | None = None,
+           on_poll: Callable[[optuna.Study], None] | None = None,
+           on_data: Callable[[int, int], None] | None = None,
+           on_supernet: Callable[[int, int, dict], None] | None = None,
+           on_finalist: Callable[[int, int, str], None] | None = None,
+           time_limit: "TimeLimit | None" = None,
+           on_plan: Callable[["Plan"], None] | None = None) -> SearchOutcome:
+    """Runs (or resumes) the study until ``n_trials`` trials are done or ``timeout_s`` passes (the
+    supernet's training and the finalists' retraining are not counted), then retrains the finalists.
+    With ``time_limit`` the whole run is sized to it first (explorer.study.planning): ``timeout_s`` is then
+    the most sampling may take."""
+    config.validate()
+    if workers < 1:
+        raise UserError("--workers must be at least 1")
+    storage = open_storage(storage_url, config.study, workers, reports, max_retries=config.max_retries)
+    plan = speeds = None
+    sampling_cap = timeout_s
+    if config.supernet:
+        ensure_supernet(config)  # a foreign or corrupt file is one line before anything is measured
+    wanted = (config.finalists, config.finalist_steps)   # before a plan shrinks them
+    if time_limit is not None:
+        config, plan, speeds = plan_search(config, storage, time_limit, timeout_s, on_data)
+        timeout_s = plan.sampling_s
+        if on_plan:
+            on_plan(plan)
+    study = create_or_resume(config, storage)
+    if plan is not None:
+        study.set_user_attr("plan", plan.to_dict())
+    # No worker of this run has started yet; on local storage nobody else can be running: its RUNNING
+    # trials were interrupted (kill -9), and are tried again. RDB storage does this by heartbeat.
+    failed, retried, not_retried = 0, {}, []
+    if storage_url is None or storage_url.startswith("sqlite"):
+        failed, retried, not_retried = resume_interrupted(study, config.max_retries)
+    if config.keep_weights:
+        study.set_user_attr("artifacts_dir", str((study_dir(config.study, reports) / "artifacts").resolve()))
+    url = storage_url or (f"journal:{reports / config.study / 'journal.log'}" if workers > 1
+                          else f"sqlite:///{reports / config.study / 'study.db'}")
+    supernet = ensure_supernet(config, on_supernet, on_data)
+    if supernet is not None:
+        study.set_user_attr("supernet", str(supernet.resolve()))
+    if plan is not None:
+        from explorer.study.planning import replan_sampling
+        plan = replan_sampling(plan, time_limit.remaining(), sampling_cap)
+        timeout_s = plan.sampling_s
+        study.set_user_attr("plan", plan.to_dict())
+        if on_plan:
+            on_plan(plan)
+    t0 = time.time()
+    deadline = None if timeout_s is None else t0 + timeout_s
+    if workers == 1:
+        objective = Objective(config, study_dir(config.study, reports), on_data)
+        cb = [lambda s, t: on_trial(s, t)] if on_trial else []
+        _optimize(study, objective, n_trials, deadline, cb)
+    else:
+        from explorer.data import open_dataset
+        open_dataset(config.data, "val", config.train_size, progress=on_data)  # generate once, not per worker
+        import multiprocessing as mp
+        ctx = mp.get_context("spawn")
+        threads = max(1, (os.cpu_count() or 1) // workers)
+        procs = [ctx.Process(target=run_worker, args=(config.to_dict(), url, n_trials, deadline, i,
+                                                      str(reports), threads))
+                 for i in range(workers)]
+        for p in procs:
+            p.start()
+        try:
+            while any(p.is_alive() for p in procs):
+                time.sleep(2.0)
+                if on_poll:
+                    on_poll(study)
+        finally:
+            for p in procs:
+                p.join(timeout=5)
+                if p.is_alive():
+                    p.terminate()
+    if plan is not None and (config.finalists or config.baselines):
+        from explorer.study.finalists import choose_finalists, finalist_trials
+        from explorer.study.planning import replan_finalists
+        done = [t.user_attrs["finalist"]["recipe"]["steps"] for t in finalist_trials(study)]
+        steps_free = "finalist_steps" in time_limit.free and not done   # a resumed study keeps its recipe
+        # the machine may be busier or freer than when it was first measured, and the finalists are known
+        # now: measure it again, on them (seconds)
+        count = max(config.finalists, wanted[0]) if "finalists" in time_limit.free else config.finalists
+        chosen = tuple(Candidate.from_dict(t.user_attrs["candidate"]) for t in choose_finalists(study, count))
+        speeds = _measure_again(config, speeds, chosen)
+        plan = replan_finalists(plan, time_limit.remaining(), speeds, baseline_load(config, speeds),
+                                steps_free=steps_free, finalists_free="finalists" in time_limit.free,
+                                baseline_count=len(config.baselines), wanted=wanted)
+        config = dataclasses.replace(config, finalists=plan.finalists,
+                                     finalist_steps=plan.finalist_steps if steps_free or not done else max(done))
+        study.set_user_attr("plan", plan.to_dict())
+        if on_plan:
+            on_plan(plan)
+    if config.finalists:
+        from explorer.study.finalists import finalist_trials, retrain_finalists
+        # the re-plan stood on a few steps' measurement: finalists it dropped are retrained after the
+        # others when the time those took says they still fit
+        extra, deadline = 0, None
+        if plan is not None and "finalists" in time_limit.free:
+            from explorer.study.planning import RESERVE_S
+            extra = max(wanted[0] - config.finalists, 0)
+            deadline = time_limit.started + time_limit.seconds - RESERVE_S
+        retrain_finalists(study, config, reports, progress=on_finalist, extra=extra, deadline=deadline)
+        retrained = sum(1 for t in finalist_trials(study) if not t.user_attrs.get("baseline")
+                        and t.user_attrs["finalist"].get("recipe") == config.finalist_config().to_dict())
+        if plan is not None and retrained > plan.finalists:
+            plan = dataclasses.replace(plan, finalists=retrained, changes=plan.changes + (
+                f"{retrained - plan.finalists} more finalist(s) retrained: the others took less than planned",))
+            config = dataclasses.replace(config, finalists=retrained)
+            study.set_user_attr("plan", plan.to_dict())
+            if on_plan:
+                on_plan(plan)
+    return SearchOutcome(study, url, time.time() - t0, failed, retried, not_retried, config, plan)

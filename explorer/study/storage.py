@@ -1,0 +1,118 @@
+"""Optuna storage for studies: SQLite for one process, JournalStorage for several processes on one
+machine, PostgreSQL (or any RDB URL) for several machines. SQLite with several workers is refused."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import optuna
+
+from explorer.errors import UserError
+
+REPORTS_DIR = Path("reports")
+# RDB storage (PostgreSQL): a running trial records a heartbeat every HEARTBEAT_S seconds; one silent
+# for GRACE_S is failed by another worker (and tried again, see explorer.study.retry). Both can be set in
+# the environment (ANYTIME_EXPLORER_HEARTBEAT_S, ANYTIME_EXPLORER_GRACE_S), e.g. short ones for tests.
+HEARTBEAT_S, GRACE_S = 30, 120
+
+
+def heartbeat_settings() -> tuple[int, int]:
+    """(heartbeat interval, grace period) in whole seconds, from the environment or the defaults."""
+    out = []
+    for var, default in (("ANYTIME_EXPLORER_HEARTBEAT_S", HEARTBEAT_S), ("ANYTIME_EXPLORER_GRACE_S", GRACE_S)):
+        text = os.environ.get(var, "").strip()
+        try:
+            value = int(text) if text else default
+        except ValueError:
+            raise UserError(f"{var}={text!r}: give a whole number of seconds") from None
+        if value < 1:
+            raise UserError(f"{var}={text!r}: give at least 1 second")
+        out.append(value)
+    return out[0], out[1]
+
+
+def study_dir(study: str, reports: Path = REPORTS_DIR) -> Path:
+    if not study or any(c in study for c in "/\\") or study.startswith("."):
+        raise UserError(f"study name {study!r} must be a plain name (letters, digits, '-', '_')")
+    return reports / study
+
+
+def default_url(study: str, reports: Path = REPORTS_DIR) -> str:
+    return f"sqlite:///{study_dir(study, reports) / 'study.db'}"
+
+
+def journal_path(study: str, reports: Path = REPORTS_DIR) -> Path:
+    return study_dir(study, reports) / "journal.log"
+
+
+def open_storage(url: str | None, study: str, workers: int = 1, reports: Path = REPORTS_DIR,
+                 create: bool = True, max_retries: int | None = None) -> optuna.storages.BaseStorage:
+    """The storage for ``study``. ``url`` None: SQLite in reports/<study>/ for one worker, a journal
+    file there for several. A ``journal:PATH`` URL names a journal file explicitly. ``max_retries``
+    (searching workers): on RDB storage, a trial whose worker stopped is tried again that many times."""
+    if url is None:
+        if workers > 1 or journal_path(study, reports).exists():
+            url = f"journal:{journal_path(study, reports)}"
+        else:
+            url = default_url(study, reports)
+    if url.startswith("sqlite") and workers > 1:
+        raise UserError("SQLite cannot take several workers safely: drop --storage to use a journal file on "
+                        "this machine, or give --storage postgresql://... for several machines")
+    if url.startswith("journal:"):
+        from optuna.storages.journal import JournalFileBackend
+        path = Path(url[len("journal:"):])
+        if not create and not path.exists():
+            raise UserError(f"no study journal at {path}")
+        path.parent.mkdir(parents=True, exist_ok=True)
+        return optuna.storages.JournalStorage(JournalFileBackend(str(path)))
+    if url.startswith("sqlite:///"):
+        path = Path(url[len("sqlite:///"):])
+        if not create and not path.exists():
+            raise UserError(f"no study database at {path} (run `explorer search --study {study}` first, "
+                            "or give --storage)")
+        path.parent.mkdir(parents=True, exist_ok=True)
+    url = _with_driver(url)
+    kwargs = {}
+    if not url.startswith("sqlite"):
+        # crashed workers' trials are failed by the others after the grace period, and retried
+        from explorer.study.retry import rdb_retry_kwargs
+        interval, grace = heartbeat_settings()
+        kwargs = {"heartbeat_interval": interval, "grace_period": grace, **rdb_retry_kwargs(max_retries, grace)}
+    try:
+        import warnings
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
+            return optuna.storages.RDBStorage(url, engine_kwargs={"pool_pre_ping": True}, **kwargs)
+    except Exception as exc:  # sqlalchemy raises many types for unreachable or malformed URLs
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise UserError(f"storage {url}: unreachable or invalid ({first[:160]})") from None
+
+
+def _with_driver(url: str) -> str:
+    """postgresql:// with whichever driver is installed (SQLAlchemy 2.1 defaults to psycopg 3)."""
+    if url.startswith("postgresql://"):
+        import importlib.util
+        if importlib.util.find_spec("psycopg") is None:
+            if importlib.util.find_spec("psycopg2") is None:
+                raise UserError("PostgreSQL storage needs a driver: pip install 'anytime-explorer[postgres]'")
+            return "postgresql+psycopg2://" + url[len("postgresql://"):]
+    return url
+
+
+def find_storage(study: str, url: str | None, reports: Path = REPORTS_DIR) -> optuna.storages.BaseStorage:
+    """The storage of an existing study (for report, rescore, export)."""
+    if url is None:
+        if journal_path(study, reports).exists():
+            return open_storage(f"journal:{journal_path(study, reports)}", study, create=False)
+        return open_storage(default_url(study, reports), study, create=False)
+    return open_storage(url, study, create=False)
+
+
+def load_study(study: str, url: str | None = None, reports: Path = REPORTS_DIR) -> optuna.Study:
+    storage = find_storage(study, url, reports)
+    try:
+        return optuna.load_study(study_name=study, storage=storage)
+    except KeyError:
+        names = [s.study_name for s in optuna.get_all_study_summaries(storage)]
+        raise UserError(f"no study named '{study}' in that storage (it has: {names or 'none'})") from None

@@ -1,0 +1,365 @@
+"""Multi-exit training: one loss over all exits, the paper's full recipe and a short proxy recipe
+for search, checkpoints and resume, per-path evaluation."""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import pandas as pd
+import torch
+from torch.utils.data import DataLoader
+
+from explorer.errors import UserError
+from explorer.metrics import MetricAverager, batch_depth_metrics, depth_metrics
+from explorer.model import AnytimeDepthNet, build_network
+from explorer.space import Candidate
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """SGD with polynomial decay from ``lr`` to ``lr_end`` (the paper: 0.05 -> 0.02, weight decay
+    1e-4, batch 96, fp16), or AdamW for the proxy recipe. ``exit_weights`` weigh the exits' losses
+    (None = equal). ``supervision``: "supervised" (L1 on dense depth), "self" (photometric
+    reprojection between neighbouring frames, :mod:`explorer.training.selfsup`; needs sequence data) or
+    "mixed" (both); ``poses``: "net" (a pose network trained jointly) or "given" (the data's);
+    ``scan_loss``: an L1 term on the scan row that gives self-supervision metric scale; ``hints``:
+    pull each exit toward a per-frame depth optimised on the same loss where it explains the frames
+    better (:mod:`explorer.training.depth_hints`; needs ``poses="given"``)."""
+
+    steps: int = 300
+    batch_size: int = 16
+    input_size: tuple[int, int] = (112, 112)
+    optimizer: str = "adamw"
+    lr: float = 2e-3
+    lr_end: float = 2e-4
+    momentum: float = 0.9
+    weight_decay: float = 1e-4
+    exit_weights: tuple[float, ...] | None = None
+    amp: bool = True                  # mixed precision where the hardware has it (CUDA)
+    seed: int = 0
+    eval_every: int = 0               # 0 = only at the end
+    supervision: str = "supervised"
+    poses: str = "net"
+    scan_loss: bool = True
+    hints: bool = False               # depth hints for self-supervision (explorer.training.depth_hints)
+
+    @property
+    def metric(self) -> bool:
+        """Whether the trained depth is in metres; if not, evaluation median-scales it."""
+        return self.supervision != "self" or self.scan_loss or self.poses == "given"
+
+    def validate(self) -> None:
+        from explorer.training.selfsup import POSE_SOURCES, SUPERVISIONS
+        if self.supervision not in SUPERVISIONS:
+            raise UserError(f"supervision '{self.supervision}': use one of {', '.join(SUPERVISIONS)}")
+        if self.poses not in POSE_SOURCES:
+            raise UserError(f"poses '{self.poses}': use one of {', '.join(POSE_SOURCES)}")
+        if self.hints and (self.supervision == "supervised" or self.poses != "given"):
+            raise UserError("--depth-hints needs --supervision self or mixed with --poses given: hints are "
+                            "optimised with the data's camera motion")
+
+    def to_dict(self) -> dict:
+        d = dataclasses.asdict(self)
+        d["input_size"] = list(self.input_size)
+        d["exit_weights"] = list(self.exit_weights) if self.exit_weights else None
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "TrainConfig":
+        d = dict(d)
+        d["input_size"] = tuple(d["input_size"])
+        if d.get("exit_weights"):
+            d["exit_weights"] = tuple(d["exit_weights"])
+        return cls(**d)
+
+
+#: Short training for ranking candidates during a search (reduced resolution, few hundred steps).
+PROXY = TrainConfig()
+#: The paper's recipe (Sec. 5.1): SGD, lr 0.05 -> 0.02 polynomial, wd 1e-4, batch 96, fp16.
+PAPER = TrainConfig(steps=20000, batch_size=96, input_size=(224, 224), optimizer="sgd", lr=0.05,
+                    lr_end=0.02, weight_decay=1e-4, eval_every=1000)
+RECIPES = {"proxy": PROXY, "paper": PAPER}
+
+
+def resolve_device(accelerator: str = "auto") -> torch.device:
+    if accelerator == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if accelerator == "cuda" and not torch.cuda.is_available():
+        raise UserError("--accelerator cuda: torch sees no CUDA device here (use cpu or auto)")
+    if accelerator not in ("cpu", "cuda"):
+        raise UserError(f"unknown accelerator '{accelerator}': use auto, cpu or cuda")
+    return torch.device(accelerator)
+
+
+def multi_exit_loss(outputs: list[torch.Tensor], target: torch.Tensor,
+                    weights: tuple[float, ...] | None = None) -> tuple[torch.Tensor, list[float]]:
+    """Weighted L1 over valid pixels of every exit (path 0 has no parameters and is skipped)."""
+    valid = target > 0
+    n = valid.sum().clamp(min=1)
+    losses = [((o - target).abs() * valid).sum() / n for o in outputs[1:]]
+    w = weights or (1.0,) * len(losses)
+    if len(w) != len(losses):
+        raise UserError(f"exit_weights has {len(w)} values but the network has {len(losses)} exits")
+    total = sum(wi * li for wi, li in zip(w, losses)) / sum(w)
+    return total, [float(l.detach()) for l in losses]
+
+
+def _training_loss(cfg: TrainConfig, selfsup, outs: list[torch.Tensor], batch: dict, device: torch.device
+                   ) -> tuple[torch.Tensor, list[float]]:
+    outs = [o.float() for o in outs]
+    if selfsup is None:
+        return multi_exit_loss(outs, batch["depth"].to(device), cfg.exit_weights)
+    keys = ("image", "sources", "K", "pose", "pose_known", "scan", "hint")
+    on_device = {k: torch.as_tensor(batch[k]).to(device) for k in keys if k in batch}
+    loss, per_exit = selfsup(outs, on_device, batch_row(batch), cfg.exit_weights)
+    if cfg.supervision == "mixed" and bool((batch["depth"] > 0).any()):
+        dense, dense_exit = multi_exit_loss(outs, batch["depth"].to(device), cfg.exit_weights)
+        loss, per_exit = loss + dense, [a + b for a, b in zip(per_exit, dense_exit)]
+    return loss, per_exit
+
+
+def check_data_for(cfg: TrainConfig, dataset) -> None:
+    """Self-supervision needs sequences, and ``poses="given"`` needs sequences with poses."""
+    if cfg.supervision == "supervised":
+        return
+    if not getattr(dataset, "sequence", False):
+        raise UserError(f"--supervision {cfg.supervision} needs sequence data (synthetic-seq, "
+                        "kitti-seq:DRIVE or frames:FOLDER), not single frames")
+    if cfg.poses == "given" and len(dataset) and not dataset[0]["pose_known"]:
+        raise UserError("--poses given: this data has no poses (KITTI needs oxts/ and calib_imu_to_velo.txt, "
+                        "a folder poses.txt); use --poses net")
+
+
+def image_batch(batch: dict, device: torch.device | None) -> torch.Tensor:
+    """The batch's images on ``device`` in channels-last order: convolutions (oneDNN on CPUs, cuDNN on
+    GPUs) run faster so, with the same values (benchmarks/bench_layout.py measures both)."""
+    return batch["image"].to(device).contiguous(memory_format=torch.channels_last)
+
+
+def batch_row(batch: dict) -> int:
+    rows = batch["scan_row"]
+    return int(torch.as_tensor(rows).float().median().item())
+
+
+def evaluate(net: AnytimeDepthNet, dataset, batch_size: int = 8, device: torch.device | None = None,
+             limit: int | None = None, median_scaling: bool = False) -> pd.DataFrame:
+    """Per-path metrics (averaged per image, FastDepth's convention): one row per path. ``dataset``
+    is a data set, or a list of ready batches (dicts of batched tensors).
+
+    On sequence data, MonoDepth2's conventions: predictions clamped to [1e-3, cap] and ground truth
+    beyond the data's cap (10 m synthetic, 80 m KITTI) ignored (the Garg crop is already in KITTI
+    sequences' ground truth). ``median_scaling`` (for a depth known only up to scale) multiplies
+    each network path by median(ground truth) / median(prediction) per image; path 0, the scan
+    itself, is metric and is never scaled."""
+    if isinstance(dataset, list):
+        batches = dataset
+    else:
+        batches = DataLoader(dataset, batch_size=batch_size, shuffle=False)
+    device = device or next(net.parameters()).device
+    cap = getattr(dataset, "max_depth", None) if getattr(dataset, "sequence", False) else None
+    net.eval()
+    averagers = [MetricAverager() for _ in range(net.candidate.num_paths)]
+    seen = 0
+    with torch.no_grad():
+        for batch in batches:
+            outs = net(image_batch(batch, device), batch["scan"].to(device), batch_row(batch))
+            target = batch["depth"]
+            if cap is not None:
+                target = torch.where(target <= cap, target, torch.zeros_like(target))
+            for p, out in enumerate(outs):
+                out = out.float().cpu()
+                if cap is None and not (p > 0 and median_scaling):
+                    for m in batch_depth_metrics(out, target):
+                        averagers[p].add(m)
+                    continue
+                for i in range(out.shape[0]):
+                    pred = out[i]
+                    if p > 0 and median_scaling:
+                        pred = pred * _median_ratio(pred, target[i])
+                    if cap is not None:
+                        pred = pred.clamp(1e-3, cap)
+                    averagers[p].add(depth_metrics(pred, target[i]))
+            seen += target.shape[0]
+            if limit and seen >= limit:
+                break
+    rows = [{"path": p, **a.result()} for p, a in enumerate(averagers)]
+    return pd.DataFrame(rows)
+
+
+def _median_ratio(pred: torch.Tensor, target: torch.Tensor) -> float:
+    valid = target > 0
+    if not bool(valid.any()):
+        return 1.0
+    return float(target[valid].median() / pred[valid].median().clamp(min=1e-6))
+
+
+@dataclass
+class TrainResult:
+    metrics: pd.DataFrame                     # per path, on the validation set
+    history: list[dict] = field(default_factory=list)
+    seconds: float = 0.0
+    images_per_second: float = 0.0
+    steps: int = 0
+
+
+class Pruned(Exception):
+    """Raised by a report callback to stop a hopeless training early."""
+
+
+def lr_at(cfg: TrainConfig, step: int) -> float:
+    frac = min(step / max(cfg.steps, 1), 1.0)
+    return cfg.lr_end + (cfg.lr - cfg.lr_end) * (1 - frac) ** 0.9
+
+
+def save_checkpoint(path: Path, net: AnytimeDepthNet, cfg: TrainConfig, step: int,
+                    optimizer: torch.optim.Optimizer | None = None, extra: dict | None = None) -> None:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    state = {"candidate": net.candidate.to_dict(), "state_dict": net.state_dict(), "train_config": cfg.to_dict(),
+             "step": step, "optimizer": optimizer.state_dict() if optimizer else None, **(extra or {})}
+    tmp = path.with_suffix(".tmp")
+    torch.save(state, tmp)
+    tmp.replace(path)  # never leave a half-written checkpoint
+
+
+def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") -> dict:
+    p = Path(path)
+    if not p.is_file():
+        raise UserError(f"checkpoint {p}: no such file")
+    try:
+        state = torch.load(p, map_location=map_location, weights_only=True)
+    except Exception as exc:  # torch raises several types for corrupt or foreign files
+        raise UserError(f"checkpoint {p}: unreadable ({str(exc).splitlines()[0][:120]})") from None
+    if not isinstance(state, dict) or "candidate" not in state or "state_dict" not in state:
+        raise UserError(f"checkpoint {p}: not an anytime-explorer checkpoint (no candidate/state_dict)")
+    return state
+
+
+def network_from_checkpoint(path: str | Path) -> tuple[AnytimeDepthNet, dict]:
+    state = load_checkpoint(path)
+    net = build_network(Candidate.from_dict(state["candidate"], source=str(path)))
+    net.load_state_dict(state["state_dict"])
+    return net.eval(), state
+
+
+def load_encoder_weights(net: AnytimeDepthNet, path: str | Path) -> int:
+    """Loads a MobileNet v1 state dict (a file the user has; weights only, never pickled code) into
+    the image encoder, matching tensors in order by shape. Returns how many tensors were loaded."""
+    p = Path(path)
+    if not p.is_file():
+        raise UserError(f"encoder weights {p}: no such file")
+    try:
+        source = torch.load(p, map_location="cpu", weights_only=True)
+    except Exception as exc:
+        raise UserError(f"encoder weights {p}: unreadable ({str(exc).splitlines()[0][:120]})") from None
+    if isinstance(source, dict) and "state_dict" in source:
+        source = source["state_dict"]
+    if not isinstance(source, dict):
+        raise UserError(f"encoder weights {p}: expected a state dict")
+    src = [v for k, v in source.items() if isinstance(v, torch.Tensor) and v.dim() > 0
+           and not k.endswith("num_batches_tracked")]
+    target = net.stages["image_encoder"].state_dict()
+    keys = [k for k in target if not k.endswith("num_batches_tracked")]
+    loaded, j = {}, 0
+    for k in keys:
+        while j < len(src) and src[j].shape != target[k].shape:
+            j += 1
+        if j == len(src):
+            break
+        loaded[k] = src[j]
+        j += 1
+    if not loaded:
+        raise UserError(f"encoder weights {p}: no tensor matches the encoder's shapes")
+    net.stages["image_encoder"].load_state_dict(loaded, strict=False)
+    return len(loaded)
+
+
+def train(net: AnytimeDepthNet, train_set, val_set, cfg: TrainConfig = PROXY,
+          device: torch.device | None = None, checkpoint: Path | None = None,
+          progress: Callable[[int, int, dict], None] | None = None,
+          report: Callable[[int, pd.DataFrame], None] | None = None, val_limit: int | None = None,
+          checkpoint_every: int = 200) -> TrainResult:
+    """Trains every exit jointly for ``cfg.steps`` steps. ``report(step, per_path_metrics)`` is called
+    at each evaluation (``cfg.eval_every``) and may raise :class:`Pruned`. With ``checkpoint`` the
+    state is saved every ``checkpoint_every`` steps and training resumes from it."""
+    device = device or torch.device("cpu")
+    cfg.validate()
+    torch.manual_seed(cfg.seed)
+    net.to(device=device, memory_format=torch.channels_last)   # see image_batch
+    params = [p for p in net.parameters() if p.requires_grad]
+    selfsup = None
+    if cfg.supervision != "supervised":
+        from explorer.training.selfsup import SelfSupervisedLoss
+        check_data_for(cfg, train_set)
+        if cfg.hints:
+            from explorer.training.depth_hints import HintedDataset, with_hints
+            if not isinstance(train_set, HintedDataset):
+                train_set = with_hints(train_set)
+        selfsup = SelfSupervisedLoss(cfg.poses, cfg.scan_loss).to(device)
+        params += [p for p in selfsup.parameters() if p.requires_grad]
+    if cfg.optimizer == "sgd":
+        opt = torch.optim.SGD(params, lr=cfg.lr, momentum=cfg.momentum, weight_decay=cfg.weight_decay)
+    elif cfg.optimizer == "adamw":
+        opt = torch.optim.AdamW(params, lr=cfg.lr, weight_decay=cfg.weight_decay)
+    else:
+        raise UserError(f"unknown optimizer '{cfg.optimizer}': use sgd or adamw")
+    use_amp = cfg.amp and device.type == "cuda"
+    scaler = torch.amp.GradScaler("cuda", enabled=use_amp)
+    start = 0
+    if checkpoint is not None and Path(checkpoint).is_file():
+        state = load_checkpoint(checkpoint, device)
+        if state["candidate"] == net.candidate.to_dict() and state.get("optimizer"):
+            net.load_state_dict(state["state_dict"])
+            if selfsup is not None and state.get("selfsup"):
+                selfsup.load_state_dict(state["selfsup"])
+            opt.load_state_dict(state["optimizer"])
+            start = int(state["step"])
+    gen = torch.Generator().manual_seed(cfg.seed)
+    loader = DataLoader(train_set, batch_size=cfg.batch_size, shuffle=True, generator=gen, drop_last=True)
+    if len(loader) == 0:
+        loader = DataLoader(train_set, batch_size=len(train_set), shuffle=True, generator=gen)
+    history: list[dict] = []
+    # the pose network travels with the checkpoint so that a resumed run continues it
+    extra = {"selfsup": selfsup.state_dict()} if selfsup is not None else None
+    step, seen, t0 = start, 0, time.perf_counter()
+    epoch = 0
+    while step < cfg.steps:
+        if hasattr(train_set, "epoch"):
+            train_set.epoch = epoch
+        for batch in loader:
+            if step >= cfg.steps:
+                break
+            net.train()
+            for g in opt.param_groups:
+                g["lr"] = lr_at(cfg, step)
+            image = image_batch(batch, device)
+            with torch.autocast(device.type, dtype=torch.float16, enabled=use_amp):
+                outs = net(image, batch["scan"].to(device), batch_row(batch))
+                loss, per_exit = _training_loss(cfg, selfsup, outs, batch, device)
+            if not torch.isfinite(loss):
+                raise FloatingPointError(f"training loss became {float(loss.detach())} at step {step}")
+            opt.zero_grad(set_to_none=True)
+            scaler.scale(loss).backward()
+            scaler.step(opt)
+            scaler.update()
+            step += 1
+            seen += image.shape[0]
+            record = {"step": step, "loss": float(loss.detach()), **{f"exit_{i + 1}": l for i, l in enumerate(per_exit)}}
+            history.append(record)
+            if progress:
+                progress(step, cfg.steps, record)
+            if checkpoint is not None and step % checkpoint_every == 0:
+                save_checkpoint(checkpoint, net, cfg, step, opt, extra)
+            if report and cfg.eval_every and step % cfg.eval_every == 0 and step < cfg.steps:
+                report(step, evaluate(net, val_set, device=device, limit=val_limit, median_scaling=not cfg.metric))
+        epoch += 1
+    seconds = time.perf_counter() - t0
+    metrics = evaluate(net, val_set, device=device, limit=val_limit, median_scaling=not cfg.metric)
+    if checkpoint is not None:
+        save_checkpoint(checkpoint, net, cfg, step, opt, extra)
+    net.to(memory_format=torch.contiguous_format)  # hand back an ordinary module (export, runtime)
+    return TrainResult(metrics, history, seconds, seen / seconds if seconds > 0 else 0.0, step)

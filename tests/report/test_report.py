@@ -1,0 +1,82 @@
+import shutil
+import subprocess
+
+import optuna
+import pytest
+
+from explorer.report import write_report
+from explorer.study.search import SearchConfig, search
+from conftest import TINY_DATA
+
+# the whole default flow at toy size: supernet estimates, then finalists and baselines retrained
+TINY = dict(space="tiny", data=TINY_DATA, train_size=(32, 32), input_size=(64, 64), train_steps=6,
+            batch_size=8, val_limit=8, evaluator="supernet", supernet_steps=4, finalists=2, finalist_steps=6)
+
+
+@pytest.fixture(scope="module")
+def study_with_everything(tmp_path_factory):
+    reports = tmp_path_factory.mktemp("rep")
+    out = search(SearchConfig(study="rep", budgets=("time:uniform:30ms", "energy:uniform:0.5J"), **TINY),
+                 n_trials=9, timeout_s=None, reports=reports)
+    study = out.study
+    # a failed trial and a rejected (pruned) one, as a real study has
+    t = study.ask()
+    study.tell(t, state=optuna.trial.TrialState.FAIL)
+    t = study.ask()
+    t.set_user_attr("rejected", "too big")
+    study.tell(t, state=optuna.trial.TrialState.PRUNED)
+    return study, reports
+
+
+def test_report_holds_the_tables(study_with_everything):
+    study, reports = study_with_everything
+    path = write_report(study, reports / "rep")
+    html = path.read_text()
+    assert "Anytime loss against the baselines" in html and 'id="table2"' in html and 'id="trials"' in html
+    assert "paper design" in html and "FastDepth-like" in html
+    assert "L_T@33ms" in html and "L_E@0.5J" in html
+    assert html.count("data:image/png;base64,") >= 4
+    assert "http://" not in html and "https://" not in html  # opens offline
+    assert "FAIL" in html and "PRUNED" in html
+    # the finalists: every retrained one beside its estimate, and the winner is a retrained one
+    assert 'id="finalists-table"' in html and "(retrained)" in html
+    assert "has no search estimate" in html     # the baselines outside the tiny space say why
+
+
+def test_report_escapes_user_strings(tmp_path):
+    study = optuna.create_study(study_name="<script>alert(1)</script>")
+    study.set_user_attr("config", {"device": "tx2", "data": "<b>x</b>", "budgets": ["time:uniform:33ms"]})
+    html = write_report(study, tmp_path).read_text()
+    assert "<script>alert(1)</script>" not in html and "&lt;script&gt;" in html
+    assert "<b>x</b>" not in html
+
+
+def test_report_costs_the_reference_networks_on_every_device(tmp_path):
+    study = optuna.create_study(study_name="refs")
+    study.set_user_attr("config", {"device": "tx2", "budgets": ["time:uniform:33ms"]})
+    html = write_report(study, tmp_path, devices=["tx2", "rpi4"]).read_text()
+    assert 'id="references"' in html
+    for name in ("fastdepth", "s2d-resnet50", "s2d-resnet18", "monodepth2-resnet18", "tx2 ms", "rpi4 ms"):
+        assert name in html
+
+
+def test_single_trial_study_reports(tmp_path):
+    out = search(SearchConfig(study="one", baselines=False, **{**TINY, "finalists": 0}), n_trials=1, timeout_s=None, reports=tmp_path)
+    assert write_report(out.study, tmp_path / "one").is_file()
+
+
+def test_report_in_headless_chromium(study_with_everything, tmp_path):
+    chromium = shutil.which("chromium") or shutil.which("chromium-browser")
+    if not chromium:
+        pytest.skip("Debian's chromium is not installed (make test installs it when it can)")
+    study, reports = study_with_everything
+    path = write_report(study, reports / "rep")
+    shot = tmp_path / "report.png"
+    args = [chromium, "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+            "--disable-background-networking", "--disable-component-update", "--disable-sync",
+            f"--user-data-dir={tmp_path / 'profile'}", "--enable-logging=stderr", "--v=0",
+            "--window-size=1280,3000", f"--screenshot={shot}", path.resolve().as_uri()]
+    proc = subprocess.run(args, capture_output=True, text=True, timeout=120)
+    assert shot.is_file() and shot.stat().st_size > 50_000, proc.stderr[-2000:]
+    console = [l for l in proc.stderr.splitlines() if "CONSOLE" in l or "Uncaught" in l]
+    assert not console, console

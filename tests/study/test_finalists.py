@@ -1,0 +1,177 @@
+import optuna
+import pytest
+import torch
+
+from conftest import TINY_DATA
+from explorer.study.finalists import choose_finalists, finalist_trials, retrain_finalists
+from explorer.study.results import baseline_trial, best_trial, finalists_frame, is_retrained, winner
+from explorer.study.search import SearchConfig, search
+from explorer.space import Candidate
+from explorer.training.train import evaluate, save_checkpoint
+
+CFG = SearchConfig(study="fin", space="tiny", data=TINY_DATA, train_size=(32, 32), input_size=(64, 64), batch_size=8,
+                   val_limit=8, evaluator="supernet", supernet_steps=4, finalists=2, finalist_steps=5)
+
+
+@pytest.fixture(scope="module")
+def finished(tmp_path_factory):
+    reports = tmp_path_factory.mktemp("fin")
+    return search(CFG, n_trials=6, timeout_s=None, reports=reports), reports
+
+
+def test_best_candidates_and_baselines_are_retrained(finished):
+    out, _ = finished
+    fin = finalist_trials(out.study)
+    labels = sorted(t.user_attrs.get("baseline", "") for t in fin)
+    assert labels == ["", "", "fastdepth", "paper", "paper-nee"]
+    picked = {t.user_attrs["candidate_key"] for t in fin if not t.user_attrs.get("baseline")}
+    estimates = sorted((t for t in out.study.trials if t.state == optuna.trial.TrialState.COMPLETE
+                        and not is_retrained(t) and not t.user_attrs.get("baseline")), key=lambda t: t.values[0])
+    first = estimates[0]
+    other = [t for t in estimates if t.user_attrs["candidate"]["encoder_blocks"] != first.user_attrs["candidate"]["encoder_blocks"]]
+    runner_up = other[0] if other else next(t for t in estimates if t.user_attrs["candidate_key"] != first.user_attrs["candidate_key"])
+    # the best estimate, then the best of the other encoder
+    assert picked == {first.user_attrs["candidate_key"], runner_up.user_attrs["candidate_key"]}
+    for t in fin:
+        assert t.user_attrs["train"]["steps"] == 5 and "weights_artifact" in t.user_attrs
+        assert t.params == {}                                    # samplers never learn from them
+    win = winner(out.study)
+    assert is_retrained(win) and win.values[0] == min(t.values[0] for t in fin if not t.user_attrs.get("baseline"))
+    assert best_trial(out.study) is not None and not is_retrained(best_trial(out.study))
+    assert baseline_trial(out.study, "paper", retrained=True) is not None
+    frame = finalists_frame(out.study)
+    assert len(frame) == 5 and frame["estimated"].notna().sum() == 2   # baselines outside the space: no estimate
+
+
+def test_finalists_spread_over_image_encoders():
+    study = optuna.create_study(storage=optuna.storages.InMemoryStorage())
+
+    def add(value, blocks, width, key, baseline=None):
+        cand = {"encoder_blocks": blocks, "width_mult": width}
+        attrs = {"candidate": cand, "candidate_key": key, "path_metrics": [], "workloads": []}
+        study.add_trial(optuna.trial.create_trial(values=[value], user_attrs={**attrs, **({"baseline": baseline} if baseline else {})}))
+
+    add(0.29, 9, 1.0, "paper", baseline="paper")   # baselines are never finalists
+    add(0.30, 9, 1.0, "a")
+    add(0.30, 9, 1.0, "a")                          # a repeated candidate counts once
+    add(0.301, 9, 1.0, "b")
+    add(0.31, 7, 1.0, "c")
+    add(0.32, 6, 1.0, "d")
+    add(0.33, 6, 0.5, "e")
+    keys = lambda n: [t.user_attrs["candidate_key"] for t in choose_finalists(study, n)]
+    assert keys(1) == ["a"]
+    assert keys(3) == ["a", "c", "d"]               # one per encoder before a second of any
+    assert keys(5) == ["a", "c", "d", "e", "b"]     # then the next best, whatever the encoder
+    assert keys(9) == ["a", "c", "d", "e", "b"]
+
+
+def test_a_finished_finalist_is_never_redone(finished):
+    out, reports = finished
+    before = len(out.study.trials)
+    again = search(CFG, n_trials=6, timeout_s=None, reports=reports)
+    assert len(again.study.trials) == before
+
+
+def test_an_interrupted_retraining_resumes_from_its_checkpoint(finished, tmp_path):
+    import dataclasses
+    from explorer.data import open_dataset
+    from explorer.model import build_network
+    out, _ = finished
+    cfg = dataclasses.replace(CFG, study="fin2", baselines=False, finalists=1)
+    fresh = optuna.create_study(study_name="fin2", storage=optuna.storages.InMemoryStorage())
+    fresh.set_user_attr("config", cfg.to_dict())
+    for t in out.study.trials:
+        if t.state == optuna.trial.TrialState.COMPLETE and not is_retrained(t):
+            fresh.add_trial(t)
+    cand = Candidate.from_dict(best_trial(fresh).user_attrs["candidate"])
+    # a kill after the last step, before its trial was stored: the checkpoint holds finished weights
+    recipe = cfg.finalist_config()
+    torch.manual_seed(123)
+    net = build_network(cand)
+    ckpt = tmp_path / "fin2" / "finalists" / f"{cand.key}.pt"
+    save_checkpoint(ckpt, net, recipe, recipe.steps, torch.optim.AdamW(net.parameters()))
+    expected = evaluate(net, open_dataset(TINY_DATA, "val", (32, 32), train_augment=False), limit=8)
+    retrain_finalists(fresh, cfg, tmp_path)
+    done = finalist_trials(fresh)
+    assert [t.user_attrs["candidate_key"] for t in done] == [cand.key]
+    # nothing was trained again: the metrics are those of the checkpoint's weights
+    assert done[0].user_attrs["path_metrics"][-1]["rmse"] == pytest.approx(expected["rmse"].iloc[-1], rel=1e-5)
+    assert not ckpt.exists()                                     # removed once its trial is stored
+
+
+def test_finalists_a_replan_dropped_are_retrained_when_the_others_leave_time(finished, tmp_path):
+    import dataclasses
+    import time
+    out, _ = finished
+    cfg = dataclasses.replace(CFG, study="fin3", baselines=False, finalists=1)
+
+    def study_of_estimates(name):
+        s = optuna.create_study(study_name=name, storage=optuna.storages.InMemoryStorage())
+        for t in out.study.trials:
+            if t.state == optuna.trial.TrialState.COMPLETE and not is_retrained(t):
+                s.add_trial(t)
+        return s
+
+    said = []
+    roomy = study_of_estimates("fin3")
+    retrain_finalists(roomy, cfg, tmp_path, extra=1, deadline=time.time() + 600,
+                      progress=lambda i, n, what: said.append(what))
+    wanted = [t.user_attrs["candidate_key"] for t in choose_finalists(roomy, 2)]
+    assert [t.user_attrs["candidate_key"] for t in finalist_trials(roomy)] == wanted   # the planned one first
+    # a deadline the first finalist's time says cannot be met: only the planned one
+    tight = study_of_estimates("fin4")
+    retrain_finalists(tight, dataclasses.replace(cfg, study="fin4"), tmp_path, extra=1, deadline=time.time(),
+                      progress=lambda i, n, what: said.append(what))
+    assert [t.user_attrs["candidate_key"] for t in finalist_trials(tight)] == wanted[:1]
+    assert any(what.startswith("no time for") for what in said)
+
+
+def test_a_time_limit_measures_the_machine_and_records_its_plan(tmp_path):
+    import dataclasses
+    from explorer.study.planning import TimeLimit
+    seen = []
+    limit = TimeLimit(600.0, free=frozenset({"finalists", "finalist_steps"}))
+    out = search(dataclasses.replace(CFG, study="roomy"), n_trials=3, timeout_s=None, reports=tmp_path,
+                 time_limit=limit, on_plan=seen.append)
+    plan = out.study.user_attrs["plan"]
+    assert seen and seen[-1].to_dict() == plan      # told at the start and at each re-plan; the last one stored
+    assert plan["supernet_steps"] == CFG.supernet_steps and plan["sampling_s"] > 0
+    assert (out.config.finalists, out.config.finalist_steps) == (2, 5)      # time enough: as asked
+    assert len([t for t in finalist_trials(out.study) if not t.user_attrs.get("baseline")]) == 2
+    from explorer.report import write_report
+    html = write_report(out.study, out_dir=tmp_path / "report").read_text()
+    assert 'id="plan"' in html and "supernet 4 steps" in html and "2 finalist(s) retrained 5 steps" in html
+
+
+def test_a_time_limit_too_short_retrains_fewer_finalists_and_says_so(tmp_path):
+    import dataclasses
+    from explorer.study.planning import TimeLimit
+    out = search(dataclasses.replace(CFG, study="tight"), n_trials=3, timeout_s=None, reports=tmp_path,
+                 time_limit=TimeLimit(1.0, free=frozenset({"finalists", "finalist_steps"})))
+    assert out.config.finalists == 1 and out.config.finalist_steps == 5   # never more steps than asked
+    assert any("longer --time-limit" in c for c in out.study.user_attrs["plan"]["changes"])
+    assert len([t for t in finalist_trials(out.study) if not t.user_attrs.get("baseline")]) == 1
+
+
+def test_a_reference_network_joins_the_study_as_a_baseline(tmp_path):
+    import dataclasses
+    from explorer.cost import profile_reference
+    from explorer.report import write_report
+    from explorer.study.results import missing_baselines, rescore, trials_frame
+    cfg = dataclasses.replace(CFG, study="refs", baselines=("paper", "fastdepth-pruned"), finalists=1)
+    out = search(cfg, n_trials=3, timeout_s=None, reports=tmp_path)
+    study = out.study
+    assert "fastdepth-pruned" in study.user_attrs["baselines_not_estimated"]   # outside every space
+    ref = baseline_trial(study, "fastdepth-pruned", retrained=True)
+    assert ref is not None and ref.user_attrs["reference"] == "fastdepth-pruned" and "candidate" not in ref.user_attrs
+    assert len(ref.user_attrs["path_metrics"]) == 2                            # the scan, then the network
+    expected = profile_reference("fastdepth-pruned", (64, 64), "tx2")["latency_ms"].iloc[0]
+    assert ref.user_attrs["latency_ms"] == pytest.approx([0.0, expected])
+    assert {t.user_attrs.get("baseline", "") for t in finalist_trials(study)} == {"", "paper", "fastdepth-pruned"}
+    assert missing_baselines(study) == []                                    # paper-nee was not asked for
+    assert "FastDepth after NetAdapt" in trials_frame(study).set_index("number").loc[ref.number, "architecture"]
+    again = rescore(study, "rpi4", ["time:uniform:100ms"])
+    assert "fastdepth-pruned" in set(again["baseline"])
+    html = write_report(study, out_dir=tmp_path / "report").read_text()
+    table2 = html.split('<section id="table2">')[1].split("</section>")[0]
+    assert "fastdepth-pruned" in table2 and "paper design" in table2

@@ -1,0 +1,158 @@
+"""The package's shape: layers (import-linter contracts in pyproject.toml), no import cycles, no
+private names imported across packages, a probe that needs nothing but numpy and onnxruntime, and
+modules and functions small enough to read."""
+
+from __future__ import annotations
+
+import ast
+import subprocess
+import sys
+import sysconfig
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGE = ROOT / "explorer"
+MAX_MODULE_LINES = 600
+MAX_FUNCTION_LINES = 80
+
+
+def _modules() -> dict[str, Path]:
+    out = {}
+    for path in sorted(PACKAGE.rglob("*.py")):
+        parts = path.relative_to(ROOT).with_suffix("").parts
+        out[".".join(parts[:-1] if parts[-1] == "__init__" else parts)] = path
+    return out
+
+
+def _imports(name: str, path: Path) -> list[tuple[str, list[str], int]]:
+    """(imported module, names taken from it, line) for every import in the module, anywhere."""
+    is_package = path.name == "__init__.py"
+    found = []
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            found += [(a.name, [], node.lineno) for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                anchor = name.split(".") if is_package else name.split(".")[:-1]
+                anchor = anchor[:len(anchor) - (node.level - 1)]
+                base = ".".join(anchor + ([base] if base else []))
+            found.append((base, [a.name for a in node.names], node.lineno))
+    return found
+
+
+def test_layer_contracts_hold():
+    pytest.importorskip("importlinter")
+    run = subprocess.run([str(Path(sys.executable).with_name("lint-imports")), "--no-cache"], cwd=ROOT,
+                         capture_output=True, text=True)
+    assert run.returncode == 0, run.stdout[-4000:] + run.stderr[-2000:]
+
+
+def test_no_import_cycles():
+    modules = _modules()
+    graph: dict[str, set[str]] = {m: set() for m in modules}
+    for name, path in modules.items():
+        for target, names, _ in _imports(name, path):
+            for candidate in [f"{target}.{n}" for n in names] + [target]:
+                if candidate in modules and candidate != name:
+                    graph[name].add(candidate)
+                    break
+    # Tarjan's strongly connected components: a component of more than one module is a cycle
+    index, low, stack, on_stack, cycles, counter = {}, {}, [], set(), [], [0]
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = counter[0]
+        counter[0] += 1
+        stack.append(v)
+        on_stack.add(v)
+        for w in graph[v]:
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on_stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            component = []
+            while True:
+                w = stack.pop()
+                on_stack.discard(w)
+                component.append(w)
+                if w == v:
+                    break
+            if len(component) > 1:
+                cycles.append(sorted(component))
+
+    sys.setrecursionlimit(10_000)
+    for v in graph:
+        if v not in index:
+            visit(v)
+    assert not cycles, f"import cycles: {cycles}"
+
+
+def _package_of(module: str, modules: dict[str, Path]) -> str:
+    return module if modules.get(module, Path()).name == "__init__.py" else module.rpartition(".")[0]
+
+
+def _private(part: str) -> bool:
+    return part.startswith("_") and not part.startswith("__")
+
+
+def test_no_private_names_imported_across_packages():
+    modules = _modules()
+    bad = []
+    for name, path in modules.items():
+        here = _package_of(name, modules)
+        for target, names, line in _imports(name, path):
+            if not target.startswith("explorer"):
+                continue
+            for n in names or [""]:
+                module = f"{target}.{n}" if f"{target}.{n}" in modules else target
+                if _package_of(module, modules) == here:
+                    continue
+                if _private(n) or any(_private(part) for part in module.split(".")):
+                    bad.append(f"{path.relative_to(ROOT)}:{line} imports {target}.{n}")
+    assert not bad, "\n".join(bad)
+
+
+def test_probe_imports_only_the_standard_library_numpy_and_onnxruntime():
+    """The probe runs on a device that has Python, numpy and onnxruntime and nothing else; onnx is
+    allowed only inside functions (graph rewrites the probe itself never calls)."""
+    allowed = set(sys.stdlib_module_names) | {"numpy", "onnxruntime"}
+    modules = {n: p for n, p in _modules().items() if n == "explorer.probe" or n.startswith("explorer.probe.")}
+    bad = []
+    for name, path in modules.items():
+        tree = ast.parse(path.read_text())
+        top_level = {id(n) for n in tree.body} | {id(n) for t in tree.body if isinstance(t, ast.Try) for n in t.body}
+        for target, _, line in _imports(name, path):
+            top = target.split(".")[0]
+            if target.startswith("explorer.probe") or top == "__future__":
+                continue
+            if top == "explorer":
+                bad.append(f"{path.name}:{line} imports {target}")
+            elif top not in allowed and not (top == "onnx"):
+                bad.append(f"{path.name}:{line} imports {target}")
+        for node in tree.body:
+            if isinstance(node, ast.ImportFrom) and (node.module or "").split(".")[0] == "onnx":
+                bad.append(f"{path.name}:{node.lineno} imports onnx at module level")
+            if isinstance(node, ast.Import) and any(a.name.split(".")[0] == "onnx" for a in node.names):
+                bad.append(f"{path.name}:{node.lineno} imports onnx at module level")
+        del top_level
+    assert not bad, "\n".join(bad)
+    assert sysconfig.get_paths()   # the standard library is known to this interpreter
+
+
+def test_modules_and_functions_stay_small():
+    long_modules, long_functions = [], []
+    for path in sorted(PACKAGE.rglob("*.py")):
+        lines = path.read_text().splitlines()
+        if len(lines) > MAX_MODULE_LINES:
+            long_modules.append(f"{path.relative_to(ROOT)}: {len(lines)} lines")
+        for node in ast.walk(ast.parse("\n".join(lines))):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                length = node.end_lineno - node.lineno + 1
+                if length > MAX_FUNCTION_LINES:
+                    long_functions.append(f"{path.relative_to(ROOT)}:{node.lineno} {node.name}: {length} lines")
+    assert not long_modules, "\n".join(long_modules)
+    assert not long_functions, "\n".join(long_functions)

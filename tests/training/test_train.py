@@ -1,0 +1,60 @@
+
+import pytest
+import torch
+
+from explorer.data import open_dataset
+from explorer.model import build_network
+from explorer.space import SearchSpace
+from explorer.training.train import (TrainConfig, evaluate, load_encoder_weights, network_from_checkpoint,
+                            train)
+from explorer.errors import UserError
+from conftest import TINY_DATA
+
+CAND = list(SearchSpace.from_yaml("tiny").enumerate())[-1]
+
+
+@pytest.fixture(scope="module")
+def sets():
+    return (open_dataset(TINY_DATA, "train", (32, 32)), open_dataset(TINY_DATA, "val", (32, 32)))
+
+
+def test_training_lowers_every_exit(sets):
+    torch.manual_seed(0)
+    net = build_network(CAND)
+    cfg = TrainConfig(steps=40, batch_size=8, input_size=(32, 32), lr=5e-3)
+    result = train(net, *sets, cfg)
+    first, last = result.history[:5], result.history[-5:]
+    exits = [k for k in result.history[0] if k.startswith("exit_")]
+    assert len(exits) == CAND.num_paths - 1
+    for k in exits:
+        assert sum(r[k] for r in last) < sum(r[k] for r in first), k
+    assert list(result.metrics["path"]) == list(range(CAND.num_paths))
+    assert result.images_per_second > 0
+
+
+def test_checkpoint_resume_and_evaluate(tmp_path, sets):
+    ckpt = tmp_path / "c.pt"
+    cfg = TrainConfig(steps=6, batch_size=8, input_size=(32, 32))
+    train(build_network(CAND), *sets, cfg, checkpoint=ckpt, checkpoint_every=3)
+    net, state = network_from_checkpoint(ckpt)
+    assert state["step"] == 6 and net.candidate == CAND
+    # resuming a finished run trains no more steps
+    again = train(build_network(CAND), *sets, cfg, checkpoint=ckpt)
+    assert again.steps == 6 and again.history == []
+    frame = evaluate(net, sets[1])
+    assert set(["rmse", "rel", "delta1"]) <= set(frame.columns) and len(frame) == CAND.num_paths
+
+
+def test_encoder_weights_loaded_from_a_state_dict(tmp_path):
+    net = build_network(CAND)
+    donor = build_network(CAND)
+    f = tmp_path / "mobilenet.pt"
+    torch.save(donor.stages["image_encoder"].state_dict(), f)
+    n = load_encoder_weights(net, f)
+    assert n > 0
+    a, b = net.stages["image_encoder"].conv0[0].weight, donor.stages["image_encoder"].conv0[0].weight
+    assert torch.equal(a, b)
+    bad = tmp_path / "junk.pt"
+    bad.write_bytes(b"not a torch file")
+    with pytest.raises(UserError, match="unreadable"):
+        load_encoder_weights(net, bad)
