@@ -1,3 +1,4 @@
+import pytest
 from pathlib import Path
 
 import nbformat
@@ -9,6 +10,7 @@ from conftest import TINY_DATA
 NOTEBOOK = Path(__file__).resolve().parents[1] / "notebooks" / "analysis.ipynb"
 
 
+@pytest.mark.slow
 def test_analysis_notebook_runs_on_a_tiny_study(tmp_path, monkeypatch):
     search(SearchConfig(study="nb", space="tiny", data=TINY_DATA, train_size=(32, 32), input_size=(64, 64),
                         train_steps=4, batch_size=8, val_limit=8, supernet_steps=4, finalists=1,

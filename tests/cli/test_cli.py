@@ -115,6 +115,7 @@ def test_enumerate_writes_csv(run_cli, tmp_path):
     assert (frame["last_exit_ms"] >= frame["first_exit_ms"]).all()
 
 
+@pytest.mark.slow
 def test_calibrate_quick_writes_a_profile(run_cli, tmp_path, monkeypatch):
     # the command, not the re-timing on a noisy machine (tests/test_probe.py covers that): on a VM whose
     # speed varied 2.5x while it was measured, waiting and timing again took this test from ~20 s to 125 s
@@ -165,6 +166,7 @@ def test_data_inspect_train_evaluate(run_cli, tmp_path):
     assert code == 2 and "one per exit" in err and not (tmp_path / "x.pt").exists()
 
 
+@pytest.mark.slow
 def test_search_rescore_report_export_cli(run_cli, tmp_path):
     common = ["--reports", tmp_path]
     code, out, err = run_cli("search", "--study", "cli", "--space", "tiny", "--data", TINY_DATA,

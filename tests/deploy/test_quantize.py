@@ -66,6 +66,7 @@ def test_precision_is_a_dimension_of_a_space():
         SearchSpace.from_dict({**TINY_INT8, "precision": ["int4"]}, "bad")
 
 
+@pytest.mark.slow
 def test_a_search_measures_int8_candidates_after_quantization(tmp_path, run_cli):
     from explorer.study.results import trial_path_costs
     from explorer.study.search import SearchConfig, search

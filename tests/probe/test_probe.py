@@ -476,6 +476,7 @@ def test_skip_additions_stay_blocked_only_where_the_slice_keeps_whole_leading_bl
         np.testing.assert_array_equal(blocked.run(None, feeds)[0], plain.run(None, feeds)[0])
 
 
+@pytest.mark.slow
 def test_calibration_times_again_the_graphs_far_above_its_fit(tmp_path, monkeypatch):
     """A graph slowed between two speed checks (so that neither shows it) sits far above the fit of
     all the others: calibrate times it again and keeps the faster timing. A graph that is as slow the

@@ -28,6 +28,7 @@ def study_with_everything(tmp_path_factory):
     return study, reports
 
 
+@pytest.mark.slow
 def test_report_holds_the_tables(study_with_everything):
     study, reports = study_with_everything
     path = write_report(study, reports / "rep")

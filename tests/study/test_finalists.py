@@ -19,6 +19,7 @@ def finished(tmp_path_factory):
     return search(CFG, n_trials=6, timeout_s=None, reports=reports), reports
 
 
+@pytest.mark.slow
 def test_best_candidates_and_baselines_are_retrained(finished):
     out, _ = finished
     fin = finalist_trials(out.study)
@@ -126,6 +127,7 @@ def test_finalists_a_replan_dropped_are_retrained_when_the_others_leave_time(fin
     assert any(what.startswith("no time for") for what in said)
 
 
+@pytest.mark.slow
 def test_a_time_limit_measures_the_machine_and_records_its_plan(tmp_path):
     import dataclasses
     from explorer.study.planning import TimeLimit
@@ -143,6 +145,7 @@ def test_a_time_limit_measures_the_machine_and_records_its_plan(tmp_path):
     assert 'id="plan"' in html and "supernet 4 steps" in html and "2 finalist(s) retrained 5 steps" in html
 
 
+@pytest.mark.slow
 def test_a_time_limit_too_short_retrains_fewer_finalists_and_says_so(tmp_path):
     import dataclasses
     from explorer.study.planning import TimeLimit
@@ -153,6 +156,7 @@ def test_a_time_limit_too_short_retrains_fewer_finalists_and_says_so(tmp_path):
     assert len([t for t in finalist_trials(out.study) if not t.user_attrs.get("baseline")]) == 1
 
 
+@pytest.mark.slow
 def test_a_reference_network_joins_the_study_as_a_baseline(tmp_path):
     import dataclasses
     from explorer.cost import profile_reference

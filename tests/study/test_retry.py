@@ -63,6 +63,7 @@ def _load(db: Path, name: str) -> optuna.Study:
     return optuna.load_study(study_name=name, storage=f"sqlite:///{db}")
 
 
+@pytest.mark.slow
 def test_kill_9_during_the_paper_baseline_then_resume(tmp_path):
     db = tmp_path / "kp" / "study.db"
     args = ["search", "--study", "kp", "--reports", tmp_path, "--trials", 4, *CLI_TINY]
@@ -88,6 +89,7 @@ def test_kill_9_during_the_paper_baseline_then_resume(tmp_path):
     assert "tried again as trial 3" in frame.loc[0, "reason"] and frame.loc[3, "retry_of"] == 0
 
 
+@pytest.mark.slow
 def test_kill_9_during_a_sampled_trial_retries_it_once(tmp_path):
     db = tmp_path / "ks" / "study.db"
     # tiny candidates train fast: more steps keep the kill inside the trial
@@ -254,6 +256,7 @@ def test_tracked_work_redoes_interrupted_work_only():
     assert store["finalist:5"]["attempts"] == 2
 
 
+@pytest.mark.slow
 @needs_postgres
 def test_postgres_worker_killed_another_retries_after_grace_period(tmp_path):
     from explorer.study.storage import open_storage

@@ -34,6 +34,7 @@ def finished(tmp_path_factory):
     return out, reports
 
 
+@pytest.mark.slow
 def test_tiny_search_end_to_end(finished):
     out, reports = finished
     frame = trials_frame(out.study)
@@ -112,6 +113,7 @@ def _states(db: Path) -> list[str]:
             return []
 
 
+@pytest.mark.slow
 def test_kill_9_then_resume(tmp_path):
     db = tmp_path / "killed" / "study.db"
     proc = _explorer("search", "--study", "killed", "--reports", tmp_path, "--trials", "50",
@@ -144,6 +146,7 @@ def test_kill_9_then_resume(tmp_path):
 
 
 
+@pytest.mark.slow
 @needs_postgres
 def test_three_workers_on_postgres(tmp_path):
     study = f"pg-{uuid.uuid4().hex[:8]}"
@@ -182,6 +185,7 @@ def test_a_candidate_sampled_twice_is_not_trained_twice(tmp_path):
     assert "path_metrics" in b.user_attrs  # re-scoring still sees it
 
 
+@pytest.mark.slow
 def test_two_workers_on_a_journal_file(tmp_path):
     cfg = SearchConfig(study="journal", **TINY)
     out = search(cfg, workers=2, n_trials=6, timeout_s=None, reports=tmp_path)

@@ -200,6 +200,7 @@ def test_resume_continues_exactly(tmp_path):
     assert all(torch.allclose(a[k].float(), b[k].float(), atol=1e-6) for k in a if "running" not in k)
 
 
+@pytest.mark.slow
 def test_kill_9_then_resume_training(tmp_path):
     out = tmp_path / "killed.pt"
     args = ["supernet", "train", "--space", "tiny", "--data", TINY_DATA, "--input-size", "32x32",
@@ -243,6 +244,7 @@ def test_supernet_files_that_do_not_fit_are_one_line_exit_2(tmp_path, run_cli):
         load_supernet(tmp_path / "absent.pt")
 
 
+@pytest.mark.slow
 def test_short_supernet_search_on_the_default_space(tmp_path):
     from explorer.study.search import SearchConfig, search
     cfg = SearchConfig(study="sn", data=TINY_DATA, train_size=(32, 32), batch_size=8, val_limit=16,
@@ -260,6 +262,7 @@ def test_short_supernet_search_on_the_default_space(tmp_path):
         search(dataclasses.replace(cfg, evaluator="proxy"), n_trials=1, reports=tmp_path)
 
 
+@pytest.mark.slow
 def test_two_gloo_processes_match_one_process(tmp_path):
     common = ["--space", "tiny", "--data", TINY_DATA, "--input-size", "32x32", "--batch-size", "8", "--steps", "3"]
     env = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}

@@ -17,6 +17,7 @@ def _rmse(depth: torch.Tensor, gt: torch.Tensor) -> float:
     return float(torch.stack([((d[v] - g[v]) ** 2).mean().sqrt() for d, g, v in zip(depth, gt, valid)]).mean())
 
 
+@pytest.mark.slow
 def test_hints_are_closer_to_the_true_depth_than_path_0():
     ds = open_dataset(SEQ, "train", (64, 64))
     batch = torch.utils.data.default_collate([ds[i] for i in range(len(ds))])

@@ -82,6 +82,7 @@ def test_pose_parameters_give_rigid_transforms():
     assert out.shape == (2, 4, 4) and torch.allclose(out[:, 3], torch.tensor([0.0, 0, 0, 1]).expand(2, 4))
 
 
+@pytest.mark.slow
 def test_short_self_supervised_training_lowers_the_loss():
     train_set, val_set = open_dataset(SEQ, "train", (32, 32)), open_dataset(SEQ, "val", (32, 32))
     torch.manual_seed(0)
@@ -113,6 +114,7 @@ def test_supervision_is_part_of_a_studys_identity(tmp_path):
         SearchConfig(study="t", space="tiny", data=SEQ, supervision="self", evaluator="supernet").validate()
 
 
+@pytest.mark.slow
 def test_cli_train_and_evaluate_self_supervised(run_cli, tmp_path):
     ckpt = tmp_path / "X.pt"
     code, _, err = run_cli("train", "paper", "--supervision", "self", "--data", "synthetic-seq:32:8", "--steps", "5",
