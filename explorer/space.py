@@ -20,6 +20,7 @@ from typing import Any, Iterator
 import yaml
 
 from explorer.errors import UserError
+from explorer.files import read_yaml
 
 #: MobileNet v1 depthwise-separable blocks (in, out, stride), after conv0 (3 -> 32, stride 2).
 MOBILENET_V1_BLOCKS: tuple[tuple[int, int, int], ...] = (
@@ -237,15 +238,8 @@ _TOP_KEYS = set(_SPACE_SCHEMA) | {"name", "description", "precision"}
 
 
 def load_yaml(path: str | Path) -> Any:
-    p = Path(path)
-    if not p.is_file():
-        raise UserError(f"{p}: no such file")
-    try:
-        return yaml.safe_load(p.read_text())
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f" (line {mark.line + 1})" if mark else ""
-        raise UserError(f"{p}: not valid YAML{where}: {getattr(exc, 'problem', exc)}") from None
+    """A space or candidate YAML file, read safely (``explorer.files.read_yaml``)."""
+    return read_yaml(path, "YAML file")
 
 
 def resolve_space_path(spec: str | Path) -> Path:

@@ -29,6 +29,7 @@ import yaml
 
 from explorer.cost.workloads import ALL_KINDS, BYTES_PER_VALUE, KINDS, OPTIONAL_KINDS, Workload
 from explorer.errors import UserError
+from explorer.files import read_yaml
 from explorer.cost.precision import FLOAT_STAGES, INT8_KEEP_RATIO
 
 PROFILES_DIR = Path(__file__).resolve().parent / "profiles"
@@ -221,12 +222,7 @@ class DeviceProfile:
     @classmethod
     def from_yaml(cls, path: str | Path) -> "DeviceProfile":
         p = Path(path)
-        try:
-            data = yaml.safe_load(p.read_text())
-        except OSError as exc:
-            raise UserError(f"{p}: cannot read device profile ({exc.strerror})") from None
-        except yaml.YAMLError as exc:
-            raise UserError(f"{p}: device profile is not valid YAML ({getattr(exc, 'problem', exc)})") from None
+        data = read_yaml(p, "device profile (YAML)")
         return cls.from_dict(data, str(p))
 
 

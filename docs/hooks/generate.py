@@ -1,0 +1,244 @@
+"""MkDocs hook: the pages that are generated at build time, so that they never drift.
+
+- ``cli.md``: one section per command and subcommand of ``explorer``, read off the argparse parser
+  that the command line itself uses (``explorer.cli.build_parser``).
+- ``benchmarks.md``: the latest record of each benchmark under ``benchmarks/results/``, which the
+  benchmark scripts write (schema 1, below). The records shown are also copied into the site, so
+  the page can link to them.
+
+Each page holds a placeholder comment that the hook replaces; the functions that build the Markdown
+(``cli_markdown``, ``benchmarks_markdown``) take plain arguments so that tests can call them.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import re
+import sys
+from pathlib import Path
+
+log = logging.getLogger("mkdocs.hooks.generate")
+
+CLI_PLACEHOLDER = "<!-- generated: cli-reference -->"
+BENCHMARKS_PLACEHOLDER = "<!-- generated: benchmark-records -->"
+RESULTS = Path("benchmarks") / "results"          # relative to the repository root
+#: <UTC timestamp>-<short commit>.json; the timestamp sorts in time order as text
+RECORD_NAME = re.compile(r"^(\d{8}T\d{6}Z)-([0-9A-Za-z]+)\.json$")
+HELP_COLUMNS = "88"      # argparse wraps help to the terminal; fix it so the page is the same everywhere
+ANSI = re.compile(r"\x1b\[[0-9;]*m")
+
+# Records found by on_files, shown by on_page_markdown: {benchmark: (path, record)}, problems.
+_records: dict[str, tuple[Path, dict]] = {}
+_problems: list[str] = []
+
+
+# -- MkDocs entry points --------------------------------------------------------------------------
+def on_files(files, config):
+    """Finds the latest record of each benchmark and adds it to the site (the page links to it)."""
+    from mkdocs.structure.files import File
+    root = _root(config)
+    found, problems = latest_records(root / RESULTS)
+    _records.clear()
+    _records.update(found)
+    _problems[:] = problems
+    for problem in problems:
+        log.warning("benchmark record %s", problem)
+    for path, _ in found.values():
+        src_uri = path.relative_to(root).as_posix()
+        if files.get_file_from_path(src_uri) is None:
+            files.append(File.generated(config, src_uri, abs_src_path=str(path)))
+    return files
+
+
+def on_page_markdown(markdown, page, config, files):
+    """Fills the placeholders of cli.md and benchmarks.md."""
+    src = page.file.src_uri
+    if src == "cli.md":
+        return _fill(markdown, CLI_PLACEHOLDER, src, lambda: cli_markdown(_parser(config)))
+    if src == "benchmarks.md":
+        root = _root(config)
+        return _fill(markdown, BENCHMARKS_PLACEHOLDER, src,
+                     lambda: benchmarks_markdown(_records, root, _problems))
+    return markdown
+
+
+def _fill(markdown: str, placeholder: str, src: str, make) -> str:
+    if placeholder not in markdown:
+        log.warning("%s: placeholder %s is missing, nothing generated", src, placeholder)
+        return markdown
+    return markdown.replace(placeholder, make())
+
+
+def _root(config) -> Path:
+    """The repository root: where mkdocs.yml is."""
+    return Path(config["config_file_path"]).resolve().parent
+
+
+def _parser(config) -> argparse.ArgumentParser:
+    root = str(_root(config))
+    if root not in sys.path:      # a checkout that is not installed still documents itself
+        sys.path.insert(0, root)
+    from explorer.cli import build_parser
+    return build_parser()
+
+
+# -- CLI reference --------------------------------------------------------------------------------
+def cli_markdown(parser: argparse.ArgumentParser) -> str:
+    """The parser's help, then one section per subcommand (any depth), each with its usage and help
+    as the command prints them."""
+    saved = os.environ.get("COLUMNS")
+    os.environ["COLUMNS"] = HELP_COLUMNS
+    try:
+        out: list[str] = []
+        _cli_section(parser, None, 2, out, top=True)
+        return "\n".join(out)
+    finally:
+        if saved is None:
+            os.environ.pop("COLUMNS", None)
+        else:
+            os.environ["COLUMNS"] = saved
+
+
+def subcommands(parser: argparse.ArgumentParser) -> list[tuple[str, str | None, argparse.ArgumentParser]]:
+    """(name, one-line help, parser) of each subcommand of ``parser``, in the order it lists them;
+    aliases are left out (they share their command's parser)."""
+    out, seen = [], set()
+    for action in parser._actions:
+        if not isinstance(action, argparse._SubParsersAction):
+            continue
+        helps = {a.dest: a.help for a in action._choices_actions}
+        for name, sub in action.choices.items():
+            if id(sub) in seen:
+                continue
+            seen.add(id(sub))
+            out.append((name, helps.get(name), sub))
+    return out
+
+
+def _cli_section(parser: argparse.ArgumentParser, help_: str | None, level: int, out: list[str],
+                 top: bool = False) -> None:
+    if not top:
+        out.append(f"{'#' * min(level, 6)} {parser.prog}\n")
+        if help_ and help_ != argparse.SUPPRESS and not parser.description:
+            out.append(f"{_sentence(help_)}\n")   # the help is said again only when usage would not say it
+    text = ANSI.sub("", parser.format_help()).rstrip()
+    out.append(f"```text\n{text}\n```\n")
+    for name, sub_help, sub in subcommands(parser):
+        _cli_section(sub, sub_help, level if top else level + 1, out)
+
+
+def _sentence(text: str) -> str:
+    text = " ".join(text.split())
+    return text[:1].upper() + text[1:] + ("" if text.endswith(".") else ".")
+
+
+# -- benchmark records ----------------------------------------------------------------------------
+MACHINE_KEYS = ("cpu_model", "cpu_flags", "cores", "peak_gmacs_fp32", "platform", "python", "torch", "onnxruntime")
+FIGURE_KEYS = ("name", "label", "unit", "reps", "median", "min", "max", "better")
+RECORD_KEYS = ("schema", "benchmark", "title", "description", "command", "commit", "dirty", "date", "machine",
+               "figures", "notes")
+
+
+def check_record(record) -> str | None:
+    """What is wrong with a record (schema 1), or None."""
+    if not isinstance(record, dict):
+        return "is not a JSON object"
+    if record.get("schema") != 1:
+        return f"has schema {record.get('schema')!r}, this page reads schema 1"
+    missing = [k for k in RECORD_KEYS if k not in record]
+    if missing:
+        return f"lacks {', '.join(missing)}"
+    machine = record["machine"]
+    if not isinstance(machine, dict) or any(k not in machine for k in MACHINE_KEYS):
+        return f"machine must hold {', '.join(MACHINE_KEYS)}"
+    figures = record["figures"]
+    if not isinstance(figures, list):
+        return "figures must be a list"
+    for i, fig in enumerate(figures):
+        if not isinstance(fig, dict) or any(k not in fig for k in FIGURE_KEYS):
+            return f"figure {i} must hold {', '.join(FIGURE_KEYS)}"
+        numbers = [fig["median"], fig["min"], fig["max"], *fig["reps"]] if isinstance(fig["reps"], list) else None
+        if numbers is None or not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in numbers):
+            return f"figure {fig['name']!r}: reps, median, min and max must be numbers"
+        if fig["better"] not in ("lower", "higher", None):
+            return f"figure {fig['name']!r}: better must be lower, higher or null"
+    return None
+
+
+def latest_records(results: Path) -> tuple[dict[str, tuple[Path, dict]], list[str]]:
+    """{benchmark: (path, record)} of the newest valid record in each ``results/<benchmark>/``, and
+    one line per file that could not be used. Newest = the latest timestamp in the file name."""
+    found: dict[str, tuple[Path, dict]] = {}
+    problems: list[str] = []
+    if not results.is_dir():
+        return found, problems
+    for folder in sorted(p for p in results.iterdir() if p.is_dir()):
+        named = sorted((m.group(1), p) for p in folder.glob("*.json") if (m := RECORD_NAME.match(p.name)))
+        for _, path in reversed(named):           # newest first; an unusable one gives way to the one before
+            try:
+                record = json.loads(path.read_text())
+            except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+                problems.append(f"{path}: unreadable ({exc})")
+                continue
+            wrong = check_record(record)
+            if wrong is None and record["benchmark"] != folder.name:
+                wrong = f"names benchmark {record['benchmark']!r} but lies in {folder.name}/"
+            if wrong:
+                problems.append(f"{path}: {wrong}")
+                continue
+            found[folder.name] = (path, record)
+            break
+    return found, problems
+
+
+def benchmarks_markdown(records: dict[str, tuple[Path, dict]], root: Path, problems: list[str] = ()) -> str:
+    """One section per benchmark (sorted by name): title, description, its figures, and where and how
+    they were measured."""
+    if not records:
+        text = ("No benchmark records yet. Run a benchmark, for example `python benchmarks/bench_runtime.py`: it "
+                "writes its record to `benchmarks/results/<benchmark>/<UTC time>-<commit>.json`, and the next "
+                "build of this site shows the latest record of each benchmark here.\n")
+    else:
+        text = "\n".join(_benchmark_section(name, path, rec, root) for name, (path, rec) in sorted(records.items()))
+    if problems:
+        text += "\n!!! warning \"Records left out\"\n\n" + "".join(f"    - `{p}`\n" for p in problems)
+    return text
+
+
+def _benchmark_section(name: str, path: Path, rec: dict, root: Path) -> str:
+    try:
+        rel = path.resolve().relative_to(root).as_posix()
+    except ValueError:            # a results folder outside the repository (tests)
+        rel = path.as_posix()
+    m = rec["machine"]
+    peak = m["peak_gmacs_fp32"]
+    machine = f"{m['cpu_model']}, {m['cores']} cores" + (f", peak {_num(peak)} GMAC/s fp32" if peak else "")
+    commit = f"`{rec['commit']}`" + (" (with uncommitted changes)" if rec["dirty"] else "")
+    lines = [f"## {rec['title']}\n", f"`{name}`: {rec['description']}\n"]
+    if rec["figures"]:
+        lines.append("| figure | median | min – max | reps | unit |")
+        lines.append("|---|---:|---:|---:|---|")
+        for f in rec["figures"]:
+            better = {"lower": " (lower is better)", "higher": " (higher is better)"}.get(f["better"], "")
+            lines.append(f"| {_cell(f['label'])}{better} | {_num(f['median'])} | {_num(f['min'])} – {_num(f['max'])} "
+                         f"| {len(f['reps'])} | {_cell(f['unit'])} |")
+        lines.append("")
+    else:
+        lines.append("The record holds no figures.\n")
+    if rec["notes"]:
+        lines.append(f"{rec['notes']}\n")
+    lines.append(f"Measured on {machine} ({m['platform']}; Python {m['python']}, torch {m['torch']}, "
+                 f"onnxruntime {m['onnxruntime']}), commit {commit}, {rec['date']}, with `{rec['command']}`. "
+                 f"Record: [`{rel}`]({rel}).\n")   # on_files copies it into the site at the same path
+    return "\n".join(lines)
+
+
+def _num(x) -> str:
+    return f"{x:.4g}" if isinstance(x, float) else str(x)
+
+
+def _cell(text) -> str:
+    return str(text).replace("|", "\\|").replace("\n", " ")

@@ -1,0 +1,102 @@
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from explorer.errors import UserError
+from explorer.files import MAX_TEXT_BYTES, read_json, read_yaml, write_atomically, write_json
+
+FILE_SETTINGS = settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+
+
+@FILE_SETTINGS
+@given(st.binary(max_size=2000))
+def test_any_bytes_parse_as_yaml_or_are_one_user_error(tmp_path, raw):
+    path = tmp_path / "x.yaml"
+    path.write_bytes(raw)
+    try:
+        read_yaml(path)
+    except UserError as exc:
+        assert "\n" not in str(exc) and str(path) in str(exc)
+
+
+@FILE_SETTINGS
+@given(st.text(alphabet="ab:-&*[]{},'\"\n #!x1", max_size=300))
+def test_any_yaml_like_text_parses_or_is_one_user_error(tmp_path, text):
+    path = tmp_path / "x.yaml"
+    path.write_text(text)
+    try:
+        read_yaml(path)
+    except UserError as exc:
+        assert "\n" not in str(exc)
+
+
+@FILE_SETTINGS
+@given(st.text(max_size=300))
+def test_any_text_parses_as_json_or_is_one_user_error(tmp_path, text):
+    path = tmp_path / "x.json"
+    path.write_text(text)
+    try:
+        read_json(path)
+    except UserError as exc:
+        assert "\n" not in str(exc)
+
+
+def test_an_alias_bomb_is_refused_at_once(tmp_path):
+    lines = ['a0: &a0 ["lol", "lol", "lol", "lol", "lol", "lol", "lol", "lol", "lol"]']
+    lines += [f"a{i}: &a{i} [{', '.join([f'*a{i - 1}'] * 9)}]" for i in range(1, 9)]
+    path = tmp_path / "bomb.yaml"
+    path.write_text("\n".join(lines) + "\n")
+    start = time.monotonic()
+    with pytest.raises(UserError, match="aliases"):
+        read_yaml(path)
+    assert time.monotonic() - start < 1.0
+
+
+def test_binary_folders_missing_and_huge_files_are_named(tmp_path):
+    (tmp_path / "bin").write_bytes(bytes(range(256)) * 4)
+    with pytest.raises(UserError, match="binary"):
+        read_yaml(tmp_path / "bin")
+    with pytest.raises(UserError, match="folder"):
+        read_yaml(tmp_path)
+    with pytest.raises(UserError, match="no such file"):
+        read_yaml(tmp_path / "nope.yaml")
+    (tmp_path / "big.yaml").write_bytes(b"a" * (MAX_TEXT_BYTES + 1))
+    with pytest.raises(UserError, match="larger"):
+        read_yaml(tmp_path / "big.yaml")
+    (tmp_path / "nan.json").write_text('{"ms": NaN}')
+    with pytest.raises(UserError, match="NaN"):
+        read_json(tmp_path / "nan.json")
+
+
+def test_write_atomically_replaces_whole_and_leaves_no_scratch(tmp_path):
+    target = tmp_path / "out.json"
+    write_json(target, {"a": 1})
+    write_atomically(target, "new")
+    assert target.read_text() == "new" and os.listdir(tmp_path) == ["out.json"]
+    assert json.loads(write_json(target, [1, 2]).read_text()) == [1, 2]
+
+
+@pytest.mark.slow
+def test_a_writer_killed_midway_leaves_the_old_file(tmp_path):
+    """A child writes a large file over and over; killed at random moments, the target always holds
+    one whole version."""
+    target = tmp_path / "data.json"
+    write_json(target, {"version": -1, "payload": "x"})
+    code = ("import sys; from explorer.files import write_json\n"
+            "i = 0\n"
+            "while True:\n"
+            "    write_json(sys.argv[1], {'version': i, 'payload': 'y' * 2_000_000}); i += 1\n")
+    for delay in (0.3, 0.5, 0.8):
+        child = subprocess.Popen([sys.executable, "-c", code, str(target)])
+        time.sleep(delay)
+        child.send_signal(signal.SIGKILL)
+        child.wait()
+        data = json.loads(target.read_text())
+        assert data["payload"] in ("x", "y" * 2_000_000)
