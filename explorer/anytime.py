@@ -72,8 +72,8 @@ class Uniform(BudgetDistribution):
     name: str = field(default="uniform", init=False)
 
     def __post_init__(self) -> None:
-        if not self.maximum > 0:
-            raise UserError(f"uniform budget needs a positive maximum, got {self.maximum}")
+        if not 0 < self.maximum < math.inf:
+            raise UserError(f"uniform budget needs a positive, finite maximum, got {self.maximum}")
 
     def cdf(self, b):
         return np.clip(np.asarray(b, dtype=float) / self.maximum, 0.0, 1.0)
@@ -96,7 +96,7 @@ class Exponential(BudgetDistribution):
     name: str = field(default="exponential", init=False)
 
     def __post_init__(self) -> None:
-        if not self.mean > 0:
+        if not 0 < self.mean < math.inf:
             raise UserError(f"exponential budget needs a positive mean, got {self.mean}")
 
     def cdf(self, b):
@@ -122,7 +122,7 @@ class TruncatedNormal(BudgetDistribution):
     name: str = field(default="truncnormal", init=False)
 
     def __post_init__(self) -> None:
-        if not self.std > 0:
+        if not 0 < self.std < math.inf or not math.isfinite(self.mean):
             raise UserError(f"truncnormal budget needs a positive std, got {self.std}")
 
     def _phi(self, x):
@@ -178,8 +178,12 @@ class Trace(BudgetDistribution):
             raise UserError(f"budget trace {path}: no numeric column of deadlines")
         column = numeric.columns[0]
         values = numeric[column].dropna().to_numpy(dtype=float)
+        if not np.isfinite(values).all():
+            raise UserError(f"budget trace {path}: deadlines must be finite (column '{column}' has inf)")
         if (values < 0).any():
             raise UserError(f"budget trace {path}: negative deadlines in column '{column}'")
+        if not (values > 0).any():
+            raise UserError(f"budget trace {path}: every deadline in column '{column}' is 0: nothing could run")
         # a column named like 'deadline_s' or 'budget_mj' says its unit
         m = re.search(r"_(ms|s|us|j|mj|uj)$", str(column).lower())
         if m and m.group(1) in UNITS[kind]:
@@ -192,6 +196,8 @@ def parse_quantity(text: str, kind: str) -> float:
     if not m:
         raise UserError(f"'{text}' is not a {kind} quantity (e.g. {'33ms' if kind == 'time' else '0.5J'})")
     value, unit = float(m.group(1)), m.group(2).lower()
+    if not math.isfinite(value):
+        raise UserError(f"'{text}' is not a finite {kind} quantity")
     if not unit:
         unit = BASE_UNIT[kind].lower()
     if unit not in UNITS[kind]:
@@ -244,6 +250,14 @@ def _check(costs: Sequence[float], losses: Sequence[float]) -> tuple[np.ndarray,
     if np.any(np.diff(c) < 0):
         raise UserError(f"path costs must not decrease (paths are prefixes of one run), got {list(c)}")
     return c, l
+
+
+def check_losses(losses: Sequence[float]) -> np.ndarray:
+    """Per-path losses a user gives (``explorer anytime``): finite and non-negative, as errors are."""
+    l = np.asarray(losses, dtype=float)
+    if not np.isfinite(l).all() or (l < 0).any():
+        raise UserError(f"losses must be finite and non-negative (errors such as RMSE), got {list(l)}")
+    return l
 
 
 def interval_probabilities(costs: Sequence[float], budget: str | BudgetDistribution) -> np.ndarray:

@@ -4,15 +4,20 @@ Every reader turns what can go wrong with a user's file (missing, a folder, bina
 valid YAML or JSON, YAML aliases) into one :class:`~explorer.errors.UserError` line naming the file.
 Every writer writes a scratch file beside the target and renames it into place (``os.replace`` is
 atomic on one file system), so a process killed at any moment leaves the old file or the new one.
+A folder (an export) is written whole in a scratch folder and swapped in; what a killed process left
+beside it (named with its pid) is cleaned, or restored, by the next writer.
 """
 
 from __future__ import annotations
 
 import json
 import os
+import re
+import shutil
 import tempfile
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator
 
 import yaml
 
@@ -102,3 +107,68 @@ def write_atomically(path: str | Path, data: "str | bytes") -> Path:
 def write_json(path: str | Path, data: Any, indent: int = 2) -> Path:
     """``write_atomically`` of ``data`` as JSON."""
     return write_atomically(path, json.dumps(data, indent=indent) + "\n")
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:   # someone else's live process
+        return True
+    return True
+
+
+def _leftovers(target: Path) -> Iterator[tuple[Path, str, int]]:
+    pattern = re.compile(rf"\.{re.escape(target.name)}\.(tmp|old)(\d+)")
+    for p in target.parent.glob(f".{target.name}.*"):
+        m = pattern.fullmatch(p.name)
+        if m:
+            yield p, m.group(1), int(m.group(2))
+
+
+def recover_folder(target: str | Path) -> None:
+    """Cleans what a writer of ``target`` killed midway left beside it: its scratch folder is removed,
+    and a previous version it had moved aside is put back if ``target`` is missing."""
+    target = Path(target)
+    for path, kind, pid in _leftovers(target):
+        if _alive(pid) and pid != os.getpid():
+            continue
+        if kind == "old" and not target.exists():
+            os.rename(path, target)
+        else:
+            shutil.rmtree(path, ignore_errors=True)
+
+
+@contextmanager
+def replacing_folder(target: str | Path, marker: str) -> Iterator[Path]:
+    """Yields a scratch folder beside ``target``; when the block ends without an error the scratch
+    replaces ``target`` whole (an error leaves ``target`` as it was and removes the scratch).
+    ``marker``: a file every folder this writer makes holds; an existing ``target`` without it (someone's
+    own folder) is refused rather than replaced."""
+    target = Path(target)
+    if target.exists() and not target.is_dir():
+        raise UserError(f"{target}: is a file; give a folder to write into")
+    if target.is_dir() and any(target.iterdir()) and not (target / marker).is_file():
+        raise UserError(f"{target}: exists and holds other files (no {marker}): give a new or empty folder")
+    try:
+        target.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise UserError(f"{target.parent}: cannot create the folder ({exc.strerror})") from None
+    recover_folder(target)
+    scratch = target.with_name(f".{target.name}.tmp{os.getpid()}")
+    shutil.rmtree(scratch, ignore_errors=True)
+    try:
+        scratch.mkdir()
+    except OSError as exc:
+        raise UserError(f"{target.parent}: cannot write there ({exc.strerror})") from None
+    try:
+        yield scratch
+    except BaseException:
+        shutil.rmtree(scratch, ignore_errors=True)
+        raise
+    aside = target.with_name(f".{target.name}.old{os.getpid()}")
+    if target.exists():
+        os.rename(target, aside)   # a kill between these renames is undone by recover_folder
+    os.rename(scratch, target)
+    shutil.rmtree(aside, ignore_errors=True)

@@ -1,7 +1,9 @@
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
-from explorer.anytime import (TruncatedNormal, Uniform, anytime_curve, anytime_loss, exit_loss_weights,
+from explorer.anytime import (TruncatedNormal, Uniform, anytime_curve, anytime_loss, check_losses, exit_loss_weights,
                               parse_budget)
 from explorer.errors import UserError
 
@@ -74,3 +76,35 @@ def test_bad_costs():
         anytime_loss([0, 5, 3], [1, 1, 1], "time:uniform:10ms")
     with pytest.raises(UserError, match="same length"):
         anytime_loss([0, 5], [1], "time:uniform:10ms")
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.text(alphabet="timeenrgy:uniformexpotlcahs0123456789.e-msJj ", max_size=40))
+def test_any_budget_spec_parses_or_is_one_user_error(spec):
+    """Whatever a user types after --budget is a distribution with a finite upper end, or one line."""
+    try:
+        b = parse_budget(spec)
+    except UserError as exc:
+        assert "\n" not in str(exc)
+        return
+    assert np.isfinite(b.upper) and b.upper > 0
+
+
+@pytest.mark.parametrize("spec", ["time:uniform:1e400ms", "time:uniform:0ms", "time:exponential:0ms"])
+def test_infinite_or_zero_budgets_are_refused(spec):
+    with pytest.raises(UserError):
+        parse_budget(spec)
+
+
+def test_a_trace_of_zeros_or_infinities_is_refused(tmp_path):
+    for name, values in (("zeros", "0\n0\n0\n"), ("inf", "1\ninf\n2\n")):
+        path = tmp_path / f"{name}.csv"
+        path.write_text("deadline_ms\n" + values)
+        with pytest.raises(UserError, match="deadline"):
+            parse_budget(f"time:trace:{path}")
+
+
+@pytest.mark.parametrize("losses", [[0.5, float("nan")], [0.5, -0.1], [float("inf"), 1.0]])
+def test_losses_a_user_gives_must_be_finite_and_non_negative(losses):
+    with pytest.raises(UserError, match="losses"):
+        check_losses(losses)

@@ -11,6 +11,30 @@ import numpy as np
 from PIL import Image
 
 from explorer.errors import UserError
+from explorer.files import read_text
+
+
+def open_image(path: Path) -> Image.Image:
+    """An image file opened lazily (header read), or one UserError line: unreadable, not an image, or
+    larger than Pillow's decompression-bomb limit (a header may claim 40000x40000 pixels)."""
+    try:
+        return Image.open(path)
+    except Image.DecompressionBombError:
+        raise UserError(f"{path}: the image claims more pixels than any camera frame (a corrupt or "
+                        "hostile header): use real frames") from None
+    except (OSError, ValueError) as exc:
+        raise UserError(f"{path}: unreadable image ({type(exc).__name__}: {str(exc).splitlines()[0][:120]})") from None
+
+
+def read_image(path: Path, mode: str | None = None) -> np.ndarray:
+    """The pixels of an image file (converted to ``mode`` if given), or one UserError line."""
+    with open_image(path) as im:
+        try:
+            return np.asarray(im.convert(mode) if mode else im)
+        except Image.DecompressionBombError:
+            raise UserError(f"{path}: the image claims more pixels than any camera frame") from None
+        except (OSError, ValueError, SyntaxError) as exc:
+            raise UserError(f"{path}: unreadable image ({type(exc).__name__})") from None
 
 
 @dataclass
@@ -93,8 +117,8 @@ class PairCSV:
             if not p.is_file():
                 raise UserError(f"{p}: listed in the CSV but missing")
         try:
-            rgb = np.asarray(Image.open(img_path).convert("RGB"))
-            raw = np.asarray(Image.open(depth_path)).astype(np.float32)
+            rgb = read_image(img_path, "RGB")
+            raw = read_image(depth_path).astype(np.float32)
         except (OSError, ValueError) as exc:
             raise UserError(f"{img_path.name}/{depth_path.name}: unreadable image ({exc})") from None
         if raw.ndim != 2:
@@ -107,7 +131,7 @@ class PairCSV:
 # -- KITTI ---------------------------------------------------------------------------------------
 def read_calib(path: Path) -> dict[str, np.ndarray]:
     out = {}
-    for line in path.read_text().splitlines():
+    for line in read_text(path, 'calibration file').splitlines():
         if ":" in line:
             k, v = line.split(":", 1)
             try:
@@ -175,7 +199,7 @@ class KittiRaw:
         for p in (velo, cal):
             if not p.is_file():
                 raise UserError(f"{p}: missing for frame {n}")
-        rgb = np.asarray(Image.open(img).convert("RGB"))
+        rgb = read_image(img, "RGB")
         raw = np.fromfile(velo, dtype=np.float32)
         if raw.size % 4:
             raise UserError(f"{velo}: size is not a multiple of 4 floats (x, y, z, reflectance)")

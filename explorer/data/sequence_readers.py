@@ -11,11 +11,11 @@ import re
 from pathlib import Path
 
 import numpy as np
-from PIL import Image
 
-from explorer.data.readers import ring_mask, sparse_depth
+from explorer.data.readers import open_image, read_image, ring_mask, sparse_depth
 from explorer.data.sequences import SequenceSample
 from explorer.errors import UserError
+from explorer.files import read_text
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 
@@ -44,11 +44,8 @@ def _check_consecutive(paths: list[Path], where: Path) -> None:
 def _check_sizes(paths: list[Path]) -> tuple[int, int]:
     sizes = {}
     for p in paths:
-        try:
-            with Image.open(p) as im:
-                sizes.setdefault(im.size, p)
-        except OSError as exc:
-            raise UserError(f"{p}: unreadable image ({exc})") from None
+        with open_image(p) as im:
+            sizes.setdefault(im.size, p)
     if len(sizes) > 1:
         (a, pa), (b, pb) = list(sizes.items())[:2]
         raise UserError(f"frames differ in size: {pa.name} is {a[0]}x{a[1]}, {pb.name} is {b[0]}x{b[1]} "
@@ -58,26 +55,53 @@ def _check_sizes(paths: list[Path]) -> tuple[int, int]:
 
 
 def _rgb(path: Path) -> np.ndarray:
-    try:
-        return np.asarray(Image.open(path).convert("RGB"))
-    except OSError as exc:
-        raise UserError(f"{path}: unreadable image ({exc})") from None
+    return read_image(path, "RGB")
 
 
 def read_intrinsics(path: Path) -> np.ndarray:
-    """A 3x3 matrix (9 numbers) or ``fx fy cx cy`` (4 numbers), in pixels of the frames."""
+    """A 3x3 matrix (9 numbers) or ``fx fy cx cy`` (4 numbers), in pixels of the frames; checked to
+    be a camera matrix (finite, positive focal lengths, last row 0 0 1) before any tensor sees it."""
     if not path.is_file():
         raise UserError(f"{path.parent}: missing intrinsics.txt (write fx fy cx cy, or the 3x3 matrix K)")
     try:
-        values = [float(x) for x in path.read_text().replace(",", " ").split()]
+        values = [float(x) for x in read_text(path, "intrinsics file").replace(",", " ").split()]
     except ValueError:
         raise UserError(f"{path}: intrinsics must be numbers (fx fy cx cy, or the 9 entries of K)") from None
     if len(values) == 4:
         fx, fy, cx, cy = values
-        return np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]], dtype=np.float64)
-    if len(values) == 9:
-        return np.array(values, dtype=np.float64).reshape(3, 3)
-    raise UserError(f"{path}: {len(values)} numbers; give fx fy cx cy, or the 9 entries of K")
+        K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]], dtype=np.float64)
+    elif len(values) == 9:
+        K = np.array(values, dtype=np.float64).reshape(3, 3)
+    else:
+        raise UserError(f"{path}: {len(values)} numbers; give fx fy cx cy, or the 9 entries of K")
+    if not np.isfinite(K).all():
+        raise UserError(f"{path}: intrinsics must be finite numbers (found nan or inf)")
+    if K[0, 0] <= 0 or K[1, 1] <= 0:
+        raise UserError(f"{path}: focal lengths fx={K[0, 0]:g}, fy={K[1, 1]:g} must be positive (in pixels)")
+    if not np.allclose(K[2], [0, 0, 1]) or K[1, 0] != 0:
+        raise UserError(f"{path}: not a camera matrix: its last row must be 0 0 1 and K[1][0] zero")
+    return K
+
+
+def read_poses(path: Path, frames: int) -> list[np.ndarray]:
+    """One camera-to-world pose per frame: 12 numbers a line (a 3x4 matrix, KITTI odometry's format),
+    each finite with an invertible rotation part."""
+    rows = [line.split() for line in read_text(path, "poses file").splitlines() if line.strip()]
+    if len(rows) != frames or any(len(r) != 12 for r in rows):
+        raise UserError(f"{path}: needs one line of 12 numbers per frame ({frames} frames)")
+    poses = []
+    for line, r in enumerate(rows, 1):
+        try:
+            m = np.eye(4)
+            m[:3, :4] = np.array([float(x) for x in r]).reshape(3, 4)
+        except ValueError:
+            raise UserError(f"{path}: line {line}: poses must be numbers (12 per line)") from None
+        if not np.isfinite(m).all():
+            raise UserError(f"{path}: line {line}: a pose must be finite numbers (found nan or inf)")
+        if abs(np.linalg.det(m[:3, :3])) < 1e-6:
+            raise UserError(f"{path}: line {line}: the rotation part is singular (not a camera pose)")
+        poses.append(m)
+    return poses
 
 
 # -- a plain folder -------------------------------------------------------------------------------
@@ -92,6 +116,9 @@ class FrameFolder:
 
     def __init__(self, root: Path, split: str) -> None:
         self.root = root
+        if not root.is_dir():
+            raise UserError(f"{root}: not a folder (frames:FOLDER needs a folder of consecutive images and "
+                            "intrinsics.txt)")
         self.paths = sorted(p for p in root.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
         if len(self.paths) < 3:
             raise UserError(f"{root}: {len(self.paths)} frame(s); a sequence needs at least 3 consecutive images")
@@ -102,17 +129,7 @@ class FrameFolder:
         self.targets = _split_targets(len(self.paths), split)
 
     def _read_poses(self, path: Path) -> list[np.ndarray] | None:
-        if not path.is_file():
-            return None
-        rows = [line.split() for line in path.read_text().splitlines() if line.strip()]
-        if len(rows) != len(self.paths) or any(len(r) != 12 for r in rows):
-            raise UserError(f"{path}: needs one line of 12 numbers per frame ({len(self.paths)} frames)")
-        poses = []
-        for r in rows:
-            m = np.eye(4)
-            m[:3, :4] = np.array([float(x) for x in r]).reshape(3, 4)
-            poses.append(m)
-        return poses
+        return read_poses(path, len(self.paths)) if path.is_file() else None
 
     def __len__(self) -> int:
         return len(self.targets)
@@ -123,7 +140,7 @@ class FrameFolder:
         depth_path = self.root / "depth" / f"{self.paths[t].stem}.png"
         depth = np.zeros(self.shape, np.float32)
         if depth_path.is_file():
-            depth = np.asarray(Image.open(depth_path)).astype(np.float32) / 1000.0
+            depth = read_image(depth_path).astype(np.float32) / 1000.0
             if depth.shape != self.shape:
                 raise UserError(f"{depth_path}: {depth.shape} differs from the frames' {self.shape}")
         poses = [self.poses[t + d] for d in (-1, 0, 1)] if self.poses else None
@@ -133,7 +150,7 @@ class FrameFolder:
 # -- a KITTI raw drive ----------------------------------------------------------------------------
 def _read_kv(path: Path) -> dict[str, np.ndarray]:
     out = {}
-    for line in path.read_text().splitlines():
+    for line in read_text(path, 'calibration file').splitlines():
         k, sep, v = line.partition(":")
         if not sep:
             continue

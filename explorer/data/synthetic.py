@@ -128,82 +128,116 @@ def render_scene(rng: np.random.Generator, h: int, w: int) -> tuple[np.ndarray, 
     return render_room(room, room.cam, room.yaw, room.pitch, h, w, rng)
 
 
+class _Hits:
+    """The nearest hit so far along each ray: its distance, surface normal and material. Surfaces
+    are cast one after another; each keeps only the rays it meets nearer than any before it."""
+
+    def __init__(self, n: int) -> None:
+        self.t = np.full(n, np.inf)
+        self.normal = np.zeros((n, 3))
+        self.material = np.zeros(n, dtype=np.int32)
+
+    def take(self, t: np.ndarray, nrm: np.ndarray, mat: int) -> None:
+        hit = (t > 1e-6) & (t < self.t)
+        self.t[hit] = t[hit]
+        self.normal[hit] = nrm[hit] if nrm.ndim == 2 else nrm
+        self.material[hit] = mat
+
+
 def render_room(room: Room, cam: np.ndarray, yaw: float, pitch: float, h: int, w: int,
                 noise_rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
     """(rgb uint8 (H, W, 3), depth float32 (H, W) metres) of ``room`` seen from camera position
     ``cam`` looking along ``yaw``/``pitch``; ``noise_rng`` draws the sensor noise."""
-    lx, ly, lz = room.size
     d = _camera_rays(h, w, yaw, pitch)
+    hits = _Hits(d.shape[0])
+    _cast_room(hits, cam, d, room.size)
+    _cast_objects(hits, cam, d, room.objects)
+    depth = hits.t
+    p = cam + depth[:, None] * d
+    albedo = np.stack([room.colours[m] for m in range(max(room.colours) + 1)])[hits.material]
+    rgb = albedo * (_texture(hits.material, p) * _shading(room, p, hits.normal))[:, None]
+    rgb += noise_rng.normal(0, 0.01, rgb.shape)
+    rgb = (np.clip(rgb, 0, 1) * 255).astype(np.uint8).reshape(h, w, 3)
+    depth = np.clip(depth, 0, MAX_DEPTH).astype(np.float32).reshape(h, w)
+    depth[~np.isfinite(depth)] = MAX_DEPTH
+    return rgb, depth
+
+
+def _cast_room(hits: _Hits, cam: np.ndarray, d: np.ndarray, size: tuple[float, float, float]) -> None:
+    """The room's interior: each ray leaves through the nearest of the three planes it points at.
+    Materials 0-3 are the walls, 4 the floor, 5 the ceiling."""
     n = d.shape[0]
-    t_best = np.full(n, np.inf)
-    normal = np.zeros((n, 3))
-    material = np.zeros(n, dtype=np.int32)
-
-    def take(t: np.ndarray, nrm: np.ndarray, mat: int) -> None:
-        hit = (t > 1e-6) & (t < t_best)
-        t_best[hit] = t[hit]
-        normal[hit] = nrm[hit] if nrm.ndim == 2 else nrm
-        material[hit] = mat
-
-    # room interior: leave through the nearest of the three planes the ray points at
     with np.errstate(divide="ignore", invalid="ignore"):
-        for axis, size in enumerate((lx, ly, lz)):
-            bound = np.where(d[:, axis] > 0, size, 0.0)
+        for axis, length in enumerate(size):
+            bound = np.where(d[:, axis] > 0, length, 0.0)
             t = (bound - cam[axis]) / d[:, axis]
             nrm = np.zeros((n, 3))
             nrm[:, axis] = -np.sign(d[:, axis])
-            mat = np.where(d[:, axis] > 0, 2 * axis + 1, 2 * axis)  # 0..5: walls, floor 4, ceiling 5
+            mat = np.where(d[:, axis] > 0, 2 * axis + 1, 2 * axis)
             for m in np.unique(mat):
-                sel = mat == m
-                tt = np.where(sel, t, np.inf)
-                take(tt, nrm, int(m))
-    colours = room.colours
-    for kind, c, mat, params in room.objects:
-        with np.errstate(divide="ignore", invalid="ignore"):
-            if kind == "box":
-                half, top = params
-                lo = np.array([c[0] - half[0], c[1] - half[1], 0.0])
-                hi = np.array([c[0] + half[0], c[1] + half[1], top])
-                t1, t2 = (lo - cam) / d, (hi - cam) / d
-                tmin, tmax = np.minimum(t1, t2), np.maximum(t1, t2)
-                t_near, axis = tmin.max(axis=1), tmin.argmax(axis=1)
-                t = np.where((t_near <= tmax.min(axis=1)) & (t_near > 0), t_near, np.inf)
-                nrm = np.zeros((n, 3))
-                nrm[np.arange(n), axis] = -np.sign(d[np.arange(n), axis])
-                take(t, nrm, mat)
-            elif kind == "cylinder":
-                r, top = params
-                oc = cam[:2] - c
-                a = (d[:, :2] ** 2).sum(1)
-                b = 2 * (d[:, :2] * oc).sum(1)
-                disc = b * b - 4 * a * ((oc ** 2).sum() - r * r)
-                t = (-b - np.sqrt(np.maximum(disc, 0))) / (2 * a)
-                z = cam[2] + t * d[:, 2]
-                t = np.where((disc > 0) & (z >= 0) & (z <= top), t, np.inf)
-                p = cam[:2] + t[:, None] * d[:, :2]
-                nrm = np.zeros((n, 3))
-                nrm[:, :2] = np.nan_to_num((p - c) / r)
-                take(t, nrm, mat)
-                tc = (top - cam[2]) / d[:, 2]
-                pc = cam[:2] + tc[:, None] * d[:, :2]
-                tc = np.where(((pc - c) ** 2).sum(1) <= r * r, tc, np.inf)
-                take(tc, np.array([0.0, 0.0, 1.0]), mat)
-            else:
-                (r,) = params
-                centre = np.array([c[0], c[1], r])
-                oc = cam - centre
-                b = 2 * (d * oc).sum(1)
-                a = (d ** 2).sum(1)
-                disc = b * b - 4 * a * ((oc ** 2).sum() - r * r)
-                t = np.where(disc > 0, (-b - np.sqrt(np.maximum(disc, 0))) / (2 * a), np.inf)
-                p = cam + t[:, None] * d
-                take(t, np.nan_to_num((p - centre) / r), mat)
+                hits.take(np.where(mat == m, t, np.inf), nrm, int(m))
 
-    depth = t_best
-    p = cam + depth[:, None] * d
-    # albedo: per-material colour with a texture that shrinks with distance (a depth cue)
-    albedo = np.stack([colours[m] for m in range(max(colours) + 1)])[material]
-    tex = np.ones(n)
+
+def _cast_objects(hits: _Hits, cam: np.ndarray, d: np.ndarray, objects: tuple) -> None:
+    """The objects standing on the floor, in the order drawn (a tie goes to the earlier one)."""
+    cast = {"box": _cast_box, "cylinder": _cast_cylinder, "sphere": _cast_sphere}
+    for kind, c, mat, params in objects:
+        with np.errstate(divide="ignore", invalid="ignore"):
+            cast[kind](hits, cam, d, c, mat, params)
+
+
+def _cast_box(hits: _Hits, cam: np.ndarray, d: np.ndarray, c: np.ndarray, mat: int, params: tuple) -> None:
+    """An axis-aligned box on the floor (slab test: the ray enters at the last of its entries)."""
+    half, top = params
+    n = d.shape[0]
+    lo = np.array([c[0] - half[0], c[1] - half[1], 0.0])
+    hi = np.array([c[0] + half[0], c[1] + half[1], top])
+    t1, t2 = (lo - cam) / d, (hi - cam) / d
+    tmin, tmax = np.minimum(t1, t2), np.maximum(t1, t2)
+    t_near, axis = tmin.max(axis=1), tmin.argmax(axis=1)
+    t = np.where((t_near <= tmax.min(axis=1)) & (t_near > 0), t_near, np.inf)
+    nrm = np.zeros((n, 3))
+    nrm[np.arange(n), axis] = -np.sign(d[np.arange(n), axis])
+    hits.take(t, nrm, mat)
+
+
+def _cast_cylinder(hits: _Hits, cam: np.ndarray, d: np.ndarray, c: np.ndarray, mat: int, params: tuple) -> None:
+    """An upright cylinder on the floor: its side, then its flat top."""
+    r, top = params
+    oc = cam[:2] - c
+    a = (d[:, :2] ** 2).sum(1)
+    b = 2 * (d[:, :2] * oc).sum(1)
+    disc = b * b - 4 * a * ((oc ** 2).sum() - r * r)
+    t = (-b - np.sqrt(np.maximum(disc, 0))) / (2 * a)
+    z = cam[2] + t * d[:, 2]
+    t = np.where((disc > 0) & (z >= 0) & (z <= top), t, np.inf)
+    p = cam[:2] + t[:, None] * d[:, :2]
+    nrm = np.zeros((d.shape[0], 3))
+    nrm[:, :2] = np.nan_to_num((p - c) / r)
+    hits.take(t, nrm, mat)
+    tc = (top - cam[2]) / d[:, 2]
+    pc = cam[:2] + tc[:, None] * d[:, :2]
+    tc = np.where(((pc - c) ** 2).sum(1) <= r * r, tc, np.inf)
+    hits.take(tc, np.array([0.0, 0.0, 1.0]), mat)
+
+
+def _cast_sphere(hits: _Hits, cam: np.ndarray, d: np.ndarray, c: np.ndarray, mat: int, params: tuple) -> None:
+    """A sphere resting on the floor."""
+    (r,) = params
+    centre = np.array([c[0], c[1], r])
+    oc = cam - centre
+    b = 2 * (d * oc).sum(1)
+    a = (d ** 2).sum(1)
+    disc = b * b - 4 * a * ((oc ** 2).sum() - r * r)
+    t = np.where(disc > 0, (-b - np.sqrt(np.maximum(disc, 0))) / (2 * a), np.inf)
+    p = cam + t[:, None] * d
+    hits.take(t, np.nan_to_num((p - centre) / r), mat)
+
+
+def _texture(material: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """Brightness factor of each hit's texture: floor planks, striped walls, checkered objects. The
+    patterns are fixed in the world, so they shrink with distance (a depth cue)."""
+    tex = np.ones(len(material))
     floor = material == 4
     plank = (np.floor(p[:, 0] / 0.25) + np.floor(p[:, 1] / 1.2 + 0.5 * (np.floor(p[:, 0] / 0.25) % 2))) % 2
     tex[floor] = 0.75 + 0.25 * plank[floor] * _hash_noise(p[floor], 3.0, 1)
@@ -213,19 +247,15 @@ def render_room(room: Room, cam: np.ndarray, yaw: float, pitch: float, h: int, w
     objs = material >= 6
     checker = (np.floor(p[:, 0] / 0.15) + np.floor(p[:, 1] / 0.15) + np.floor(p[:, 2] / 0.15)) % 2
     tex[objs] = 0.8 + 0.2 * checker[objs]
-    # Lambertian shading from a ceiling light, with inverse-square falloff and ambient light
-    light = room.light
-    to_light = light - p
+    return tex
+
+
+def _shading(room: Room, p: np.ndarray, normal: np.ndarray) -> np.ndarray:
+    """Lambertian shading from the ceiling light, with inverse-square falloff and ambient light."""
+    to_light = room.light - p
     dist = np.linalg.norm(to_light, axis=1, keepdims=True)
     lambert = np.clip((normal * to_light / np.maximum(dist, 1e-6)).sum(1), 0, 1)
-    power = room.power
-    shade = 0.25 + 0.75 * np.clip(power * lambert / (1.0 + dist[:, 0] ** 2), 0, 1.3)
-    rgb = albedo * (tex * shade)[:, None]
-    rgb += noise_rng.normal(0, 0.01, rgb.shape)
-    rgb = (np.clip(rgb, 0, 1) * 255).astype(np.uint8).reshape(h, w, 3)
-    depth = np.clip(depth, 0, MAX_DEPTH).astype(np.float32).reshape(h, w)
-    depth[~np.isfinite(depth)] = MAX_DEPTH
-    return rgb, depth
+    return 0.25 + 0.75 * np.clip(room.power * lambert / (1.0 + dist[:, 0] ** 2), 0, 1.3)
 
 
 def _render_job(job: tuple[int, int, int, int]) -> tuple[np.ndarray, np.ndarray]:

@@ -4,8 +4,7 @@ an exit, path 0 on its own), plus a manifest. Verified against PyTorch at export
 
 from __future__ import annotations
 
-import json
-import shutil
+import hashlib
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -17,6 +16,7 @@ import torch
 from explorer import __version__
 from explorer.cost import candidate_cost, get_device
 from explorer.errors import UserError
+from explorer.files import replacing_folder, write_json
 from explorer.model import AnytimeDepthNet
 from explorer.model.onnx import OPSET, example_inputs, export_segments
 from explorer.deploy.quantize import MAX_DEGRADATION
@@ -58,28 +58,32 @@ def export_network(net: AnytimeDepthNet, out_dir: Path, input_size: tuple[int, i
                    devices: Sequence[str] = ("tx2", "rpi4"), source: dict | None = None,
                    quantization: Quantization | None = None,
                    progress: Callable[[str], None] | None = None) -> dict:
-    """Writes the stage graphs and the manifest to ``out_dir``. With ``quantization`` the graphs are
-    int8, built and measured in a scratch folder first: a refused quantization leaves ``out_dir`` as
-    it was."""
-    if quantization is None:
-        return _export_fp32(net, out_dir, input_size, scan_row, path_metrics, devices, source)
-    from explorer.deploy.quantize import quantize_export  # onnxruntime.quantization: only when asked for
-    out_dir.parent.mkdir(parents=True, exist_ok=True)
-    with tempfile.TemporaryDirectory(dir=out_dir.parent, prefix=f".{out_dir.name}.") as tmp:
-        scratch = Path(tmp)
+    """Writes the stage graphs and the manifest to ``out_dir``, whole: everything is built, checked
+    (and, with ``quantization``, quantized and measured) in a scratch folder that then replaces
+    ``out_dir``; a refused or killed export leaves ``out_dir`` as it was. The manifest records each
+    graph's SHA-256, which the runtime checks."""
+    with replacing_folder(out_dir, MANIFEST) as scratch:
         manifest = _export_fp32(net, scratch, input_size, scan_row, path_metrics, devices, source)
-        q = quantization
-        manifest.update(quantize_export(scratch, q.data, q.calibration_frames, q.eval_frames, q.max_degradation,
-                                        q.force, progress, q.stages))
-        manifest["path_metrics_trained"] = manifest["path_metrics"]
-        manifest["path_metrics"] = manifest["path_metrics_int8"]
-        (scratch / MANIFEST).write_text(json.dumps(manifest, indent=2))
-        out_dir.mkdir(parents=True, exist_ok=True)
-        old = out_dir / MANIFEST
-        old.unlink(missing_ok=True)    # a half-replaced folder never passes for a complete export
-        for f in sorted(scratch.iterdir(), key=lambda f: f.name == MANIFEST):
-            shutil.move(str(f), out_dir / f.name)
+        write_json(scratch / MANIFEST, manifest)   # what quantization reads and rewrites
+        if quantization is not None:
+            from explorer.deploy.quantize import quantize_export  # onnxruntime.quantization: only when asked
+            q = quantization
+            manifest.update(quantize_export(scratch, q.data, q.calibration_frames, q.eval_frames, q.max_degradation,
+                                            q.force, progress, q.stages))
+            manifest["path_metrics_trained"] = manifest["path_metrics"]
+            manifest["path_metrics"] = manifest["path_metrics_int8"]
+        for stage in manifest["stages"]:
+            stage["sha256"] = file_sha256(scratch / stage["file"])
+        write_json(scratch / MANIFEST, manifest)
     return manifest
+
+
+def file_sha256(path: Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
 
 
 def _export_fp32(net: AnytimeDepthNet, out_dir: Path, input_size: tuple[int, int], scan_row: int | None,
@@ -93,7 +97,6 @@ def _export_fp32(net: AnytimeDepthNet, out_dir: Path, input_size: tuple[int, int
     diff = verify(graphs, net, input_size, scan_row)
     if diff > TOLERANCE:
         raise RuntimeError(f"ONNX export differs from PyTorch by {diff:.2e} (> {TOLERANCE:g}): not written")
-    out_dir.mkdir(parents=True, exist_ok=True)
     stages = []
     for i, (seg, model) in enumerate(graphs):
         file = f"{i:02d}_path{seg['path']}.onnx"
@@ -118,7 +121,6 @@ def _export_fp32(net: AnytimeDepthNet, out_dir: Path, input_size: tuple[int, int
         "verification": {"max_abs_diff": diff, "tolerance": TOLERANCE}, "source": source or {},
         "precision": "fp32",
     }
-    (out_dir / MANIFEST).write_text(json.dumps(manifest, indent=2))
     return manifest
 
 

@@ -3,7 +3,9 @@ machine, PostgreSQL (or any RDB URL) for several machines. SQLite with several w
 
 from __future__ import annotations
 
+import json
 import os
+import re
 from pathlib import Path
 
 import optuna
@@ -32,10 +34,44 @@ def heartbeat_settings() -> tuple[int, int]:
     return out[0], out[1]
 
 
+#: a study name is a folder name and a database key: letters, digits, '-', '_' and '.', not first
+STUDY_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,99}")
+
+
+def check_study_name(study: str) -> str:
+    if not isinstance(study, str) or not STUDY_NAME.fullmatch(study):
+        raise UserError(f"study name {study!r} must be a plain name: letters, digits, '-', '_' and '.', "
+                        "starting with a letter or digit, at most 100 characters")
+    return study
+
+
 def study_dir(study: str, reports: Path = REPORTS_DIR) -> Path:
-    if not study or any(c in study for c in "/\\") or study.startswith("."):
-        raise UserError(f"study name {study!r} must be a plain name (letters, digits, '-', '_')")
-    return reports / study
+    return reports / check_study_name(study)
+
+
+def _make_parent(path: Path, what: str) -> None:
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise UserError(f"{path.parent}: cannot create the folder for the {what} ({exc.strerror}): "
+                        "give a --storage path you can write") from None
+
+
+def _check_journal(path: Path) -> None:
+    """A file given as a journal must be one: Optuna's journal is JSON, one operation a line."""
+    if not path.exists() or path.stat().st_size == 0:
+        return
+    if path.is_dir():
+        raise UserError(f"{path}: is a folder, not a study journal")
+    with open(path, "rb") as f:
+        first = f.readline(1 << 20)
+    try:
+        entry = json.loads(first)
+    except (ValueError, UnicodeDecodeError):
+        entry = None
+    if not isinstance(entry, dict) or "op_code" not in entry:
+        raise UserError(f"{path}: not an Optuna study journal (give the journal file explorer search wrote, "
+                        "or a new path)")
 
 
 def default_url(study: str, reports: Path = REPORTS_DIR) -> str:
@@ -64,14 +100,15 @@ def open_storage(url: str | None, study: str, workers: int = 1, reports: Path = 
         path = Path(url[len("journal:"):])
         if not create and not path.exists():
             raise UserError(f"no study journal at {path}")
-        path.parent.mkdir(parents=True, exist_ok=True)
+        _check_journal(path)
+        _make_parent(path, "study journal")
         return optuna.storages.JournalStorage(JournalFileBackend(str(path)))
     if url.startswith("sqlite:///"):
         path = Path(url[len("sqlite:///"):])
         if not create and not path.exists():
             raise UserError(f"no study database at {path} (run `explorer search --study {study}` first, "
                             "or give --storage)")
-        path.parent.mkdir(parents=True, exist_ok=True)
+        _make_parent(path, "study database")
     url = _with_driver(url)
     kwargs = {}
     if not url.startswith("sqlite"):

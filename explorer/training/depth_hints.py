@@ -100,7 +100,12 @@ def with_hints(dataset, steps: int = STEPS, cache: Path | None = None,
     from explorer.data.synthetic import cache_dir
     path = (cache or cache_dir()) / f"hints-{_fingerprint(dataset, steps)}.pt"
     if path.is_file():
-        return HintedDataset(dataset, torch.load(path))
+        try:   # tensors only: a cache file is never code
+            cached = torch.load(path, map_location="cpu", weights_only=True)
+        except Exception:   # a damaged cache entry (disk full, foreign file): computed again below
+            cached = None
+        if isinstance(cached, torch.Tensor) and len(cached) == len(dataset):
+            return HintedDataset(dataset, cached)
     hints = []
     for batch in DataLoader(dataset, batch_size=BATCH, shuffle=False):
         hints.append(compute_hints(batch, steps))
