@@ -20,6 +20,7 @@ from explorer.calibration.measure import conditions
 from explorer.probe import DEFAULT_PROVIDER
 from explorer.cost.workloads import KINDS, Workload
 from explorer.calibration.sweep import DEFAULT_COUNTS, HOST_KINDS, STAGE_SIZES, SweepLayer, layer_graph, sweep_layers  # noqa: F401
+from explorer.calibration.results_schema import check_results
 from explorer.errors import UserError
 
 def fit_host(measured: list[tuple[Workload, float]], name: str = "host",
@@ -115,11 +116,13 @@ def fit_energy(energy: dict | None) -> tuple[float, float, dict]:
 
 
 def read_results(path: str | Path) -> dict:
-    """A probe results file, checked (one line, exit 2, for a truncated or foreign file)."""
+    """A probe results file, checked whole (``results_schema``): one line, exit 2, for a truncated,
+    foreign or hand-edited file."""
     try:
-        return _probe.read_results(Path(path))
+        data = _probe.read_results(Path(path))
     except _probe.ProbeError as exc:
         raise UserError(str(exc)) from None
+    return check_results(data, path)
 
 
 def _observations(results: dict) -> dict[str, list]:
@@ -190,12 +193,12 @@ def with_int8(profile: DeviceProfile, measured: list[tuple[Workload, float]],
     ``explorer export --quantize int8`` quantizes them, starting from ``profile`` itself: only the rates,
     overheads and memory rates of the quantized and memory-bound kinds move, and the fit's prior holds
     what the int8 graphs barely show at its fp32 value; per-inference and per-stage costs are the fp32
-    ones. Fitted from scratch on the quantized single-layer graphs and the int8 stage graphs (the rule
-    until stop 36), the int8 rates came out different by 4-250x from one calibration of the Zen 4 VM to
-    the next, and held-out int8 stage graphs were predicted with a median error of 10.2 / 7.9 / 8.4%
-    over three calibrations; so, 4.3 / 5.9 / 5.9% (``benchmarks/bench_devices.py --refit``, the same
-    measurements): a single-layer graph quantized alone pays the quantize, layout changes and dequantize
-    that a whole-quantized graph pays once at its edges, and says little about the graph. Results
+    ones. Fitted from scratch on the quantized single-layer graphs and the int8 stage graphs, the int8
+    rates came out different by orders of magnitude from one calibration of a machine to the next, and
+    held-out int8 stage graphs were predicted worse than when fitted so
+    (``benchmarks/bench_devices.py --refit`` compares the fits on the same measurements): a
+    single-layer graph quantized alone pays the quantize, layout changes and dequantize that a
+    whole-quantized graph pays once at its edges, and says little about the graph. Results
     without int8 stage graphs get the from-scratch fit on the single-layer ones, with the fp32
     timings of the kinds they lack. Unchanged when no quantized pointwise convolution was measured."""
     from explorer.cost.precision import workload_quantized
@@ -290,13 +293,14 @@ def calibrate(threads: int | None = None, repeats: int = 25, seed: int = 0, scal
 #: After the probe, graphs whose timing is this much above what the fit of all the timings predicts
 #: are timed again (``RETIME_ROUNDS`` times at most), and each keeps its faster timing. A machine
 #: shared with other loads can be slowed between two of the probe's speed checks without either
-#: showing it: on a 2-core AMD EPYC (Zen 3) VM that ran 1x or 2x slow by turns, every few seconds,
-#: 88 of 258 layer graphs and 77 of 424 stage graphs of one calibration were 20% or more above the fit.
+#: showing it: on a machine that ran 1x or 2x slow by turns, every few seconds, about a third of the
+#: layer graphs and a fifth of the stage graphs of one calibration were 20% or more above the fit.
 RETIME_ABOVE = 0.2
 RETIME_ROUNDS = 2
 #: A graph whose second timing kept more than this fraction of its first is not timed a third time:
-#: it is slow for the fit, not for the machine. On a calm AVX-512 VM, 477-530 graphs per calibration
-#: were 20% or more above the fit (its layer graphs' median error: 18%), and each round timed them all.
+#: it is slow for the fit, not for the machine. On a calm machine whose layer graphs the fit prices
+#: poorly, hundreds of graphs per calibration can lie 20% or more above the fit, and each round would
+#: time them all again.
 SETTLED = 0.9
 
 
