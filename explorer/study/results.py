@@ -183,6 +183,18 @@ def winner(study: optuna.Study) -> optuna.trial.FrozenTrial | None:
     return min(retrained, key=lambda t: t.values[0], default=None) or best_trial(study)
 
 
+def unbeaten_baseline(study: optuna.Study) -> optuna.trial.FrozenTrial | None:
+    """The best retrained baseline when no retrained candidate beats it, else None. Then the best model
+    the study found is that baseline, whatever the search estimated: the summary and the report say so
+    instead of calling the searched candidate a winner."""
+    best = winner(study)
+    baselines = [t for t in scored_trials(study) if is_retrained(t) and t.user_attrs.get("baseline")]
+    base = min(baselines, key=lambda t: t.values[0], default=None)
+    if best is None or base is None or not is_retrained(best):
+        return None
+    return base if base.values[0] <= best.values[0] else None
+
+
 def baseline_trial(study: optuna.Study, name: str, retrained: bool = False) -> optuna.trial.FrozenTrial | None:
     """Baseline ``name``'s trial: its search estimate, or its retraining with ``retrained``."""
     return next((t for t in scored_trials(study) if t.user_attrs.get("baseline") == name

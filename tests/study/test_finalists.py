@@ -179,3 +179,19 @@ def test_a_reference_network_joins_the_study_as_a_baseline(tmp_path):
     html = write_report(study, out_dir=tmp_path / "report").read_text()
     table2 = html.split('<section id="table2">')[1].split("</section>")[0]
     assert "fastdepth-pruned" in table2 and "paper design" in table2
+
+
+def test_a_baseline_that_beats_every_retrained_candidate_is_named():
+    from explorer.study.results import unbeaten_baseline
+    study = optuna.create_study(storage=optuna.storages.InMemoryStorage())
+    attrs = {"candidate": {}, "path_metrics": [], "workloads": []}
+
+    def add(value, key, **extra):
+        study.add_trial(optuna.trial.create_trial(values=[value], user_attrs={**attrs, "candidate_key": key, **extra}))
+
+    add(0.30, "a")                                                  # the search's estimate
+    add(0.35, "a", finalist={"estimate_trial": 0})                   # retrained: worse than estimated
+    add(0.33, "paper", baseline="paper", finalist={})                # the paper design, retrained
+    assert unbeaten_baseline(study).user_attrs["baseline"] == "paper"
+    add(0.32, "b", finalist={"estimate_trial": 0})                   # a candidate that beats it
+    assert unbeaten_baseline(study) is None
