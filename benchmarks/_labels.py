@@ -1,6 +1,7 @@
-"""Stand-alone training results shared by the supernet and search benchmarks: each (candidate, recipe,
-seed) is trained once and cached in a JSON file, so a benchmark can be rerun (or resumed after a kill)
-without paying for the trainings again."""
+"""Stand-alone training results shared by the benchmarks that train candidates (supernet, search,
+exit weights, residual exits, teacher depths): each (candidate, recipe, seed) is trained once and
+cached in a JSON file (``ANYTIME_BENCH_CACHE``, default reports/bench/), so a benchmark can be rerun
+(or resumed after a kill) without paying for the trainings again."""
 
 from __future__ import annotations
 
@@ -78,20 +79,20 @@ def with_seed(cfg: TrainConfig, seed: int) -> TrainConfig:
     return dataclasses.replace(cfg, seed=seed)
 
 
-def add_candidate_options(ap, steps: int = 600, seeds: int = 2) -> None:
-    """--candidate / --study / --reports / --steps / --seeds, as benchmarks that train the paper
-    design beside one other candidate take them."""
+def add_candidate_options(ap, steps: int = 600) -> None:
+    """--candidate / --study / --reports / --steps, as benchmarks that train the paper design beside one
+    other candidate take them (their repetitions, --reps, are training seeds)."""
     ap.add_argument("--candidate", help="a candidate YAML (explorer show --yaml)")
     ap.add_argument("--study", help="take the study's winner as the candidate")
     ap.add_argument("--reports", default="reports")
     ap.add_argument("--steps", type=int, default=steps)
-    ap.add_argument("--seeds", type=int, default=seeds)
 
 
 def candidates_of(args) -> dict[str, Candidate]:
-    """The paper design, and the candidate ``add_candidate_options`` named (if any)."""
+    """{"paper": the paper design} and the candidate ``add_candidate_options`` named (if any), as
+    "candidate" or "winner" (keys usable in figure names)."""
     from explorer.space import paper_candidate
-    cands = {"paper design": paper_candidate()}
+    cands = {"paper": paper_candidate()}
     if args.candidate:
         cands["candidate"] = Candidate.from_yaml(args.candidate)
     elif args.study:

@@ -1,15 +1,17 @@
-"""Held-out measurements taken at the speed a calibration measured at: on a shared VM whose speed
-changes from outside (this project's 2-core Zen 4 VM runs a while as if it had one core, every
-graph 1.5-1.8x slower), a timing taken in such a spell says nothing about a profile fitted in calm.
-The rule is the probe's own (``probe_script.SLOW``, ``REMEASURE_PASSES``, ``wait_until_calm``)."""
+"""Held-out measurements taken at the speed a calibration measured at. A machine whose speed changes
+from outside (other loads, throttling) can run every graph much slower for a while; a timing taken in
+such a spell says nothing about a profile fitted while it ran at its usual speed. The rule is the
+probe's own (``SLOW``, ``REMEASURE_PASSES``, ``wait_until_calm`` of ``explorer.probe``). Used by
+bench_devices.py and bench_runtime.py; ``note_steadiness`` puts what the rule did into the harness's
+record."""
 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Callable, NamedTuple, TypeVar
+from typing import Callable, NamedTuple, Sequence, TypeVar
 
 from explorer.probe import (DEFAULT_PROVIDER, REMEASURE_PASSES, SLOW, default_threads, fixed_graph_timer,
-                                       speed_layer, usual_speed, wait_until_calm)
+                            speed_layer, usual_speed, wait_until_calm)
 
 T = TypeVar("T")
 
@@ -54,3 +56,12 @@ def steadily(measure: Callable[[], T], slowness: Callable[[], float],
             return Steady(kept, again, max(before, after))
         wait_until_calm(after, slowness, 1.0)
     raise AssertionError("unreachable")
+
+
+def note_steadiness(bench, what: str, taken: Sequence[Steady]) -> None:
+    """Notes in ``bench``'s record (a ``harness.Bench``) how often ``what`` was taken again, and how
+    many of its results were still taken on a slow machine: a reader of the figures needs to know."""
+    again = sum(s.again for s in taken)
+    slow = sum(bool(s.note()) for s in taken)
+    if again or slow:
+        bench.note(f"{what}: taken again {again} times after the machine ran slow; {slow} of {len(taken)} still slow")

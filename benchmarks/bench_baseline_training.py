@@ -1,18 +1,18 @@
-"""How long a reference network takes to retrain as a study's baseline, as `--time-limit` measures it,
-beside the estimate it falls back on without a measurement (MACs at the training size over the paper
-design's, `search.baseline_load`): seconds per training step (batch 16 at 64x64, the finalists' recipe) of the paper design and of
-each reference network, measured by the same call the plan makes (explorer.study.planning.measure_speeds),
---reps times; every repetition and the medians are printed. With --study, also the finalists that
-study would retrain (what the plan measures when sampling ends).
+"""How long a reference network takes to retrain as a study's baseline, as ``--time-limit`` measures
+it, beside the estimate it falls back on without a measurement (MACs at the training size over the
+paper design's, ``explorer.study.search.baseline_load``): seconds per training step (the finalists'
+recipe) of the paper design and of each reference network, measured by the same call the plan makes
+(``explorer.study.planning.measure_speeds``). The time plan of a study is only as good as these
+ratios. With --study, also the finalists that study would retrain.
 
-    .venv/bin/python benchmarks/bench_baseline_training.py [--reps 3] [--steps 12]
+    python benchmarks/bench_baseline_training.py [--reps 3] [--steps 12]
         [--references s2d-resnet18,monodepth2-resnet18,fastdepth-pruned] [--study DB --finalists 3]
+
+Each repetition measures the paper design, then every reference network and finalist, in an order
+that rotates between repetitions.
 """
 
 from __future__ import annotations
-
-import argparse
-import statistics
 
 import torch
 
@@ -20,44 +20,47 @@ from explorer.data import open_dataset
 from explorer.study.planning import measure_speeds
 from explorer.study.search import SearchConfig, baseline_load
 
+from harness import Bench, rotated
+
+
+def finalists_of(study_file: str, count: int) -> tuple:
+    import optuna
+    from explorer.space import Candidate
+    from explorer.study.finalists import choose_finalists
+    study = optuna.load_study(study_name=None, storage=f"sqlite:///{study_file}")
+    return tuple(Candidate.from_dict(t.user_attrs["candidate"]) for t in choose_finalists(study, count))
+
+
 if __name__ == "__main__":
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--reps", type=int, default=3)
+    bench = Bench(__file__, "Reference networks' training step against the paper design's", __doc__)
+    ap = bench.parser()
     ap.add_argument("--steps", type=int, default=12)
     ap.add_argument("--references", default="s2d-resnet18,monodepth2-resnet18,fastdepth-pruned")
     ap.add_argument("--study", help="a study's sqlite file: its finalists are measured too")
     ap.add_argument("--finalists", type=int, default=3)
-    args = ap.parse_args()
+    args = bench.parse_args(ap)
     names = tuple(n for n in args.references.split(",") if n)
-    finalists = ()
-    if args.study:
-        import optuna
-        from explorer.study.finalists import choose_finalists
-        from explorer.space import Candidate
-        study = optuna.load_study(study_name=None, storage=f"sqlite:///{args.study}")
-        finalists = tuple(Candidate.from_dict(t.user_attrs["candidate"])
-                          for t in choose_finalists(study, args.finalists))
-    finalist_ratios: list[list[float]] = [[] for _ in finalists]
+    finalists = finalists_of(args.study, args.finalists) if args.study else ()
     # what `explorer search --time-limit` measures: the same call, with the study's default recipe
     cfg = SearchConfig(study="bench", baselines=names, val_limit=8)
     train_set = open_dataset(cfg.data, "train", cfg.train_size)
     val_set = open_dataset("synthetic:48:16", "val", cfg.train_size, train_augment=False)
-    ratios: dict[str, list[float]] = {n: [] for n in names}
-    for rep in range(args.reps):   # each rep measures the paper design, then every reference
-        speeds = measure_speeds(cfg, train_set, val_set, torch.device("cpu"), supernet=False, steps=args.steps,
-                                baselines=names, finalists=finalists)
-        for n in names:
-            ratios[n].append(speeds.relative_training(n))
-        for i, step in enumerate(speeds.finalist_step_s):
-            finalist_ratios[i].append(step / speeds.retrain_step_s)
-        print(f"rep {rep + 1}: paper design {speeds.retrain_step_s:.3f} s a step; "
-              + ", ".join(f"{n} {dict(speeds.baseline_step_s)[n]:.3f} s ({ratios[n][-1]:.2f}x)" for n in names)
-              + "".join(f", finalist {c.key} {r[-1]:.2f}x" for c, r in zip(finalists, finalist_ratios)),
-              flush=True)
+    bench.figure("paper_step_s", "paper design, seconds a step", "s", "lower")
     for n in names:
-        by_macs = baseline_load(SearchConfig(study="bench", baselines=(n,)))
-        print(f"{n}: median {statistics.median(ratios[n]):.2f}x the paper design's step (reps "
-              f"{' / '.join(f'{r:.2f}' for r in ratios[n])}); by MACs {by_macs:.2f}x")
-    for c, r in zip(finalists, finalist_ratios):
-        print(f"finalist {c.key}: median {statistics.median(r):.2f}x the paper design's step (reps "
-              f"{' / '.join(f'{x:.2f}' for x in r)})")
+        bench.figure(f"{n}_step_s", f"{n}, seconds a step", "s", "lower")
+        bench.figure(f"{n}_ratio", f"{n} / paper design step", "x", None)
+    for i, c in enumerate(finalists):
+        bench.figure(f"finalist{i}_ratio", f"finalist {c.key} / paper design step", "x", None)
+    bench.note("by MACs (the estimate without a measurement): " + ", ".join(
+        f"{n} {baseline_load(SearchConfig(study='bench', baselines=(n,))):.2f}x" for n in names))
+    for rep in bench.repetitions():
+        order = tuple(rotated(list(names), rep))
+        speeds = measure_speeds(cfg, train_set, val_set, torch.device("cpu"), supernet=False, steps=args.steps,
+                                baselines=order, finalists=finalists)
+        bench.add("paper_step_s", speeds.retrain_step_s)
+        for n in names:
+            bench.add(f"{n}_step_s", dict(speeds.baseline_step_s)[n])
+            bench.add(f"{n}_ratio", speeds.relative_training(n))
+        for i, step in enumerate(speeds.finalist_step_s):
+            bench.add(f"finalist{i}_ratio", step / speeds.retrain_step_s)
+    bench.finish()

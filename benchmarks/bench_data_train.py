@@ -1,11 +1,16 @@
 """Data and training: synthetic generation rate, training throughput at proxy and full resolution,
-how proxy rankings agree with longer training (Kendall tau), the paper design's per-path RMSE on
+how proxy rankings agree with longer training (Kendall tau), the paper design's last-path RMSE on
 synthetic data after the proxy recipe and after a longer one, and path 0 on the real NYU frames.
+These are the rates that size a study's time plan, and the agreement that justifies ranking
+candidates by the proxy recipe.
 
-    .venv/bin/python benchmarks/bench_data_train.py [--candidates 6] [--long-steps 600]
+    python benchmarks/bench_data_train.py [--reps 3] [--candidates 6] [--long-steps 600] [--data DIR]
+
+Generation and the two throughputs alternate within each repetition; the ranking comparison trains
+every candidate once with each recipe (one value per figure), and path 0 on nyu-mini is measured
+when --data holds it.
 """
 
-import argparse
 import dataclasses
 import random
 import tempfile
@@ -21,12 +26,14 @@ from explorer.data import open_dataset
 from explorer.data.synthetic import SyntheticConfig, generate
 from explorer.metrics import MetricAverager, depth_metrics
 from explorer.model import build_network, interpolate_scan
-from explorer.study.search import SearchConfig
 from explorer.space import SearchSpace, paper_candidate
+from explorer.study.search import SearchConfig
 from explorer.training.train import TrainConfig, train
 
+from harness import Bench, interleave
 
-def throughput(size, steps=8, batch=16):
+
+def throughput(size, steps=8, batch=16) -> float:
     ds = open_dataset("synthetic", "train", size)
     cfg = TrainConfig(steps=steps, batch_size=batch, input_size=size)
     net = build_network(paper_candidate())
@@ -34,56 +41,78 @@ def throughput(size, steps=8, batch=16):
     return res.images_per_second
 
 
-if __name__ == "__main__":
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--candidates", type=int, default=6)
-    ap.add_argument("--long-steps", type=int, default=600)
-    ap.add_argument("--data", default=str(Path(__file__).resolve().parents[1].parent / "shared" / "data"))
-    args = ap.parse_args()
-    torch.set_num_threads(2)
-
+def generation_rate() -> float:
+    """Synthetic frames per second at 224x224 (200 frames)."""
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()
         generate(SyntheticConfig(train=192, val=8), Path(tmp) / "s.h5")
-        dt = time.perf_counter() - t0
-        print(f"synthetic generation: {200 / dt:.1f} frames/s at 224x224 (2,200 default frames: {2200 / (200 / dt) / 60:.1f} min)")
+        return 200 / (time.perf_counter() - t0)
 
-    print(f"training throughput (paper design, batch 16, CPU): proxy 64x64 {throughput((64, 64)):.0f} images/s, "
-          f"full 224x224 {throughput((224, 224), steps=4):.1f} images/s")
 
-    search = SearchConfig(study="x")
-    proxy = search.train_config()
-    proxy = dataclasses.replace(proxy, eval_every=0)
-    long = dataclasses.replace(proxy, steps=args.long_steps, input_size=(96, 96))
+def ranking(bench: Bench, n: int, long_steps: int) -> None:
+    """Kendall tau between the proxy recipe's anytime losses and a longer recipe's, over ``n`` candidates."""
+    proxy = dataclasses.replace(SearchConfig(study="x").train_config(), eval_every=0)
+    recipes = {"proxy": proxy, "long": dataclasses.replace(proxy, steps=long_steps, input_size=(96, 96))}
     tx2 = get_device("tx2")
-    train_p, val_p = open_dataset("synthetic", "train", proxy.input_size), open_dataset("synthetic", "val", proxy.input_size)
-    train_l, val_l = open_dataset("synthetic", "train", long.input_size), open_dataset("synthetic", "val", long.input_size)
+    sets = {k: (open_dataset("synthetic", "train", r.input_size), open_dataset("synthetic", "val", r.input_size))
+            for k, r in recipes.items()}
     cands = [paper_candidate()] + random.Random(3).sample(list(SearchSpace.from_yaml("anytime_depth").enumerate()),
-                                                          args.candidates - 1)
-    short_scores, long_scores = [], []
+                                                          n - 1)
+    scores: dict[str, list[float]] = {k: [] for k in recipes}
     for c in cands:
         cost = candidate_cost(c).path_costs(tx2, "time")
-        r1 = train(build_network(c), train_p, val_p, proxy, val_limit=None)
-        r2 = train(build_network(c), train_l, val_l, long, val_limit=None)
-        s1 = anytime_loss(cost, list(r1.metrics["rmse"]), "time:uniform:33ms")
-        s2 = anytime_loss(cost, list(r2.metrics["rmse"]), "time:uniform:33ms")
-        short_scores.append(s1)
-        long_scores.append(s2)
-        print(f"  {c.key}: proxy ({proxy.steps} steps @{proxy.input_size[0]}) L={s1:.4f} in {r1.seconds:.0f} s | "
-              f"longer ({long.steps} steps @{long.input_size[0]}) L={s2:.4f} in {r2.seconds:.0f} s")
-        if c == paper_candidate():
-            print("  paper design per-path RMSE, proxy:  " + " ".join(f"{x:.3f}" for x in r1.metrics["rmse"]))
-            print("  paper design per-path RMSE, longer: " + " ".join(f"{x:.3f}" for x in r2.metrics["rmse"]))
-    tau = kendalltau(short_scores, long_scores)
-    print(f"proxy vs longer training: Kendall tau {tau.statistic:.2f} over {len(cands)} candidates (p={tau.pvalue:.2f})")
+        for k, r in recipes.items():
+            res = train(build_network(c), *sets[k], r, val_limit=None)
+            scores[k].append(anytime_loss(cost, list(res.metrics["rmse"]), "time:uniform:33ms"))
+            if c == paper_candidate():
+                bench.add(f"paper_rmse_{k}", res.metrics["rmse"][-1])
+            print(f"  {c.key}: {r.steps} steps at {r.input_size[0]}: anytime loss {scores[k][-1]:.4f} "
+                  f"in {res.seconds:.0f} s", flush=True)
+    long = recipes["long"]
+    tau = kendalltau(scores["proxy"], scores["long"])
+    bench.add("kendall_tau", tau.statistic)
+    bench.note(f"ranking: proxy ({proxy.steps} steps at {proxy.input_size[0]}) against {long.steps} steps at "
+               f"{long.input_size[0]}, {n} candidates, p={tau.pvalue:.2f}")
 
-    nyu = Path(args.data) / "nyu-mini" / "nyu2_mini_test.csv"
-    if nyu.is_file():
-        ds = open_dataset(f"nyu:{nyu}", "val", (224, 224))
-        avg = MetricAverager()
-        for i in range(len(ds)):
-            it = ds[i]
-            avg.add(depth_metrics(interpolate_scan(it["scan"][None], 224)[0], it["depth"]))
-        r = avg.result()
-        print(f"path 0 on the {len(ds)} nyu-mini frames: RMSE {r['rmse']:.3f} m, REL {r['rel']:.3f}, "
-              f"delta1 {r['delta1']:.3f} (paper, full NYU val: 0.987 / 27.9% / 0.661)")
+
+def nyu_path0(bench: Bench, data: Path) -> None:
+    nyu = data / "nyu-mini" / "nyu2_mini_test.csv"
+    if not nyu.is_file():
+        bench.note(f"no {nyu}: path 0 on NYU not measured")
+        return
+    ds = open_dataset(f"nyu:{nyu}", "val", (224, 224))
+    avg = MetricAverager()
+    for i in range(len(ds)):
+        it = ds[i]
+        avg.add(depth_metrics(interpolate_scan(it["scan"][None], 224)[0], it["depth"]))
+    r = avg.result()
+    bench.add("nyu_path0_rmse", r["rmse"])
+    bench.add("nyu_path0_delta1", r["delta1"])
+    bench.note(f"path 0 on {len(ds)} nyu-mini frames: REL {r['rel']:.3f} (the paper, full NYU val: RMSE 0.987, "
+               "REL 27.9%, delta1 0.661)")
+
+
+if __name__ == "__main__":
+    bench = Bench(__file__, "Data generation, training throughput and proxy ranking fidelity", __doc__)
+    ap = bench.parser()
+    ap.add_argument("--candidates", type=int, default=6)
+    ap.add_argument("--long-steps", type=int, default=600)
+    ap.add_argument("--data", default=str(Path(__file__).resolve().parents[1].parent / "shared" / "data"))
+    args = bench.parse_args(ap)
+    torch.set_num_threads(2)
+    bench.figure("generation_fps", "synthetic generation at 224x224", "frames/s", "higher")
+    bench.figure("train_proxy_ips", "training throughput, 64x64, batch 16", "images/s", "higher")
+    bench.figure("train_full_ips", "training throughput, 224x224, batch 16", "images/s", "higher")
+    bench.figure("kendall_tau", "Kendall tau, proxy against longer training", "", "higher")
+    bench.figure("paper_rmse_proxy", "paper design last-path RMSE, proxy recipe", "m", "lower")
+    bench.figure("paper_rmse_long", "paper design last-path RMSE, longer recipe", "m", "lower")
+    bench.figure("nyu_path0_rmse", "path 0 RMSE on nyu-mini", "m", "lower")
+    bench.figure("nyu_path0_delta1", "path 0 delta1 on nyu-mini", "", "higher")
+    for rep in bench.repetitions():
+        got = interleave({"generation_fps": generation_rate, "train_proxy_ips": lambda: throughput((64, 64)),
+                          "train_full_ips": lambda: throughput((224, 224), steps=4)}, rep)
+        for k, v in got.items():
+            bench.add(k, v)
+    ranking(bench, args.candidates, args.long_steps)
+    nyu_path0(bench, Path(args.data))
+    bench.finish()

@@ -1,13 +1,14 @@
-"""What depth hints cost to compute (issue 13): seconds per frame of :func:`explorer.training.depth_hints.compute_hints`
-(200 Adam steps, a batch of 16 frames as ``with_hints`` runs them) at each input size, sizes interleaved,
-every repetition and the median printed. Multiply by the training frames for the one-off cost before a
-``--depth-hints`` training or study (cached afterwards).
+"""What depth hints cost to compute: seconds per frame of
+:func:`explorer.training.depth_hints.compute_hints` (its Adam steps on a batch of frames, as
+``with_hints`` runs them) at each input size. Multiplied by the training frames, it is the one-off cost
+before a ``--depth-hints`` training or study (cached afterwards), which decides whether hints are
+affordable at a given resolution.
 
-    .venv/bin/python benchmarks/bench_depth_hints.py [--sizes 64,112] [--repeats 3]
+    python benchmarks/bench_depth_hints.py [--sizes 64,112] [--reps 3]
+
+The sizes alternate within each repetition, in an order that rotates.
 """
 
-import argparse
-import statistics
 import time
 
 import torch
@@ -17,25 +18,32 @@ from explorer.data.sequences import (SequenceDataset, SyntheticSequenceConfig, S
                                      ensure_synthetic_sequences)
 from explorer.training.depth_hints import BATCH, STEPS, compute_hints
 
+from harness import Bench, interleave
+
+
+def per_frame(batch) -> float:
+    t0 = time.perf_counter()
+    compute_hints(batch)
+    return (time.perf_counter() - t0) / BATCH
+
+
 if __name__ == "__main__":
-    ap = argparse.ArgumentParser()
+    bench = Bench(__file__, "Depth hints: compute time per frame by input size", __doc__)
+    ap = bench.parser()
     ap.add_argument("--sizes", default="64,112", help="square input sizes, comma-separated")
-    ap.add_argument("--repeats", type=int, default=3)
-    args = ap.parse_args()
+    args = bench.parse_args(ap)
     torch.set_num_threads(2)
     sizes = [int(s) for s in args.sizes.split(",")]
     # rendered at 128x128 (bench_selfsup's data); larger sizes are upsampled, which costs the same per pixel
     source = SyntheticSequences(ensure_synthetic_sequences(SyntheticSequenceConfig(train=480, val=48, height=128,
                                                                                    width=128)), "val")
     batches = {s: next(iter(DataLoader(SequenceDataset(source, (s, s)), batch_size=BATCH))) for s in sizes}
-    times: dict[int, list[float]] = {s: [] for s in sizes}
-    for rep in range(args.repeats):
-        for s, batch in batches.items():
-            t0 = time.perf_counter()
-            compute_hints(batch)
-            times[s].append((time.perf_counter() - t0) / BATCH)
-            print(f"rep {rep} {s}x{s}: {times[s][-1]:.3f} s per frame", flush=True)
-    print(f"\n{STEPS} steps, batches of {BATCH}, 2 threads; medians over {args.repeats} repetitions:")
-    for s, t in times.items():
-        print(f"  {s}x{s}: {statistics.median(t):.3f} s per frame ({' / '.join(format(x, '.3f') for x in t)}); "
-              f"1,200 frames (synthetic-seq's default) {1200 * statistics.median(t) / 60:.0f} min once")
+    for s in sizes:
+        bench.figure(f"s_per_frame_{s}", f"{s}x{s}", "s/frame", "lower")
+    bench.note(f"{STEPS} Adam steps, batches of {BATCH}, 2 threads; 1,200 frames (synthetic-seq's default) cost "
+               "1,200 x the per-frame time, once")
+    for rep in bench.repetitions():
+        got = interleave({s: (lambda b=b: per_frame(b)) for s, b in batches.items()}, rep)
+        for s, t in got.items():
+            bench.add(f"s_per_frame_{s}", t)
+    bench.finish()

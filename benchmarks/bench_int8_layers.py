@@ -1,15 +1,17 @@
 """Which layers int8 pays for on this machine: single-layer graphs of the paper design's kinds and
-sizes, each timed in float and quantized as `explorer export --quantize int8` quantizes (static QDQ,
+sizes, each timed in float and quantized as ``explorer export --quantize int8`` quantizes (static QDQ,
 7-bit per-channel weights, uint8 activations, the quantize / dequantize at its input and output
 included). An export quantizes whole stage graphs, where a layer pays these edges only at the graph's
-own (`explorer.deploy.quantize`); this shows what each kind costs alone. Interleaved, --reps repetitions in one invocation; every repetition and the median.
+own (``explorer.deploy.quantize``); this shows what each kind costs alone, which is what decides
+where int8 stages are worth keeping.
 
-    .venv/bin/python benchmarks/bench_int8_layers.py [--reps 3]
+    python benchmarks/bench_int8_layers.py [--reps 3] [--threads 2]
+
+Every layer in both precisions is timed in each repetition, in an order that rotates between
+repetitions.
 """
 
-import argparse
 import os
-import statistics
 import tempfile
 from pathlib import Path
 
@@ -17,22 +19,24 @@ os.environ.setdefault("EXPLORER_ORT_POOL", "session")   # quantize_static makes 
 
 from onnxruntime.quantization import CalibrationMethod, QuantFormat, QuantType, quantize_static  # noqa: E402
 
-from explorer.calibration.calibrate import SweepLayer, layer_graph  # noqa: E402
 from explorer.calibration.measure import session, time_call  # noqa: E402
+from explorer.calibration.sweep import SweepLayer, layer_graph  # noqa: E402
 from explorer.deploy.int8_graphs import _Feeds  # noqa: E402
 
-#: (label, layer): the paper design's layers at 224x224
+from harness import Bench, interleave  # noqa: E402
+
+#: (figure key, label, layer): the paper design's layers at 224x224
 LAYERS = [
-    ("stem 3->32 3x3 s2 at 224x224", SweepLayer("conv", (3, 224, 224), 32, 3, 2)),
-    ("depthwise 3x3 at 112x112x32", SweepLayer("depthwise", (32, 112, 112), 32, 3, 1)),
-    ("depthwise 3x3 at 14x14x512", SweepLayer("depthwise", (512, 14, 14), 512, 3, 1)),
-    ("depthwise 5x5 at 28x28x768", SweepLayer("depthwise", (768, 28, 28), 768, 5, 1)),
-    ("depthwise 5x5 at 112x112x32", SweepLayer("depthwise", (32, 112, 112), 32, 5, 1)),
-    ("pointwise 16->8 at 224x224", SweepLayer("pointwise", (16, 224, 224), 8)),
-    ("pointwise 32->16 at 112x112", SweepLayer("pointwise", (32, 112, 112), 16)),
-    ("pointwise 64->128 at 56x56", SweepLayer("pointwise", (64, 56, 56), 128)),
-    ("pointwise 512->512 at 14x14", SweepLayer("pointwise", (512, 14, 14), 512)),
-    ("pointwise 768->64 at 28x28", SweepLayer("pointwise", (768, 28, 28), 64)),
+    ("stem_224", "stem 3->32 3x3 s2 at 224x224", SweepLayer("conv", (3, 224, 224), 32, 3, 2)),
+    ("dw3_112x32", "depthwise 3x3 at 112x112x32", SweepLayer("depthwise", (32, 112, 112), 32, 3, 1)),
+    ("dw3_14x512", "depthwise 3x3 at 14x14x512", SweepLayer("depthwise", (512, 14, 14), 512, 3, 1)),
+    ("dw5_28x768", "depthwise 5x5 at 28x28x768", SweepLayer("depthwise", (768, 28, 28), 768, 5, 1)),
+    ("dw5_112x32", "depthwise 5x5 at 112x112x32", SweepLayer("depthwise", (32, 112, 112), 32, 5, 1)),
+    ("pw16_8_224", "pointwise 16->8 at 224x224", SweepLayer("pointwise", (16, 224, 224), 8)),
+    ("pw32_16_112", "pointwise 32->16 at 112x112", SweepLayer("pointwise", (32, 112, 112), 16)),
+    ("pw64_128_56", "pointwise 64->128 at 56x56", SweepLayer("pointwise", (64, 56, 56), 128)),
+    ("pw512_512_14", "pointwise 512->512 at 14x14", SweepLayer("pointwise", (512, 14, 14), 512)),
+    ("pw768_64_28", "pointwise 768->64 at 28x28", SweepLayer("pointwise", (768, 28, 28), 64)),
 ]
 
 
@@ -47,27 +51,24 @@ def quantized(model: bytes, feeds: dict) -> bytes:
 
 
 if __name__ == "__main__":
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--reps", type=int, default=3)
+    bench = Bench(__file__, "int8 against fp32 per layer kind", __doc__)
+    ap = bench.parser()
     ap.add_argument("--threads", type=int, default=2)
-    args = ap.parse_args()
-    graphs = []
-    for label, layer in LAYERS:
+    args = bench.parse_args(ap)
+    calls = {}
+    for key, label, layer in LAYERS:
         model, feeds, _ = layer_graph(layer)
         fp32, int8 = session(model, args.threads), session(quantized(model, feeds), args.threads)
-        graphs.append((label, feeds, fp32, int8))
-    ratios: dict[str, list[float]] = {label: [] for label, *_ in graphs}
-    times: dict[str, list[tuple[float, float]]] = {label: [] for label, *_ in graphs}
-    for rep in range(args.reps):   # interleaved: every layer, both precisions, then again
-        for label, feeds, fp32, int8 in graphs:
-            f = time_call(lambda: fp32.run(None, feeds), 3, 25)
-            q = time_call(lambda: int8.run(None, feeds), 3, 25)
-            ratios[label].append(q / f)
-            times[label].append((f, q))
-    print(f"int8 time / fp32 time per layer ({args.threads} threads), {args.reps} reps")
-    for label, *_ in graphs:
-        r = ratios[label]
-        f = statistics.median(t[0] for t in times[label])
-        q = statistics.median(t[1] for t in times[label])
-        print(f"  {label:32s} fp32 {f:.3f} ms, int8 {q:.3f} ms: "
-              f"{statistics.median(r):.2f}x ({min(r):.2f}-{max(r):.2f}; reps {' '.join(f'{x:.2f}' for x in r)})")
+        calls[f"{key}_fp32"] = lambda s=fp32, f=feeds: time_call(lambda: s.run(None, f), 3, 25)
+        calls[f"{key}_int8"] = lambda s=int8, f=feeds: time_call(lambda: s.run(None, f), 3, 25)
+        bench.figure(f"{key}_fp32_ms", f"{label} fp32", "ms", "lower")
+        bench.figure(f"{key}_int8_ms", f"{label} int8", "ms", "lower")
+        bench.figure(f"{key}_int8_over_fp32", f"{label} int8 / fp32 time", "x", "lower")
+    bench.note(f"{args.threads} threads")
+    for rep in bench.repetitions():
+        ms = interleave(calls, rep)
+        for key, *_ in LAYERS:
+            bench.add(f"{key}_fp32_ms", ms[f"{key}_fp32"])
+            bench.add(f"{key}_int8_ms", ms[f"{key}_int8"])
+            bench.add(f"{key}_int8_over_fp32", ms[f"{key}_int8"] / ms[f"{key}_fp32"])
+    bench.finish()

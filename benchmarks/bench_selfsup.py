@@ -1,20 +1,19 @@
-"""Self-supervised training from video with metric scale from the 2D LiDAR (issue 13), on synthetic
-sequences: the paper design trained
+"""Self-supervised training from video with metric scale from the 2D LiDAR, on synthetic sequences:
+the paper design trained supervised (L1 on exact depth), self-supervised with the scan term
+(photometric reprojection, pose network trained jointly), self-supervised with the scan term and depth
+hints (the data's poses), and self-supervised without the scan term (depth only up to scale), for the
+same steps. Self-supervision is meant to approach supervised accuracy without depth labels (target:
+last-path RMSE within 1.3x of supervised), and the scan term is what gives it metric scale.
 
-  - supervised (L1 on exact depth),
-  - self-supervised with the scan term (photometric reprojection, pose network trained jointly),
-  - self-supervised with the scan term and depth hints (``--kinds ...,hints``; the data's poses),
-  - self-supervised without the scan term (depth only up to scale),
+    python benchmarks/bench_selfsup.py [--reps 3] [--steps 150] [--batch 8]
+        [--kinds supervised,self+scan,hints,noscan] [--poses net|given]
 
-for the same steps, each seed interleaving the three. Prints every repetition and the medians of:
-the last path's RMSE of self+scan over supervised (target <= 1.3), how far off the scale is without
-the scan term and without median scaling (median over images of median(gt) / median(prediction)),
-that run's RMSE with and without median scaling, and whether every exit beats path 0.
-
-    .venv/bin/python benchmarks/bench_selfsup.py [--seeds 3] [--steps 150] [--batch 8]
+Each repetition is one seed; within it every kind is trained, in an order that rotates. Figures: each
+kind's last-path RMSE and whether every exit beats path 0 (1 or 0), the ratios to supervised, and for
+the run without the scan term its scale (median over images of median(gt) / median(prediction)) and
+its median-scaled RMSE.
 """
 
-import argparse
 import dataclasses
 import statistics
 import time
@@ -22,14 +21,17 @@ import time
 import torch
 from torch.utils.data import DataLoader
 
-from explorer.training.depth_hints import with_hints
 from explorer.data.sequences import (SequenceDataset, SyntheticSequenceConfig, SyntheticSequences,
                                      ensure_synthetic_sequences)
 from explorer.model import build_network
 from explorer.space import paper_candidate
+from explorer.training.depth_hints import with_hints
 from explorer.training.train import PROXY, evaluate, train
 
+from harness import Bench, interleave
+
 SIZE = (64, 64)
+KINDS = {"supervised": "supervised", "self+scan": "self_scan", "hints": "self_hints", "noscan": "self_noscan"}
 
 
 def scale_ratio(net, dataset) -> float:
@@ -46,9 +48,9 @@ def scale_ratio(net, dataset) -> float:
 
 
 def run(kind: str, seed: int, steps: int, batch: int, train_set, val_set, poses: str = "net") -> dict:
-    supervision, scan_loss = {"supervised": ("supervised", True), "self+scan": ("self", True),
-                              "self+hints": ("self", True), "self, no scan": ("self", False)}[kind]
-    hints = kind == "self+hints"
+    supervision, scan_loss = {"supervised": ("supervised", True), "self_scan": ("self", True),
+                              "self_hints": ("self", True), "self_noscan": ("self", False)}[kind]
+    hints = kind == "self_hints"
     cfg = dataclasses.replace(PROXY, steps=steps, batch_size=batch, input_size=SIZE, seed=seed,
                               supervision=supervision, scan_loss=scan_loss, hints=hints,
                               poses="given" if hints else poses)
@@ -57,19 +59,30 @@ def run(kind: str, seed: int, steps: int, batch: int, train_set, val_set, poses:
     t0 = time.perf_counter()
     result = train(net, train_set, val_set, cfg)
     rmse = list(result.metrics["rmse"])
-    out = {"kind": kind, "seed": seed, "seconds": time.perf_counter() - t0, "rmse": rmse,
-           "every_exit_beats_path0": all(r < rmse[0] for r in rmse[1:])}
+    out = {"seconds": time.perf_counter() - t0, "rmse": rmse, "beats_path0": all(r < rmse[0] for r in rmse[1:])}
     if not scan_loss:
         out["median_scaled_rmse"] = rmse  # train() evaluates a scale-free model with median scaling
         out["rmse"] = list(evaluate(net, val_set, median_scaling=False)["rmse"])
         out["scale_ratio"] = scale_ratio(net, val_set)
-        out["every_exit_beats_path0"] = all(r < rmse[0] for r in rmse[1:])
     return out
 
 
+def declare(bench: Bench, kinds: list[str]) -> None:
+    for k in kinds:
+        bench.figure(f"{k}_last_rmse", f"{k}: last-path RMSE", "m", "lower")
+        bench.figure(f"{k}_beats_path0", f"{k}: every exit beats path 0 (1 = yes)", "", "higher")
+        bench.figure(f"{k}_s", f"{k}: training time", "s", "lower")
+    for k in ("self_scan", "self_hints"):
+        if k in kinds and "supervised" in kinds:
+            bench.figure(f"{k}_over_supervised", f"{k} / supervised last-path RMSE (target <= 1.3)", "x", "lower")
+    if "self_noscan" in kinds:
+        bench.figure("noscan_scale", "without the scan term: scale gt / prediction (1 = metric)", "", None)
+        bench.figure("noscan_median_scaled_rmse", "without the scan term: median-scaled last-path RMSE", "m", "lower")
+
+
 if __name__ == "__main__":
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--seeds", type=int, default=3)
+    bench = Bench(__file__, "Self-supervised training with the scan term against supervised", __doc__)
+    ap = bench.parser()
     ap.add_argument("--steps", type=int, default=150)
     ap.add_argument("--batch", type=int, default=8)
     ap.add_argument("--train", type=int, default=480, help="target frames (3 per rendered room)")
@@ -83,67 +96,35 @@ if __name__ == "__main__":
     ap.add_argument("--kinds", default="supervised,self+scan,hints,noscan",
                     help="which trainings, comma-separated: supervised, self+scan, hints (self+scan with depth "
                     "hints and the data's poses), noscan (default: all four)")
-    args = ap.parse_args()
+    args = bench.parse_args(ap)
     torch.set_num_threads(2)
-    import explorer.training.selfsup
+    import explorer.training.selfsup as selfsup
     if args.scan_weight is not None:
-        explorer.training.selfsup.SCAN_WEIGHT = args.scan_weight
+        selfsup.SCAN_WEIGHT = args.scan_weight
     if args.smoothness_weight is not None:
-        explorer.training.selfsup.SMOOTHNESS_WEIGHT = args.smoothness_weight
-    print(f"scan term weight {explorer.training.selfsup.SCAN_WEIGHT}, smoothness weight {explorer.training.selfsup.SMOOTHNESS_WEIGHT}")
-
-    # rendered at 128x128 (a third of the default's pixels) since training runs at 64x64
-    cfg = SyntheticSequenceConfig(train=args.train, val=args.val, height=128, width=128)
-    t0 = time.perf_counter()
-    path = ensure_synthetic_sequences(cfg)
-    print(f"synthetic sequences {args.train}:{args.val} at 128x128: ready in {time.perf_counter() - t0:.0f} s "
-          "(cached after the first run)")
+        selfsup.SMOOTHNESS_WEIGHT = args.smoothness_weight
+    # rendered at 128x128 (a third of the default's pixels) since training runs at 64x64; cached
+    path = ensure_synthetic_sequences(SyntheticSequenceConfig(train=args.train, val=args.val, height=128, width=128))
     train_set = SequenceDataset(SyntheticSequences(path, "train"), SIZE, name="synthetic-seq")
     val_set = SequenceDataset(SyntheticSequences(path, "val"), SIZE, name="synthetic-seq")
-
-    names = {"supervised": "supervised", "self+scan": "self+scan", "hints": "self+hints", "noscan": "self, no scan"}
-    kinds = tuple(names[k.strip()] for k in args.kinds.split(",") if k.strip())
-    hinted = None
-    if "self+hints" in kinds:
-        t0 = time.perf_counter()
-        hinted = with_hints(train_set)
-        print(f"depth hints for {len(train_set)} frames: ready in {time.perf_counter() - t0:.0f} s (cached after the first run)")
-    results = {k: [] for k in kinds}
-    for seed in range(args.seeds):
-        for kind in kinds:  # interleaved: machine load drifts over the run
-            r = run(kind, seed, args.steps, args.batch, hinted if kind == "self+hints" else train_set, val_set,
-                    args.poses)
-            results[kind].append(r)
-            extra = (f", scale gt/pred {r['scale_ratio']:.3f}, median-scaled RMSE "
-                     f"{r['median_scaled_rmse'][-1]:.3f}") if "scale_ratio" in r else ""
-            print(f"seed {seed} {kind:14s} per-path RMSE {' / '.join(f'{x:.3f}' for x in r['rmse'])} "
-                  f"(every exit < path 0: {r['every_exit_beats_path0']}){extra}; {r['seconds']:.0f} s", flush=True)
-
-    med = lambda xs: statistics.median(xs)  # noqa: E731
-    print(f"\nmedians over {args.seeds} seeds, paper design, {args.steps} steps, batch {args.batch}, {SIZE[0]}x{SIZE[1]}:")
-    if "supervised" in results and "self+scan" in results:
-        sup = [r["rmse"][-1] for r in results["supervised"]]
-        selfscan = [r["rmse"][-1] for r in results["self+scan"]]
-        ratios = [s / p for s, p in zip(selfscan, sup)]
-        print(f"  last-path RMSE: supervised {med(sup):.3f} m, self-supervised + scan {med(selfscan):.3f} m; "
-              f"ratio {med(ratios):.2f}x (per seed {', '.join(f'{x:.2f}' for x in ratios)}; target <= 1.3)")
-    if "supervised" in results and "self+hints" in results:
-        sup = [r["rmse"][-1] for r in results["supervised"]]
-        hinted_last = [r["rmse"][-1] for r in results["self+hints"]]
-        ratios = [s / p for s, p in zip(hinted_last, sup)]
-        print(f"  last-path RMSE: supervised {med(sup):.3f} m, self-supervised + scan + depth hints (data's poses) "
-              f"{med(hinted_last):.3f} m; ratio {med(ratios):.2f}x (per seed {', '.join(f'{x:.2f}' for x in ratios)}; "
-              "target <= 1.3)")
-    if "self, no scan" in results:
-        noscan = results["self, no scan"]
-        scales = [r["scale_ratio"] for r in noscan]
-        print(f"  without the scan term: scale gt/pred {med(scales):.3f} "
-              f"(per seed {', '.join(f'{x:.3f}' for x in scales)}), last-path RMSE "
-              f"{med([r['rmse'][-1] for r in noscan]):.3f} m unscaled, "
-              f"{med([r['median_scaled_rmse'][-1] for r in noscan]):.3f} m median-scaled")
-    for kind in kinds:
-        per_path = [med([r["rmse"][p] for r in results[kind]]) for p in range(len(results[kind][0]["rmse"]))]
-        beats = all(r["every_exit_beats_path0"] for r in results[kind])
-        print(f"  {kind:14s} median per-path RMSE {' / '.join(f'{x:.3f}' for x in per_path)}; "
-              f"every exit beats path 0 in every seed: {beats}")
-    print("  (CPU, 2 cores shared with other work: times are indicative only)")
+    kinds = [KINDS[k.strip()] for k in args.kinds.split(",") if k.strip()]
+    sets = {k: train_set for k in kinds}
+    if "self_hints" in kinds:
+        sets["self_hints"] = with_hints(train_set)   # cached after the first run
+    declare(bench, kinds)
+    bench.note(f"paper design, {args.steps} steps, batch {args.batch}, {SIZE[0]}x{SIZE[1]}; scan weight "
+               f"{selfsup.SCAN_WEIGHT}, smoothness weight {selfsup.SMOOTHNESS_WEIGHT}; each repetition is one seed")
+    for rep in bench.repetitions():
+        got = interleave({k: (lambda k=k: run(k, rep, args.steps, args.batch, sets[k], val_set, args.poses))
+                          for k in kinds}, rep)
+        for k, r in got.items():
+            bench.add(f"{k}_last_rmse", r["rmse"][-1])
+            bench.add(f"{k}_beats_path0", float(r["beats_path0"]))
+            bench.add(f"{k}_s", r["seconds"])
+        for k in ("self_scan", "self_hints"):
+            if k in got and "supervised" in got:
+                bench.add(f"{k}_over_supervised", got[k]["rmse"][-1] / got["supervised"]["rmse"][-1])
+        if "self_noscan" in got:
+            bench.add("noscan_scale", got["self_noscan"]["scale_ratio"])
+            bench.add("noscan_median_scaled_rmse", got["self_noscan"]["median_scaled_rmse"][-1])
+    bench.finish()

@@ -1,18 +1,20 @@
-"""The supernet evaluator: training time and peak memory, candidates evaluated per 10 minutes, and
-rank fidelity against stand-alone training with a 4x longer recipe (proxy's tau beside it).
+"""The supernet evaluator: training time per step and peak memory, candidates evaluated per 10 minutes
+(stage by stage, as a search evaluates, and whole), and rank fidelity against stand-alone training
+with a 4x longer recipe (the proxy recipe's beside it). A search's reach is its throughput, and its
+worth the supernet's ranking.
 
-    ANYTIME_EXPLORER_CACHE=... .venv/bin/python benchmarks/bench_supernet.py [--candidates 16]
+    ANYTIME_EXPLORER_CACHE=... python benchmarks/bench_supernet.py [--reps 3] [--candidates 16]
+        [--throughput 20] [--fidelity-only | --skip-fidelity] [--replay study.db] [--calibration-sweep 16,64,256]
 
-Stand-alone results are cached in reports/bench/ (benchmarks/_labels.py): a rerun only pays for the
-supernet side. The supernet is the one `explorer search` uses by default (trained here if missing).
+The supernet is the one ``explorer search`` uses by default (trained here if missing). Each repetition
+trains a few steps in a fresh process (time and peak memory) and evaluates a new set of candidates both
+ways, in an order that rotates. Fidelity is measured once (one value per figure) over the three
+baselines and --candidates random ones; stand-alone results are cached (benchmarks/_labels.py).
 """
 
 from __future__ import annotations
 
-import argparse
-import json
 import resource
-import statistics
 import subprocess
 import sys
 import time
@@ -23,14 +25,15 @@ from scipy.stats import kendalltau
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _labels import recipe, score, standalone  # noqa: E402
+from harness import Bench, interleave  # noqa: E402
 
 from explorer.anytime import anytime_loss  # noqa: E402
 from explorer.cost import candidate_cost, get_device  # noqa: E402
 from explorer.data import open_dataset  # noqa: E402
-from explorer.study.evaluators import SupernetEvaluator  # noqa: E402
-from explorer.study.search import SearchConfig  # noqa: E402
 from explorer.space import (SearchSpace, fastdepth_candidate, paper_candidate,  # noqa: E402
                             paper_nee_candidate)
+from explorer.study.evaluators import SupernetEvaluator  # noqa: E402
+from explorer.study.search import SearchConfig  # noqa: E402
 from explorer.supernet import default_path, read_supernet, train_supernet  # noqa: E402
 
 BUDGET = "time:uniform:33ms"
@@ -42,7 +45,7 @@ def label_candidates(space: SearchSpace, n: int) -> list:
     return [paper_candidate(), paper_nee_candidate(), fastdepth_candidate()] + space.random_candidates(n, seed=15)
 
 
-def peak_memory_of_training(steps: int) -> tuple[float, float]:
+def training_step(steps: int) -> tuple[float, float]:
     """(seconds per step after the first two, peak RSS in MiB) of a fresh process training the supernet
     ``steps`` steps (start-up, data loading and the first steps' warm-up are left out of the time)."""
     code = ("import time, torch, tempfile; from explorer.space import SearchSpace; "
@@ -57,19 +60,77 @@ def peak_memory_of_training(steps: int) -> tuple[float, float]:
     return float(out.stdout.strip().splitlines()[-1]), max(peak, before) / 1024
 
 
+def replayed(study_file: str, space: SearchSpace) -> list:
+    """A finished study's distinct candidates in the order its sampler proposed them."""
+    import optuna
+    from explorer.space import Candidate
+    storage = f"sqlite:///{Path(study_file).resolve()}"
+    study = optuna.load_study(study_name=optuna.get_all_study_names(storage)[0], storage=storage)
+    cands = [Candidate.from_dict(t.user_attrs["candidate"]) for t in study.trials
+             if "candidate" in t.user_attrs and not t.user_attrs.get("baseline") and "duplicate_of" not in t.user_attrs]
+    return [c for c in cands if space.contains(c)]
+
+
+def per_candidate_s(evaluator, cands, tx2) -> float:
+    """Seconds per candidate fully evaluated: extract, BN recalibration, validation frames, costing."""
+    t0 = time.perf_counter()
+    for c in cands:
+        anytime_loss(candidate_cost(c).path_costs(tx2, "time"), list(evaluator(c).metrics["rmse"]), BUDGET)
+    return (time.perf_counter() - t0) / len(cands)
+
+
+def fidelity(bench: Bench, space, make_evaluator, calibration_sweep: list[int]) -> None:
+    """Kendall tau of the supernet's and the proxy's anytime losses against stand-alone training 4x
+    longer than the proxy (one value each)."""
+    tx2 = get_device("tx2")
+    full = make_evaluator()   # exactly as a search evaluates (its validation frames, BatchNorm recalibration)
+    proxy_cfg, long_cfg = recipe(150), recipe(600)
+    rows = []
+    for c in label_candidates(space, bench.args.candidates):
+        long, prox = score(standalone(c, long_cfg)), score(standalone(c, proxy_cfg))
+        est = anytime_loss(candidate_cost(c).path_costs(tx2, "time"), list(full(c).metrics["rmse"]), BUDGET) \
+            if space.contains(c) else None
+        rows.append((c, est, prox, long))
+        print(f"  {c.key}: supernet {'   n/a' if est is None else f'{est:.4f}'}  proxy {prox:.4f}  "
+              f"stand-alone x4 {long:.4f}  {c.describe()[:90]}", flush=True)
+    both = [r for r in rows if r[1] is not None]
+    labels = [r[3] for r in both]
+    for name, label, value in (
+            ("tau_supernet", "supernet Kendall tau against stand-alone", kendalltau([r[1] for r in both], labels)),
+            ("tau_proxy", "proxy Kendall tau against stand-alone", kendalltau([r[2] for r in both], labels)),
+            ("tau_proxy_all", "proxy Kendall tau, FastDepth included",
+             kendalltau([r[2] for r in rows], [r[3] for r in rows]))):
+        bench.add(bench.figure(name, label, "", "higher"), value.statistic)
+    for n in calibration_sweep:
+        sweep = make_evaluator(calibration_images=n)
+        est = [anytime_loss(candidate_cost(c).path_costs(tx2, "time"), list(sweep(c).metrics["rmse"]), BUDGET)
+               for c, *_ in both]
+        bench.add(bench.figure(f"tau_supernet_calib{n}", f"supernet Kendall tau, BatchNorm calibrated on {n} frames",
+                               "", "higher"), kendalltau(est, labels).statistic)
+    bench.note(f"fidelity over {len(both)} candidates in the space ({len(rows)} with FastDepth), stand-alone "
+               f"{long_cfg.steps} steps, proxy {proxy_cfg.steps} steps, tx2 {BUDGET}")
+
+
+def throughput_rep(bench: Bench, rep: int, evaluators: dict, cands: list, tx2) -> None:
+    per = interleave({k: (lambda e=e: per_candidate_s(e, cands, tx2)) for k, e in evaluators.items()}, rep)
+    for k, s in per.items():
+        bench.add(f"{k}_per_10min", 600 / s)
+
+
 if __name__ == "__main__":
-    ap = argparse.ArgumentParser()
+    bench = Bench(__file__, "Supernet evaluator: training, throughput and rank fidelity", __doc__)
+    ap = bench.parser()
     ap.add_argument("--candidates", type=int, default=16, help="random default-space candidates (plus 3 baselines)")
     ap.add_argument("--throughput", type=int, default=20, help="candidates per throughput repetition")
     ap.add_argument("--val-limit", type=int, default=96, help="validation frames per candidate, as in a search")
     ap.add_argument("--fidelity-only", action="store_true", help="skip the training and throughput timings")
-    ap.add_argument("--replay", default="", help="time the candidates of this study.db (a search's own sequence) "
-                    "instead of random ones")
-    ap.add_argument("--memo-gib", type=float, default=None, help="stage memo size of the stagewise evaluator")
     ap.add_argument("--skip-fidelity", action="store_true", help="only the training and throughput timings")
+    ap.add_argument("--replay", default="", help="time the candidates of this study.db (a search's own sequence, "
+                    "in --reps slices) instead of random ones")
+    ap.add_argument("--memo-gib", type=float, default=None, help="stage memo size of the stagewise evaluator")
     ap.add_argument("--calibration-sweep", default="", help="also the supernet's tau with these BatchNorm "
                     "calibration frame counts, e.g. 16,64,256,1024 (the search uses 256)")
-    args = ap.parse_args()
+    args = bench.parse_args(ap)
     torch.set_num_threads(2)
     space = SearchSpace.from_yaml("anytime_depth")
     cfg = SearchConfig(study="bench")
@@ -79,100 +140,39 @@ if __name__ == "__main__":
         print(f"training the supernet ({sn_recipe.steps} steps) into {file}", flush=True)
         train_supernet(space, cfg.data, sn_recipe, file)
     state = read_supernet(file)
-    print(f"supernet {file.name}: {state['step']} steps ({sn_recipe.random_subnets} random subnets + largest + "
-          f"smallest per step, batch {sn_recipe.batch_size} at {sn_recipe.input_size[0]}x{sn_recipe.input_size[1]}), "
-          f"trained in {state['seconds'] / 60:.1f} min (as recorded in the file)")
-
-    # -- training: time per step and peak memory, 3 fresh processes -------------------------------
-    reps = [] if args.fidelity_only else [peak_memory_of_training(12) for _ in range(3)]
-    for i, (s, mb) in enumerate(reps, 1):
-        print(f"  supernet training rep {i}: {s:.2f} s/step, peak RSS {mb:.0f} MiB")
-    per_step = statistics.median(r[0] for r in reps) if reps else float("nan")
-    if reps:
-        print(f"supernet training: median {per_step:.2f} s/step -> {per_step * sn_recipe.steps / 60:.1f} min for "
-              f"{sn_recipe.steps} steps; peak RSS {max(r[1] for r in reps):.0f} MiB")
-
-    # -- throughput: candidates fully evaluated per 10 minutes ------------------------------------
+    bench.note(f"supernet {file.name}: {state['step']} steps ({sn_recipe.random_subnets} random subnets + largest + "
+               f"smallest per step, batch {sn_recipe.batch_size} at {sn_recipe.input_size[0]}x"
+               f"{sn_recipe.input_size[1]}), trained in {state['seconds'] / 60:.1f} min (as recorded in the file)")
     size = sn_recipe.input_size
     calib = open_dataset(cfg.data, "train", size, train_augment=False)
     val = open_dataset(cfg.data, "val", size, train_augment=False)
-    # stage by stage, candidates share the stages they have in common (SupernetEvaluator(stagewise=True),
-    # what a search uses); each repetition times the same candidates both ways, interleaved. Random
-    # candidates share less than a search's, whose sampler keeps varying its best ones.
-    memo = {} if args.memo_gib is None else {"memo_bytes": int(args.memo_gib * 2 ** 30)}
-    evaluators = {shared: SupernetEvaluator(file, space, calib, val, torch.device("cpu"), val_limit=args.val_limit,
-                                            stagewise=shared, **memo) for shared in (True, False)}
-    tx2 = get_device("tx2")
-    if not args.fidelity_only:
-        t0 = time.perf_counter()
-        for w in space.width_mult:
-            evaluators[True].shared_encoder(w)
-        print(f"  shared encoders of widths {space.width_mult} on {len(evaluators[True].calibration)} calibration "
-              f"+ {len(evaluators[True].validation)} validation batches: {time.perf_counter() - t0:.1f} s, once per search")
-    rates: dict[bool, list[float]] = {True: [], False: []}
-    replay = []
-    if args.replay:   # a finished study's candidates, in the order its sampler proposed them
-        import optuna
-        from explorer.space import Candidate
-        storage = f"sqlite:///{Path(args.replay).resolve()}"
-        study = optuna.load_study(study_name=optuna.get_all_study_names(storage)[0], storage=storage)
-        replay = [Candidate.from_dict(t.user_attrs["candidate"]) for t in study.trials
-                  if "candidate" in t.user_attrs and not t.user_attrs.get("baseline") and "duplicate_of" not in t.user_attrs]
-        replay = [c for c in replay if space.contains(c)]
-        print(f"  replaying {len(replay)} distinct candidates of {args.replay} in their order, in 3 slices")
-    for rep in range(0 if args.fidelity_only else 3):
-        if replay:
-            n = len(replay) // 3
-            cands = replay[rep * n:(rep + 1) * n]
-        else:
-            cands = space.random_candidates(args.throughput, seed=100 + rep)
-        for shared, evaluator in evaluators.items():
-            t0 = time.perf_counter()
-            for c in cands:
-                m = evaluator(c).metrics
-                anytime_loss(candidate_cost(c).path_costs(tx2, "time"), list(m["rmse"]), BUDGET)
-            per = (time.perf_counter() - t0) / len(cands)
-            rates[shared].append(600 / per)
-            print(f"  throughput rep {rep + 1}, {'stagewise' if shared else 'whole    '}: {per:.2f} s per "
-                  f"candidate (extract, BN recalibration, {args.val_limit} validation frames, costing) -> "
-                  f"{600 / per:,.0f} per 10 min")
-    if rates[True]:
-        memo = evaluators[True].memo
-        print(f"throughput: median {statistics.median(rates[True]):,.0f} candidates per 10 minutes stage by stage "
-              f"(the search's; {memo.hits} of {memo.hits + memo.misses} stages found evaluated, "
-              f"{memo.nbytes / 2 ** 20:.0f} MiB kept), {statistics.median(rates[False]):,.0f} whole")
-    if args.skip_fidelity:
-        sys.exit(0)
 
-    # -- fidelity: supernet and proxy against stand-alone training 4x longer than the proxy --------
-    # the supernet side exactly as a search evaluates (its validation frames, BatchNorm recalibration)
-    full = SupernetEvaluator(file, space, calib, val, torch.device("cpu"), val_limit=cfg.val_limit)
-    proxy_cfg, long_cfg = recipe(150), recipe(600)
-    rows = []
-    for c in label_candidates(space, args.candidates):
-        long = score(standalone(c, long_cfg))
-        prox = score(standalone(c, proxy_cfg))
-        est = None
-        if space.contains(c):
-            m = full(c).metrics
-            est = anytime_loss(candidate_cost(c).path_costs(tx2, "time"), list(m["rmse"]), BUDGET)
-        rows.append((c, est, prox, long))
-        print(f"  {c.key}: supernet {'   n/a' if est is None else f'{est:.4f}'}  proxy {prox:.4f}  "
-              f"stand-alone x4 {long:.4f}  {c.describe()[:90]}")
-    both = [r for r in rows if r[1] is not None]
-    tau_s = kendalltau([r[1] for r in both], [r[3] for r in both]).statistic
-    tau_p = kendalltau([r[2] for r in both], [r[3] for r in both]).statistic
-    tau_p_all = kendalltau([r[2] for r in rows], [r[3] for r in rows]).statistic
-    print(f"rank fidelity vs stand-alone {long_cfg.steps} steps (tx2, {BUDGET}), {len(both)} candidates in the "
-          f"space: supernet Kendall tau {tau_s:.2f}; proxy ({proxy_cfg.steps} steps) {tau_p:.2f} "
-          f"(proxy over all {len(rows)} incl. FastDepth: {tau_p_all:.2f})")
-    for n in [int(x) for x in args.calibration_sweep.split(",") if x]:
-        sweep = SupernetEvaluator(file, space, calib, val, torch.device("cpu"), val_limit=cfg.val_limit,
-                                  calibration_images=n)
-        est = [anytime_loss(candidate_cost(c).path_costs(tx2, "time"), list(sweep(c).metrics["rmse"]), BUDGET)
-               for c, *_ in both]
-        print(f"  BatchNorm calibrated on {n} frames: supernet Kendall tau "
-              f"{kendalltau(est, [r[3] for r in both]).statistic:.2f}")
-    out = Path(__file__).resolve().parents[1] / "reports" / "bench" / "supernet.json"
-    out.write_text(json.dumps({"tau_supernet": tau_s, "tau_proxy": tau_p, "rates": rates[True], "rates_unshared": rates[False], "per_step": per_step,
-                               "rows": [(c.key, e, p, l) for c, e, p, l in rows]}, indent=1))
+    def make_evaluator(**kw):
+        return SupernetEvaluator(file, space, calib, val, torch.device("cpu"), **{"val_limit": cfg.val_limit, **kw})
+    if not args.fidelity_only:
+        memo = {} if args.memo_gib is None else {"memo_bytes": int(args.memo_gib * 2 ** 30)}
+        # stage by stage, candidates share the stages they have in common (what a search uses)
+        evaluators = {"stagewise": make_evaluator(val_limit=args.val_limit, stagewise=True, **memo),
+                      "whole": make_evaluator(val_limit=args.val_limit, stagewise=False)}
+        for w in space.width_mult:   # once per search: left out of the throughput
+            evaluators["stagewise"].shared_encoder(w)
+        replay = replayed(args.replay, space) if args.replay else []
+        tx2 = get_device("tx2")
+        bench.figure("train_step_s", "supernet training, seconds a step", "s", "lower")
+        bench.figure("train_peak_mib", "supernet training, peak RSS", "MiB", "lower")
+        bench.figure("stagewise_per_10min", "candidates per 10 minutes, stage by stage (the search's)", "", "higher")
+        bench.figure("whole_per_10min", "candidates per 10 minutes, whole", "", "higher")
+        for rep in bench.repetitions():
+            s, mib = training_step(12)
+            bench.add("train_step_s", s)
+            bench.add("train_peak_mib", mib)
+            n = len(replay) // args.reps
+            cands = (replay[rep * n:(rep + 1) * n] if replay
+                     else space.random_candidates(args.throughput, seed=100 + rep))
+            throughput_rep(bench, rep, evaluators, cands, tx2)
+        m = evaluators["stagewise"].memo
+        bench.note(f"stage memo: {m.hits} of {m.hits + m.misses} stages found evaluated, {m.nbytes / 2 ** 20:.0f} MiB "
+                   f"kept; {args.val_limit} validation frames a candidate")
+    if not args.skip_fidelity:
+        fidelity(bench, space, make_evaluator, [int(x) for x in args.calibration_sweep.split(",") if x])
+    bench.finish()

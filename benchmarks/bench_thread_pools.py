@@ -1,13 +1,15 @@
-"""Thread pools for the staged runtime (issue 11): the paper design's stage graphs chained, and its
-whole graph, with one intra-op pool per session (spinning off, what explorer.deploy.runtime did before), a
-pool per session with spinning on, onnxruntime's global thread pool shared by every session (what
-``explorer.probe.session`` does now), and a pool
-per session without the NCHWc layout transforms (what the stage boundaries cost them). A
-process can use the global pool only for all its sessions, so each variant runs in its own fresh
-process (staged and whole interleaved call by call), alternating, --reps times; every repetition
-and the medians are printed, with the staged overhead over the whole graph per variant.
+"""Thread pools for the staged runtime: the paper design's stage graphs chained, and its whole graph,
+with one intra-op pool per session (spinning off), a pool per session with spinning on, onnxruntime's
+global thread pool shared by every session (what ``explorer.probe.session`` uses), and a pool per
+session without the NCHWc layout transforms (what the stage boundaries cost them). Stages that each
+wake their own pool pay for it at every boundary; the staged overhead over the whole graph per
+variant says which pooling keeps staging cheap.
 
-    .venv/bin/python benchmarks/bench_thread_pools.py [--reps 3] [--threads 2]
+    python benchmarks/bench_thread_pools.py [--reps 3] [--threads 2] [--variants global,per-session]
+
+A process can use the global pool only for all its sessions, so each variant runs in a fresh process
+of its own (staged and whole interleaved call by call); each repetition runs every variant, in an
+order that rotates.
 """
 
 from __future__ import annotations
@@ -20,6 +22,8 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+
+from harness import Bench, rotated
 
 VARIANTS = ("per-session", "per-session-spinning", "global", "per-session-no-layout")
 
@@ -69,13 +73,21 @@ def _chain_ms(model_dir: Path, variant: str, threads: int) -> tuple[float, float
     return statistics.median(samples["staged"]), statistics.median(samples["whole"])
 
 
+def child_ms(model_dir: str, variant: str, threads: int) -> tuple[float, float]:
+    """(staged, whole) ms of ``variant`` measured in a fresh process."""
+    out = subprocess.run([sys.executable, __file__, "--threads", str(threads), "--child", model_dir, variant],
+                         capture_output=True, text=True, check=True)
+    staged, whole = (float(x) for x in out.stdout.strip().splitlines()[-1].split())
+    return staged, whole
+
+
 if __name__ == "__main__":
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--reps", type=int, default=3)
+    bench = Bench(__file__, "Thread pools for the staged runtime: staged overhead per pooling", __doc__)
+    ap = bench.parser()
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--variants", default=",".join(VARIANTS), help=f"comma-separated, of {', '.join(VARIANTS)}")
     ap.add_argument("--child", nargs=2, metavar=("DIR", "VARIANT"), help=argparse.SUPPRESS)
-    args = ap.parse_args()
+    args = bench.parse_args(ap)
     if args.child:
         print(*_chain_ms(Path(args.child[0]), args.child[1], args.threads))
         raise SystemExit(0)
@@ -84,23 +96,19 @@ if __name__ == "__main__":
     from explorer.model.onnx import export_whole
     from explorer.space import paper_candidate
     variants = [v for v in args.variants.split(",") if v in VARIANTS]
-    staged: dict[str, list[float]] = {v: [] for v in variants}
-    whole: dict[str, list[float]] = {v: [] for v in variants}
+    for v in variants:
+        bench.figure(f"{v}_staged_ms", f"{v}: staged", "ms", "lower")
+        bench.figure(f"{v}_whole_ms", f"{v}: whole graph", "ms", "lower")
+        bench.figure(f"{v}_overhead", f"{v}: staged over whole (ratio - 1)", "", "lower")
+    bench.note(f"{args.threads} threads, paper design at 224x224")
     with tempfile.TemporaryDirectory() as tmp:
         net = build_network(paper_candidate())
         export_network(net, Path(tmp), (224, 224), devices=("tx2",))
         (Path(tmp) / "whole.onnx").write_bytes(export_whole(net, (224, 224)))
-        for rep in range(args.reps):
-            for variant in variants:   # alternating fresh processes
-                out = subprocess.run([sys.executable, __file__, "--threads", str(args.threads), "--child", tmp,
-                                      variant], capture_output=True, text=True, check=True)
-                s, w = (float(x) for x in out.stdout.strip().splitlines()[-1].split())
-                staged[variant].append(s)
-                whole[variant].append(w)
-            print(f"rep {rep + 1}: " + ", ".join(f"{v} staged {staged[v][-1]:.2f} / whole {whole[v][-1]:.2f} ms "
-                                                 f"({staged[v][-1] / whole[v][-1] - 1:+.1%})" for v in variants),
-                  flush=True)
-    med = statistics.median
-    print(f"medians ({args.threads} threads, paper design at 224x224): " + ", ".join(
-        f"{v} staged {med(staged[v]):.2f} / whole {med(whole[v]):.2f} ms, overhead "
-        f"{med(s / w for s, w in zip(staged[v], whole[v])) - 1:+.1%}" for v in variants))
+        for rep in bench.repetitions():
+            for v in rotated(variants, rep):   # a fresh process each
+                staged, whole = child_ms(tmp, v, args.threads)
+                bench.add(f"{v}_staged_ms", staged)
+                bench.add(f"{v}_whole_ms", whole)
+                bench.add(f"{v}_overhead", staged / whole - 1)
+    bench.finish()

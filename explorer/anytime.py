@@ -246,9 +246,9 @@ def _check(costs: Sequence[float], losses: Sequence[float]) -> tuple[np.ndarray,
     if c.ndim != 1 or c.shape != l.shape or len(c) == 0:
         raise UserError(f"costs and losses must be two lists of the same length, got {len(c)} and {len(l)}")
     if (c < 0).any() or not np.isfinite(c).all():
-        raise UserError(f"costs must be finite and non-negative, got {list(c)}")
+        raise UserError(f"costs must be finite and non-negative, got {[float(x) for x in c]}")
     if np.any(np.diff(c) < 0):
-        raise UserError(f"path costs must not decrease (paths are prefixes of one run), got {list(c)}")
+        raise UserError(f"path costs must not decrease (paths are prefixes of one run), got {[float(x) for x in c]}")
     return c, l
 
 
@@ -256,7 +256,7 @@ def check_losses(losses: Sequence[float]) -> np.ndarray:
     """Per-path losses a user gives (``explorer anytime``): finite and non-negative, as errors are."""
     l = np.asarray(losses, dtype=float)
     if not np.isfinite(l).all() or (l < 0).any():
-        raise UserError(f"losses must be finite and non-negative (errors such as RMSE), got {list(l)}")
+        raise UserError(f"losses must be finite and non-negative (errors such as RMSE), got {[float(x) for x in l]}")
     return l
 
 

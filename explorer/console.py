@@ -16,11 +16,23 @@ console = Console(stderr=False, highlight=False)
 err_console = Console(stderr=True, highlight=False)
 
 
+class _Progress(Progress):
+    """A progress bar that disappears when the work it shows fails: the error is then the one line the
+    user reads on stderr, with no bar's remnant above it."""
+
+    def __exit__(self, exc_type, exc_val, exc_tb) -> None:
+        if exc_type is None:
+            return super().__exit__(exc_type, exc_val, exc_tb)
+        # Progress.stop() would draw the bar once more and, off a terminal, add a blank line
+        self.live.transient = True
+        self.live.stop()
+
+
 def progress(transient: bool = False) -> Progress:
     """A progress bar on stderr (so --json output stays clean)."""
-    return Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
-                    TimeElapsedColumn(), TimeRemainingColumn(), TextColumn("{task.fields[status]}"),
-                    console=err_console, transient=transient)
+    return _Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
+                     TimeElapsedColumn(), TimeRemainingColumn(), TextColumn("{task.fields[status]}"),
+                     console=err_console, transient=transient)
 
 
 def _fmt(v: Any) -> str:

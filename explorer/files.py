@@ -27,16 +27,37 @@ from explorer.errors import UserError
 MAX_TEXT_BYTES = 16 * 1024 * 1024
 
 
-class _NoAliasLoader(yaml.SafeLoader):
-    """PyYAML's safe loader without aliases: nested aliases expand exponentially (a file of a kilobyte
-    can stand for gigabytes), and none of the package's files needs them."""
+#: the most nodes a YAML file may stand for once its aliases are expanded: a kilobyte of nested
+#: aliases can otherwise stand for billions ("billion laughs"), which every reader would then walk
+MAX_YAML_NODES = 200_000
 
-    def compose_node(self, parent, index):
-        if self.check_event(yaml.events.AliasEvent):
-            mark = self.peek_event().start_mark
-            raise yaml.composer.ComposerError(None, None, "YAML aliases (*name) are not supported here: "
-                                              "write the values out", mark)
-        return super().compose_node(parent, index)
+
+def _expanded_nodes(node: yaml.Node, seen: dict[int, int]) -> int:
+    """How many nodes ``node`` stands for with every alias expanded (shared nodes counted each time
+    they are referenced, each computed once)."""
+    key = id(node)
+    if key not in seen:
+        seen[key] = 1   # a node that contains itself counts once
+        if isinstance(node, yaml.SequenceNode):
+            seen[key] = 1 + sum(_expanded_nodes(n, seen) for n in node.value)
+        elif isinstance(node, yaml.MappingNode):
+            seen[key] = 1 + sum(_expanded_nodes(k, seen) + _expanded_nodes(v, seen) for k, v in node.value)
+    return seen[key]
+
+
+def _load_yaml(text: str):
+    """PyYAML's safe loader, refusing a document whose aliases expand past ``MAX_YAML_NODES``."""
+    loader = yaml.SafeLoader(text)
+    try:
+        node = loader.get_single_node()
+        if node is None:
+            return None
+        if _expanded_nodes(node, {}) > MAX_YAML_NODES:
+            raise yaml.YAMLError(f"its aliases expand to more than {MAX_YAML_NODES:,} values (nested *aliases): "
+                                 "write the values out")
+        return loader.construct_document(node)
+    finally:
+        loader.dispose()
 
 
 def read_text(path: str | Path, what: str = "file") -> str:
@@ -61,15 +82,15 @@ def read_text(path: str | Path, what: str = "file") -> str:
 
 
 def read_yaml(path: str | Path, what: str = "YAML file") -> Any:
-    """A user's YAML file, parsed safely (no Python objects, no aliases)."""
+    """A user's YAML file, parsed safely (no Python objects, no alias bombs)."""
     p = Path(path)
     text = read_text(p, what)
     try:
-        return yaml.load(text, Loader=_NoAliasLoader)   # noqa: S506  (a SafeLoader without aliases)
+        return _load_yaml(text)
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f" (line {mark.line + 1})" if mark else ""
-        problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+        problem = getattr(exc, "problem", None) or (str(exc).splitlines() or [type(exc).__name__])[0]
         raise UserError(f"{p}: not valid YAML{where}: {problem}") from None
 
 

@@ -1,7 +1,7 @@
 """Search spaces (YAML) and the candidates they contain.
 
-A :class:`Candidate` is one point of the model family in DESIGN.md: a small frozen, hashable
-value that prints as YAML, names a trial, a cache entry and an exported model. A
+A :class:`Candidate` is one point of the model family (the design guide, in docs/): a small frozen,
+hashable value that prints as YAML, names a trial, a cache entry and an exported model. A
 :class:`SearchSpace` lists the choices of every searched dimension; it can be enumerated, sized,
 and sampled by an Optuna trial.
 """
@@ -38,6 +38,17 @@ def encoder_stride(blocks: int) -> int:
     for _, _, s in MOBILENET_V1_BLOCKS[:blocks]:
         stride *= s
     return stride
+
+
+def check_size(size: tuple[int, int], stride: int, flag: str) -> tuple[int, int]:
+    """``size`` (HxW) if both sides divide by the encoder's ``stride`` (what the decoder's up-sampling
+    needs), else one UserError line naming ``flag`` and the nearest sizes that work."""
+    h, w = size
+    if h % stride or w % stride or min(h, w) < stride:
+        up = lambda x: max(stride, -(-x // stride) * stride)   # noqa: E731
+        raise UserError(f"{flag} {h}x{w}: both sides must be multiples of the encoder stride {stride} "
+                        f"(e.g. {up(h)}x{up(w)})")
+    return size
 
 
 @dataclass(frozen=True)
@@ -280,6 +291,11 @@ class SearchSpace:
     exit_residual: tuple[bool, ...] = (False,)
     description: str = ""
     source: str = ""
+
+    @property
+    def max_stride(self) -> int:
+        """The largest encoder stride of the space: every size it trains or runs at divides by it."""
+        return max(encoder_stride(b) for b in self.encoder_blocks)
 
     @classmethod
     def from_yaml(cls, path: str | Path) -> "SearchSpace":

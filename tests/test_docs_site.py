@@ -109,3 +109,14 @@ def test_cli_page_has_every_command():
         for child, _, _ in gen.subcommands(sub):
             assert f"\n### explorer {name} {child}\n" in page, f"{name} {child}"
     assert "usage: explorer search" in page
+
+
+def test_figure_references_take_the_latest_records_value(tmp_path):
+    gen = _hook()
+    results = tmp_path / "benchmarks" / "results"
+    _write(results, _record("bench_runtime", "20261125T060000Z", "aaa1111", 11.25), "20261125T060000Z")
+    _write(results, _record("bench_runtime", "20261126T060000Z", "bbb2222", 9.75), "20261126T060000Z")
+    found, _ = gen.latest_records(results)
+    assert gen.figure_text(found, "bench_runtime", "whole_graph_ms") == "9.75 ms (8.75-10.75, 3 reps)"
+    assert gen.figure_text(found, "bench_runtime", "no_such_figure") is None
+    assert gen.figure_text(found, "bench_nothing", "whole_graph_ms") is None

@@ -53,9 +53,37 @@ def on_files(files, config):
     return files
 
 
+#: ``{{ figure: BENCHMARK/FIGURE }}`` in any page: that figure's median in the benchmark's latest record
+FIGURE = re.compile(r"\{\{\s*figure:\s*(\w+)/(\w+)\s*\}\}")
+
+
+def figure_text(records: dict[str, tuple[Path, dict]], benchmark: str, name: str) -> str | None:
+    """A figure's median with its unit (and its range over the repetitions), or None if no record has it."""
+    rec = records.get(benchmark, (None, None))[1]
+    fig = next((f for f in (rec or {}).get("figures", []) if f["name"] == name), None)
+    if fig is None:
+        return None
+    unit = "x" if fig["unit"] == "x" else f" {fig['unit']}" if fig["unit"] else ""
+    spread = f" ({_num(fig['min'])}-{_num(fig['max'])}, {len(fig['reps'])} reps)" if len(fig["reps"]) > 1 else ""
+    return f"{_num(fig['median'])}{unit}{spread}"
+
+
+def _figures(markdown: str, src: str) -> str:
+    """Replaces every figure reference by the latest record's value; a figure no record holds is a
+    build warning (so ``mkdocs build --strict`` fails rather than print a stale or made-up number)."""
+    def one(m: re.Match) -> str:
+        text = figure_text(_records, m.group(1), m.group(2))
+        if text is None:
+            log.warning("%s: no benchmark record holds figure %s/%s", src, m.group(1), m.group(2))
+            return "(not measured)"
+        return text
+    return FIGURE.sub(one, markdown)
+
+
 def on_page_markdown(markdown, page, config, files):
-    """Fills the placeholders of cli.md and benchmarks.md."""
+    """Fills the placeholders of cli.md and benchmarks.md, and figure references in every page."""
     src = page.file.src_uri
+    markdown = _figures(markdown, src)
     if src == "cli.md":
         return _fill(markdown, CLI_PLACEHOLDER, src, lambda: cli_markdown(_parser(config)))
     if src == "benchmarks.md":
@@ -217,7 +245,8 @@ def _benchmark_section(name: str, path: Path, rec: dict, root: Path) -> str:
     peak = m["peak_gmacs_fp32"]
     machine = f"{m['cpu_model']}, {m['cores']} cores" + (f", peak {_num(peak)} GMAC/s fp32" if peak else "")
     commit = f"`{rec['commit']}`" + (" (with uncommitted changes)" if rec["dirty"] else "")
-    lines = [f"## {rec['title']}\n", f"`{name}`: {rec['description']}\n"]
+    # the benchmark's name is the heading's anchor: the design guide links to benchmarks.md#NAME
+    lines = [f"## {rec['title']} {{#{name}}}\n", f"`{name}`: {rec['description']}\n"]
     if rec["figures"]:
         lines.append("| figure | median | min – max | reps | unit |")
         lines.append("|---|---:|---:|---:|---|")

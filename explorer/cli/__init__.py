@@ -9,7 +9,7 @@ import warnings
 from typing import Sequence
 
 from explorer.cli import deploy, devices, inspect, study, training
-from explorer.cli._common import _Parser, explain
+from explorer.cli._common import _Parser, check_numbers, explain
 from explorer.cli.study import _print_outcome  # noqa: F401  (the closing summary, for tests and notebooks)
 from explorer.errors import UserError
 
@@ -17,6 +17,8 @@ GROUPS = (inspect, devices, training, study, deploy)
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """The whole ``explorer`` parser, every command and option with its help, without parsing anything
+    (``main`` parses with it; the documentation's CLI reference is generated from it)."""
     from explorer import __version__
     p = _Parser(prog="explorer", description="Hardware-aware design-space explorer for anytime depth estimation "
                 "(camera + 2D LiDAR): search early-exit networks for the lowest anytime loss on a device.")
@@ -45,6 +47,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.command == "devices" and args.name and not args.action:
         args.name, args.action = args.name, "show"
     try:
+        check_numbers(args)
         args.fn(args)
     except UserError as exc:
         sys.stderr.write(f"explorer: error: {exc}\n")

@@ -1,8 +1,10 @@
-"""What every command group shares: the one-line-error parser and argument types."""
+"""What every command group shares: the one-line-error parser, argument types, the flags' common
+explanations and the one way an old flag name is kept working (``deprecated_alias``)."""
 
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 
 from explorer.errors import UserError
@@ -12,6 +14,69 @@ class _Parser(argparse.ArgumentParser):
     def error(self, message: str) -> None:  # one line, exit 2 (argparse prints usage + line)
         sys.stderr.write(f"{self.prog}: error: {message} (see {self.prog} --help)\n")
         sys.exit(2)
+
+
+class _DeprecatedAlias(argparse.Action):
+    """An old spelling of an option: stores into the new option's ``dest`` and says, in one line on
+    stderr, which name to use instead (stdout stays clean for --json)."""
+
+    def __init__(self, option_strings, dest, new: str, **kwargs) -> None:
+        super().__init__(option_strings, dest, **kwargs)
+        self.new = new
+
+    def __call__(self, parser, namespace, values, option_string=None) -> None:
+        sys.stderr.write(f"explorer: {self.option_strings[0]} is deprecated, use {self.new} "
+                         "(the old name goes in the next version)\n")
+        setattr(namespace, self.dest, values)
+
+
+def deprecated_alias(parser: argparse.ArgumentParser, old: str, new: str) -> None:
+    """Keeps ``old`` working for one version as another name of the already added option ``new``:
+    same value type, same destination, hidden from --help (the help and the docs say ``new`` only)."""
+    target = next(a for a in parser._actions if new in a.option_strings)
+    parser.add_argument(old, action=_DeprecatedAlias, new=new, dest=target.dest, type=target.type,
+                        metavar=target.metavar, default=argparse.SUPPRESS, help=argparse.SUPPRESS)
+
+
+#: The smallest value each numeric option takes (and whether it may equal it), checked for every
+#: command before any work starts: a count of 0, a negative rate or an infinite time is a mistake.
+AT_LEAST = {  # dest: (minimum, inclusive)
+    "batch_size": (1, True), "calibration_frames": (1, True), "checkpoint_every": (1, True),
+    "deadline": (0, False), "deadlines": (1, True), "eval_frames": (1, True), "finalist_steps": (1, True),
+    "finalists": (0, True), "frames": (1, True), "lr": (0, False), "max_degradation": (0, True),
+    "max_first_exit": (0, False), "max_params": (0, False), "max_retries": (0, True), "micro_batches": (1, True),
+    "proxy_steps": (1, True), "random_subnets": (0, True), "repeats": (1, True), "steps": (1, True),
+    "stop_after_steps": (1, True), "supernet_steps": (1, True), "threads": (1, True), "time_limit": (0, True),
+    "timeout": (0, True), "top": (1, True), "trial": (0, True), "trials": (1, True), "workers": (1, True),
+}
+
+
+def check_numbers(args: argparse.Namespace) -> None:
+    """Every numeric option in ``args`` finite and at least its ``AT_LEAST`` minimum, else one line."""
+    for dest, (low, inclusive) in AT_LEAST.items():
+        value = getattr(args, dest, None)
+        if value is None or isinstance(value, bool):
+            continue
+        flag = "--" + dest.replace("_", "-")
+        if not math.isfinite(value):
+            raise UserError(f"{flag} {value}: give a finite number")
+        if value < low or (value == low and not inclusive):
+            bound = f"at least {low}" if inclusive else f"more than {low}"
+            raise UserError(f"{flag} {value:g}: must be {bound}")
+
+
+def _add_provider(s: argparse.ArgumentParser) -> None:
+    """``--provider``, for every command that runs graphs with onnxruntime."""
+    s.add_argument("--provider", default="CPUExecutionProvider")
+
+
+def _check_provider(provider: str) -> None:
+    """A provider this onnxruntime lacks is one line naming those it has, before any work starts."""
+    from explorer.probe import ProbeError, check_provider
+    try:
+        check_provider(provider)
+    except ProbeError as exc:
+        raise UserError(str(exc)) from None
 
 
 def _size(text: str) -> tuple[int, int]:
@@ -78,22 +143,24 @@ FLAG_HELP = {
     "--device": "device profile: a built-in name (see explorer devices) or a YAML file from explorer calibrate",
     "--budget": "budget distribution, e.g. time:uniform:33ms or energy:uniform:0.5J",
     "--metric": "the per-path error the anytime loss averages: rmse (m), mae (m) or rel",
-    "--input-size": "input HxW, e.g. 224x224",
+    "--input-size": "deployment (or evaluation) resolution HxW, e.g. 224x224",
+    "--train-size": "training resolution HxW, e.g. 64x64",
     "--split": "which split of the data set",
-    "--limit": "at most this many frames (default: all)",
+    "--frames": "at most this many frames (default: all)",
+    "--provider": "onnxruntime execution provider (default CPUExecutionProvider; CUDA, TensorRT, OpenVINO, "
+                  "XNNPACK ones where installed)",
     "--seed": "random seed (candidates sampled, weights initialised, batches drawn)",
     "--accelerator": "where to train: auto (CUDA when PyTorch sees a GPU, else the CPU), cpu or cuda",
     "--threads": "onnxruntime intra-op threads (default: every core this process may use)",
     "--repeats": "timed runs of each graph",
     "--lr": "learning rate",
     "--batch-size": "frames per training step",
-    "--steps": "training steps (default: the recipe's)",
+    "--steps": "training steps of what this command trains (default: the recipe's)",
     "--recipe": "training recipe: proxy (the search's short one, at 64x64) or paper (Sec. 5.1: SGD, 20,000 steps "
                 "of 96 frames at 224x224)",
     "--top": "rows to print",
     "--csv": "also write the whole table to this CSV file",
     "--image": "RGB image (PNG or JPEG), resized to the model's input size",
-    "--frames": "validation frames, each run at every deadline",
     "--deadlines": "deadlines spread evenly over U(0, 1.25 x the last path's predicted time)",
     "--no-pruning": "train every proxy candidate to the end (no Optuna pruning of the worst quarter)",
     "checkpoint": "checkpoint file written by explorer train",

@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 
 from explorer.errors import UserError
-from explorer.cli._common import _size, _ms
+from explorer.cli._common import _add_provider, _ms, _size, deprecated_alias
 
 
 def _percent(text: str) -> float:
@@ -29,7 +29,11 @@ def cmd_export(args) -> None:
         raise UserError(f"--quantize {args.quantize}: use int8 or none")
     quant = None
     if args.quantize == "int8":
-        quant = Quantization(data=args.data or "synthetic", calibration_frames=args.calibration_frames,
+        data = args.data
+        if data is None:   # just the frames calibration and the check read, not the whole default set
+            data = f"synthetic:{args.calibration_frames}:{args.eval_frames}"
+            err_console.print(f"no --data: calibrating on {data} (generated scenes); give --data for your own frames")
+        quant = Quantization(data=data, calibration_frames=args.calibration_frames,
                              eval_frames=args.eval_frames, max_degradation=args.max_degradation / 100,
                              force=args.force, stages=args.int8_stages or "faster")
     elif args.force or args.data or args.int8_stages:
@@ -39,9 +43,10 @@ def cmd_export(args) -> None:
     say = lambda msg: err_console.print(msg)  # noqa: E731
     if args.study:
         manifest = export_from_study(args.study, args.trial, Path(args.out), args.storage,
-                                     Path(args.reports), args.input, args.device, quant, say)
+                                     Path(args.reports), args.input_size, args.device, quant, say)
     else:
-        manifest = export_from_checkpoint(Path(args.checkpoint), Path(args.out), args.input, args.device, quant, say)
+        manifest = export_from_checkpoint(Path(args.checkpoint), Path(args.out), args.input_size, args.device, quant,
+                                          say)
     console.print(f"exported {len(manifest['stages'])} stage graphs to {args.out} (max |onnx - torch| "
                   f"{manifest['verification']['max_abs_diff']:.2e}{' before quantization' if manifest.get('quantization') else ''})")
     if manifest.get("quantization"):
@@ -99,9 +104,11 @@ def register(sub, add, reports: dict) -> None:
     s.add_argument("--trial", type=int, help="trial number (default: the best)")
     s.add_argument("--checkpoint", help="export a checkpoint instead of a study trial")
     s.add_argument("--storage")
-    s.add_argument("--out", required=True, help="folder for the stage graphs and manifest.json (explorer run reads it)")
-    s.add_argument("--input-size", "--input", dest="input", type=_size, default=None,
-                   help="input HxW (default: the study's input size)")
+    s.add_argument("--out", required=True, help="folder to write the stage graphs and manifest.json into "
+                   "(explorer run and explorer curve read it)")
+    s.add_argument("--input-size", type=_size, default=None,
+                   help="deployment resolution HxW (default: the study's --input-size; a checkpoint's training size)")
+    deprecated_alias(s, "--input", "--input-size")
     s.add_argument("--device", action="append", help="devices whose expected costs go in the manifest")
     s.add_argument("--quantize", default=None, metavar="int8|none",
                    help="int8: static quantization (onnxruntime QDQ) calibrated on --data; every path's metrics "
@@ -127,18 +134,18 @@ def register(sub, add, reports: dict) -> None:
     s.add_argument("--image", required=True)
     s.add_argument("--scan", required=True, help=".csv or .npy: one depth (m) per image column, 0 = none")
     s.add_argument("--deadline", type=_ms, required=True, help="e.g. 8ms")
-    s.add_argument("--out", help="write the depth map (.png 16-bit mm, or .npy metres)")
+    s.add_argument("--out", help="depth map file to write: .png (16-bit, millimetres) or .npy (metres) "
+                   "(default: none written)")
     s.add_argument("--threads", type=int, default=None)
-    s.add_argument("--provider", default="CPUExecutionProvider", help="onnxruntime execution provider "
-                   "(default CPUExecutionProvider)")
+    _add_provider(s)
     s.add_argument("--json", action="store_true")
 
     s = add("curve", cmd_curve, "measure an exported model's anytime curve here and compare with the prediction")
     s.add_argument("model", help="folder written by explorer export")
     s.add_argument("--data", default="synthetic", help="frames to measure on (validation split)")
     s.add_argument("--device", help="host profile from explorer calibrate (default: calibrate now)")
-    s.add_argument("--frames", type=int, default=16)
+    s.add_argument("--frames", type=int, default=16, help="validation frames, each run at every deadline "
+                   "(default 16)")
     s.add_argument("--deadlines", type=int, default=40)
-    s.add_argument("--provider", default="CPUExecutionProvider", help="onnxruntime execution provider "
-                   "(default CPUExecutionProvider)")
+    _add_provider(s)
     s.add_argument("--json", action="store_true")

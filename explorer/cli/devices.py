@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from explorer.errors import UserError
+from explorer.cli._common import _add_provider, _check_provider
 
 
 def cmd_devices(args) -> None:
@@ -64,11 +65,7 @@ def cmd_calibrate(args) -> None:
     if args.fit:
         prof = fit_results(read_results(args.fit), name=args.name or out.stem)
     else:
-        from explorer.probe import ProbeError, check_provider
-        try:
-            check_provider(args.provider)  # before the progress bar: one line, nothing else
-        except ProbeError as exc:
-            raise UserError(str(exc)) from None
+        _check_provider(args.provider)  # before the progress bar: one line, nothing else
         with progress() as bar:
             task = bar.add_task("measuring layers", total=None, status="")
             prof = calibrate(threads=args.threads, repeats=args.repeats, scale=0.35 if args.quick else 1.0,
@@ -112,15 +109,14 @@ def register(sub, add, reports: dict) -> None:
 
     s = add("calibrate", cmd_calibrate, "measure this machine with onnxruntime and write a device profile; "
             "or pack the measurement for another device (--bundle) and fit what it measured (--fit)")
-    s.add_argument("--out", help="profile YAML to write")
+    s.add_argument("--out", help="profile YAML file to write (needed unless --bundle)")
     s.add_argument("--bundle", metavar="FILE.tar", help="write the graphs and probe.pyz (needs only python3, numpy "
                    "and onnxruntime) for a device, instead of measuring here")
     s.add_argument("--fit", metavar="RESULTS.json", help="fit --out to what probe.pyz measured on a device")
     s.add_argument("--name", help="profile name (default: the file's stem)")
     s.add_argument("--threads", type=int, default=None)
     s.add_argument("--repeats", type=int, default=25)
-    s.add_argument("--provider", default="CPUExecutionProvider", help="onnxruntime execution provider "
-                   "(default CPUExecutionProvider; CUDA, TensorRT, OpenVINO, XNNPACK ones where installed)")
+    _add_provider(s)
     s.add_argument("--no-energy", dest="energy", action="store_false", help="do not sample power sensors")
     s.add_argument("--quick", action="store_true", help="a third of the sweep, and graphs timed while the machine "
                    "ran slow timed again once, after waiting up to 10 s (for a first look)")

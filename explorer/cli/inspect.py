@@ -7,7 +7,7 @@ import time
 from pathlib import Path
 
 from explorer.errors import UserError
-from explorer.cli._common import _Parser, _size
+from explorer.cli._common import _Parser, _add_provider, _check_provider, _size, deprecated_alias
 
 
 def cmd_space_show(args) -> None:
@@ -49,14 +49,14 @@ def _profile_reference(args, device) -> None:
     ref = get_reference(args.target)
     if args.measure:
         raise UserError("--measure works on candidates only; reference networks are costed, not measured")
-    frame = profile_reference(ref.name, args.input, device)
+    frame = profile_reference(ref.name, args.input_size, device)
     if args.json:
         published = ref.paper.__dict__ if ref.paper else None
-        print_json({"reference": ref.name, "description": ref.description, "input_size": list(args.input),
+        print_json({"reference": ref.name, "description": ref.description, "input_size": list(args.input_size),
                     "paths": frame.to_dict("records"), "published": published})
         return
     console.print(f"[bold]{ref.name}[/bold]  {ref.description}")
-    print_frame(frame, f"at {args.input[0]}x{args.input[1]}" + (f" on {device.name}" if device else ""))
+    print_frame(frame, f"at {args.input_size[0]}x{args.input_size[1]}" + (f" on {device.name}" if device else ""))
 
 
 def cmd_profile(args) -> None:
@@ -68,13 +68,16 @@ def cmd_profile(args) -> None:
     looks_like_file = args.target.endswith((".yaml", ".yml")) or "/" in args.target
     if not looks_like_file and not Path(args.target).is_file() and not (SPACES_DIR / f"{args.target}.yaml").is_file():
         return _profile_reference(args, device)   # a reference network, or one line naming them
+    if args.measure:
+        _check_provider(args.provider)
     for cand in _candidates_of(args.target):
-        frame = profile_candidate(cand, args.input, device)
-        entry = {"candidate": cand.to_dict(), "key": cand.key, "input_size": list(args.input),
+        frame = profile_candidate(cand, args.input_size, device)
+        entry = {"candidate": cand.to_dict(), "key": cand.key, "input_size": list(args.input_size),
                  "paths": frame.to_dict("records")}
         if args.measure:
             from explorer.calibration.measure import measure_candidate
-            m = measure_candidate(cand, args.input, threads=args.threads, repeats=args.repeats)
+            m = measure_candidate(cand, args.input_size, threads=args.threads, repeats=args.repeats,
+                                  provider=args.provider)
             frame["measured_ms"] = m.path_ms
             frame.loc[0, "measured_ms"] = 0.0
             entry["paths"] = frame.to_dict("records")
@@ -84,7 +87,7 @@ def cmd_profile(args) -> None:
         out.append(entry)
         if not args.json:
             console.print(f"[bold]{cand.key}[/bold]  {cand.describe()}")
-            title = f"per path at {args.input[0]}x{args.input[1]}" + (f" on {device.name}" if device else "")
+            title = f"per path at {args.input_size[0]}x{args.input_size[1]}" + (f" on {device.name}" if device else "")
             print_frame(frame, title)
             if args.measure:
                 console.print(f"whole graph {m.whole_ms:.3f} ms, sum of stages {m.staged_total_ms:.3f} ms "
@@ -96,7 +99,7 @@ def cmd_profile(args) -> None:
 
 def cmd_anytime(args) -> None:
     from explorer.console import console, print_json
-    from explorer.anytime import anytime_loss, interval_probabilities, parse_budget
+    from explorer.anytime import anytime_loss, check_losses, interval_probabilities, parse_budget
     if not args.path:
         raise UserError("give at least one --path COST:LOSS (path 0 is added with cost 0 if missing)")
     pairs = []
@@ -108,6 +111,7 @@ def cmd_anytime(args) -> None:
             raise UserError(f"--path {text!r} is not COST:LOSS (e.g. 6.4:0.465)") from None
     pairs.sort()
     costs, losses = [p[0] for p in pairs], [p[1] for p in pairs]
+    check_losses(losses)
     dist = parse_budget(args.budget)
     value = anytime_loss(costs, losses, dist)
     weights = interval_probabilities(costs, dist)
@@ -128,7 +132,7 @@ def cmd_enumerate(args) -> None:
     t0 = time.perf_counter()
     with progress(transient=True) as bar:
         task = bar.add_task(f"costing {space.name}", total=space.size, status="")
-        frame = enumerate_space(space, args.device, args.budget, args.input,
+        frame = enumerate_space(space, args.device, args.budget, args.input_size,
                                 progress=lambda i, n: bar.update(task, completed=i))
     dt = time.perf_counter() - t0
     if args.csv:
@@ -148,9 +152,9 @@ def cmd_data_inspect(args) -> None:
     from explorer.model import interpolate_scan
     with progress(transient=True) as bar:
         task = bar.add_task("generating synthetic scenes", total=None, status="")
-        ds = open_dataset(args.data, args.split, args.input, train_augment=False,
+        ds = open_dataset(args.data, args.split, args.input_size, train_augment=False,
                           progress=lambda i, n: bar.update(task, completed=i, total=n))
-    n = len(ds) if not args.limit else min(args.limit, len(ds))
+    n = len(ds) if not args.frames else min(args.frames, len(ds))
     if n == 0:
         raise UserError(f"data {args.data}: the {args.split} split is empty")
     avg, dmin, dmax, valid, scan_valid = MetricAverager(), np.inf, 0.0, [], []
@@ -165,7 +169,7 @@ def cmd_data_inspect(args) -> None:
         p0 = interpolate_scan(item["scan"][None], d.shape[1])[0]
         avg.add(depth_metrics(p0, d))
     res = {"data": str(ds.name), "split": args.split, "frames": len(ds), "inspected": n,
-           "input_size": list(args.input), "image_shape": list(item["image"].shape),
+           "input_size": list(args.input_size), "image_shape": list(item["image"].shape),
            "depth_range_m": [dmin, dmax], "valid_depth_fraction": float(np.mean(valid)),
            "scan_return_fraction": float(np.mean(scan_valid)), "scan_row": item["scan_row"],
            "path0": avg.result()}
@@ -173,7 +177,7 @@ def cmd_data_inspect(args) -> None:
         print_json(res)
         return
     console.print(f"[bold]{res['data']}[/bold] {args.split}: {len(ds)} frames (inspected {n}) at "
-                  f"{args.input[0]}x{args.input[1]}")
+                  f"{args.input_size[0]}x{args.input_size[1]}")
     console.print(f"  depth {dmin:.2f}-{dmax:.2f} m, {res['valid_depth_fraction']:.1%} of pixels valid; "
                   f"scan row {res['scan_row']}, {res['scan_return_fraction']:.1%} of columns with a return")
     p0 = res["path0"]
@@ -194,12 +198,14 @@ def register(sub, add, reports: dict) -> None:
             "or of one of the paper's reference networks")
     s.add_argument("target", help="candidate YAML, a space of at most 16 candidates (e.g. paper), or a reference "
                    "network: fastdepth, fastdepth-pruned, s2d-resnet50, s2d-resnet18, monodepth2-resnet18, ...")
-    s.add_argument("--input-size", "--input", dest="input", type=_size, default=(224, 224),
-                   help="input HxW (default 224x224)")
+    s.add_argument("--input-size", type=_size, default=(224, 224), help="deployment resolution HxW (default 224x224)")
+    deprecated_alias(s, "--input", "--input-size")
     s.add_argument("--device", help="device profile name or YAML file")
-    s.add_argument("--measure", action="store_true", help="also measure on this machine with onnxruntime")
+    s.add_argument("--measure", action="store_true", help="also measure on this machine with onnxruntime "
+                   "(--provider, --threads, --repeats)")
     s.add_argument("--threads", type=int, default=None, help="onnxruntime threads (default: all cores)")
     s.add_argument("--repeats", type=int, default=20)
+    _add_provider(s)
     s.add_argument("--json", action="store_true")
 
     s = add("anytime", cmd_anytime, "anytime loss (Eq. 1) of given per-path costs and losses")
@@ -211,8 +217,9 @@ def register(sub, add, reports: dict) -> None:
     s.add_argument("--space", default="anytime_depth")
     s.add_argument("--device", default="tx2")
     s.add_argument("--budget", default="time:uniform:33ms")
-    s.add_argument("--input-size", "--input", dest="input", type=_size, default=(224, 224))
-    s.add_argument("--csv", help="write the table here")
+    s.add_argument("--input-size", type=_size, default=(224, 224))
+    deprecated_alias(s, "--input", "--input-size")
+    s.add_argument("--csv", help="CSV file to write the whole table to (default: none)")
 
     sp = add("data", None, "inspect a data set")
     dsub = sp.add_subparsers(dest="sub", required=True, parser_class=_Parser, metavar="SUBCOMMAND")
@@ -220,7 +227,10 @@ def register(sub, add, reports: dict) -> None:
     s.add_argument("--data", default="synthetic", help="synthetic | nyu:PATH | kitti:PATH | synthetic-seq | "
                    "kitti-seq:DRIVE | frames:FOLDER")
     s.add_argument("--split", default="val", choices=["train", "val"])
-    s.add_argument("--input-size", "--input", dest="input", type=_size, default=(224, 224))
-    s.add_argument("--limit", type=int, default=None, help="inspect at most this many frames")
+    s.add_argument("--input-size", type=_size, default=(224, 224), help="resolution HxW the frames are resized "
+                   "to (default 224x224)")
+    deprecated_alias(s, "--input", "--input-size")
+    s.add_argument("--frames", type=int, default=None, help="inspect at most this many frames (default: all)")
+    deprecated_alias(s, "--limit", "--frames")
     s.add_argument("--json", action="store_true")
     s.set_defaults(fn=cmd_data_inspect)

@@ -6,23 +6,43 @@ import time
 from pathlib import Path
 
 from explorer.errors import UserError
-from explorer.cli._common import _size, _count, _ms, _duration_s, _add_supervision
+from explorer.cli._common import _size, _count, _ms, _duration_s, _add_supervision, deprecated_alias
 
 
 def cmd_search(args) -> None:
     import optuna
     from explorer.console import err_console, progress
-    from explorer.study.search import SearchConfig, search
-    from explorer.space import SearchSpace
+    from explorer.study.search import search
     optuna.logging.set_verbosity(optuna.logging.WARNING)
-    from explorer.study.planning import TimeLimit
     started = time.time()  # the time limit counts from here: data generation is part of the run
+    cfg = _search_config(args)
+    reports = Path(args.reports)
+    timeout, limit = _time_limits(args, started)
+    with progress(transient=True) as bar:
+        shown = _SearchProgress(bar, cfg.study, args.trials, timeout)
+        if limit is not None:
+            bar.update(shown.task, status="measuring this machine for --time-limit (a few training steps)")
+        outcome = search(cfg, storage_url=args.storage, workers=args.workers, n_trials=args.trials,
+                         timeout_s=timeout, reports=reports, on_trial=shown.trial, on_poll=shown.trial,
+                         on_data=shown.data, on_supernet=shown.supernet, on_finalist=shown.finalist,
+                         time_limit=limit, on_plan=shown.planned)
+    cfg = outcome.config or cfg
+    if outcome.interrupted_failed:
+        err_console.print(f"marked {outcome.interrupted_failed} interrupted trial(s) as failed")
+    _print_retries(outcome, cfg)
+    _print_outcome(outcome.study, cfg, outcome.storage_url, reports, args.report)
+
+
+def _search_config(args):
+    """The study's configuration from the command line, checked."""
+    from explorer.study.search import SearchConfig
+    from explorer.space import SearchSpace
     space_name = SearchSpace.from_yaml(args.space).name
     study = args.study or f"{Path(str(args.device)).stem}-{space_name}"
     cfg = SearchConfig(
         study=study, space=args.space, device=args.device, budgets=tuple(args.budget or ["time:uniform:33ms"]),
         data=args.data, objectives=tuple(args.objectives.split(",")), metric=args.metric,
-        input_size=args.input_size, train_size=args.train_size, train_steps=args.train_steps,
+        input_size=args.input_size, train_size=args.train_size, train_steps=args.proxy_steps,
         batch_size=args.batch_size, seed=args.seed, max_params=args.max_params,
         max_first_exit_ms=args.max_first_exit, baselines=_baselines(args),
         pruning=not args.no_pruning, keep_weights=not args.no_weights, accelerator=args.accelerator,
@@ -33,7 +53,12 @@ def cmd_search(args) -> None:
         max_retries=args.max_retries,
         supervision=args.supervision, poses=args.poses, hints=args.depth_hints)
     cfg.validate()
-    reports = Path(args.reports)
+    return cfg
+
+
+def _time_limits(args, started: float):
+    """(sampling timeout in seconds or None, the whole run's TimeLimit or None)."""
+    from explorer.study.planning import TimeLimit
     if (args.time_limit or 0) < 0 or (args.timeout or 0) < 0:
         raise UserError("--time-limit and --timeout must be 0 (none) or more, e.g. 15m")
     # a sampling time the user asks for is not cut short by the default limit
@@ -41,63 +66,59 @@ def cmd_search(args) -> None:
     timeout = 180.0 if args.timeout is None else (None if args.timeout == 0 else args.timeout)
     limit = None
     if time_limit:
+        # what the user did not fix, the plan may shrink to fit the limit
         free = {k for k in ("supernet_steps", "finalists", "finalist_steps") if getattr(args, k) is None}
         limit = TimeLimit(time_limit, started, frozenset(free))
-    total = args.trials
-    t0 = time.time()
-    with progress(transient=True) as bar:
-        task = bar.add_task(f"search {study}", total=total, status="starting (data, baselines)")
-        phases: dict = {}
+    return timeout, limit
 
-        def supernet(step: int, steps: int, record: dict) -> None:
-            if "supernet" not in phases:
-                phases["supernet"] = bar.add_task("supernet (once per space, data, recipe)", total=steps, status="")
-            bar.update(phases["supernet"], completed=step, status=f"largest {record['largest']:.3f}, "
-                       f"smallest {record['smallest']:.3f}")
 
-        def finalist(i: int, n: int, what: str) -> None:
-            if "finalists" not in phases:
-                phases["finalists"] = bar.add_task("finalists (retraining)", total=n, status="")
-            bar.update(phases["finalists"], completed=i, status=what)
+class _SearchProgress:
+    """The progress bars of one search: its trials, then one bar per phase as the phase starts."""
 
-        def show(study_obj, trial=None) -> None:
-            nonlocal t0
-            if "search_start" not in phases:
-                phases["search_start"], t0 = True, time.time()
-            from explorer.study.retry import counted_trials
-            complete = study_obj.get_trials(deepcopy=False, states=(optuna.trial.TrialState.COMPLETE,))
-            complete = [t for t in complete if t.values]
-            best = min((t.values[0] for t in complete), default=float("nan"))
-            last = f"trial {trial.number} {trial.state.name.lower()}" + (
-                f" {trial.values[0]:.4f}" if trial is not None and trial.values else "") if trial else ""
-            left = "" if timeout is None else f", {max(timeout - (time.time() - t0), 0) / 60:.1f} min left"
-            bar.update(task, completed=counted_trials(study_obj), status=f"{last}  best {best:.4f}{left}")
+    def __init__(self, bar, study: str, trials: int | None, timeout: float | None) -> None:
+        self.bar, self.timeout = bar, timeout
+        self.task = bar.add_task(f"search {study}", total=trials, status="starting (data, baselines)")
+        self.phases: dict = {}
+        self.t0 = time.time()              # reset when sampling starts: the timeout counts from there
+        self.said = {"plan": False, "changes": 0}
 
-        def data(i: int, n: int) -> None:
-            bar.update(task, status=f"generating synthetic scenes {i}/{n} (once, then cached)")
+    def supernet(self, step: int, steps: int, record: dict) -> None:
+        if "supernet" not in self.phases:
+            self.phases["supernet"] = self.bar.add_task("supernet (once per space, data, recipe)", total=steps,
+                                                        status="")
+        self.bar.update(self.phases["supernet"], completed=step, status=f"largest {record['largest']:.3f}, "
+                        f"smallest {record['smallest']:.3f}")
 
-        said = {"plan": False, "changes": 0}
+    def finalist(self, i: int, n: int, what: str) -> None:
+        if "finalists" not in self.phases:
+            self.phases["finalists"] = self.bar.add_task("finalists (retraining)", total=n, status="")
+        self.bar.update(self.phases["finalists"], completed=i, status=what)
 
-        def planned(plan) -> None:  # called again when a later phase re-plans: only what is new is said
-            nonlocal timeout
-            timeout = plan.sampling_s
-            if not said["plan"]:
-                err_console.print(plan.describe(), highlight=False)
-            for change in plan.changes[said["changes"]:]:
-                err_console.print(f"  to fit: {change}", highlight=False)
-            said.update(plan=True, changes=len(plan.changes))
+    def trial(self, study_obj, trial=None) -> None:
+        import optuna
+        from explorer.study.retry import counted_trials
+        if "search_start" not in self.phases:
+            self.phases["search_start"], self.t0 = True, time.time()
+        complete = study_obj.get_trials(deepcopy=False, states=(optuna.trial.TrialState.COMPLETE,))
+        complete = [t for t in complete if t.values]
+        best = min((t.values[0] for t in complete), default=float("nan"))
+        last = f"trial {trial.number} {trial.state.name.lower()}" + (
+            f" {trial.values[0]:.4f}" if trial is not None and trial.values else "") if trial else ""
+        left = "" if self.timeout is None else f", {max(self.timeout - (time.time() - self.t0), 0) / 60:.1f} min left"
+        self.bar.update(self.task, completed=counted_trials(study_obj), status=f"{last}  best {best:.4f}{left}")
 
-        if limit is not None:
-            bar.update(task, status="measuring this machine for --time-limit (a few training steps)")
+    def data(self, i: int, n: int) -> None:
+        self.bar.update(self.task, status=f"generating synthetic scenes {i}/{n} (once, then cached)")
 
-        outcome = search(cfg, storage_url=args.storage, workers=args.workers, n_trials=total,
-                         timeout_s=timeout, reports=reports, on_trial=show, on_poll=show, on_data=data,
-                         on_supernet=supernet, on_finalist=finalist, time_limit=limit, on_plan=planned)
-    cfg = outcome.config or cfg
-    if outcome.interrupted_failed:
-        err_console.print(f"marked {outcome.interrupted_failed} interrupted trial(s) as failed")
-    _print_retries(outcome, cfg)
-    _print_outcome(outcome.study, cfg, outcome.storage_url, reports, args.report)
+    def planned(self, plan) -> None:
+        """Called again when a later phase re-plans: only what is new is said."""
+        from explorer.console import err_console
+        self.timeout = plan.sampling_s
+        if not self.said["plan"]:
+            err_console.print(plan.describe(), highlight=False)
+        for change in plan.changes[self.said["changes"]:]:
+            err_console.print(f"  to fit: {change}", highlight=False)
+        self.said.update(plan=True, changes=len(plan.changes))
 
 
 def _baselines(args) -> tuple[str, ...]:
@@ -132,8 +153,8 @@ def _print_outcome(study, cfg, storage_url: str, reports: Path, write_report: bo
     import optuna
     from explorer.console import console, print_frame
     from explorer.cost import get_device
-    from explorer.study.results import (baseline_trial, best_trial, finalists_frame, is_retrained, missing_baselines,
-                                  path_table, winner)
+    from explorer.study.results import (baseline_label, baseline_trial, best_trial, finalists_frame, is_retrained,
+                                        missing_baselines, path_table, unbeaten_baseline, winner)
     from explorer.space import Candidate
     states = [t.state for t in study.get_trials(deepcopy=False)]
     count = {s.name.lower(): states.count(s) for s in optuna.trial.TrialState if states.count(s)}
@@ -145,7 +166,9 @@ def _print_outcome(study, cfg, storage_url: str, reports: Path, write_report: bo
         retrained = is_retrained(best)
         cand = Candidate.from_dict(best.user_attrs["candidate"])
         how = "retrained" if retrained else f"estimated ({(best.user_attrs.get('evaluator') or {}).get('evaluator', 'proxy')})"
-        console.print(f"winner: trial {best.number} ({cand.key}) anytime loss [bold]{best.values[0]:.4f}[/bold] "
+        unbeaten = unbeaten_baseline(study)
+        lead = "best searched candidate" if unbeaten is not None else "winner"
+        console.print(f"{lead}: trial {best.number} ({cand.key}) anytime loss [bold]{best.values[0]:.4f}[/bold] "
                       f"{how}, for {cfg.budgets[0]} on {cfg.device}")
         console.print(f"  {cand.describe()}")
         print_frame(path_table(best, [get_device(cfg.device)]), "winner, per path")
@@ -160,6 +183,11 @@ def _print_outcome(study, cfg, storage_url: str, reports: Path, write_report: bo
                           f"[bold]{best.values[0] / paper.values[0]:.3f}[/bold]")
         if retrained and estimate is not None and estimate.number != best.user_attrs["finalist"].get("estimate_trial"):
             console.print(f"  (the search's best estimate was trial {estimate.number}; retraining ranked another first)")
+        if unbeaten is not None:   # said plainly: the study's best model is then a baseline, not a candidate
+            console.print(f"[bold]no searched candidate beat the {baseline_label(unbeaten.user_attrs['baseline'])} "
+                          f"after retraining[/bold] ({best.values[0]:.4f} against {unbeaten.values[0]:.4f}): the best "
+                          "model this study found is that baseline; give the search more time (--time-limit) or more "
+                          "finalists (--finalists)")
     # a missing comparison is said, with why, never dropped silently
     missing = missing_baselines(study)
     if missing and all("--no-baselines" in m["why"] for m in missing):
@@ -208,6 +236,34 @@ def cmd_report(args) -> None:
 
 def register(sub, add, reports: dict) -> None:
     """Adds this group's commands to the ``explorer`` parser."""
+    _register_search(add, reports)
+
+    s = add("rescore", cmd_rescore, "rank a finished study's trials for another device or budget")
+    s.add_argument("--study", required=True)
+    s.add_argument("--storage")
+    s.add_argument("--device", required=True, help="device profile to re-score for: a built-in name (see "
+                   "explorer devices) or a YAML file from explorer calibrate")
+    s.add_argument("--budget", action="append", required=True, help="budget distribution, e.g. time:uniform:100ms; "
+                   "repeatable, the table is sorted by the first")
+    s.add_argument("--metric", default="rmse", choices=["rmse", "mae", "rel"])
+    s.add_argument("--top", type=int, default=15)
+    s.add_argument("--csv", help="also write the whole table to this CSV file (default: none)")
+    s.add_argument("--json", action="store_true")
+    s.add_argument("--reports", **reports)
+
+    s = add("report", cmd_report, "write a study's self-contained HTML report")
+    s.add_argument("--study", required=True)
+    s.add_argument("--storage")
+    s.add_argument("--device", action="append", help="devices for the tables (default: the study's)")
+    s.add_argument("--budget", action="append", help="budgets for the tables (default: a standard set)")
+    s.add_argument("--data", help="data set for the depth-map figure (default: the study's)")
+    s.add_argument("--out", help="folder to write report.html and its figures into (default REPORTS/STUDY/, "
+                   "next to the study)")
+    s.add_argument("--curve", help="anytime_curve.json from explorer curve (default: OUT/export/ if there)")
+    s.add_argument("--reports", **reports)
+
+
+def _register_search(add, reports: dict) -> None:
     s = add("search", cmd_search, "search the space for the lowest anytime loss on a device")
     s.add_argument("--device", default="tx2", help="profile name or YAML (default tx2)")
     s.add_argument("--space", default="anytime_depth")
@@ -241,11 +297,15 @@ def register(sub, add, reports: dict) -> None:
                    "retrained stand-alone at the end, next to the baselines (default 3, fewer if --time-limit needs; 0 = none)")
     s.add_argument("--finalist-steps", type=int, default=None, help="steps of the finalists' longer recipe "
                    "(default 300, down to 150 if --time-limit needs)")
-    s.add_argument("--train-steps", type=int, default=150, help="proxy recipe steps (default 150)")
-    s.add_argument("--train-size", type=_size, default=(64, 64), help="training resolution (default 64x64)")
+    s.add_argument("--proxy-steps", type=int, default=150, help="training steps of each candidate the proxy "
+                   "evaluator trains (default 150)")
+    deprecated_alias(s, "--train-steps", "--proxy-steps")
+    s.add_argument("--train-size", type=_size, default=(64, 64), help="training resolution HxW of the proxy "
+                   "candidates, the supernet and the finalists (default 64x64)")
     s.add_argument("--batch-size", type=int, default=16)
-    s.add_argument("--input-size", "--input", type=_size, default=(224, 224),
-                   help="deployment resolution for costs (default 224x224)")
+    s.add_argument("--input-size", type=_size, default=(224, 224),
+                   help="deployment resolution HxW, at which paths are costed (default 224x224)")
+    deprecated_alias(s, "--input", "--input-size")
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--accelerator", default="auto", choices=["auto", "cpu", "cuda"])
     s.add_argument("--baselines", default=None, metavar="NAMES",
@@ -259,27 +319,4 @@ def register(sub, add, reports: dict) -> None:
     s.add_argument("--no-weights", action="store_true", help="do not keep trained weights as artifacts")
     s.add_argument("--no-report", dest="report", action="store_false", help="skip the HTML report")
     _add_supervision(s)
-    s.add_argument("--reports", **reports)
-
-    s = add("rescore", cmd_rescore, "rank a finished study's trials for another device or budget")
-    s.add_argument("--study", required=True)
-    s.add_argument("--storage")
-    s.add_argument("--device", required=True, help="device profile to re-score for: a built-in name (see "
-                   "explorer devices) or a YAML file from explorer calibrate")
-    s.add_argument("--budget", action="append", required=True, help="budget distribution, e.g. time:uniform:100ms; "
-                   "repeatable, the table is sorted by the first")
-    s.add_argument("--metric", default="rmse", choices=["rmse", "mae", "rel"])
-    s.add_argument("--top", type=int, default=15)
-    s.add_argument("--csv")
-    s.add_argument("--json", action="store_true")
-    s.add_argument("--reports", **reports)
-
-    s = add("report", cmd_report, "write a study's self-contained HTML report")
-    s.add_argument("--study", required=True)
-    s.add_argument("--storage")
-    s.add_argument("--device", action="append", help="devices for the tables (default: the study's)")
-    s.add_argument("--budget", action="append", help="budgets for the tables (default: a standard set)")
-    s.add_argument("--data", help="data set for the depth-map figure (default: the study's)")
-    s.add_argument("--out", help="folder (default reports/<study>/)")
-    s.add_argument("--curve", help="anytime_curve.json from explorer curve (default: OUT/export/ if there)")
     s.add_argument("--reports", **reports)

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 from explorer.errors import UserError
+from explorer.space import check_size
 from explorer.cli.inspect import _candidates_of
-from explorer.cli._common import _Parser, _size, _add_supervision
+from explorer.cli._common import _Parser, _size, _add_supervision, deprecated_alias
 
 
 def cmd_train(args) -> None:
@@ -14,22 +16,25 @@ def cmd_train(args) -> None:
     from explorer.console import console, print_frame, progress
     from explorer.data import open_dataset
     from explorer.model import build_network
-    from explorer.training.train import RECIPES, check_data_for, load_encoder_weights, resolve_device, train
+    from explorer.training.train import (RECIPES, check_data_for, check_spec_for, load_encoder_weights,
+                                         resolve_accelerator, train)
     candidate = _candidates_of(args.candidate)
     if len(candidate) != 1:
         raise UserError(f"{args.candidate} holds {len(candidate)} candidates: train takes one")
     candidate = candidate[0]
     cfg = RECIPES[args.recipe]
     changes = {k: v for k, v in (("steps", args.steps), ("batch_size", args.batch_size),
-                                 ("input_size", args.input_size), ("lr", args.lr), ("seed", args.seed))
+                                 ("input_size", args.train_size), ("lr", args.lr), ("seed", args.seed))
                if v is not None}
     cfg = dataclasses.replace(cfg, **changes, supervision=args.supervision, poses=args.poses,
                               scan_loss=not args.no_scan_loss, hints=args.depth_hints,
                               exit_weights=_exit_weights(args.exit_weights, candidate, args.device, args.budget))
     cfg.validate()
+    check_size(cfg.input_size, candidate.stride, "--train-size")
+    check_spec_for(cfg, args.data)
     if cfg.exit_weights:
         console.print("exit loss weights: " + " ".join(f"{w:.3f}" for w in cfg.exit_weights))
-    device = resolve_device(args.accelerator)
+    accelerator = resolve_accelerator(args.accelerator)
     with progress(transient=True) as bar:
         task = bar.add_task("generating synthetic scenes (once, then cached)", total=None, status="")
         train_set = open_dataset(args.data, "train", cfg.input_size, seed=cfg.seed,
@@ -50,13 +55,13 @@ def cmd_train(args) -> None:
     out = Path(args.out or f"reports/checkpoints/{candidate.key}.pt")
     with progress() as bar:
         task = bar.add_task(f"training ({cfg.supervision})", total=cfg.steps, status="")
-        result = train(net, train_set, val_set, cfg, device, checkpoint=out,
+        result = train(net, train_set, val_set, cfg, accelerator, checkpoint=out,
                        progress=lambda s, n, r: bar.update(task, completed=s, status=f"loss {r['loss']:.3f}"))
     console.print(f"saved {out} ({result.steps} steps, {result.images_per_second:.1f} images/s)")
     print_frame(result.metrics, "validation, per path" + ("" if cfg.metric else " (median-scaled: no scan term)"))
 
 
-def _exit_weights(spec: str, candidate, device: str, budget: str) -> tuple[float, ...] | None:
+def _exit_weights(spec: str, candidate, profile: str, budget: str) -> tuple[float, ...] | None:
     exits = candidate.num_paths - 1
     if spec == "equal":
         return None
@@ -64,7 +69,7 @@ def _exit_weights(spec: str, candidate, device: str, budget: str) -> tuple[float
         from explorer.anytime import exit_loss_weights, parse_budget
         from explorer.cost import candidate_cost, get_device
         dist = parse_budget(budget)
-        return exit_loss_weights(candidate_cost(candidate).path_costs(get_device(device), dist.kind), dist)
+        return exit_loss_weights(candidate_cost(candidate).path_costs(get_device(profile), dist.kind), dist)
     try:
         weights = tuple(float(w) for w in spec.split(","))
     except ValueError:
@@ -81,10 +86,10 @@ def cmd_evaluate(args) -> None:
     from explorer.training.train import TrainConfig, evaluate, network_from_checkpoint
     net, state = network_from_checkpoint(args.checkpoint)
     recipe = TrainConfig.from_dict(state["train_config"])
-    size = args.input or recipe.input_size
+    size = check_size(args.input_size or recipe.input_size, net.stride, "--input-size")
     ds = open_dataset(args.data, args.split, size, train_augment=False)
     # a depth known only up to scale (self-supervised without the scan term) is median-scaled
-    frame = evaluate(net, ds, limit=args.limit, median_scaling=not recipe.metric)
+    frame = evaluate(net, ds, limit=args.frames, median_scaling=not recipe.metric)
     if args.json:
         print_json({"checkpoint": args.checkpoint, "data": str(ds.name), "input_size": list(size),
                     "supervision": recipe.supervision, "median_scaling": not recipe.metric,
@@ -99,11 +104,11 @@ def cmd_supernet_train(args) -> None:
     from explorer.space import SearchSpace
     from explorer.supernet import SupernetRecipe, default_path, train_supernet
     from explorer.supernet.train import read
-    from explorer.training.train import resolve_device
+    from explorer.training.train import resolve_accelerator
     space = SearchSpace.from_yaml(args.space)
     if args.steps < 1 or args.random_subnets < 0 or args.micro_batches < 1 or args.batch_size < 1:
         raise UserError("--steps, --batch-size and --micro-batches must be at least 1, --random-subnets at least 0")
-    recipe = SupernetRecipe(steps=args.steps, batch_size=args.batch_size, input_size=args.input_size, lr=args.lr,
+    recipe = SupernetRecipe(steps=args.steps, batch_size=args.batch_size, input_size=args.train_size, lr=args.lr,
                             lr_end=args.lr / 10, random_subnets=args.random_subnets,
                             micro_batches=args.micro_batches, seed=args.seed, teacher_depths=args.teacher_depths)
     out = Path(args.out) if args.out else default_path(space, args.data, recipe)
@@ -111,12 +116,14 @@ def cmd_supernet_train(args) -> None:
         task = bar.add_task("supernet", total=recipe.steps, status="")
         data = bar.add_task("data", total=None, status="", visible=False)
         path = train_supernet(
-            space, args.data, recipe, out, resolve_device(args.accelerator),
+            space, args.data, recipe, out, resolve_accelerator(args.accelerator),
             progress=lambda s, n, r: bar.update(task, completed=s, status=f"largest {r['largest']:.3f}, "
                                                 f"smallest {r['smallest']:.3f}, random {r['random']:.3f}"),
             data_progress=lambda i, n: bar.update(data, completed=i, total=n, visible=True,
                                                   description="generating synthetic scenes (once)"),
-            checkpoint_every=max(args.checkpoint_every, 1), max_steps=args.max_steps)
+            checkpoint_every=max(args.checkpoint_every, 1), stop_after_steps=args.stop_after_steps)
+    if int(os.environ.get("RANK", "0")) != 0:   # under torchrun, the first process speaks for all
+        return
     state = read(path)
     console.print(f"supernet of {space.name}: {path} (step {state['step']}/{recipe.steps}, "
                   f"{state['seconds'] / 60:.1f} min of training)")
@@ -145,7 +152,9 @@ def register(sub, add, reports: dict) -> None:
     s.add_argument("--recipe", default="proxy", choices=["proxy", "paper"])
     s.add_argument("--steps", type=int)
     s.add_argument("--batch-size", type=int)
-    s.add_argument("--input-size", type=_size)
+    s.add_argument("--train-size", type=_size, help="training resolution HxW (default: the recipe's)")
+    deprecated_alias(s, "--input-size", "--train-size")
+    deprecated_alias(s, "--input", "--train-size")
     s.add_argument("--lr", type=float)
     s.add_argument("--seed", type=int)
     s.add_argument("--encoder-weights", help="MobileNet v1 state dict file to start the encoder from")
@@ -157,7 +166,8 @@ def register(sub, add, reports: dict) -> None:
     s.add_argument("--budget", default="time:uniform:33ms",
                    help="budget distribution for --exit-weights anytime (default time:uniform:33ms)")
     s.add_argument("--accelerator", default="auto", choices=["auto", "cpu", "cuda"])
-    s.add_argument("--out", help="checkpoint path (resumes if it exists)")
+    s.add_argument("--out", help="checkpoint file to write (default reports/checkpoints/KEY.pt); training "
+                   "resumes from it if it exists")
     _add_supervision(s)
     s.add_argument("--no-scan-loss", action="store_true",
                    help="self-supervision without the L1 term on the scan row: depth only up to scale, "
@@ -167,8 +177,10 @@ def register(sub, add, reports: dict) -> None:
     s.add_argument("checkpoint")
     s.add_argument("--data", default="synthetic")
     s.add_argument("--split", default="val", choices=["train", "val"])
-    s.add_argument("--input-size", "--input", dest="input", type=_size, help="input HxW (default: the training size)")
-    s.add_argument("--limit", type=int)
+    s.add_argument("--input-size", type=_size, help="evaluation resolution HxW (default: the training size)")
+    deprecated_alias(s, "--input", "--input-size")
+    s.add_argument("--frames", type=int)
+    deprecated_alias(s, "--limit", "--frames")
     s.add_argument("--json", action="store_true")
 
     sp = add("supernet", None, "train or inspect the weight-sharing supernet of a space")
@@ -180,8 +192,9 @@ def register(sub, add, reports: dict) -> None:
     s.add_argument("--space", default="anytime_depth")
     s.add_argument("--data", default="synthetic")
     s.add_argument("--steps", type=int, default=600, help="training steps (default 600, what a search uses)")
-    s.add_argument("--input-size", "--input", dest="input_size", type=_size, default=(64, 64),
-                   help="training resolution (default 64x64)")
+    s.add_argument("--train-size", type=_size, default=(64, 64), help="training resolution HxW (default 64x64)")
+    deprecated_alias(s, "--input-size", "--train-size")
+    deprecated_alias(s, "--input", "--train-size")
     s.add_argument("--batch-size", type=int, default=16, help="global batch (over all processes)")
     s.add_argument("--lr", type=float, default=2e-3)
     s.add_argument("--random-subnets", type=int, default=1, help="random subnets per step besides the largest "
@@ -194,9 +207,12 @@ def register(sub, add, reports: dict) -> None:
                    "accumulation; BatchNorm statistics per micro-batch)")
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--accelerator", default="auto", choices=["auto", "cpu", "cuda"])
-    s.add_argument("--out", help="file (default: the cache, where searches find it)")
+    s.add_argument("--out", help="supernet file to write (default: a file in the cache, where searches find it); "
+                   "training resumes from it if it exists")
     s.add_argument("--checkpoint-every", type=int, default=100, help="steps between checkpoints (default 100)")
-    s.add_argument("--max-steps", type=int, help="stop after this many steps in this run (resume later)")
+    s.add_argument("--stop-after-steps", type=int, metavar="N", help="stop this run after N more steps, short of "
+                   "--steps, with the file saved to resume from (default: train to --steps)")
+    deprecated_alias(s, "--max-steps", "--stop-after-steps")
     s.set_defaults(fn=cmd_supernet_train)
     s = nsub.add_parser("show", help="what a supernet file holds: space, data, recipe, progress")
     s.add_argument("file")

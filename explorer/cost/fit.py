@@ -120,7 +120,7 @@ class ObservationBatch:
     """Observations' workloads as arrays, priced by a profile all at once: ``predict_ms`` as
     ``DeviceProfile.layer_ms`` computes it, one observation per entry. A fit prices every observation
     for each of its thousands of residual evaluations; one Python call per workload made the host fit
-    a third of a quick calibration (30 of 93 s, 1.8 million calls, in one profiled run)."""
+    a large share of a quick calibration (benchmarks/bench_fit.py compares the two pricings)."""
 
     def __init__(self, observations: Sequence[Observation]) -> None:
         rows = [(i, w) for i, o in enumerate(observations) for w in o.workloads]
@@ -250,6 +250,32 @@ def _scaling_rows(profile: DeviceProfile) -> list[dict]:
     return rows
 
 
+#: How the TVM kernels' kinds share fitted parameters. The kernels do not tell one-channel pointwise
+#: layers apart, so those share the pointwise rate; memory-bound kinds share one launch overhead.
+TX2_RATE_OF = {"conv": "conv", "pointwise": "pointwise", "pointwise_1ch": "pointwise", "depthwise": "depthwise",
+               "conv1d": "conv", "resize": "resize", "deconv": "deconv"}
+TX2_OVERHEAD_OF = {"conv": "conv", "pointwise": "pointwise", "pointwise_1ch": "pointwise", "depthwise": "depthwise",
+                   "conv1d": "depthwise", "deconv": "conv", **{k: "memory" for k in MEMORY_KINDS}}
+TX2_SOURCES = [
+    "../shared/data/tx2-tvm-kernels/kernels.csv (TVM-tuned kernels from the fast-depth project)",
+    "paper Table 1: paper design paths 1-4 at 6.4/8.0/9.8/12.2 ms; FastDepth 17.1 ms at 224x224; "
+    "S2D (ResNet-50) 554.7 ms at 228x304 (TVM, TX2 GPU)",
+    "paper Table 3: S2D (ResNet-18) 374.7 ms at 228x912; MonoDepth2 (ResNet-18) 77.26 ms at 192x640",
+    "paper: 0.2 J at 6.37 ms (first path), 6.244 J at 554.7 ms (S2D) -> fixed energy + active power",
+]
+TX2_GPU_NOTES = [
+    "fast-depth's pruned FastDepth (5.6 ms; its kernels 4.94 ms) is not fitted: it leaves 0.7 ms for "
+    "resizes, adds and launch, where the paper's own figures (FastDepth 17.1 ms, the paper design's "
+    "paths, each about twice its kernel time) need several ms; the two setups differ. The paper's "
+    "Table 2 FastDepth TX2 row (L_T, L_E) implies about 5.3 ms, i.e. fast-depth's figure, not Table 1's",
+    "sparse-to-dense's figures are only met with a very slow transposed convolution (kind deconv, "
+    "which no candidate has): TVM's conv2d_transpose on the TX2. Its memory term counts activations "
+    "only (weight_traffic: false): with the weights counted too, the ResNet-50 figure (16x the "
+    "ResNet-18's deconv weights) and the ResNet-18 one pull it in opposite directions and the best "
+    "balance left them at +14.6% and -17.7%",
+]
+
+
 def fit_tx2(data_dir: Path) -> tuple[DeviceProfile, DeviceProfile, dict]:
     """The TX2 GPU on the 71 kernels and every end-to-end figure of the paper; the TX2 CPU on its
     71 kernels and fast-depth's pruned FastDepth figure.
@@ -260,23 +286,24 @@ def fit_tx2(data_dir: Path) -> tuple[DeviceProfile, DeviceProfile, dict]:
     With figures at 224x224, 228x304, 192x640 and 228x912 the fit can tell fixed costs from ones
     that scale.
     """
-    from explorer.space import paper_candidate
     csv = data_dir / "tx2-tvm-kernels" / "kernels.csv"
-    # The TVM kernels do not tell one-channel pointwise layers apart: they share the pointwise rate.
-    rate_of = {"conv": "conv", "pointwise": "pointwise", "pointwise_1ch": "pointwise", "depthwise": "depthwise",
-               "conv1d": "conv", "resize": "resize", "deconv": "deconv"}
-    overhead_of = {"conv": "conv", "pointwise": "pointwise", "pointwise_1ch": "pointwise", "depthwise": "depthwise",
-                   "conv1d": "depthwise", "deconv": "conv", **{k: "memory" for k in MEMORY_KINDS}}
-    # Energy: fixed + active power through (6.37 ms, 0.2 J) and (554.7 ms, 6.244 J) (the paper).
+    gpu, gpu_frames = _fit_tx2_gpu(csv)
+    cpu, cpu_kernel_errors = _fit_tx2_cpu(csv)
+    return gpu, cpu, {**gpu_frames, "cpu_kernels": cpu_kernel_errors}
+
+
+def _tx2_energy() -> tuple[float, float]:
+    """(fixed J, active W): the line through the paper's (6.37 ms, 0.2 J) and (554.7 ms, 6.244 J)."""
     power = (6.244 - 0.2) / ((554.7 - 6.37) / 1000.0)
     fixed = 0.2 - power * 6.37 / 1000.0
-    sources = [
-        "../shared/data/tx2-tvm-kernels/kernels.csv (TVM-tuned kernels from the fast-depth project)",
-        "paper Table 1: paper design paths 1-4 at 6.4/8.0/9.8/12.2 ms; FastDepth 17.1 ms at 224x224; "
-        "S2D (ResNet-50) 554.7 ms at 228x304 (TVM, TX2 GPU)",
-        "paper Table 3: S2D (ResNet-18) 374.7 ms at 228x912; MonoDepth2 (ResNet-18) 77.26 ms at 192x640",
-        "paper: 0.2 J at 6.37 ms (first path), 6.244 J at 554.7 ms (S2D) -> fixed energy + active power",
-    ]
+    return fixed, power
+
+
+def _fit_tx2_gpu(csv: Path) -> tuple[DeviceProfile, dict]:
+    """The TX2 GPU profile, fitted on its kernels and the paper's end-to-end figures, and the error
+    frames of the kernels, the fitted figures and the held-out check."""
+    from explorer.space import paper_candidate
+    fixed, power = _tx2_energy()
     gpu_kernels = [Observation(w.layer, [w], ms) for w, ms in kernel_workloads(csv, "gpu")]
     gpu_e2e = (_path_observations(4.0, [("paper design", paper_candidate(), PAPER_TX2_PATHS_MS)])
                + _reference_observations(TX2_REFERENCES, 2.0))
@@ -288,36 +315,49 @@ def fit_tx2(data_dir: Path) -> tuple[DeviceProfile, DeviceProfile, dict]:
     # on chip, so the two S2D decoders (weights 16x apart, activations 1.4x) both fit.
     base = dataclasses.replace(base, energy_fixed_j=fixed, active_power_w=power,
                                kinds={**base.kinds, "deconv": KindCost(2.0, 0.03, 0.05, weight_traffic=False)})
-    gpu = fit_profile(base, gpu_kernels + gpu_e2e, rate_of, overhead_of,
+    gpu = fit_profile(base, gpu_kernels + gpu_e2e, TX2_RATE_OF, TX2_OVERHEAD_OF,
                       own_bandwidth=MEMORY_KINDS + ("deconv",))
     k_err, e_err, c_err = errors(gpu, gpu_kernels), errors(gpu, gpu_e2e), errors(gpu, gpu_checks)
     gpu = dataclasses.replace(gpu, provenance={
-        "calibrated": True, "sources": sources,
+        "calibrated": True, "sources": list(TX2_SOURCES),
         "fit": [fit_summary(k_err, "71 measured GPU kernels"),
                 fit_summary(e_err, "end-to-end figures (paper design paths 1-4, 4 reference networks)")],
         "checks": _check_rows(e_err),
         "not_fitted": _check_rows(c_err) + _scaling_rows(gpu),
-        "notes": [
-            "fast-depth's pruned FastDepth (5.6 ms; its kernels 4.94 ms) is not fitted: it leaves 0.7 ms for "
-            "resizes, adds and launch, where the paper's own figures (FastDepth 17.1 ms, the paper design's "
-            "paths, each about twice its kernel time) need several ms; the two setups differ. The paper's "
-            "Table 2 FastDepth TX2 row (L_T, L_E) implies about 5.3 ms, i.e. fast-depth's figure, not Table 1's",
-            "sparse-to-dense's figures are only met with a very slow transposed convolution (kind deconv, "
-            "which no candidate has): TVM's conv2d_transpose on the TX2. Its memory term counts activations "
-            "only (weight_traffic: false): with the weights counted too, the ResNet-50 figure (16x the "
-            "ResNet-18's deconv weights) and the ResNet-18 one pull it in opposite directions and the best "
-            "balance left them at +14.6% and -17.7%",
-        ],
+        "notes": list(TX2_GPU_NOTES),
         "energy_note": f"E = {fixed:.4f} J + {power:.3f} W x t, through the paper's two figures",
     })
+    return gpu, {"gpu_kernels": k_err, "gpu_e2e": e_err, "gpu_checks": c_err}
 
-    # CPU: the kernels fix the convolutions; fast-depth's pruned FastDepth at 37 ms end to end (its
-    # kernels 27.1 ms) prices what the kernels leave out: its resizes and adds, by the bytes they move.
+
+def _fit_tx2_cpu(csv: Path) -> tuple[DeviceProfile, pd.DataFrame]:
+    """The TX2 CPU profile and its kernels' error frame. The kernels fix the convolutions;
+    fast-depth's pruned FastDepth at 37 ms end to end (its kernels 27.1 ms) prices what the kernels
+    leave out: its resizes and adds, by the bytes they move."""
     cpu_kernels = [Observation(w.layer, [w], ms) for w, ms in kernel_workloads(csv, "cpu")]
     cbase = _start("tx2-cpu", "NVIDIA Jetson TX2 CPU (2x Denver2 + 4x Cortex-A57), TVM-compiled, batch 1, fp32",
                    False, 20.0, 0.05, 10.0)
-    cpu = fit_profile(cbase, cpu_kernels, rate_of, overhead_of, free_inference=False)
+    cpu = fit_profile(cbase, cpu_kernels, TX2_RATE_OF, TX2_OVERHEAD_OF, free_inference=False)
     pruned = _pruned_fastdepth("cpu")
+    cpu = _price_memory_kinds(cpu, pruned)
+    ck_err, cp_err = errors(cpu, cpu_kernels), errors(cpu, [pruned])
+    cpu = dataclasses.replace(cpu, provenance={
+        "calibrated": True,
+        "sources": [TX2_SOURCES[0],
+                    "fast-depth: pruned FastDepth end to end 37 ms on the TX2 CPU, its kernels 27.1 ms"],
+        "fit": [fit_summary(ck_err, "71 measured CPU kernels"),
+                fit_summary(cp_err, "pruned FastDepth end to end (prices resize/add/concat/slice bytes)")],
+        "checks": _check_rows(cp_err),
+        "not_fitted": _scaling_rows(cpu),
+        "energy_note": "no energy figures for the TX2 CPU: energy is not modelled (0 J)",
+    })
+    return cpu, ck_err
+
+
+def _price_memory_kinds(cpu: DeviceProfile, pruned: Observation) -> DeviceProfile:
+    """``cpu`` with the memory-bound kinds at the depthwise launch and one bandwidth: the one that
+    spends what ``pruned``'s end-to-end time leaves after its other layers. The kernels hold no
+    memory-bound layers, so nothing else prices them; no energy figures, no inference overhead."""
     launch = cpu.kinds["depthwise"].overhead_ms
     cpu = dataclasses.replace(
         cpu, inference_overhead_ms=0.0, energy_fixed_j=0.0, active_power_w=0.0,
@@ -328,19 +368,8 @@ def fit_tx2(data_dir: Path) -> tuple[DeviceProfile, DeviceProfile, dict]:
     compute_ms = sum(launch + (w.macs / (cpu.kinds[w.kind].gmacs * 1e6) if w.macs else 0.0) for w in memory_layers)
     moved = sum(w.bytes_read + w.bytes_written for w in memory_layers)
     memory_bw = moved / (max(left_ms - compute_ms, 1e-3) * 1e6)
-    cpu = dataclasses.replace(cpu, kinds={**cpu.kinds, **{k: KindCost(cpu.kinds[k].gmacs, launch, memory_bw)
-                                                          for k in MEMORY_KINDS}})
-    ck_err, cp_err = errors(cpu, cpu_kernels), errors(cpu, [pruned])
-    cpu = dataclasses.replace(cpu, provenance={
-        "calibrated": True,
-        "sources": [sources[0], "fast-depth: pruned FastDepth end to end 37 ms on the TX2 CPU, its kernels 27.1 ms"],
-        "fit": [fit_summary(ck_err, "71 measured CPU kernels"),
-                fit_summary(cp_err, "pruned FastDepth end to end (prices resize/add/concat/slice bytes)")],
-        "checks": _check_rows(cp_err),
-        "not_fitted": _scaling_rows(cpu),
-        "energy_note": "no energy figures for the TX2 CPU: energy is not modelled (0 J)",
-    })
-    return gpu, cpu, {"gpu_kernels": k_err, "gpu_e2e": e_err, "gpu_checks": c_err, "cpu_kernels": ck_err}
+    return dataclasses.replace(cpu, kinds={**cpu.kinds, **{k: KindCost(cpu.kinds[k].gmacs, launch, memory_bw)
+                                                           for k in MEMORY_KINDS}})
 
 
 def _check_rows(frame: pd.DataFrame) -> list[dict]:

@@ -30,7 +30,7 @@ KINDS = ("conv", "pointwise", "depthwise", "conv1d", "resize", "add", "concat", 
 #: profiles written before the kind existed still load). Transposed convolutions only occur in the
 #: reference networks (sparse-to-dense's decoder), and TVM's are slow enough to need their own rate.
 #: A 1x1 convolution to one channel (every exit head's last layer) is a matrix-vector product:
-#: memory-bound where other pointwise layers are not (on this project's CPU, 3x slower than the
+#: memory-bound where other pointwise layers are not (on a CPU, several times slower than the
 #: pointwise rate says at full resolution), so it has its own kind.
 #: Bilinear up-sampling as two matrix products (``ops.Resize``, an exit's last step) is one more:
 #: a profile that does not price it prices it as the matrix products of pointwise layers.

@@ -1,22 +1,20 @@
 """Which of two equivalent sets of stage sessions a run of ``AnytimeRunner`` uses.
 
 Stage sessions that allocate from one shared memory arena reuse each other's buffers: the next stage
-writes where the last one just wrote. Whether that pays depends on the machine's state, and on this
-project's 2-core Zen 4 VM that state changes from outside every 10-30 s. Calm (the paper design's
-whole graph at 7.8 ms), its staged chain ran +4.7% over the whole graph with the shared arena and
-+7.7% with an arena per session; slowed (13.7 ms; two threads no faster than one there), +9.6% and
--5.1% (``benchmarks/bench_arena_choice.py``, 256 and 121 cycles). Neither set is within 5% in both
-states, so the runner keeps both and measures them as it runs: a run uses the shared arena's set
-unless the other took ``MARGIN`` less time lately (the median of each stage's last ``WINDOW``
-timings), and the other set for ``EXPLORE_RUNS`` runs in a row, ``EXPLORE_EVERY`` runs after the
-choice last changed, then at twice the last interval each time it stays (up to ``EXPLORE_EVERY_MAX``),
-so that a change of state is seen within a few hundred runs and a machine where one set stays faster
-pays little for looking (on the 2-core Zen 5 VM of stop 39, arenas of their own ran 10-11% slower
-in every block: exploring at a fixed pace ran that set 7% of the time). Only a run that follows a
-run of the same set counts: the first run after a switch finds the other set's buffers in the
-caches. So chosen (at a fixed pace, every 50 runs), the runner ran +5.1% calm (the shared set alone +5.2%) and -6.5% slowed (arenas of their own alone
--6.4%). Two earlier versions, which took whichever set looked faster, ran it in calm only 44-71% of
-the time and ran 0.9-6% slower than the shared set alone there.
+writes where the last one just wrote. Whether that pays depends on the machine's state, and on a
+machine shared with other loads that state changes from outside every few seconds: with the cores
+free the staged chain runs faster with the shared arena, with them contended it can run faster with
+an arena per session (``benchmarks/bench_arena_choice.py`` times both sets in each state). Neither set
+is best in both states, so the runner keeps both and measures them as it runs: a run uses the shared
+arena's set unless the other took ``MARGIN`` less time lately (the median of each stage's last
+``WINDOW`` timings), and the other set for ``EXPLORE_RUNS`` runs in a row, ``EXPLORE_EVERY`` runs after
+the choice last changed, then at twice the last interval each time it stays (up to
+``EXPLORE_EVERY_MAX``), so that a change of state is seen within a few hundred runs and a machine where
+one set stays faster pays little for looking (exploring at a fixed pace would keep running the slower
+set a fixed share of the time). Only a run that follows a run of the same set counts: the first run
+after a switch finds the other set's buffers in the caches. So chosen, the runner keeps up with the
+better set in each state, where taking whichever set looked faster ran the worse one much of the time
+(``benchmarks/bench_arena_choice.py`` checks the runner as shipped against each set held).
 """
 
 from __future__ import annotations

@@ -4,7 +4,6 @@ an exit, path 0 on its own), plus a manifest. Verified against PyTorch at export
 
 from __future__ import annotations
 
-import hashlib
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -15,6 +14,7 @@ import torch
 
 from explorer import __version__
 from explorer.cost import candidate_cost, get_device
+from explorer.deploy.manifest import MANIFEST, file_sha256
 from explorer.errors import UserError
 from explorer.files import replacing_folder, write_json
 from explorer.model import AnytimeDepthNet
@@ -22,7 +22,6 @@ from explorer.model.onnx import OPSET, example_inputs, export_segments
 from explorer.deploy.quantize import MAX_DEGRADATION
 
 TOLERANCE = 1e-4
-MANIFEST = "manifest.json"
 
 
 def verify(graphs, net: AnytimeDepthNet, input_size: tuple[int, int], scan_row: int) -> float:
@@ -76,14 +75,6 @@ def export_network(net: AnytimeDepthNet, out_dir: Path, input_size: tuple[int, i
             stage["sha256"] = file_sha256(scratch / stage["file"])
         write_json(scratch / MANIFEST, manifest)
     return manifest
-
-
-def file_sha256(path: Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 def _export_fp32(net: AnytimeDepthNet, out_dir: Path, input_size: tuple[int, int], scan_row: int | None,

@@ -31,7 +31,6 @@ def _float_nodes(model) -> list[str]:
             if n.name.startswith(prefixes) or (n.op_type == "MatMul" and "/resize/" in n.name)]
 
 
-
 class _Feeds:
     """onnxruntime.quantization's CalibrationDataReader over recorded stage inputs."""
 
@@ -45,7 +44,7 @@ class _Feeds:
 def quantize_graph(src: Path, dst: Path, feeds: list[dict[str, np.ndarray]]) -> bool:
     """Writes ``src`` quantized to ``dst``; False (and a plain copy) when it has nothing to quantize.
     onnxruntime.quantization makes sessions with thread pools of their own, which a process whose
-    sessions share the global pool (``probe_script.session``) may not: there it runs in a child process."""
+    sessions share the global pool (``explorer.probe.session``) may not: there it runs in a child process."""
     from explorer.probe import shared_pool_threads
     if shared_pool_threads() is not None:
         return _quantize_in_child(Path(src), Path(dst), feeds)
@@ -221,7 +220,7 @@ def pads_kept_uint8(model) -> int:
     point pad the uint8 tensor with its zero point instead, in place; returns how many. The quantizer
     leaves such a Pad float (the decoder's widening of a narrower skip: the paper design pads 256
     channels to 768), and onnxruntime then dequantizes, pads and quantizes three times the skip's
-    size: 0.27 ms of the int8 decoder 1's 1.06 ms on the AVX-512 VNNI VM (onnxruntime's profiler)."""
+    size: about a quarter of the int8 decoder 1's time, as onnxruntime's profiler shows."""
     from onnx import helper, numpy_helper
     from explorer.probe import same_constant
     graph = model.graph
@@ -423,7 +422,6 @@ def uint8_edges(models) -> list[str]:
                 next(i for i in graph.input if i.name == name).type.tensor_type.elem_type = TensorProto.UINT8
             done.append(name)
     return done
-
 
 
 def _serve() -> None:

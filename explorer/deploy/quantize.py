@@ -7,14 +7,15 @@ calibration frames and every stage's inputs are kept. A stage graph is quantized
 onnxruntime's quantizer handles (convolutions of every kind, resizes, additions, concatenations), so
 that its tensors stay uint8 from one layer to the next and it quantizes and dequantizes only at its
 edges; only the LiDAR encoder stays fp32 (``FLOAT_STAGES``). Quantizing only the wide convolutions,
-with float depthwise layers between them, paid for nothing: on this project's AVX-512 VNNI VM the
-encoder stage ran 1.04x its fp32 speed that way and 1.68x quantized whole
-(benchmarks/bench_runtime.py). The decoder stays channels-last, as onnxruntime runs quantized
+with float depthwise layers between them, paid for nothing: the encoder stage then ran hardly faster
+than in fp32, where quantized whole it runs much faster (benchmarks/bench_runtime.py measures int8
+against fp32). The decoder stays channels-last, as onnxruntime runs quantized
 convolutions: its nearest up-sampling becomes a uint8 copy done so (``upsamples_channels_last``; a
 Resize left to onnxruntime is kept channels-first, ``resizes_kept_nchw``, its channels-last uint8
-kernel being 30x slower) and its skip additions add so (``probe_script.channels_last_skip_adds``).
-Whole quantization does not pay everywhere: on the Zen 4 VM the full-resolution decoders 3-4 ran no
-faster in int8 alone (onnxruntime's uint8 depthwise kernels are slower than its blocked fp32 ones).
+kernel being far slower) and its skip additions add so (``explorer.probe.channels_last_skip_adds``).
+Whole quantization does not pay everywhere: on some CPUs the full-resolution decoders 3-4 run no
+faster in int8 alone (onnxruntime's uint8 depthwise kernels can be slower than its blocked fp32 ones;
+benchmarks/bench_int8_layers.py times each kind of layer in both precisions).
 So an export keeps a stage int8 only
 where int8 saves the staged runtime at least ``1 - INT8_KEEP_RATIO`` of that stage's fp32 time on the
 exporting machine, with int8 neighbours handing each other uint8 tensors (``compare_speed``;
@@ -24,8 +25,8 @@ more RMSE than the export allows, it gives graphs back to fp32 one by one. Path 
 nothing to quantize.
 
 Weights are quantized to 7 bits (``reduce_range``): x86 CPUs without VNNI multiply uint8 by int8 in
-pairs summed into int16 (VPMADDUBSW), which saturates with full-range weights; measured on one such
-machine (AVX2), full range degraded the paper design's last path by 29% RMSE, 7 bits by under 2%.
+pairs summed into int16 (VPMADDUBSW), which saturates with full-range weights: on an AVX2 CPU
+without VNNI, full range degraded the paper design's last path by 29% RMSE, 7 bits by under 2%.
 """
 
 from __future__ import annotations
@@ -37,14 +38,12 @@ from typing import Callable
 import numpy as np
 
 from explorer.cost.precision import INT8_KEEP_RATIO
-from explorer.deploy.int8_graphs import (quantize_graph,
-                                        share_edge_scales)
+from explorer.deploy.int8_graphs import quantize_graph, share_edge_scales
 from explorer.errors import UserError
 
 
 #: ``explorer export --int8-stages``: which stages of an int8 export are int8
 INT8_STAGES = ("faster", "all")
-
 
 
 #: a path may lose at most this fraction of its RMSE to quantization unless --force
@@ -75,15 +74,13 @@ def stage_inputs(model_dir: Path, frames: list[dict]) -> list[list[dict[str, np.
     return per_stage
 
 
-
-
 def compare_speed(model_dir: Path, manifest: dict, configs: list[dict[int, str]], frame: dict,
                   reps: int = 5) -> list[tuple[float, dict[int, float]]]:
     """For each of ``configs`` (stage index -> its int8 graph in ``model_dir``; the others fp32), the
     staged runtime's median ms on ``frame`` over its stage graphs, and each stage's own median ms within
     it. Timed in the chain, not graph by graph: int8 neighbours hand each other uint8 tensors
     (``explorer.probe.rewrites.hand_off_quantized``), so a stage's precision changes what its neighbours pay
-    too. The runners take turns, ``reps`` blocks of 5 timed runs each (``probe_script.time_chain``).
+    too. The runners take turns, ``reps`` blocks of 5 timed runs each (``explorer.probe.time_chain``).
     Leaves the manifest as it was."""
     import json
     from explorer.probe import chain_runs, time_chain
@@ -128,13 +125,8 @@ def quantize_export(model_dir: Path, data: str, calibration_frames: int = 32, ev
     ``"faster"``, only once keeping graphs fp32 one by one (``kept_fp32_for_accuracy``) has not brought
     every path within it while one graph is still int8."""
     import json
-    from explorer.deploy.runtime import MANIFEST, _is_scan_path
-    if calibration_frames < 1 or eval_frames < 1:
-        raise UserError("--calibration-frames and --eval-frames must be at least 1")
-    if not 0 <= max_degradation:
-        raise UserError(f"--max-degradation must be 0 or more, got {max_degradation}")
-    if isinstance(stages, str) and stages not in INT8_STAGES:
-        raise UserError(f"--int8-stages {stages}: use {' or '.join(INT8_STAGES)}")
+    from explorer.deploy.runtime import MANIFEST
+    _check_quantize_args(calibration_frames, eval_frames, max_degradation, stages)
     manifest = json.loads((model_dir / MANIFEST).read_text())
     size = tuple(manifest["input_size"])
     say = progress or (lambda _: None)
@@ -144,7 +136,55 @@ def quantize_export(model_dir: Path, data: str, calibration_frames: int = 32, ev
     evaluation = _frames(data, size, eval_frames, "val")
     say(f"measuring the fp32 paths on {len(evaluation)} validation frames")
     before = path_metrics(model_dir, evaluation)
-    made: dict[int, Path] = {}   # stage index -> its int8 graph
+    made = _quantize_stages(model_dir, manifest, calib, stages, say)
+    share_edge_scales(list(made.values()))
+    int8_files = {k: dst.name for k, dst in made.items()}
+    if stages == "faster" and made:
+        _drop_slower_stages(model_dir, manifest, int8_files, frames[0], say)
+    trial = _Trial(model_dir, manifest, evaluation, before)
+    say(f"measuring the int8 paths on {len(evaluation)} validation frames")
+    after, degradation = trial.measure(int8_files)
+    kept_for_accuracy = []
+    if stages == "faster" and not force:
+        after, degradation, kept_for_accuracy = _keep_fp32_for_accuracy(
+            trial, int8_files, after, degradation, max_degradation, say)
+    worst = int(np.argmax(degradation))
+    if degradation[worst] > max_degradation and not force:
+        last = manifest["stages"][next(iter(int8_files))]["name"] if kept_for_accuracy else None
+        alone = f" even with only {last} int8" if last else ""
+        raise UserError(f"int8 degrades path {worst}'s RMSE by {degradation[worst]:.1%}{alone} (> --max-degradation "
+                        f"{max_degradation:.0%}; {before[worst]['rmse']:.4f} -> {after[worst]['rmse']:.4f} m): "
+                        "not exported; keep fp32, calibrate on more frames, or add --force")
+    quantized = _swap_in_int8(model_dir, manifest, int8_files)
+    return {"precision": "int8", "stages": manifest["stages"], "path_metrics_fp32": before, "path_metrics_int8": after,
+            "quantization": {"method": "onnxruntime static QDQ, each stage graph quantized whole (every operator "
+                                       "the quantizer handles): int8 weights per channel (7-bit range), uint8 "
+                                       "activations (ranges at the 99.999th percentile of the calibration frames)",
+                             "int8_stages": _why(stages),
+                             "calibration": {"data": data, "split": "train", "frames": len(calib[0]) if calib else 0},
+                             "evaluation": {"data": data, "split": "val", "frames": len(evaluation)},
+                             "rmse_degradation": degradation, "max_degradation": max_degradation,
+                             "forced": bool(force and degradation[worst] > max_degradation),
+                             "quantized_graphs": quantized, "kept_fp32_for_accuracy": kept_for_accuracy}}
+
+
+def _check_quantize_args(calibration_frames: int, eval_frames: int, max_degradation: float,
+                         stages: "str | tuple[str, ...]") -> None:
+    """Refuses (UserError) the options before anything is calibrated or measured."""
+    if calibration_frames < 1 or eval_frames < 1:
+        raise UserError("--calibration-frames and --eval-frames must be at least 1")
+    if not 0 <= max_degradation:
+        raise UserError(f"--max-degradation must be 0 or more, got {max_degradation}")
+    if isinstance(stages, str) and stages not in INT8_STAGES:
+        raise UserError(f"--int8-stages {stages}: use {' or '.join(INT8_STAGES)}")
+
+
+def _quantize_stages(model_dir: Path, manifest: dict, calib: list[list[dict[str, np.ndarray]]],
+                     stages: "str | tuple[str, ...]", say: Callable[[str], None]) -> dict[int, Path]:
+    """Quantizes each stage graph that ``stages`` lets be int8 next to its fp32 one; returns stage
+    index -> its int8 graph, for those the quantizer could quantize. Marks every stage fp32 for now."""
+    from explorer.deploy.runtime import _is_scan_path
+    made: dict[int, Path] = {}
     for k, stage in enumerate(manifest["stages"]):
         src = model_dir / stage["file"]
         dst = src.with_name(src.stem + ".int8.onnx")
@@ -158,63 +198,81 @@ def quantize_export(model_dir: Path, data: str, calibration_frames: int = 32, ev
             made[k] = dst
         else:
             dst.unlink(missing_ok=True)
-    share_edge_scales(list(made.values()))
-    int8_files = {k: dst.name for k, dst in made.items()}
-    if stages == "faster" and made:
-        # from every quantized stage int8, each in turn goes back to fp32 unless int8 saves the staged
-        # runtime at least 1 - INT8_KEEP_RATIO of that stage's fp32 time
-        say("timing the staged runtime with each quantized stage int8 and fp32")
-        for k in list(made):
-            stage = manifest["stages"][k]
-            (with_ms, with_stages), (without_ms, without_stages) = compare_speed(
-                model_dir, manifest, [int8_files, {j: f for j, f in int8_files.items() if j != k}], frames[0])
-            fp32_ms, int8_ms = without_stages[k], with_stages[k]
-            keep = with_ms <= without_ms - (1 - INT8_KEEP_RATIO) * fp32_ms
-            stage["ms_here"] = {"fp32": round(fp32_ms, 4), "int8": round(int8_ms, 4),
-                                "staged_fp32": round(without_ms, 4), "staged_int8": round(with_ms, 4)}
-            say(f"  {stage['name']}: staged runtime {with_ms:.2f} ms with it int8, {without_ms:.2f} ms with it fp32 "
-                "on this machine: " + ("int8" if keep else "kept fp32"))
-            if not keep:
-                (model_dir / int8_files.pop(k)).unlink()
+    return made
 
-    def choose(chosen: dict[int, str]) -> None:
-        for k, stage in enumerate(manifest["stages"]):
+
+def _drop_slower_stages(model_dir: Path, manifest: dict, int8_files: dict[int, str], frame: dict,
+                        say: Callable[[str], None]) -> None:
+    """From every quantized stage int8, each in turn goes back to fp32 (out of ``int8_files``, its
+    int8 graph deleted) unless int8 saves the staged runtime at least 1 - INT8_KEEP_RATIO of that
+    stage's fp32 time; each stage records what it measured (``ms_here``)."""
+    say("timing the staged runtime with each quantized stage int8 and fp32")
+    for k in list(int8_files):
+        stage = manifest["stages"][k]
+        (with_ms, with_stages), (without_ms, without_stages) = compare_speed(
+            model_dir, manifest, [int8_files, {j: f for j, f in int8_files.items() if j != k}], frame)
+        fp32_ms, int8_ms = without_stages[k], with_stages[k]
+        keep = with_ms <= without_ms - (1 - INT8_KEEP_RATIO) * fp32_ms
+        stage["ms_here"] = {"fp32": round(fp32_ms, 4), "int8": round(int8_ms, 4),
+                            "staged_fp32": round(without_ms, 4), "staged_int8": round(with_ms, 4)}
+        say(f"  {stage['name']}: staged runtime {with_ms:.2f} ms with it int8, {without_ms:.2f} ms with it fp32 "
+            "on this machine: " + ("int8" if keep else "kept fp32"))
+        if not keep:
+            (model_dir / int8_files.pop(k)).unlink()
+
+
+class _Trial:
+    """Measures the export with a chosen set of stage graphs int8: writes the manifest that runs
+    them, marks each stage's precision, and compares every path with its fp32 metrics."""
+
+    def __init__(self, model_dir: Path, manifest: dict, evaluation: list[dict],
+                 before: list[dict[str, float]]) -> None:
+        self.model_dir, self.manifest, self.evaluation, self.before = model_dir, manifest, evaluation, before
+
+    def choose(self, chosen: dict[int, str]) -> None:
+        for k, stage in enumerate(self.manifest["stages"]):
             stage["precision"] = "int8" if k in chosen else "fp32"
 
-    def measure(chosen: dict[int, str]) -> tuple[list[dict[str, float]], list[float]]:
+    def measure(self, chosen: dict[int, str]) -> tuple[list[dict[str, float]], list[float]]:
         """Per-path metrics and RMSE degradation with exactly the graphs ``chosen`` int8."""
-        choose(chosen)
-        files = [{**st, "file": chosen.get(k, st["file"])} for k, st in enumerate(manifest["stages"])]
-        (model_dir / MANIFEST).write_text(json.dumps({**manifest, "stages": files}, indent=2))
-        after = path_metrics(model_dir, evaluation)
-        return after, [a["rmse"] / b["rmse"] - 1 if b["rmse"] > 0 else 0.0 for a, b in zip(after, before)]
+        import json
+        from explorer.deploy.runtime import MANIFEST
+        self.choose(chosen)
+        files = [{**st, "file": chosen.get(k, st["file"])} for k, st in enumerate(self.manifest["stages"])]
+        (self.model_dir / MANIFEST).write_text(json.dumps({**self.manifest, "stages": files}, indent=2))
+        after = path_metrics(self.model_dir, self.evaluation)
+        return after, [a["rmse"] / b["rmse"] - 1 if b["rmse"] > 0 else 0.0 for a, b in zip(after, self.before)]
 
-    say(f"measuring the int8 paths on {len(evaluation)} validation frames")
-    after, degradation = measure(int8_files)
+
+def _keep_fp32_for_accuracy(trial: _Trial, int8_files: dict[int, str], after: list[dict[str, float]],
+                            degradation: list[float], max_degradation: float, say: Callable[[str], None],
+                            ) -> tuple[list[dict[str, float]], list[float], list[str]]:
+    """Over the limit: gives back, one at a time, the int8 graph whose fp32 return helps the worst
+    path most (then the one that saved least time), while more than one int8 graph is left. Returns
+    the metrics and degradation as they end, and the stages given back."""
     kept_for_accuracy = []
-    if stages == "faster" and not force:
-        # over the limit: give back, one at a time, the int8 graph whose fp32 return helps the worst
-        # path most (then the one that saved least time), while any int8 graph is left
-        while len(int8_files) > 1 and max(degradation) > max_degradation:
-            trials = []
-            for k in int8_files:
-                a, d = measure({j: f for j, f in int8_files.items() if j != k})
-                saved = manifest["stages"][k].get("ms_here", {})
-                trials.append((max(d), saved.get("fp32", 0.0) - saved.get("int8", 0.0), k, a, d))
-            worst_after, _, k, after, degradation = min(trials, key=lambda t: t[:2])
-            name = manifest["stages"][k]["name"]
-            say(f"  {name} kept fp32: with it int8 a path lost more than {max_degradation:.1%} RMSE "
-                f"(worst path without it {worst_after:+.1%})")
-            kept_for_accuracy.append(name)
-            (model_dir / int8_files.pop(k)).unlink()
-        choose(int8_files)
-    worst = int(np.argmax(degradation))
-    if degradation[worst] > max_degradation and not force:
-        last = manifest["stages"][next(iter(int8_files))]["name"] if kept_for_accuracy else None
-        alone = f" even with only {last} int8" if last else ""
-        raise UserError(f"int8 degrades path {worst}'s RMSE by {degradation[worst]:.1%}{alone} (> --max-degradation "
-                        f"{max_degradation:.0%}; {before[worst]['rmse']:.4f} -> {after[worst]['rmse']:.4f} m): "
-                        "not exported; keep fp32, calibrate on more frames, or add --force")
+    stages = trial.manifest["stages"]
+    while len(int8_files) > 1 and max(degradation) > max_degradation:
+        trials = []
+        for k in int8_files:
+            a, d = trial.measure({j: f for j, f in int8_files.items() if j != k})
+            saved = stages[k].get("ms_here", {})
+            trials.append((max(d), saved.get("fp32", 0.0) - saved.get("int8", 0.0), k, a, d))
+        worst_after, _, k, after, degradation = min(trials, key=lambda t: t[:2])
+        name = stages[k]["name"]
+        say(f"  {name} kept fp32: with it int8 a path lost more than {max_degradation:.1%} RMSE "
+            f"(worst path without it {worst_after:+.1%})")
+        kept_for_accuracy.append(name)
+        (trial.model_dir / int8_files.pop(k)).unlink()
+    trial.choose(int8_files)
+    return after, degradation, kept_for_accuracy
+
+
+def _swap_in_int8(model_dir: Path, manifest: dict, int8_files: dict[int, str]) -> list[str]:
+    """Puts each int8 graph in its stage's place (deleting the fp32 one) and writes the final
+    manifest; returns the fp32 files replaced."""
+    import json
+    from explorer.deploy.runtime import MANIFEST
     quantized = []
     for k, stage in enumerate(manifest["stages"]):
         if k in int8_files:
@@ -222,16 +280,7 @@ def quantize_export(model_dir: Path, data: str, calibration_frames: int = 32, ev
             quantized.append(stage["file"])
             stage["file"] = int8_files[k]
     (model_dir / MANIFEST).write_text(json.dumps(manifest, indent=2))
-    return {"precision": "int8", "stages": manifest["stages"], "path_metrics_fp32": before, "path_metrics_int8": after,
-            "quantization": {"method": "onnxruntime static QDQ, each stage graph quantized whole (every operator "
-                                       "the quantizer handles): int8 weights per channel (7-bit range), uint8 "
-                                       "activations (ranges at the 99.999th percentile of the calibration frames)",
-                             "int8_stages": _why(stages),
-                             "calibration": {"data": data, "split": "train", "frames": len(calib[0]) if calib else 0},
-                             "evaluation": {"data": data, "split": "val", "frames": len(evaluation)},
-                             "rmse_degradation": degradation, "max_degradation": max_degradation,
-                             "forced": bool(force and degradation[worst] > max_degradation),
-                             "quantized_graphs": quantized, "kept_fp32_for_accuracy": kept_for_accuracy}}
+    return quantized
 
 
 def _why(stages: "str | tuple[str, ...]") -> str:

@@ -4,9 +4,9 @@ halt it at any moment (``AnytimeRunner.halt``) and get the best map so far."""
 
 from __future__ import annotations
 
-
-import json
+import io
 import math
+import os
 import tempfile
 import threading
 import time
@@ -17,10 +17,13 @@ from typing import Callable
 
 import numpy as np
 
+from explorer.data import readers as data_readers
 from explorer.deploy._arena_choice import ArenaChoice
+from explorer.deploy.manifest import MANIFEST, read_manifest  # noqa: F401  (MANIFEST: its callers' name)
+from explorer.deploy.sessions import check_provider
 from explorer.errors import UserError
+from explorer.files import read_text, write_atomically
 
-MANIFEST = "manifest.json"
 #: ``AnytimeRunner(arenas=...)``
 ARENAS = ("both", "shared", "own")
 
@@ -35,12 +38,12 @@ class AnytimeResult:
 
 
 class _Watchdog:
-    """One thread per runner that halts its run at the deadline. A timer thread started for every
-    run cost ~0.45 ms (7% of the paper design's 6.2 ms) on this project's 2-core VM
-    (benchmarks/bench_runtime.py); this thread is started once, and woken only when a run's deadline
-    comes before the end of the wait it is in: runs with one deadline each, one after another, wake it
-    about once per deadline instead of once per run (each wake takes the interpreter's lock from the
-    thread that is about to start a stage)."""
+    """One thread per runner that halts its run at the deadline. A timer thread started for every run
+    costs about 0.45 ms, 7% of the paper design's 6.2 ms on two cores (benchmarks/bench_runtime.py
+    measures it); this thread is started once, and woken only when a run's deadline comes before the
+    end of the wait it is in: runs with one deadline each, one after another, wake it about once per
+    deadline instead of once per run (each wake takes the interpreter's lock from the thread that is
+    about to start a stage)."""
 
     def __init__(self, halt: Callable[[], None]) -> None:
         self._halt = halt
@@ -96,6 +99,7 @@ class AnytimeRunner:
         ``arena_choice`` picks (``explorer.deploy._arena_choice``). ``arenas``: "both" (that), "shared" or
         "own" (only that set: for timing one of them)."""
         import onnxruntime as ort
+
         from explorer.deploy.sessions import session
         from explorer.probe import ProbeError, check_provider, shared_arena
         try:
@@ -106,13 +110,7 @@ class AnytimeRunner:
             raise UserError(f"arenas={arenas!r}: use one of {', '.join(ARENAS)}")
         self.provider = provider
         self.dir = Path(model_dir)
-        mpath = self.dir / MANIFEST
-        if not mpath.is_file():
-            raise UserError(f"{self.dir}: no {MANIFEST} (export a model with `explorer export --out DIR`)")
-        try:
-            self.manifest = json.loads(mpath.read_text())
-        except json.JSONDecodeError as exc:
-            raise UserError(f"{mpath}: not valid JSON ({exc.msg})") from None
+        self.manifest = read_manifest(self.dir)
         self.input_size = tuple(self.manifest["input_size"])
         self.scan_row = int(self.manifest["scan_row"])
         self.sessions: list[tuple[dict, object, list[str], list[str]]] = []
@@ -123,8 +121,6 @@ class AnytimeRunner:
             optimized = Path(tmp)
             for k, st in enumerate(self.manifest["stages"]):
                 f = self.dir / st["file"]
-                if not f.is_file():
-                    raise UserError(f"{f}: stage graph listed in the manifest is missing")
                 try:
                     graph = f.read_bytes()
                     sess = session(graph, threads, provider,
@@ -133,6 +129,7 @@ class AnytimeRunner:
                     raise UserError(f"{f}: not a loadable ONNX graph ({str(exc).splitlines()[0][:100]})") from None
                 self.sessions.append(_named(st, sess))
                 self._graphs.append((graph, True))
+            _check_chain(self.sessions, self.manifest["paths"], self.dir)
             if handoff:
                 self.handed_off = self._hand_off(optimized, threads)
         # the same graphs again, each session with a memory arena of its own (``explorer.deploy._arena_choice``)
@@ -161,8 +158,9 @@ class AnytimeRunner:
         as onnxruntime holds them, when a rewrite applies and gives the same depth maps; the names handed
         over and how."""
         import onnx
-        from explorer.probe import hand_off_blocked, hand_off_quantized
+
         from explorer.deploy.sessions import session
+        from explorer.probe import hand_off_blocked, hand_off_quantized
         try:
             models = [onnx.load(str(optimized / f"{k}.onnx")) for k in range(len(self.sessions))]
             ins, outs = [s[2] for s in self.sessions], [s[3] for s in self.sessions]
@@ -295,6 +293,22 @@ class AnytimeRunner:
         return AnytimeResult(depth[0, 0], path, ready, completed, halted)
 
 
+def _check_chain(sessions: list, paths: int, folder: Path) -> None:
+    """Every graph reads only the image, the scan and what graphs before it output, and every path's
+    depth map is output by one of them: else the graphs are not the ones the manifest describes."""
+    have = {"image", "scan"}
+    for stage, _, ins, outs in sessions:
+        missing = [n for n in ins if n not in have]
+        if missing:
+            raise UserError(f"{folder / stage['file']}: reads {missing[0]}, which no graph before it outputs: "
+                            "the graphs do not match the manifest (export the model again)")
+        have.update(outs)
+    lacking = [f"depth_{p}" for p in range(paths) if f"depth_{p}" not in have]
+    if lacking:
+        raise UserError(f"{folder}: no graph outputs {lacking[0]} of the manifest's {paths} paths: the graphs do "
+                        "not match the manifest (export the model again)")
+
+
 def _named(stage: dict, sess) -> tuple[dict, object, list[str], list[str]]:
     # names looked up once: get_inputs() builds new objects on every call
     return stage, sess, [i.name for i in sess.get_inputs()], [o.name for o in sess.get_outputs()]
@@ -306,42 +320,68 @@ def _is_scan_path(stage: dict) -> bool:
 
 
 def read_scan(path: Path) -> np.ndarray:
+    """One depth in metres per image column (0 = no return), from ``.npy`` or text (CSV or spaces)."""
     if not path.is_file():
         raise UserError(f"{path}: no such scan file")
     try:
         if path.suffix == ".npy":
-            return np.load(path).astype(np.float32).reshape(-1)
-        text = path.read_text().replace(",", " ").split()
-        return np.array([float(x) for x in text], dtype=np.float32)
-    except (ValueError, OSError) as exc:
-        raise UserError(f"{path}: unreadable scan ({exc}); give one depth in metres per image column") from None
+            scan = np.load(path, allow_pickle=False).astype(np.float32).reshape(-1)
+        else:
+            scan = np.array([float(x) for x in read_text(path, "scan").replace(",", " ").split()], dtype=np.float32)
+    except (ValueError, OSError, EOFError) as exc:
+        raise UserError(f"{path}: unreadable scan ({type(exc).__name__}); give one depth in metres per image "
+                        "column") from None
+    if not np.isfinite(scan).all() or (scan < 0).any():
+        raise UserError(f"{path}: scan depths must be finite and non-negative metres (0 = no return)")
+    return scan
 
 
 def read_image(path: Path) -> np.ndarray:
-    from PIL import Image
     if not path.is_file():
         raise UserError(f"{path}: no such image")
+    return data_readers.read_image(path, "RGB")
+
+
+#: what ``explorer run --out`` writes: 16-bit millimetres, or float32 metres
+DEPTH_SUFFIXES = (".png", ".npy")
+
+
+def check_depth_out(out: Path) -> Path:
+    """``out`` if a depth map can be written there (a known suffix, a folder that exists or can be made),
+    checked before the model runs."""
+    if out.suffix.lower() not in DEPTH_SUFFIXES:
+        raise UserError(f"{out}: write the depth map as .png (16-bit millimetres) or .npy (float32 metres)")
+    if out.is_dir():
+        raise UserError(f"{out}: is a folder; give a file name ending in .png or .npy")
     try:
-        return np.asarray(Image.open(path).convert("RGB"))
+        out.parent.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        raise UserError(f"{path}: unreadable image ({exc})") from None
+        raise UserError(f"{out.parent}: cannot create the folder ({exc.strerror})") from None
+    if not os.access(out.parent, os.W_OK):
+        raise UserError(f"{out.parent}: not writable; give --out a path you can write")
+    return out
 
 
 def write_depth(depth: np.ndarray, out: Path) -> None:
-    out.parent.mkdir(parents=True, exist_ok=True)
-    if out.suffix == ".npy":
-        np.save(out, depth.astype(np.float32))
+    check_depth_out(out)
+    buffer = io.BytesIO()
+    if out.suffix.lower() == ".npy":
+        np.save(buffer, depth.astype(np.float32))
     else:
         from PIL import Image
-        mm = np.clip(depth * 1000.0, 0, 65535).astype(np.uint16)
-        Image.fromarray(mm).save(out)
+        Image.fromarray(np.clip(depth * 1000.0, 0, 65535).astype(np.uint16)).save(buffer, format="PNG")
+    write_atomically(out, buffer.getvalue())
 
 
 def run_files(model_dir: Path, image: Path, scan: Path, deadline_ms: float, out: Path | None,
               threads: int | None = None, provider: str = "CPUExecutionProvider") -> dict:
+    check_provider(provider)   # every mistake is said before any file is read
+    if out is not None:
+        check_depth_out(out)
+    image_pixels, scan_depths = read_image(image), read_scan(scan)
     # one run: nothing to choose between sets by
     runner = AnytimeRunner(model_dir, threads, provider=provider, arenas="shared")
-    result = runner.run(read_image(image), read_scan(scan), deadline_ms)
+    result = runner.run(image_pixels, scan_depths, deadline_ms)
     if out is not None:
         write_depth(result.depth, out)
     return {"path": result.path, "ready_ms": result.ready_ms, "deadline_ms": deadline_ms,

@@ -1,4 +1,4 @@
-"""The network family of DESIGN.md: image encoder, LiDAR encoder, ECU, decoder, exits."""
+"""The network family of the design guide (in docs/): image encoder, LiDAR encoder, ECU, decoder, exits."""
 
 from explorer.model.exits import interpolate_scan
 from explorer.model.network import AnytimeDepthNet, StageSpec, build_network, stage_specs

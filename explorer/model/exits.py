@@ -86,9 +86,9 @@ def interpolate_scan(scan: torch.Tensor, height: int) -> torch.Tensor:
     return at all gives zeros.
     """
     n, w = scan.shape
-    # In O(W), with fixed shapes (a W x W matrix of distances searched by argmin took 0.25 ms at W 640 on
-    # a 2-core Zen 5 VM): the nearest return on the left and on the right, and the closer of the two
-    # (the left one on a tie, as argmin's first minimum).
+    # In O(W), with fixed shapes (a W x W matrix of distances searched by argmin grows with W squared;
+    # benchmarks/bench_path0.py compares the two): the nearest return on the left and on the right, and
+    # the closer of the two (the left one on a tie, as argmin's first minimum).
     valid = scan > 0
     cols = torch.arange(w, device=scan.device).expand(n, w)
     count = torch.cumsum(valid.to(torch.int64), dim=1)   # returns at or left of each column

@@ -31,8 +31,7 @@ class Resize(nn.Module):
     Bilinear is computed as two matrix products, rows then columns, with the interpolation weights of
     ``F.interpolate(..., align_corners=False)`` (``bilinear_matrix``): the same values to float
     rounding, and onnxruntime runs the products faster than its Resize kernel (each of the paper design's
-    exits to 224x224: 0.11 ms as a Resize, 0.04 ms as the two products, onnxruntime's profiler on an
-    Intel Xeon VM); so does PyTorch (one channel 14x14 -> 224x224: 0.036 against 0.092-0.101 ms).
+    exits to 224x224), and so does PyTorch (benchmarks/bench_exit_heads.py times both ways).
     ``products=False``: bilinear by interpolation (a Resize operator once exported), as the paper's graph."""
 
     def __init__(self, factor: int, mode: str = "nearest", products: bool = True) -> None:

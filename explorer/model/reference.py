@@ -18,7 +18,7 @@ Decoders, checked against the paper's parameter counts (Tables 1 and 3):
   15.24 M (-6%, within 10%; the paper likely counts the encoder's unused ImageNet classifier).
 - FastDepth 3.96 M (paper 4.016 M, -1.4%); pruned 1.36 M (fast-depth's 1.34 M, +1.6%).
 
-GFLOPs (``explorer profile NAME --input HxW`` gives our exact MACs): the paper's "GFlops" column is
+GFLOPs (``explorer profile NAME --input-size HxW`` gives our exact MACs): the paper's "GFlops" column is
 multiply-adds, with transposed convolutions counted as FLOP counters such as thop count them: as
 the convolution over the zero-dilated input they are computed as (every output value x input
 channels x kernel), 4x their real multiply-adds for sparse-to-dense's 2x2 stride-2 layers

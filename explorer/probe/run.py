@@ -15,7 +15,6 @@ except ImportError:  # the probe's main() says what to install, in one line
     np = None
 
 
-
 from .formats import (DEFAULT_PROVIDER, RESULTS_FORMAT, VERSION, WARMUP, ProbeError, load_manifest, read_results,
                       write_atomically)
 from .identity import device_identity
@@ -42,8 +41,6 @@ def schedule(layers: list[dict], cands: list[dict]) -> list[tuple[str, dict]]:
     return order
 
 
-
-
 def run_probe(bundle_dir: "str | Path", out: "str | Path", provider: str = DEFAULT_PROVIDER,
               threads: int | None = None, repeats: int | None = None, energy: bool = True,
               root: str = "/", vcgencmd: str = "vcgencmd", idle_s: float = 2.0, window_s: float = 1.0,
@@ -65,6 +62,22 @@ def run_probe(bundle_dir: "str | Path", out: "str | Path", provider: str = DEFAU
     repeats = repeats or int(manifest["repeats"])
     cond = {"provider": provider, "threads": threads, "thread_pool": thread_pool(),
             "repeats": repeats, "warmup": WARMUP, "statistic": "median", "stage_graphs": "timed in sequence"}
+    res = _open_results(out, manifest, cond, provider, threads, root, log)
+    timing = _Timing(res, manifest, bundle_dir, out, threads, provider, repeats, progress)
+    timing.all_passes(remeasure_passes, calm_wait_s, log)
+    write_atomically(out, res)
+    _warn_of_drift(res, log)
+    if energy:
+        _probe_energy(res, manifest, bundle_dir, out, provider, threads, root, vcgencmd, idle_s, window_s,
+                      progress, log)
+    write_atomically(out, res)
+    return res
+
+
+def _open_results(out: Path, manifest: dict, cond: dict, provider: str, threads: int, root: str,
+                  log: Callable[[str], None]) -> dict:
+    """The results in ``out`` to resume (refused, ProbeError, when they are another bundle's or were
+    measured under other conditions), or new, empty ones."""
     if out.exists():
         res = read_results(out)
         if res["bundle"].get("id") != manifest["id"]:
@@ -75,110 +88,130 @@ def run_probe(bundle_dir: "str | Path", out: "str | Path", provider: str = DEFAU
                              "--out, or the same options as before to resume")
         log(f"resuming {out}: {len(res['layers'])} layer graphs and "
             f"{sum(len(v) for v in res['stages'].values())} stage graphs already measured")
-    else:
-        res = {"format": RESULTS_FORMAT, "version": VERSION, "bundle": manifest,
-               "device": device_identity(provider, threads, root), "conditions": cond,
-               "layers": {}, "stages": {}, "energy": None}
-    layers, cands = manifest["layers"], manifest["candidates"]
-    total = len(layers) + sum(len(c["graphs"]) for c in cands)
-    done = 0
+        return res
+    return {"format": RESULTS_FORMAT, "version": VERSION, "bundle": manifest,
+            "device": device_identity(provider, threads, root), "conditions": cond,
+            "layers": {}, "stages": {}, "energy": None}
 
-    def tick(what: str) -> None:
-        nonlocal done
-        done += 1
-        if progress:
-            progress(done, total, what)
 
-    rng = np.random.default_rng(0)
-    reference, reference_stage = speed_layer(layers), speed_stage(cands)
-    speed = res.setdefault("speed", {"layer": reference["id"] if reference else None, "ms": [], "remeasured": 0})
-    speed.setdefault("stage", reference_stage["file"] if reference and reference_stage else None)
-    speed.setdefault("stage_ms", [])
-    earlier = res.setdefault("earlier", {})   # timings taken while it ran slow, until timed again
-    # each kept timing's speed check before it: judged again after every pass against all checks so
-    # far (a machine slowed for a whole pass looks usual until it speeds up)
-    timed_after = res.setdefault("timed_after", {})
-    since_check = [SPEED_CHECK_EVERY]   # graphs timed since the last speed check
-    checks = [(fixed_graph_timer(bundle_dir / file, threads, provider), times)
-              for file, times in ((reference and reference["file"], speed["ms"]), (speed["stage"], speed["stage_ms"]))
-              if file]
+class _Timing:
+    """One probe run's timing of the bundle's graphs into ``res``, in passes: every graph not timed
+    yet, then again those timed while a speed check showed the machine slow. Each timing remembers
+    the speed check before it (``timed_after``), so that it can be judged again after every pass
+    against all checks so far (a machine slowed for a whole pass looks usual until it speeds up)."""
 
-    def check_speed() -> float:
+    def __init__(self, res: dict, manifest: dict, bundle_dir: Path, out: Path, threads: int, provider: str,
+                 repeats: int, progress: Callable[[int, int, str], None] | None) -> None:
+        self.res, self.manifest, self.bundle_dir, self.out = res, manifest, bundle_dir, out
+        self.threads, self.provider, self.repeats, self.progress = threads, provider, repeats, progress
+        self.layers, self.cands = manifest["layers"], manifest["candidates"]
+        self.total = len(self.layers) + sum(len(c["graphs"]) for c in self.cands)
+        self.done = 0
+        self.rng = np.random.default_rng(0)
+        self.reference, reference_stage = speed_layer(self.layers), speed_stage(self.cands)
+        speed = res.setdefault("speed", {"layer": self.reference["id"] if self.reference else None, "ms": [],
+                                         "remeasured": 0})
+        speed.setdefault("stage", reference_stage["file"] if self.reference and reference_stage else None)
+        speed.setdefault("stage_ms", [])
+        self.speed = speed
+        self.earlier = res.setdefault("earlier", {})   # timings taken while it ran slow, until timed again
+        self.timed_after = res.setdefault("timed_after", {})
+        self.since_check = SPEED_CHECK_EVERY   # graphs timed since the last speed check
+        self.checks = [(fixed_graph_timer(bundle_dir / file, threads, provider), times)
+                       for file, times in ((self.reference and self.reference["file"], speed["ms"]),
+                                           (speed["stage"], speed["stage_ms"]))
+                       if file]
+
+    def tick(self, what: str) -> None:
+        self.done += 1
+        if self.progress:
+            self.progress(self.done, self.total, what)
+
+    def check_speed(self) -> float:
         """Times the fixed graphs (and opens a new window of graphs); returns how much slower than
         usual the machine runs now (1 = usual)."""
-        since_check[0] = 0
-        if reference is None:
+        self.since_check = 0
+        if self.reference is None:
             return 1.0
-        for timer, times in checks:
+        for timer, times in self.checks:
             times.append(timer())
-        return slowness(speed)[-1]
+        return slowness(self.speed)[-1]
 
-    def measure(sess, feeds, label: str) -> float:
-        if since_check[0] >= SPEED_CHECK_EVERY:
-            check_speed()
-        since_check[0] += 1
-        timed_after[label] = len(speed["ms"]) - 1
-        ms = time_call(lambda: sess.run(None, feeds), WARMUP, repeats)
-        return min(ms, earlier.pop(label, ms))
+    def before_timing(self, labels: list[str]) -> None:
+        """A speed check where a window of graphs is full; then ``labels`` join the current window."""
+        if self.since_check >= SPEED_CHECK_EVERY:
+            self.check_speed()
+        self.since_check += len(labels)
+        for label in labels:
+            self.timed_after[label] = len(self.speed["ms"]) - 1
 
-    for attempt in range(remeasure_passes + 1):
-        since_check[0] = SPEED_CHECK_EVERY   # each pass opens with a check
-        timed_before = dict(timed_after)
-        for kind, item in schedule(layers, cands):
+    def all_passes(self, remeasure_passes: int, calm_wait_s: float, log: Callable[[str], None]) -> None:
+        for attempt in range(remeasure_passes + 1):
+            self.since_check = SPEED_CHECK_EVERY   # each pass opens with a check
+            timed_before = dict(self.timed_after)
+            self.one_pass()
+            if self.timed_after == timed_before:
+                break   # nothing timed in this pass (a finished run, resumed)
+            self.check_speed()   # closes the last window
+            if self.reference is None or attempt == remeasure_passes:
+                break
+            slow = set(slow_windows(slowness(self.speed)))
+            again = [label for label, j in self.timed_after.items() if j in slow]
+            if not again:
+                break
+            log(f"the machine ran slower for a while ({len(again)} graphs timed then): timing those again")
+            wait_until_calm(slowness(self.speed)[-1], self.check_speed, 1.0, calm_wait_s)
+            set_aside(self.res, again)
+            self.speed["remeasured"] = self.speed.get("remeasured", 0) + len(again)
+            self.done -= self.total   # the progress bar goes round again
+
+    def one_pass(self) -> None:
+        """Times every graph of the bundle not timed yet, layers and candidates interleaved."""
+        for kind, item in schedule(self.layers, self.cands):
             if kind == "layer":
-                if item["id"] not in res["layers"]:
-                    sess = session(bundle_dir / item["file"], threads, provider)
-                    res["layers"][item["id"]] = measure(sess, _random_feeds(item["inputs"], rng), item["id"])
-                    write_atomically(out, res)
-                tick("layers")
-                continue
-            kept = res["stages"].setdefault(item["key"], {})
-            if all(g["stage"] in kept for g in item["graphs"]):
-                for _ in item["graphs"]:
-                    tick("stages")
-                continue
-            start = candidate_inputs(manifest, rng, item)
-            chain = chain_sessions([bundle_dir / g["file"] for g in item["graphs"]], threads, provider)
-            runs, new_round = chain_runs(chain, start)
-            missing = [g["stage"] not in kept for g in item["graphs"]]
-            labels = [f"{item['key']}/{g['stage']}" for g, m in zip(item["graphs"], missing) if m]
-            if since_check[0] >= SPEED_CHECK_EVERY:
-                check_speed()
-            since_check[0] += len(labels)
-            for label in labels:
-                timed_after[label] = len(speed["ms"]) - 1
-            for g, ms in zip(item["graphs"], time_chain(runs, WARMUP, repeats, missing, new_round)):
-                if ms is not None:
-                    label = f"{item['key']}/{g['stage']}"
-                    kept[g["stage"]] = min(ms, earlier.pop(label, ms))
-                tick("stages")
-            write_atomically(out, res)
-        if timed_after == timed_before:
-            break   # nothing timed in this pass (a finished run, resumed)
-        check_speed()   # closes the last window
-        if reference is None or attempt == remeasure_passes:
-            break
-        slow = set(slow_windows(slowness(speed)))
-        again = [label for label, j in timed_after.items() if j in slow]
-        if not again:
-            break
-        log(f"the machine ran slower for a while ({len(again)} graphs timed then): timing those again")
-        wait_until_calm(slowness(speed)[-1], check_speed, 1.0, calm_wait_s)
-        set_aside(res, again)
-        speed["remeasured"] = speed.get("remeasured", 0) + len(again)
-        done -= len(layers) + sum(len(c["graphs"]) for c in cands)   # the progress bar goes round again
-    write_atomically(out, res)
+                self.time_layer(item)
+            else:
+                self.time_candidate(item)
+
+    def time_layer(self, item: dict) -> None:
+        if item["id"] not in self.res["layers"]:
+            sess = session(self.bundle_dir / item["file"], self.threads, self.provider)
+            feeds = _random_feeds(item["inputs"], self.rng)
+            self.before_timing([item["id"]])
+            ms = time_call(lambda: sess.run(None, feeds), WARMUP, self.repeats)
+            self.res["layers"][item["id"]] = min(ms, self.earlier.pop(item["id"], ms))
+            write_atomically(self.out, self.res)
+        self.tick("layers")
+
+    def time_candidate(self, item: dict) -> None:
+        """Times the candidate's stage graphs not timed yet, in sequence, each fed by the one before."""
+        kept = self.res["stages"].setdefault(item["key"], {})
+        if all(g["stage"] in kept for g in item["graphs"]):
+            for _ in item["graphs"]:
+                self.tick("stages")
+            return
+        start = candidate_inputs(self.manifest, self.rng, item)
+        chain = chain_sessions([self.bundle_dir / g["file"] for g in item["graphs"]], self.threads, self.provider)
+        runs, new_round = chain_runs(chain, start)
+        missing = [g["stage"] not in kept for g in item["graphs"]]
+        self.before_timing([f"{item['key']}/{g['stage']}" for g, m in zip(item["graphs"], missing) if m])
+        for g, ms in zip(item["graphs"], time_chain(runs, WARMUP, self.repeats, missing, new_round)):
+            if ms is not None:
+                label = f"{item['key']}/{g['stage']}"
+                kept[g["stage"]] = min(ms, self.earlier.pop(label, ms))
+            self.tick("stages")
+        write_atomically(self.out, self.res)
+
+
+def _warn_of_drift(res: dict, log: Callable[[str], None]) -> None:
+    """Says so when the fixed graphs' timings changed more than ``SPEED_DRIFT_WARN`` over the run."""
     drift = speed_drift(res)
     if drift is not None and drift > SPEED_DRIFT_WARN:
+        speed = res["speed"]
         ranges = ", ".join(f"{min(t):.3g}-{max(t):.3g} ms" for t in (speed["ms"], speed["stage_ms"]) if t)
         log(f"note: this machine's speed changed by {drift:.0%} while it was measured (fixed graphs took {ranges}); "
             f"{speed.get('remeasured', 0)} graphs timed while it ran slow were timed again. Another load or "
             "throttling? If the profile disagrees with later measurements, measure again when the machine is idle")
-    if energy:
-        _probe_energy(res, manifest, bundle_dir, out, provider, threads, root, vcgencmd, idle_s, window_s,
-                      progress, log)
-    write_atomically(out, res)
-    return res
 
 
 def _probe_energy(res: dict, manifest: dict, bundle_dir: Path, out: Path, provider: str, threads: int,

@@ -53,9 +53,10 @@ def thread_pool() -> str:
 def _shared_pool(threads: int) -> bool:
     """Every session of this process shares onnxruntime's one global intra-op pool, created by the
     first session. Stages run one after another, so one pool serves them all, and its threads spin
-    between operators. Pools of their own either sleep between operators (waking them took 1.5x as
-    long in some sessions as in others on this project's 2-core VM: bimodal timings) or, spinning,
-    fight each other for the cores (4x slower with a dozen stage sessions alive)."""
+    between operators. Pools of their own either sleep between operators (waking them takes longer
+    in some sessions than in others: bimodal timings) or, spinning, fight each other for the cores
+    (several times slower with a dozen stage sessions alive; benchmarks/bench_thread_pools.py
+    compares the pools)."""
     if "threads" not in _POOL:
         _POOL["threads"] = None
         if os.environ.get(POOL_ENV, "shared") != "session":
@@ -73,12 +74,12 @@ def _shared_pool(threads: int) -> bool:
 
 
 def _shared_arena(ort) -> bool:
-    """Registers one CPU memory arena for every session of the process to allocate from. On this
-    project's Zen 4 VM, calm, the paper design's stage sessions ran 5.9-8.0% slower than its whole
-    graph with arenas of their own, and 1.1-2.5% faster with one shared arena: buffers are reused
-    from stage to stage instead of each stage keeping its own apart (benchmarks/bench_runtime.py).
-    While that VM was slowed from outside (whole graph 14 ms, not 7.6), it went the other way:
-    -9.0% with their own, +4.9% shared; so the runtime keeps both (``explorer.deploy._arena_choice``)."""
+    """Registers one CPU memory arena for every session of the process to allocate from. On a calm
+    machine the paper design's stage sessions run faster with one shared arena than with arenas of
+    their own: buffers are reused from stage to stage instead of each stage keeping its own apart. On
+    a machine slowed by other loads it can go the other way, so the runtime keeps both and picks per
+    run (``explorer.deploy._arena_choice``; benchmarks/bench_arena_choice.py and
+    benchmarks/bench_runtime.py measure the two)."""
     try:
         info = ort.OrtMemoryInfo("Cpu", ort.OrtAllocatorType.ORT_ARENA_ALLOCATOR, 0, ort.OrtMemType.DEFAULT)
         ort.create_and_register_allocator(info, ort.OrtArenaCfg(0, -1, -1, -1))
@@ -137,7 +138,6 @@ def _session(model, threads, provider, optimize, save_optimized, own_arena):
     opts.log_severity_level = 3
     providers = [provider] + ([DEFAULT_PROVIDER] if provider != DEFAULT_PROVIDER else [])
     return ort.InferenceSession(str(model) if isinstance(model, Path) else model, opts, providers=providers)
-
 
 
 def block_size() -> int:

@@ -30,7 +30,7 @@ def chain_sessions(models: Sequence["bytes | Path"], threads: "int | None" = Non
     next transposes channels-last again, channels-last (``hand_off_channels_last``). What the probe and
     the held-out timings time a candidate's stage graphs with: timed alone, each stage paid the layout
     conversions at its edges that the runtime does not, and the host profile predicted the paper
-    design's paths 5-14% slow on an AVX-512 VM (benchmarks/bench_runtime.py)."""
+    design's paths too slow (benchmarks/bench_runtime.py compares predicted and measured paths)."""
     import tempfile
     if provider != DEFAULT_PROVIDER or _onnx() is None:
         return [session(m, threads, provider) for m in models]
@@ -66,9 +66,10 @@ def time_chain(fns: Sequence[Callable[[], object]], warmup: int = WARMUP, repeat
     """Median wall time in ms of each of ``fns`` (those ``timed``; None for the others), called in order
     ``warmup`` rounds untimed, then ``repeats`` rounds timed, ``new_round`` (untimed) before each: a
     model's stage graphs as the runtime runs them, one after another, each reading what the one before
-    it wrote. Timed each on its own, over and over, the paper design's 12 stage graphs
-    took 4-7% less in all than in sequence (the small ones, exit heads and the fusion unit, 13-60% less)
-    on an AVX-512 VM, and the host profile predicted the runtime's paths 4-7% fast."""
+    it wrote. Timed each on its own, over and over, the paper design's 12 stage graphs take less in
+    all than in sequence (the small ones, exit heads and the fusion unit, much less), and a profile
+    fitted to such timings predicts the runtime's paths too fast (benchmarks/bench_runtime.py
+    compares predicted and measured paths)."""
     timed = list(timed) if timed is not None else [True] * len(fns)
     for _ in range(warmup):
         if new_round is not None:
@@ -101,9 +102,6 @@ def chain_runs(chain: list, start: dict) -> "tuple[list[Callable[[], object]], C
              for s in chain], new_round)
 
 
-
-
-
 #: The probe times two fixed graphs first, again after every this many graphs, and last: how much
 #: the machine's own speed changed while it measured (another load, throttling), and when.
 SPEED_CHECK_EVERY = 12
@@ -129,8 +127,7 @@ def speed_layer(layers: list[dict]) -> "dict | None":
 
 def speed_stage(cands: list[dict]) -> "dict | None":
     """The stage graph the probe also re-times: the first candidate's image encoder (about a
-    millisecond of mixed operators, which another load slows more than one large convolution:
-    measured here, 1.6-2x against 1.2-1.3x)."""
+    millisecond of mixed operators, which another load slows more than one large convolution)."""
     graphs = cands[0]["graphs"] if cands else []
     return next((g for g in graphs if g["stage"] == "image_encoder"), graphs[0] if graphs else None)
 

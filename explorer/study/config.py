@@ -11,7 +11,7 @@ from typing import Callable
 from explorer.anytime import parse_budget
 from explorer.cost import get_device
 from explorer.errors import UserError
-from explorer.space import (Candidate, SearchSpace, fastdepth_candidate, paper_candidate,
+from explorer.space import (Candidate, SearchSpace, check_size, fastdepth_candidate, paper_candidate,
                             paper_nee_candidate)
 from explorer.study.evaluators import EVALUATORS
 from explorer.training.train import PROXY, TrainConfig
@@ -113,7 +113,7 @@ class SearchConfig:
                               lr=self.lr, lr_end=self.lr / 10, seed=self.seed)
 
     def validate(self) -> None:
-        SearchSpace.from_yaml(self.space)
+        space = SearchSpace.from_yaml(self.space)
         get_device(self.device)
         if not self.budgets:
             raise UserError("give at least one --budget")
@@ -125,10 +125,11 @@ class SearchConfig:
         if self.metric not in ("rmse", "mae", "rel"):
             raise UserError(f"--metric {self.metric}: use rmse, mae or rel")
         for name, size in (("--input-size", self.input_size), ("--train-size", self.train_size)):
-            if len(size) != 2 or min(size) < 8:
+            if len(size) != 2:
                 raise UserError(f"{name} {size}: give HxW, e.g. 224x224")
+            check_size(tuple(size), space.max_stride, name)
         if self.train_steps < 1:
-            raise UserError("--train-steps must be at least 1")
+            raise UserError("--proxy-steps must be at least 1")
         if self.evaluator not in EVALUATORS:
             raise UserError(f"--evaluator {self.evaluator}: use one of {list(EVALUATORS)}")
         if self.supernet and self.evaluator != "supernet":

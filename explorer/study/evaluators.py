@@ -108,7 +108,7 @@ class SupernetEvaluator:
             metrics = evaluate_stagewise(net, self.shared_encoder(candidate.width_mult), *self._frames, self.memo)
         else:
             recalibrate_batchnorm(net, self.calibration)
-            metrics = evaluate(net, self.validation, device=self.device)
+            metrics = evaluate(net, self.validation, accelerator=self.device)
         net.to(memory_format=torch.contiguous_format)
         info = {"evaluator": self.name, "seconds": time.perf_counter() - t0, "supernet": str(self.file),
                 "supernet_key": self.key}

@@ -11,10 +11,11 @@ import optuna
 
 from explorer.anytime import anytime_loss, parse_budget
 from explorer.cost import get_device, model_cost
+from explorer.deploy.export import quantization_effect
 from explorer.study.results import compact_workloads
 from explorer.space import (Candidate, SearchSpace)
 from explorer.study.evaluators import ProxyEvaluator, SupernetEvaluator
-from explorer.training.train import Pruned, resolve_device
+from explorer.training.train import Pruned, resolve_accelerator
 
 from explorer.study.config import SearchConfig, baseline_model, json_safe
 
@@ -39,7 +40,7 @@ class Objective:
         self.device_profile = get_device(config.device)
         self.budgets = [parse_budget(b) for b in config.budgets]
         self.train_cfg = config.train_config()
-        self.torch_device = resolve_device(config.accelerator)
+        self.torch_device = resolve_accelerator(config.accelerator)
         self.train_set = hinted_if_asked(config, open_dataset(config.data, "train", config.train_size, seed=config.seed,
                                                           progress=data_progress), data_progress)
         self.val_set = open_dataset(config.data, "val", config.train_size, train_augment=False)
@@ -161,7 +162,6 @@ class Objective:
         uses) times what quantizing its graphs does to each path, measured with onnxruntime
         (explorer.deploy.quantize); both, and the change, are kept on ``trial``. The graphs quantized are those
         the device profile prices int8 (``CandidateCost.int8_graphs``), as its latency assumes."""
-        from explorer.deploy.quantize import quantization_effect
         net.eval()
         graphs = cost.int8_graphs(self.device_profile)
         effect = quantization_effect(net, self.config.train_size, self.config.data,

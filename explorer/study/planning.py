@@ -1,8 +1,8 @@
 """A run's time limit: how ``explorer search --time-limit`` fits data generation, supernet training,
 sampling and the finalists' retraining into one wall-clock budget on whatever machine it runs on.
 
-The same search takes 9 minutes on one of these 2-core machines and 30 on another (3x slower
-steps, measured). So the run measures the machine first (a few training steps of the paper design
+The same search can take three times as long on one machine as on another of the same size
+(slower training steps). So the run measures the machine first (a few training steps of the paper design
 and of the supernet, a few seconds), then sizes what may give, in this order:
 
 - the finalists keep their recipe where the supernet's full steps fit beside it, else their steps

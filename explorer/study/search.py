@@ -27,7 +27,7 @@ from explorer.space import (Candidate, SearchSpace, paper_candidate)
 from explorer.study.planning import Plan, TimeLimit
 from explorer.study.retry import StopAfterTrials, counted_trials, guarded, resume_interrupted, set_objective_names
 from explorer.study.storage import REPORTS_DIR, open_storage, study_dir
-from explorer.training.train import resolve_device
+from explorer.training.train import resolve_accelerator
 
 from explorer.study.config import (BASELINES, DEFAULT_BASELINES, OBJECTIVES, SearchConfig, baseline_model,  # noqa: F401
                                    json_safe, objective_names)
@@ -159,7 +159,7 @@ def ensure_supernet(config: SearchConfig, progress: Callable[[int, int, dict], N
         load_supernet(config.supernet, space)  # one clear line if it is foreign, corrupt or unfinished
         return Path(config.supernet)
     return train_supernet(space, config.data, config.supernet_recipe(), default_path(
-        space, config.data, config.supernet_recipe()), resolve_device(config.accelerator),
+        space, config.data, config.supernet_recipe()), resolve_accelerator(config.accelerator),
         progress=progress, data_progress=data_progress)
 
 
@@ -224,7 +224,7 @@ def plan_search(config: SearchConfig, storage: optuna.storages.BaseStorage, limi
     trains_supernet = config.evaluator == "supernet" and not config.supernet
     cached = _cached_supernet_steps(config) if trains_supernet else []
     must_measure_supernet = trains_supernet and ("supernet_steps" in free or config.supernet_steps not in cached)
-    speeds = planning.measure_speeds(config, train_set, val_set, resolve_device(config.accelerator),
+    speeds = planning.measure_speeds(config, train_set, val_set, resolve_accelerator(config.accelerator),
                                      supernet=must_measure_supernet,
                                      baselines=_measured_baselines(config) if config.finalists else ())
     trial_s = 0.0 if config.evaluator == "supernet" else planning.SAFETY * (
@@ -259,7 +259,7 @@ def _measure_again(config: SearchConfig, speeds, finalists: tuple[Candidate, ...
     from explorer.data import open_dataset
     train_set = open_dataset(config.data, "train", config.train_size, seed=config.seed)
     val_set = open_dataset(config.data, "val", config.train_size, train_augment=False)
-    fresh = planning.measure_speeds(config, train_set, val_set, resolve_device(config.accelerator), supernet=False,
+    fresh = planning.measure_speeds(config, train_set, val_set, resolve_accelerator(config.accelerator), supernet=False,
                                     baselines=_measured_baselines(config), finalists=finalists)
     return dataclasses.replace(fresh, supernet_step_s=speeds.supernet_step_s)
 
@@ -280,11 +280,11 @@ def search(config: SearchConfig, storage_url: str | None = None, workers: int = 
     config.validate()
     if workers < 1:
         raise UserError("--workers must be at least 1")
+    if config.supernet:   # checked before the study's storage exists: a refused search creates nothing
+        ensure_supernet(config)  # a foreign or corrupt file is one line before anything is measured
     storage = open_storage(storage_url, config.study, workers, reports, max_retries=config.max_retries)
     plan = speeds = None
     sampling_cap = timeout_s
-    if config.supernet:
-        ensure_supernet(config)  # a foreign or corrupt file is one line before anything is measured
     wanted = (config.finalists, config.finalist_steps)   # before a plan shrinks them
     if time_limit is not None:
         config, plan, speeds = plan_search(config, storage, time_limit, timeout_s, on_data)
@@ -310,9 +310,7 @@ def search(config: SearchConfig, storage_url: str | None = None, workers: int = 
         from explorer.study.planning import replan_sampling
         plan = replan_sampling(plan, time_limit.remaining(), sampling_cap)
         timeout_s = plan.sampling_s
-        study.set_user_attr("plan", plan.to_dict())
-        if on_plan:
-            on_plan(plan)
+        _publish_plan(study, plan, on_plan)
     t0 = time.time()
     deadline = None if timeout_s is None else t0 + timeout_s
     if workers == 1:
@@ -320,61 +318,90 @@ def search(config: SearchConfig, storage_url: str | None = None, workers: int = 
         cb = [lambda s, t: on_trial(s, t)] if on_trial else []
         _optimize(study, objective, n_trials, deadline, cb)
     else:
-        from explorer.data import open_dataset
-        open_dataset(config.data, "val", config.train_size, progress=on_data)  # generate once, not per worker
-        import multiprocessing as mp
-        ctx = mp.get_context("spawn")
-        threads = max(1, (os.cpu_count() or 1) // workers)
-        procs = [ctx.Process(target=run_worker, args=(config.to_dict(), url, n_trials, deadline, i,
-                                                      str(reports), threads))
-                 for i in range(workers)]
-        for p in procs:
-            p.start()
-        try:
-            while any(p.is_alive() for p in procs):
-                time.sleep(2.0)
-                if on_poll:
-                    on_poll(study)
-        finally:
-            for p in procs:
-                p.join(timeout=5)
-                if p.is_alive():
-                    p.terminate()
+        _run_workers(study, config, url, workers, n_trials, deadline, reports, on_poll, on_data)
     if plan is not None and (config.finalists or config.baselines):
-        from explorer.study.finalists import choose_finalists, finalist_trials
-        from explorer.study.planning import replan_finalists
-        done = [t.user_attrs["finalist"]["recipe"]["steps"] for t in finalist_trials(study)]
-        steps_free = "finalist_steps" in time_limit.free and not done   # a resumed study keeps its recipe
-        # the machine may be busier or freer than when it was first measured, and the finalists are known
-        # now: measure it again, on them (seconds)
-        count = max(config.finalists, wanted[0]) if "finalists" in time_limit.free else config.finalists
-        chosen = tuple(Candidate.from_dict(t.user_attrs["candidate"]) for t in choose_finalists(study, count))
-        speeds = _measure_again(config, speeds, chosen)
-        plan = replan_finalists(plan, time_limit.remaining(), speeds, baseline_load(config, speeds),
-                                steps_free=steps_free, finalists_free="finalists" in time_limit.free,
-                                baseline_count=len(config.baselines), wanted=wanted)
-        config = dataclasses.replace(config, finalists=plan.finalists,
-                                     finalist_steps=plan.finalist_steps if steps_free or not done else max(done))
-        study.set_user_attr("plan", plan.to_dict())
-        if on_plan:
-            on_plan(plan)
+        config, plan = _replan_finalists(study, config, plan, speeds, time_limit, wanted, on_plan)
     if config.finalists:
-        from explorer.study.finalists import finalist_trials, retrain_finalists
-        # the re-plan stood on a few steps' measurement: finalists it dropped are retrained after the
-        # others when the time those took says they still fit
-        extra, deadline = 0, None
-        if plan is not None and "finalists" in time_limit.free:
-            from explorer.study.planning import RESERVE_S
-            extra = max(wanted[0] - config.finalists, 0)
-            deadline = time_limit.started + time_limit.seconds - RESERVE_S
-        retrain_finalists(study, config, reports, progress=on_finalist, extra=extra, deadline=deadline)
-        retrained = sum(1 for t in finalist_trials(study) if not t.user_attrs.get("baseline")
-                        and t.user_attrs["finalist"].get("recipe") == config.finalist_config().to_dict())
-        if plan is not None and retrained > plan.finalists:
-            plan = dataclasses.replace(plan, finalists=retrained, changes=plan.changes + (
-                f"{retrained - plan.finalists} more finalist(s) retrained: the others took less than planned",))
-            config = dataclasses.replace(config, finalists=retrained)
-            study.set_user_attr("plan", plan.to_dict())
-            if on_plan:
-                on_plan(plan)
+        config, plan = _retrain_finalists(study, config, plan, time_limit, wanted, reports, on_finalist, on_plan)
     return SearchOutcome(study, url, time.time() - t0, failed, retried, not_retried, config, plan)
+
+
+def _publish_plan(study: optuna.Study, plan: "Plan", on_plan: Callable[["Plan"], None] | None) -> None:
+    """Records the plan as it stands now in the study, and tells the caller."""
+    study.set_user_attr("plan", plan.to_dict())
+    if on_plan:
+        on_plan(plan)
+
+
+def _run_workers(study: optuna.Study, config: SearchConfig, url: str, workers: int, n_trials: int | None,
+                 deadline: float | None, reports: Path, on_poll: Callable[[optuna.Study], None] | None,
+                 on_data: Callable[[int, int], None] | None) -> None:
+    """Samples in ``workers`` spawned processes sharing the study at ``url`` (the cores split among
+    them), polling the study every 2 s until all have finished."""
+    from explorer.data import open_dataset
+    open_dataset(config.data, "val", config.train_size, progress=on_data)  # generate once, not per worker
+    import multiprocessing as mp
+    ctx = mp.get_context("spawn")
+    threads = max(1, (os.cpu_count() or 1) // workers)
+    procs = [ctx.Process(target=run_worker, args=(config.to_dict(), url, n_trials, deadline, i,
+                                                  str(reports), threads))
+             for i in range(workers)]
+    for p in procs:
+        p.start()
+    try:
+        while any(p.is_alive() for p in procs):
+            time.sleep(2.0)
+            if on_poll:
+                on_poll(study)
+    finally:
+        for p in procs:
+            p.join(timeout=5)
+            if p.is_alive():
+                p.terminate()
+
+
+def _replan_finalists(study: optuna.Study, config: SearchConfig, plan: "Plan", speeds, time_limit: "TimeLimit",
+                      wanted: tuple[int, int], on_plan: Callable[["Plan"], None] | None,
+                      ) -> tuple[SearchConfig, "Plan"]:
+    """Sizes the finalists' retraining to what is left of ``time_limit`` once sampling is over:
+    (config with the finalists and steps that fit, the plan as re-made)."""
+    from explorer.study.finalists import choose_finalists, finalist_trials
+    from explorer.study.planning import replan_finalists
+    done = [t.user_attrs["finalist"]["recipe"]["steps"] for t in finalist_trials(study)]
+    steps_free = "finalist_steps" in time_limit.free and not done   # a resumed study keeps its recipe
+    # the machine may be busier or freer than when it was first measured, and the finalists are known
+    # now: measure it again, on them (seconds)
+    count = max(config.finalists, wanted[0]) if "finalists" in time_limit.free else config.finalists
+    chosen = tuple(Candidate.from_dict(t.user_attrs["candidate"]) for t in choose_finalists(study, count))
+    speeds = _measure_again(config, speeds, chosen)
+    plan = replan_finalists(plan, time_limit.remaining(), speeds, baseline_load(config, speeds),
+                            steps_free=steps_free, finalists_free="finalists" in time_limit.free,
+                            baseline_count=len(config.baselines), wanted=wanted)
+    config = dataclasses.replace(config, finalists=plan.finalists,
+                                 finalist_steps=plan.finalist_steps if steps_free or not done else max(done))
+    _publish_plan(study, plan, on_plan)
+    return config, plan
+
+
+def _retrain_finalists(study: optuna.Study, config: SearchConfig, plan: "Plan | None",
+                       time_limit: "TimeLimit | None", wanted: tuple[int, int], reports: Path,
+                       on_finalist: Callable[[int, int, str], None] | None,
+                       on_plan: Callable[["Plan"], None] | None) -> tuple[SearchConfig, "Plan | None"]:
+    """Retrains the finalists and the baselines; (config, plan) counting the finalists retrained."""
+    from explorer.study.finalists import finalist_trials, retrain_finalists
+    # the re-plan stood on a few steps' measurement: finalists it dropped are retrained after the
+    # others when the time those took says they still fit
+    extra, deadline = 0, None
+    if plan is not None and "finalists" in time_limit.free:
+        from explorer.study.planning import RESERVE_S
+        extra = max(wanted[0] - config.finalists, 0)
+        deadline = time_limit.started + time_limit.seconds - RESERVE_S
+    retrain_finalists(study, config, reports, progress=on_finalist, extra=extra, deadline=deadline)
+    retrained = sum(1 for t in finalist_trials(study) if not t.user_attrs.get("baseline")
+                    and t.user_attrs["finalist"].get("recipe") == config.finalist_config().to_dict())
+    if plan is not None and retrained > plan.finalists:
+        plan = dataclasses.replace(plan, finalists=retrained, changes=plan.changes + (
+            f"{retrained - plan.finalists} more finalist(s) retrained: the others took less than planned",))
+        config = dataclasses.replace(config, finalists=retrained)
+        _publish_plan(study, plan, on_plan)
+    return config, plan

@@ -28,7 +28,7 @@ import torch
 from torch.utils.data import DataLoader
 
 from explorer.errors import UserError
-from explorer.space import Candidate, SearchSpace
+from explorer.space import Candidate, SearchSpace, check_size
 from explorer.supernet.network import (Supernet, largest_candidate, random_training_subnet, smallest_candidate,
                                        space_identity, space_key)
 from explorer.training.train import batch_row, lr_at, TrainConfig, multi_exit_loss
@@ -85,6 +85,10 @@ def default_path(space: SearchSpace, data: str, recipe: SupernetRecipe) -> Path:
 
 
 # -- files ----------------------------------------------------------------------------------------
+#: a supernet in training is saved at least this often (seconds), whatever its steps take
+CHECKPOINT_SECONDS = 60.0
+
+
 def save(path: Path, net: Supernet, recipe: SupernetRecipe, data: str, step: int,
          optimizer: torch.optim.Optimizer | None, history: list[dict], seconds: float) -> None:
     path = Path(path)
@@ -149,15 +153,25 @@ def _yaml(text: str):
 
 
 # -- training -------------------------------------------------------------------------------------
-def _distributed() -> tuple[int, int]:
-    """(rank, world size), initialising torch.distributed when started by torchrun."""
+def _distributed(accelerator: torch.device | None) -> tuple[int, int, torch.device]:
+    """(rank, world size, the device this process trains on). Under torchrun, torch.distributed is
+    initialised with the backend the accelerator needs (NCCL for CUDA tensors, gloo for CPU ones), and a
+    CUDA accelerator without an index becomes this process's own GPU, ``cuda:LOCAL_RANK`` (made the
+    current device, so that NCCL and every kernel see one GPU per process)."""
     world = int(os.environ.get("WORLD_SIZE", "1"))
+    if accelerator is None:
+        accelerator = torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if accelerator.type == "cuda":
+        if accelerator.index is None:
+            local = int(os.environ.get("LOCAL_RANK", "0"))
+            accelerator = torch.device("cuda", local % max(torch.cuda.device_count(), 1))
+        torch.cuda.set_device(accelerator)
     if world <= 1:
-        return 0, 1
+        return 0, 1, accelerator
     import torch.distributed as dist
     if not dist.is_initialized():
-        dist.init_process_group("nccl" if torch.cuda.is_available() else "gloo")
-    return dist.get_rank(), dist.get_world_size()
+        dist.init_process_group("nccl" if accelerator.type == "cuda" else "gloo")
+    return dist.get_rank(), dist.get_world_size(), accelerator
 
 
 def _subnet_loss(outs: list[torch.Tensor], target: torch.Tensor, teacher: torch.Tensor | None,
@@ -184,36 +198,24 @@ def _teacher(largest: Candidate, space: SearchSpace, recipe: SupernetRecipe, ste
 
 
 def train_supernet(space: SearchSpace, data: str, recipe: SupernetRecipe = SupernetRecipe(),
-                   out: Path | None = None, device: torch.device | None = None,
+                   out: Path | None = None, accelerator: torch.device | None = None,
                    progress: Callable[[int, int, dict], None] | None = None,
                    data_progress: Callable[[int, int], None] | None = None,
-                   checkpoint_every: int = 100, max_steps: int | None = None) -> Path:
+                   checkpoint_every: int = 100, stop_after_steps: int | None = None,
+                   checkpoint_seconds: float = CHECKPOINT_SECONDS) -> Path:
     """Trains (or resumes, or finds already trained) the supernet of (space, data, recipe) and
-    returns its file. ``max_steps`` stops early (the file stays resumable)."""
+    returns its file. ``accelerator``: the torch device to train on (default: this process's GPU
+    where there is one, else the CPU). ``stop_after_steps`` ends this call after that many more steps,
+    short of ``recipe.steps``, with the file saved to resume from. The file is saved every
+    ``checkpoint_every`` steps and at least every ``checkpoint_seconds``: a killed run loses at most that."""
     from explorer.data import open_dataset
     out = Path(out) if out else default_path(space, data, recipe)
-    rank, world = _distributed()
-    device = device or (torch.device("cuda", rank % torch.cuda.device_count()) if torch.cuda.is_available()
-                        else torch.device("cpu"))
-    if recipe.teacher_depths not in TEACHER_DEPTHS:
-        raise UserError(f"teacher depths '{recipe.teacher_depths}': choose one of {', '.join(TEACHER_DEPTHS)}")
-    if recipe.batch_size % (world * recipe.micro_batches):
-        raise UserError(f"--batch-size {recipe.batch_size} must divide by processes x micro-batches "
-                        f"({world} x {recipe.micro_batches})")
+    rank, world, accelerator = _distributed(accelerator)
+    _check_recipe(recipe, world, space)
     torch.manual_seed(recipe.seed)  # every process starts from the same weights
-    net = Supernet(space).to(device=device, memory_format=torch.channels_last)  # see train.image_batch
+    net = Supernet(space).to(device=accelerator, memory_format=torch.channels_last)  # see train.image_batch
     opt = torch.optim.AdamW(net.parameters(), lr=recipe.lr, weight_decay=recipe.weight_decay)
-    step, history, seconds = 0, [], 0.0
-    if out.is_file():
-        state = read(out)
-        if state["space_key"] != space_key(space) or state["data"] != str(data) or \
-                SupernetRecipe.from_dict(state["recipe"]).identity() != recipe.identity():
-            raise UserError(f"supernet {out} exists for another space, data or recipe: give another --out, "
-                            "or delete it")
-        net.load_state_dict(state["state_dict"])
-        if state.get("optimizer"):
-            opt.load_state_dict(state["optimizer"])
-        step, history, seconds = int(state["step"]), list(state.get("history", [])), float(state.get("seconds", 0))
+    step, history, seconds = _resume(out, space, data, recipe, net, opt)
     if step >= recipe.steps:
         return out
     train_set = open_dataset(data, "train", recipe.input_size, seed=recipe.seed, progress=data_progress)
@@ -222,10 +224,10 @@ def train_supernet(space: SearchSpace, data: str, recipe: SupernetRecipe = Super
     if len(loader) == 0:
         raise UserError(f"data {data}: {len(train_set)} training frames are fewer than --batch-size {recipe.batch_size}")
     largest, smallest = largest_candidate(space), smallest_candidate(space)
-    per_rank = recipe.batch_size // world
     lr_cfg = TrainConfig(steps=recipe.steps, lr=recipe.lr, lr_end=recipe.lr_end)
-    stop = recipe.steps if max_steps is None else min(recipe.steps, step + max_steps)
+    stop = recipe.steps if stop_after_steps is None else min(recipe.steps, step + stop_after_steps)
     epoch, t0 = step // len(loader), time.perf_counter()
+    saved = t0
     skip = step % len(loader)  # resume mid-epoch on the batches that were not seen
     while step < stop:
         train_set.epoch = epoch
@@ -240,40 +242,17 @@ def train_supernet(space: SearchSpace, data: str, recipe: SupernetRecipe = Super
                 [random_training_subnet(space, rng) for _ in range(recipe.random_subnets)]
             for g in opt.param_groups:
                 g["lr"] = lr_at(lr_cfg, step)
-            net.train()
-            opt.zero_grad(set_to_none=True)
-            lo = rank * per_rank
-            image, scan, depth = (batch[k][lo:lo + per_rank].to(device) for k in ("image", "scan", "depth"))
-            image = image.contiguous(memory_format=torch.channels_last)
-            row = batch_row(batch)
-            losses = [0.0] * len(subnets)
-            for chunk in range(recipe.micro_batches):
-                part = slice(chunk * per_rank // recipe.micro_batches, (chunk + 1) * per_rank // recipe.micro_batches)
-                teacher = None
-                for j, cand in enumerate(subnets):
-                    outs = net.forward_subnet(cand, image[part], scan[part], row)
-                    loss = _subnet_loss(outs, depth[part], teacher, recipe.distill)
-                    if j == 0:
-                        teacher = outs[-1].detach().float()
-                    (loss / recipe.micro_batches).backward()
-                    losses[j] += float(loss.detach()) / recipe.micro_batches
-            if not all(map(lambda v: v == v and abs(v) != float("inf"), losses)):
-                raise FloatingPointError(f"supernet loss became {losses} at step {step}")
-            if world > 1:
-                import torch.distributed as dist
-                for p in net.parameters():
-                    if p.grad is not None:
-                        dist.all_reduce(p.grad)
-                        p.grad /= world
-            opt.step()
+            losses = _sandwich_step(net, opt, batch, subnets, recipe, step, accelerator, rank, world)
             step += 1
             record = {"step": step, "largest": losses[0], "smallest": losses[1],
                       "random": sum(losses[2:]) / max(len(losses) - 2, 1)}
             history.append(record)
             if progress and rank == 0:
                 progress(step, recipe.steps, record)
-            if step % checkpoint_every == 0 and step < stop and rank == 0:
-                save(out, net, recipe, data, step, opt, history, seconds + time.perf_counter() - t0)
+            now = time.perf_counter()
+            if (step % checkpoint_every == 0 or now - saved >= checkpoint_seconds) and step < stop and rank == 0:
+                save(out, net, recipe, data, step, opt, history, seconds + now - t0)
+                saved = time.perf_counter()
         skip = 0
         epoch += 1
     if rank == 0:
@@ -282,3 +261,66 @@ def train_supernet(space: SearchSpace, data: str, recipe: SupernetRecipe = Super
         import torch.distributed as dist
         dist.barrier()
     return out
+
+
+def _check_recipe(recipe: SupernetRecipe, world: int, space: SearchSpace) -> None:
+    check_size(recipe.input_size, space.max_stride, "--train-size")
+    if recipe.teacher_depths not in TEACHER_DEPTHS:
+        raise UserError(f"teacher depths '{recipe.teacher_depths}': choose one of {', '.join(TEACHER_DEPTHS)}")
+    if recipe.batch_size % (world * recipe.micro_batches):
+        raise UserError(f"--batch-size {recipe.batch_size} must divide by processes x micro-batches "
+                        f"({world} x {recipe.micro_batches})")
+
+
+def _resume(out: Path, space: SearchSpace, data: str, recipe: SupernetRecipe, net: Supernet,
+            opt: torch.optim.Optimizer) -> tuple[int, list[dict], float]:
+    """(step, history, seconds of training) of the file ``out``, its weights and optimizer state
+    loaded into ``net`` and ``opt``; (0, [], 0.0) if there is no file yet. A file for another space,
+    data or recipe is refused rather than overwritten."""
+    if not out.is_file():
+        return 0, [], 0.0
+    state = read(out)
+    if state["space_key"] != space_key(space) or state["data"] != str(data) or \
+            SupernetRecipe.from_dict(state["recipe"]).identity() != recipe.identity():
+        raise UserError(f"supernet {out} exists for another space, data or recipe: give another --out, "
+                        "or delete it")
+    net.load_state_dict(state["state_dict"])
+    if state.get("optimizer"):
+        opt.load_state_dict(state["optimizer"])
+    return int(state["step"]), list(state.get("history", [])), float(state.get("seconds", 0))
+
+
+def _sandwich_step(net: Supernet, opt: torch.optim.Optimizer, batch: dict, subnets: list[Candidate],
+                   recipe: SupernetRecipe, step: int, accelerator: torch.device, rank: int, world: int
+                   ) -> list[float]:
+    """One optimizer step on process ``rank``'s share of ``batch``: every subnet's gradients summed
+    (and averaged over the ``world`` processes), the first subnet's last exit distilled into the
+    others; the subnets' losses."""
+    per_rank = recipe.batch_size // world
+    net.train()
+    opt.zero_grad(set_to_none=True)
+    lo = rank * per_rank
+    image, scan, depth = (batch[k][lo:lo + per_rank].to(accelerator) for k in ("image", "scan", "depth"))
+    image = image.contiguous(memory_format=torch.channels_last)
+    row = batch_row(batch)
+    losses = [0.0] * len(subnets)
+    for chunk in range(recipe.micro_batches):
+        part = slice(chunk * per_rank // recipe.micro_batches, (chunk + 1) * per_rank // recipe.micro_batches)
+        teacher = None
+        for j, cand in enumerate(subnets):
+            outs = net.forward_subnet(cand, image[part], scan[part], row)
+            loss = _subnet_loss(outs, depth[part], teacher, recipe.distill)
+            if j == 0:
+                teacher = outs[-1].detach().float()
+            (loss / recipe.micro_batches).backward()
+            losses[j] += float(loss.detach()) / recipe.micro_batches
+    if not all(map(lambda v: v == v and abs(v) != float("inf"), losses)):
+        raise FloatingPointError(f"supernet loss became {losses} at step {step}")
+    if world > 1:
+        import torch.distributed as dist
+        for p in net.parameters():
+            if p.grad is not None:
+                dist.all_reduce(p.grad)
+                p.grad /= world
+    opt.step()
+    return losses

@@ -85,7 +85,9 @@ PAPER = TrainConfig(steps=20000, batch_size=96, input_size=(224, 224), optimizer
 RECIPES = {"proxy": PROXY, "paper": PAPER}
 
 
-def resolve_device(accelerator: str = "auto") -> torch.device:
+def resolve_accelerator(accelerator: str = "auto") -> torch.device:
+    """The torch device that ``--accelerator`` names: auto (CUDA when PyTorch sees a GPU, else the
+    CPU), cpu or cuda."""
     if accelerator == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     if accelerator == "cuda" and not torch.cuda.is_available():
@@ -108,18 +110,26 @@ def multi_exit_loss(outputs: list[torch.Tensor], target: torch.Tensor,
     return total, [float(l.detach()) for l in losses]
 
 
-def _training_loss(cfg: TrainConfig, selfsup, outs: list[torch.Tensor], batch: dict, device: torch.device
+def _training_loss(cfg: TrainConfig, selfsup, outs: list[torch.Tensor], batch: dict, accelerator: torch.device
                    ) -> tuple[torch.Tensor, list[float]]:
     outs = [o.float() for o in outs]
     if selfsup is None:
-        return multi_exit_loss(outs, batch["depth"].to(device), cfg.exit_weights)
+        return multi_exit_loss(outs, batch["depth"].to(accelerator), cfg.exit_weights)
     keys = ("image", "sources", "K", "pose", "pose_known", "scan", "hint")
-    on_device = {k: torch.as_tensor(batch[k]).to(device) for k in keys if k in batch}
-    loss, per_exit = selfsup(outs, on_device, batch_row(batch), cfg.exit_weights)
+    on_accelerator = {k: torch.as_tensor(batch[k]).to(accelerator) for k in keys if k in batch}
+    loss, per_exit = selfsup(outs, on_accelerator, batch_row(batch), cfg.exit_weights)
     if cfg.supervision == "mixed" and bool((batch["depth"] > 0).any()):
-        dense, dense_exit = multi_exit_loss(outs, batch["depth"].to(device), cfg.exit_weights)
+        dense, dense_exit = multi_exit_loss(outs, batch["depth"].to(accelerator), cfg.exit_weights)
         loss, per_exit = loss + dense, [a + b for a, b in zip(per_exit, dense_exit)]
     return loss, per_exit
+
+
+def check_spec_for(cfg: TrainConfig, spec: str) -> None:
+    """What ``check_data_for`` can tell from the data spec alone, before any frame is read or generated."""
+    from explorer.data import parse_data_spec
+    if cfg.supervision != "supervised" and not parse_data_spec(spec).is_sequence:
+        raise UserError(f"--supervision {cfg.supervision} needs sequence data (synthetic-seq, "
+                        f"kitti-seq:DRIVE or frames:FOLDER), not single frames ({spec})")
 
 
 def check_data_for(cfg: TrainConfig, dataset) -> None:
@@ -134,10 +144,10 @@ def check_data_for(cfg: TrainConfig, dataset) -> None:
                         "a folder poses.txt); use --poses net")
 
 
-def image_batch(batch: dict, device: torch.device | None) -> torch.Tensor:
-    """The batch's images on ``device`` in channels-last order: convolutions (oneDNN on CPUs, cuDNN on
-    GPUs) run faster so, with the same values (benchmarks/bench_layout.py measures both)."""
-    return batch["image"].to(device).contiguous(memory_format=torch.channels_last)
+def image_batch(batch: dict, accelerator: torch.device | None) -> torch.Tensor:
+    """The batch's images on ``accelerator`` in channels-last order: convolutions (oneDNN on CPUs, cuDNN
+    on GPUs) run faster so, with the same values (benchmarks/bench_layout.py measures both)."""
+    return batch["image"].to(accelerator).contiguous(memory_format=torch.channels_last)
 
 
 def batch_row(batch: dict) -> int:
@@ -145,10 +155,12 @@ def batch_row(batch: dict) -> int:
     return int(torch.as_tensor(rows).float().median().item())
 
 
-def evaluate(net: AnytimeDepthNet, dataset, batch_size: int = 8, device: torch.device | None = None,
+def evaluate(net: AnytimeDepthNet, dataset, batch_size: int = 8, accelerator: torch.device | None = None,
              limit: int | None = None, median_scaling: bool = False) -> pd.DataFrame:
-    """Per-path metrics (averaged per image, FastDepth's convention): one row per path. ``dataset``
-    is a data set, or a list of ready batches (dicts of batched tensors).
+    """Per-path metrics (averaged per image, FastDepth's convention): one row per path, computed on
+    ``accelerator`` (default: where the network's weights are). ``dataset`` is a data set, or a list
+    of ready batches (dicts of batched tensors); ``limit``: stop after the batch that reaches this many
+    frames.
 
     On sequence data, MonoDepth2's conventions: predictions clamped to [1e-3, cap] and ground truth
     beyond the data's cap (10 m synthetic, 80 m KITTI) ignored (the Garg crop is already in KITTI
@@ -159,14 +171,14 @@ def evaluate(net: AnytimeDepthNet, dataset, batch_size: int = 8, device: torch.d
         batches = dataset
     else:
         batches = DataLoader(dataset, batch_size=batch_size, shuffle=False)
-    device = device or next(net.parameters()).device
+    accelerator = accelerator or next(net.parameters()).device
     cap = getattr(dataset, "max_depth", None) if getattr(dataset, "sequence", False) else None
     net.eval()
     averagers = [MetricAverager() for _ in range(net.candidate.num_paths)]
     seen = 0
     with torch.no_grad():
         for batch in batches:
-            outs = net(image_batch(batch, device), batch["scan"].to(device), batch_row(batch))
+            outs = net(image_batch(batch, accelerator), batch["scan"].to(accelerator), batch_row(batch))
             target = batch["depth"]
             if cap is not None:
                 target = torch.where(target <= cap, target, torch.zeros_like(target))
@@ -279,45 +291,23 @@ def load_encoder_weights(net: AnytimeDepthNet, path: str | Path) -> int:
 
 
 def train(net: AnytimeDepthNet, train_set, val_set, cfg: TrainConfig = PROXY,
-          device: torch.device | None = None, checkpoint: Path | None = None,
+          accelerator: torch.device | None = None, checkpoint: Path | None = None,
           progress: Callable[[int, int, dict], None] | None = None,
           report: Callable[[int, pd.DataFrame], None] | None = None, val_limit: int | None = None,
           checkpoint_every: int = 200) -> TrainResult:
-    """Trains every exit jointly for ``cfg.steps`` steps. ``report(step, per_path_metrics)`` is called
-    at each evaluation (``cfg.eval_every``) and may raise :class:`Pruned`. With ``checkpoint`` the
-    state is saved every ``checkpoint_every`` steps and training resumes from it."""
-    device = device or torch.device("cpu")
+    """Trains every exit jointly for ``cfg.steps`` steps on ``accelerator`` (a torch device; the CPU if
+    None). ``report(step, per_path_metrics)`` is called at each evaluation (``cfg.eval_every``) and may
+    raise :class:`Pruned`. With ``checkpoint`` the state is saved every ``checkpoint_every`` steps and
+    training resumes from it."""
+    accelerator = accelerator or torch.device("cpu")
     cfg.validate()
     torch.manual_seed(cfg.seed)
-    net.to(device=device, memory_format=torch.channels_last)   # see image_batch
-    params = [p for p in net.parameters() if p.requires_grad]
-    selfsup = None
-    if cfg.supervision != "supervised":
-        from explorer.training.selfsup import SelfSupervisedLoss
-        check_data_for(cfg, train_set)
-        if cfg.hints:
-            from explorer.training.depth_hints import HintedDataset, with_hints
-            if not isinstance(train_set, HintedDataset):
-                train_set = with_hints(train_set)
-        selfsup = SelfSupervisedLoss(cfg.poses, cfg.scan_loss).to(device)
-        params += [p for p in selfsup.parameters() if p.requires_grad]
-    if cfg.optimizer == "sgd":
-        opt = torch.optim.SGD(params, lr=cfg.lr, momentum=cfg.momentum, weight_decay=cfg.weight_decay)
-    elif cfg.optimizer == "adamw":
-        opt = torch.optim.AdamW(params, lr=cfg.lr, weight_decay=cfg.weight_decay)
-    else:
-        raise UserError(f"unknown optimizer '{cfg.optimizer}': use sgd or adamw")
-    use_amp = cfg.amp and device.type == "cuda"
+    net.to(device=accelerator, memory_format=torch.channels_last)   # see image_batch
+    train_set, selfsup = _self_supervision(cfg, train_set, accelerator)
+    opt = _optimizer(cfg, net, selfsup)
+    use_amp = cfg.amp and accelerator.type == "cuda"
     scaler = torch.amp.GradScaler("cuda", enabled=use_amp)
-    start = 0
-    if checkpoint is not None and Path(checkpoint).is_file():
-        state = load_checkpoint(checkpoint, device)
-        if state["candidate"] == net.candidate.to_dict() and state.get("optimizer"):
-            net.load_state_dict(state["state_dict"])
-            if selfsup is not None and state.get("selfsup"):
-                selfsup.load_state_dict(state["selfsup"])
-            opt.load_state_dict(state["optimizer"])
-            start = int(state["step"])
+    start = _resume(checkpoint, net, selfsup, opt, accelerator)
     gen = torch.Generator().manual_seed(cfg.seed)
     loader = DataLoader(train_set, batch_size=cfg.batch_size, shuffle=True, generator=gen, drop_last=True)
     if len(loader) == 0:
@@ -336,10 +326,10 @@ def train(net: AnytimeDepthNet, train_set, val_set, cfg: TrainConfig = PROXY,
             net.train()
             for g in opt.param_groups:
                 g["lr"] = lr_at(cfg, step)
-            image = image_batch(batch, device)
-            with torch.autocast(device.type, dtype=torch.float16, enabled=use_amp):
-                outs = net(image, batch["scan"].to(device), batch_row(batch))
-                loss, per_exit = _training_loss(cfg, selfsup, outs, batch, device)
+            image = image_batch(batch, accelerator)
+            with torch.autocast(accelerator.type, dtype=torch.float16, enabled=use_amp):
+                outs = net(image, batch["scan"].to(accelerator), batch_row(batch))
+                loss, per_exit = _training_loss(cfg, selfsup, outs, batch, accelerator)
             if not torch.isfinite(loss):
                 raise FloatingPointError(f"training loss became {float(loss.detach())} at step {step}")
             opt.zero_grad(set_to_none=True)
@@ -355,11 +345,54 @@ def train(net: AnytimeDepthNet, train_set, val_set, cfg: TrainConfig = PROXY,
             if checkpoint is not None and step % checkpoint_every == 0:
                 save_checkpoint(checkpoint, net, cfg, step, opt, extra)
             if report and cfg.eval_every and step % cfg.eval_every == 0 and step < cfg.steps:
-                report(step, evaluate(net, val_set, device=device, limit=val_limit, median_scaling=not cfg.metric))
+                report(step, evaluate(net, val_set, accelerator=accelerator, limit=val_limit,
+                                      median_scaling=not cfg.metric))
         epoch += 1
     seconds = time.perf_counter() - t0
-    metrics = evaluate(net, val_set, device=device, limit=val_limit, median_scaling=not cfg.metric)
+    metrics = evaluate(net, val_set, accelerator=accelerator, limit=val_limit, median_scaling=not cfg.metric)
     if checkpoint is not None:
         save_checkpoint(checkpoint, net, cfg, step, opt, extra)
     net.to(memory_format=torch.contiguous_format)  # hand back an ordinary module (export, runtime)
     return TrainResult(metrics, history, seconds, seen / seconds if seconds > 0 else 0.0, step)
+
+
+def _self_supervision(cfg: TrainConfig, train_set, accelerator: torch.device):
+    """(training set, self-supervised loss module or None): with depth hints, the set is wrapped to
+    carry each frame's hint (computed once per data set, cached)."""
+    if cfg.supervision == "supervised":
+        return train_set, None
+    from explorer.training.selfsup import SelfSupervisedLoss
+    check_data_for(cfg, train_set)
+    if cfg.hints:
+        from explorer.training.depth_hints import HintedDataset, with_hints
+        if not isinstance(train_set, HintedDataset):
+            train_set = with_hints(train_set)
+    return train_set, SelfSupervisedLoss(cfg.poses, cfg.scan_loss).to(accelerator)
+
+
+def _optimizer(cfg: TrainConfig, net: AnytimeDepthNet, selfsup) -> torch.optim.Optimizer:
+    """One optimizer over the network and, with self-supervision, the pose network."""
+    params = [p for p in net.parameters() if p.requires_grad]
+    if selfsup is not None:
+        params += [p for p in selfsup.parameters() if p.requires_grad]
+    if cfg.optimizer == "sgd":
+        return torch.optim.SGD(params, lr=cfg.lr, momentum=cfg.momentum, weight_decay=cfg.weight_decay)
+    if cfg.optimizer == "adamw":
+        return torch.optim.AdamW(params, lr=cfg.lr, weight_decay=cfg.weight_decay)
+    raise UserError(f"unknown optimizer '{cfg.optimizer}': use sgd or adamw")
+
+
+def _resume(checkpoint: Path | None, net: AnytimeDepthNet, selfsup, opt: torch.optim.Optimizer,
+            accelerator: torch.device) -> int:
+    """The step to start from: the checkpoint's, with its weights and optimizer state loaded, when it
+    holds this candidate and an optimizer state (a weights-only file starts over); else 0."""
+    if checkpoint is None or not Path(checkpoint).is_file():
+        return 0
+    state = load_checkpoint(checkpoint, accelerator)
+    if state["candidate"] != net.candidate.to_dict() or not state.get("optimizer"):
+        return 0
+    net.load_state_dict(state["state_dict"])
+    if selfsup is not None and state.get("selfsup"):
+        selfsup.load_state_dict(state["selfsup"])
+    opt.load_state_dict(state["optimizer"])
+    return int(state["step"])

@@ -1,3 +1,4 @@
+import argparse
 import json
 
 import pandas as pd
@@ -30,12 +31,13 @@ def test_every_option_of_every_command_is_explained_with_its_default():
     options = list(_options(build_parser()))
     assert len(options) > 100
     assert not [(cmd, a.option_strings or a.dest) for cmd, a in options if not a.help]
-    for cmd, a in options:   # a default worth stating is stated, in the text's own words or appended
+    shown = [(cmd, a) for cmd, a in options if a.help != argparse.SUPPRESS]   # deprecated spellings are hidden
+    for cmd, a in shown:   # a default worth stating is stated, in the text's own words or appended
         if a.default not in (None, False, True) and not isinstance(a.default, list) and a.nargs is None:
             assert "default" in a.help, (cmd, a.option_strings)
-    helps = {(cmd, a.option_strings[-1]): a.help for cmd, a in options if a.option_strings}
-    assert helps[("evaluate", "--input")] == "input HxW (default: the training size)"   # a command's own wins
-    assert helps[("enumerate", "--input")].endswith("(default 224x224)")
+    helps = {(cmd, a.option_strings[-1]): a.help for cmd, a in shown if a.option_strings}
+    assert helps[("evaluate", "--input-size")] == "evaluation resolution HxW (default: the training size)"  # its own
+    assert helps[("enumerate", "--input-size")].endswith("(default 224x224)")
     assert helps[("rescore", "--json")] == helps[("curve", "--json")]   # one explanation per flag
 
 
@@ -62,7 +64,8 @@ def test_profile_candidate_file_and_measure(run_cli, tmp_path):
     cand = list(SearchSpace.from_yaml("tiny").enumerate())[0]
     f = tmp_path / "c.yaml"
     f.write_text(cand.to_yaml())
-    code, out, _ = run_cli("profile", f, "--input", "32x32", "--measure", "--repeats", "3", "--json")
+    code, out, _ = run_cli("profile", f, "--input-size", "32x32", "--measure", "--repeats", "3",
+                           "--provider", "CPUExecutionProvider", "--json")
     data = json.loads(out)
     assert code == 0 and data["measured"]["whole_graph_ms"] > 0
     assert all(p["measured_ms"] >= 0 for p in data["paths"])
@@ -77,9 +80,10 @@ def test_anytime_calculator(run_cli):
 @pytest.mark.parametrize("args, msg", [
     (("anytime", "--path", "x", "--budget", "time:uniform:1ms"), "COST:LOSS"),
     (("anytime", "--path", "1:1", "--budget", "time"), "incomplete"),
-    (("profile", "paper", "--input", "100x100"), "stride"),
+    (("profile", "paper", "--input-size", "100x100"), "stride"),
     (("profile", "anytime_depth"), "explorer enumerate"),
-    (("profile", "paper", "--input", "big"), "HxW"),
+    (("profile", "paper", "--input-size", "big"), "HxW"),
+    (("profile", "paper", "--measure", "--provider", "NoSuchExecutionProvider"), "NoSuchExecutionProvider"),
     (("devices", "show", "tx9"), "unknown device"),
     (("search", "--device", "tx9"), "unknown device"),
     (("search", "--budget", "time:uniform:-1ms"), "quantity"),
@@ -108,7 +112,7 @@ def test_malformed_profile_file(run_cli, tmp_path):
 
 
 def test_enumerate_writes_csv(run_cli, tmp_path):
-    code, out, _ = run_cli("enumerate", "--space", "tiny", "--device", "rpi4", "--input", "64x64",
+    code, out, _ = run_cli("enumerate", "--space", "tiny", "--device", "rpi4", "--input-size", "64x64",
                            "--csv", tmp_path / "t.csv")
     frame = pd.read_csv(tmp_path / "t.csv")
     assert code == 0 and len(frame) == 16 and frame["p_path0"].between(0, 1).all()
@@ -117,8 +121,8 @@ def test_enumerate_writes_csv(run_cli, tmp_path):
 
 @pytest.mark.slow
 def test_calibrate_quick_writes_a_profile(run_cli, tmp_path, monkeypatch):
-    # the command, not the re-timing on a noisy machine (tests/test_probe.py covers that): on a VM whose
-    # speed varied 2.5x while it was measured, waiting and timing again took this test from ~20 s to 125 s
+    # the command, not the re-timing (tests/test_probe.py covers that): waiting for a calm machine and
+    # timing again would make this test's duration depend on how busy the machine is
     monkeypatch.setattr("explorer.cli.devices.QUICK_PROBE", {"remeasure_passes": 0, "calm_wait_s": 0.0})
     monkeypatch.setattr("explorer.calibration.calibrate.RETIME_ROUNDS", 0)
     out = tmp_path / "box.yaml"
@@ -133,18 +137,18 @@ def test_calibrate_quick_writes_a_profile(run_cli, tmp_path, monkeypatch):
 
 
 def test_data_inspect_train_evaluate(run_cli, tmp_path):
-    code, out, _ = run_cli("data", "inspect", "--data", TINY_DATA, "--input", "32x32", "--json")
+    code, out, _ = run_cli("data", "inspect", "--data", TINY_DATA, "--input-size", "32x32", "--frames", "4", "--json")
     d = json.loads(out)
-    assert code == 0 and d["frames"] == 16 and d["path0"]["rmse"] > 0
+    assert code == 0 and d["frames"] == 16 and d["inspected"] == 4 and d["path0"]["rmse"] > 0
     ckpt = tmp_path / "c.pt"
     code, _, err = run_cli("train", "tiny", "--data", TINY_DATA, "--steps", "3", "--batch-size", "8",
-                           "--input-size", "32x32", "--out", ckpt)
+                           "--train-size", "32x32", "--out", ckpt)
     assert code == 2 and "holds 16 candidates" in err
     from explorer.space import SearchSpace
     cfile = tmp_path / "cand.yaml"
     cfile.write_text(list(SearchSpace.from_yaml("tiny").enumerate())[0].to_yaml())
     code, _, err = run_cli("train", cfile, "--data", TINY_DATA, "--steps", "3", "--batch-size", "8",
-                           "--input-size", "32x32", "--out", ckpt)
+                           "--train-size", "32x32", "--out", ckpt)
     assert code == 0, err
     code, out, _ = run_cli("evaluate", ckpt, "--data", TINY_DATA, "--json")
     assert code == 0 and len(json.loads(out)["paths"]) >= 2
@@ -155,7 +159,7 @@ def test_data_inspect_train_evaluate(run_cli, tmp_path):
     cand = SearchSpace.from_yaml("tiny").enumerate().__next__()
     weighted = tmp_path / "w.pt"
     code, _, err = run_cli("train", cfile, "--data", TINY_DATA, "--steps", "2", "--batch-size", "8",
-                           "--input-size", "32x32", "--exit-weights", "anytime", "--device", "rpi4",
+                           "--train-size", "32x32", "--exit-weights", "anytime", "--device", "rpi4",
                            "--budget", "time:uniform:50ms", "--out", weighted)
     assert code == 0, err
     stored = torch.load(weighted, weights_only=True)["train_config"]["exit_weights"]
@@ -170,7 +174,7 @@ def test_data_inspect_train_evaluate(run_cli, tmp_path):
 def test_search_rescore_report_export_cli(run_cli, tmp_path):
     common = ["--reports", tmp_path]
     code, out, err = run_cli("search", "--study", "cli", "--space", "tiny", "--data", TINY_DATA,
-                             "--train-size", "32x32", "--input-size", "64x64", "--train-steps", "4",
+                             "--train-size", "32x32", "--input-size", "64x64", "--proxy-steps", "4",
                              "--batch-size", "8", "--trials", "5", "--timeout", "0", "--supernet-steps", "4",
                              "--finalists", "1", "--finalist-steps", "4", *common)
     assert code == 0, err
@@ -179,7 +183,7 @@ def test_search_rescore_report_export_cli(run_cli, tmp_path):
     code, out, _ = run_cli("rescore", "--study", "cli", "--device", "rpi4", "--budget", "energy:uniform:0.5J",
                            "--json", *common)
     assert code == 0 and len(json.loads(out)) >= 3
-    code, _, err = run_cli("export", "--study", "cli", "--out", tmp_path / "m", "--input", "64x64", *common)
+    code, _, err = run_cli("export", "--study", "cli", "--out", tmp_path / "m", "--input-size", "64x64", *common)
     assert code == 0, err
     manifest = json.loads((tmp_path / "m" / "manifest.json").read_text())
     assert manifest["source"]["study"] == "cli" and manifest["path_metrics"]

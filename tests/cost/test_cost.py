@@ -63,7 +63,7 @@ def test_input_must_divide_by_stride():
 
 def test_the_scan_fill_search_grows_with_the_width():
     """Path 0 as a stage finds each column's nearest return in a few passes over the columns: at 640
-    columns it moves 640 / 224 times the bytes it moves at 224 (a W x W search, until stop 39, 8x)."""
+    columns it moves 640 / 224 times the bytes it moves at 224 (a W x W search would move 8x)."""
     from explorer.model.exits import ScanFill
     from explorer.cost.workloads import trace_stage
 

@@ -80,7 +80,7 @@ def test_run_cli_and_bad_inputs(exported, tmp_path, run_cli):
     np.save(tmp_path / "scan.npy", np.full(48, 2.0, np.float32))
     (tmp_path / "short.csv").write_text(",".join(["2.0"] * 40))
     code, o, e = run_cli("run", out, "--image", tmp_path / "ok.png", "--scan", tmp_path / "scan.npy",
-                         "--deadline", "0ms", "--out", tmp_path / "d.png", "--json")
+                         "--deadline", "0.001ms", "--out", tmp_path / "d.png", "--json")
     assert code == 0 and json.loads(o)["path"] == 0
     assert np.asarray(Image.open(tmp_path / "d.png")).max() == 2000  # 16-bit millimetres
     for args, msg in ((("--image", tmp_path / "big.png", "--scan", tmp_path / "scan.npy"), "the model takes"),

@@ -118,7 +118,7 @@ def test_weight_traffic_false_prices_activations_only(tmp_path):
 
 
 def test_cli_profile_reference_json_and_unknown_name(run_cli):
-    code, out, _ = run_cli("profile", "s2d-resnet50", "--device", "tx2", "--input", "228x304", "--json")
+    code, out, _ = run_cli("profile", "s2d-resnet50", "--device", "tx2", "--input-size", "228x304", "--json")
     data = json.loads(out)
     assert code == 0 and data["reference"] == "s2d-resnet50"
     assert data["paths"][0]["params"] == pytest.approx(28.39e6, rel=0.01)

@@ -24,7 +24,7 @@ from conftest import POSTGRES, TINY_DATA, needs_postgres
 TINY = dict(space="tiny", data=TINY_DATA, train_size=(32, 32), input_size=(64, 64), train_steps=6,
             batch_size=8, val_limit=16, evaluator="proxy", finalists=0)
 CLI_TINY = ["--space", "tiny", "--data", TINY_DATA, "--train-size", "32x32", "--input-size", "64x64",
-            "--train-steps", "6", "--batch-size", "8", "--no-report", "--timeout", "0", "--evaluator", "proxy",
+            "--proxy-steps", "6", "--batch-size", "8", "--no-report", "--timeout", "0", "--evaluator", "proxy",
             "--finalists", "0"]
 
 
@@ -94,7 +94,7 @@ def test_kill_9_during_a_sampled_trial_retries_it_once(tmp_path):
     db = tmp_path / "ks" / "study.db"
     # tiny candidates train fast: more steps keep the kill inside the trial
     args = ["search", "--study", "ks", "--reports", tmp_path, "--trials", 3, "--no-baselines", *CLI_TINY,
-            "--train-steps", 40]
+            "--proxy-steps", 40]
     proc = _explorer(*args, start_new_session=True)
     _kill_when_running(proc, lambda: _running_trial(db, 1), "the second trial")
     killed = _load(db, "ks").trials[1]

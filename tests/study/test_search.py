@@ -23,7 +23,7 @@ from conftest import POSTGRES, TINY_DATA, needs_postgres
 TINY = dict(space="tiny", data=TINY_DATA, train_size=(32, 32), input_size=(64, 64), train_steps=6,
             batch_size=8, val_limit=16, evaluator="proxy", finalists=0)
 CLI_TINY = ["--space", "tiny", "--data", TINY_DATA, "--train-size", "32x32", "--input-size", "64x64",
-            "--train-steps", "6", "--batch-size", "8", "--no-report", "--evaluator", "proxy", "--finalists", "0"]
+            "--proxy-steps", "6", "--batch-size", "8", "--no-report", "--evaluator", "proxy", "--finalists", "0"]
 
 
 @pytest.fixture(scope="module")

@@ -192,7 +192,7 @@ def test_a_few_steps_lower_every_exit_loss_of_random_subnets(tmp_path):
 def test_resume_continues_exactly(tmp_path):
     space = SearchSpace.from_yaml("tiny")
     once = train_supernet(space, TINY_DATA, RECIPE, tmp_path / "once.pt")
-    part = train_supernet(space, TINY_DATA, RECIPE, tmp_path / "twice.pt", max_steps=2)
+    part = train_supernet(space, TINY_DATA, RECIPE, tmp_path / "twice.pt", stop_after_steps=2)
     assert torch.load(part, weights_only=True)["step"] == 2
     twice = train_supernet(space, TINY_DATA, RECIPE, tmp_path / "twice.pt")
     a = torch.load(once, weights_only=True)["state_dict"]
@@ -200,10 +200,32 @@ def test_resume_continues_exactly(tmp_path):
     assert all(torch.allclose(a[k].float(), b[k].float(), atol=1e-6) for k in a if "running" not in k)
 
 
+def test_a_long_step_count_is_still_saved_by_time(tmp_path, monkeypatch):
+    """Checkpoints every N steps lose a slow machine's minutes: the file is also saved by time."""
+    import explorer.supernet.train as supernet_train
+    saved = []
+    real = supernet_train.save
+    monkeypatch.setattr(supernet_train, "save", lambda path, net, recipe, data, step, *a: saved.append(step) or
+                        real(path, net, recipe, data, step, *a))
+    space = SearchSpace.from_yaml("tiny")
+    train_supernet(space, TINY_DATA, RECIPE, tmp_path / "s.pt", checkpoint_every=10**6, checkpoint_seconds=0.0)
+    assert saved == list(range(1, RECIPE.steps + 1))   # every step, the last one as the run ends
+    saved.clear()
+    train_supernet(space, TINY_DATA, RECIPE, tmp_path / "t.pt", checkpoint_every=10**6, checkpoint_seconds=3600)
+    assert saved == [RECIPE.steps]
+
+
+def test_a_process_picks_its_accelerator_and_backend(monkeypatch):
+    from explorer.supernet.train import _distributed
+    monkeypatch.setenv("WORLD_SIZE", "1")
+    assert _distributed(torch.device("cpu")) == (0, 1, torch.device("cpu"))
+    assert _distributed(None)[2].type == ("cuda" if torch.cuda.is_available() else "cpu")
+
+
 @pytest.mark.slow
 def test_kill_9_then_resume_training(tmp_path):
     out = tmp_path / "killed.pt"
-    args = ["supernet", "train", "--space", "tiny", "--data", TINY_DATA, "--input-size", "32x32",
+    args = ["supernet", "train", "--space", "tiny", "--data", TINY_DATA, "--train-size", "32x32",
             "--batch-size", "8", "--steps", "400", "--checkpoint-every", "2", "--out", out]
     proc = _explorer(*args, start_new_session=True)
     deadline = time.time() + 240
@@ -218,7 +240,7 @@ def test_kill_9_then_resume_training(tmp_path):
     _, err = resumed.communicate(timeout=300)
     # another recipe (more steps) is another supernet: refused, the file is kept
     assert resumed.returncode == 2 and "another space, data or recipe" in err
-    resumed = _explorer(*args[:-4], "--checkpoint-every", "1000", "--out", out, "--max-steps", "3")
+    resumed = _explorer(*args[:-4], "--checkpoint-every", "1000", "--out", out, "--stop-after-steps", "3")
     _, err = resumed.communicate(timeout=300)
     assert resumed.returncode == 0, err
     state = torch.load(out, weights_only=True)
@@ -264,7 +286,7 @@ def test_short_supernet_search_on_the_default_space(tmp_path):
 
 @pytest.mark.slow
 def test_two_gloo_processes_match_one_process(tmp_path):
-    common = ["--space", "tiny", "--data", TINY_DATA, "--input-size", "32x32", "--batch-size", "8", "--steps", "3"]
+    common = ["--space", "tiny", "--data", TINY_DATA, "--train-size", "32x32", "--batch-size", "8", "--steps", "3"]
     env = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
     ddp = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2",
                           "--master_port", str(29500 + os.getpid() % 1000), "-m", "explorer", "supernet", "train",

@@ -66,11 +66,11 @@ def test_depth_hints_need_self_supervision_with_given_poses():
 def test_cli_train_with_depth_hints(run_cli, tmp_path):
     ckpt = tmp_path / "h.pt"
     code, _, err = run_cli("train", "paper", "--supervision", "self", "--poses", "given", "--depth-hints",
-                           "--data", SEQ, "--steps", "2", "--batch-size", "3", "--input-size", "32x32", "--out", ckpt)
+                           "--data", SEQ, "--steps", "2", "--batch-size", "3", "--train-size", "32x32", "--out", ckpt)
     assert code == 0, err
     assert torch.load(ckpt, weights_only=True)["train_config"]["hints"] is True
     code, _, err = run_cli("train", "paper", "--supervision", "self", "--depth-hints", "--data", SEQ,
-                           "--steps", "1", "--input-size", "32x32", "--out", tmp_path / "x.pt")
+                           "--steps", "1", "--train-size", "32x32", "--out", tmp_path / "x.pt")
     assert code == 2 and "--poses given" in err and len(err.strip().splitlines()) == 1
     assert not (tmp_path / "x.pt").exists()
 
@@ -79,7 +79,7 @@ def test_cli_search_with_depth_hints_records_them(run_cli, tmp_path):
     import optuna
     code, _, err = run_cli("search", "--study", "hs", "--space", "tiny", "--data", SEQ, "--supervision", "self",
                            "--poses", "given", "--depth-hints", "--train-size", "32x32", "--input-size", "64x64",
-                           "--train-steps", "2", "--batch-size", "3", "--trials", "1", "--timeout", "0",
+                           "--proxy-steps", "2", "--batch-size", "3", "--trials", "1", "--timeout", "0",
                            "--no-baselines", "--evaluator", "proxy", "--finalists", "0", "--reports", tmp_path)
     assert code == 0, err
     study = optuna.load_study(study_name="hs", storage=f"sqlite:///{tmp_path / 'hs' / 'study.db'}")
@@ -89,6 +89,6 @@ def test_cli_search_with_depth_hints_records_them(run_cli, tmp_path):
     # resuming without hints would change what a trial's value means
     code, _, err = run_cli("search", "--study", "hs", "--space", "tiny", "--data", SEQ, "--supervision", "self",
                            "--poses", "given", "--train-size", "32x32", "--input-size", "64x64",
-                           "--train-steps", "2", "--batch-size", "3", "--trials", "1", "--timeout", "0",
+                           "--proxy-steps", "2", "--batch-size", "3", "--trials", "1", "--timeout", "0",
                            "--no-baselines", "--evaluator", "proxy", "--finalists", "0", "--reports", tmp_path)
     assert code == 2 and "hints" in err and len(err.strip().splitlines()) == 1

@@ -118,7 +118,7 @@ def test_supervision_is_part_of_a_studys_identity(tmp_path):
 def test_cli_train_and_evaluate_self_supervised(run_cli, tmp_path):
     ckpt = tmp_path / "X.pt"
     code, _, err = run_cli("train", "paper", "--supervision", "self", "--data", "synthetic-seq:32:8", "--steps", "5",
-                           "--input-size", "64x64", "--out", ckpt)
+                           "--train-size", "64x64", "--out", ckpt)
     assert code == 0, err
     assert torch.load(ckpt, weights_only=True)["train_config"]["supervision"] == "self"
     code, out, err = run_cli("evaluate", ckpt, "--data", "synthetic-seq:32:8", "--json")
@@ -130,7 +130,7 @@ def test_cli_train_and_evaluate_self_supervised(run_cli, tmp_path):
     cfile = tmp_path / "cand.yaml"
     cfile.write_text(CAND.to_yaml())
     code, _, err = run_cli("train", cfile, "--supervision", "self", "--no-scan-loss", "--data", SEQ, "--steps", "1",
-                           "--batch-size", "4", "--input-size", "32x32", "--out", tmp_path / "n.pt")
+                           "--batch-size", "4", "--train-size", "32x32", "--out", tmp_path / "n.pt")
     assert code == 0, err
     code, out, _ = run_cli("evaluate", tmp_path / "n.pt", "--data", SEQ, "--json")
     assert code == 0 and json.loads(out)["median_scaling"] is True
@@ -140,7 +140,7 @@ def test_cli_train_and_evaluate_self_supervised(run_cli, tmp_path):
 
 def test_cli_search_self_supervised_and_its_report(run_cli, tmp_path):
     code, out, err = run_cli("search", "--study", "ss", "--space", "tiny", "--data", SEQ, "--supervision", "self",
-                             "--train-size", "32x32", "--input-size", "64x64", "--train-steps", "2",
+                             "--train-size", "32x32", "--input-size", "64x64", "--proxy-steps", "2",
                              "--batch-size", "4", "--trials", "1", "--timeout", "0", "--no-baselines",
                              "--evaluator", "proxy", "--finalists", "0", "--reports", tmp_path)
     assert code == 0, err

@@ -1,0 +1,236 @@
+"""The report's page: what the template shows (``build_context``: tables, figures, notes) and the
+self-contained HTML file written from it (``write_report``)."""
+
+from __future__ import annotations
+
+import platform
+import time
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+import optuna
+import pandas as pd
+from jinja2 import Environment, FileSystemLoader, select_autoescape
+
+from explorer import __version__
+from explorer.anytime import parse_budget
+from explorer.cost.devices import DeviceProfile, get_device
+from explorer.report import figures
+from explorer.study.results import (baseline_label, baseline_trial, finalists_frame, is_retrained,
+                                    missing_baselines, path_table, scored_trials, study_baselines,
+                                    trial_anytime_loss, trial_precision, trials_frame, unbeaten_baseline, winner)
+from explorer.space import Candidate
+
+TABLE2_BUDGETS = ("time:uniform:100ms", "time:uniform:50ms", "time:uniform:33ms",
+                  "energy:uniform:0.5J", "energy:uniform:0.25J")
+
+#: the columns of the table of all trials, in order (those the frame has)
+TRIAL_COLUMNS = ["number", "state", "value", "baseline", "retry_of", "candidate_key", "params", "macs", "paths",
+                 "first_exit_ms", "last_exit_ms", "last_rmse", "duration_s", "reason", "architecture"]
+
+
+def _label(t: optuna.trial.FrozenTrial, best: optuna.trial.FrozenTrial | None) -> str:
+    b = t.user_attrs.get("baseline")
+    if b:
+        return baseline_label(b)
+    return f"best (trial {t.number})" if best is not None and t.number == best.number else f"trial {t.number}"
+
+
+def _budget_label(dist) -> str:
+    """The paper's notation for uniform budgets (L_T@33ms, L_E@0.5J), the spec otherwise."""
+    if dist.name == "uniform":
+        return f"L_{'T' if dist.kind == 'time' else 'E'}@{dist.maximum:g}{dist.unit}"
+    return dist.spec
+
+
+def _versions() -> dict:
+    import onnxruntime
+    import torch
+    return {"anytime-explorer": __version__, "optuna": optuna.__version__, "torch": torch.__version__,
+            "onnxruntime": onnxruntime.__version__, "python": platform.python_version()}
+
+
+def _frame_html(frame: pd.DataFrame, table_id: str, fmt: dict | None = None) -> str:
+    fmt = fmt or {}
+    def f(v, col):
+        if isinstance(v, float):
+            if np.isnan(v):
+                return ""
+            return fmt.get(col, "{:.4g}").format(v)
+        return v
+    shown = frame.copy()
+    for c in shown.columns:
+        shown[c] = [f(v, c) for v in shown[c]]
+    return shown.to_html(index=False, table_id=table_id, classes="sortable", escape=True, border=0)
+
+
+def build_context(study: optuna.Study, devices: Sequence[str] | None = None,
+                  budgets: Sequence[str] | None = None, data: str | None = None) -> dict:
+    """Everything the report's template shows of ``study``: on the study's device first, then
+    ``devices``; under the study's budgets, then ``budgets`` (default: the paper's Table 2 ones)."""
+    cfg = study.user_attrs.get("config", {})
+    primary, devs = _devices(study, cfg, devices)
+    budget_list = list(dict.fromkeys(list(cfg.get("budgets", [])) + list(budgets or TABLE2_BUDGETS)))
+    dists = [parse_budget(b) for b in budget_list]
+    frame = trials_frame(study)
+    best = winner(study)
+    retrained = best is not None and is_retrained(best)
+    scored = scored_trials(study)
+    # the three best candidates of the winner's kind (retrained or estimated), and the baselines alike
+    ranked = sorted([t for t in scored if not t.user_attrs.get("baseline") and is_retrained(t) == retrained],
+                    key=lambda t: t.values[0])[:3]
+    baselines = [t for name in study_baselines(study) if (t := baseline_trial(study, name, retrained=retrained))]
+    ctx: dict = {"study": study.study_name, "config": cfg,
+                 "states": frame["state"].value_counts().to_dict() if not frame.empty else {},
+                 "versions": _versions(), "generated": time.strftime("%Y-%m-%d %H:%M:%S"), "figures": {},
+                 "notes": _notes(study, devs, scored), "evaluator": cfg.get("evaluator", "proxy"),
+                 "finalist_steps": cfg.get("finalist_steps"), "plan": study.user_attrs.get("plan")}
+    ctx.update(_finalists(study, ctx["finalist_steps"]))
+    ctx["wall_time"] = _wall_time(study)
+    ctx["devices"] = [{"name": d.name, "description": d.description, "calibrated": d.calibrated,
+                       "fit": d.provenance.get("fit", []), "sources": d.provenance.get("sources", []),
+                       "conditions": d.provenance.get("conditions")} for d in devs]
+    ctx["budgets"] = [d.spec for d in dists]
+    ctx["multi_objective"] = len(study.directions) > 1
+    if best is not None:
+        ctx["best"] = _best(study, best, retrained, devs)
+    # a baseline without a row is named, with why (not run, queued, failed, interrupted)
+    ctx["missing_baselines"] = missing_baselines(study)
+    ctx["no_ratio"] = next((m["why"] for m in ctx["missing_baselines"] if m["name"] == "paper"), "")
+    unbeaten = unbeaten_baseline(study)
+    ctx["unbeaten"] = ({"label": baseline_label(unbeaten.user_attrs["baseline"]), "value": unbeaten.values[0]}
+                       if unbeaten is not None and best is not None else None)
+    ctx["table2"] = _table2(ranked + baselines, best, devs, dists, cfg.get("metric", "rmse"))
+    from explorer.cost import reference_table
+    ctx["references"] = _frame_html(reference_table(devs), "references")
+    _add_figures(ctx, study, frame, best, baselines, primary, dists, data)
+    ctx["trials"] = (_frame_html(frame[[c for c in TRIAL_COLUMNS if c in frame.columns]], "trials")
+                     if not frame.empty else "")
+    return ctx
+
+
+def _devices(study: optuna.Study, cfg: dict, devices: Sequence[str] | None) -> tuple[DeviceProfile, list]:
+    """(the study's own device profile, it and the other ``devices`` asked for, default tx2 and rpi4)."""
+    study_device = study.user_attrs.get("device_profile")
+    primary = get_device(cfg.get("device", "tx2")) if not study_device else \
+        DeviceProfile.from_dict(study_device, "study")
+    return primary, [primary] + [get_device(d) for d in (devices or ["tx2", "rpi4"]) if d != primary.name]
+
+
+def _notes(study: optuna.Study, devs: list[DeviceProfile], scored: list) -> list[str]:
+    """What the reader should know about cells left empty and baselines without estimates."""
+    notes = []
+    lacking = [d.name for d in devs if "int8" not in d.precisions]
+    if lacking and any(trial_precision(t) == "int8" for t in scored):
+        notes.append(f"int8 designs are not priced on {', '.join(lacking)}: those profiles have no int8 "
+                     "rates, so their cells there are empty.")
+    for name, why in (study.user_attrs.get("baselines_not_estimated") or {}).items():
+        notes.append(f"Baseline {baseline_label(name)} has no search estimate: {why}.")
+    return notes
+
+
+def _finalists(study: optuna.Study, finalist_steps) -> dict:
+    """The finalists' table (estimate beside retrained result), Kendall's tau between the two where
+    three or more have both, and the retraining steps they really ran."""
+    from explorer.study.finalists import finalist_trials
+    out = {"finalist_steps": finalist_steps, "finalists": "", "finalists_tau": None}
+    recipes = sorted({t.user_attrs["finalist"]["recipe"]["steps"] for t in finalist_trials(study)})
+    if recipes:   # a --time-limit plan may have sized them after the study was created
+        out["finalist_steps"] = ", ".join(map(str, recipes))
+    fin = finalists_frame(study)
+    if not fin.empty:
+        both = fin.dropna(subset=["estimated"])
+        if len(both) >= 3:
+            from scipy.stats import kendalltau
+            out["finalists_tau"] = float(kendalltau(both["estimated"], both["retrained"]).statistic)
+        out["finalists"] = _frame_html(fin, "finalists-table")
+    return out
+
+
+def _wall_time(study: optuna.Study) -> str:
+    starts = [t.datetime_start for t in study.trials if t.datetime_start]
+    ends = [t.datetime_complete for t in study.trials if t.datetime_complete]
+    return f"{(max(ends) - min(starts)).total_seconds() / 60:.1f} min" if starts and ends else "n/a"
+
+
+def _best(study: optuna.Study, best: optuna.trial.FrozenTrial, retrained: bool, devs: list) -> dict:
+    """The winner (Table 1 style): its architecture, how its loss was found, its paths on every
+    device, and its loss over the paper design's where that has one of the same kind."""
+    cand = Candidate.from_dict(best.user_attrs["candidate"])
+    evaluator = (best.user_attrs.get("evaluator") or {}).get("evaluator", "proxy")
+    how = "retrained" if retrained else f"estimated by the {evaluator} evaluator"
+    out = {"number": best.number, "value": best.values[0], "key": cand.key, "how": how,
+           "architecture": cand.describe(), "yaml": cand.to_yaml(),
+           "table": _frame_html(path_table(best, devs), "best-table")}
+    paper = baseline_trial(study, "paper", retrained=retrained)
+    if paper is not None:
+        out["ratio"] = best.values[0] / paper.values[0]
+    return out
+
+
+def _table2(trials: list, best, devs: list[DeviceProfile], dists: list, metric: str) -> str:
+    """Table 2: a row for each of ``trials``, a column for each device and budget."""
+    rows = []
+    for t in trials:
+        row = {"model": _label(t, best), "trial": t.number}
+        for d in devs:
+            for dist in dists:
+                if dist.kind == "energy" and d.active_power_w <= 0:
+                    continue  # no energy model for this device
+                row[f"{d.name} {_budget_label(dist)}"] = trial_anytime_loss(t, d, dist, metric)
+        rows.append(row)
+    return _frame_html(pd.DataFrame(rows), "table2") if rows else ""
+
+
+def _add_figures(ctx: dict, study: optuna.Study, frame: pd.DataFrame, best, baselines: list,
+                 primary: DeviceProfile, dists: list, data: str | None) -> None:
+    """Draws the figures into ``ctx["figures"]``; a figure that cannot be drawn is left out, with a
+    note where the reader can do something about it."""
+    curve_rows = []
+    if best is not None:
+        curve_rows.append((_label(best, best), best, figures.COLOURS["best"]))
+    curve_rows += [(_label(t, best), t, figures.colour(t.user_attrs["baseline"])) for t in baselines]
+    if curve_rows:
+        ctx["figures"]["curve_time"] = figures.step_curves(curve_rows, primary, next(
+            (d.spec for d in dists if d.kind == "time"), "time:uniform:33ms"))
+        energy = next((d.spec for d in dists if d.kind == "energy"), None)
+        if energy and primary.active_power_w > 0:
+            ctx["figures"]["curve_energy"] = figures.step_curves(curve_rows, primary, energy)
+    if not frame.empty and (frame["state"] == "COMPLETE").any() and not ctx["multi_objective"]:
+        ctx["figures"]["pareto_params"] = figures.pareto(frame, "params", "parameters (last path)")
+        ctx["figures"]["pareto_macs"] = figures.pareto(frame, "macs", "MACs (last path)")
+    if not ctx["multi_objective"]:
+        from optuna.visualization import matplotlib as ovm
+        for name, fn in (("history", ovm.plot_optimization_history), ("importances", ovm.plot_param_importances)):
+            png = figures.optuna_plot(fn, study)
+            if png:
+                ctx["figures"][name] = png
+    if best is not None:
+        png, note = figures.depth_maps(study, best, data)
+        if png:
+            ctx["figures"]["depth_maps"] = png
+        elif note:
+            ctx["notes"].append(f"Depth maps left out: {note}.")
+
+
+def write_report(study: optuna.Study, out_dir: str | Path, devices: Sequence[str] | None = None,
+                 budgets: Sequence[str] | None = None, data: str | None = None,
+                 curve: Path | None = None) -> Path:
+    """Writes ``out_dir/report.html`` (atomically) and returns its path. ``curve``: a measured
+    anytime curve (``explorer curve``) to show next to its prediction."""
+    ctx = build_context(study, devices, budgets, data)
+    curve = curve or Path(out_dir) / "export" / "anytime_curve.json"
+    if curve.is_file():
+        png = figures.measured_curve(curve)
+        if png:
+            ctx["figures"]["measured_curve"] = png
+    env = Environment(loader=FileSystemLoader(Path(__file__).parent), autoescape=select_autoescape(["html", "j2"]))
+    html = env.get_template("report.html.j2").render(**ctx)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / "report.html"
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(html, encoding="utf-8")
+    tmp.replace(path)
+    return path

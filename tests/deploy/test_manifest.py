@@ -1,0 +1,79 @@
+"""The runtime reads an export's manifest through one schema and checks every graph against it: an
+edited, foreign or half-replaced export is one line, never a crash inside onnxruntime."""
+
+import json
+import shutil
+
+import pytest
+
+from explorer.deploy.export import export_network
+from explorer.deploy.manifest import MANIFEST, read_manifest
+from explorer.deploy.runtime import AnytimeRunner
+from explorer.errors import UserError
+from explorer.model import build_network
+from explorer.space import paper_candidate
+
+
+@pytest.fixture(scope="module")
+def model(tmp_path_factory):
+    out = tmp_path_factory.mktemp("export") / "m"
+    export_network(build_network(paper_candidate()), out, (64, 64), devices=())
+    return out
+
+
+def _copy(model, tmp_path, edit=None):
+    dst = tmp_path / "m"
+    shutil.copytree(model, dst)
+    if edit:
+        manifest = json.loads((dst / MANIFEST).read_text())
+        edit(manifest, dst)
+        (dst / MANIFEST).write_text(json.dumps(manifest))
+    return dst
+
+
+def _stage(i):
+    def edit(m, dst):
+        m["stages"][i]["file"] = "../outside.onnx"
+    return edit
+
+
+CASES = {
+    "empty": (lambda m, d: m.clear(), "format"),
+    "no stages": (lambda m, d: m.update(stages=[]), "stages"),
+    "outside": (_stage(1), "inside the model folder"),
+    "bad size": (lambda m, d: m.update(input_size=[0, 64]), "input_size"),
+    "scan row": (lambda m, d: m.update(scan_row=64), "scan_row"),
+    "text paths": (lambda m, d: m.update(paths="four"), "paths"),
+}
+
+
+@pytest.mark.parametrize("name", sorted(CASES))
+def test_a_broken_manifest_is_one_line(model, tmp_path, name):
+    edit, why = CASES[name]
+    folder = _copy(model, tmp_path, edit)
+    with pytest.raises(UserError, match=why) as err:
+        AnytimeRunner(folder, warmup=False)
+    assert "\n" not in str(err.value)
+
+
+def test_a_changed_graph_does_not_match_the_manifest(model, tmp_path):
+    folder = _copy(model, tmp_path)
+    manifest = read_manifest(folder)
+    a, b = manifest["stages"][1]["file"], manifest["stages"][2]["file"]
+    (folder / a).write_bytes((folder / b).read_bytes())   # another stage's graph in its place
+    with pytest.raises(UserError, match="does not match the manifest"):
+        AnytimeRunner(folder, warmup=False)
+
+
+def test_graphs_without_hashes_are_still_checked_as_a_chain(model, tmp_path):
+    def swap(m, dst):
+        for s in m["stages"]:
+            s.pop("sha256")
+        m["stages"][1], m["stages"][2] = m["stages"][2], m["stages"][1]
+    folder = _copy(model, tmp_path, swap)
+    with pytest.raises(UserError, match="do not match the manifest"):
+        AnytimeRunner(folder, warmup=False)
+
+
+def test_a_whole_export_loads(model):
+    assert AnytimeRunner(model, warmup=False).input_size == (64, 64)
