@@ -16,6 +16,7 @@ from typing import Callable
 import optuna
 
 from explorer.space import Candidate
+from explorer.study.planning import SAFETY
 from explorer.study.storage import study_dir
 
 FINALIST = "finalist"
@@ -71,48 +72,48 @@ def retrain_finalists(study: optuna.Study, config, reports: Path,
                       progress: Callable[[int, int, str], None] | None = None, extra: int = 0,
                       deadline: float | None = None) -> list[optuna.trial.FrozenTrial]:
     """Retrains the finalists and the baselines (those not retrained yet with this recipe), then up to
-    ``extra`` more finalists, each only if it should end before ``deadline`` (a time.time()), judged
-    by how long the finalists took here: a plan made on a moment's measurement of a noisy machine
-    (a few steps) gets the finalists it could not promise when the machine turns out faster."""
-    from explorer.study.planning import SAFETY
+    ``extra`` more finalists. With a ``deadline`` (a time.time()), the best finalist and the paper
+    design are retrained whatever the time; every other job only if it should end before the deadline,
+    judged by how long the jobs took here (a machine that slowed after planning drops the last
+    finalists and baselines rather than overrun; one that turned out faster gets the extras)."""
     from explorer.study.config import baseline_model
     from explorer.study.objective import Objective
     recipe = config.finalist_config()
     chosen = choose_finalists(study, config.finalists + max(extra, 0))
-    jobs: list[tuple[Candidate, str, optuna.trial.FrozenTrial | None]] = []
-    for t in chosen[:config.finalists]:
-        jobs.append((Candidate.from_dict(t.user_attrs["candidate"]), "", t))
+    finalists = [(Candidate.from_dict(t.user_attrs["candidate"]), "", t) for t in chosen[:config.finalists]]
+    baselines = []
     if config.baselines:
         estimated = {t.user_attrs.get("baseline"): t for t in estimate_trials(study) if t.user_attrs.get("baseline")}
-        jobs += [(baseline_model(name), name, estimated.get(name)) for name in config.baselines]
+        baselines = [(baseline_model(name), name, estimated.get(name)) for name in config.baselines]
     optional = [(Candidate.from_dict(t.user_attrs["candidate"]), "", t) for t in chosen[config.finalists:]]
+    # what a study cannot do without (its best finalist, the paper design to compare it with) first
+    must = finalists[:1] + [b for b in baselines if b[1] == "paper"]
+    must_ids = {id(j) for j in must}
+    jobs = must + [j for j in finalists + baselines if id(j) not in must_ids] + optional
     done = {(t.user_attrs["candidate_key"], t.user_attrs.get("baseline", "")) for t in finalist_trials(study)
             if t.user_attrs[FINALIST].get("recipe") == recipe.to_dict()}
     todo = [j for j in jobs if (j[0].key, j[1]) not in done]
-    optional = [j for j in optional if (j[0].key, j[1]) not in done]
-    if not todo and not optional:
+    if not todo:
         return finalist_trials(study)
     objective = Objective(_proxy_view(config), study_dir(config.study, reports))
     folder = study_dir(config.study, reports) / "finalists"
-    took: list[float] = []      # seconds of each finalist retrained here
-    total = len(todo) + len(optional)
-    for i, (candidate, baseline, estimate) in enumerate(todo + optional):
+    took: list[float] = []      # seconds of each job retrained here
+    for i, job in enumerate(todo):
+        candidate, baseline, estimate = job
         label = baseline or f"trial {estimate.number}"
-        if i >= len(todo) and deadline is not None:
+        if deadline is not None and id(job) not in must_ids:
             expected = SAFETY * max(took) if took else math.inf
             if time.time() + expected > deadline:
                 if progress:
-                    progress(i, i, f"no time for {label} ({candidate.key}): about {expected:.0f} s")
-                total = i
+                    progress(i, i, f"no time for {label} ({candidate.key}) or the jobs after it: about {expected:.0f} s each")
                 break
         if progress:
-            progress(i, total, f"retraining {label} ({candidate.key})")
+            progress(i, len(todo), f"retraining {label} ({candidate.key})")
         start = time.time()
         _retrain(study, objective, candidate, baseline, estimate, recipe, folder)
-        if not baseline:
-            took.append(time.time() - start)
+        took.append(time.time() - start)
     if progress:
-        progress(total, total, "finalists retrained")
+        progress(len(todo), len(todo), "finalists retrained")
     return finalist_trials(study)
 
 

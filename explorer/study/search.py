@@ -392,13 +392,20 @@ def _retrain_finalists(study: optuna.Study, config: SearchConfig, plan: "Plan | 
     # the re-plan stood on a few steps' measurement: finalists it dropped are retrained after the
     # others when the time those took says they still fit
     extra, deadline = 0, None
-    if plan is not None and "finalists" in time_limit.free:
+    if plan is not None:   # the time limit holds even when the machine slowed after planning
         from explorer.study.planning import RESERVE_S
-        extra = max(wanted[0] - config.finalists, 0)
+        extra = max(wanted[0] - config.finalists, 0) if "finalists" in time_limit.free else 0
         deadline = time_limit.started + time_limit.seconds - RESERVE_S
     retrain_finalists(study, config, reports, progress=on_finalist, extra=extra, deadline=deadline)
-    retrained = sum(1 for t in finalist_trials(study) if not t.user_attrs.get("baseline")
-                    and t.user_attrs["finalist"].get("recipe") == config.finalist_config().to_dict())
+    recipe = config.finalist_config().to_dict()
+    now = [t for t in finalist_trials(study) if t.user_attrs["finalist"].get("recipe") == recipe]
+    retrained = sum(1 for t in now if not t.user_attrs.get("baseline"))
+    skipped = max(config.finalists - retrained, 0) + len(set(config.baselines) - {t.user_attrs.get("baseline") for t in now})
+    if plan is not None and skipped:
+        plan = dataclasses.replace(plan, changes=plan.changes + (
+            f"{skipped} finalist(s) or baseline(s) not retrained: the machine ran slower than planned and the "
+            "time limit came first",))
+        _publish_plan(study, plan, on_plan)
     if plan is not None and retrained > plan.finalists:
         plan = dataclasses.replace(plan, finalists=retrained, changes=plan.changes + (
             f"{retrained - plan.finalists} more finalist(s) retrained: the others took less than planned",))

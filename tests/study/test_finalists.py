@@ -195,3 +195,32 @@ def test_a_baseline_that_beats_every_retrained_candidate_is_named():
     assert unbeaten_baseline(study).user_attrs["baseline"] == "paper"
     add(0.32, "b", finalist={"estimate_trial": 0})                   # a candidate that beats it
     assert unbeaten_baseline(study) is None
+
+
+def test_a_deadline_keeps_the_best_finalist_and_the_paper_design_and_drops_the_rest(tmp_path, monkeypatch):
+    """A machine that slowed after planning: the jobs that no longer fit before the time limit are left
+    out, last ones first, but the study still has its best finalist and the paper design to compare."""
+    import dataclasses
+    import time
+    import explorer.study.finalists as finalists
+    import explorer.study.objective as objective
+    from explorer.space import SearchSpace
+    study = optuna.create_study(storage=optuna.storages.InMemoryStorage())
+    space = SearchSpace.from_yaml("tiny")
+    for i, cand in enumerate(space.enumerate()):
+        if i == 4:
+            break
+        study.add_trial(optuna.trial.create_trial(values=[0.3 + i / 100], user_attrs={
+            "candidate": cand.to_dict(), "candidate_key": cand.key, "path_metrics": [], "workloads": []}))
+    retrained = []
+    monkeypatch.setattr(objective, "Objective", lambda *a, **k: None)
+    monkeypatch.setattr(finalists, "_retrain", lambda study, obj, cand, baseline, *a: (
+        time.sleep(0.05), retrained.append(baseline or cand.key)))
+    config = dataclasses.replace(CFG, finalists=3, baselines=("fastdepth", "paper", "paper-nee"))
+    retrain_finalists(study, config, tmp_path, deadline=time.time() + 0.12)
+    best = choose_finalists(study, 1)[0].user_attrs["candidate_key"]
+    assert retrained[:2] == [best, "paper"]                  # whatever the time
+    assert 2 <= len(retrained) < 6                           # the rest only while they fit
+    retrained.clear()
+    retrain_finalists(study, config, tmp_path, deadline=None)
+    assert len(retrained) == 6                               # no time limit: every job
