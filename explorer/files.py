@@ -148,6 +148,27 @@ def _leftovers(target: Path) -> Iterator[tuple[Path, str, int]]:
             yield p, m.group(1), int(m.group(2))
 
 
+SCRATCH = re.compile(r".*\.tmp(\d+)")
+
+
+def remove_dead_scratch(folder: str | Path) -> list[Path]:
+    """Removes the scratch files and folders (``NAME.tmpPID``) that processes no longer alive left in
+    ``folder`` (a generation killed by SIGTERM or kill -9); returns what it removed."""
+    removed = []
+    folder = Path(folder)
+    if not folder.is_dir():
+        return removed
+    for p in folder.iterdir():
+        m = SCRATCH.fullmatch(p.name)
+        if m and not _alive(int(m.group(1))):
+            if p.is_dir():
+                shutil.rmtree(p, ignore_errors=True)
+            else:
+                p.unlink(missing_ok=True)
+            removed.append(p)
+    return removed
+
+
 def recover_folder(target: str | Path) -> None:
     """Cleans what a writer of ``target`` killed midway left beside it: its scratch folder is removed,
     and a previous version it had moved aside is put back if ``target`` is missing."""

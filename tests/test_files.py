@@ -108,3 +108,35 @@ def test_a_few_aliases_as_yaml_dump_writes_them_are_read(tmp_path):
     import yaml
     path.write_text(yaml.safe_dump({"a": shared, "b": shared}))
     assert "&id" in path.read_text() and read_yaml(path) == {"a": [1, 2, 3], "b": [1, 2, 3]}
+
+
+def _dead_pid() -> int:
+    child = subprocess.Popen([sys.executable, "-c", "pass"])
+    child.wait()
+    return child.pid
+
+
+def test_scratch_of_dead_processes_is_removed_and_live_ones_kept(tmp_path):
+    from explorer.files import remove_dead_scratch
+    dead, alive = _dead_pid(), os.getpid()
+    (tmp_path / f"synthetic-x.tmp{dead}").write_bytes(b"half")
+    (tmp_path / f".model.tmp{dead}").mkdir()
+    (tmp_path / f"synthetic-y.tmp{alive}").write_bytes(b"being written")
+    (tmp_path / "synthetic-z.h5").write_bytes(b"whole")
+    removed = remove_dead_scratch(tmp_path)
+    assert sorted(p.name for p in removed) == sorted([f"synthetic-x.tmp{dead}", f".model.tmp{dead}"])
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([f"synthetic-y.tmp{alive}", "synthetic-z.h5"])
+
+
+@pytest.mark.slow
+def test_a_generation_stopped_by_sigterm_leaves_nothing_after_the_next_start(tmp_path):
+    env = {**os.environ, "ANYTIME_EXPLORER_CACHE": str(tmp_path)}
+    code = "from explorer.data import open_dataset; open_dataset('synthetic:600:100', 'train', (64, 64))"
+    child = subprocess.Popen([sys.executable, "-c", code], env=env)
+    deadline = time.time() + 120
+    while time.time() < deadline and not any(".tmp" in p.name for p in tmp_path.iterdir()):
+        time.sleep(0.1)
+    child.send_signal(signal.SIGTERM)
+    child.wait()
+    subprocess.run([sys.executable, "-c", code.replace("600:100", "8:4")], env=env, check=True)
+    assert not [p.name for p in tmp_path.iterdir() if ".tmp" in p.name]
