@@ -195,8 +195,8 @@ class Candidate:
             raise UserError(f"{source}: unknown candidate field(s) {unknown}; known: {sorted(known)}")
         try:
             return cls(**data)
-        except TypeError as exc:
-            raise UserError(f"{source}: {exc}") from None
+        except (TypeError, ValueError, OverflowError) as exc:   # a field of the wrong type
+            raise UserError(f"{source}: {str(exc).splitlines()[0]}") from None
 
     @classmethod
     def from_yaml(cls, path: str | Path) -> "Candidate":
@@ -571,9 +571,11 @@ def _choices(raw: Any, where: str, kind: type, allow_empty: bool = False) -> lis
             if v < 0:
                 raise UserError(f"{where}: {v} must not be negative")
         elif kind is float:
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or v <= 0:
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 < v < math.inf:
                 raise UserError(f"{where}: {v!r} is not a positive number")
             v = float(v)
+        elif not isinstance(v, kind):
+            raise UserError(f"{where}: {v!r} is not a {kind.__name__}")
         out.append(v)
     if len(set(out)) != len(out):
         raise UserError(f"{where}: choices {raw} repeat a value")

@@ -4,7 +4,6 @@ predicts for it (``explorer curve``): how far the prediction can be trusted here
 from __future__ import annotations
 
 import dataclasses
-import json
 from pathlib import Path
 from typing import Callable
 
@@ -15,6 +14,7 @@ from explorer.calibration.calibrate import calibrate
 from explorer.cost import candidate_cost, get_device
 from explorer.data import open_dataset
 from explorer.deploy.runtime import AnytimeRunner, measured_anytime, path_metrics
+from explorer.files import write_json
 from explorer.space import Candidate
 
 
@@ -52,5 +52,5 @@ def curve_check(model_dir: Path, data: str, device: str | None = None, frames: i
               "path_losses": losses, "predicted_costs_ms": costs,
               "predicted_anytime_loss": anytime_loss(costs, losses, f"time:uniform:{b_max}ms"),
               "measured": measured, "measured_anytime_loss": float(np.mean(measured["loss"]))}
-    (Path(model_dir) / "anytime_curve.json").write_text(json.dumps(result, indent=2))
+    write_json(Path(model_dir) / "anytime_curve.json", result)
     return result

@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import math
 import sys
+from pathlib import Path
 
 from explorer.errors import UserError
 
@@ -63,6 +64,20 @@ def check_numbers(args: argparse.Namespace) -> None:
         if value < low or (value == low and not inclusive):
             bound = f"at least {low}" if inclusive else f"more than {low}"
             raise UserError(f"{flag} {value:g}: must be {bound}")
+
+
+def write_output(path: str | Path, text: str) -> Path:
+    """A command's output file (profile, CSV table), written whole: its folder made, the file swapped in
+    (``explorer.files.write_atomically``); a path that cannot be written is one line."""
+    from explorer.files import write_atomically
+    path = Path(path)
+    if path.is_dir():
+        raise UserError(f"{path}: is a folder; give a file name")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        return write_atomically(path, text)
+    except OSError as exc:
+        raise UserError(f"{path}: cannot write it ({exc.strerror})") from None
 
 
 def _add_provider(s: argparse.ArgumentParser) -> None:

@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from explorer.errors import UserError
-from explorer.cli._common import _add_provider, _check_provider
+from explorer.cli._common import _add_provider, _check_provider, write_output
 
 
 def cmd_devices(args) -> None:
@@ -73,9 +73,8 @@ def cmd_calibrate(args) -> None:
                              progress=lambda i, n: bar.update(task, completed=i, total=n),
                              log=lambda s: bar.console.print(s),
                              **(QUICK_PROBE if args.quick else {}))
-    out.parent.mkdir(parents=True, exist_ok=True)
     how = f"from {args.fit}" if args.fit else "on this machine"
-    out.write_text(f"# Made by `explorer calibrate` {how}.\n" + prof.to_yaml())
+    write_output(out, f"# Made by `explorer calibrate` {how}.\n" + prof.to_yaml())
     console.print(f"wrote {out}")
     fits = prof.provenance["fit"] + (prof.int8.provenance["fit"] if prof.int8 is not None else [])
     for fit in fits:

@@ -7,7 +7,7 @@ import time
 from pathlib import Path
 
 from explorer.errors import UserError
-from explorer.cli._common import _Parser, _add_provider, _check_provider, _size, deprecated_alias
+from explorer.cli._common import _Parser, _add_provider, _check_provider, _size, deprecated_alias, write_output
 
 
 def cmd_space_show(args) -> None:
@@ -136,8 +136,7 @@ def cmd_enumerate(args) -> None:
                                 progress=lambda i, n: bar.update(task, completed=i))
     dt = time.perf_counter() - t0
     if args.csv:
-        Path(args.csv).parent.mkdir(parents=True, exist_ok=True)
-        frame.to_csv(args.csv, index=False)
+        write_output(args.csv, frame.to_csv(index=False))
         console.print(f"wrote {len(frame):,} candidates to {args.csv}")
     console.print(f"{len(frame):,} candidates costed in {dt:.1f} s ({len(frame) / dt:,.0f}/s)")
     cols = ["key", "params", "macs", "paths", "first_exit_ms", "last_exit_ms", "p_path0"]

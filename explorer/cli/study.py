@@ -6,7 +6,7 @@ import time
 from pathlib import Path
 
 from explorer.errors import UserError
-from explorer.cli._common import _size, _count, _ms, _duration_s, _add_supervision, deprecated_alias
+from explorer.cli._common import _add_supervision, _count, _duration_s, _ms, _size, deprecated_alias, write_output
 
 
 def cmd_search(args) -> None:
@@ -216,7 +216,7 @@ def cmd_rescore(args) -> None:
     if frame.empty:
         raise UserError(f"study '{args.study}' has no completed trial to re-score yet")
     if args.csv:
-        frame.to_csv(args.csv, index=False)
+        write_output(args.csv, frame.to_csv(index=False))
     if args.json:
         print_json(frame.to_dict("records"))
     else:
