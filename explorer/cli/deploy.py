@@ -20,7 +20,7 @@ def _percent(text: str) -> float:
 
 
 def cmd_export(args) -> None:
-    from explorer.console import console, err_console, print_frame
+    from explorer.console import console, err_console, print_frame, progress
     from explorer.deploy.export import Quantization, export_from_checkpoint
     from explorer.study.export import AS_SEARCHED, export_from_study
     if bool(args.study) == bool(args.checkpoint):
@@ -40,13 +40,17 @@ def cmd_export(args) -> None:
         raise UserError("--data, --force and --int8-stages are read by --quantize int8 only")
     elif args.quantize is None and args.study:
         quant = AS_SEARCHED
-    say = lambda msg: err_console.print(msg)  # noqa: E731
-    if args.study:
-        manifest = export_from_study(args.study, args.trial, Path(args.out), args.storage,
-                                     Path(args.reports), args.input_size, args.device, quant, say)
-    else:
-        manifest = export_from_checkpoint(Path(args.checkpoint), Path(args.out), args.input_size, args.device, quant,
-                                          say)
+    # what the export is doing shows on one status line that a refusal clears: its error is then the
+    # one line on stderr
+    with progress(transient=True) as bar:
+        task = bar.add_task("export", total=None, status="")
+        say = lambda msg: bar.update(task, status=str(msg))  # noqa: E731
+        if args.study:
+            manifest = export_from_study(args.study, args.trial, Path(args.out), args.storage,
+                                         Path(args.reports), args.input_size, args.device, quant, say)
+        else:
+            manifest = export_from_checkpoint(Path(args.checkpoint), Path(args.out), args.input_size, args.device,
+                                              quant, say)
     console.print(f"exported {len(manifest['stages'])} stage graphs to {args.out} (max |onnx - torch| "
                   f"{manifest['verification']['max_abs_diff']:.2e}{' before quantization' if manifest.get('quantization') else ''})")
     if manifest.get("quantization"):
