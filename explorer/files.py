@@ -19,6 +19,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, Iterator
 
+import numpy as np
 import yaml
 
 from explorer.errors import UserError
@@ -79,6 +80,31 @@ def read_text(path: str | Path, what: str = "file") -> str:
         return raw.decode("utf-8")
     except UnicodeDecodeError:
         raise UserError(f"{p}: a binary file, not a {what} (expected UTF-8 text)") from None
+
+
+def open_image(path: Path):
+    """An image file opened lazily (header read), or one UserError line: unreadable, not an image, or
+    larger than Pillow's decompression-bomb limit (a header may claim 40000x40000 pixels)."""
+    from PIL import Image   # Pillow only where an image is read
+    try:
+        return Image.open(path)
+    except Image.DecompressionBombError:
+        raise UserError(f"{path}: the image claims more pixels than any camera frame (a corrupt or "
+                        "hostile header): use real frames") from None
+    except (OSError, ValueError) as exc:
+        raise UserError(f"{path}: unreadable image ({type(exc).__name__}: {str(exc).splitlines()[0][:120]})") from None
+
+
+def read_image(path: Path, mode: str | None = None) -> np.ndarray:
+    """The pixels of an image file (converted to ``mode`` if given), or one UserError line."""
+    from PIL import Image
+    with open_image(path) as im:
+        try:
+            return np.asarray(im.convert(mode) if mode else im)
+        except Image.DecompressionBombError:
+            raise UserError(f"{path}: the image claims more pixels than any camera frame") from None
+        except (OSError, ValueError, SyntaxError) as exc:
+            raise UserError(f"{path}: unreadable image ({type(exc).__name__})") from None
 
 
 def read_yaml(path: str | Path, what: str = "YAML file") -> Any:

@@ -156,3 +156,11 @@ def test_modules_and_functions_stay_small():
                     long_functions.append(f"{path.relative_to(ROOT)}:{node.lineno} {node.name}: {length} lines")
     assert not long_modules, "\n".join(long_modules)
     assert not long_functions, "\n".join(long_functions)
+
+
+def test_the_command_line_and_the_runtime_load_without_torch():
+    """`explorer run` deploys on devices without PyTorch, and `explorer --help` answers at once: neither
+    the command line's modules nor the runtime import torch until a command needs it."""
+    code = ("import sys; import explorer.cli, explorer.deploy.runtime, explorer.probe; "
+            "sys.exit(1 if 'torch' in sys.modules else 0)")
+    assert subprocess.run([sys.executable, "-c", code], cwd=ROOT).returncode == 0

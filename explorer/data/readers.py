@@ -8,33 +8,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from PIL import Image
 
 from explorer.errors import UserError
-from explorer.files import read_text
-
-
-def open_image(path: Path) -> Image.Image:
-    """An image file opened lazily (header read), or one UserError line: unreadable, not an image, or
-    larger than Pillow's decompression-bomb limit (a header may claim 40000x40000 pixels)."""
-    try:
-        return Image.open(path)
-    except Image.DecompressionBombError:
-        raise UserError(f"{path}: the image claims more pixels than any camera frame (a corrupt or "
-                        "hostile header): use real frames") from None
-    except (OSError, ValueError) as exc:
-        raise UserError(f"{path}: unreadable image ({type(exc).__name__}: {str(exc).splitlines()[0][:120]})") from None
-
-
-def read_image(path: Path, mode: str | None = None) -> np.ndarray:
-    """The pixels of an image file (converted to ``mode`` if given), or one UserError line."""
-    with open_image(path) as im:
-        try:
-            return np.asarray(im.convert(mode) if mode else im)
-        except Image.DecompressionBombError:
-            raise UserError(f"{path}: the image claims more pixels than any camera frame") from None
-        except (OSError, ValueError, SyntaxError) as exc:
-            raise UserError(f"{path}: unreadable image ({type(exc).__name__})") from None
+from explorer.files import open_image, read_image, read_text  # noqa: F401  (the readers' image access)
 
 
 @dataclass

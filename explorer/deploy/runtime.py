@@ -17,11 +17,11 @@ from typing import Callable
 
 import numpy as np
 
-from explorer.data import readers as data_readers
 from explorer.deploy._arena_choice import ArenaChoice
 from explorer.deploy.manifest import MANIFEST, read_manifest  # noqa: F401  (MANIFEST: its callers' name)
 from explorer.deploy.sessions import check_provider
 from explorer.errors import UserError
+from explorer.files import read_image as read_image_file
 from explorer.files import read_text, write_atomically
 
 #: ``AnytimeRunner(arenas=...)``
@@ -339,7 +339,7 @@ def read_scan(path: Path) -> np.ndarray:
 def read_image(path: Path) -> np.ndarray:
     if not path.is_file():
         raise UserError(f"{path}: no such image")
-    return data_readers.read_image(path, "RGB")
+    return read_image_file(path, "RGB")
 
 
 #: what ``explorer run --out`` writes: 16-bit millimetres, or float32 metres
