@@ -22,11 +22,25 @@ from typing import Callable
 import numpy as np
 from onnx import TensorProto, load_from_string, numpy_helper
 
+from explorer import __version__
 from explorer import probe as probe_script
-from explorer.probe.pack import write_zipapp
-from explorer.calibration.sweep import DEFAULT_COUNTS, STAGE_SIZES, layer_graph, sweep_layers
-from explorer.errors import UserError
+from explorer.calibration.sweep import (
+    DEFAULT_COUNTS,
+    STAGE_SIZES,
+    layer_graph,
+    sweep_layers,
+)
 from explorer.cost.precision import workload_quantized
+from explorer.deploy.int8_graphs import (
+    quantize_graph,
+    share_model_edge_scales,
+    uint8_edges,
+)
+from explorer.errors import UserError
+from explorer.model import build_network
+from explorer.model.onnx import example_inputs, export_segments, export_stages
+from explorer.probe.pack import write_zipapp
+from explorer.space import SearchSpace
 
 #: Float initializers at least this large ship as zeros (their values do not change how long a
 #: dense kernel takes), so the archive compresses to a few MB instead of hundreds.
@@ -57,7 +71,6 @@ def _zero_weights(model: bytes) -> bytes:
 
 def _int8(model: bytes, feeds: dict[str, np.ndarray]) -> bytes:
     """``model`` statically quantized as ``explorer export --quantize int8`` quantizes stage graphs."""
-    from explorer.deploy.int8_graphs import quantize_graph
     with tempfile.TemporaryDirectory(prefix="explorer-int8-") as tmp:
         src, dst = Path(tmp) / "fp32.onnx", Path(tmp) / "int8.onnx"
         src.write_bytes(model)
@@ -71,8 +84,6 @@ def _int8_graphs(net, size: tuple[int, int]) -> list[tuple[str, bytes]]:
     they pass each other are uint8, as the runtime hands them between int8 graphs
     (``explorer.deploy.quantize.uint8_edges``)."""
     import torch
-    from explorer.model.onnx import example_inputs, export_segments
-    from explorer.deploy.int8_graphs import share_model_edge_scales, uint8_edges
     graphs = export_segments(net, size)[1:]
     env = example_inputs(size)
     out = []
@@ -91,7 +102,6 @@ def _int8_graphs(net, size: tuple[int, int]) -> list[tuple[str, bytes]]:
 
 def stage_candidates(count: int, seed: int, exclude: set[str] = frozenset()) -> list:
     """The calibration candidates: ``count`` random default-space candidates, none of ``exclude``."""
-    from explorer.space import SearchSpace
     pool = SearchSpace.from_yaml("anytime_depth").random_candidates(count + len(exclude), seed + STAGE_SEED_OFFSET)
     return [c for c in pool if c.key not in exclude][:count]
 
@@ -105,9 +115,6 @@ def write_bundle_dir(folder: Path, scale: float = 1.0, seed: int = 0, n_stage: i
     convolution of the sweep, and the stage graphs of some candidates (``INT8_STAGE_EVERY``), also go in
     quantized as ``explorer export --quantize int8`` quantizes (entries with ``precision: int8``), so that
     the fit prices int8 graphs too."""
-    from explorer import __version__
-    from explorer.model import build_network
-    from explorer.model.onnx import export_stages
     stage_sizes = stage_sizes or STAGE_SIZES
     folder = Path(folder)
     counts = {k: max(2, int(round(v * scale))) for k, v in DEFAULT_COUNTS.items()}

@@ -13,15 +13,33 @@ from typing import Callable
 
 import numpy as np
 
-from explorer.cost.devices import DeviceProfile, KindCost
-from explorer.cost.fit import MEMORY_KINDS, Observation, errors, fit_profile, fit_summary
 from explorer import probe as _probe
+from explorer.calibration.bundle import write_bundle_dir
 from explorer.calibration.measure import conditions
-from explorer.probe import DEFAULT_PROVIDER
-from explorer.cost.workloads import KINDS, Workload
-from explorer.calibration.sweep import DEFAULT_COUNTS, HOST_KINDS, STAGE_SIZES, SweepLayer, layer_graph, sweep_layers  # noqa: F401
 from explorer.calibration.results_schema import check_results
+from explorer.calibration.sweep import (  # noqa: F401
+    DEFAULT_COUNTS,
+    HOST_KINDS,
+    STAGE_SIZES,
+    SweepLayer,
+    layer_graph,
+    sweep_layers,
+)
+from explorer.cost import candidate_cost
+from explorer.cost.devices import DeviceProfile, KindCost
+from explorer.cost.fit import (
+    MEMORY_KINDS,
+    Observation,
+    errors,
+    fit_profile,
+    fit_summary,
+)
+from explorer.cost.precision import workload_quantized
+from explorer.cost.workloads import KINDS, Workload
 from explorer.errors import UserError
+from explorer.probe import DEFAULT_PROVIDER
+from explorer.space import Candidate
+
 
 def fit_host(measured: list[tuple[Workload, float]], name: str = "host",
              description: str | None = None, cond: dict | None = None,
@@ -128,8 +146,6 @@ def read_results(path: str | Path) -> dict:
 def _observations(results: dict) -> dict[str, list]:
     """A probe run's timings: "layers" and "layers_int8" ((workload, ms, the probe's label) each),
     "stages" and "stages_int8" (``Observation``s labelled as the probe labels them)."""
-    from explorer.cost import candidate_cost
-    from explorer.space import Candidate
     bundle = results["bundle"]
     obs: dict[str, list] = {"layers": [], "layers_int8": [], "stages": [], "stages_int8": []}
     for layer in bundle["layers"]:
@@ -201,7 +217,6 @@ def with_int8(profile: DeviceProfile, measured: list[tuple[Workload, float]],
     whole-quantized graph pays once at its edges, and says little about the graph. Results
     without int8 stage graphs get the from-scratch fit on the single-layer ones, with the fp32
     timings of the kinds they lack. Unchanged when no quantized pointwise convolution was measured."""
-    from explorer.cost.precision import workload_quantized
     measured_int8 = [(w, ms) for w, ms in measured_int8 if workload_quantized(w)]
     kinds = {w.kind for w, _ in measured_int8}
     if "pointwise" not in kinds:
@@ -242,7 +257,6 @@ def calibrate(threads: int | None = None, repeats: int = 25, seed: int = 0, scal
     ``exclude``, candidate keys). ``results_out`` / ``bundle_out``: also keep the probe's results /
     the bundle there. ``remeasure_passes``, ``calm_wait_s``: the probe's (``run_probe``)."""
     import tempfile
-    from explorer.calibration.bundle import write_bundle_dir
     try:
         _probe.check_provider(provider)
     except _probe.ProbeError as exc:

@@ -7,9 +7,10 @@ from dataclasses import dataclass, field
 
 from explorer import probe as _probe
 from explorer.calibration.peak import host_peak
-from explorer.probe import DEFAULT_PROVIDER, default_threads, time_call
 from explorer.deploy.sessions import session  # noqa: F401  (measurements and the runtime: one kind of session)
 from explorer.model.network import AnytimeDepthNet, build_network
+from explorer.model.onnx import example_inputs, export_stages, export_whole
+from explorer.probe import DEFAULT_PROVIDER, default_threads, time_call
 from explorer.space import Candidate
 
 __all__ = ["session", "default_threads", "time_call", "conditions", "Measurement", "CandidateTimer", "measure_network",
@@ -18,8 +19,9 @@ __all__ = ["session", "default_threads", "time_call", "conditions", "Measurement
 
 def conditions(threads: int | None = None, repeats: int = 15, warmup: int = 3,
                provider: str = DEFAULT_PROVIDER) -> dict:
-    import onnxruntime as ort
     import platform
+
+    import onnxruntime as ort
     return {"onnxruntime": ort.__version__, "provider": provider,
             "threads": _probe.shared_pool_threads() or threads or default_threads(), "thread_pool": _probe.thread_pool(),
             "repeats": repeats,
@@ -55,7 +57,6 @@ class CandidateTimer:
 
     def __init__(self, net: AnytimeDepthNet, input_size: tuple[int, int] = (224, 224), threads: int | None = None,
                  whole: bool = True, provider: str = DEFAULT_PROVIDER) -> None:
-        from explorer.model.onnx import example_inputs, export_stages, export_whole
         self.candidate, self.input_size = net.candidate, tuple(input_size)
         self.threads, self.provider = threads, provider
         graphs = export_stages(net, input_size)

@@ -8,10 +8,23 @@ from pathlib import Path
 
 import pandas as pd
 
-from explorer.cost.devices import (DeviceProfile, available_devices, deployed_graphs, get_device, int8_graphs,
-                                   path_latencies_ms)
-from explorer.cost.workloads import KINDS, Workload, candidate_workloads, dilated_count_macs, reference_workloads
+from explorer.cost.devices import (
+    DeviceProfile,
+    available_devices,
+    deployed_graphs,
+    get_device,
+    int8_graphs,
+    path_latencies_ms,
+)
+from explorer.cost.workloads import (
+    KINDS,
+    Workload,
+    candidate_workloads,
+    dilated_count_macs,
+    reference_workloads,
+)
 from explorer.model.network import stage_specs
+from explorer.model.reference import REFERENCES, ReferenceModel
 from explorer.space import Candidate
 
 __all__ = ["CandidateCost", "DeviceProfile", "KINDS", "Workload", "available_devices",
@@ -92,7 +105,6 @@ def candidate_cost(candidate: Candidate, input_size: tuple[int, int] = (224, 224
 def reference_cost(name: str, input_size: tuple[int, int] = (224, 224)) -> CandidateCost:
     """A reference network (:mod:`explorer.model.reference`) costed as a candidate with one path
     beside path 0: what a study needs to score it as a baseline."""
-    from explorer.model.reference import ReferenceModel
     return CandidateCost(ReferenceModel(name), tuple(input_size), reference_workloads(name, tuple(input_size)),
                          (("network",),), ("output",))
 
@@ -145,7 +157,6 @@ def profile_reference(name: str, input_size: tuple[int, int] = (224, 224),
 def reference_table(devices: list[str | Path | DeviceProfile]) -> pd.DataFrame:
     """The paper's reference networks at the input size the paper measured them at: params, MACs,
     the paper's TX2 latency, and latency (energy where the device models it) on each device."""
-    from explorer.model.reference import REFERENCES
     profiles = [get_device(d) for d in devices]
     rows = []
     for ref in REFERENCES.values():

@@ -19,9 +19,18 @@ import numpy as np
 import pandas as pd
 from scipy.optimize import least_squares
 
+from explorer.anytime import anytime_loss, parse_budget
+from explorer.cost import candidate_cost
 from explorer.cost.devices import PROFILES_DIR, DeviceProfile, KindCost
-from explorer.cost.workloads import ALL_KINDS, BYTES_PER_VALUE, Workload
+from explorer.cost.workloads import (
+    ALL_KINDS,
+    BYTES_PER_VALUE,
+    Workload,
+    reference_workloads,
+)
 from explorer.files import write_atomically
+from explorer.model.reference import REFERENCES
+from explorer.space import Candidate, paper_candidate
 
 MEMORY_KINDS = ("resize", "add", "concat", "slice")
 
@@ -201,7 +210,6 @@ def _start(name: str, description: str, overlap: bool, gmacs: float, overhead: f
 
 
 def _path_observations(weight: float, targets) -> list[Observation]:
-    from explorer.cost import candidate_cost
     obs = []
     for label, candidate, paths_ms in targets:
         cost = candidate_cost(candidate, paper_graph=True)   # the graph the paper measured
@@ -221,8 +229,6 @@ SCALING_SIZES = ((224, 320), (192, 640), (224, 896))
 
 
 def _reference_observations(names: Sequence[str], weight: float) -> list[Observation]:
-    from explorer.cost.workloads import reference_workloads
-    from explorer.model.reference import REFERENCES
     obs = []
     for name in names:
         paper = REFERENCES[name].paper
@@ -233,15 +239,12 @@ def _reference_observations(names: Sequence[str], weight: float) -> list[Observa
 
 
 def _pruned_fastdepth(target: str) -> Observation:
-    from explorer.cost.workloads import reference_workloads
     return Observation("fastdepth-pruned at 224x224 (fast-depth's figure)",
                        reference_workloads("fastdepth-pruned", (224, 224)), PRUNED_FASTDEPTH_MS[target],
                        end_to_end=True)
 
 
 def _scaling_rows(profile: DeviceProfile) -> list[dict]:
-    from explorer.cost import candidate_cost
-    from explorer.space import paper_candidate
     at224 = candidate_cost(paper_candidate()).path_latency_ms(profile)[-1]
     rows = []
     for size in SCALING_SIZES:
@@ -303,7 +306,6 @@ def _tx2_energy() -> tuple[float, float]:
 def _fit_tx2_gpu(csv: Path) -> tuple[DeviceProfile, dict]:
     """The TX2 GPU profile, fitted on its kernels and the paper's end-to-end figures, and the error
     frames of the kernels, the fitted figures and the held-out check."""
-    from explorer.space import paper_candidate
     fixed, power = _tx2_energy()
     gpu_kernels = [Observation(w.layer, [w], ms) for w, ms in kernel_workloads(csv, "gpu")]
     gpu_e2e = (_path_observations(4.0, [("paper design", paper_candidate(), PAPER_TX2_PATHS_MS)])
@@ -379,9 +381,6 @@ def _check_rows(frame: pd.DataFrame) -> list[dict]:
 
 
 def rpi4_table2(profile: DeviceProfile) -> dict[str, float]:
-    from explorer.anytime import anytime_loss, parse_budget
-    from explorer.cost import candidate_cost
-    from explorer.space import paper_candidate
     cost = candidate_cost(paper_candidate(), paper_graph=True)   # the graph the paper measured
     out = {}
     for spec in PAPER_RPI4_TABLE2:
@@ -393,8 +392,6 @@ def rpi4_table2(profile: DeviceProfile) -> dict[str, float]:
 def fit_rpi4(tx2_cpu: DeviceProfile) -> DeviceProfile:
     """A Cortex-A72 CPU profile: the TX2 CPU's per-kind efficiencies, scaled by one factor, with an
     energy model, fitted so that the paper design reproduces Table 2's Rpi4 row."""
-    from explorer.cost import candidate_cost
-    from explorer.space import Candidate
     base = dataclasses.replace(tx2_cpu, name="rpi4",
                                description="Raspberry Pi 4 (4x Cortex-A72 1.5 GHz), TVM-compiled, batch 1, fp32")
 

@@ -17,9 +17,11 @@ from typing import Hashable
 import torch
 from torch import nn
 
+from explorer.errors import UserError
 from explorer.model import ops
 from explorer.model.exits import ScanFill
 from explorer.model.network import StageSpec, stage_specs
+from explorer.model.reference import get_reference
 from explorer.space import Candidate
 
 BYTES_PER_VALUE = 4  # float32
@@ -180,7 +182,6 @@ def candidate_workloads(candidate: Candidate, input_size: tuple[int, int] = (224
     """All workloads of ``candidate`` at ``input_size`` (H, W), batch 1, in execution order."""
     h, w = input_size
     if h % candidate.stride or w % candidate.stride:
-        from explorer.errors import UserError
         raise UserError(f"input {h}x{w} does not divide by the encoder stride {candidate.stride}: "
                         f"use sides that are multiples of {candidate.stride}")
     shapes: dict[str, tuple] = {"image": (1, 3, h, w), "scan": (1, w)}
@@ -198,8 +199,6 @@ def candidate_workloads(candidate: Candidate, input_size: tuple[int, int] = (224
 def reference_workloads(name: str, input_size: tuple[int, int] = (224, 224)) -> tuple[Workload, ...]:
     """All workloads of the reference network ``name`` (``explorer.model.reference``) at
     ``input_size`` (H, W), batch 1, as one stage called 'network'."""
-    from explorer.errors import UserError
-    from explorer.model.reference import get_reference
     ref = get_reference(name)
     with torch.device("meta"):
         module = ref.build().eval()

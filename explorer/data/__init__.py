@@ -18,9 +18,11 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
+from explorer.data import sequences as S
 from explorer.data import transforms as T
 from explorer.data.lidar import ScanConfig, scan_from_image, simulate_scan
-from explorer.data.readers import KittiH5, KittiRaw, NYUH5, PairCSV, RawFrame
+from explorer.data.readers import NYUH5, KittiH5, KittiRaw, PairCSV, RawFrame
+from explorer.data.sequence_readers import FrameFolder, KittiDrive
 from explorer.data.synthetic import SyntheticConfig, ensure_synthetic
 from explorer.errors import UserError
 
@@ -163,8 +165,6 @@ def open_dataset(spec: str | DataSpec, split: str, input_size: tuple[int, int] =
 
 def _open_sequences(ds: DataSpec, split: str, input_size: tuple[int, int], scan: ScanConfig, seed: int,
                     progress: Callable[[int, int], None] | None):
-    from explorer.data import sequences as S
-    from explorer.data.sequence_readers import FrameFolder, KittiDrive
     if ds.kind == "synthetic-seq":
         path = S.ensure_synthetic_sequences(S.SyntheticSequenceConfig(train=ds.train, val=ds.val), progress)
         source = S.SyntheticSequences(path, split)

@@ -15,18 +15,19 @@ import torch
 from explorer import __version__
 from explorer.cost import candidate_cost, get_device
 from explorer.deploy.manifest import MANIFEST, file_sha256
+from explorer.deploy.quantize import MAX_DEGRADATION
+from explorer.deploy.sessions import session
 from explorer.errors import UserError
 from explorer.files import replacing_folder, write_json
 from explorer.model import AnytimeDepthNet
 from explorer.model.onnx import OPSET, example_inputs, export_segments
-from explorer.deploy.quantize import MAX_DEGRADATION
+from explorer.training.train import network_from_checkpoint
 
 TOLERANCE = 1e-4
 
 
 def verify(graphs, net: AnytimeDepthNet, input_size: tuple[int, int], scan_row: int) -> float:
     """Max |onnxruntime - torch| over every path's depth map on a random input."""
-    from explorer.deploy.sessions import session
     env = example_inputs(input_size)
     with torch.no_grad():
         ref = [d.numpy() for d in net.eval()(env["image"], env["scan"], scan_row)]
@@ -65,7 +66,9 @@ def export_network(net: AnytimeDepthNet, out_dir: Path, input_size: tuple[int, i
         manifest = _export_fp32(net, scratch, input_size, scan_row, path_metrics, devices, source)
         write_json(scratch / MANIFEST, manifest)   # what quantization reads and rewrites
         if quantization is not None:
-            from explorer.deploy.quantize import quantize_export  # onnxruntime.quantization: only when asked
+            from explorer.deploy.quantize import (
+                quantize_export,  # onnxruntime.quantization: only when asked
+            )
             q = quantization
             manifest.update(quantize_export(scratch, q.data, q.calibration_frames, q.eval_frames, q.max_degradation,
                                             q.force, progress, q.stages))
@@ -118,7 +121,6 @@ def _export_fp32(net: AnytimeDepthNet, out_dir: Path, input_size: tuple[int, int
 def export_from_checkpoint(ckpt: Path, out_dir: Path, input_size: tuple[int, int] | None = None,
                            devices: Sequence[str] | None = None, quantization: Quantization | None = None,
                            progress: Callable[[str], None] | None = None) -> dict:
-    from explorer.training.train import network_from_checkpoint
     net, state = network_from_checkpoint(ckpt)
     size = tuple(input_size or state["train_config"]["input_size"])
     return export_network(net, out_dir, size, devices=devices or ("tx2", "rpi4"),

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from explorer.cost.precision import FLOAT_STAGES
-
+from explorer.probe import same_constant, shared_pool_threads
 
 #: a graph with none of these keeps fp32: nothing in it is worth quantizing
 QUANTIZED_OPS = ["Conv", "ConvTranspose", "MatMul", "Gemm"]
@@ -45,7 +45,6 @@ def quantize_graph(src: Path, dst: Path, feeds: list[dict[str, np.ndarray]]) -> 
     """Writes ``src`` quantized to ``dst``; False (and a plain copy) when it has nothing to quantize.
     onnxruntime.quantization makes sessions with thread pools of their own, which a process whose
     sessions share the global pool (``explorer.probe.session``) may not: there it runs in a child process."""
-    from explorer.probe import shared_pool_threads
     if shared_pool_threads() is not None:
         return _quantize_in_child(Path(src), Path(dst), feeds)
     return _quantize(Path(src), Path(dst), feeds)
@@ -152,7 +151,6 @@ def upsamples_channels_last(model) -> int:
     little (decoders 3-4 of the paper design, one micro-benchmark: 0.633 against 0.676 ms; uint8 copies
     0.588 against 0.658 ms)."""
     from onnx import helper, numpy_helper
-    from explorer.probe import same_constant
     graph = model.graph
     shapes = _static_shapes(model)
     made = {o: n for n in graph.node for o in n.output}
@@ -222,7 +220,6 @@ def pads_kept_uint8(model) -> int:
     channels to 768), and onnxruntime then dequantizes, pads and quantizes three times the skip's
     size: about a quarter of the int8 decoder 1's time, as onnxruntime's profiler shows."""
     from onnx import helper, numpy_helper
-    from explorer.probe import same_constant
     graph = model.graph
     inits = {i.name: numpy_helper.to_array(i) for i in graph.initializer}
     made = {o: n for n in graph.node for o in n.output}
@@ -264,7 +261,12 @@ def pads_kept_uint8(model) -> int:
 
 def _quantize(src: Path, dst: Path, feeds: list[dict[str, np.ndarray]]) -> bool:
     import onnx
-    from onnxruntime.quantization import CalibrationMethod, QuantFormat, QuantType, quantize_static
+    from onnxruntime.quantization import (
+        CalibrationMethod,
+        QuantFormat,
+        QuantType,
+        quantize_static,
+    )
     from onnxruntime.quantization.shape_inference import quant_pre_process
     if not any(n.op_type in QUANTIZED_OPS for n in onnx.load(str(src)).graph.node):
         dst.write_bytes(src.read_bytes())
@@ -372,7 +374,6 @@ def uint8_edges(models) -> list[str]:
     before onnxruntime's layout changes: the calibration bundle times int8 graphs so, as the runtime
     runs them."""
     from onnx import TensorProto
-    from explorer.probe import same_constant
     done = []
     for name, (p, dq) in _dequantized_outputs(models).items():
         src = models[p].graph

@@ -38,9 +38,12 @@ from typing import Callable
 import numpy as np
 
 from explorer.cost.precision import INT8_KEEP_RATIO
+from explorer.data import open_dataset
+from explorer.deploy import runtime
 from explorer.deploy.int8_graphs import quantize_graph, share_edge_scales
+from explorer.deploy.runtime import MANIFEST, AnytimeRunner, _is_scan_path
 from explorer.errors import UserError
-
+from explorer.probe import chain_runs, time_chain
 
 #: ``explorer export --int8-stages``: which stages of an int8 export are int8
 INT8_STAGES = ("faster", "all")
@@ -51,7 +54,6 @@ MAX_DEGRADATION = 0.03
 
 
 def _frames(data: str, input_size: tuple[int, int], count: int, split: str) -> list[dict]:
-    from explorer.data import open_dataset
     ds = open_dataset(data, split, input_size, train_augment=False)
     if len(ds) == 0:
         raise UserError(f"--data {data}: its {split} split has no frames to quantize with")
@@ -61,7 +63,6 @@ def _frames(data: str, input_size: tuple[int, int], count: int, split: str) -> l
 
 def stage_inputs(model_dir: Path, frames: list[dict]) -> list[list[dict[str, np.ndarray]]]:
     """For each stage graph of an exported model, the inputs it receives on each frame."""
-    from explorer.deploy.runtime import AnytimeRunner
     # the graphs' own inputs; one set of sessions: nothing here is timed
     runner = AnytimeRunner(model_dir, warmup=False, handoff=False, arenas="shared")
     per_stage: list[list[dict[str, np.ndarray]]] = [[] for _ in runner.sessions]
@@ -83,8 +84,6 @@ def compare_speed(model_dir: Path, manifest: dict, configs: list[dict[int, str]]
     too. The runners take turns, ``reps`` blocks of 5 timed runs each (``explorer.probe.time_chain``).
     Leaves the manifest as it was."""
     import json
-    from explorer.probe import chain_runs, time_chain
-    from explorer.deploy.runtime import MANIFEST, AnytimeRunner
     kept = (model_dir / MANIFEST).read_text()
     runners = []
     try:
@@ -107,7 +106,6 @@ def compare_speed(model_dir: Path, manifest: dict, configs: list[dict[int, str]]
 
 def path_metrics(model_dir: Path, frames: list[dict]) -> list[dict[str, float]]:
     """Per-path metrics of the export in ``model_dir`` as its graphs stand now (fp32 or int8)."""
-    from explorer.deploy import runtime
     return runtime.path_metrics(runtime.AnytimeRunner(model_dir, warmup=False, arenas="shared"), frames)
 
 
@@ -125,7 +123,6 @@ def quantize_export(model_dir: Path, data: str, calibration_frames: int = 32, ev
     ``"faster"``, only once keeping graphs fp32 one by one (``kept_fp32_for_accuracy``) has not brought
     every path within it while one graph is still int8."""
     import json
-    from explorer.deploy.runtime import MANIFEST
     _check_quantize_args(calibration_frames, eval_frames, max_degradation, stages)
     manifest = json.loads((model_dir / MANIFEST).read_text())
     size = tuple(manifest["input_size"])
@@ -183,7 +180,6 @@ def _quantize_stages(model_dir: Path, manifest: dict, calib: list[list[dict[str,
                      stages: "str | tuple[str, ...]", say: Callable[[str], None]) -> dict[int, Path]:
     """Quantizes each stage graph that ``stages`` lets be int8 next to its fp32 one; returns stage
     index -> its int8 graph, for those the quantizer could quantize. Marks every stage fp32 for now."""
-    from explorer.deploy.runtime import _is_scan_path
     made: dict[int, Path] = {}
     for k, stage in enumerate(manifest["stages"]):
         src = model_dir / stage["file"]
@@ -236,7 +232,6 @@ class _Trial:
     def measure(self, chosen: dict[int, str]) -> tuple[list[dict[str, float]], list[float]]:
         """Per-path metrics and RMSE degradation with exactly the graphs ``chosen`` int8."""
         import json
-        from explorer.deploy.runtime import MANIFEST
         self.choose(chosen)
         files = [{**st, "file": chosen.get(k, st["file"])} for k, st in enumerate(self.manifest["stages"])]
         (self.model_dir / MANIFEST).write_text(json.dumps({**self.manifest, "stages": files}, indent=2))
@@ -272,7 +267,6 @@ def _swap_in_int8(model_dir: Path, manifest: dict, int8_files: dict[int, str]) -
     """Puts each int8 graph in its stage's place (deleting the fp32 one) and writes the final
     manifest; returns the fp32 files replaced."""
     import json
-    from explorer.deploy.runtime import MANIFEST
     quantized = []
     for k, stage in enumerate(manifest["stages"]):
         if k in int8_files:

@@ -40,6 +40,7 @@ import torch
 from torch import nn
 
 from explorer.errors import UserError
+from explorer.model.exits import interpolate_scan
 from explorer.model.ops import Concat, Resize, SkipAdd, conv_bn_relu
 
 # -- FastDepth -------------------------------------------------------------------------------------
@@ -331,7 +332,6 @@ class ReferenceDepthNet(nn.Module):
         self.network = ref.build()
 
     def forward(self, image: torch.Tensor, scan: torch.Tensor, scan_row: int | None = None) -> list[torch.Tensor]:
-        from explorer.model.exits import interpolate_scan
         n, _, h, w = image.shape
         if h % self.stride or w % self.stride or min(h, w) < self.candidate.min_side:
             raise UserError(f"{self.candidate.name} needs sides divisible by {self.stride} and at least "

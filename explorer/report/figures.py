@@ -20,9 +20,17 @@ import pandas as pd  # noqa: E402
 
 from explorer.anytime import anytime_curve, parse_budget  # noqa: E402
 from explorer.cost.devices import DeviceProfile  # noqa: E402
+from explorer.data import open_dataset
 from explorer.errors import UserError  # noqa: E402
-from explorer.study.results import (baseline_label, trial_anytime_loss, trial_losses,  # noqa: E402
-                                    trial_path_costs, trial_precision)
+from explorer.model.reference import REFERENCES
+from explorer.study.results import (  # noqa: E402
+    baseline_label,
+    trial_anytime_loss,
+    trial_losses,
+    trial_network,
+    trial_path_costs,
+    trial_precision,
+)
 
 COLOURS = {"best": "#d62728", "paper": "#1f77b4", "paper-nee": "#7f7f7f", "fastdepth": "#2ca02c"}
 
@@ -33,7 +41,6 @@ OTHER_COLOURS = ("#9467bd", "#8c564b", "#e377c2", "#bcbd22", "#17becf", "#ff7f0e
 def colour(baseline: str) -> str:
     if baseline in COLOURS:
         return COLOURS[baseline]
-    from explorer.model.reference import REFERENCES
     names = list(REFERENCES)
     return OTHER_COLOURS[names.index(baseline) % len(OTHER_COLOURS)] if baseline in names else "k"
 
@@ -111,8 +118,6 @@ def depth_maps(study: optuna.Study, trial: optuna.trial.FrozenTrial, data: str |
     """Every path's depth map on a few validation images (needs the trial's stored weights): (PNG,
     "") or (None, why not)."""
     import torch
-    from explorer.data import open_dataset
-    from explorer.study.results import trial_network
     cfg = study.user_attrs.get("config", {})
     try:
         net = trial_network(study, trial)

@@ -15,12 +15,26 @@ from jinja2 import Environment, FileSystemLoader, select_autoescape
 
 from explorer import __version__
 from explorer.anytime import parse_budget
+from explorer.cost import reference_table
 from explorer.cost.devices import DeviceProfile, get_device
 from explorer.report import figures
-from explorer.study.results import (baseline_label, baseline_trial, finalists_frame, is_retrained,
-                                    missing_baselines, path_table, scored_trials, study_baselines,
-                                    trial_anytime_loss, trial_precision, trials_frame, unbeaten_baseline, winner)
 from explorer.space import Candidate
+from explorer.study.finalists import finalist_trials
+from explorer.study.results import (
+    baseline_label,
+    baseline_trial,
+    finalists_frame,
+    is_retrained,
+    missing_baselines,
+    path_table,
+    scored_trials,
+    study_baselines,
+    trial_anytime_loss,
+    trial_precision,
+    trials_frame,
+    unbeaten_baseline,
+    winner,
+)
 
 TABLE2_BUDGETS = ("time:uniform:100ms", "time:uniform:50ms", "time:uniform:33ms",
                   "energy:uniform:0.5J", "energy:uniform:0.25J")
@@ -102,7 +116,6 @@ def build_context(study: optuna.Study, devices: Sequence[str] | None = None,
     ctx["unbeaten"] = ({"label": baseline_label(unbeaten.user_attrs["baseline"]), "value": unbeaten.values[0]}
                        if unbeaten is not None and best is not None else None)
     ctx["table2"] = _table2(ranked + baselines, best, devs, dists, cfg.get("metric", "rmse"))
-    from explorer.cost import reference_table
     ctx["references"] = _frame_html(reference_table(devs), "references")
     _add_figures(ctx, study, frame, best, baselines, primary, dists, data)
     ctx["trials"] = (_frame_html(frame[[c for c in TRIAL_COLUMNS if c in frame.columns]], "trials")
@@ -133,7 +146,6 @@ def _notes(study: optuna.Study, devs: list[DeviceProfile], scored: list) -> list
 def _finalists(study: optuna.Study, finalist_steps) -> dict:
     """The finalists' table (estimate beside retrained result), Kendall's tau between the two where
     three or more have both, and the retraining steps they really ran."""
-    from explorer.study.finalists import finalist_trials
     out = {"finalist_steps": finalist_steps, "finalists": "", "finalists_tau": None}
     recipes = sorted({t.user_attrs["finalist"]["recipe"]["steps"] for t in finalist_trials(study)})
     if recipes:   # a --time-limit plan may have sized them after the study was created

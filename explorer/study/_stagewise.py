@@ -29,6 +29,8 @@ from explorer.model import AnytimeDepthNet
 from explorer.model.exits import ExitHead, interpolate_scan
 from explorer.model.image_encoder import ImageEncoder, ImageEncoderConfig
 from explorer.space import MOBILENET_V1_BLOCKS
+from explorer.supernet import super_name
+from explorer.training.train import batch_row, image_batch
 
 
 def _norms(module: torch.nn.Module) -> list[torch.nn.modules.batchnorm._BatchNorm]:
@@ -81,7 +83,6 @@ class Frames:
 
     @classmethod
     def of(cls, batches: list[dict], device: torch.device) -> "Frames":
-        from explorer.training.train import batch_row, image_batch
         return cls([image_batch(b, device) for b in batches], [b["scan"].to(device) for b in batches],
                    [batch_row(b) for b in batches], [b.get("depth") for b in batches])
 
@@ -100,7 +101,6 @@ class SharedEncoder:
 
     def load_statistics(self, net: AnytimeDepthNet) -> None:
         """Copies the recalibrated statistics into ``net``'s image encoder stages."""
-        from explorer.supernet import super_name
         with torch.no_grad():
             for spec in net.specs:
                 if isinstance(spec.config, ImageEncoderConfig):

@@ -7,13 +7,21 @@ import json
 from dataclasses import dataclass
 from typing import Callable
 
-
 from explorer.anytime import parse_budget
 from explorer.cost import get_device
+from explorer.data import parse_data_spec
 from explorer.errors import UserError
-from explorer.space import (Candidate, SearchSpace, check_size, fastdepth_candidate, paper_candidate,
-                            paper_nee_candidate)
+from explorer.model.reference import REFERENCES, ReferenceModel
+from explorer.space import (
+    Candidate,
+    SearchSpace,
+    check_size,
+    fastdepth_candidate,
+    paper_candidate,
+    paper_nee_candidate,
+)
 from explorer.study.evaluators import EVALUATORS
+from explorer.supernet import SupernetRecipe
 from explorer.training.train import PROXY, TrainConfig
 
 BASELINES: dict[str, Callable[[], Candidate]] = {
@@ -25,7 +33,6 @@ DEFAULT_BASELINES = tuple(BASELINES)
 def baseline_model(name: str):
     """The candidate, or the reference network (:class:`~explorer.model.reference.ReferenceModel`),
     that the baseline ``name`` stands for."""
-    from explorer.model.reference import REFERENCES, ReferenceModel
     if name in BASELINES:
         return BASELINES[name]()
     if name in REFERENCES:
@@ -108,7 +115,6 @@ class SearchConfig:
                                    seed=self.seed if seed is None else seed)
 
     def supernet_recipe(self):
-        from explorer.supernet import SupernetRecipe
         return SupernetRecipe(steps=self.supernet_steps, batch_size=self.batch_size, input_size=self.train_size,
                               lr=self.lr, lr_end=self.lr / 10, seed=self.seed)
 
@@ -156,7 +162,6 @@ class SearchConfig:
             raise UserError(f"the space {space.name} lists precision int8, but the {self.device} profile prices no "
                             "int8 graphs: give --device a profile that does (`explorer calibrate --out mybox.yaml` "
                             "times int8 layers) or keep the space's precision at fp32")
-        from explorer.data import parse_data_spec
         if self.supervision != "supervised" and not parse_data_spec(self.data).is_sequence:
             raise UserError(f"--supervision {self.supervision} needs sequence data (--data synthetic-seq, "
                             "kitti-seq:DRIVE or frames:FOLDER)")

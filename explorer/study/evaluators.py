@@ -19,6 +19,15 @@ import torch
 
 from explorer.model import AnytimeDepthNet, build_network
 from explorer.space import Candidate
+from explorer.study._stagewise import (
+    Frames,
+    SharedEncoder,
+    StageMemo,
+    evaluate_stagewise,
+    feature_blocks,
+    recalibrating,
+)
+from explorer.supernet import load_supernet
 from explorer.training.train import TrainConfig, batch_row, evaluate, image_batch, train
 
 EVALUATORS = ("supernet", "proxy")
@@ -57,7 +66,6 @@ class ProxyEvaluator:
 def recalibrate_batchnorm(net: torch.nn.Module, batches: list[dict]) -> None:
     """Re-estimates every BatchNorm's running statistics as the plain average over ``batches`` (the
     supernet's statistics mix many subnets); weights are left untouched."""
-    from explorer.study._stagewise import recalibrating
     device = next(net.parameters()).device
     with recalibrating(net):
         for b in batches:
@@ -84,8 +92,6 @@ class SupernetEvaluator:
     def __init__(self, supernet_file: str | Path, space, train_set, val_set, device: torch.device,
                  val_limit: int | None = None, calibration_images: int = 256, batch_size: int = 32,
                  stagewise: bool = True, memo_bytes: int = 2 * 2 ** 30) -> None:
-        from explorer.study._stagewise import Frames, StageMemo
-        from explorer.supernet import load_supernet
         self.file = Path(supernet_file)
         self.supernet, state = load_supernet(self.file, space)
         self.supernet.to(device).eval()
@@ -101,7 +107,6 @@ class SupernetEvaluator:
 
     def __call__(self, candidate: Candidate, checkpoint: Path | None = None,
                  report: Callable | None = None) -> Evaluation:
-        from explorer.study._stagewise import evaluate_stagewise
         t0 = time.perf_counter()
         net = self.supernet.extract(candidate).to(memory_format=torch.channels_last)  # see train.image_batch
         if self.stagewise:
@@ -116,7 +121,6 @@ class SupernetEvaluator:
 
     def shared_encoder(self, width_mult: float):
         """The image encoder of ``width_mult``, recalibrated, with its features (made on first use)."""
-        from explorer.study._stagewise import SharedEncoder, feature_blocks
         if width_mult not in self._encoders:
             encoder = self.supernet.extract_encoder(width_mult).to(memory_format=torch.channels_last)
             self._encoders[width_mult] = SharedEncoder(encoder, feature_blocks(self.supernet.space), *self._frames)

@@ -15,9 +15,13 @@ from typing import Callable
 
 import optuna
 
+from explorer.model import build_model
 from explorer.space import Candidate
+from explorer.study.config import baseline_model, json_safe
+from explorer.study.objective import Objective
 from explorer.study.planning import SAFETY
 from explorer.study.storage import study_dir
+from explorer.training.train import train
 
 FINALIST = "finalist"
 
@@ -76,8 +80,6 @@ def retrain_finalists(study: optuna.Study, config, reports: Path,
     design are retrained whatever the time; every other job only if it should end before the deadline,
     judged by how long the jobs took here (a machine that slowed after planning drops the last
     finalists and baselines rather than overrun; one that turned out faster gets the extras)."""
-    from explorer.study.config import baseline_model
-    from explorer.study.objective import Objective
     recipe = config.finalist_config()
     chosen = choose_finalists(study, config.finalists + max(extra, 0))
     finalists = [(Candidate.from_dict(t.user_attrs["candidate"]), "", t) for t in chosen[:config.finalists]]
@@ -126,9 +128,6 @@ def _proxy_view(config):
 def _retrain(study: optuna.Study, objective, candidate: Candidate, baseline: str,
              estimate: optuna.trial.FrozenTrial | None, recipe, folder: Path) -> None:
     import torch
-    from explorer.study.config import json_safe
-    from explorer.training.train import train
-    from explorer.model import build_model
     folder.mkdir(parents=True, exist_ok=True)
     checkpoint = folder / f"{candidate.key}.pt"     # a kill resumes from here
     holder = optuna.trial.FixedTrial({})           # collects user attrs like a live trial

@@ -11,13 +11,19 @@ import optuna
 
 from explorer.anytime import anytime_loss, parse_budget
 from explorer.cost import get_device, model_cost
+from explorer.data import open_dataset
 from explorer.deploy.export import quantization_effect
-from explorer.study.results import compact_workloads
-from explorer.space import (Candidate, SearchSpace)
-from explorer.study.evaluators import ProxyEvaluator, SupernetEvaluator
-from explorer.training.train import Pruned, resolve_accelerator
-
+from explorer.space import Candidate, SearchSpace
 from explorer.study.config import SearchConfig, baseline_model, json_safe
+from explorer.study.evaluators import (
+    ProxyEvaluator,
+    SupernetEvaluator,
+    recalibrate_batchnorm,
+)
+from explorer.study.results import compact_workloads
+from explorer.supernet import default_path
+from explorer.training.depth_hints import with_hints
+from explorer.training.train import Pruned, resolve_accelerator
 
 
 def hinted_if_asked(config: SearchConfig, train_set, progress: Callable[[int, int], None] | None):
@@ -25,7 +31,6 @@ def hinted_if_asked(config: SearchConfig, train_set, progress: Callable[[int, in
     first trial (with progress), then read from the cache by every trial and worker."""
     if not config.hints:
         return train_set
-    from explorer.training.depth_hints import with_hints
     return with_hints(train_set, progress=progress)
 
 
@@ -34,7 +39,6 @@ class Objective:
 
     def __init__(self, config: SearchConfig, study_path: Path | None,
                  data_progress: Callable[[int, int], None] | None = None) -> None:
-        from explorer.data import open_dataset
         self.config = config
         self.space = SearchSpace.from_yaml(config.space)
         self.device_profile = get_device(config.device)
@@ -45,7 +49,6 @@ class Objective:
                                                           progress=data_progress), data_progress)
         self.val_set = open_dataset(config.data, "val", config.train_size, train_augment=False)
         if config.evaluator == "supernet":
-            from explorer.supernet import default_path
             file = config.supernet or default_path(self.space, config.data, config.supernet_recipe())
             calibration = open_dataset(config.data, "train", config.train_size, train_augment=False)
             self.evaluator = SupernetEvaluator(file, self.space, calibration, self.val_set, self.torch_device,
@@ -139,7 +142,6 @@ class Objective:
             path_metrics = json_safe(result.metrics.drop(columns=["path"]).to_dict("records"))
             if candidate.precision == "int8":
                 if result.info["evaluator"] == "supernet":   # stage-by-stage evaluation left the slice's BN as it was
-                    from explorer.study.evaluators import recalibrate_batchnorm
                     recalibrate_batchnorm(result.network, self.evaluator.calibration)
                 path_metrics = self.quantized(trial, result.network, path_metrics, cost)
             trial.set_user_attr("path_metrics", path_metrics)

@@ -32,6 +32,12 @@ import math
 import time
 from dataclasses import dataclass
 
+from explorer.model import build_model, build_network
+from explorer.space import SearchSpace, paper_candidate
+from explorer.study.config import baseline_model
+from explorer.supernet import train_supernet
+from explorer.training.train import train
+
 MIN_SAMPLING_S = 60.0
 MIN_SUPERNET_STEPS = 300
 MAX_SUPERNET_STEPS = 600
@@ -255,10 +261,8 @@ def measure_speeds(config, train_set, val_set, device, supernet: bool, steps: in
     supernet with its recipe (on a throw-away file): the median seconds a step, warm-up left out."""
     import tempfile
     from pathlib import Path
+
     import torch
-    from explorer.model import build_model, build_network
-    from explorer.space import SearchSpace, paper_candidate
-    from explorer.training.train import train
     marks: dict[int, float] = {}
     recipe = dataclasses.replace(config.finalist_config(), steps=steps)
     torch.manual_seed(0)
@@ -276,12 +280,10 @@ def measure_speeds(config, train_set, val_set, device, supernet: bool, steps: in
               progress=lambda s, n, r: marks.setdefault(s, time.perf_counter()))
         return _seconds_per_step(marks)
 
-    from explorer.study.config import baseline_model
     baseline_steps = tuple((name, step_of(baseline_model(name))) for name in baselines)
     finalist_steps = tuple(step_of(candidate) for candidate in finalists)
     supernet_step = 0.0
     if supernet:
-        from explorer.supernet import train_supernet
         marks = {}
         with tempfile.TemporaryDirectory() as tmp:
             train_supernet(SearchSpace.from_yaml(config.space), config.data,

@@ -4,7 +4,6 @@ re-scoring for another device or budget without training anything again."""
 from __future__ import annotations
 
 import math
-
 from typing import Sequence
 
 import numpy as np
@@ -14,7 +13,16 @@ import pandas as pd
 from explorer.anytime import anytime_loss, parse_budget
 from explorer.cost.devices import DeviceProfile, get_device, path_latencies_ms
 from explorer.cost.workloads import Workload
+from explorer.data import open_dataset
+from explorer.errors import UserError
+from explorer.model.reference import REFERENCES
 from explorer.space import Candidate
+from explorer.study.config import DEFAULT_BASELINES
+from explorer.study.evaluators import _batches, recalibrate_batchnorm
+from explorer.study.retry import interrupted_trials, retries_by_origin
+from explorer.study.storage import load_study
+from explorer.supernet import load_supernet
+from explorer.training.train import network_from_checkpoint
 
 BASELINE_LABELS = {"paper": "paper design", "paper-nee": "paper design, no early exit",
                    "fastdepth": "FastDepth-like"}
@@ -28,7 +36,6 @@ def baseline_label(name: str) -> str:
 def study_baselines(study: optuna.Study) -> list[str]:
     """The baselines a study was created to compare against (--baselines), in order; for a study made
     with --no-baselines, the default ones (so that summaries can say why they are missing)."""
-    from explorer.study.config import DEFAULT_BASELINES
     chosen = study.user_attrs.get("config", {}).get("baselines", True)
     names = list(DEFAULT_BASELINES) if isinstance(chosen, bool) or not chosen else list(chosen)
     # a resumed run may have been given more (--baselines): they have trials of their own
@@ -103,7 +110,6 @@ def _reason(t: optuna.trial.FrozenTrial, interrupted: dict[int, str], retries: d
 
 
 def _reference_description(name: str | None) -> str:
-    from explorer.model.reference import REFERENCES
     return REFERENCES[name].description if name in REFERENCES else ""
 
 
@@ -111,7 +117,6 @@ def trials_frame(study: optuna.Study) -> pd.DataFrame:
     """One row per trial: state, objective value(s), baseline tag, candidate, params, MACs,
     per-path metrics and costs as stored, every recorded budget's anytime loss, and why a trial
     did not complete (rejected, pruned, failed, interrupted and tried again as which trial)."""
-    from explorer.study.retry import interrupted_trials, retries_by_origin
     rows = []
     trials = study.get_trials(deepcopy=False)
     interrupted, retries = interrupted_trials(study, trials), retries_by_origin(trials)
@@ -225,7 +230,6 @@ def missing_baselines(study: optuna.Study) -> list[dict]:
     """The baselines that have no scored trial, each as {"name", "label", "why"}, "why" saying what
     happened to it: not run (--no-baselines, or not yet: queued), still running, failed (its reason),
     interrupted and not tried again. Summaries and reports print these instead of dropping a row."""
-    from explorer.study.retry import interrupted_trials
     trials = study.get_trials(deepcopy=False)
     scored = {t.user_attrs.get("baseline") for t in scored_trials(study)}
     interrupted = interrupted_trials(study, trials)
@@ -285,7 +289,6 @@ def study_frame(study: str, storage: str | None = None, reports: str = "reports"
     """One call for notebooks: a stored study's trials as a table (see :func:`trials_frame`); the
     study object itself is in ``frame.attrs['study']``."""
     from pathlib import Path
-    from explorer.study.storage import load_study
     s = load_study(study, storage, Path(reports))
     frame = trials_frame(s)
     frame.attrs["study"] = s
@@ -297,9 +300,8 @@ def trial_network(study: optuna.Study, trial: optuna.trial.FrozenTrial):
     weights are not stored on this machine)."""
     import tempfile
     from pathlib import Path
+
     from optuna.artifacts import FileSystemArtifactStore, download_artifact
-    from explorer.errors import UserError
-    from explorer.training.train import network_from_checkpoint
     if trial.user_attrs.get("reference"):
         raise UserError(f"trial {trial.number} is the reference network {trial.user_attrs['reference']}, a baseline "
                         "for comparison: export a candidate's trial")
@@ -324,10 +326,6 @@ def _supernet_network(study: optuna.Study, trial: optuna.trial.FrozenTrial):
     """A supernet-estimated trial's network: its slice of the supernet, BatchNorm recalibrated on
     the study's training data, exactly as the search evaluated it."""
     from pathlib import Path
-    from explorer.data import open_dataset
-    from explorer.errors import UserError
-    from explorer.study.evaluators import _batches, recalibrate_batchnorm
-    from explorer.supernet import load_supernet
     file = Path(trial.user_attrs["evaluator"]["supernet"])
     if not file.is_file():
         raise UserError(f"trial {trial.number} was estimated with supernet {file}, which is not on this machine: "

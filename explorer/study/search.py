@@ -22,16 +22,44 @@ import optuna
 
 from explorer import __version__
 from explorer.cost import candidate_cost, get_device, model_cost
+from explorer.data import open_dataset
 from explorer.errors import UserError
-from explorer.space import (Candidate, SearchSpace, paper_candidate)
-from explorer.study.planning import Plan, TimeLimit
-from explorer.study.retry import StopAfterTrials, counted_trials, guarded, resume_interrupted, set_objective_names
-from explorer.study.storage import REPORTS_DIR, open_storage, study_dir
-from explorer.training.train import resolve_accelerator
-
-from explorer.study.config import (BASELINES, DEFAULT_BASELINES, OBJECTIVES, SearchConfig, baseline_model,  # noqa: F401
-                                   json_safe, objective_names)
+from explorer.space import Candidate, SearchSpace, paper_candidate
+from explorer.study import planning
+from explorer.study.config import (  # noqa: F401
+    BASELINES,
+    DEFAULT_BASELINES,
+    OBJECTIVES,
+    SearchConfig,
+    baseline_model,
+    json_safe,
+    objective_names,
+)
+from explorer.study.finalists import (
+    choose_finalists,
+    finalist_trials,
+    retrain_finalists,
+)
 from explorer.study.objective import Objective, hinted_if_asked
+from explorer.study.planning import (
+    MAX_SUPERNET_STEPS,
+    RESERVE_S,
+    STEP_GRID,
+    Plan,
+    TimeLimit,
+    replan_finalists,
+    replan_sampling,
+)
+from explorer.study.retry import (
+    StopAfterTrials,
+    counted_trials,
+    guarded,
+    resume_interrupted,
+    set_objective_names,
+)
+from explorer.study.storage import REPORTS_DIR, open_storage, study_dir
+from explorer.supernet import default_path, load_supernet, read_supernet, train_supernet
+from explorer.training.train import resolve_accelerator
 
 
 def make_sampler(config: SearchConfig, worker: int = 0) -> optuna.samplers.BaseSampler:
@@ -153,7 +181,6 @@ def ensure_supernet(config: SearchConfig, progress: Callable[[int, int, dict], N
     (space, data, recipe), trained here first if it is missing or unfinished."""
     if config.evaluator != "supernet":
         return None
-    from explorer.supernet import default_path, load_supernet, train_supernet
     space = SearchSpace.from_yaml(config.space)
     if config.supernet:
         load_supernet(config.supernet, space)  # one clear line if it is foreign, corrupt or unfinished
@@ -172,8 +199,6 @@ def _existing_config(storage: optuna.storages.BaseStorage, name: str) -> dict | 
 
 def _cached_supernet_steps(config: SearchConfig) -> list[int]:
     """Step counts of the finished supernets cached for this space, data and recipe (steps aside)."""
-    from explorer.study.planning import MAX_SUPERNET_STEPS, STEP_GRID
-    from explorer.supernet import default_path, read_supernet
     space = SearchSpace.from_yaml(config.space)
     found = []
     for steps in sorted({*range(STEP_GRID, MAX_SUPERNET_STEPS + 1, STEP_GRID), config.supernet_steps}):
@@ -210,8 +235,6 @@ def plan_search(config: SearchConfig, storage: optuna.storages.BaseStorage, limi
                 sampling_s: float | None, on_data: Callable[[int, int], None] | None = None):
     """(config as it will run, plan, speeds): the data generated, the machine measured, the run sized
     to what is left of ``limit`` (see explorer.study.planning)."""
-    from explorer.study import planning
-    from explorer.data import open_dataset
     free = set(limit.free)
     old = _existing_config(storage, config.study)
     if old and "supernet_steps" in free and "supernet_steps" in old:
@@ -255,8 +278,6 @@ def _measured_baselines(config: SearchConfig) -> tuple[str, ...]:
 def _measure_again(config: SearchConfig, speeds, finalists: tuple[Candidate, ...] = ()):
     """The retraining speeds measured again, the ``finalists`` chosen by now with them (the supernet's
     is kept: it is trained by now)."""
-    from explorer.study import planning
-    from explorer.data import open_dataset
     train_set = open_dataset(config.data, "train", config.train_size, seed=config.seed)
     val_set = open_dataset(config.data, "val", config.train_size, train_augment=False)
     fresh = planning.measure_speeds(config, train_set, val_set, resolve_accelerator(config.accelerator), supernet=False,
@@ -307,7 +328,6 @@ def search(config: SearchConfig, storage_url: str | None = None, workers: int = 
     if supernet is not None:
         study.set_user_attr("supernet", str(supernet.resolve()))
     if plan is not None:
-        from explorer.study.planning import replan_sampling
         plan = replan_sampling(plan, time_limit.remaining(), sampling_cap)
         timeout_s = plan.sampling_s
         _publish_plan(study, plan, on_plan)
@@ -338,7 +358,6 @@ def _run_workers(study: optuna.Study, config: SearchConfig, url: str, workers: i
                  on_data: Callable[[int, int], None] | None) -> None:
     """Samples in ``workers`` spawned processes sharing the study at ``url`` (the cores split among
     them), polling the study every 2 s until all have finished."""
-    from explorer.data import open_dataset
     open_dataset(config.data, "val", config.train_size, progress=on_data)  # generate once, not per worker
     import multiprocessing as mp
     ctx = mp.get_context("spawn")
@@ -365,8 +384,6 @@ def _replan_finalists(study: optuna.Study, config: SearchConfig, plan: "Plan", s
                       ) -> tuple[SearchConfig, "Plan"]:
     """Sizes the finalists' retraining to what is left of ``time_limit`` once sampling is over:
     (config with the finalists and steps that fit, the plan as re-made)."""
-    from explorer.study.finalists import choose_finalists, finalist_trials
-    from explorer.study.planning import replan_finalists
     done = [t.user_attrs["finalist"]["recipe"]["steps"] for t in finalist_trials(study)]
     steps_free = "finalist_steps" in time_limit.free and not done   # a resumed study keeps its recipe
     # the machine may be busier or freer than when it was first measured, and the finalists are known
@@ -388,12 +405,10 @@ def _retrain_finalists(study: optuna.Study, config: SearchConfig, plan: "Plan | 
                        on_finalist: Callable[[int, int, str], None] | None,
                        on_plan: Callable[["Plan"], None] | None) -> tuple[SearchConfig, "Plan | None"]:
     """Retrains the finalists and the baselines; (config, plan) counting the finalists retrained."""
-    from explorer.study.finalists import finalist_trials, retrain_finalists
     # the re-plan stood on a few steps' measurement: finalists it dropped are retrained after the
     # others when the time those took says they still fit
     extra, deadline = 0, None
     if plan is not None:   # the time limit holds even when the machine slowed after planning
-        from explorer.study.planning import RESERVE_S
         extra = max(wanted[0] - config.finalists, 0) if "finalists" in time_limit.free else 0
         deadline = time_limit.started + time_limit.seconds - RESERVE_S
     retrain_finalists(study, config, reports, progress=on_finalist, extra=extra, deadline=deadline)

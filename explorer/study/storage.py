@@ -11,6 +11,7 @@ from pathlib import Path
 import optuna
 
 from explorer.errors import UserError
+from explorer.study.retry import rdb_retry_kwargs
 
 REPORTS_DIR = Path("reports")
 # RDB storage (PostgreSQL): a running trial records a heartbeat every HEARTBEAT_S seconds; one silent
@@ -113,7 +114,6 @@ def open_storage(url: str | None, study: str, workers: int = 1, reports: Path = 
     kwargs = {}
     if not url.startswith("sqlite"):
         # crashed workers' trials are failed by the others after the grace period, and retried
-        from explorer.study.retry import rdb_retry_kwargs
         interval, grace = heartbeat_settings()
         kwargs = {"heartbeat_interval": interval, "grace_period": grace, **rdb_retry_kwargs(max_retries, grace)}
     try:

@@ -21,6 +21,7 @@ import torch
 from torch import nn
 from torch.func import functional_call
 
+from explorer.errors import UserError
 from explorer.model import AnytimeDepthNet, build_network, stage_specs
 from explorer.model.image_encoder import ImageEncoder, ImageEncoderConfig
 from explorer.model.network import StageSpec
@@ -111,7 +112,6 @@ class Supernet(nn.Module):
         # the weights do not depend on the precision a candidate is deployed at
         as_searched = dataclasses.replace(candidate, precision=self.space.precision[0])
         if not self.space.contains(as_searched) and candidate != self.largest:
-            from explorer.errors import UserError
             raise UserError(f"candidate {candidate.key} is outside the supernet's space '{self.space.name}': "
                             "train a supernet for a space that contains it")
         with torch.device("meta"):

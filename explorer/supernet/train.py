@@ -27,11 +27,19 @@ from typing import Callable
 import torch
 from torch.utils.data import DataLoader
 
+from explorer.data import open_dataset
+from explorer.data.synthetic import cache_dir
 from explorer.errors import UserError
 from explorer.space import Candidate, SearchSpace, check_size
-from explorer.supernet.network import (Supernet, largest_candidate, random_training_subnet, smallest_candidate,
-                                       space_identity, space_key)
-from explorer.training.train import batch_row, lr_at, TrainConfig, multi_exit_loss
+from explorer.supernet.network import (
+    Supernet,
+    largest_candidate,
+    random_training_subnet,
+    smallest_candidate,
+    space_identity,
+    space_key,
+)
+from explorer.training.train import TrainConfig, batch_row, lr_at, multi_exit_loss
 
 FORMAT = "anytime-explorer-supernet/1"
 TEACHER_DEPTHS = ("cycle", "max")
@@ -80,7 +88,6 @@ def cache_key(space: SearchSpace, data: str, recipe: SupernetRecipe) -> str:
 
 def default_path(space: SearchSpace, data: str, recipe: SupernetRecipe) -> Path:
     """Where the supernet of (space, data, recipe) is cached, next to the generated data."""
-    from explorer.data.synthetic import cache_dir
     return cache_dir() / "supernets" / f"{space.name}-{cache_key(space, data, recipe)}.pt"
 
 
@@ -208,7 +215,6 @@ def train_supernet(space: SearchSpace, data: str, recipe: SupernetRecipe = Super
     where there is one, else the CPU). ``stop_after_steps`` ends this call after that many more steps,
     short of ``recipe.steps``, with the file saved to resume from. The file is saved every
     ``checkpoint_every`` steps and at least every ``checkpoint_seconds``: a killed run loses at most that."""
-    from explorer.data import open_dataset
     out = Path(out) if out else default_path(space, data, recipe)
     rank, world, accelerator = _distributed(accelerator)
     _check_recipe(recipe, world, space)

@@ -23,8 +23,16 @@ from typing import Callable
 import torch
 from torch.utils.data import DataLoader, Dataset
 
+from explorer.data.synthetic import cache_dir
 from explorer.model.exits import interpolate_scan
-from explorer.training.selfsup import MIN_DEPTH, SCAN_WEIGHT, reprojection_loss, scan_l1, smoothness, warp
+from explorer.training.selfsup import (
+    MIN_DEPTH,
+    SCAN_WEIGHT,
+    reprojection_loss,
+    scan_l1,
+    smoothness,
+    warp,
+)
 
 #: Adam steps on the free depth map, its step (metres) and its smoothness weight: where the optimisation
 #: of 48 validation frames at 64x64 stops improving (RMSE 0.348 -> 0.25 m at 150 steps, 0.22 m at 400).
@@ -97,7 +105,6 @@ def with_hints(dataset, steps: int = STEPS, cache: Path | None = None,
                progress: Callable[[int, int], None] | None = None) -> HintedDataset:
     """``dataset`` with a depth hint for every item, computed once (in order, ``BATCH`` at a time) and
     cached; an interrupted computation starts again, never leaving half a file."""
-    from explorer.data.synthetic import cache_dir
     path = (cache or cache_dir()) / f"hints-{_fingerprint(dataset, steps)}.pt"
     if path.is_file():
         try:   # tensors only: a cache file is never code

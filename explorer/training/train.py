@@ -13,10 +13,13 @@ import pandas as pd
 import torch
 from torch.utils.data import DataLoader
 
+from explorer.data import parse_data_spec
 from explorer.errors import UserError
 from explorer.metrics import MetricAverager, batch_depth_metrics, depth_metrics
 from explorer.model import AnytimeDepthNet, build_network
 from explorer.space import Candidate
+from explorer.training.depth_hints import HintedDataset, with_hints
+from explorer.training.selfsup import POSE_SOURCES, SUPERVISIONS, SelfSupervisedLoss
 
 
 @dataclass(frozen=True)
@@ -53,7 +56,6 @@ class TrainConfig:
         return self.supervision != "self" or self.scan_loss or self.poses == "given"
 
     def validate(self) -> None:
-        from explorer.training.selfsup import POSE_SOURCES, SUPERVISIONS
         if self.supervision not in SUPERVISIONS:
             raise UserError(f"supervision '{self.supervision}': use one of {', '.join(SUPERVISIONS)}")
         if self.poses not in POSE_SOURCES:
@@ -126,7 +128,6 @@ def _training_loss(cfg: TrainConfig, selfsup, outs: list[torch.Tensor], batch: d
 
 def check_spec_for(cfg: TrainConfig, spec: str) -> None:
     """What ``check_data_for`` can tell from the data spec alone, before any frame is read or generated."""
-    from explorer.data import parse_data_spec
     if cfg.supervision != "supervised" and not parse_data_spec(spec).is_sequence:
         raise UserError(f"--supervision {cfg.supervision} needs sequence data (synthetic-seq, "
                         f"kitti-seq:DRIVE or frames:FOLDER), not single frames ({spec})")
@@ -361,10 +362,8 @@ def _self_supervision(cfg: TrainConfig, train_set, accelerator: torch.device):
     carry each frame's hint (computed once per data set, cached)."""
     if cfg.supervision == "supervised":
         return train_set, None
-    from explorer.training.selfsup import SelfSupervisedLoss
     check_data_for(cfg, train_set)
     if cfg.hints:
-        from explorer.training.depth_hints import HintedDataset, with_hints
         if not isinstance(train_set, HintedDataset):
             train_set = with_hints(train_set)
     return train_set, SelfSupervisedLoss(cfg.poses, cfg.scan_loss).to(accelerator)
