@@ -226,6 +226,15 @@ class DeviceProfile:
         return cls.from_dict(data, str(p))
 
 
+def check_budget_priced(profile: DeviceProfile, budget) -> None:
+    """An energy budget needs a profile that prices energy: on one that does not, every path would cost
+    0 J and the anytime loss would say nothing. ``budget``: a parsed budget distribution."""
+    if budget.kind == "energy" and profile.energy_fixed_j == 0 and profile.active_power_w == 0:
+        raise UserError(f"device profile {profile.name} prices no energy, so an energy budget ({budget.spec}) "
+                        "cannot rank anything: give a time budget, or a profile with energy figures "
+                        "(explorer devices)")
+
+
 def _round(x: float) -> float:
     return float(f"{x:.6g}")
 

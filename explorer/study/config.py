@@ -9,6 +9,7 @@ from typing import Callable
 
 from explorer.anytime import parse_budget
 from explorer.cost import get_device
+from explorer.cost.devices import check_budget_priced
 from explorer.data import parse_data_spec
 from explorer.errors import UserError
 from explorer.model.reference import REFERENCES, ReferenceModel
@@ -123,8 +124,9 @@ class SearchConfig:
         get_device(self.device)
         if not self.budgets:
             raise UserError("give at least one --budget")
+        profile = get_device(self.device)
         for b in self.budgets:
-            parse_budget(b)
+            check_budget_priced(profile, parse_budget(b))
         bad = [o for o in self.objectives if o not in OBJECTIVES]
         if bad or not self.objectives or self.objectives[0] != "anytime_loss":
             raise UserError(f"--objectives must start with anytime_loss and use only {list(OBJECTIVES)}")

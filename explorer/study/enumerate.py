@@ -10,7 +10,7 @@ from typing import Callable, Iterator
 import pandas as pd
 
 from explorer.anytime import BudgetDistribution, interval_probabilities, parse_budget
-from explorer.cost.devices import DeviceProfile, get_device
+from explorer.cost.devices import DeviceProfile, check_budget_priced, get_device
 from explorer.cost.workloads import stage_cost
 from explorer.model.network import stage_specs
 from explorer.space import SearchSpace
@@ -29,6 +29,7 @@ def candidate_rows(space: SearchSpace, device: str | DeviceProfile, budget: str 
                    input_size: tuple[int, int] = (224, 224)) -> Iterator[dict]:
     profile = get_device(device)
     dist = parse_budget(budget)
+    check_budget_priced(profile, dist)
     totals = _stage_totals(profile)
     h, w = input_size
     for cand in space.enumerate():

@@ -11,7 +11,7 @@ import optuna
 import pandas as pd
 
 from explorer.anytime import anytime_loss, parse_budget
-from explorer.cost.devices import DeviceProfile, get_device, path_latencies_ms
+from explorer.cost.devices import DeviceProfile, check_budget_priced, get_device, path_latencies_ms
 from explorer.cost.workloads import Workload
 from explorer.data import open_dataset
 from explorer.errors import UserError
@@ -153,6 +153,8 @@ def rescore(study: optuna.Study, device: str | DeviceProfile, budgets: Sequence[
     what the study stored: no network is built or trained."""
     profile = get_device(device)
     dists = [parse_budget(b) for b in budgets]
+    for d in dists:
+        check_budget_priced(profile, d)
     rows = []
     for t in scored_trials(study):
         row = {"number": t.number, "baseline": t.user_attrs.get("baseline", ""),

@@ -94,6 +94,8 @@ BAD = {
     "not a journal": ["rescore", "--study", "s", "--storage", "journal:notjournal.log", "--device", "tx2",
                       "--budget", "time:uniform:33ms"],
     "trace of zeros": ["enumerate", "--space", "paper", "--budget", "time:trace:zeros.csv"],
+    "energy without energy": ["enumerate", "--space", "paper", "--device", "tx2-cpu", "--budget",
+                              "energy:uniform:0.5J"],
     "nan loss": ["anytime", "--path", "5:nan", "--budget", "time:uniform:33ms"],
     "negative loss": ["anytime", "--path", "5:-0.5", "--budget", "time:uniform:33ms"],
     "study name": ["search", "--study", "a b<>", "--trials", "1"],
