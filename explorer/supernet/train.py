@@ -30,6 +30,7 @@ from torch.utils.data import DataLoader
 from explorer.data import open_dataset
 from explorer.data.synthetic import cache_dir
 from explorer.errors import UserError
+from explorer.files import remove_dead_scratch
 from explorer.space import Candidate, SearchSpace, check_size
 from explorer.supernet.network import (
     Supernet,
@@ -105,7 +106,8 @@ def save(path: Path, net: Supernet, recipe: SupernetRecipe, data: str, step: int
              "recipe": recipe.to_dict(), "step": step, "complete": step >= recipe.steps,
              "state_dict": net.state_dict(), "optimizer": optimizer.state_dict() if optimizer else None,
              "history": history, "seconds": seconds}
-    tmp = path.with_name(path.name + ".tmp")
+    remove_dead_scratch(path.parent)   # what a save killed midway left (a supernet is tens of MB)
+    tmp = path.with_name(f"{path.name}.tmp{os.getpid()}")
     torch.save(state, tmp)
     tmp.replace(path)  # a kill never leaves a half-written file
 

@@ -4,6 +4,7 @@ for search, checkpoints and resume, per-path evaluation."""
 from __future__ import annotations
 
 import dataclasses
+import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -15,6 +16,7 @@ from torch.utils.data import DataLoader
 
 from explorer.data import parse_data_spec
 from explorer.errors import UserError
+from explorer.files import remove_dead_scratch
 from explorer.metrics import MetricAverager, batch_depth_metrics, depth_metrics
 from explorer.model import AnytimeDepthNet, build_network
 from explorer.space import Candidate
@@ -234,7 +236,8 @@ def save_checkpoint(path: Path, net: AnytimeDepthNet, cfg: TrainConfig, step: in
     path.parent.mkdir(parents=True, exist_ok=True)
     state = {"candidate": net.candidate.to_dict(), "state_dict": net.state_dict(), "train_config": cfg.to_dict(),
              "step": step, "optimizer": optimizer.state_dict() if optimizer else None, **(extra or {})}
-    tmp = path.with_suffix(".tmp")
+    remove_dead_scratch(path.parent)   # what a save killed midway left
+    tmp = path.with_name(f"{path.name}.tmp{os.getpid()}")
     torch.save(state, tmp)
     tmp.replace(path)  # never leave a half-written checkpoint
 

@@ -58,3 +58,16 @@ def test_encoder_weights_loaded_from_a_state_dict(tmp_path):
     bad.write_bytes(b"not a torch file")
     with pytest.raises(UserError, match="unreadable"):
         load_encoder_weights(net, bad)
+
+
+def test_a_checkpoint_save_cleans_what_a_killed_save_left(tmp_path):
+    import subprocess
+    import sys
+    from explorer.model import build_network
+    from explorer.space import paper_candidate
+    from explorer.training.train import TrainConfig, save_checkpoint
+    child = subprocess.Popen([sys.executable, "-c", "pass"])
+    child.wait()
+    (tmp_path / f"c.pt.tmp{child.pid}").write_bytes(b"half a checkpoint")
+    save_checkpoint(tmp_path / "c.pt", build_network(paper_candidate()), TrainConfig(), 1)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["c.pt"]
