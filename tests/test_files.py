@@ -12,6 +12,14 @@ from hypothesis import strategies as st
 from explorer.errors import UserError
 from explorer.files import MAX_TEXT_BYTES, read_json, read_yaml, write_atomically, write_json
 
+def _reads_or_says_one_line(read, path) -> None:
+    """``read(path)`` returns, or raises the package's user error in one line naming the file."""
+    try:
+        read(path)
+    except UserError as exc:
+        assert "\n" not in str(exc) and str(path) in str(exc)
+
+
 FILE_SETTINGS = settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 
 
@@ -20,10 +28,7 @@ FILE_SETTINGS = settings(max_examples=150, deadline=None, suppress_health_check=
 def test_any_bytes_parse_as_yaml_or_are_one_user_error(tmp_path, raw):
     path = tmp_path / "x.yaml"
     path.write_bytes(raw)
-    try:
-        read_yaml(path)
-    except UserError as exc:
-        assert "\n" not in str(exc) and str(path) in str(exc)
+    _reads_or_says_one_line(read_yaml, path)
 
 
 @FILE_SETTINGS
@@ -31,10 +36,7 @@ def test_any_bytes_parse_as_yaml_or_are_one_user_error(tmp_path, raw):
 def test_any_yaml_like_text_parses_or_is_one_user_error(tmp_path, text):
     path = tmp_path / "x.yaml"
     path.write_text(text)
-    try:
-        read_yaml(path)
-    except UserError as exc:
-        assert "\n" not in str(exc)
+    _reads_or_says_one_line(read_yaml, path)
 
 
 @FILE_SETTINGS
@@ -42,10 +44,7 @@ def test_any_yaml_like_text_parses_or_is_one_user_error(tmp_path, text):
 def test_any_text_parses_as_json_or_is_one_user_error(tmp_path, text):
     path = tmp_path / "x.json"
     path.write_text(text)
-    try:
-        read_json(path)
-    except UserError as exc:
-        assert "\n" not in str(exc)
+    _reads_or_says_one_line(read_json, path)
 
 
 def test_an_alias_bomb_is_refused_at_once(tmp_path):

@@ -25,17 +25,18 @@ SPACE_KEYS = st.sampled_from(["name", "image_encoder", "lidar_encoder", "ecu", "
                               "description", "encoder_blocks", "width_mult", "widths", "optional"])
 
 
-def _one_line(exc: UserError) -> None:
-    assert "\n" not in str(exc)
+def _parses_or_says_one_line(parse, *args) -> None:
+    """``parse(*args)`` returns, or raises the package's user error in one line; nothing else."""
+    try:
+        parse(*args)
+    except UserError as exc:
+        assert "\n" not in str(exc)
 
 
 @SETTINGS
 @given(st.text(alphabet="synthetic-seqnyukittiframes:/0123456789.x", max_size=30))
 def test_data_specs(spec):
-    try:
-        parse_data_spec(spec)
-    except UserError as exc:
-        _one_line(exc)
+    _parses_or_says_one_line(parse_data_spec, spec)
 
 
 @SETTINGS
@@ -52,20 +53,14 @@ def test_sizes(text):
 @SETTINGS
 @given(st.dictionaries(SPACE_KEYS, VALUES, max_size=6))
 def test_search_spaces(data):
-    try:
-        SearchSpace.from_dict(data)
-    except UserError as exc:
-        _one_line(exc)
+    _parses_or_says_one_line(SearchSpace.from_dict, data)
 
 
 @SETTINGS
 @given(st.dictionaries(st.sampled_from(["encoder_blocks", "width_mult", "ecu", "decoder_widths", "exits",
                                         "head_depth", "precision", "lidar_depth", "bogus"]), VALUES, max_size=5))
 def test_candidates(data):
-    try:
-        Candidate.from_dict(data)
-    except UserError as exc:
-        _one_line(exc)
+    _parses_or_says_one_line(Candidate.from_dict, data)
 
 
 @SETTINGS
@@ -73,20 +68,14 @@ def test_candidates(data):
                        max_size=6))
 def test_export_manifests(tmp_path, data):
     (tmp_path / "manifest.json").write_text(json.dumps(data))
-    try:
-        read_manifest(tmp_path)
-    except UserError as exc:
-        _one_line(exc)
+    _parses_or_says_one_line(read_manifest, tmp_path)
 
 
 @SETTINGS
 @given(st.dictionaries(st.sampled_from(["format", "version", "bundle", "device", "conditions", "layers", "stages"]),
                        VALUES, max_size=7))
 def test_probe_results(data):
-    try:
-        check_results(data, "results.json")
-    except UserError as exc:
-        _one_line(exc)
+    _parses_or_says_one_line(check_results, data, "results.json")
 
 
 @SETTINGS
@@ -94,7 +83,4 @@ def test_probe_results(data):
 def test_space_yaml_files(tmp_path, data):
     path = tmp_path / "space.yaml"
     path.write_text(yaml.safe_dump(data))
-    try:
-        SearchSpace.from_yaml(path)
-    except UserError as exc:
-        _one_line(exc)
+    _parses_or_says_one_line(SearchSpace.from_yaml, path)
