@@ -87,11 +87,8 @@ def _add_provider(s: argparse.ArgumentParser) -> None:
 
 def _check_provider(provider: str) -> None:
     """A provider this onnxruntime lacks is one line naming those it has, before any work starts."""
-    from explorer.probe import ProbeError, check_provider
-    try:
-        check_provider(provider)
-    except ProbeError as exc:
-        raise UserError(str(exc)) from None
+    from explorer.deploy.sessions import check_provider
+    check_provider(provider)
 
 
 def _size(text: str) -> tuple[int, int]:

@@ -105,9 +105,7 @@ def cmd_supernet_train(args) -> None:
     from explorer.supernet import SupernetRecipe, default_path, train_supernet
     from explorer.supernet.train import read
     from explorer.training.train import resolve_accelerator
-    space = SearchSpace.from_yaml(args.space)
-    if args.steps < 1 or args.random_subnets < 0 or args.micro_batches < 1 or args.batch_size < 1:
-        raise UserError("--steps, --batch-size and --micro-batches must be at least 1, --random-subnets at least 0")
+    space = SearchSpace.from_yaml(args.space)   # the numbers were checked by check_numbers (AT_LEAST)
     recipe = SupernetRecipe(steps=args.steps, batch_size=args.batch_size, input_size=args.train_size, lr=args.lr,
                             lr_end=args.lr / 10, random_subnets=args.random_subnets,
                             micro_batches=args.micro_batches, seed=args.seed, teacher_depths=args.teacher_depths)

@@ -101,11 +101,8 @@ class AnytimeRunner:
         import onnxruntime as ort
 
         from explorer.deploy.sessions import session
-        from explorer.probe import ProbeError, check_provider, shared_arena
-        try:
-            check_provider(provider)
-        except ProbeError as exc:
-            raise UserError(str(exc)) from None
+        from explorer.probe import shared_arena
+        check_provider(provider)
         if arenas not in ARENAS:
             raise UserError(f"arenas={arenas!r}: use one of {', '.join(ARENAS)}")
         self.provider = provider
