@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import os
 from pathlib import Path
 
@@ -102,21 +103,18 @@ def cmd_evaluate(args) -> None:
 def cmd_supernet_train(args) -> None:
     from explorer.console import console, progress
     from explorer.space import SearchSpace
-    from explorer.supernet import SupernetRecipe, default_path, train_supernet
+    from explorer.supernet import default_path, train_supernet
     from explorer.supernet.train import read
     from explorer.training.train import resolve_accelerator
     space = SearchSpace.from_yaml(args.space)   # the numbers were checked by check_numbers (AT_LEAST)
-    recipe = SupernetRecipe(steps=args.steps, batch_size=args.batch_size, input_size=args.train_size, lr=args.lr,
-                            lr_end=args.lr / 10, random_subnets=args.random_subnets,
-                            micro_batches=args.micro_batches, seed=args.seed, teacher_depths=args.teacher_depths)
+    recipe = supernet_recipe(args)
     out = Path(args.out) if args.out else default_path(space, args.data, recipe)
     with progress() as bar:
         task = bar.add_task("supernet", total=recipe.steps, status="")
         data = bar.add_task("data", total=None, status="", visible=False)
         path = train_supernet(
             space, args.data, recipe, out, resolve_accelerator(args.accelerator),
-            progress=lambda s, n, r: bar.update(task, completed=s, status=f"largest {r['largest']:.3f}, "
-                                                f"smallest {r['smallest']:.3f}, random {r['random']:.3f}"),
+            progress=lambda s, n, r: bar.update(task, completed=s, status=_supernet_status(r)),
             data_progress=lambda i, n: bar.update(data, completed=i, total=n, visible=True,
                                                   description="generating synthetic scenes (once)"),
             checkpoint_every=max(args.checkpoint_every, 1), stop_after_steps=args.stop_after_steps)
@@ -125,6 +123,27 @@ def cmd_supernet_train(args) -> None:
     state = read(path)
     console.print(f"supernet of {space.name}: {path} (step {state['step']}/{recipe.steps}, "
                   f"{state['seconds'] / 60:.1f} min of training)")
+
+
+def supernet_recipe(args):
+    """The ``--recipe`` named, with the options given on the command line in its place."""
+    import dataclasses
+    from explorer.supernet.train import RECIPES
+    changes = {k: v for k, v in (("steps", args.steps), ("batch_size", args.batch_size),
+                                 ("input_size", args.train_size), ("lr", args.lr), ("amp", args.amp)) if v is not None}
+    if args.lr is not None:
+        changes["lr_end"] = args.lr / 10
+    return dataclasses.replace(RECIPES[args.recipe], **changes, random_subnets=args.random_subnets,
+                               micro_batches=args.micro_batches, seed=args.seed, teacher_depths=args.teacher_depths)
+
+
+def _supernet_status(record: dict) -> str:
+    """The losses, the last step's time and, on CUDA, the most GPU memory held so far."""
+    text = (f"largest {record['largest']:.3f}, smallest {record['smallest']:.3f}, random {record['random']:.3f}, "
+            f"{record['step_seconds']:.3f} s/step")
+    if "gpu_memory_mb" in record:
+        text += f", GPU {record['gpu_memory_mb']:.0f} MiB"
+    return text
 
 
 def cmd_supernet_show(args) -> None:
@@ -189,12 +208,18 @@ def register(sub, add, reports: dict) -> None:
                         "(torchrun --nproc_per_node N -m explorer supernet train ...).")
     s.add_argument("--space", default="anytime_depth")
     s.add_argument("--data", default="synthetic")
-    s.add_argument("--steps", type=int, default=600, help="training steps (default 600, what a search uses)")
-    s.add_argument("--train-size", type=_size, default=(64, 64), help="training resolution HxW (default 64x64)")
+    s.add_argument("--recipe", default="default", choices=["default", "gpu"],
+                   help="default: 64x64, batches of 16, float32 (what a search trains on a CPU); gpu: 224x224, "
+                   "batches of 64, bf16 autocast (keeps a GPU busy). --steps, --train-size, --batch-size, --lr "
+                   "and --amp override the recipe's")
+    s.add_argument("--steps", type=int, help="training steps (default 600, what a search uses)")
+    s.add_argument("--train-size", type=_size, help="training resolution HxW (default: the recipe's)")
     deprecated_alias(s, "--input-size", "--train-size")
     deprecated_alias(s, "--input", "--train-size")
-    s.add_argument("--batch-size", type=int, default=16, help="global batch (over all processes)")
-    s.add_argument("--lr", type=float, default=2e-3)
+    s.add_argument("--batch-size", type=int, help="global batch over all processes (default: the recipe's)")
+    s.add_argument("--lr", type=float, help="peak learning rate, decaying to a tenth (default 2e-3)")
+    s.add_argument("--amp", action=argparse.BooleanOptionalAction, default=None,
+                   help="bf16 autocast of the forward passes (default: the recipe's; on a CPU it is slower)")
     s.add_argument("--random-subnets", type=int, default=1, help="random subnets per step besides the largest "
                    "and the smallest (default 1)")
     s.add_argument("--teacher-depths", choices=["cycle", "max"], default="cycle",

@@ -33,6 +33,9 @@ SPEC_HELP = ("data specs: synthetic, synthetic:TRAIN:VAL, nyu:PATH (h5 folder or
              "sequences: synthetic-seq[:TRAIN:VAL], kitti-seq:DRIVE, frames:FOLDER")
 SEQUENCE_KINDS = ("synthetic-seq", "kitti-seq", "frames")
 _GENERATED_DEFAULTS = {"synthetic": (2000, 200), "synthetic-seq": (1200, 120)}
+#: kinds whose training augmentation is a horizontal flip alone (FastDepth's NYU recipe also scales,
+#: rotates and jitters colours): their frames can be prepared once and flipped per batch
+FLIP_ONLY_KINDS = ("synthetic", "kitti")
 
 
 @dataclass(frozen=True)
@@ -102,11 +105,29 @@ class DepthDataset(Dataset):
     def __len__(self) -> int:
         return len(self.frames)
 
-    def _transform(self, f: RawFrame, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    def flipped(self, i: int) -> bool:
+        """Whether item ``i`` is mirrored this epoch (its generator's first draw, as ``__getitem__`` makes
+        it) on data whose training augmentation is a flip alone (``FLIP_ONLY_KINDS``)."""
+        return self.train and np.random.default_rng([self.seed, self.epoch, i]).random() < 0.5
+
+    def unflipped(self, i: int) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, int | None]:
+        """Item ``i`` at the input size before any flip: (rgb uint8 (H, W, 3), depth float32 (H, W), and
+        the scan and its row where the data measured one, else None, None) for ``FLIP_ONLY_KINDS``."""
+        if self.kind not in FLIP_ONLY_KINDS:
+            raise ValueError(f"{self.kind} frames are augmented beyond a flip")
+        rgb, depth, scan_img = self._transform(self.frames[i], None, train=False)
+        if scan_img is None:
+            return rgb, depth, None, None
+        scan, row = scan_from_image(np.ascontiguousarray(scan_img))
+        return rgb, depth, scan, row
+
+    def _transform(self, f: RawFrame, rng: np.random.Generator | None, train: bool | None = None
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
         size = self.input_size
         scan_img = f.scan_image
+        train = self.train if train is None else train
         if self.kind == "nyu":
-            if self.train:
+            if train:
                 rgb, depth = T.nyu_train(f.rgb, f.depth, size, rng)
             else:
                 rgb, depth = T.nyu_val(f.rgb, f.depth, size)
@@ -114,12 +135,12 @@ class DepthDataset(Dataset):
             rgb, depth = T.kitti_val(f.rgb, f.depth, size)
             if scan_img is not None:
                 _, scan_img = T.kitti_val(f.rgb, scan_img, size)
-            if self.train and rng.random() < 0.5:
+            if train and rng.random() < 0.5:
                 rgb, depth = rgb[:, ::-1], depth[:, ::-1]
                 scan_img = scan_img[:, ::-1] if scan_img is not None else None
         else:
             rgb, depth = T.resize_rgb(f.rgb, size), T.resize_nearest(f.depth, size)
-            if self.train and rng.random() < 0.5:
+            if train and rng.random() < 0.5:
                 rgb, depth = rgb[:, ::-1], depth[:, ::-1]
         return np.ascontiguousarray(rgb), np.ascontiguousarray(depth), scan_img
 

@@ -25,9 +25,9 @@ from pathlib import Path
 from typing import Callable
 
 import torch
-from torch.utils.data import DataLoader
 
 from explorer.data import open_dataset
+from explorer.data.resident import training_batches
 from explorer.data.synthetic import cache_dir
 from explorer.errors import UserError
 from explorer.files import remove_dead_scratch
@@ -61,6 +61,7 @@ class SupernetRecipe:
     teacher_depths: str = "cycle"    # "cycle": the largest subnet's encoder depth turns over the space's; "max"
     micro_batches: int = 1           # per process; BatchNorm statistics are per micro-batch
     seed: int = 0
+    amp: bool = False                # bf16 autocast of the forward passes (the GPU recipe's)
 
     def to_dict(self) -> dict:
         d = dataclasses.asdict(self)
@@ -78,7 +79,15 @@ class SupernetRecipe:
         """What changes the trained weights' meaning (how the work is spread does not)."""
         d = self.to_dict()
         d.pop("micro_batches")
+        if not d["amp"]:     # files and caches made before the field keep their keys
+            d.pop("amp")
         return d
+
+
+#: named recipes (``explorer supernet train --recipe``): the default fits a laptop's CPU; "gpu" trains
+#: at the deployment resolution, with batches that keep a GPU's cores busy, under bf16 autocast
+RECIPES = {"default": SupernetRecipe(),
+           "gpu": SupernetRecipe(batch_size=64, input_size=(224, 224), amp=True)}
 
 
 def cache_key(space: SearchSpace, data: str, recipe: SupernetRecipe) -> str:
@@ -166,7 +175,8 @@ def _distributed(accelerator: torch.device | None) -> tuple[int, int, torch.devi
     """(rank, world size, the device this process trains on). Under torchrun, torch.distributed is
     initialised with the backend the accelerator needs (NCCL for CUDA tensors, gloo for CPU ones), and a
     CUDA accelerator without an index becomes this process's own GPU, ``cuda:LOCAL_RANK`` (made the
-    current device, so that NCCL and every kernel see one GPU per process)."""
+    current device, so that NCCL and every kernel see one GPU per process). More processes on a machine
+    than it has GPUs share them, and then reduce through gloo: NCCL refuses two ranks on one GPU."""
     world = int(os.environ.get("WORLD_SIZE", "1"))
     if accelerator is None:
         accelerator = torch.device("cuda" if torch.cuda.is_available() else "cpu")
@@ -179,8 +189,16 @@ def _distributed(accelerator: torch.device | None) -> tuple[int, int, torch.devi
         return 0, 1, accelerator
     import torch.distributed as dist
     if not dist.is_initialized():
-        dist.init_process_group("nccl" if accelerator.type == "cuda" else "gloo")
+        dist.init_process_group(_backend(accelerator))
     return dist.get_rank(), dist.get_world_size(), accelerator
+
+
+def _backend(accelerator: torch.device) -> str:
+    """NCCL where each local process has a GPU of its own, else gloo (CPU tensors, or GPUs shared)."""
+    if accelerator.type != "cuda":
+        return "gloo"
+    local = int(os.environ.get("LOCAL_WORLD_SIZE", os.environ.get("WORLD_SIZE", "1")))
+    return "nccl" if local <= torch.cuda.device_count() else "gloo"
 
 
 def _subnet_loss(outs: list[torch.Tensor], target: torch.Tensor, teacher: torch.Tensor | None,
@@ -228,14 +246,14 @@ def train_supernet(space: SearchSpace, data: str, recipe: SupernetRecipe = Super
         return out
     train_set = open_dataset(data, "train", recipe.input_size, seed=recipe.seed, progress=data_progress)
     gen = torch.Generator().manual_seed(recipe.seed)
-    loader = DataLoader(train_set, batch_size=recipe.batch_size, shuffle=True, generator=gen, drop_last=True)
+    loader = training_batches(train_set, recipe.batch_size, gen, accelerator)   # on the device where it fits
     if len(loader) == 0:
         raise UserError(f"data {data}: {len(train_set)} training frames are fewer than --batch-size {recipe.batch_size}")
     largest, smallest = largest_candidate(space), smallest_candidate(space)
     lr_cfg = TrainConfig(steps=recipe.steps, lr=recipe.lr, lr_end=recipe.lr_end)
     stop = recipe.steps if stop_after_steps is None else min(recipe.steps, step + stop_after_steps)
     epoch, t0 = step // len(loader), time.perf_counter()
-    saved = t0
+    saved = last = t0
     skip = step % len(loader)  # resume mid-epoch on the batches that were not seen
     while step < stop:
         train_set.epoch = epoch
@@ -255,9 +273,10 @@ def train_supernet(space: SearchSpace, data: str, recipe: SupernetRecipe = Super
             record = {"step": step, "largest": losses[0], "smallest": losses[1],
                       "random": sum(losses[2:]) / max(len(losses) - 2, 1)}
             history.append(record)
-            if progress and rank == 0:
-                progress(step, recipe.steps, record)
             now = time.perf_counter()
+            if progress and rank == 0:
+                progress(step, recipe.steps, {**record, **_pace(now - last, accelerator)})
+            last = now
             if (step % checkpoint_every == 0 or now - saved >= checkpoint_seconds) and step < stop and rank == 0:
                 save(out, net, recipe, data, step, opt, history, seconds + now - t0)
                 saved = time.perf_counter()
@@ -269,6 +288,15 @@ def train_supernet(space: SearchSpace, data: str, recipe: SupernetRecipe = Super
         import torch.distributed as dist
         dist.barrier()
     return out
+
+
+def _pace(step_seconds: float, accelerator: torch.device) -> dict:
+    """What progress shows besides the losses: the step's wall time and, on CUDA, the most GPU memory
+    the process has held (MiB)."""
+    pace = {"step_seconds": step_seconds}
+    if accelerator.type == "cuda":
+        pace["gpu_memory_mb"] = torch.cuda.max_memory_allocated(accelerator) / 2**20
+    return pace
 
 
 def _check_recipe(recipe: SupernetRecipe, world: int, space: SearchSpace) -> None:
@@ -303,32 +331,61 @@ def _sandwich_step(net: Supernet, opt: torch.optim.Optimizer, batch: dict, subne
                    ) -> list[float]:
     """One optimizer step on process ``rank``'s share of ``batch``: every subnet's gradients summed
     (and averaged over the ``world`` processes), the first subnet's last exit distilled into the
-    others; the subnets' losses."""
+    others; the subnets' losses. The losses stay on the device until the step is queued (one wait
+    for the GPU per step, not one per subnet); ``recipe.amp`` runs the forward passes under bf16
+    autocast (no loss scaling: bf16 has float32's range)."""
     per_rank = recipe.batch_size // world
     net.train()
     opt.zero_grad(set_to_none=True)
     lo = rank * per_rank
-    image, scan, depth = (batch[k][lo:lo + per_rank].to(accelerator) for k in ("image", "scan", "depth"))
+    image, scan, depth = (batch[k][lo:lo + per_rank].to(accelerator, non_blocking=True)
+                          for k in ("image", "scan", "depth"))
     image = image.contiguous(memory_format=torch.channels_last)
     row = batch_row(batch)
-    losses = [0.0] * len(subnets)
+    losses = torch.zeros(len(subnets), dtype=torch.float64, device=accelerator)
     for chunk in range(recipe.micro_batches):
         part = slice(chunk * per_rank // recipe.micro_batches, (chunk + 1) * per_rank // recipe.micro_batches)
         teacher = None
         for j, cand in enumerate(subnets):
-            outs = net.forward_subnet(cand, image[part], scan[part], row)
-            loss = _subnet_loss(outs, depth[part], teacher, recipe.distill)
+            with torch.autocast(accelerator.type, dtype=torch.bfloat16, enabled=recipe.amp):
+                outs = net.forward_subnet(cand, image[part], scan[part], row)
+                loss = _subnet_loss(outs, depth[part], teacher, recipe.distill)
             if j == 0:
                 teacher = outs[-1].detach().float()
             (loss / recipe.micro_batches).backward()
-            losses[j] += float(loss.detach()) / recipe.micro_batches
-    if not all(map(lambda v: v == v and abs(v) != float("inf"), losses)):
-        raise FloatingPointError(f"supernet loss became {losses} at step {step}")
+            losses[j] += loss.detach().double() / recipe.micro_batches
     if world > 1:
-        import torch.distributed as dist
-        for p in net.parameters():
-            if p.grad is not None:
-                dist.all_reduce(p.grad)
-                p.grad /= world
+        _average_gradients(net, world)
     opt.step()
-    return losses
+    values = losses.tolist()
+    if not all(map(lambda v: v == v and abs(v) != float("inf"), values)):
+        raise FloatingPointError(f"supernet loss became {values} at step {step}")
+    return values
+
+
+#: gradients are averaged over processes in flat buckets of about this many bytes: one collective per
+#: bucket rather than one per parameter tensor (hundreds of small all-reduces a step)
+BUCKET_BYTES = 25 << 20
+
+
+def _average_gradients(net: Supernet, world: int) -> None:
+    """Averages the gradients over the ``world`` processes. Every process trained the same subnets, so
+    the same parameters have gradients everywhere and the buckets line up."""
+    import torch.distributed as dist
+    buckets: list[list[torch.Tensor]] = [[]]
+    size = 0
+    for g in (p.grad for p in net.parameters() if p.grad is not None):
+        nbytes = g.numel() * g.element_size()
+        if buckets[-1] and (size + nbytes > BUCKET_BYTES or g.dtype != buckets[-1][0].dtype):
+            buckets.append([])
+            size = 0
+        buckets[-1].append(g)
+        size += nbytes
+    for bucket in filter(None, buckets):
+        flat = torch.cat([g.reshape(-1) for g in bucket])
+        dist.all_reduce(flat)
+        flat /= world
+        offset = 0
+        for g in bucket:
+            g.copy_(flat[offset:offset + g.numel()].view_as(g))
+            offset += g.numel()
