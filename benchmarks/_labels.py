@@ -5,7 +5,9 @@ cached in a JSON file (``ANYTIME_BENCH_CACHE``, default reports/bench/), so a be
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import fcntl
 import json
 import os
 import time
@@ -42,11 +44,15 @@ def _load(steps: int) -> dict:
     return json.loads(f.read_text()) if f.is_file() else {}
 
 
+def _key(candidate: Candidate, cfg: TrainConfig, data: str, val_limit: int | None) -> str:
+    recipe_dict = {k: v for k, v in cfg.to_dict().items() if k not in _LATER_DEFAULTS or v != _LATER_DEFAULTS[k]}
+    return f"{candidate.key}|{data}|{json.dumps(recipe_dict, sort_keys=True)}|{val_limit}"
+
+
 def standalone(candidate: Candidate, cfg: TrainConfig, data: str = "synthetic", device: str = "tx2",
                val_limit: int | None = None) -> dict:
     """Per-path RMSE and the anytime loss (tx2, U(0, 33 ms)) of ``candidate`` trained alone with ``cfg``."""
-    recipe_dict = {k: v for k, v in cfg.to_dict().items() if k not in _LATER_DEFAULTS or v != _LATER_DEFAULTS[k]}
-    key = f"{candidate.key}|{data}|{json.dumps(recipe_dict, sort_keys=True)}|{val_limit}"
+    key = _key(candidate, cfg, data, val_limit)
     cache = _load(cfg.steps)
     if key in cache:
         return cache[key]
@@ -60,13 +66,30 @@ def standalone(candidate: Candidate, cfg: TrainConfig, data: str = "synthetic", 
     # costs are applied when read (score()), so a refitted profile never leaves stale values here
     entry = {"candidate": candidate.to_dict(), "rmse": rmse, "seconds": time.perf_counter() - t0,
              "steps": cfg.steps, "seed": cfg.seed}
-    cache = _load(cfg.steps)
-    cache[key] = entry
-    CACHE_DIR.mkdir(parents=True, exist_ok=True)
-    tmp = _cache(cfg.steps).with_suffix(".tmp")
-    tmp.write_text(json.dumps(cache, indent=1))
-    tmp.replace(_cache(cfg.steps))
+    with _locked(cfg.steps):   # several processes may fill the same cache (bench_fidelity --workers)
+        cache = _load(cfg.steps)
+        cache[key] = entry
+        tmp = _cache(cfg.steps).with_suffix(f".tmp{os.getpid()}")
+        tmp.write_text(json.dumps(cache, indent=1))
+        tmp.replace(_cache(cfg.steps))
     return entry
+
+
+@contextlib.contextmanager
+def _locked(steps: int):
+    CACHE_DIR.mkdir(parents=True, exist_ok=True)
+    with open(_cache(steps).with_suffix(".lock"), "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(lock, fcntl.LOCK_UN)
+
+
+def cached(candidate: Candidate, cfg: TrainConfig, data: str = "synthetic", val_limit: int | None = None
+           ) -> dict | None:
+    """The stored result of :func:`standalone` for these arguments, or None (nothing is trained)."""
+    return _load(cfg.steps).get(_key(candidate, cfg, data, val_limit))
 
 
 def score(entry: dict, device: str = "tx2", budget: str = BUDGET) -> float:

@@ -153,7 +153,8 @@ def _print_outcome(study, cfg, storage_url: str, reports: Path, write_report: bo
     import optuna
     from explorer.console import console, print_frame
     from explorer.cost import get_device
-    from explorer.study.results import (baseline_label, baseline_trial, best_trial, finalists_frame, is_retrained,
+    from explorer.study.results import (baseline_label, baseline_trial, best_trial, estimate_fidelity,
+                                        finalists_agreement, finalists_frame, is_retrained,
                                         missing_baselines, path_table, unbeaten_baseline, winner)
     from explorer.space import Candidate
     states = [t.state for t in study.get_trials(deepcopy=False)]
@@ -176,6 +177,13 @@ def _print_outcome(study, cfg, storage_url: str, reports: Path, write_report: bo
         if not fin.empty:
             cols = ["model", "candidate_key", "estimated", "retrained", "estimated_rank", "retrained_rank"]
             print_frame(fin[cols], f"finalists: search estimate vs retrained ({cfg.finalist_steps} steps)")
+            agreement = finalists_agreement(study)
+            if agreement:
+                console.print(f"finalists' agreement: Kendall tau {agreement['tau']:.2f} over {agreement['rows']} "
+                              "rows the estimate itself chose (no measure of how it ranks the rest of the space)")
+        fidelity = estimate_fidelity(study)
+        if fidelity:
+            console.print(f"estimate fidelity: {fidelity}", markup=False, highlight=False)
         paper = baseline_trial(study, "paper", retrained=retrained)
         if paper is not None:
             kind = "retrained " if retrained else ""

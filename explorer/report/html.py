@@ -23,6 +23,8 @@ from explorer.study.finalists import finalist_trials
 from explorer.study.results import (
     baseline_label,
     baseline_trial,
+    estimate_fidelity,
+    finalists_agreement,
     finalists_frame,
     is_retrained,
     missing_baselines,
@@ -144,18 +146,19 @@ def _notes(study: optuna.Study, devs: list[DeviceProfile], scored: list) -> list
 
 
 def _finalists(study: optuna.Study, finalist_steps) -> dict:
-    """The finalists' table (estimate beside retrained result), Kendall's tau between the two where
-    three or more have both, and the retraining steps they really ran."""
-    out = {"finalist_steps": finalist_steps, "finalists": "", "finalists_tau": None}
+    """The finalists' table (estimate beside retrained result), the finalists' agreement (Kendall's tau
+    between the two where three or more have both), the measured fidelity of the study's estimate,
+    and the retraining steps they really ran."""
+    out = {"finalist_steps": finalist_steps, "finalists": "", "finalists_tau": None, "finalists_rows": 0,
+           "fidelity": estimate_fidelity(study)}
     recipes = sorted({t.user_attrs["finalist"]["recipe"]["steps"] for t in finalist_trials(study)})
     if recipes:   # a --time-limit plan may have sized them after the study was created
         out["finalist_steps"] = ", ".join(map(str, recipes))
     fin = finalists_frame(study)
     if not fin.empty:
-        both = fin.dropna(subset=["estimated"])
-        if len(both) >= 3:
-            from scipy.stats import kendalltau
-            out["finalists_tau"] = float(kendalltau(both["estimated"], both["retrained"]).statistic)
+        agreement = finalists_agreement(study)
+        if agreement:
+            out["finalists_tau"], out["finalists_rows"] = agreement["tau"], agreement["rows"]
         out["finalists"] = _frame_html(fin, "finalists-table")
     return out
 

@@ -228,6 +228,42 @@ def finalists_frame(study: optuna.Study) -> pd.DataFrame:
     return frame
 
 
+def finalists_agreement(study: optuna.Study) -> dict | None:
+    """The finalists' agreement: Kendall tau between the search's estimate and the retrained anytime loss
+    over the retrained finalists and baselines that have both, {"tau", "rows"}; None under three rows.
+    The estimate chose these rows itself (its best of each image encoder), so the figure is no measure
+    of how it ranks the rest of the space: :func:`estimate_fidelity` quotes that where it was measured."""
+    fin = finalists_frame(study)
+    both = fin.dropna(subset=["estimated"]) if not fin.empty else fin
+    if len(both) < 3:
+        return None
+    from scipy.stats import kendalltau
+    return {"tau": float(kendalltau(both["estimated"], both["retrained"]).statistic), "rows": len(both)}
+
+
+def estimate_fidelity(study: optuna.Study) -> str | None:
+    """A sentence on how well the study's supernet ranks its space, as the fidelity benchmark measured
+    supernets of the same space, data and recipe (or that none was measured); None for a study that
+    did not estimate with a supernet."""
+    from explorer.space import SearchSpace
+    from explorer.study.config import SearchConfig
+    from explorer.supernet import SupernetRecipe, describe_fidelity, measured_fidelity, read_supernet
+    cfg = study.user_attrs.get("config")
+    if not cfg:
+        return None
+    config = SearchConfig.from_dict(cfg)
+    if config.evaluator != "supernet":
+        return None
+    recipe = config.supernet_recipe()
+    try:
+        if config.supernet:    # a given file: the recipe it was trained with
+            recipe = SupernetRecipe.from_dict(read_supernet(config.supernet)["recipe"])
+        space = SearchSpace.from_yaml(config.space)
+    except UserError:
+        return None
+    return describe_fidelity(measured_fidelity(space, config.data, recipe))
+
+
 def missing_baselines(study: optuna.Study) -> list[dict]:
     """The baselines that have no scored trial, each as {"name", "label", "why"}, "why" saying what
     happened to it: not run (--no-baselines, or not yet: queued), still running, failed (its reason),

@@ -86,6 +86,12 @@ def random_training_subnet(space: SearchSpace, rng: random.Random) -> Candidate:
         lidar_first=rng.choice(space.lidar_first), exit_residual=rng.choice(space.exit_residual))
 
 
+def with_head_kind(candidate: Candidate, space: SearchSpace, depth: int, residual: bool) -> Candidate:
+    """``candidate`` with exit heads of ``depth`` layers, correcting the scan or not (``residual``)."""
+    return dataclasses.replace(candidate, head_depth=depth, exit_residual=residual,
+                               head_width=max(space.head_width) if depth == 2 else 0)
+
+
 class Supernet(nn.Module):
     def __init__(self, space: SearchSpace) -> None:
         super().__init__()

@@ -39,11 +39,13 @@ from explorer.supernet.network import (
     smallest_candidate,
     space_identity,
     space_key,
+    with_head_kind,
 )
 from explorer.training.train import TrainConfig, batch_row, lr_at, multi_exit_loss
 
 FORMAT = "anytime-explorer-supernet/1"
 TEACHER_DEPTHS = ("cycle", "max")
+HEAD_KINDS = ("random", "cover")
 
 
 @dataclass(frozen=True)
@@ -62,6 +64,7 @@ class SupernetRecipe:
     micro_batches: int = 1           # per process; BatchNorm statistics are per micro-batch
     seed: int = 0
     amp: bool = False                # bf16 autocast of the forward passes (the GPU recipe's)
+    head_kinds: str = "random"       # the random subnets' exit heads: "random", or "cover" (see _subnets)
 
     def to_dict(self) -> dict:
         d = dataclasses.asdict(self)
@@ -81,6 +84,8 @@ class SupernetRecipe:
         d.pop("micro_batches")
         if not d["amp"]:     # files and caches made before the field keep their keys
             d.pop("amp")
+        if d["head_kinds"] == "random":
+            d.pop("head_kinds")
         return d
 
 
@@ -224,6 +229,25 @@ def _teacher(largest: Candidate, space: SearchSpace, recipe: SupernetRecipe, ste
     return dataclasses.replace(largest, encoder_blocks=depths[step % len(depths)])
 
 
+def _subnets(largest: Candidate, smallest: Candidate, space: SearchSpace, recipe: SupernetRecipe, step: int,
+             rng: random.Random) -> list[Candidate]:
+    """This step's subnets: the teacher, the smallest, ``recipe.random_subnets`` random ones.
+
+    Each kind of exit head (depth x residual) has its own weights. The largest and the smallest
+    subnets always train two kinds; with ``head_kinds="random"`` a random subnet draws its kind, so
+    the other kinds train about a quarter of the steps each (their heads see 4x fewer updates).
+    "cover" gives the random subnets those other kinds in turn: each trains at least every other step.
+    """
+    randoms = [random_training_subnet(space, rng) for _ in range(recipe.random_subnets)]
+    if recipe.head_kinds == "cover":
+        kinds = [(d, r) for d in sorted(set(space.head_depth)) for r in sorted(set(space.exit_residual))
+                 if (d, r) not in {(c.head_depth, c.exit_residual) for c in (largest, smallest)}]
+        if kinds:
+            randoms = [with_head_kind(c, space, *kinds[(step * len(randoms) + j) % len(kinds)])
+                       for j, c in enumerate(randoms)]
+    return [_teacher(largest, space, recipe, step), smallest] + randoms
+
+
 def train_supernet(space: SearchSpace, data: str, recipe: SupernetRecipe = SupernetRecipe(),
                    out: Path | None = None, accelerator: torch.device | None = None,
                    progress: Callable[[int, int, dict], None] | None = None,
@@ -264,8 +288,7 @@ def train_supernet(space: SearchSpace, data: str, recipe: SupernetRecipe = Super
             if step >= stop:
                 break
             rng = random.Random(recipe.seed * 1_000_003 + step)  # the same subnets on every process
-            subnets = [_teacher(largest, space, recipe, step), smallest] + \
-                [random_training_subnet(space, rng) for _ in range(recipe.random_subnets)]
+            subnets = _subnets(largest, smallest, space, recipe, step, rng)
             for g in opt.param_groups:
                 g["lr"] = lr_at(lr_cfg, step)
             losses = _sandwich_step(net, opt, batch, subnets, recipe, step, accelerator, rank, world)
@@ -301,6 +324,8 @@ def _pace(step_seconds: float, accelerator: torch.device) -> dict:
 
 def _check_recipe(recipe: SupernetRecipe, world: int, space: SearchSpace) -> None:
     check_size(recipe.input_size, space.max_stride, "--train-size")
+    if recipe.head_kinds not in HEAD_KINDS:
+        raise UserError(f"head kinds '{recipe.head_kinds}': choose one of {', '.join(HEAD_KINDS)}")
     if recipe.teacher_depths not in TEACHER_DEPTHS:
         raise UserError(f"teacher depths '{recipe.teacher_depths}': choose one of {', '.join(TEACHER_DEPTHS)}")
     if recipe.batch_size % (world * recipe.micro_batches):

@@ -1,0 +1,115 @@
+"""Rank fidelity pieces shared by the benchmarks that score an estimate against stand-alone labels
+(bench_fidelity, bench_supernet, bench_teacher_depths): the candidate set, the label recipes, the
+label jobs (cached by _labels.py, several worker processes may fill the cache at once), the
+supernet estimate of a candidate, and the rank figures (Kendall tau, Spearman, top-k recall)."""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from pathlib import Path
+
+import torch
+from _labels import BUDGET, CACHE_DIR, cached, score, standalone
+from scipy.stats import kendalltau, spearmanr
+
+from explorer.anytime import anytime_loss
+from explorer.cost import candidate_cost, get_device
+from explorer.space import Candidate, SearchSpace
+from explorer.study.config import BASELINES, SearchConfig
+from explorer.training.train import TrainConfig
+
+#: the seed of the benchmark's random set (drawn by the space's own sampler)
+CANDIDATE_SEED = 45
+LABEL_SEEDS = (0, 1)
+LONG_FACTOR = 4     # the long labels' recipe: the finalists' recipe this many times longer
+
+
+def fidelity_candidates(space: SearchSpace, count: int) -> list[Candidate]:
+    """``count`` random candidates of ``space`` (a fixed seed, the space's sampler: head kinds, encoder
+    exits, LiDAR-only paths and stage orders in the space's proportions), then the baselines."""
+    return space.random_candidates(count, seed=CANDIDATE_SEED) + [make() for make in BASELINES.values()]
+
+
+def label_recipes(config: SearchConfig | None = None) -> dict[str, TrainConfig]:
+    """{"proxy": the search's 150-step recipe (no pruning), "finalist": the finalists' recipe,
+    "long": the finalists' recipe LONG_FACTOR times longer}, each at seed 0."""
+    config = config or SearchConfig(study="fidelity")
+    finalist = config.finalist_config(seed=0)
+    return {"proxy": dataclasses.replace(config.train_config(), eval_every=0, seed=0),
+            "finalist": finalist,
+            "long": dataclasses.replace(finalist, steps=finalist.steps * LONG_FACTOR)}
+
+
+def label_jobs(cands: list[Candidate], seeds=LABEL_SEEDS) -> list[tuple[Candidate, TrainConfig]]:
+    """Every (candidate, recipe) the benchmark needs, the most telling first (a run cut short still
+    leaves whole figures): the long and finalists' recipes at the first seed, the proxy, then the
+    other seeds."""
+    rec = label_recipes()
+    jobs = []
+    for i, seed in enumerate(seeds):
+        for name in ("long", "finalist"):
+            jobs += [(c, dataclasses.replace(rec[name], seed=seed)) for c in cands]
+        if i == 0:
+            jobs += [(c, rec["proxy"]) for c in cands]
+    return jobs
+
+
+def run_label_jobs(jobs: list, worker: int = 0) -> None:
+    """Trains every job not cached yet; workers share the list by claiming a job with a file (a job a
+    dead worker claimed is taken over once its claim is older than an hour)."""
+    claims = CACHE_DIR / "claims"
+    claims.mkdir(parents=True, exist_ok=True)
+    import time
+    for n, (cand, cfg) in enumerate(jobs):
+        if cached(cand, cfg) is not None:
+            continue
+        claim = claims / f"{cand.key}-{cfg.steps}-{cfg.seed}"
+        try:
+            fd = os.open(claim, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
+            os.close(fd)
+        except FileExistsError:
+            if time.time() - claim.stat().st_mtime < 3600:
+                continue
+        entry = standalone(cand, cfg)
+        print(f"[worker {worker}] {n + 1}/{len(jobs)} {cand.key} {cfg.steps} steps seed {cfg.seed}: "
+              f"{score(entry):.4f} in {entry['seconds']:.0f} s", flush=True)
+        claim.unlink(missing_ok=True)
+
+
+def labels_of(cand: Candidate, name: str, seeds=LABEL_SEEDS) -> list[float]:
+    """The anytime losses (tx2, BUDGET) of ``cand`` under label recipe ``name``, one per cached seed."""
+    cfg = label_recipes()[name]
+    seeds = (0,) if name == "proxy" else seeds
+    entries = [cached(cand, dataclasses.replace(cfg, seed=s)) for s in seeds]
+    return [score(e) for e in entries if e is not None]
+
+
+def estimate(evaluator, cand: Candidate) -> float:
+    """The anytime loss (tx2, BUDGET) of ``cand`` as ``evaluator`` (a study evaluator) estimates it."""
+    costs = candidate_cost(cand).path_costs(get_device("tx2"), "time")
+    return anytime_loss(costs, list(evaluator(cand).metrics["rmse"]), BUDGET)
+
+
+def top_recall(estimates: list[float], labels: list[float], k: int = 5, within: int = 10) -> int:
+    """How many of the labels' best ``k`` are among the estimate's best ``within`` (lower is better)."""
+    best = set(sorted(range(len(labels)), key=labels.__getitem__)[:k])
+    picked = set(sorted(range(len(estimates)), key=estimates.__getitem__)[:within])
+    return len(best & picked)
+
+
+def rank_figures(estimates: list[float], labels: list[float]) -> dict[str, float]:
+    """Kendall tau, Spearman and top-5-in-10 recall of ``estimates`` against ``labels``."""
+    return {"tau": float(kendalltau(estimates, labels).statistic),
+            "spearman": float(spearmanr(estimates, labels).statistic),
+            "recall": float(top_recall(estimates, labels))}
+
+
+def supernet_evaluator(file: Path, space: SearchSpace, config: SearchConfig | None = None, **kw):
+    """The search's supernet evaluator over ``file`` (its validation frames, BatchNorm recalibration)."""
+    from explorer.data import open_dataset
+    from explorer.study.evaluators import SupernetEvaluator
+    config = config or SearchConfig(study="fidelity")
+    calib = open_dataset(config.data, "train", config.train_size, train_augment=False)
+    val = open_dataset(config.data, "val", config.train_size, train_augment=False)
+    return SupernetEvaluator(file, space, calib, val, torch.device("cpu"), **{"val_limit": config.val_limit, **kw})

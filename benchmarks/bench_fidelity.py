@@ -1,0 +1,153 @@
+"""Rank fidelity of the search's estimate on the default space: how well the supernet's anytime loss
+(tx2, U(0, 33 ms), as the search ranks) orders random candidates and the baselines against the same
+candidates trained alone with a recipe 4x longer than the finalists' (mean of 2 seeds), beside the
+proxy (the search's 150-step recipe) and the finalists' recipe. Kendall tau, Spearman and top-5
+recall (how many of the long labels' best 5 are in the estimate's best 10); the labels' own
+seed-to-seed tau bounds any of them.
+
+    python benchmarks/bench_fidelity.py [--candidates 24] [--supernet-seeds 0,1] [--supernet FILE ...]
+        [--supernet-recipe random_subnets=2,head_kinds=every] [--calibration-images 256]
+    python benchmarks/bench_fidelity.py --labels-only --worker 0   # fill the label cache (several workers may)
+
+Each repetition is one supernet: trained here with each of --supernet-seeds (the search's recipe, cached
+beside the search's own supernets), or read from each --supernet file. The stand-alone labels are trained
+once and cached (benchmarks/_labels.py), so re-scoring a new supernet takes minutes. The label figures
+(seed spread, proxy, finalists' recipe) do not depend on the supernet and have one value.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import statistics
+import sys
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _fidelity import (LABEL_SEEDS, estimate, fidelity_candidates, label_jobs, label_recipes,  # noqa: E402
+                       labels_of, rank_figures, run_label_jobs, supernet_evaluator)
+from harness import Bench  # noqa: E402
+
+from explorer.space import SearchSpace  # noqa: E402
+from explorer.study.config import SearchConfig  # noqa: E402
+from explorer.supernet import SupernetRecipe, default_path, read_supernet, train_supernet  # noqa: E402
+
+FIGURES = {"tau": ("Kendall tau", "higher"), "spearman": ("Spearman", "higher"),
+           "recall": ("top-5 recall in the best 10", "higher")}
+
+
+def parse_recipe(text: str, base: SupernetRecipe) -> SupernetRecipe:
+    """``base`` with the ``key=value,...`` of --supernet-recipe (values typed as the field's default)."""
+    changes = {}
+    for pair in filter(None, text.split(",")):
+        key, _, value = pair.partition("=")
+        default = getattr(base, key)
+        changes[key] = value if isinstance(default, str) else type(default)(float(value))
+    return dataclasses.replace(base, **changes)
+
+
+def supernet_files(args, space: SearchSpace, config: SearchConfig) -> list[tuple[str, Path]]:
+    """(name, file) of every supernet to score: the given files, else one trained per seed."""
+    if args.supernet:
+        return [(Path(f).stem, Path(f)) for f in args.supernet]
+    out = []
+    for seed in [int(s) for s in args.supernet_seeds.split(",")]:
+        rec = parse_recipe(args.supernet_recipe, dataclasses.replace(config.supernet_recipe(), seed=seed))
+        file = default_path(space, config.data, rec)
+        if not file.is_file() or not read_supernet(file).get("complete"):
+            print(f"training the supernet {rec.to_dict()} into {file}", flush=True)
+        train_supernet(space, config.data, rec, file)
+        out.append((f"seed{seed}", file))
+    return out
+
+
+def label_table(cands, seeds) -> tuple[list, dict, dict]:
+    """(the candidates with every label, their labels {candidate: {recipe: mean over the seeds}}, their
+    long labels per seed {candidate: [...]})."""
+    rows = {c: {name: labels_of(c, name, seeds) for name in label_recipes()} for c in cands}
+    whole = [c for c in cands if all(rows[c].values())]
+    return whole, {c: {name: statistics.mean(v) for name, v in rows[c].items()} for c in whole}, \
+        {c: rows[c]["long"] for c in whole}
+
+
+def label_figures(bench: Bench, whole: list, table: dict, per_seed: dict) -> None:
+    """The labels' seed spread and the proxy's and finalists' recipes' fidelity (one value each)."""
+    long = [table[c]["long"] for c in whole]
+    both = [c for c in whole if len(per_seed[c]) >= 2]
+    if len(both) >= 3:
+        spread = rank_figures([per_seed[c][0] for c in both], [per_seed[c][1] for c in both])
+        bench.add(bench.figure("labels_seed_tau", "long labels: Kendall tau between seeds 0 and 1", "", "higher"),
+                  spread["tau"])
+        bench.note(f"long labels' seed-to-seed Kendall tau {spread['tau']:.3f} over {len(both)} candidates "
+                   f"(Spearman {spread['spearman']:.3f})")
+    for name in ("proxy", "finalist"):
+        figs = rank_figures([table[c][name] for c in whole], long)
+        for k, (label, better) in FIGURES.items():
+            bench.add(bench.figure(f"{k}_{name}", f"{name} recipe: {label} against the long labels", "", better),
+                      figs[k])
+
+
+def score_supernet(bench: Bench, name: str, evaluator, whole: list, table: dict, space: SearchSpace) -> None:
+    inside = [c for c in whole if space.contains(c)]
+    est = {c: estimate(evaluator, c) for c in inside}
+    figs = rank_figures([est[c] for c in inside], [table[c]["long"] for c in inside])
+    for k, (label, better) in FIGURES.items():
+        bench.add(bench.figure(f"{k}_supernet", f"supernet: {label} against the long labels", "", better), figs[k])
+    order = sorted(inside, key=lambda c: table[c]["long"])
+    for c in order:
+        print(f"  {c.key} long {table[c]['long']:.4f} finalist {table[c]['finalist']:.4f} proxy "
+              f"{table[c]['proxy']:.4f} supernet {est[c]:.4f}  {c.describe()[:80]}", flush=True)
+    for kind in (False, True):   # plain and residual heads, where the issue saw the estimate part
+        sub = [c for c in inside if c.exit_residual == kind]
+        if len(sub) >= 4:
+            t = rank_figures([est[c] for c in sub], [table[c]["long"] for c in sub])["tau"]
+            label = f"supernet: Kendall tau over {'residual' if kind else 'plain'}-head candidates"
+            bench.add(bench.figure(f"tau_supernet_{'residual' if kind else 'plain'}", label, "", "higher"), t)
+    bench.note(f"{name}: {len(inside)} candidates of the space")
+
+
+def main() -> None:
+    bench = Bench(__file__, "Supernet rank fidelity on the default space against long stand-alone labels", __doc__)
+    ap = bench.parser()
+    ap.add_argument("--candidates", type=int, default=24, help="random default-space candidates (plus the baselines)")
+    ap.add_argument("--supernet", action="append", default=[], help="score this supernet file (repeatable); "
+                    "default: train one per --supernet-seeds")
+    ap.add_argument("--supernet-seeds", default="0,1", help="seeds of the supernets trained and scored")
+    ap.add_argument("--supernet-recipe", default="", help="changes to the search's supernet recipe, key=value,...")
+    ap.add_argument("--calibration-images", type=int, default=256, help="BatchNorm recalibration frames")
+    ap.add_argument("--label-seeds", default=",".join(map(str, LABEL_SEEDS)), help="seeds of the stand-alone labels")
+    ap.add_argument("--cached-labels", action="store_true", help="score with the labels already cached, train none")
+    ap.add_argument("--labels-only", action="store_true", help="only train the labels not cached yet")
+    ap.add_argument("--worker", type=int, default=0, help="with --labels-only: this worker's number (for its log)")
+    args = bench.parse_args(ap)
+    space = SearchSpace.from_yaml("anytime_depth")
+    config = SearchConfig(study="fidelity")
+    cands = fidelity_candidates(space, args.candidates)
+    seeds = tuple(int(s) for s in args.label_seeds.split(","))
+    if not args.cached_labels:
+        torch.set_num_threads(1 if args.labels_only else 2)
+        run_label_jobs(label_jobs(cands, seeds), args.worker)
+    if args.labels_only:
+        return
+    torch.set_num_threads(2)
+    whole, table, per_seed = label_table(cands, seeds)
+    rec = label_recipes(config)
+    bench.note(f"{len(whole)} of {len(cands)} candidates labelled ({args.candidates} random, seed of the draw 45, and "
+               f"the baselines); long labels {rec['long'].steps} steps (mean of seeds {args.label_seeds}), finalists' "
+               f"{rec['finalist'].steps}, proxy {rec['proxy'].steps}, batch {rec['long'].batch_size} at "
+               f"{rec['long'].input_size[0]}x{rec['long'].input_size[1]}; anytime loss on tx2, time:uniform:33ms")
+    label_figures(bench, whole, table, per_seed)
+    files = supernet_files(args, space, config)
+    for rep in bench.repetitions(len(files)):
+        name, file = files[rep]
+        state = read_supernet(file)
+        bench.note(f"supernet {name}: {state['step']} steps, recipe {state['recipe']}, trained in "
+                   f"{state['seconds'] / 60:.1f} min; BatchNorm recalibrated on {args.calibration_images} frames")
+        evaluator = supernet_evaluator(file, space, config, calibration_images=args.calibration_images)
+        score_supernet(bench, name, evaluator, whole, table, space)
+    bench.finish()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,70 @@
+import dataclasses
+import random
+
+import pytest
+
+from conftest import TINY_DATA
+from explorer.errors import UserError
+from explorer.space import SearchSpace
+from explorer.supernet import (SupernetRecipe, cache_key, describe_fidelity, largest_candidate, measured_fidelity,
+                               smallest_candidate, store_fidelity, train_supernet)
+from explorer.supernet.train import _subnets
+
+
+@pytest.fixture(scope="module")
+def default_space():
+    return SearchSpace.from_yaml("anytime_depth")
+
+
+def _kinds(space, recipe, step):
+    subnets = _subnets(largest_candidate(space), smallest_candidate(space), space, recipe, step,
+                       random.Random(step))
+    return [(c.head_depth, c.exit_residual) for c in subnets]
+
+
+def test_covering_head_kinds_trains_every_kind_every_other_step(default_space):
+    recipe = SupernetRecipe(head_kinds="cover")
+    every = {(d, r) for d in default_space.head_depth for r in default_space.exit_residual}
+    for step in range(6):
+        assert set(_kinds(default_space, recipe, step) + _kinds(default_space, recipe, step + 1)) == every
+    two = dataclasses.replace(recipe, random_subnets=2)
+    assert all(set(_kinds(default_space, two, step)) == every for step in range(4))
+    for step in range(4):   # a covering subnet is a valid candidate: depth-2 heads have a width, depth-1 none
+        for c in _subnets(largest_candidate(default_space), smallest_candidate(default_space), default_space,
+                          two, step, random.Random(step))[2:]:
+            assert default_space.contains(dataclasses.replace(c, exits=(4,), encoder_exits=(), lidar_exit=False))
+
+
+def test_random_head_kinds_keep_the_cache_key_of_earlier_supernets(default_space):
+    before = SupernetRecipe().identity()
+    assert "head_kinds" not in before
+    assert cache_key(default_space, "synthetic", SupernetRecipe(head_kinds="cover")) != \
+        cache_key(default_space, "synthetic", SupernetRecipe())
+
+
+def test_an_unknown_head_kinds_is_refused(tmp_path):
+    with pytest.raises(UserError, match="random, cover"):
+        train_supernet(SearchSpace.from_yaml("tiny"), TINY_DATA, SupernetRecipe(head_kinds="all"), tmp_path / "s.pt")
+
+
+def test_a_stored_fidelity_is_found_for_every_seed_of_its_recipe_only(default_space, tmp_path):
+    file = tmp_path / "fidelity.json"
+    recipe = SupernetRecipe(steps=600)
+    assert measured_fidelity(default_space, "synthetic", recipe, file) is None
+    entry = {"tau": [0.71, 0.74], "spearman": [0.88, 0.9], "recall": [4, 5], "candidates": 24, "label_steps": 1200,
+             "labels_seed_tau": 0.8, "date": "2026-11-26"}
+    store_fidelity(default_space, "synthetic", recipe, entry, file)
+    found = measured_fidelity(default_space, "synthetic", dataclasses.replace(recipe, seed=3), file)
+    assert found["tau"] == [0.71, 0.74] and found["space"] == "anytime_depth"
+    assert measured_fidelity(default_space, "synthetic", dataclasses.replace(recipe, steps=300), file) is None
+    assert measured_fidelity(default_space, "kitti", recipe, file) is None
+    text = describe_fidelity(found)
+    assert "Kendall tau 0.71-0.74" in text and "4-5 of the best 5" in text and "1200 steps" in text
+    assert "unmeasured" in describe_fidelity(None)
+
+
+def test_the_shipped_record_reads(default_space):
+    # whatever the benchmark stored last: every entry has what the summary quotes
+    from explorer.supernet.fidelity import load_record
+    for entry in load_record().values():
+        assert describe_fidelity(entry).startswith("the supernet's ranking")
