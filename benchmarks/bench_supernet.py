@@ -24,7 +24,8 @@ import torch
 from scipy.stats import kendalltau
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _labels import recipe, score, standalone  # noqa: E402
+from _fidelity import estimate  # noqa: E402
+from _labels import BUDGET, recipe, score, standalone  # noqa: E402
 from harness import Bench, interleave  # noqa: E402
 
 from explorer.anytime import anytime_loss  # noqa: E402
@@ -35,8 +36,6 @@ from explorer.space import (SearchSpace, fastdepth_candidate, paper_candidate,  
 from explorer.study.evaluators import SupernetEvaluator  # noqa: E402
 from explorer.study.search import SearchConfig  # noqa: E402
 from explorer.supernet import default_path, read_supernet, train_supernet  # noqa: E402
-
-BUDGET = "time:uniform:33ms"
 
 
 def label_candidates(space: SearchSpace, n: int) -> list:
@@ -82,14 +81,12 @@ def per_candidate_s(evaluator, cands, tx2) -> float:
 def fidelity(bench: Bench, space, make_evaluator, calibration_sweep: list[int]) -> None:
     """Kendall tau of the supernet's and the proxy's anytime losses against stand-alone training 4x
     longer than the proxy (one value each)."""
-    tx2 = get_device("tx2")
     full = make_evaluator()   # exactly as a search evaluates (its validation frames, BatchNorm recalibration)
     proxy_cfg, long_cfg = recipe(150), recipe(600)
     rows = []
     for c in label_candidates(space, bench.args.candidates):
         long, prox = score(standalone(c, long_cfg)), score(standalone(c, proxy_cfg))
-        est = anytime_loss(candidate_cost(c).path_costs(tx2, "time"), list(full(c).metrics["rmse"]), BUDGET) \
-            if space.contains(c) else None
+        est = estimate(full, c) if space.contains(c) else None
         rows.append((c, est, prox, long))
         print(f"  {c.key}: supernet {'   n/a' if est is None else f'{est:.4f}'}  proxy {prox:.4f}  "
               f"stand-alone x4 {long:.4f}  {c.describe()[:90]}", flush=True)
@@ -103,8 +100,7 @@ def fidelity(bench: Bench, space, make_evaluator, calibration_sweep: list[int]) 
         bench.add(bench.figure(name, label, "", "higher"), value.statistic)
     for n in calibration_sweep:
         sweep = make_evaluator(calibration_images=n)
-        est = [anytime_loss(candidate_cost(c).path_costs(tx2, "time"), list(sweep(c).metrics["rmse"]), BUDGET)
-               for c, *_ in both]
+        est = [estimate(sweep, c) for c, *_ in both]
         bench.add(bench.figure(f"tau_supernet_calib{n}", f"supernet Kendall tau, BatchNorm calibrated on {n} frames",
                                "", "higher"), kendalltau(est, labels).statistic)
     bench.note(f"fidelity over {len(both)} candidates in the space ({len(rows)} with FastDepth), stand-alone "

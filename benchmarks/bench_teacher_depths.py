@@ -21,18 +21,15 @@ import torch
 from scipy.stats import kendalltau
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _fidelity import estimate  # noqa: E402
 from _labels import recipe, score, standalone  # noqa: E402
 from harness import Bench, interleave  # noqa: E402
 
-from explorer.anytime import anytime_loss  # noqa: E402
-from explorer.cost import candidate_cost, get_device  # noqa: E402
 from explorer.data import open_dataset  # noqa: E402
 from explorer.space import SearchSpace, paper_candidate, paper_nee_candidate  # noqa: E402
 from explorer.study.evaluators import SupernetEvaluator  # noqa: E402
 from explorer.study.search import SearchConfig  # noqa: E402
 from explorer.supernet import default_path, train_supernet  # noqa: E402
-
-BUDGET = "time:uniform:33ms"
 TEACHERS = ("max", "cycle")
 
 
@@ -71,16 +68,13 @@ if __name__ == "__main__":
     torch.set_num_threads(2)
     space = SearchSpace.from_yaml("anytime_depth")
     evaluators = supernet_evaluators(space, args.steps)
-    tx2 = get_device("tx2")
     for t in TEACHERS:
         bench.figure(f"tau_{t}", f"teacher_depths={t}: Kendall tau against stand-alone", "", "higher")
     for rep in bench.repetitions():
         rows = []
         for c in [paper_candidate(), paper_nee_candidate()] + space.random_candidates(args.candidates, seed=15 + rep):
             long = score(standalone(c, recipe(600)))
-            cost = candidate_cost(c).path_costs(tx2, "time")
-            est = interleave({t: (lambda ev=ev: anytime_loss(cost, list(ev(c).metrics["rmse"]), BUDGET))
-                              for t, ev in evaluators.items()}, len(rows))
+            est = interleave({t: (lambda ev=ev: estimate(ev, c)) for t, ev in evaluators.items()}, len(rows))
             rows.append((c, est, long))
             print(f"  {c.key} {c.encoder_blocks}x{c.width_mult}: stand-alone {long:.4f}  "
                   + "  ".join(f"{t} {v:.4f}" for t, v in est.items()), flush=True)
