@@ -1,0 +1,314 @@
+"""One GPU (or, for the ratio, the CPU) put to work by the project's own training and search: supernet
+training's time per step and the GPU's utilisation at the default recipe (64x64, batches of 16) and at
+the GPU recipe's size (224x224, batches of 64, bf16 autocast); two processes sharing the device under
+torchrun against one; a short supernet search's distinct candidates per minute and the share of its
+sampling time spent in the evaluator; and what bf16 autocast does to the supernet's validation loss.
+
+    python benchmarks/bench_gpu.py                      # the GPU where PyTorch sees one, else the CPU
+    python benchmarks/bench_gpu.py --device cpu         # the same figures on the CPU
+    python benchmarks/bench_gpu.py --steps 4 --large-size 64x64 --large-batch 8 --search-seconds 10 \\
+        --amp-steps 2 --data synthetic:64:32 --reps 1 --no-record      # a smoke run
+
+Step times are the median over a run's steps after the first two (start-up and warm-up left out), read
+after each step's losses reach the host (so a GPU's queue is drained every step). Utilisation is sampled
+with pynvml where it imports, else nvidia-smi, every 0.1-0.2 s over the timed steps ("n/a" without
+either). On a CUDA device the CPU's step time at the default recipe is measured in the same run, for
+the speed-up. The search trains its small supernet once (not timed), then samples for --search-seconds
+per repetition; its sampling time runs from the first trial's start to the last one's end. bf16 is
+measured once per run: two supernets trained alike, one under autocast, evaluated in float32 on the
+same validation frames and subnets.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import random
+import statistics
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from harness import ROOT, Bench  # noqa: E402
+
+DEFAULT, LARGE = ((64, 64), 16), ((224, 224), 64)
+
+
+# -- GPU utilisation --------------------------------------------------------------------------------
+class Utilisation:
+    """Samples a GPU's utilisation (%) in a thread while ``active``; ``source`` is "pynvml", "nvidia-smi"
+    or None (no way to read it here)."""
+
+    def __init__(self, index: int | None) -> None:
+        self.index, self.samples, self.active = index, [], False
+        self.source, self._read = (None, None) if index is None else self._reader(index)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True) if self._read else None
+
+    @staticmethod
+    def _reader(index: int):
+        try:
+            import pynvml
+            pynvml.nvmlInit()
+            handle = pynvml.nvmlDeviceGetHandleByIndex(index)
+            return "pynvml", lambda: float(pynvml.nvmlDeviceGetUtilizationRates(handle).gpu)
+        except Exception:   # not installed, or no driver: try the command line tool
+            pass
+        cmd = ["nvidia-smi", "--query-gpu=utilization.gpu", "--format=csv,noheader,nounits", "-i", str(index)]
+        try:
+            float(subprocess.run(cmd, capture_output=True, text=True, timeout=10, check=True).stdout.strip())
+        except Exception:
+            return None, None
+        return "nvidia-smi", lambda: float(subprocess.run(cmd, capture_output=True, text=True, timeout=10).stdout.strip())
+
+    def _run(self) -> None:
+        while not self._stop.wait(0.1):
+            if self.active:
+                try:
+                    self.samples.append(self._read())
+                except Exception:   # a sample that failed is a sample fewer, not a failed benchmark
+                    pass
+
+    def __enter__(self):
+        if self._thread:
+            self._thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stop.set()
+        if self._thread:
+            self._thread.join()
+
+    def take(self) -> float | None:
+        """The mean of the samples since the last take, or None."""
+        got, self.samples = self.samples, []
+        return statistics.fmean(got) if got else None
+
+
+# -- supernet training ------------------------------------------------------------------------------
+def train_steps(device: str, size: tuple[int, int], batch: int, steps: int, data: str, amp: bool,
+                util: Utilisation | None = None, out: Path | None = None) -> float:
+    """Median seconds per step of ``steps`` supernet steps on ``device`` (the first two left out; NaN in a
+    torchrun process other than the first, whose progress is not reported)."""
+    import torch
+    from explorer.space import SearchSpace
+    from explorer.supernet import SupernetRecipe, train_supernet
+    recipe = SupernetRecipe(steps=steps, batch_size=batch, input_size=size, amp=amp)
+    times: list[float] = []
+
+    def progress(step, total, record):
+        if step > 2:
+            times.append(record["step_seconds"])
+        if util is not None:
+            util.active = step >= 2 and step < total
+    with tempfile.TemporaryDirectory() as tmp:
+        train_supernet(SearchSpace.from_yaml("anytime_depth"), data, recipe, out or Path(tmp) / "s.pt",
+                       torch.device(device), progress=progress, checkpoint_every=10**9)
+    if util is not None:
+        util.active = False
+    return statistics.median(times) if times else float("nan")   # under torchrun, rank 0 alone is told
+
+
+def worker(args) -> None:
+    """One process of the torchrun comparison: trains, and rank 0 writes its median step time."""
+    seconds = train_steps(args.device, args.size, args.batch, args.steps, args.data, amp=False)
+    if int(os.environ.get("RANK", "0")) == 0:
+        Path(args.worker).write_text(json.dumps({"step_s": seconds}))
+
+
+def processes_step(device: str, nproc: int, steps: int, data: str) -> float:
+    """Median step time of ``nproc`` processes sharing ``device`` at the default recipe (torchrun for 2+)."""
+    (size, batch) = DEFAULT
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp) / "times.json"
+        script = [str(Path(__file__).resolve()), "--worker", str(out), "--device", device, "--steps", str(steps),
+                  "--data", data, "--size", f"{size[0]}x{size[1]}", "--batch", str(batch)]
+        launch = [sys.executable] + (["-m", "torch.distributed.run", "--standalone", "--nproc_per_node", str(nproc)]
+                                     if nproc > 1 else [])
+        env = {**os.environ, "PYTHONPATH": str(ROOT)}
+        if device == "cpu":
+            env["OMP_NUM_THREADS"] = str(max(1, _cores() // nproc))
+        run = subprocess.run(launch + script, cwd=ROOT, env=env, capture_output=True, text=True)
+        if run.returncode != 0:
+            raise RuntimeError(f"{nproc} process(es) failed: {run.stderr[-2000:]}")
+        return json.loads(out.read_text())["step_s"]
+
+
+def _cores() -> int:
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
+# -- search -----------------------------------------------------------------------------------------
+def search_config(study: str, device: str, data: str, supernet_steps: int):
+    from explorer.study.search import SearchConfig
+    return SearchConfig(study=study, data=data, evaluator="supernet", supernet_steps=supernet_steps, finalists=0,
+                        keep_weights=False, accelerator=device)
+
+
+def search_rate(device: str, data: str, seconds: float, supernet_steps: int) -> tuple[float, float]:
+    """(distinct candidates evaluated per minute, share of the sampling time in the evaluator) of a
+    supernet search sampling ``seconds`` (its supernet trained beforehand, outside the time)."""
+    import optuna
+    from explorer.study.search import search
+    optuna.logging.set_verbosity(optuna.logging.WARNING)   # a line per trial would bury the figures
+    with tempfile.TemporaryDirectory() as tmp:
+        out = search(search_config(f"gpu-bench-{random.randrange(10**9)}", device, data, supernet_steps),
+                     n_trials=None, timeout_s=seconds, reports=Path(tmp))
+        trials = [t for t in out.study.get_trials() if t.state.name == "COMPLETE"]
+    if not trials:
+        raise RuntimeError("the search finished no trial")
+    wall = (max(t.datetime_complete for t in trials) - min(t.datetime_start for t in trials)).total_seconds()
+    evaluated = [t for t in trials if "duplicate_of" not in t.user_attrs and "evaluator" in t.user_attrs]
+    distinct = len({t.user_attrs.get("candidate_key") for t in trials})
+    in_evaluator = sum(float(t.user_attrs["evaluator"].get("seconds", 0.0)) for t in evaluated)
+    return distinct / wall * 60.0, in_evaluator / wall
+
+
+# -- bf16 -------------------------------------------------------------------------------------------
+def amp_effect(device: str, data: str, steps: int, size: tuple[int, int], batch: int) -> tuple[float, float]:
+    """(bf16 / float32 validation L1 over the same subnets, Kendall tau of the two supernets' rankings of
+    them) after ``steps`` steps each, evaluated in float32 with batch statistics."""
+    import torch
+    from scipy.stats import kendalltau
+    from explorer.data import open_dataset
+    from explorer.space import SearchSpace
+    from explorer.supernet import load_supernet, largest_candidate, random_training_subnet, smallest_candidate
+    from explorer.training.train import multi_exit_loss
+    space = SearchSpace.from_yaml("anytime_depth")
+    rng = random.Random(7)
+    subnets = [largest_candidate(space), smallest_candidate(space)] + [random_training_subnet(space, rng)
+                                                                       for _ in range(8)]
+    val = open_dataset(data, "val", size, train_augment=False)
+    frames = [val[i] for i in range(min(len(val), 32))]
+    image, scan, depth = (torch.stack([f[k] for f in frames]).to(device) for k in ("image", "scan", "depth"))
+    losses = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for amp in (False, True):
+            out = Path(tmp) / f"amp{amp}.pt"
+            train_steps(device, size, batch, steps, data, amp, out=out)
+            net = load_supernet(out, space)[0].to(device).train()
+            with torch.no_grad():
+                losses[amp] = [float(multi_exit_loss(net.forward_subnet(c, image, scan, frames[0]["scan_row"]),
+                                                     depth)[0]) for c in subnets]
+    tau = kendalltau(losses[False], losses[True]).statistic
+    return statistics.fmean(losses[True]) / statistics.fmean(losses[False]), float(tau)
+
+
+# -- the benchmark ----------------------------------------------------------------------------------
+def _size(text: str) -> tuple[int, int]:
+    h, w = (int(x) for x in text.lower().split("x"))
+    return h, w
+
+
+def options(bench: Bench):
+    ap = bench.parser()
+    ap.add_argument("--device", default="auto", choices=["auto", "cuda", "cpu"],
+                    help="where to train and search (default: CUDA where PyTorch sees a GPU, else the CPU)")
+    ap.add_argument("--steps", type=int, default=20, help="supernet steps per timing (default 20)")
+    ap.add_argument("--large-size", type=_size, default=LARGE[0], help="the large recipe's size HxW (default 224x224)")
+    ap.add_argument("--large-batch", type=int, default=LARGE[1], help="the large recipe's batch (default 64)")
+    ap.add_argument("--large-steps", type=int, default=None, help="steps at the large recipe (default --steps)")
+    ap.add_argument("--search-seconds", type=float, default=30.0, help="sampling time of each search (default 30)")
+    ap.add_argument("--search-supernet-steps", type=int, default=30,
+                    help="steps of the search's supernet, trained once before the repetitions (default 30)")
+    ap.add_argument("--amp-steps", type=int, default=150, help="steps of each supernet of the bf16 comparison, "
+                    "at the default recipe (default 150; 0 skips it)")
+    ap.add_argument("--data", default="synthetic:400:100",
+                    help="data set of every training and search (default synthetic:400:100)")
+    ap.add_argument("--no-torchrun", action="store_true", help="skip the two-process comparison")
+    # one process of the torchrun comparison (internal)
+    ap.add_argument("--worker", help=argparse_hidden())
+    ap.add_argument("--size", type=_size, default=DEFAULT[0], help=argparse_hidden())
+    ap.add_argument("--batch", type=int, default=DEFAULT[1], help=argparse_hidden())
+    return ap
+
+
+def argparse_hidden():
+    import argparse
+    return argparse.SUPPRESS
+
+
+def declare(bench: Bench, on_gpu: bool) -> None:
+    where = "GPU" if on_gpu else "CPU"
+    bench.figure("step_s_default", f"{where} supernet step, 64x64 batch 16", "s", better="lower")
+    bench.figure("step_s_large", f"{where} supernet step, large recipe (bf16 on CUDA)", "s", better="lower")
+    bench.figure("step_s_one_process", f"{where} step, one process (torchrun comparison)", "s", better="lower")
+    bench.figure("step_s_two_processes", f"{where} step, two processes sharing it", "s", better="lower")
+    bench.figure("two_process_speedup", "one process / two processes, step time", "x", better="higher")
+    bench.figure("candidates_per_minute", "distinct candidates per minute, supernet search", "1/min",
+                 better="higher")
+    bench.figure("evaluator_share", "share of sampling time in the evaluator", "", better="higher")
+    bench.figure("amp_loss_ratio", "bf16 / float32 supernet validation L1", "x", better="lower")
+    bench.figure("amp_rank_tau", "Kendall tau, bf16 vs float32 supernet rankings", "", better="higher")
+    if on_gpu:
+        bench.figure("gpu_util_default", "GPU utilisation, default recipe", "%", better="higher")
+        bench.figure("gpu_util_large", "GPU utilisation, large recipe", "%", better="higher")
+        bench.figure("cpu_step_s_default", "CPU supernet step, 64x64 batch 16", "s", better="lower")
+        bench.figure("gpu_speedup_default", "CPU / GPU step time, default recipe", "x", better="higher")
+
+
+def one_repetition(bench: Bench, args, device: str, util: Utilisation | None) -> None:
+    on_gpu = device == "cuda"
+    size, batch = DEFAULT
+    bench.add("step_s_default", train_steps(device, size, batch, args.steps, args.data, False, util))
+    _add_util(bench, "gpu_util_default", util)
+    bench.add("step_s_large", train_steps(device, args.large_size, args.large_batch, args.large_steps or args.steps,
+                                          args.data, on_gpu, util))
+    _add_util(bench, "gpu_util_large", util)
+    if on_gpu:
+        cpu = bench.add("cpu_step_s_default", train_steps("cpu", size, batch, args.steps, args.data, False))
+        bench.add("gpu_speedup_default", cpu / bench.figures["step_s_default"].reps[-1])
+    if not args.no_torchrun:
+        one = bench.add("step_s_one_process", processes_step(device, 1, args.steps, args.data))
+        two = bench.add("step_s_two_processes", processes_step(device, 2, args.steps, args.data))
+        bench.add("two_process_speedup", one / two)
+    per_minute, share = search_rate(device, args.data, args.search_seconds, args.search_supernet_steps)
+    bench.add("candidates_per_minute", per_minute)
+    bench.add("evaluator_share", share)
+
+
+def _add_util(bench: Bench, name: str, util: Utilisation | None) -> None:
+    value = util.take() if util is not None else None
+    if value is None:
+        if util is not None:
+            print(f"  {bench.figures[name].label}: n/a (no pynvml, no nvidia-smi)", flush=True)
+        return
+    bench.add(name, value)
+
+
+def main() -> None:
+    bench = Bench(__file__, "one GPU kept busy: supernet steps, utilisation, torchrun, search throughput, bf16",
+                  __doc__)
+    args = bench.parse_args(options(bench))
+    if args.worker:
+        return worker(args)
+    import torch
+    device = args.device if args.device != "auto" else ("cuda" if torch.cuda.is_available() else "cpu")
+    if device == "cuda" and not torch.cuda.is_available():
+        raise SystemExit("bench_gpu: --device cuda, but PyTorch sees no GPU (use --device cpu)")
+    on_gpu = device == "cuda"
+    declare(bench, on_gpu)
+    from explorer.study.search import ensure_supernet
+    ensure_supernet(search_config("gpu-bench", device, args.data, args.search_supernet_steps))   # not timed
+    with Utilisation(torch.cuda.current_device() if on_gpu else None) as util:
+        if on_gpu:
+            bench.note(f"{torch.cuda.get_device_name()}; utilisation read with {util.source or 'nothing (n/a)'}")
+        bench.note(f"data {args.data}; large recipe {args.large_size[0]}x{args.large_size[1]}, batch "
+                   f"{args.large_batch}{', bf16 autocast' if on_gpu else ', float32'}; {args.steps} steps a timing; "
+                   f"searches sample {args.search_seconds:g} s on a {args.search_supernet_steps}-step supernet")
+        for _ in bench.repetitions():
+            one_repetition(bench, args, device, util if on_gpu else None)
+    if args.amp_steps:
+        ratio, tau = amp_effect(device, args.data, args.amp_steps, *DEFAULT)
+        bench.add("amp_loss_ratio", ratio)
+        bench.add("amp_rank_tau", tau)
+        bench.note(f"bf16: two supernets of {args.amp_steps} steps at 64x64, batch 16, 10 subnets compared")
+    bench.finish()
+
+
+if __name__ == "__main__":
+    main()
