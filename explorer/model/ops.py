@@ -44,10 +44,24 @@ class Resize(nn.Module):
         if self.factor == 1:
             return x
         if self.products:
-            rows = bilinear_matrix(int(x.shape[-2]), self.factor).to(x)
-            cols = bilinear_matrix(int(x.shape[-1]), self.factor).to(x)
+            rows = _bilinear_like(int(x.shape[-2]), self.factor, x)
+            cols = _bilinear_like(int(x.shape[-1]), self.factor, x)
             return torch.matmul(torch.matmul(rows, x), cols.t())
         return F.interpolate(x, scale_factor=float(self.factor), mode=self.mode)
+
+
+def _bilinear_like(n: int, factor: int, x: torch.Tensor) -> torch.Tensor:
+    """``bilinear_matrix`` on ``x``'s device and dtype, copied there once: a copy from host memory to a
+    GPU waits for the GPU to finish its queue, and an up-sampling in every exit would stall it so."""
+    matrix = bilinear_matrix(n, factor)
+    if matrix.device == x.device and matrix.dtype == x.dtype:
+        return matrix
+    return _bilinear_on(n, factor, x.device, x.dtype)
+
+
+@lru_cache(maxsize=64)
+def _bilinear_on(n: int, factor: int, device: torch.device, dtype: torch.dtype) -> torch.Tensor:
+    return bilinear_matrix(n, factor).to(device, dtype)
 
 
 @lru_cache(maxsize=None)
