@@ -274,6 +274,8 @@ def train_supernet(space: SearchSpace, data: str, recipe: SupernetRecipe = Super
     net = Supernet(space).to(device=accelerator, memory_format=torch.channels_last)  # see train.image_batch
     opt = torch.optim.AdamW(net.parameters(), lr=recipe.lr, weight_decay=recipe.weight_decay)
     step, history, seconds = _resume(out, space, data, recipe, net, opt)
+    if world > 1:
+        _check_same_start(step, out)
     if step >= recipe.steps:
         return out
     train_set = open_dataset(data, "train", recipe.input_size, seed=recipe.seed, progress=data_progress)
@@ -319,6 +321,17 @@ def train_supernet(space: SearchSpace, data: str, recipe: SupernetRecipe = Super
         import torch.distributed as dist
         dist.barrier()
     return out
+
+
+def _check_same_start(step: int, out: Path) -> None:
+    """Every process must resume from the same step: a checkpoint on one machine's disk alone would
+    start the others over, and the processes would train different networks (or wait on each other)."""
+    import torch.distributed as dist
+    steps: list = [None] * dist.get_world_size()
+    dist.all_gather_object(steps, step)
+    if len(set(steps)) > 1:
+        raise UserError(f"supernet {out}: the processes found it at steps {sorted(set(steps))}; give --out a "
+                        "path that every machine sees (shared storage)")
 
 
 def _pace(step_seconds: float, accelerator: torch.device) -> dict:

@@ -98,3 +98,14 @@ def test_the_gpu_recipe_is_one_flag_and_options_override_it(tmp_path, run_cli):
     assert (got.input_size, got.batch_size, got.amp, got.steps) == ((224, 224), 64, False, 600)
     args = build_parser().parse_args(["supernet", "train"])
     assert supernet_recipe(args) == SupernetRecipe()    # the default recipe, as before the flag
+
+
+def test_processes_that_would_resume_from_different_steps_are_refused(monkeypatch, tmp_path):
+    import torch.distributed as dist
+    from explorer.errors import UserError
+    monkeypatch.setattr(dist, "get_world_size", lambda: 2)
+    monkeypatch.setattr(dist, "all_gather_object", lambda out, obj: out.__setitem__(slice(None), [obj, obj]))
+    supernet_train._check_same_start(5, tmp_path / "s.pt")           # every process at step 5: fine
+    monkeypatch.setattr(dist, "all_gather_object", lambda out, obj: out.__setitem__(slice(None), [obj, 0]))
+    with pytest.raises(UserError, match="every machine sees"):
+        supernet_train._check_same_start(5, tmp_path / "s.pt")
