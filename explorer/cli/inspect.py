@@ -3,11 +3,10 @@ costs and data without training anything."""
 
 from __future__ import annotations
 
-import time
 from pathlib import Path
 
 from explorer.errors import UserError
-from explorer.cli._common import _Parser, _add_provider, _check_provider, _size, deprecated_alias, write_output
+from explorer.cli._common import _Parser, _add_provider, _check_provider, _size, deprecated_alias
 
 
 def cmd_space_show(args) -> None:
@@ -126,21 +125,25 @@ def cmd_anytime(args) -> None:
 
 def cmd_enumerate(args) -> None:
     from explorer.console import console, print_frame, progress
-    from explorer.study.enumerate import enumerate_space
-    from explorer.space import SearchSpace
+    from explorer.study.enumerate import front_columns, write_enumeration
+    from explorer.space import SearchSpace, check_size
     space = SearchSpace.from_yaml(args.space)
-    t0 = time.perf_counter()
+    check_size(args.input_size, space.max_stride, "--input-size")
+    front = front_columns(args.front)
     with progress(transient=True) as bar:
         task = bar.add_task(f"costing {space.name}", total=space.size, status="")
-        frame = enumerate_space(space, args.device, args.budget, args.input_size,
-                                progress=lambda i, n: bar.update(task, completed=i))
-    dt = time.perf_counter() - t0
-    if args.csv:
-        write_output(args.csv, frame.to_csv(index=False))
-        console.print(f"wrote {len(frame):,} candidates to {args.csv}")
-    console.print(f"{len(frame):,} candidates costed in {dt:.1f} s ({len(frame) / dt:,.0f}/s)")
+        done = write_enumeration(space, args.device, args.budget, args.input_size, csv=args.csv, parquet=args.parquet,
+                                 front=front, progress=lambda i, n: bar.update(task, completed=i))
+    for path in (args.csv, args.parquet):
+        if path:
+            console.print(f"wrote {done.size:,} candidates to {path}")
+    console.print(f"{done.size:,} candidates costed in {done.seconds:.1f} s ({done.size / done.seconds:,.0f}/s)")
     cols = ["key", "params", "macs", "paths", "first_exit_ms", "last_exit_ms", "p_path0"]
-    print_frame(frame.nsmallest(10, "p_path0")[cols], "fewest halts left to path 0")
+    cols += [c for c in front if c not in cols]
+    shown = done.front.head(args.top)
+    more = f", the first {len(shown)} shown (--top)" if len(shown) < len(done.front) else ""
+    print_frame(shown[cols], f"Pareto front of {', '.join(front)} over every candidate: "
+                             f"{len(done.front):,} candidates{more}")
 
 
 def cmd_data_inspect(args) -> None:
@@ -218,7 +221,13 @@ def register(sub, add, reports: dict) -> None:
     s.add_argument("--budget", default="time:uniform:33ms")
     s.add_argument("--input-size", type=_size, default=(224, 224))
     deprecated_alias(s, "--input", "--input-size")
-    s.add_argument("--csv", help="CSV file to write the whole table to (default: none)")
+    s.add_argument("--csv", help="CSV file to write the whole table to, one row per candidate (default: none)")
+    s.add_argument("--parquet", help="Parquet file to write the whole table to (needs pyarrow; default: none)")
+    s.add_argument("--front", default="p_path0,last_exit_ms,params",
+                   help="columns to find the Pareto front of over every candidate, comma-separated, from params, "
+                        "macs, first_exit_ms, last_exit_ms, first_exit_j, last_exit_j, p_path0 (the less the better), "
+                        "p_last, budget_used (the more the better) (default p_path0,last_exit_ms,params)")
+    s.add_argument("--top", type=int, default=20, help="front rows to print (default 20)")
 
     sp = add("data", None, "inspect a data set")
     dsub = sp.add_subparsers(dest="sub", required=True, parser_class=_Parser, metavar="SUBCOMMAND")
