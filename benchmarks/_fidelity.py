@@ -91,6 +91,21 @@ def estimate(evaluator, cand: Candidate) -> float:
     return anytime_loss(costs, list(evaluator(cand).metrics["rmse"]), BUDGET)
 
 
+def fine_tuned_estimate(evaluator, cand: Candidate, steps: int, config: SearchConfig | None = None) -> float:
+    """The anytime loss of ``cand``'s slice of the supernet after ``steps`` steps of stand-alone training
+    (the finalists' recipe, a tenth of its learning rate), on the search's validation frames."""
+    from explorer.data import open_dataset
+    from explorer.training.train import train
+    config = config or SearchConfig(study="fidelity")
+    cfg = dataclasses.replace(config.finalist_config(seed=0), steps=steps, lr=config.lr / 10, lr_end=config.lr / 100)
+    net = evaluator.supernet.extract(cand)
+    tr = open_dataset(config.data, "train", config.train_size, seed=0)
+    va = open_dataset(config.data, "val", config.train_size, train_augment=False)
+    res = train(net, tr, va, cfg, val_limit=config.val_limit)
+    costs = candidate_cost(cand).path_costs(get_device("tx2"), "time")
+    return anytime_loss(costs, [float(x) for x in res.metrics["rmse"]], BUDGET)
+
+
 def top_recall(estimates: list[float], labels: list[float], k: int = 5, within: int = 10) -> int:
     """How many of the labels' best ``k`` are among the estimate's best ``within`` (lower is better)."""
     best = set(sorted(range(len(labels)), key=labels.__getitem__)[:k])

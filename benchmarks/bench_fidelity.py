@@ -6,18 +6,21 @@ recall (how many of the long labels' best 5 are in the estimate's best 10); the 
 seed-to-seed tau bounds any of them.
 
     python benchmarks/bench_fidelity.py [--candidates 24] [--supernet-seeds 0,1] [--supernet FILE ...]
-        [--supernet-recipe random_subnets=2,head_kinds=every] [--calibration-images 256]
+        [--supernet-recipe head_kinds=cover] [--calibration-images 256] [--store]
     python benchmarks/bench_fidelity.py --labels-only --worker 0   # fill the label cache (several workers may)
 
 Each repetition is one supernet: trained here with each of --supernet-seeds (the search's recipe, cached
 beside the search's own supernets), or read from each --supernet file. The stand-alone labels are trained
 once and cached (benchmarks/_labels.py), so re-scoring a new supernet takes minutes. The label figures
-(seed spread, proxy, finalists' recipe) do not depend on the supernet and have one value.
+(seed spread, proxy, finalists' recipe) do not depend on the supernet and have one value. --store writes
+the supernets' figures into explorer/supernet/fidelity.json (package data), which a search's summary and
+report quote for studies of the same space, data and supernet recipe.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import json
 import statistics
 import sys
 from pathlib import Path
@@ -25,9 +28,11 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _fidelity import (LABEL_SEEDS, estimate, fidelity_candidates, label_jobs, label_recipes,  # noqa: E402
-                       labels_of, rank_figures, run_label_jobs, supernet_evaluator)
-from harness import Bench  # noqa: E402
+from _fidelity import (CANDIDATE_SEED, LABEL_SEEDS, estimate, fidelity_candidates,  # noqa: E402
+                       fine_tuned_estimate, label_jobs, label_recipes, labels_of, rank_figures, run_label_jobs,
+                       supernet_evaluator)
+from _labels import BUDGET  # noqa: E402
+from harness import ROOT, Bench  # noqa: E402
 
 from explorer.space import SearchSpace  # noqa: E402
 from explorer.study.config import SearchConfig  # noqa: E402
@@ -63,18 +68,28 @@ def supernet_files(args, space: SearchSpace, config: SearchConfig) -> list[tuple
 
 
 def label_table(cands, seeds) -> tuple[list, dict, dict]:
-    """(the candidates with every label, their labels {candidate: {recipe: mean over the seeds}}, their
-    long labels per seed {candidate: [...]})."""
+    """(the candidates with long labels, their labels {candidate: {recipe: mean over the seeds}} for the
+    recipes they have, their long labels per seed {candidate: [...]})."""
     rows = {c: {name: labels_of(c, name, seeds) for name in label_recipes()} for c in cands}
-    whole = [c for c in cands if all(rows[c].values())]
-    return whole, {c: {name: statistics.mean(v) for name, v in rows[c].items()} for c in whole}, \
-        {c: rows[c]["long"] for c in whole}
+    labelled = [c for c in cands if rows[c]["long"]]
+    return labelled, {c: {name: statistics.mean(v) for name, v in rows[c].items() if v} for c in labelled}, \
+        {c: rows[c]["long"] for c in labelled}
 
 
-def label_figures(bench: Bench, whole: list, table: dict, per_seed: dict) -> None:
+def _add_ranks(bench: Bench, prefix: str, what: str, estimates: dict, table: dict) -> dict | None:
+    """Kendall tau, Spearman and top-5 recall of ``estimates`` {candidate: value} against the long labels
+    (None under 3 candidates: no rank figure means anything there)."""
+    if len(estimates) < 3:
+        return None
+    figs = rank_figures(list(estimates.values()), [table[c]["long"] for c in estimates])
+    for k, (label, better) in FIGURES.items():
+        bench.add(bench.figure(f"{k}_{prefix}", f"{what}: {label} against the long labels", "", better), figs[k])
+    return figs
+
+
+def label_figures(bench: Bench, labelled: list, table: dict, per_seed: dict) -> None:
     """The labels' seed spread and the proxy's and finalists' recipes' fidelity (one value each)."""
-    long = [table[c]["long"] for c in whole]
-    both = [c for c in whole if len(per_seed[c]) >= 2]
+    both = [c for c in labelled if len(per_seed[c]) >= 2]
     if len(both) >= 3:
         spread = rank_figures([per_seed[c][0] for c in both], [per_seed[c][1] for c in both])
         bench.add(bench.figure("labels_seed_tau", "long labels: Kendall tau between seeds 0 and 1", "", "higher"),
@@ -82,23 +97,23 @@ def label_figures(bench: Bench, whole: list, table: dict, per_seed: dict) -> Non
         bench.note(f"long labels' seed-to-seed Kendall tau {spread['tau']:.3f} over {len(both)} candidates "
                    f"(Spearman {spread['spearman']:.3f})")
     for name in ("proxy", "finalist"):
-        figs = rank_figures([table[c][name] for c in whole], long)
-        for k, (label, better) in FIGURES.items():
-            bench.add(bench.figure(f"{k}_{name}", f"{name} recipe: {label} against the long labels", "", better),
-                      figs[k])
+        have = {c: table[c][name] for c in labelled if name in table[c]}
+        if _add_ranks(bench, name, f"{name} recipe", have, table):
+            bench.note(f"{name} recipe ranked over {len(have)} candidates")
 
 
-def score_supernet(bench: Bench, name: str, evaluator, whole: list, table: dict, space: SearchSpace) -> None:
-    inside = [c for c in whole if space.contains(c)]
+def score_supernet(bench: Bench, name: str, evaluator, labelled: list, table: dict, space: SearchSpace,
+                   fine_tune: int = 0) -> None:
+    inside = [c for c in labelled if space.contains(c)]
     est = {c: estimate(evaluator, c) for c in inside}
-    figs = rank_figures([est[c] for c in inside], [table[c]["long"] for c in inside])
-    for k, (label, better) in FIGURES.items():
-        bench.add(bench.figure(f"{k}_supernet", f"supernet: {label} against the long labels", "", better), figs[k])
-    order = sorted(inside, key=lambda c: table[c]["long"])
-    for c in order:
-        print(f"  {c.key} long {table[c]['long']:.4f} finalist {table[c]['finalist']:.4f} proxy "
-              f"{table[c]['proxy']:.4f} supernet {est[c]:.4f}  {c.describe()[:80]}", flush=True)
-    for kind in (False, True):   # plain and residual heads, where the issue saw the estimate part
+    _add_ranks(bench, "supernet", "supernet", est, table)
+    for c in sorted(inside, key=lambda c: table[c]["long"]):
+        others = " ".join(f"{k} {table[c][k]:.4f}" for k in ("finalist", "proxy") if k in table[c])
+        print(f"  {c.key} long {table[c]['long']:.4f} {others} supernet {est[c]:.4f}  {c.describe()[:80]}", flush=True)
+    if fine_tune:   # every candidate's slice trained a few steps alone, as a search could its top estimates
+        tuned = {c: fine_tuned_estimate(evaluator, c, fine_tune) for c in inside}
+        _add_ranks(bench, "fine_tuned", f"supernet slices fine-tuned {fine_tune} steps", tuned, table)
+    for kind in (False, True):   # plain and residual heads, where the estimate was seen to part
         sub = [c for c in inside if c.exit_residual == kind]
         if len(sub) >= 4:
             t = rank_figures([est[c] for c in sub], [table[c]["long"] for c in sub])["tau"]
@@ -116,8 +131,12 @@ def main() -> None:
     ap.add_argument("--supernet-seeds", default="0,1", help="seeds of the supernets trained and scored")
     ap.add_argument("--supernet-recipe", default="", help="changes to the search's supernet recipe, key=value,...")
     ap.add_argument("--calibration-images", type=int, default=256, help="BatchNorm recalibration frames")
+    ap.add_argument("--fine-tune-steps", type=int, default=0, help="also rank every candidate's slice after "
+                    "this many steps of stand-alone training (0: not)")
     ap.add_argument("--label-seeds", default=",".join(map(str, LABEL_SEEDS)), help="seeds of the stand-alone labels")
     ap.add_argument("--cached-labels", action="store_true", help="score with the labels already cached, train none")
+    ap.add_argument("--store", action="store_true", help="store the supernets' figures as the package's "
+                    "fidelity record of their space, data and recipe")
     ap.add_argument("--labels-only", action="store_true", help="only train the labels not cached yet")
     ap.add_argument("--worker", type=int, default=0, help="with --labels-only: this worker's number (for its log)")
     args = bench.parse_args(ap)
@@ -131,22 +150,46 @@ def main() -> None:
     if args.labels_only:
         return
     torch.set_num_threads(2)
-    whole, table, per_seed = label_table(cands, seeds)
+    labelled, table, per_seed = label_table(cands, seeds)
     rec = label_recipes(config)
-    bench.note(f"{len(whole)} of {len(cands)} candidates labelled ({args.candidates} random, seed of the draw 45, and "
-               f"the baselines); long labels {rec['long'].steps} steps (mean of seeds {args.label_seeds}), finalists' "
-               f"{rec['finalist'].steps}, proxy {rec['proxy'].steps}, batch {rec['long'].batch_size} at "
-               f"{rec['long'].input_size[0]}x{rec['long'].input_size[1]}; anytime loss on tx2, time:uniform:33ms")
-    label_figures(bench, whole, table, per_seed)
+    bench.note(f"{len(labelled)} of {len(cands)} candidates with long labels ({args.candidates} random, drawn "
+               f"with seed {CANDIDATE_SEED}, and the baselines); long labels {rec['long'].steps} steps (mean of "
+               f"seeds {args.label_seeds}), finalists' {rec['finalist'].steps}, proxy {rec['proxy'].steps}, batch "
+               f"{rec['long'].batch_size} at {rec['long'].input_size[0]}x{rec['long'].input_size[1]}; anytime loss "
+               f"on tx2, {BUDGET}")
+    label_figures(bench, labelled, table, per_seed)
     files = supernet_files(args, space, config)
+    recipes = []
     for rep in bench.repetitions(len(files)):
         name, file = files[rep]
         state = read_supernet(file)
+        recipes.append(SupernetRecipe.from_dict(state["recipe"]))
         bench.note(f"supernet {name}: {state['step']} steps, recipe {state['recipe']}, trained in "
                    f"{state['seconds'] / 60:.1f} min; BatchNorm recalibrated on {args.calibration_images} frames")
         evaluator = supernet_evaluator(file, space, config, calibration_images=args.calibration_images)
-        score_supernet(bench, name, evaluator, whole, table, space)
-    bench.finish()
+        score_supernet(bench, name, evaluator, labelled, table, space, args.fine_tune_steps)
+    path = bench.finish()
+    if args.store:
+        store(bench, space, config, recipes, labelled, rec["long"].steps, seeds, path)
+
+
+def store(bench: Bench, space: SearchSpace, config: SearchConfig, recipes: list, labelled: list, label_steps: int,
+          seeds: tuple, record: Path | None) -> None:
+    """The supernets' figures as the package's fidelity record of their (space, data, recipe)."""
+    from explorer.study.config import BASELINES
+    from explorer.supernet import store_fidelity
+    if len({json.dumps({k: v for k, v in r.identity().items() if k != "seed"}, sort_keys=True) for r in recipes}) != 1:
+        sys.exit("--store: the supernets scored differ in more than their seed; store one recipe at a time")
+    figs = {k: [round(v, 4) for v in bench.figures[f"{k}_supernet"].reps] for k in FIGURES}
+    spread = bench.figures.get("labels_seed_tau")
+    baselines = {make().key for make in BASELINES.values()}
+    entry = {**figs, "candidates": sum(c.key not in baselines for c in labelled), "label_steps": label_steps,
+             "label_seeds": list(seeds),
+             "labels_seed_tau": round(spread.reps[0], 4) if spread and spread.reps else None,
+             "supernet_seeds": [r.seed for r in recipes], "date": bench.started.strftime("%Y-%m-%d"),
+             "record": str(record.relative_to(ROOT)) if record else None}
+    store_fidelity(space, config.data, recipes[0], entry)
+    print(f"stored in explorer/supernet/fidelity.json: {entry}")
 
 
 if __name__ == "__main__":
