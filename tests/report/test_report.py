@@ -42,6 +42,16 @@ def test_report_holds_the_tables(study_with_everything):
     # the finalists: every retrained one beside its estimate, and the winner is a retrained one
     assert 'id="finalists-table"' in html and "(retrained)" in html
     assert "has no search estimate" in html     # the baselines outside the tiny space say why
+    # how far the estimate can be trusted: no fidelity was measured for the tiny space, and it says so
+    assert 'id="fidelity"' in html and "ranking of the space is unmeasured" in html
+
+
+def test_finalists_agreement_is_named_for_what_it_is(study_with_everything):
+    from explorer.study.results import estimate_fidelity, finalists_agreement
+    study, _ = study_with_everything
+    agreement = finalists_agreement(study)
+    assert agreement is None or (-1 <= agreement["tau"] <= 1 and agreement["rows"] >= 3)
+    assert "unmeasured" in estimate_fidelity(study)
 
 
 def test_report_escapes_user_strings(tmp_path):
