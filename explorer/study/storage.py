@@ -120,10 +120,66 @@ def open_storage(url: str | None, study: str, workers: int = 1, reports: Path = 
         import warnings
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
-            return optuna.storages.RDBStorage(url, engine_kwargs={"pool_pre_ping": True}, **kwargs)
+            storage = optuna.storages.RDBStorage(url, engine_kwargs={"pool_pre_ping": True}, **kwargs)
     except Exception as exc:  # sqlalchemy raises many types for unreachable or malformed URLs
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise UserError(f"storage {url}: unreachable or invalid ({first[:160]})") from None
+    if create and url.startswith("sqlite:///") and not on_network_filesystem(Path(url[len("sqlite:///"):])):
+        _write_ahead(storage)   # the search writes; readers leave the file's mode as they find it
+    return storage
+
+
+#: file systems shared between machines, where SQLite's write-ahead log (shared memory) does not work
+MOUNTS = Path("/proc/mounts")
+NETWORK_FILESYSTEMS = ("nfs", "nfs4", "cifs", "smb3", "smbfs", "lustre", "gpfs", "beegfs", "ceph",
+                       "glusterfs", "fuse.sshfs", "9p", "afs")
+
+
+def on_network_filesystem(path: Path) -> bool:
+    """Whether ``path`` lies on a network file system, by the longest mount point above it in
+    /proc/mounts (False where that cannot be read)."""
+    try:
+        mounts = [line.split()[1:3] for line in MOUNTS.read_text().splitlines()]
+    except OSError:
+        return False
+    target = str(path.resolve())
+    best, kind = "", ""
+    for point, fs in mounts:
+        point = point.replace("\\040", " ")
+        inside = target == point or target.startswith(point.rstrip("/") + "/")
+        if inside and len(point) > len(best):
+            best, kind = point, fs
+    return kind in NETWORK_FILESYSTEMS
+
+
+def _write_ahead(storage: optuna.storages.RDBStorage) -> None:
+    """SQLite in write-ahead-log mode, synced at checkpoints rather than at every commit: Optuna
+    commits once per parameter and attribute (about 30 a trial), and a sync each made storage cost
+    more than a supernet estimate. A killed process loses nothing committed; a power cut may lose
+    the last trials, never the database's consistency. At exit the file goes back to a rollback
+    journal, so that it stays one self-contained file others can read from a read-only folder."""
+    import atexit
+
+    from sqlalchemy import event, text
+
+    def pragmas(connection, _record) -> None:
+        cursor = connection.cursor()
+        cursor.execute("PRAGMA journal_mode=WAL")
+        cursor.execute("PRAGMA synchronous=NORMAL")
+        cursor.close()
+
+    def leave_one_file() -> None:
+        storage.engine.dispose()   # leaving WAL mode needs the only connection
+        try:
+            with storage.engine.connect() as connection:
+                connection.execute(text("PRAGMA journal_mode=DELETE"))
+        except Exception:   # another process still has it open: it stays in WAL mode, readable all the same
+            pass
+        storage.engine.dispose()
+
+    event.listen(storage.engine, "connect", pragmas)
+    storage.engine.dispose()   # connections opened while the tables were made reconnect with the pragmas
+    atexit.register(leave_one_file)
 
 
 def _with_driver(url: str) -> str:

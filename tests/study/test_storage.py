@@ -1,0 +1,72 @@
+"""The study database: SQLite in write-ahead-log mode while a search writes, one plain file after."""
+
+import sqlite3
+import subprocess
+import sys
+from pathlib import Path
+
+import optuna
+import pytest
+from sqlalchemy import text
+
+from explorer.study import storage
+
+
+def _journal_mode(storage_obj) -> str:
+    with storage_obj.engine.connect() as connection:
+        return connection.execute(text("PRAGMA journal_mode")).scalar()
+
+
+def test_a_search_writes_through_a_write_ahead_log(tmp_path):
+    st = storage.open_storage(None, "s", reports=tmp_path)
+    optuna.create_study(storage=st, study_name="s").optimize(lambda t: t.suggest_float("x", 0, 1), n_trials=2)
+    assert _journal_mode(st) == "wal"
+
+
+def test_readers_leave_the_mode_as_they_find_it(tmp_path):
+    db = tmp_path / "s" / "study.db"
+    db.parent.mkdir()
+    optuna.create_study(storage=f"sqlite:///{db}", study_name="s")
+    reader = storage.open_storage(f"sqlite:///{db}", "s", create=False)
+    assert _journal_mode(reader) == "delete"
+
+
+def test_on_a_network_filesystem_the_database_keeps_its_rollback_journal(tmp_path, monkeypatch):
+    mounts = tmp_path / "mounts"
+    mounts.write_text(f"server:/export {tmp_path} nfs4 rw 0 0\n/dev/vda / ext4 rw 0 0\n")
+    monkeypatch.setattr(storage, "MOUNTS", mounts)
+    assert storage.on_network_filesystem(tmp_path / "s" / "study.db")
+    assert not storage.on_network_filesystem(Path("/var/lib/x.db"))
+    st = storage.open_storage(None, "s", reports=tmp_path)
+    optuna.create_study(storage=st, study_name="s")
+    assert _journal_mode(st) == "delete"
+
+
+def test_mounts_that_cannot_be_read_count_as_local(tmp_path, monkeypatch):
+    monkeypatch.setattr(storage, "MOUNTS", tmp_path / "absent")
+    assert not storage.on_network_filesystem(tmp_path)
+
+
+def test_after_the_search_process_ends_the_study_is_one_file(tmp_path):
+    script = ("import optuna, sys; from pathlib import Path; from explorer.study.storage import open_storage\n"
+              "st = open_storage(None, 's', reports=Path(sys.argv[1]))\n"
+              "optuna.create_study(storage=st, study_name='s').optimize(lambda t: t.suggest_int('x', 0, 9), n_trials=3)\n")
+    subprocess.run([sys.executable, "-c", script, str(tmp_path)], check=True, capture_output=True)
+    assert sorted(p.name for p in (tmp_path / "s").iterdir()) == ["study.db"]
+    with sqlite3.connect(tmp_path / "s" / "study.db") as connection:
+        assert connection.execute("PRAGMA journal_mode").fetchone()[0] == "delete"
+    study = optuna.load_study(study_name="s", storage=f"sqlite:///{tmp_path / 's' / 'study.db'}")
+    assert len(study.trials) == 3
+
+
+@pytest.mark.slow
+def test_a_killed_search_loses_no_committed_trial(tmp_path):
+    script = ("import optuna, os, sys; from pathlib import Path; from explorer.study.storage import open_storage\n"
+              "st = open_storage(None, 's', reports=Path(sys.argv[1]))\n"
+              "study = optuna.create_study(storage=st, study_name='s')\n"
+              "study.optimize(lambda t: t.suggest_int('x', 0, 9), n_trials=5)\n"
+              "os.kill(os.getpid(), 9)\n")
+    done = subprocess.run([sys.executable, "-c", script, str(tmp_path)], capture_output=True)
+    assert done.returncode == -9
+    study = optuna.load_study(study_name="s", storage=storage.open_storage(None, "s", reports=tmp_path))
+    assert len(study.trials) == 5
