@@ -253,8 +253,10 @@ class SpaceGrid:
             named = named + np.array(["," + str(fmt(x[field]) if fmt else x[field]) for x in self.axes[axis]],
                                      dtype=object)[d[axis]]
         text = {"named": named, "path_ms": self._path_text(c)}
+        text.update(_float_texts(c["first_exit_ms"], {k: c[k] for k in FIRST_PATH_COLUMNS}))
         for name in NUMERIC:
-            text[name] = _float_text(c[name]) if c[name].dtype.kind == "f" else list(map(str, c[name].tolist()))
+            if name not in text:
+                text[name] = list(map(repr if c[name].dtype.kind == "f" else str, c[name].tolist()))
         order = ["named"] + [k for k in COLUMNS if k not in CHOICE_COLUMNS and k != "key"]
         return "\n".join(map(",".join, zip(*(text[k] for k in order)))) + "\n"
 
@@ -288,10 +290,16 @@ NUMERIC = ("paths", "params", "macs", "first_exit_ms", "last_exit_ms", "first_ex
            "p_last", "budget_used")
 
 
-def _float_text(values: np.ndarray) -> np.ndarray:
-    """``repr`` of each value, made once per distinct value (a float's bits decide its text)."""
-    distinct, inverse = np.unique(values.view(np.int64), return_inverse=True)
-    return np.array(list(map(repr, distinct.view(np.float64).tolist())), dtype=object)[inverse]
+#: the columns that are functions of the first path's ready time alone
+FIRST_PATH_COLUMNS = ("first_exit_ms", "first_exit_j", "p_path0", "budget_used")
+
+
+def _float_texts(key: np.ndarray, columns: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """``repr`` of each value of ``columns``, each a function of ``key``: made once per distinct ``key``
+    (a float's bits decide it), which few rows' first paths have."""
+    _, first, inverse = np.unique(key.view(np.int64), return_index=True, return_inverse=True)
+    return {name: np.array(list(map(repr, values[first].tolist())), dtype=object)[inverse]
+            for name, values in columns.items()}
 
 
 def stage_totals(profile: DeviceProfile) -> Callable:

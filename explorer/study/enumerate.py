@@ -229,6 +229,9 @@ def _scratch(path: str | Path | None, mode: str):
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=f".tmp{os.getpid()}", dir=path.parent)
+        umask = os.umask(0)
+        os.umask(umask)
+        os.fchmod(fd, 0o666 & ~umask)   # mkstemp makes it private; a table is for whoever may read the folder
     except OSError as exc:
         raise UserError(f"{path}: cannot write it ({exc.strerror})") from None
     try:
