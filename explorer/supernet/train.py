@@ -287,7 +287,8 @@ def train_supernet(space: SearchSpace, data: str, recipe: SupernetRecipe = Super
     lr_cfg = TrainConfig(steps=recipe.steps, lr=recipe.lr, lr_end=recipe.lr_end)
     stop = recipe.steps if stop_after_steps is None else min(recipe.steps, step + stop_after_steps)
     epoch, t0 = step // len(loader), time.perf_counter()
-    saved = last = t0
+    saved = t0
+    ledger = _Ledger(history, progress if rank == 0 else None, recipe.steps, accelerator)
     skip = step % len(loader)  # resume mid-epoch on the batches that were not seen
     while step < stop:
         train_set.epoch = epoch
@@ -301,20 +302,16 @@ def train_supernet(space: SearchSpace, data: str, recipe: SupernetRecipe = Super
             subnets = _subnets(largest, smallest, space, recipe, step, rng)
             for g in opt.param_groups:
                 g["lr"] = lr_at(lr_cfg, step)
-            losses = _sandwich_step(net, opt, batch, subnets, recipe, step, accelerator, rank, world)
             step += 1
-            record = {"step": step, "largest": losses[0], "smallest": losses[1],
-                      "random": sum(losses[2:]) / max(len(losses) - 2, 1)}
-            history.append(record)
+            ledger.add(step, _sandwich_step(net, opt, batch, subnets, recipe, accelerator, rank, world))
             now = time.perf_counter()
-            if progress and rank == 0:
-                progress(step, recipe.steps, {**record, **_pace(now - last, accelerator)})
-            last = now
             if (step % checkpoint_every == 0 or now - saved >= checkpoint_seconds) and step < stop and rank == 0:
+                ledger.settle()
                 save(out, net, recipe, data, step, opt, history, seconds + now - t0)
                 saved = time.perf_counter()
         skip = 0
         epoch += 1
+    ledger.settle()
     if rank == 0:
         save(out, net, recipe, data, step, opt, history, seconds + time.perf_counter() - t0)
     if world > 1:
@@ -332,6 +329,40 @@ def _check_same_start(step: int, out: Path) -> None:
     if len(set(steps)) > 1:
         raise UserError(f"supernet {out}: the processes found it at steps {sorted(set(steps))}; give --out a "
                         "path that every machine sees (shared storage)")
+
+
+class _Ledger:
+    """The steps' records, read back from the device one step late: step N's losses are read once step
+    N+1 is queued, so that the host prepares the next step (its subnets, their slices, the kernel
+    launches) while the GPU still runs this one. A non-finite loss stops training one step later."""
+
+    def __init__(self, history: list[dict], progress: Callable[[int, int, dict], None] | None, total: int,
+                 accelerator: torch.device) -> None:
+        self.history, self.progress, self.total, self.accelerator = history, progress, total, accelerator
+        self.pending: tuple[int, torch.Tensor] | None = None
+        self.last = time.perf_counter()
+
+    def add(self, step: int, losses: torch.Tensor) -> None:
+        """Step ``step`` is queued with ``losses`` (one per subnet, on the device): the step before it
+        is read."""
+        self.settle()
+        self.pending = (step, losses)
+
+    def settle(self) -> None:
+        """Reads the pending step (waiting for the device), checks and records it."""
+        if self.pending is None:
+            return
+        (step, losses), self.pending = self.pending, None
+        values = losses.tolist()
+        if not all(map(lambda v: v == v and abs(v) != float("inf"), values)):
+            raise FloatingPointError(f"supernet loss became {values} at step {step - 1}")
+        record = {"step": step, "largest": values[0], "smallest": values[1],
+                  "random": sum(values[2:]) / max(len(values) - 2, 1)}
+        self.history.append(record)
+        now = time.perf_counter()
+        if self.progress:
+            self.progress(step, self.total, {**record, **_pace(now - self.last, self.accelerator)})
+        self.last = now
 
 
 def _pace(step_seconds: float, accelerator: torch.device) -> dict:
@@ -373,13 +404,12 @@ def _resume(out: Path, space: SearchSpace, data: str, recipe: SupernetRecipe, ne
 
 
 def _sandwich_step(net: Supernet, opt: torch.optim.Optimizer, batch: dict, subnets: list[Candidate],
-                   recipe: SupernetRecipe, step: int, accelerator: torch.device, rank: int, world: int
-                   ) -> list[float]:
+                   recipe: SupernetRecipe, accelerator: torch.device, rank: int, world: int) -> torch.Tensor:
     """One optimizer step on process ``rank``'s share of ``batch``: every subnet's gradients summed
     (and averaged over the ``world`` processes), the first subnet's last exit distilled into the
-    others; the subnets' losses. The losses stay on the device until the step is queued (one wait
-    for the GPU per step, not one per subnet); ``recipe.amp`` runs the forward passes under bf16
-    autocast (no loss scaling: bf16 has float32's range)."""
+    others; the subnets' losses, left on the device (no wait for the GPU here: :class:`_Ledger` reads
+    them once the next step is queued); ``recipe.amp`` runs the forward passes under bf16 autocast (no
+    loss scaling: bf16 has float32's range)."""
     per_rank = recipe.batch_size // world
     net.train()
     opt.zero_grad(set_to_none=True)
@@ -403,10 +433,7 @@ def _sandwich_step(net: Supernet, opt: torch.optim.Optimizer, batch: dict, subne
     if world > 1:
         _average_gradients(net, world)
     opt.step()
-    values = losses.tolist()
-    if not all(map(lambda v: v == v and abs(v) != float("inf"), values)):
-        raise FloatingPointError(f"supernet loss became {values} at step {step}")
-    return values
+    return losses
 
 
 #: gradients are averaged over processes in flat buckets of about this many bytes: one collective per

@@ -109,3 +109,19 @@ def test_processes_that_would_resume_from_different_steps_are_refused(monkeypatc
     monkeypatch.setattr(dist, "all_gather_object", lambda out, obj: out.__setitem__(slice(None), [obj, 0]))
     with pytest.raises(UserError, match="every machine sees"):
         supernet_train._check_same_start(5, tmp_path / "s.pt")
+
+
+def test_a_loss_read_one_step_late_still_stops_training_before_it_is_saved(tmp_path, monkeypatch):
+    real = supernet_train._sandwich_step
+    calls = []
+
+    def step(*args):
+        losses = real(*args)
+        calls.append(1)
+        return losses * float("nan") if len(calls) == 2 else losses
+    monkeypatch.setattr(supernet_train, "_sandwich_step", step)
+    out = tmp_path / "s.pt"
+    with pytest.raises(FloatingPointError, match="at step 1"):
+        train_supernet(SearchSpace.from_yaml("tiny"), TINY_DATA, RECIPE, out, checkpoint_every=1)
+    state = torch.load(out, weights_only=True)
+    assert state["step"] == 1 and len(state["history"]) == 1
