@@ -15,6 +15,7 @@ import torch
 from torch.utils.data import DataLoader
 
 from explorer.data import parse_data_spec
+from explorer.data.resident import training_batches
 from explorer.errors import UserError
 from explorer.files import remove_dead_scratch
 from explorer.metrics import MetricAverager, batch_depth_metrics, depth_metrics
@@ -313,7 +314,9 @@ def train(net: AnytimeDepthNet, train_set, val_set, cfg: TrainConfig = PROXY,
     scaler = torch.amp.GradScaler("cuda", enabled=use_amp)
     start = _resume(checkpoint, net, selfsup, opt, accelerator)
     gen = torch.Generator().manual_seed(cfg.seed)
-    loader = DataLoader(train_set, batch_size=cfg.batch_size, shuffle=True, generator=gen, drop_last=True)
+    # on a GPU, the data held there where it fits (explorer.data.resident: the same batches)
+    loader = training_batches(train_set, cfg.batch_size, gen, accelerator) if accelerator.type == "cuda" else \
+        DataLoader(train_set, batch_size=cfg.batch_size, shuffle=True, generator=gen, drop_last=True)
     if len(loader) == 0:
         loader = DataLoader(train_set, batch_size=len(train_set), shuffle=True, generator=gen)
     history: list[dict] = []
