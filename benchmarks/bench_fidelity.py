@@ -6,7 +6,8 @@ recall (how many of the long labels' best 5 are in the estimate's best 10); the 
 seed-to-seed tau bounds any of them.
 
     python benchmarks/bench_fidelity.py [--candidates 24] [--supernet-seeds 0,1] [--supernet FILE ...]
-        [--supernet-recipe head_kinds=cover] [--calibration-images 256] [--store]
+        [--supernet-recipe head_kinds=cover] [--compare FILE ...] [--calibration-sweep 64,1024]
+        [--fine-tune-steps 30] [--store]
     python benchmarks/bench_fidelity.py --labels-only --worker 0   # fill the label cache (several workers may)
 
 Each repetition is one supernet: trained here with each of --supernet-seeds (the search's recipe, cached
@@ -102,14 +103,12 @@ def label_figures(bench: Bench, labelled: list, table: dict, per_seed: dict) -> 
             bench.note(f"{name} recipe ranked over {len(have)} candidates")
 
 
-def score_supernet(bench: Bench, name: str, evaluator, labelled: list, table: dict, space: SearchSpace,
-                   fine_tune: int = 0) -> None:
+def score_supernet(bench: Bench, prefix: str, evaluator, labelled: list, table: dict, space: SearchSpace,
+                   fine_tune: int = 0) -> dict:
+    """The rank figures of one supernet's estimates (figures ``*_{prefix}``); the estimates."""
     inside = [c for c in labelled if space.contains(c)]
     est = {c: estimate(evaluator, c) for c in inside}
-    _add_ranks(bench, "supernet", "supernet", est, table)
-    for c in sorted(inside, key=lambda c: table[c]["long"]):
-        others = " ".join(f"{k} {table[c][k]:.4f}" for k in ("finalist", "proxy") if k in table[c])
-        print(f"  {c.key} long {table[c]['long']:.4f} {others} supernet {est[c]:.4f}  {c.describe()[:80]}", flush=True)
+    _add_ranks(bench, prefix, prefix.replace("_", " "), est, table)
     if fine_tune:   # every candidate's slice trained a few steps alone, as a search could its top estimates
         tuned = {c: fine_tuned_estimate(evaluator, c, fine_tune) for c in inside}
         _add_ranks(bench, "fine_tuned", f"supernet slices fine-tuned {fine_tune} steps", tuned, table)
@@ -117,9 +116,40 @@ def score_supernet(bench: Bench, name: str, evaluator, labelled: list, table: di
         sub = [c for c in inside if c.exit_residual == kind]
         if len(sub) >= 4:
             t = rank_figures([est[c] for c in sub], [table[c]["long"] for c in sub])["tau"]
-            label = f"supernet: Kendall tau over {'residual' if kind else 'plain'}-head candidates"
-            bench.add(bench.figure(f"tau_supernet_{'residual' if kind else 'plain'}", label, "", "higher"), t)
-    bench.note(f"{name}: {len(inside)} candidates of the space")
+            head = "residual" if kind else "plain"
+            bench.add(bench.figure(f"tau_{prefix}_{head}", f"{prefix.replace('_', ' ')}: Kendall tau over {head}-head "
+                                   "candidates", "", "higher"), t)
+    return est
+
+
+def print_rows(est: dict, table: dict) -> None:
+    for c in sorted(est, key=lambda c: table[c]["long"]):
+        others = " ".join(f"{k} {table[c][k]:.4f}" for k in ("finalist", "proxy") if k in table[c])
+        print(f"  {c.key} long {table[c]['long']:.4f} {others} supernet {est[c]:.4f}  {c.describe()[:80]}", flush=True)
+
+
+def score_all(bench: Bench, args, space: SearchSpace, config: SearchConfig, labelled: list, table: dict) -> list:
+    """One repetition per supernet (the scored ones, then the --compare ones); the scored ones' recipes."""
+    items = [(name, file, "supernet") for name, file in supernet_files(args, space, config)]
+    items += [(Path(f).stem, Path(f), "compared") for f in args.compare]
+    sweep = [int(n) for n in args.calibration_sweep.split(",") if n]
+    recipes = []
+    for rep in bench.repetitions(len(items)):
+        name, file, prefix = items[rep]
+        state = read_supernet(file)
+        if prefix == "supernet":
+            recipes.append(SupernetRecipe.from_dict(state["recipe"]))
+        bench.note(f"{prefix} {name}: {state['step']} steps, recipe {state['recipe']}, trained in "
+                   f"{state['seconds'] / 60:.1f} min; BatchNorm recalibrated on {args.calibration_images} frames")
+        evaluator = supernet_evaluator(file, space, config, calibration_images=args.calibration_images)
+        est = score_supernet(bench, prefix, evaluator, labelled, table, space,
+                             args.fine_tune_steps if prefix == "supernet" else 0)
+        print_rows(est, table)
+        for n in sweep if prefix == "supernet" else ():
+            other = supernet_evaluator(file, space, config, calibration_images=n)
+            _add_ranks(bench, f"calib{n}", f"supernet, BatchNorm recalibrated on {n} frames",
+                       {c: estimate(other, c) for c in est}, table)
+    return recipes
 
 
 def main() -> None:
@@ -131,6 +161,10 @@ def main() -> None:
     ap.add_argument("--supernet-seeds", default="0,1", help="seeds of the supernets trained and scored")
     ap.add_argument("--supernet-recipe", default="", help="changes to the search's supernet recipe, key=value,...")
     ap.add_argument("--calibration-images", type=int, default=256, help="BatchNorm recalibration frames")
+    ap.add_argument("--compare", action="append", default=[], help="also score this supernet file (figures "
+                    "*_compared; repeatable), e.g. one of an earlier recipe")
+    ap.add_argument("--calibration-sweep", default="", help="also the scored supernets' figures with these "
+                    "BatchNorm recalibration frame counts, e.g. 64,1024")
     ap.add_argument("--fine-tune-steps", type=int, default=0, help="also rank every candidate's slice after "
                     "this many steps of stand-alone training (0: not)")
     ap.add_argument("--label-seeds", default=",".join(map(str, LABEL_SEEDS)), help="seeds of the stand-alone labels")
@@ -158,16 +192,7 @@ def main() -> None:
                f"{rec['long'].batch_size} at {rec['long'].input_size[0]}x{rec['long'].input_size[1]}; anytime loss "
                f"on tx2, {BUDGET}")
     label_figures(bench, labelled, table, per_seed)
-    files = supernet_files(args, space, config)
-    recipes = []
-    for rep in bench.repetitions(len(files)):
-        name, file = files[rep]
-        state = read_supernet(file)
-        recipes.append(SupernetRecipe.from_dict(state["recipe"]))
-        bench.note(f"supernet {name}: {state['step']} steps, recipe {state['recipe']}, trained in "
-                   f"{state['seconds'] / 60:.1f} min; BatchNorm recalibrated on {args.calibration_images} frames")
-        evaluator = supernet_evaluator(file, space, config, calibration_images=args.calibration_images)
-        score_supernet(bench, name, evaluator, labelled, table, space, args.fine_tune_steps)
+    recipes = score_all(bench, args, space, config, labelled, table)
     path = bench.finish()
     if args.store:
         store(bench, space, config, recipes, labelled, rec["long"].steps, seeds, path)
