@@ -10,7 +10,7 @@ import os
 from pathlib import Path
 
 import torch
-from _labels import BUDGET, CACHE_DIR, cached, score, standalone
+from _labels import BUDGET, CACHE_DIR, cached, locked_file, score, standalone
 from scipy.stats import kendalltau, spearmanr
 
 from explorer.anytime import anytime_loss
@@ -89,6 +89,32 @@ def estimate(evaluator, cand: Candidate) -> float:
     """The anytime loss (tx2, BUDGET) of ``cand`` as ``evaluator`` (a study evaluator) estimates it."""
     costs = candidate_cost(cand).path_costs(get_device("tx2"), "time")
     return anytime_loss(costs, list(evaluator(cand).metrics["rmse"]), BUDGET)
+
+
+def estimates(file: Path, cands: list[Candidate], space: SearchSpace, calibration_images: int = 256,
+              config: SearchConfig | None = None) -> dict[Candidate, float]:
+    """The supernet estimate of every one of ``cands`` in the space, cached per supernet file (its name and
+    size), recalibration frames and candidate in ``estimates.json`` beside the labels: a benchmark run
+    after the supernet is trained finds them, however many labels exist by then."""
+    import json
+    config = config or SearchConfig(study="fidelity")
+    file = Path(file)
+    tag = f"{file.stem}|{file.stat().st_size}|{calibration_images}|{config.val_limit}"
+    cache_file = CACHE_DIR / "estimates.json"
+    cache = json.loads(cache_file.read_text()) if cache_file.is_file() else {}
+    inside = [c for c in cands if space.contains(c)]
+    missing = [c for c in inside if f"{tag}|{c.key}" not in cache]
+    if missing:
+        evaluator = supernet_evaluator(file, space, config, calibration_images=calibration_images)
+        new = {f"{tag}|{c.key}": estimate(evaluator, c) for c in missing}
+        CACHE_DIR.mkdir(parents=True, exist_ok=True)
+        with locked_file(cache_file):
+            cache = json.loads(cache_file.read_text()) if cache_file.is_file() else {}
+            cache.update(new)
+            tmp = cache_file.with_suffix(f".tmp{os.getpid()}")
+            tmp.write_text(json.dumps(cache, indent=1))
+            tmp.replace(cache_file)
+    return {c: cache[f"{tag}|{c.key}"] for c in inside}
 
 
 def fine_tuned_estimate(evaluator, cand: Candidate, steps: int, config: SearchConfig | None = None) -> float:

@@ -75,10 +75,15 @@ def standalone(candidate: Candidate, cfg: TrainConfig, data: str = "synthetic", 
     return entry
 
 
-@contextlib.contextmanager
 def _locked(steps: int):
-    CACHE_DIR.mkdir(parents=True, exist_ok=True)
-    with open(_cache(steps).with_suffix(".lock"), "w") as lock:
+    return locked_file(_cache(steps))
+
+
+@contextlib.contextmanager
+def locked_file(path: Path):
+    """Holds an exclusive lock beside ``path`` (its read-modify-write by one process at a time)."""
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    with open(Path(path).with_suffix(".lock"), "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
         try:
             yield

@@ -29,7 +29,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _fidelity import (CANDIDATE_SEED, LABEL_SEEDS, estimate, fidelity_candidates,  # noqa: E402
+from _fidelity import (CANDIDATE_SEED, LABEL_SEEDS, estimates, fidelity_candidates,  # noqa: E402
                        fine_tuned_estimate, label_jobs, label_recipes, labels_of, rank_figures, run_label_jobs,
                        supernet_evaluator)
 from _labels import BUDGET  # noqa: E402
@@ -103,33 +103,28 @@ def label_figures(bench: Bench, labelled: list, table: dict, per_seed: dict) -> 
             bench.note(f"{name} recipe ranked over {len(have)} candidates")
 
 
-def score_supernet(bench: Bench, prefix: str, evaluator, labelled: list, table: dict, space: SearchSpace,
-                   fine_tune: int = 0) -> dict:
-    """The rank figures of one supernet's estimates (figures ``*_{prefix}``); the estimates."""
-    inside = [c for c in labelled if space.contains(c)]
-    est = {c: estimate(evaluator, c) for c in inside}
+def score_supernet(bench: Bench, prefix: str, est: dict, table: dict) -> None:
+    """The rank figures (``*_{prefix}``) of one supernet's estimates over the labelled candidates."""
+    est = {c: v for c, v in est.items() if c in table}
     _add_ranks(bench, prefix, prefix.replace("_", " "), est, table)
-    if fine_tune:   # every candidate's slice trained a few steps alone, as a search could its top estimates
-        tuned = {c: fine_tuned_estimate(evaluator, c, fine_tune) for c in inside}
-        _add_ranks(bench, "fine_tuned", f"supernet slices fine-tuned {fine_tune} steps", tuned, table)
     for kind in (False, True):   # plain and residual heads, where the estimate was seen to part
-        sub = [c for c in inside if c.exit_residual == kind]
+        sub = [c for c in est if c.exit_residual == kind]
         if len(sub) >= 4:
             t = rank_figures([est[c] for c in sub], [table[c]["long"] for c in sub])["tau"]
             head = "residual" if kind else "plain"
             bench.add(bench.figure(f"tau_{prefix}_{head}", f"{prefix.replace('_', ' ')}: Kendall tau over {head}-head "
                                    "candidates", "", "higher"), t)
-    return est
 
 
 def print_rows(est: dict, table: dict) -> None:
-    for c in sorted(est, key=lambda c: table[c]["long"]):
+    for c in sorted((c for c in est if c in table), key=lambda c: table[c]["long"]):
         others = " ".join(f"{k} {table[c][k]:.4f}" for k in ("finalist", "proxy") if k in table[c])
         print(f"  {c.key} long {table[c]['long']:.4f} {others} supernet {est[c]:.4f}  {c.describe()[:80]}", flush=True)
 
 
-def score_all(bench: Bench, args, space: SearchSpace, config: SearchConfig, labelled: list, table: dict) -> list:
-    """One repetition per supernet (the scored ones, then the --compare ones); the scored ones' recipes."""
+def score_all(bench: Bench, args, space: SearchSpace, config: SearchConfig, cands: list, table: dict) -> list:
+    """One repetition per supernet (the scored ones, then the --compare ones); the scored ones' recipes.
+    Estimates are cached (_fidelity.estimates): every candidate is estimated, the labelled ones ranked."""
     items = [(name, file, "supernet") for name, file in supernet_files(args, space, config)]
     items += [(Path(f).stem, Path(f), "compared") for f in args.compare]
     sweep = [int(n) for n in args.calibration_sweep.split(",") if n]
@@ -141,14 +136,18 @@ def score_all(bench: Bench, args, space: SearchSpace, config: SearchConfig, labe
             recipes.append(SupernetRecipe.from_dict(state["recipe"]))
         bench.note(f"{prefix} {name}: {state['step']} steps, recipe {state['recipe']}, trained in "
                    f"{state['seconds'] / 60:.1f} min; BatchNorm recalibrated on {args.calibration_images} frames")
-        evaluator = supernet_evaluator(file, space, config, calibration_images=args.calibration_images)
-        est = score_supernet(bench, prefix, evaluator, labelled, table, space,
-                             args.fine_tune_steps if prefix == "supernet" else 0)
+        est = estimates(file, cands, space, args.calibration_images, config)
+        score_supernet(bench, prefix, est, table)
         print_rows(est, table)
-        for n in sweep if prefix == "supernet" else ():
-            other = supernet_evaluator(file, space, config, calibration_images=n)
+        if prefix != "supernet":
+            continue
+        for n in sweep:
             _add_ranks(bench, f"calib{n}", f"supernet, BatchNorm recalibrated on {n} frames",
-                       {c: estimate(other, c) for c in est}, table)
+                       {c: v for c, v in estimates(file, cands, space, n, config).items() if c in table}, table)
+        if args.fine_tune_steps:   # every slice trained a few steps alone, as a search could its top estimates
+            evaluator = supernet_evaluator(file, space, config, calibration_images=args.calibration_images)
+            tuned = {c: fine_tuned_estimate(evaluator, c, args.fine_tune_steps) for c in est if c in table}
+            _add_ranks(bench, "fine_tuned", f"supernet slices fine-tuned {args.fine_tune_steps} steps", tuned, table)
     return recipes
 
 
@@ -192,7 +191,7 @@ def main() -> None:
                f"{rec['long'].batch_size} at {rec['long'].input_size[0]}x{rec['long'].input_size[1]}; anytime loss "
                f"on tx2, {BUDGET}")
     label_figures(bench, labelled, table, per_seed)
-    recipes = score_all(bench, args, space, config, labelled, table)
+    recipes = score_all(bench, args, space, config, cands, table)
     path = bench.finish()
     if args.store:
         store(bench, space, config, recipes, labelled, rec["long"].steps, seeds, path)
