@@ -154,3 +154,12 @@ def test_enumerate_command_prints_the_front(run_cli, tmp_path):
     assert len(frame) == 16 and list(frame.columns) == list(enum.COLUMNS)
     code, out, err = run_cli("enumerate", "--space", "tiny", "--front", "p_path0,speed")
     assert code == 2 and len(err.strip().splitlines()) == 1 and "--front" in err
+
+
+def test_the_commands_default_front_is_the_librarys():
+    from explorer.cli import build_parser
+    args = build_parser().parse_args(["enumerate"])
+    assert front_columns(args.front) == enum.DEFAULT_FRONT
+    action = next(a for a in build_parser()._subparsers._group_actions[0].choices["enumerate"]._actions
+                  if "--front" in a.option_strings)
+    assert all(name in action.help for name in enum.FRONT_COLUMNS)   # the help lists every column
