@@ -51,6 +51,7 @@ class Utilisation:
 
     @staticmethod
     def _reader(index: int):
+        index = physical_index(index)
         try:
             import pynvml
             pynvml.nvmlInit()
@@ -87,6 +88,13 @@ class Utilisation:
         """The mean of the samples since the last take, or None."""
         got, self.samples = self.samples, []
         return statistics.fmean(got) if got else None
+
+
+def physical_index(index: int) -> int:
+    """The driver's index (what NVML and nvidia-smi count) of PyTorch's GPU ``index``, which counts only
+    the devices CUDA_VISIBLE_DEVICES lists."""
+    visible = [v.strip() for v in os.environ.get("CUDA_VISIBLE_DEVICES", "").split(",") if v.strip()]
+    return int(visible[index]) if index < len(visible) and visible[index].isdigit() else index
 
 
 # -- supernet training ------------------------------------------------------------------------------

@@ -40,3 +40,12 @@ def test_a_tiny_configuration_runs_on_the_cpu_and_writes_its_record(tmp_path):
             "amp_loss_ratio"} <= set(figures)
     assert 0 < figures["evaluator_share"] <= 1 and figures["candidates_per_minute"] > 0
     assert "gpu_util_default" not in figures     # no GPU here: utilisation is "n/a", not a number
+
+
+def test_utilisation_is_read_from_the_gpu_pytorch_trains_on(monkeypatch):
+    sys.path.insert(0, str(SCRIPT.parent))
+    from bench_gpu import physical_index
+    monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "3,1")
+    assert (physical_index(0), physical_index(1)) == (3, 1)
+    monkeypatch.delenv("CUDA_VISIBLE_DEVICES")
+    assert physical_index(0) == 0
