@@ -3,13 +3,18 @@ longer recipe, so that the winner and its ratio to the paper design are measured
 
 Each retraining is stored as a trial of its own (no sampled parameters, so samplers ignore it)
 tagged ``finalist`` with the estimate it is compared to. A retraining checkpoints as it goes: a
-killed study resumes it where it stopped; a finished one is never redone.
+killed study resumes it where it stopped; a finished one is never redone. With several GPUs, or
+``workers`` processes on a CPU, the finalists retrain at the same time (:mod:`._finalist_pool`).
 """
 
 from __future__ import annotations
 
+import dataclasses
+import functools
 import math
 import time
+from concurrent.futures import FIRST_COMPLETED, wait
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
@@ -17,6 +22,7 @@ import optuna
 
 from explorer.model import build_model
 from explorer.space import Candidate
+from explorer.study._finalist_pool import InProcess, WorkerPool, finalist_devices
 from explorer.study.config import baseline_model, json_safe
 from explorer.study.objective import Objective
 from explorer.study.planning import SAFETY
@@ -72,63 +78,122 @@ def choose_finalists(study: optuna.Study, count: int) -> list[optuna.trial.Froze
     return chosen
 
 
+@dataclass(frozen=True)
+class FinalistJob:
+    """One retraining: a candidate of the search (``candidate``, its estimate trial) or a baseline
+    (by name). ``must``: retrained whatever the time; ``optional``: beyond the plan, only if time is left."""
+
+    candidate: dict | None
+    baseline: str = ""
+    estimate_number: int | None = None
+    estimated: float | None = None
+    must: bool = False
+    optional: bool = False
+
+    def model(self):
+        return baseline_model(self.baseline) if self.baseline else Candidate.from_dict(self.candidate)
+
+    @property
+    def label(self) -> str:
+        return self.baseline or f"trial {self.estimate_number}"
+
+
+def _job(trial: optuna.trial.FrozenTrial | None, baseline: str = "", **flags) -> FinalistJob:
+    return FinalistJob(None if baseline else trial.user_attrs["candidate"], baseline,
+                       trial.number if trial else None, trial.values[0] if trial else None, **flags)
+
+
+def finalist_jobs(study: optuna.Study, config, extra: int = 0) -> list[FinalistJob]:
+    """The retrainings still to do, in order: the best finalist and the paper design first (what a study
+    cannot do without), then the other finalists and baselines, then up to ``extra`` more finalists."""
+    chosen = choose_finalists(study, config.finalists + max(extra, 0))
+    finalists = [_job(t) for t in chosen[:config.finalists]]
+    baselines = []
+    if config.baselines:
+        estimated = {t.user_attrs.get("baseline"): t for t in estimate_trials(study) if t.user_attrs.get("baseline")}
+        baselines = [_job(estimated.get(name), name) for name in config.baselines]
+    must = finalists[:1] + [j for j in baselines if j.baseline == "paper"]
+    rest = finalists[1:] + [j for j in baselines if j.baseline != "paper"]
+    jobs = [dataclasses.replace(j, must=True) for j in must] + rest + \
+        [dataclasses.replace(_job(t), optional=True) for t in chosen[config.finalists:]]
+    recipe = config.finalist_config().to_dict()
+    done = {(t.user_attrs["candidate_key"], t.user_attrs.get("baseline", "")) for t in finalist_trials(study)
+            if t.user_attrs[FINALIST].get("recipe") == recipe}
+    return [j for j in jobs if (j.model().key, j.baseline) not in done]
+
+
 def retrain_finalists(study: optuna.Study, config, reports: Path,
                       progress: Callable[[int, int, str], None] | None = None, extra: int = 0,
-                      deadline: float | None = None) -> list[optuna.trial.FrozenTrial]:
+                      deadline: float | None = None, workers: int = 1) -> list[optuna.trial.FrozenTrial]:
     """Retrains the finalists and the baselines (those not retrained yet with this recipe), then up to
     ``extra`` more finalists. With a ``deadline`` (a time.time()), the best finalist and the paper
     design are retrained whatever the time; every other job only if it should end before the deadline,
     judged by how long the jobs took here (a machine that slowed after planning drops the last
-    finalists and baselines rather than overrun; one that turned out faster gets the extras)."""
-    recipe = config.finalist_config()
-    chosen = choose_finalists(study, config.finalists + max(extra, 0))
-    finalists = [(Candidate.from_dict(t.user_attrs["candidate"]), "", t) for t in chosen[:config.finalists]]
-    baselines = []
-    if config.baselines:
-        estimated = {t.user_attrs.get("baseline"): t for t in estimate_trials(study) if t.user_attrs.get("baseline")}
-        baselines = [(baseline_model(name), name, estimated.get(name)) for name in config.baselines]
-    optional = [(Candidate.from_dict(t.user_attrs["candidate"]), "", t) for t in chosen[config.finalists:]]
-    # what a study cannot do without (its best finalist, the paper design to compare it with) first
-    must = finalists[:1] + [b for b in baselines if b[1] == "paper"]
-    must_ids = {id(j) for j in must}
-    jobs = must + [j for j in finalists + baselines if id(j) not in must_ids] + optional
-    done = {(t.user_attrs["candidate_key"], t.user_attrs.get("baseline", "")) for t in finalist_trials(study)
-            if t.user_attrs[FINALIST].get("recipe") == recipe.to_dict()}
-    todo = [j for j in jobs if (j[0].key, j[1]) not in done]
+    finalists and baselines rather than overrun; one that turned out faster gets the extras).
+    ``workers``: processes retraining at once on a CPU or a single GPU; a machine with several GPUs
+    retrains one finalist per GPU."""
+    todo = finalist_jobs(study, config, extra)
     if not todo:
         return finalist_trials(study)
-    objective = Objective(_proxy_view(config), study_dir(config.study, reports))
-    folder = study_dir(config.study, reports) / "finalists"
-    took: list[float] = []      # seconds of each job retrained here
-    for i, job in enumerate(todo):
-        candidate, baseline, estimate = job
-        label = baseline or f"trial {estimate.number}"
-        if deadline is not None and id(job) not in must_ids:
-            expected = SAFETY * max(took) if took else math.inf
-            if time.time() + expected > deadline:
-                if progress:
-                    progress(i, i, f"no time for {label} ({candidate.key}) or the jobs after it: about {expected:.0f} s each")
-                break
-        if progress:
-            progress(i, len(todo), f"retraining {label} ({candidate.key})")
-        start = time.time()
-        _retrain(study, objective, candidate, baseline, estimate, recipe, folder)
-        took.append(time.time() - start)
+    make_objective = functools.partial(Objective, _proxy_view(config), study_dir(config.study, reports))
+    run_job = functools.partial(train_finalist, recipe=config.finalist_config(),
+                                folder=study_dir(config.study, reports) / "finalists")
+    devices = finalist_devices(config.accelerator, workers)[:len(todo)]
+    runner = WorkerPool(devices, make_objective, run_job) if len(devices) > 1 else InProcess(make_objective, run_job)
+    artifacts = None
+    if config.keep_weights:
+        from optuna.artifacts import FileSystemArtifactStore
+        (study_dir(config.study, reports) / "artifacts").mkdir(parents=True, exist_ok=True)
+        artifacts = FileSystemArtifactStore(str(study_dir(config.study, reports) / "artifacts"))
+    with runner:
+        _dispatch(todo, runner, len(devices), deadline, progress, lambda result: _store(study, artifacts, result))
     if progress:
         progress(len(todo), len(todo), "finalists retrained")
     return finalist_trials(study)
 
 
+def _dispatch(todo: list[FinalistJob], runner, slots: int, deadline: float | None,
+              progress: Callable[[int, int, str], None] | None, store: Callable[[dict], None]) -> None:
+    """Keeps ``slots`` jobs running, in order, storing each result as it comes. A job that is not a
+    must starts only if, by the longest job so far, it ends before ``deadline``; an optional one not
+    before a job has been timed."""
+    queue, running, took, started = list(todo), {}, [], 0
+    while queue or running:
+        while queue and len(running) < slots:
+            job = queue[0]
+            if deadline is not None and not job.must and (took or job.optional):
+                expected = SAFETY * max(took) if took else math.inf
+                if time.time() + expected > deadline:
+                    if progress:
+                        progress(started, started, f"no time for {job.label} ({job.model().key}) or the jobs "
+                                 f"after it: about {expected:.0f} s each")
+                    queue = []
+                    break
+            queue.pop(0)
+            if progress:
+                progress(started, len(todo), f"retraining {job.label} ({job.model().key})")
+            running[runner.submit(job)] = time.time()
+            started += 1
+        if not running:
+            break
+        finished, _ = wait(list(running), return_when=FIRST_COMPLETED)
+        for future in finished:
+            took.append(time.time() - running.pop(future))
+            store(future.result())
+
+
 def _proxy_view(config):
     """The study's settings with the proxy evaluator: a finalist is trained, never sliced."""
-    import dataclasses
     return dataclasses.replace(config, evaluator="proxy", pruning=False)
 
 
-def _retrain(study: optuna.Study, objective, candidate: Candidate, baseline: str,
-             estimate: optuna.trial.FrozenTrial | None, recipe, folder: Path) -> None:
+def train_finalist(objective, job: FinalistJob, recipe, folder: Path) -> dict:
+    """Trains ``job``'s network with ``recipe`` (resuming its checkpoint in ``folder``) and returns what
+    its trial stores: ``values``, ``user_attrs`` and the ``checkpoint`` with the weights. Runs in this
+    process or in a worker; the study itself is written by the caller."""
     import torch
     folder.mkdir(parents=True, exist_ok=True)
+    candidate = job.model()
     checkpoint = folder / f"{candidate.key}.pt"     # a kill resumes from here
     holder = optuna.trial.FixedTrial({})           # collects user attrs like a live trial
     cost, pm, latency = objective.describe(holder, candidate)
@@ -148,16 +213,22 @@ def _retrain(study: optuna.Study, objective, candidate: Candidate, baseline: str
     attrs = dict(holder.user_attrs)
     attrs.update({"path_metrics": path_metrics, "losses": losses,
                   "train": {"seconds": result.seconds, "steps": result.steps,
-                            "images_per_second": result.images_per_second},
+                            "images_per_second": result.images_per_second, "device": str(objective.torch_device)},
                   "evaluator": {"evaluator": "retrained", "steps": recipe.steps},
-                  FINALIST: {"estimate_trial": estimate.number if estimate else None,
-                             "estimated": estimate.values[0] if estimate else None,
+                  FINALIST: {"estimate_trial": job.estimate_number, "estimated": job.estimated,
                              "recipe": recipe.to_dict()}})
-    if baseline:
-        attrs["baseline"] = baseline
-    if objective.artifacts is not None:
+    if job.baseline:
+        attrs["baseline"] = job.baseline
+    return {"values": list(values) if isinstance(values, tuple) else [values], "user_attrs": attrs,
+            "checkpoint": str(checkpoint)}
+
+
+def _store(study: optuna.Study, artifacts, result: dict) -> None:
+    """One retrained finalist as a trial of ``study``, its weights as an artifact; the checkpoint goes."""
+    attrs, checkpoint = dict(result["user_attrs"]), Path(result["checkpoint"])
+    if artifacts is not None:
         attrs["weights_artifact"] = optuna.artifacts.upload_artifact(
-            artifact_store=objective.artifacts, file_path=str(checkpoint), study_or_trial=study)
-    study.add_trial(optuna.trial.create_trial(values=list(values) if isinstance(values, tuple) else [values],
-                                              user_attrs=attrs, state=optuna.trial.TrialState.COMPLETE))
+            artifact_store=artifacts, file_path=str(checkpoint), study_or_trial=study)
+    study.add_trial(optuna.trial.create_trial(values=result["values"], user_attrs=attrs,
+                                              state=optuna.trial.TrialState.COMPLETE))
     checkpoint.unlink(missing_ok=True)

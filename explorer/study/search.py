@@ -342,7 +342,8 @@ def search(config: SearchConfig, storage_url: str | None = None, workers: int = 
     if plan is not None and (config.finalists or config.baselines):
         config, plan = _replan_finalists(study, config, plan, speeds, time_limit, wanted, on_plan)
     if config.finalists:
-        config, plan = _retrain_finalists(study, config, plan, time_limit, wanted, reports, on_finalist, on_plan)
+        config, plan = _retrain_finalists(study, config, plan, time_limit, wanted, reports, on_finalist, on_plan,
+                                          workers)
     return SearchOutcome(study, url, time.time() - t0, failed, retried, not_retried, config, plan)
 
 
@@ -403,15 +404,17 @@ def _replan_finalists(study: optuna.Study, config: SearchConfig, plan: "Plan", s
 def _retrain_finalists(study: optuna.Study, config: SearchConfig, plan: "Plan | None",
                        time_limit: "TimeLimit | None", wanted: tuple[int, int], reports: Path,
                        on_finalist: Callable[[int, int, str], None] | None,
-                       on_plan: Callable[["Plan"], None] | None) -> tuple[SearchConfig, "Plan | None"]:
-    """Retrains the finalists and the baselines; (config, plan) counting the finalists retrained."""
+                       on_plan: Callable[["Plan"], None] | None, workers: int = 1
+                       ) -> tuple[SearchConfig, "Plan | None"]:
+    """Retrains the finalists and the baselines (``workers`` at once, or one per GPU); (config, plan)
+    counting the finalists retrained."""
     # the re-plan stood on a few steps' measurement: finalists it dropped are retrained after the
     # others when the time those took says they still fit
     extra, deadline = 0, None
     if plan is not None:   # the time limit holds even when the machine slowed after planning
         extra = max(wanted[0] - config.finalists, 0) if "finalists" in time_limit.free else 0
         deadline = time_limit.started + time_limit.seconds - RESERVE_S
-    retrain_finalists(study, config, reports, progress=on_finalist, extra=extra, deadline=deadline)
+    retrain_finalists(study, config, reports, progress=on_finalist, extra=extra, deadline=deadline, workers=workers)
     recipe = config.finalist_config().to_dict()
     now = [t for t in finalist_trials(study) if t.user_attrs["finalist"].get("recipe") == recipe]
     retrained = sum(1 for t in now if not t.user_attrs.get("baseline"))

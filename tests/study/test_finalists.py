@@ -203,7 +203,6 @@ def test_a_deadline_keeps_the_best_finalist_and_the_paper_design_and_drops_the_r
     import dataclasses
     import time
     import explorer.study.finalists as finalists
-    import explorer.study.objective as objective
     from explorer.space import SearchSpace
     study = optuna.create_study(storage=optuna.storages.InMemoryStorage())
     space = SearchSpace.from_yaml("tiny")
@@ -213,9 +212,10 @@ def test_a_deadline_keeps_the_best_finalist_and_the_paper_design_and_drops_the_r
         study.add_trial(optuna.trial.create_trial(values=[0.3 + i / 100], user_attrs={
             "candidate": cand.to_dict(), "candidate_key": cand.key, "path_metrics": [], "workloads": []}))
     retrained = []
-    monkeypatch.setattr(objective, "Objective", lambda *a, **k: None)
-    monkeypatch.setattr(finalists, "_retrain", lambda study, obj, cand, baseline, *a: (
-        time.sleep(0.05), retrained.append(baseline or cand.key)))
+    monkeypatch.setattr(finalists, "Objective", lambda *a, **k: None)
+    monkeypatch.setattr(finalists, "train_finalist", lambda obj, job, **k: (
+        time.sleep(0.05), retrained.append(job.baseline or job.model().key)))
+    monkeypatch.setattr(finalists, "_store", lambda study, artifacts, result: None)
     config = dataclasses.replace(CFG, finalists=3, baselines=("fastdepth", "paper", "paper-nee"))
     retrain_finalists(study, config, tmp_path, deadline=time.time() + 0.12)
     best = choose_finalists(study, 1)[0].user_attrs["candidate_key"]
@@ -224,3 +224,32 @@ def test_a_deadline_keeps_the_best_finalist_and_the_paper_design_and_drops_the_r
     retrained.clear()
     retrain_finalists(study, config, tmp_path, deadline=None)
     assert len(retrained) == 6                               # no time limit: every job
+
+
+@pytest.mark.slow
+def test_finalists_retrained_by_two_workers_match_one_process(finished, tmp_path):
+    """Two worker processes retrain the same jobs as one process, with the same results (each job
+    seeded alike); only this process writes the study."""
+    import dataclasses
+    out, _ = finished
+    cfg = dataclasses.replace(CFG, study="par", baselines=("paper",), finalists=2)
+
+    def study_of_estimates():
+        s = optuna.create_study(study_name="par", storage=optuna.storages.InMemoryStorage())
+        for t in out.study.trials:
+            if t.state == optuna.trial.TrialState.COMPLETE and not is_retrained(t):
+                s.add_trial(t)
+        return s
+
+    one, two = study_of_estimates(), study_of_estimates()
+    retrain_finalists(one, cfg, tmp_path / "one")
+    said = []
+    retrain_finalists(two, cfg, tmp_path / "two", workers=2, progress=lambda i, n, what: said.append(what))
+    key = lambda t: (t.user_attrs["candidate_key"], t.user_attrs.get("baseline", ""))   # noqa: E731
+    a, b = sorted(finalist_trials(one), key=key), sorted(finalist_trials(two), key=key)
+    assert [key(t) for t in a] == [key(t) for t in b] and len(a) == 3
+    for x, y in zip(a, b):
+        assert y.values[0] == pytest.approx(x.values[0], rel=1e-3)
+        assert "weights_artifact" in y.user_attrs
+    assert said[-1] == "finalists retrained" and sum(w.startswith("retraining") for w in said) == 3
+    assert not list((tmp_path / "two" / "par" / "finalists").glob("*.pt"))   # checkpoints gone once stored
