@@ -85,15 +85,16 @@ class SupernetEvaluator:
     ``stagewise`` (the default) evaluates stage by stage and keeps each stage's results for the
     candidates that share it (:mod:`explorer.study._stagewise`: the image encoder per width, decoder
     stages and exit heads by what they read, up to ``memo_bytes`` of kept outputs); the result is
-    the same as recalibrating and evaluating each candidate whole (``stagewise=False``)."""
+    the same as recalibrating and evaluating each candidate whole (``stagewise=False``).
+    ``require_complete=False`` takes a supernet short of its steps (a search's time limit stopped it)."""
 
     name = "supernet"
 
     def __init__(self, supernet_file: str | Path, space, train_set, val_set, device: torch.device,
                  val_limit: int | None = None, calibration_images: int = 256, batch_size: int = 32,
-                 stagewise: bool = True, memo_bytes: int = 2 * 2 ** 30) -> None:
+                 stagewise: bool = True, memo_bytes: int = 2 * 2 ** 30, require_complete: bool = True) -> None:
         self.file = Path(supernet_file)
-        self.supernet, state = load_supernet(self.file, space)
+        self.supernet, state = load_supernet(self.file, space, require_complete)
         self.supernet.to(device).eval()
         self.key = state["space_key"] + "-" + self.file.stem
         self.device = device

@@ -51,8 +51,9 @@ class Objective:
         if config.evaluator == "supernet":
             file = config.supernet or default_path(self.space, config.data, config.supernet_recipe())
             calibration = open_dataset(config.data, "train", config.train_size, train_augment=False)
+            # the study's own supernet may be short of its steps (its time limit stopped it); a given one was checked
             self.evaluator = SupernetEvaluator(file, self.space, calibration, self.val_set, self.torch_device,
-                                               val_limit=config.val_limit)
+                                               val_limit=config.val_limit, require_complete=bool(config.supernet))
         else:
             self.evaluator = ProxyEvaluator(self.train_set, self.val_set, self.train_cfg, self.torch_device,
                                             val_limit=config.val_limit, seed=config.seed)

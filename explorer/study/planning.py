@@ -205,6 +205,17 @@ def replan_sampling(plan: Plan, remaining_s: float, sampling_s: float | None) ->
         f"sampling re-planned after the supernet, with {remaining_s / 60:.1f} min left: {sampling / 60:.1f} min",))
 
 
+def supernet_deadline(plan: Plan, limit: "TimeLimit", speeds: Speeds, paper_baseline: bool,
+                      sampling_s: float | None) -> float:
+    """The latest moment (a time.time()) the supernet may train until: what comes after it needs, at
+    its least, sampling's minimum, the best finalist and the paper design at ``MIN_FINALIST_STEPS``, and
+    the reserve. Before that, a supernet that runs long takes its time from sampling (which shrinks
+    first); past it, the supernet stops where it is and the study goes on with it as trained so far."""
+    want = sampling_s if sampling_s is not None else math.inf
+    retrain = retrain_seconds(speeds, 1, 1.0 if paper_baseline else 0.0, MIN_FINALIST_STEPS) if plan.finalists else 0.0
+    return limit.started + limit.seconds - RESERVE_S - plan.trial_s - min(MIN_SAMPLING_S, want) - retrain
+
+
 def replan_finalists(plan: Plan, remaining_s: float, speeds: Speeds, baselines: float, steps_free: bool,
                      finalists_free: bool, baseline_count: int | None = None,
                      wanted: tuple[int, int] | None = None) -> Plan:

@@ -49,6 +49,7 @@ from explorer.study.planning import (
     TimeLimit,
     replan_finalists,
     replan_sampling,
+    supernet_deadline,
 )
 from explorer.study.retry import (
     StopAfterTrials,
@@ -176,9 +177,11 @@ def _optimize(study: optuna.Study, objective: Objective, n_trials: int | None, d
 
 
 def ensure_supernet(config: SearchConfig, progress: Callable[[int, int, dict], None] | None = None,
-                    data_progress: Callable[[int, int], None] | None = None) -> Path | None:
+                    data_progress: Callable[[int, int], None] | None = None,
+                    deadline: float | None = None) -> Path | None:
     """The supernet file the study's evaluator reads: the given one (checked), or the cached one for
-    (space, data, recipe), trained here first if it is missing or unfinished."""
+    (space, data, recipe), trained here first if it is missing or unfinished (until ``deadline`` at
+    the latest: then it is left unfinished, to be finished by the next study with its recipe)."""
     if config.evaluator != "supernet":
         return None
     space = SearchSpace.from_yaml(config.space)
@@ -187,7 +190,7 @@ def ensure_supernet(config: SearchConfig, progress: Callable[[int, int, dict], N
         return Path(config.supernet)
     return train_supernet(space, config.data, config.supernet_recipe(), default_path(
         space, config.data, config.supernet_recipe()), resolve_accelerator(config.accelerator),
-        progress=progress, data_progress=data_progress)
+        progress=progress, data_progress=data_progress, deadline=deadline)
 
 
 def _existing_config(storage: optuna.storages.BaseStorage, name: str) -> dict | None:
@@ -324,9 +327,12 @@ def search(config: SearchConfig, storage_url: str | None = None, workers: int = 
         study.set_user_attr("artifacts_dir", str((study_dir(config.study, reports) / "artifacts").resolve()))
     url = storage_url or (f"journal:{reports / config.study / 'journal.log'}" if workers > 1
                           else f"sqlite:///{reports / config.study / 'study.db'}")
-    supernet = ensure_supernet(config, on_supernet, on_data)
+    cutoff = None if plan is None else supernet_deadline(plan, time_limit, speeds, "paper" in config.baselines,
+                                                         sampling_cap)
+    supernet = ensure_supernet(config, on_supernet, on_data, cutoff)
     if supernet is not None:
         study.set_user_attr("supernet", str(supernet.resolve()))
+        plan = _note_unfinished(supernet, plan)
     if plan is not None:
         plan = replan_sampling(plan, time_limit.remaining(), sampling_cap)
         timeout_s = plan.sampling_s
@@ -345,6 +351,17 @@ def search(config: SearchConfig, storage_url: str | None = None, workers: int = 
         config, plan = _retrain_finalists(study, config, plan, time_limit, wanted, reports, on_finalist, on_plan,
                                           workers)
     return SearchOutcome(study, url, time.time() - t0, failed, retried, not_retried, config, plan)
+
+
+def _note_unfinished(supernet: Path, plan: "Plan | None") -> "Plan | None":
+    """The plan, saying so when the time limit stopped the supernet short of its steps."""
+    state = read_supernet(supernet)
+    if plan is None or state.get("complete"):
+        return plan
+    return dataclasses.replace(plan, changes=plan.changes + (
+        f"supernet stopped at step {state['step']} of {state['recipe']['steps']}: the machine ran slower than "
+        "planned, and the rest of the run needed the time (its estimates are rougher; the next study with "
+        "this recipe finishes it)",))
 
 
 def _publish_plan(study: optuna.Study, plan: "Plan", on_plan: Callable[["Plan"], None] | None) -> None:

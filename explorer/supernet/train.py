@@ -261,15 +261,18 @@ def train_supernet(space: SearchSpace, data: str, recipe: SupernetRecipe = Super
                    progress: Callable[[int, int, dict], None] | None = None,
                    data_progress: Callable[[int, int], None] | None = None,
                    checkpoint_every: int = 100, stop_after_steps: int | None = None,
-                   checkpoint_seconds: float = CHECKPOINT_SECONDS) -> Path:
+                   checkpoint_seconds: float = CHECKPOINT_SECONDS, deadline: float | None = None) -> Path:
     """Trains (or resumes, or finds already trained) the supernet of (space, data, recipe) and
     returns its file. ``accelerator``: the torch device to train on (default: this process's GPU
     where there is one, else the CPU). ``stop_after_steps`` ends this call after that many more steps,
-    short of ``recipe.steps``, with the file saved to resume from. The file is saved every
+    short of ``recipe.steps``, with the file saved to resume from; so does reaching ``deadline`` (a
+    time.time(), one process only: a search's time limit). The file is saved every
     ``checkpoint_every`` steps and at least every ``checkpoint_seconds``: a killed run loses at most that."""
     out = Path(out) if out else default_path(space, data, recipe)
     rank, world, accelerator = _distributed(accelerator)
     _check_recipe(recipe, world, space)
+    if deadline is not None and world > 1:
+        raise ValueError("a deadline would stop the processes at different steps: give it to one process only")
     torch.manual_seed(recipe.seed)  # every process starts from the same weights
     net = Supernet(space).to(device=accelerator, memory_format=torch.channels_last)  # see train.image_batch
     opt = torch.optim.AdamW(net.parameters(), lr=recipe.lr, weight_decay=recipe.weight_decay)
@@ -296,6 +299,8 @@ def train_supernet(space: SearchSpace, data: str, recipe: SupernetRecipe = Super
         for i, batch in enumerate(loader):
             if i < skip:
                 continue
+            if deadline is not None and time.time() >= deadline:
+                stop = step
             if step >= stop:
                 break
             rng = random.Random(recipe.seed * 1_000_003 + step)  # the same subnets on every process

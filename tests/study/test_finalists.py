@@ -253,3 +253,19 @@ def test_finalists_retrained_by_two_workers_match_one_process(finished, tmp_path
         assert "weights_artifact" in y.user_attrs
     assert said[-1] == "finalists retrained" and sum(w.startswith("retraining") for w in said) == 3
     assert not list((tmp_path / "two" / "par" / "finalists").glob("*.pt"))   # checkpoints gone once stored
+
+
+@pytest.mark.slow
+def test_a_supernet_the_time_limit_stopped_still_serves_the_study(tmp_path, monkeypatch):
+    import dataclasses
+    import time
+    import explorer.study.search as search_module
+    from explorer.study.planning import TimeLimit
+    monkeypatch.setattr(search_module, "supernet_deadline", lambda *a, **k: time.time())   # the machine slowed
+    out = search(dataclasses.replace(CFG, study="cut", supernet_steps=300, baselines=("paper",), finalists=1),
+                 n_trials=3, timeout_s=None, reports=tmp_path, time_limit=TimeLimit(600.0, free=frozenset()))
+    changes = out.study.user_attrs["plan"]["changes"]
+    assert any(c.startswith("supernet stopped at step") and "of 300" in c for c in changes)
+    estimates = [t for t in out.study.trials if t.state == optuna.trial.TrialState.COMPLETE and not is_retrained(t)]
+    assert estimates and all(t.user_attrs["evaluator"]["evaluator"] == "supernet" for t in estimates)
+    assert finalist_trials(out.study)

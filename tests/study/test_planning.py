@@ -192,3 +192,18 @@ def test_the_finalists_steps_give_way_to_two_thirds_before_the_supernet_shrinks(
     assert kept.finalist_steps == 300 and kept.supernet_steps == planning.MIN_SUPERNET_STEPS   # ...the supernet pays
     # a cached supernet leaves the finalists their recipe
     assert plan(speeds, remaining=12.5 * 60, cached=True, supernet_free=False).finalist_steps == 300
+
+
+def test_a_supernet_that_runs_long_stops_where_the_rest_needs_its_minimum():
+    limit = planning.TimeLimit(15 * 60, started=1000.0)
+    p = plan(SLOW, remaining=14 * 60)
+    latest = planning.supernet_deadline(p, limit, SLOW, paper_baseline=True, sampling_s=180.0)
+    rest = planning.RESERVE_S + p.trial_s + planning.MIN_SAMPLING_S + planning.retrain_seconds(
+        SLOW, 1, 1.0, planning.MIN_FINALIST_STEPS)
+    assert latest == pytest.approx(1000.0 + 15 * 60 - rest)
+    # the planned supernet ends well before it: only a machine that slowed a lot reaches it
+    assert 1000.0 + 60 + p.supernet_s < latest
+    # without finalists, and with a shorter sampling cap, less is kept back
+    bare = dataclasses.replace(p, finalists=0)
+    assert planning.supernet_deadline(bare, limit, SLOW, True, 30.0) == pytest.approx(
+        1000.0 + 15 * 60 - planning.RESERVE_S - p.trial_s - 30.0)
