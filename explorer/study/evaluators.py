@@ -79,6 +79,12 @@ def _batches(dataset, count: int, batch_size: int) -> list[dict]:
     return list(DataLoader(items, batch_size=batch_size, shuffle=False))
 
 
+def frames_per_batch(device: torch.device, calibration_images: int, validation_images: int) -> int:
+    """A GPU runs a stage's small kernels faster than it can be handed them: each frame set as one
+    batch launches 8x fewer. A CPU keeps batches of 32, whose features stay in its caches."""
+    return max(calibration_images, validation_images) if device.type == "cuda" else 32
+
+
 class SupernetEvaluator:
     """A candidate's slice of a trained supernet, BatchNorm recalibrated, evaluated.
 
@@ -86,18 +92,21 @@ class SupernetEvaluator:
     candidates that share it (:mod:`explorer.study._stagewise`: the image encoder per width, decoder
     stages and exit heads by what they read, up to ``memo_bytes`` of kept outputs); the result is
     the same as recalibrating and evaluating each candidate whole (``stagewise=False``).
-    ``require_complete=False`` takes a supernet short of its steps (a search's time limit stopped it)."""
+    ``require_complete=False`` takes a supernet short of its steps (a search's time limit stopped it).
+    ``batch_size`` (default: 32 frames on a CPU, each frame set whole on a GPU) sets how frames are batched."""
 
     name = "supernet"
 
     def __init__(self, supernet_file: str | Path, space, train_set, val_set, device: torch.device,
-                 val_limit: int | None = None, calibration_images: int = 256, batch_size: int = 32,
+                 val_limit: int | None = None, calibration_images: int = 256, batch_size: int | None = None,
                  stagewise: bool = True, memo_bytes: int = 2 * 2 ** 30, require_complete: bool = True) -> None:
         self.file = Path(supernet_file)
         self.supernet, state = load_supernet(self.file, space, require_complete)
         self.supernet.to(device).eval()
         self.key = state["space_key"] + "-" + self.file.stem
         self.device = device
+        if batch_size is None:
+            batch_size = frames_per_batch(device, calibration_images, val_limit or len(val_set))
         self.calibration = _batches(train_set, calibration_images, batch_size)
         self.validation = _batches(val_set, val_limit or len(val_set), batch_size)
         self.stagewise = stagewise
