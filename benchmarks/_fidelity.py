@@ -140,10 +140,13 @@ def top_recall(estimates: list[float], labels: list[float], k: int = 5, within: 
 
 
 def rank_figures(estimates: list[float], labels: list[float]) -> dict[str, float]:
-    """Kendall tau, Spearman and top-5-in-10 recall of ``estimates`` against ``labels``."""
-    return {"tau": float(kendalltau(estimates, labels).statistic),
-            "spearman": float(spearmanr(estimates, labels).statistic),
-            "recall": float(top_recall(estimates, labels))}
+    """Kendall tau, Spearman and top-5-in-10 recall of ``estimates`` against ``labels`` (the recall only
+    over more than 10 candidates: with fewer, every one is in the best 10)."""
+    figs = {"tau": float(kendalltau(estimates, labels).statistic),
+            "spearman": float(spearmanr(estimates, labels).statistic)}
+    if len(labels) > 10:
+        figs["recall"] = float(top_recall(estimates, labels))
+    return figs
 
 
 def supernet_evaluator(file: Path, space: SearchSpace, config: SearchConfig | None = None, **kw):

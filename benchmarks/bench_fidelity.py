@@ -84,7 +84,8 @@ def _add_ranks(bench: Bench, prefix: str, what: str, estimates: dict, table: dic
         return None
     figs = rank_figures(list(estimates.values()), [table[c]["long"] for c in estimates])
     for k, (label, better) in FIGURES.items():
-        bench.add(bench.figure(f"{k}_{prefix}", f"{what}: {label} against the long labels", "", better), figs[k])
+        if k in figs:
+            bench.add(bench.figure(f"{k}_{prefix}", f"{what}: {label} against the long labels", "", better), figs[k])
     return figs
 
 
@@ -95,8 +96,11 @@ def label_figures(bench: Bench, labelled: list, table: dict, per_seed: dict) -> 
         spread = rank_figures([per_seed[c][0] for c in both], [per_seed[c][1] for c in both])
         bench.add(bench.figure("labels_seed_tau", "long labels: Kendall tau between seeds 0 and 1", "", "higher"),
                   spread["tau"])
+        gaps = [abs(per_seed[c][0] - per_seed[c][1]) for c in both]
+        means = sorted(table[c]["long"] for c in labelled)
         bench.note(f"long labels' seed-to-seed Kendall tau {spread['tau']:.3f} over {len(both)} candidates "
-                   f"(Spearman {spread['spearman']:.3f})")
+                   f"(Spearman {spread['spearman']:.3f}); median seed-to-seed difference {statistics.median(gaps):.4f}, "
+                   f"against labels spanning {means[0]:.4f}-{means[-1]:.4f}")
     for name in ("proxy", "finalist"):
         have = {c: table[c][name] for c in labelled if name in table[c]}
         if _add_ranks(bench, name, f"{name} recipe", have, table):
@@ -204,7 +208,8 @@ def store(bench: Bench, space: SearchSpace, config: SearchConfig, recipes: list,
     from explorer.supernet import store_fidelity
     if len({json.dumps({k: v for k, v in r.identity().items() if k != "seed"}, sort_keys=True) for r in recipes}) != 1:
         sys.exit("--store: the supernets scored differ in more than their seed; store one recipe at a time")
-    figs = {k: [round(v, 4) for v in bench.figures[f"{k}_supernet"].reps] for k in FIGURES}
+    figs = {k: [round(v, 4) for v in bench.figures[f"{k}_supernet"].reps] for k in FIGURES
+            if bench.figures.get(f"{k}_supernet")}
     spread = bench.figures.get("labels_seed_tau")
     baselines = {make().key for make in BASELINES.values()}
     entry = {**figs, "candidates": sum(c.key not in baselines for c in labelled), "label_steps": label_steps,
