@@ -99,7 +99,8 @@ def label_figures(bench: Bench, labelled: list, table: dict, per_seed: dict) -> 
         gaps = [abs(per_seed[c][0] - per_seed[c][1]) for c in both]
         means = sorted(table[c]["long"] for c in labelled)
         bench.note(f"long labels' seed-to-seed Kendall tau {spread['tau']:.3f} over {len(both)} candidates "
-                   f"(Spearman {spread['spearman']:.3f}); median seed-to-seed difference {statistics.median(gaps):.4f}, "
+                   f"(Spearman {spread['spearman']:.3f}); median seed-to-seed difference "
+                   f"{statistics.median(gaps):.4f}, "
                    f"against labels spanning {means[0]:.4f}-{means[-1]:.4f}")
     for name in ("proxy", "finalist"):
         have = {c: table[c][name] for c in labelled if name in table[c]}
