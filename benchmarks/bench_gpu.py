@@ -33,7 +33,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from harness import ROOT, Bench  # noqa: E402
+from harness import ROOT, Bench, interleave  # noqa: E402
 
 DEFAULT, LARGE = ((64, 64), 16), ((224, 224), 64)
 
@@ -259,7 +259,7 @@ def declare(bench: Bench, on_gpu: bool) -> None:
         bench.figure("gpu_speedup_default", "CPU / GPU step time, default recipe", "x", better="higher")
 
 
-def one_repetition(bench: Bench, args, device: str, util: Utilisation | None) -> None:
+def one_repetition(bench: Bench, args, device: str, util: Utilisation | None, rep: int) -> None:
     on_gpu = device == "cuda"
     size, batch = DEFAULT
     bench.add("step_s_default", train_steps(device, size, batch, args.steps, args.data, False, util))
@@ -270,10 +270,11 @@ def one_repetition(bench: Bench, args, device: str, util: Utilisation | None) ->
     if on_gpu:
         cpu = bench.add("cpu_step_s_default", train_steps("cpu", size, batch, args.steps, args.data, False))
         bench.add("gpu_speedup_default", cpu / bench.figures["step_s_default"].reps[-1])
-    if not args.no_torchrun:
-        one = bench.add("step_s_one_process", processes_step(device, 1, args.steps, args.data))
-        two = bench.add("step_s_two_processes", processes_step(device, 2, args.steps, args.data))
-        bench.add("two_process_speedup", one / two)
+    if not args.no_torchrun:   # in an order that turns over from one repetition to the next
+        got = interleave({n: (lambda n=n: processes_step(device, n, args.steps, args.data)) for n in (1, 2)}, rep)
+        bench.add("step_s_one_process", got[1])
+        bench.add("step_s_two_processes", got[2])
+        bench.add("two_process_speedup", got[1] / got[2])
     per_minute, share = search_rate(device, args.data, args.search_seconds, args.search_supernet_steps)
     bench.add("candidates_per_minute", per_minute)
     bench.add("evaluator_share", share)
@@ -308,8 +309,8 @@ def main() -> None:
         bench.note(f"data {args.data}; large recipe {args.large_size[0]}x{args.large_size[1]}, batch "
                    f"{args.large_batch}{', bf16 autocast' if on_gpu else ', float32'}; {args.steps} steps a timing; "
                    f"searches sample {args.search_seconds:g} s on a {args.search_supernet_steps}-step supernet")
-        for _ in bench.repetitions():
-            one_repetition(bench, args, device, util if on_gpu else None)
+        for rep in bench.repetitions():
+            one_repetition(bench, args, device, util if on_gpu else None, rep)
     if args.amp_steps:
         ratio, tau = amp_effect(device, args.data, args.amp_steps, *DEFAULT)
         bench.add("amp_loss_ratio", ratio)
