@@ -6,7 +6,7 @@ recall (how many of the long labels' best 5 are in the estimate's best 10); the 
 seed-to-seed tau bounds any of them.
 
     python benchmarks/bench_fidelity.py [--candidates 24] [--supernet-seeds 0,1] [--supernet FILE ...]
-        [--supernet-recipe head_kinds=cover] [--compare FILE ...] [--calibration-sweep 64,1024]
+        [--supernet-recipe K=V,...] [--compare-recipe head_kinds=cover] [--calibration-sweep 64,1024]
         [--fine-tune-steps 30] [--store]
     python benchmarks/bench_fidelity.py --labels-only --worker 0   # fill the label cache (several workers may)
 
@@ -53,13 +53,15 @@ def parse_recipe(text: str, base: SupernetRecipe) -> SupernetRecipe:
     return dataclasses.replace(base, **changes)
 
 
-def supernet_files(args, space: SearchSpace, config: SearchConfig) -> list[tuple[str, Path]]:
-    """(name, file) of every supernet to score: the given files, else one trained per seed."""
-    if args.supernet:
-        return [(Path(f).stem, Path(f)) for f in args.supernet]
+def supernet_files(files: list, recipe_text: str, seeds: str, space: SearchSpace, config: SearchConfig
+                   ) -> list[tuple[str, Path]]:
+    """(name, file) of the supernets to score: the given ``files``, else the search's recipe changed by
+    ``recipe_text`` at each of ``seeds`` (found in the search's cache, trained there if missing)."""
+    if files:
+        return [(Path(f).stem, Path(f)) for f in files]
     out = []
-    for seed in [int(s) for s in args.supernet_seeds.split(",")]:
-        rec = parse_recipe(args.supernet_recipe, dataclasses.replace(config.supernet_recipe(), seed=seed))
+    for seed in [int(s) for s in seeds.split(",") if s]:
+        rec = parse_recipe(recipe_text, dataclasses.replace(config.supernet_recipe(), seed=seed))
         file = default_path(space, config.data, rec)
         if not file.is_file() or not read_supernet(file).get("complete"):
             print(f"training the supernet {rec.to_dict()} into {file}", flush=True)
@@ -130,8 +132,11 @@ def print_rows(est: dict, table: dict) -> None:
 def score_all(bench: Bench, args, space: SearchSpace, config: SearchConfig, cands: list, table: dict) -> list:
     """One repetition per supernet (the scored ones, then the --compare ones); the scored ones' recipes.
     Estimates are cached (_fidelity.estimates): every candidate is estimated, the labelled ones ranked."""
-    items = [(name, file, "supernet") for name, file in supernet_files(args, space, config)]
-    items += [(Path(f).stem, Path(f), "compared") for f in args.compare]
+    items = [(name, file, "supernet") for name, file in
+             supernet_files(args.supernet, args.supernet_recipe, args.supernet_seeds, space, config)]
+    if args.compare or args.compare_recipe:
+        items += [(name, file, "compared") for name, file in
+                  supernet_files(args.compare, args.compare_recipe, args.compare_seeds, space, config)]
     sweep = [int(n) for n in args.calibration_sweep.split(",") if n]
     recipes = []
     for rep in bench.repetitions(len(items)):
@@ -167,6 +172,9 @@ def main() -> None:
     ap.add_argument("--calibration-images", type=int, default=256, help="BatchNorm recalibration frames")
     ap.add_argument("--compare", action="append", default=[], help="also score this supernet file (figures "
                     "*_compared; repeatable), e.g. one of an earlier recipe")
+    ap.add_argument("--compare-recipe", default="", help="also score supernets of the search's recipe with these "
+                    "changes, key=value,... (figures *_compared), one per --compare-seeds")
+    ap.add_argument("--compare-seeds", default="0,1", help="seeds of the --compare-recipe supernets")
     ap.add_argument("--calibration-sweep", default="", help="also the scored supernets' figures with these "
                     "BatchNorm recalibration frame counts, e.g. 64,1024")
     ap.add_argument("--fine-tune-steps", type=int, default=0, help="also rank every candidate's slice after "
