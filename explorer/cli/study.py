@@ -43,7 +43,7 @@ def _search_config(args):
         study=study, space=args.space, device=args.device, budgets=tuple(args.budget or ["time:uniform:33ms"]),
         data=args.data, objectives=tuple(args.objectives.split(",")), metric=args.metric,
         input_size=args.input_size, train_size=args.train_size, train_steps=args.proxy_steps,
-        batch_size=args.batch_size, seed=args.seed, max_params=args.max_params,
+        batch_size=args.batch_size, amp=args.amp, seed=args.seed, max_params=args.max_params,
         max_first_exit_ms=args.max_first_exit, baselines=_baselines(args),
         pruning=not args.no_pruning, keep_weights=not args.no_weights, accelerator=args.accelerator,
         evaluator=args.evaluator, supernet=args.supernet,
@@ -312,6 +312,9 @@ def _register_search(add, reports: dict) -> None:
     s.add_argument("--train-size", type=_size, default=(64, 64), help="training resolution HxW of the proxy "
                    "candidates, the supernet and the finalists (default 64x64)")
     s.add_argument("--batch-size", type=int, default=16)
+    s.add_argument("--amp", action="store_true", help="bf16 autocast of the supernet's forward passes: for a GPU "
+                   "(with --train-size 224x224 --batch-size 64, the GPU recipe of `explorer supernet train`); "
+                   "slower on a CPU")
     s.add_argument("--input-size", type=_size, default=(224, 224),
                    help="deployment resolution HxW, at which paths are costed (default 224x224)")
     deprecated_alias(s, "--input", "--input-size")

@@ -79,6 +79,7 @@ class SearchConfig:
     supervision: str = "supervised"              # supervised | self | mixed (see explorer.training.selfsup)
     poses: str = "net"                           # self-supervision's camera motion: net | given
     hints: bool = False                          # depth hints (explorer.training.depth_hints; poses given)
+    amp: bool = False                            # the supernet's forward passes under bf16 autocast (GPUs)
 
     def __post_init__(self) -> None:
         if self.evaluator == "auto":  # the supernet is trained with dense labels; self-supervision trains alone
@@ -117,7 +118,7 @@ class SearchConfig:
 
     def supernet_recipe(self):
         return SupernetRecipe(steps=self.supernet_steps, batch_size=self.batch_size, input_size=self.train_size,
-                              lr=self.lr, lr_end=self.lr / 10, seed=self.seed)
+                              lr=self.lr, lr_end=self.lr / 10, seed=self.seed, amp=self.amp)
 
     def validate(self) -> None:
         space = SearchSpace.from_yaml(self.space)
@@ -173,12 +174,13 @@ class SearchConfig:
 
     # settings that change what a trial's value means: a resumed study must keep them
     IDENTITY = ("space", "device", "budgets", "data", "objectives", "metric", "input_size", "train_size",
-                "train_steps", "batch_size", "lr", "evaluator", "supernet_steps", "supervision", "poses", "hints")
+                "train_steps", "batch_size", "lr", "evaluator", "supernet_steps", "supervision", "poses", "hints", "amp")
 
     @classmethod
     def defaults_of_older_studies(cls) -> dict:
         """Settings a study made before they existed was run with."""
-        return {"evaluator": "proxy", "finalists": 0, "supervision": "supervised", "poses": "net", "hints": False}
+        return {"evaluator": "proxy", "finalists": 0, "supervision": "supervised", "poses": "net", "hints": False,
+                "amp": False}
 
 
 def json_safe(x):

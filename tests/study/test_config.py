@@ -1,0 +1,25 @@
+"""The search's settings: what reaches the supernet's recipe, and what a study is identified by."""
+
+from explorer.cli import build_parser
+from explorer.space import SearchSpace
+from explorer.study.config import SearchConfig
+from explorer.supernet import default_path
+
+
+def test_amp_reaches_the_supernet_recipe_and_its_cache_file():
+    plain, amp = SearchConfig(study="s"), SearchConfig(study="s", amp=True, train_size=(224, 224), batch_size=64)
+    assert amp.supernet_recipe().amp and not plain.supernet_recipe().amp
+    space = SearchSpace.from_yaml(plain.space)
+    assert default_path(space, "synthetic", amp.supernet_recipe()) != default_path(space, "synthetic",
+                                                                                 plain.supernet_recipe())
+    assert "amp" in SearchConfig.IDENTITY     # a study estimated without it is not resumed with it
+
+
+def test_a_study_made_before_amp_existed_reads_as_without_it():
+    old = {k: v for k, v in SearchConfig(study="s").to_dict().items() if k != "amp"}
+    assert SearchConfig.from_dict({**SearchConfig.defaults_of_older_studies(), **old}).amp is False
+
+
+def test_search_takes_amp_on_the_command_line():
+    assert build_parser().parse_args(["search", "--amp"]).amp is True
+    assert build_parser().parse_args(["search"]).amp is False
