@@ -100,7 +100,8 @@ class SearchConfig:
     def from_dict(cls, d: dict) -> "SearchConfig":
         d = dict(d)
         for k in ("budgets", "objectives", "input_size", "train_size"):
-            d[k] = tuple(d[k])
+            if k in d:
+                d[k] = tuple(d[k])
         known = {f.name for f in dataclasses.fields(cls)}
         return cls(**{k: v for k, v in d.items() if k in known})
 

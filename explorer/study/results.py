@@ -251,7 +251,8 @@ def estimate_fidelity(study: optuna.Study) -> str | None:
     cfg = study.user_attrs.get("config")
     if not cfg:
         return None
-    config = SearchConfig.from_dict(cfg)
+    # a study made by an older version lacks later settings: they read as what it ran with
+    config = SearchConfig.from_dict({"study": study.study_name, **SearchConfig.defaults_of_older_studies(), **cfg})
     if config.evaluator != "supernet":
         return None
     recipe = config.supernet_recipe()

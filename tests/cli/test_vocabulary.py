@@ -136,7 +136,7 @@ def test_an_old_name_stores_into_the_new_one_with_one_line(capsys, command, need
 
 def test_an_old_name_leaves_the_default_alone(capsys):
     args = build_parser().parse_args(["supernet", "train"])
-    assert args.train_size == (64, 64) and args.stop_after_steps is None
+    assert args.train_size is None and args.stop_after_steps is None    # None: the --recipe's size
     assert build_parser().parse_args(["search"]).proxy_steps == 150
     assert capsys.readouterr().err == ""
 
