@@ -134,21 +134,34 @@ def read_json(path: str | Path, what: str = "JSON file") -> Any:
         raise UserError(f"{p}: not valid JSON ({exc})") from None
 
 
-def write_atomically(path: str | Path, data: "str | bytes") -> Path:
-    """Writes ``data`` to ``path`` through a scratch file in the same folder, flushed to disk, then
-    renamed into place: readers, and a process killed midway, see the old file or the new one."""
+@contextmanager
+def writing_atomically(path: str | Path, mode: str = "wb", umask_mode: bool = False) -> Iterator[Any]:
+    """A file opened on a scratch name beside ``path`` (``.NAME.XXXX.tmpPID``), flushed to disk and
+    renamed onto ``path`` when the block ends, removed when it raises: readers, and a process killed
+    midway, see the old file or the new one. ``umask_mode``: readable as the umask allows (a scratch
+    file is private otherwise)."""
     p = Path(path)
     fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=f".tmp{os.getpid()}", dir=p.parent)
+    if umask_mode:
+        umask = os.umask(0)
+        os.umask(umask)
+        os.fchmod(fd, 0o666 & ~umask)
     try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data.encode() if isinstance(data, str) else data)
+        with os.fdopen(fd, mode) as f:
+            yield f
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, p)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
-    return p
+
+
+def write_atomically(path: str | Path, data: "str | bytes") -> Path:
+    """Writes ``data`` to ``path`` through :func:`writing_atomically`."""
+    with writing_atomically(path, "wb") as f:
+        f.write(data.encode() if isinstance(data, str) else data)
+    return Path(path)
 
 
 def write_json(path: str | Path, data: Any, indent: int = 2) -> Path:

@@ -12,7 +12,6 @@ every candidate.
 from __future__ import annotations
 
 import os
-import tempfile
 import time
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -25,6 +24,7 @@ import pandas as pd
 from explorer.anytime import BudgetDistribution, interval_probabilities, parse_budget
 from explorer.cost.devices import DeviceProfile, check_budget_priced, get_device
 from explorer.errors import UserError
+from explorer.files import writing_atomically
 from explorer.model.network import stage_specs
 from explorer.space import Candidate, SearchSpace
 from explorer.study._enumerate_arrays import COLUMNS, SpaceGrid, stage_totals
@@ -228,21 +228,12 @@ def _scratch(path: str | Path | None, mode: str):
         raise UserError(f"{path}: is a folder; give a file name")
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=f".tmp{os.getpid()}", dir=path.parent)
-        umask = os.umask(0)
-        os.umask(umask)
-        os.fchmod(fd, 0o666 & ~umask)   # mkstemp makes it private; a table is for whoever may read the folder
     except OSError as exc:
         raise UserError(f"{path}: cannot write it ({exc.strerror})") from None
-    try:
-        with os.fdopen(fd, mode) as f:
-            yield f
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    if not os.access(path.parent, os.W_OK):
+        raise UserError(f"{path}: cannot write it (Permission denied)")
+    with writing_atomically(path, mode, umask_mode=True) as f:   # a table is for whoever may read the folder
+        yield f
 
 
 class _ParquetChunks:
