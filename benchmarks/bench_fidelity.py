@@ -185,17 +185,19 @@ def main() -> None:
                     "fidelity record of their space, data and recipe")
     ap.add_argument("--labels-only", action="store_true", help="only train the labels not cached yet")
     ap.add_argument("--worker", type=int, default=0, help="with --labels-only: this worker's number (for its log)")
+    ap.add_argument("--threads", type=int, default=0, help="torch threads (default: 1 with --labels-only, so "
+                    "that workers share the cores, else 2)")
     args = bench.parse_args(ap)
     space = SearchSpace.from_yaml("anytime_depth")
     config = SearchConfig(study="fidelity")
     cands = fidelity_candidates(space, args.candidates)
     seeds = tuple(int(s) for s in args.label_seeds.split(","))
     if not args.cached_labels:
-        torch.set_num_threads(1 if args.labels_only else 2)
+        torch.set_num_threads(args.threads or (1 if args.labels_only else 2))
         run_label_jobs(label_jobs(cands, seeds), args.worker)
     if args.labels_only:
         return
-    torch.set_num_threads(2)
+    torch.set_num_threads(args.threads or 2)
     labelled, table, per_seed = label_table(cands, seeds)
     rec = label_recipes(config)
     bench.note(f"{len(labelled)} of {len(cands)} candidates with long labels ({args.candidates} random, drawn "
