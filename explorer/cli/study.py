@@ -172,7 +172,7 @@ def _print_outcome(study, cfg, storage_url: str, reports: Path, write_report: bo
         console.print(f"{lead}: trial {best.number} ({cand.key}) anytime loss [bold]{best.values[0]:.4f}[/bold] "
                       f"{how}, for {cfg.budgets[0]} on {cfg.device}")
         console.print(f"  {cand.describe()}")
-        print_frame(path_table(best, [get_device(cfg.device)]), "winner, per path")
+        print_frame(path_table(best, [get_device(cfg.device)]), f"{lead}, per path")
         fin = finalists_frame(study)
         if not fin.empty:
             cols = ["model", "candidate_key", "estimated", "retrained", "estimated_rank", "retrained_rank"]
