@@ -138,13 +138,15 @@ def machine() -> dict:
 
 
 def git_state(root: Path = ROOT) -> tuple[str, bool]:
-    """(short commit, dirty) of the checkout; ("unknown", True) outside git. The results folder is left
-    out of the dirty check: records written there are not a change to what was measured."""
+    """(short commit, dirty) of the checkout; ("unknown", True) outside git. The results and label
+    folders are left out of the dirty check: records and cached trainings written there are not a
+    change to what was measured."""
     def git(*args: str) -> str:
         return subprocess.run(["git", *args], cwd=root, capture_output=True, text=True, check=True).stdout
     try:
         commit = git("rev-parse", "--short", "HEAD").strip()
-        changes = git("status", "--porcelain", "--", ".", ":(exclude)benchmarks/results")
+        changes = git("status", "--porcelain", "--", ".", ":(exclude)benchmarks/results",
+                      ":(exclude)benchmarks/labels")
     except (OSError, subprocess.CalledProcessError):
         return "unknown", True
     return commit or "unknown", bool(changes.strip())
