@@ -45,7 +45,7 @@ from explorer.training.train import TrainConfig, batch_row, lr_at
 
 FORMAT = "anytime-explorer-supernet/1"
 TEACHER_DEPTHS = ("cycle", "max")
-HEAD_KINDS = ("random", "cover")
+HEAD_KINDS = ("random", "cover", "rotate")
 
 
 @dataclass(frozen=True)
@@ -245,15 +245,24 @@ def _subnets(largest: Candidate, smallest: Candidate, space: SearchSpace, recipe
     subnets always train two kinds; with ``head_kinds="random"`` a random subnet draws its kind, so
     the other kinds train about a quarter of the steps each (their heads see 4x fewer updates).
     "cover" gives the random subnets those other kinds in turn: each trains at least every other step.
+    "rotate" hands the kinds in turn to every subnet of the step, the teacher and the smallest too: each
+    kind then trains on every kind of backbone (with 3 subnets a step, 3 steps in 4; with 4, every step),
+    where the others train a kind on one backbone alone (the largest's residual depth-2 heads, the
+    smallest's plain depth-1 heads).
     """
     randoms = [random_training_subnet(space, rng) for _ in range(recipe.random_subnets)]
+    subnets = [_teacher(largest, space, recipe, step), smallest] + randoms
+    if recipe.head_kinds == "rotate":
+        kinds = [(d, r) for d in sorted(set(space.head_depth)) for r in sorted(set(space.exit_residual))]
+        return [with_head_kind(c, space, *kinds[(step * len(subnets) + j) % len(kinds)])
+                for j, c in enumerate(subnets)]
     if recipe.head_kinds == "cover":
         kinds = [(d, r) for d in sorted(set(space.head_depth)) for r in sorted(set(space.exit_residual))
                  if (d, r) not in {(c.head_depth, c.exit_residual) for c in (largest, smallest)}]
         if kinds:
-            randoms = [with_head_kind(c, space, *kinds[(step * len(randoms) + j) % len(kinds)])
-                       for j, c in enumerate(randoms)]
-    return [_teacher(largest, space, recipe, step), smallest] + randoms
+            subnets[2:] = [with_head_kind(c, space, *kinds[(step * len(randoms) + j) % len(kinds)])
+                           for j, c in enumerate(randoms)]
+    return subnets
 
 
 def train_supernet(space: SearchSpace, data: str, recipe: SupernetRecipe = SupernetRecipe(),

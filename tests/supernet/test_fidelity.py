@@ -35,6 +35,22 @@ def test_covering_head_kinds_trains_every_kind_every_other_step(default_space):
             assert default_space.contains(dataclasses.replace(c, exits=(4,), encoder_exits=(), lidar_exit=False))
 
 
+def test_rotating_head_kinds_trains_every_kind_on_every_backbone(default_space):
+    recipe = SupernetRecipe(head_kinds="rotate")
+    every = {(d, r) for d in default_space.head_depth for r in default_space.exit_residual}
+    seen = {kind: set() for kind in every}           # kind -> the subnet positions (teacher, smallest, random)
+    for step in range(4):
+        for position, kind in enumerate(_kinds(default_space, recipe, step)):
+            seen[kind].add(position)
+    assert all(positions == {0, 1, 2} for positions in seen.values())
+    four = dataclasses.replace(recipe, random_subnets=2)
+    assert all(set(_kinds(default_space, four, step)) == every for step in range(4))
+    subnets = _subnets(largest_candidate(default_space), smallest_candidate(default_space), default_space,
+                       four, 1, random.Random(1))
+    for c in subnets:    # each is still a valid candidate of the space
+        assert default_space.contains(dataclasses.replace(c, exits=(4,), encoder_exits=(), lidar_exit=False))
+
+
 def test_random_head_kinds_keep_the_cache_key_of_earlier_supernets(default_space):
     before = SupernetRecipe().identity()
     assert "head_kinds" not in before
