@@ -6,7 +6,7 @@ import time
 from pathlib import Path
 
 from explorer.errors import UserError
-from explorer.cli._common import _add_supervision, _count, _duration_s, _ms, _size, deprecated_alias, write_output
+from explorer.cli._common import HEAD_KINDS, _add_supervision, _count, _duration_s, _ms, _size, deprecated_alias, write_output
 
 
 def cmd_search(args) -> None:
@@ -43,7 +43,7 @@ def _search_config(args):
         study=study, space=args.space, device=args.device, budgets=tuple(args.budget or ["time:uniform:33ms"]),
         data=args.data, objectives=tuple(args.objectives.split(",")), metric=args.metric,
         input_size=args.input_size, train_size=args.train_size, train_steps=args.proxy_steps,
-        batch_size=args.batch_size, amp=args.amp, seed=args.seed, max_params=args.max_params,
+        batch_size=args.batch_size, amp=args.amp, head_kinds=args.head_kinds, seed=args.seed, max_params=args.max_params,
         max_first_exit_ms=args.max_first_exit, baselines=_baselines(args),
         pruning=not args.no_pruning, keep_weights=not args.no_weights, accelerator=args.accelerator,
         evaluator=args.evaluator, supernet=args.supernet,
@@ -315,6 +315,9 @@ def _register_search(add, reports: dict) -> None:
     s.add_argument("--amp", action="store_true", help="bf16 autocast of the supernet's forward passes: for a GPU "
                    "(with --train-size 224x224 --batch-size 64, the GPU recipe of `explorer supernet train`); "
                    "slower on a CPU")
+    s.add_argument("--head-kinds", choices=HEAD_KINDS, default="rotate", help="which of the supernet's subnets "
+                   "trains which kind of exit head: rotate (default; every kind on every kind of backbone), cover, "
+                   "random (as supernets made before rotate); part of the study's identity")
     s.add_argument("--input-size", type=_size, default=(224, 224),
                    help="deployment resolution HxW, at which paths are costed (default 224x224)")
     deprecated_alias(s, "--input", "--input-size")

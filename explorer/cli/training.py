@@ -9,7 +9,7 @@ from pathlib import Path
 from explorer.errors import UserError
 from explorer.space import check_size
 from explorer.cli.inspect import _candidates_of
-from explorer.cli._common import _Parser, _size, _add_supervision, deprecated_alias
+from explorer.cli._common import HEAD_KINDS, _Parser, _size, _add_supervision, deprecated_alias
 
 
 def cmd_train(args) -> None:
@@ -134,7 +134,8 @@ def supernet_recipe(args):
     if args.lr is not None:
         changes["lr_end"] = args.lr / 10
     return dataclasses.replace(RECIPES[args.recipe], **changes, random_subnets=args.random_subnets,
-                               micro_batches=args.micro_batches, seed=args.seed, teacher_depths=args.teacher_depths)
+                               micro_batches=args.micro_batches, seed=args.seed, teacher_depths=args.teacher_depths,
+                               head_kinds=args.head_kinds)
 
 
 def _supernet_status(record: dict) -> str:
@@ -226,6 +227,10 @@ def register(sub, add, reports: dict) -> None:
                    help="encoder depth of the subnet trained on the labels (and distilled from): cycle (default) "
                    "turns over the space's depths step by step, so shallow encoders are not ranked below deep "
                    "ones for lack of training; max always takes the deepest (the plain sandwich rule)")
+    s.add_argument("--head-kinds", choices=HEAD_KINDS, default="rotate", help="which subnet trains which kind "
+                   "of exit head (depth x residual): rotate (default) hands the kinds in turn to every subnet of a "
+                   "step, so each kind trains on the largest, the smallest and random backbones; cover gives the "
+                   "random subnets the kinds the largest and smallest do not train; random lets them draw one")
     s.add_argument("--micro-batches", type=int, default=1, help="split each process's batch (gradient "
                    "accumulation; BatchNorm statistics per micro-batch)")
     s.add_argument("--seed", type=int, default=0)

@@ -80,6 +80,7 @@ class SearchConfig:
     poses: str = "net"                           # self-supervision's camera motion: net | given
     hints: bool = False                          # depth hints (explorer.training.depth_hints; poses given)
     amp: bool = False                            # the supernet's forward passes under bf16 autocast (GPUs)
+    head_kinds: str = "rotate"                   # which supernet subnet trains which exit-head kind
 
     def __post_init__(self) -> None:
         if self.evaluator == "auto":  # the supernet is trained with dense labels; self-supervision trains alone
@@ -119,7 +120,8 @@ class SearchConfig:
 
     def supernet_recipe(self):
         return SupernetRecipe(steps=self.supernet_steps, batch_size=self.batch_size, input_size=self.train_size,
-                              lr=self.lr, lr_end=self.lr / 10, seed=self.seed, amp=self.amp)
+                              lr=self.lr, lr_end=self.lr / 10, seed=self.seed, amp=self.amp,
+                              head_kinds=self.head_kinds)
 
     def validate(self) -> None:
         space = SearchSpace.from_yaml(self.space)
@@ -175,13 +177,14 @@ class SearchConfig:
 
     # settings that change what a trial's value means: a resumed study must keep them
     IDENTITY = ("space", "device", "budgets", "data", "objectives", "metric", "input_size", "train_size",
-                "train_steps", "batch_size", "lr", "evaluator", "supernet_steps", "supervision", "poses", "hints", "amp")
+                "train_steps", "batch_size", "lr", "evaluator", "supernet_steps", "supervision", "poses", "hints", "amp",
+                "head_kinds")
 
     @classmethod
     def defaults_of_older_studies(cls) -> dict:
         """Settings a study made before they existed was run with."""
         return {"evaluator": "proxy", "finalists": 0, "supervision": "supervised", "poses": "net", "hints": False,
-                "amp": False}
+                "amp": False, "head_kinds": "random"}
 
 
 def json_safe(x):

@@ -45,7 +45,7 @@ from explorer.training.train import TrainConfig, batch_row, lr_at
 
 FORMAT = "anytime-explorer-supernet/1"
 TEACHER_DEPTHS = ("cycle", "max")
-HEAD_KINDS = ("random", "cover", "rotate")
+HEAD_KINDS = ("rotate", "cover", "random")
 
 
 @dataclass(frozen=True)
@@ -64,7 +64,7 @@ class SupernetRecipe:
     micro_batches: int = 1           # per process; BatchNorm statistics are per micro-batch
     seed: int = 0
     amp: bool = False                # bf16 autocast of the forward passes (the GPU recipe's)
-    head_kinds: str = "random"       # the random subnets' exit heads: "random", or "cover" (see _subnets)
+    head_kinds: str = "rotate"       # which subnet trains which kind of exit head (see _subnets)
 
     def to_dict(self) -> dict:
         d = dataclasses.asdict(self)
@@ -74,7 +74,8 @@ class SupernetRecipe:
     @classmethod
     def from_dict(cls, d: dict) -> "SupernetRecipe":
         known = {f.name for f in dataclasses.fields(cls)}
-        d = {"teacher_depths": "max", **{k: v for k, v in d.items() if k in known}}  # files made before "cycle"
+        # files made before these fields trained the way they were then
+        d = {"teacher_depths": "max", "head_kinds": "random", **{k: v for k, v in d.items() if k in known}}
         d["input_size"] = tuple(d["input_size"])
         return cls(**d)
 

@@ -151,3 +151,10 @@ def test_an_old_name_through_the_whole_command(run_cli):
     lines = err.strip().splitlines()
     assert code == 2 and len(lines) == 2 and "--input-size is deprecated, use --train-size" in lines[0]
     assert "holds 16 candidates" in lines[1]
+
+
+@pytest.mark.parametrize("command", ("supernet train", "search"))
+def test_head_kinds_offers_what_the_supernet_trains(command):
+    from explorer.supernet import HEAD_KINDS, SupernetRecipe
+    action = _visible(command)["--head-kinds"]
+    assert set(action.choices) == set(HEAD_KINDS) and action.default == SupernetRecipe().head_kinds

@@ -52,14 +52,21 @@ def test_rotating_head_kinds_trains_every_kind_on_every_backbone(default_space):
 
 
 def test_random_head_kinds_keep_the_cache_key_of_earlier_supernets(default_space):
-    before = SupernetRecipe().identity()
-    assert "head_kinds" not in before
-    assert cache_key(default_space, "synthetic", SupernetRecipe(head_kinds="cover")) != \
-        cache_key(default_space, "synthetic", SupernetRecipe())
+    before = SupernetRecipe(head_kinds="random")
+    assert "head_kinds" not in before.identity()
+    keys = {cache_key(default_space, "synthetic", SupernetRecipe(head_kinds=k)) for k in ("random", "cover", "rotate")}
+    assert len(keys) == 3
+
+
+def test_a_file_made_before_head_kinds_reads_as_random():
+    old = SupernetRecipe(head_kinds="random").to_dict()
+    del old["head_kinds"]
+    assert SupernetRecipe.from_dict(old).head_kinds == "random"
+    assert SupernetRecipe.from_dict(SupernetRecipe().to_dict()).head_kinds == "rotate"
 
 
 def test_an_unknown_head_kinds_is_refused(tmp_path):
-    with pytest.raises(UserError, match="random, cover"):
+    with pytest.raises(UserError, match="rotate, cover, random"):
         train_supernet(SearchSpace.from_yaml("tiny"), TINY_DATA, SupernetRecipe(head_kinds="all"), tmp_path / "s.pt")
 
 
