@@ -91,3 +91,12 @@ def test_the_shipped_record_reads(default_space):
     from explorer.supernet.fidelity import load_record
     for entry in load_record().values():
         assert describe_fidelity(entry).startswith("the supernet's ranking")
+
+
+def test_the_default_search_quotes_a_measured_fidelity(default_space):
+    from explorer.study.config import SearchConfig
+    config = SearchConfig(study="default")
+    entry = measured_fidelity(default_space, config.data, config.supernet_recipe())
+    assert entry is not None, "the default recipe changed: measure it (benchmarks/bench_fidelity.py --store)"
+    assert len(entry["tau"]) >= 2 and entry["candidates"] >= 24
+    assert "Kendall tau" in describe_fidelity(entry)
