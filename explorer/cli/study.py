@@ -301,7 +301,7 @@ def _register_search(add, reports: dict) -> None:
     s.add_argument("--supernet", help="supernet file (default: the one cached for space, data and recipe, "
                    "trained first if missing)")
     s.add_argument("--supernet-steps", type=int, default=None, help="supernet training steps (default: what "
-                   "--time-limit leaves, 300-1800, else 600; a resumed study keeps its own)")
+                   "--time-limit leaves, 300-600, else 600; a resumed study keeps its own)")
     s.add_argument("--finalists", type=int, default=None, help="best candidates (one per image encoder first) "
                    "retrained stand-alone at the end, next to the baselines (default 3, fewer if --time-limit needs; 0 = none)")
     s.add_argument("--finalist-steps", type=int, default=None, help="steps of the finalists' longer recipe "

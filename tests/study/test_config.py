@@ -23,3 +23,12 @@ def test_a_study_made_before_amp_existed_reads_as_without_it():
 def test_search_takes_amp_on_the_command_line():
     assert build_parser().parse_args(["search", "--amp"]).amp is True
     assert build_parser().parse_args(["search"]).amp is False
+
+
+def test_head_kinds_reach_the_supernet_recipe_and_a_study_made_before_them_reads_as_random():
+    assert SearchConfig(study="s").supernet_recipe().head_kinds == "rotate"
+    assert SearchConfig(study="s", head_kinds="cover").supernet_recipe().head_kinds == "cover"
+    assert "head_kinds" in SearchConfig.IDENTITY   # a study estimated by one supernet is not resumed with another
+    old = {k: v for k, v in SearchConfig(study="s").to_dict().items() if k != "head_kinds"}
+    assert SearchConfig.from_dict({**SearchConfig.defaults_of_older_studies(), **old}).head_kinds == "random"
+    assert build_parser().parse_args(["search", "--head-kinds", "cover"]).head_kinds == "cover"
