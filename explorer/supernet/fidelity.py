@@ -58,7 +58,8 @@ def describe_fidelity(entry: dict | None) -> str:
     tau = entry["tau"]
     span = f"{min(tau):.2f}" if len(tau) == 1 else f"{min(tau):.2f}-{max(tau):.2f}"
     recall = entry.get("recall") or []
-    recall_text = f", {int(min(recall))}-{int(max(recall))} of the best 5 in its best 10" if recall else ""
+    low, high = (int(min(recall)), int(max(recall))) if recall else (0, 0)
+    recall_text = f", {low if low == high else f'{low}-{high}'} of the best 5 in its best 10" if recall else ""
     spread = entry.get("labels_seed_tau")
     spread_text = f"; the labels' own seed-to-seed tau is {spread:.2f}" if spread is not None else ""
     return (f"the supernet's ranking of this space was measured at Kendall tau {span} ({len(tau)} supernet(s)"
