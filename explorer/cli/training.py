@@ -201,7 +201,10 @@ def register(sub, add, reports: dict) -> None:
     deprecated_alias(s, "--limit", "--frames")
     s.add_argument("--json", action="store_true")
 
-    sp = add("supernet", None, "train or inspect the weight-sharing supernet of a space")
+    _register_supernet(add("supernet", None, "train or inspect the weight-sharing supernet of a space"))
+
+
+def _register_supernet(sp) -> None:
     nsub = sp.add_subparsers(dest="sub", required=True, parser_class=_Parser, metavar="SUBCOMMAND")
     s = nsub.add_parser("train", help="train (or resume) a supernet: sandwich rule, in-place distillation",
                         description="Train the supernet of a space once; every study on that space, data and "
