@@ -39,11 +39,11 @@ def deprecated_alias(parser: argparse.ArgumentParser, old: str, new: str) -> Non
                         metavar=target.metavar, default=argparse.SUPPRESS, help=argparse.SUPPRESS)
 
 
-#: The smallest value each numeric option takes (and whether it may equal it), checked for every
-#: command before any work starts: a count of 0, a negative rate or an infinite time is a mistake.
 #: the supernet recipe's head_kinds (explorer.supernet's HEAD_KINDS, named here so that --help needs no torch)
 HEAD_KINDS = ("rotate", "cover", "random")
 
+#: The smallest value each numeric option takes (and whether it may equal it), checked for every
+#: command before any work starts: a count of 0, a negative rate or an infinite time is a mistake.
 AT_LEAST = {  # dest: (minimum, inclusive)
     "batch_size": (1, True), "calibration_frames": (1, True), "checkpoint_every": (1, True),
     "deadline": (0, False), "deadlines": (1, True), "eval_frames": (1, True), "finalist_steps": (1, True),

@@ -6,7 +6,8 @@ import time
 from pathlib import Path
 
 from explorer.errors import UserError
-from explorer.cli._common import HEAD_KINDS, _add_supervision, _count, _duration_s, _ms, _size, deprecated_alias, write_output
+from explorer.cli._common import (HEAD_KINDS, _add_supervision, _count, _duration_s, _ms, _size, deprecated_alias,
+                                  write_output)
 
 
 def cmd_search(args) -> None:
@@ -43,7 +44,8 @@ def _search_config(args):
         study=study, space=args.space, device=args.device, budgets=tuple(args.budget or ["time:uniform:33ms"]),
         data=args.data, objectives=tuple(args.objectives.split(",")), metric=args.metric,
         input_size=args.input_size, train_size=args.train_size, train_steps=args.proxy_steps,
-        batch_size=args.batch_size, amp=args.amp, head_kinds=args.head_kinds, seed=args.seed, max_params=args.max_params,
+        batch_size=args.batch_size, amp=args.amp, head_kinds=args.head_kinds, seed=args.seed,
+        max_params=args.max_params,
         max_first_exit_ms=args.max_first_exit, baselines=_baselines(args),
         pruning=not args.no_pruning, keep_weights=not args.no_weights, accelerator=args.accelerator,
         evaluator=args.evaluator, supernet=args.supernet,

@@ -9,6 +9,6 @@ from explorer.supernet.train import (HEAD_KINDS, SupernetRecipe, cache_key, defa
 from explorer.supernet.train import load as load_supernet
 from explorer.supernet.train import read as read_supernet
 
-__all__ = ["HEAD_KINDS", "Supernet", "SupernetRecipe", "cache_key", "default_path", "describe_fidelity", "largest_candidate",
-           "load_supernet", "measured_fidelity", "random_training_subnet", "read_supernet", "smallest_candidate",
-           "space_key", "store_fidelity", "super_name", "train_supernet"]
+__all__ = ["HEAD_KINDS", "Supernet", "SupernetRecipe", "cache_key", "default_path", "describe_fidelity",
+           "largest_candidate", "load_supernet", "measured_fidelity", "random_training_subnet", "read_supernet",
+           "smallest_candidate", "space_key", "store_fidelity", "super_name", "train_supernet"]

@@ -253,13 +253,12 @@ def _subnets(largest: Candidate, smallest: Candidate, space: SearchSpace, recipe
     """
     randoms = [random_training_subnet(space, rng) for _ in range(recipe.random_subnets)]
     subnets = [_teacher(largest, space, recipe, step), smallest] + randoms
+    every = [(d, r) for d in sorted(set(space.head_depth)) for r in sorted(set(space.exit_residual))]
     if recipe.head_kinds == "rotate":
-        kinds = [(d, r) for d in sorted(set(space.head_depth)) for r in sorted(set(space.exit_residual))]
-        return [with_head_kind(c, space, *kinds[(step * len(subnets) + j) % len(kinds)])
+        return [with_head_kind(c, space, *every[(step * len(subnets) + j) % len(every)])
                 for j, c in enumerate(subnets)]
     if recipe.head_kinds == "cover":
-        kinds = [(d, r) for d in sorted(set(space.head_depth)) for r in sorted(set(space.exit_residual))
-                 if (d, r) not in {(c.head_depth, c.exit_residual) for c in (largest, smallest)}]
+        kinds = [k for k in every if k not in {(c.head_depth, c.exit_residual) for c in (largest, smallest)}]
         if kinds:
             subnets[2:] = [with_head_kind(c, space, *kinds[(step * len(randoms) + j) % len(kinds)])
                            for j, c in enumerate(randoms)]
