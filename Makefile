@@ -33,8 +33,17 @@ browser:
 	@command -v chromium >/dev/null 2>&1 || { apt-get update -q && apt-get install -y -q chromium; } >/dev/null 2>&1 \
 		|| echo "chromium could not be installed: the browser test will be skipped"
 
+# `make search` keeps to SEARCH_LIMIT_S in all: the time the setup took comes out of the search's
+# --time-limit (unless SEARCH_ARGS sets --time-limit or --timeout itself). STARTED is read when make starts.
+SEARCH_LIMIT_S ?= 960
+STARTED := $(shell date +%s)
+OWN_LIMIT := $(findstring --time-limit,$(SEARCH_ARGS))$(findstring --timeout,$(SEARCH_ARGS))
+
 search: $(STAMP)
-	$(BIN)/explorer search --device tx2 $(SEARCH_ARGS)
+	@left=$$(( $(SEARCH_LIMIT_S) - $$(date +%s) + $(STARTED) )); [ $$left -ge 300 ] || left=300; \
+	limit="$(if $(OWN_LIMIT),,--time-limit $$left)"; \
+	echo "$(BIN)/explorer search --device tx2 $$limit $(SEARCH_ARGS)"; \
+	$(BIN)/explorer search --device tx2 $$limit $(SEARCH_ARGS)
 
 benchmarks: $(STAMP)
 	for b in benchmarks/bench_*.py; do $(BIN)/python $$b || exit 1; done
