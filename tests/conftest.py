@@ -52,3 +52,17 @@ def run_cli(capsys):
         out, err = capsys.readouterr()
         return code, out, err
     return run
+
+
+def journal_trials(path: Path, study: str) -> list:
+    """The trials of ``study`` in the journal file at ``path`` as they stand now, read without a lock
+    while a search may be writing it ([] before the study exists)."""
+    import optuna
+    from optuna.storages.journal import JournalFileBackend
+    if not path.exists():
+        return []
+    try:
+        storage = optuna.storages.JournalStorage(JournalFileBackend(str(path)))
+        return optuna.load_study(study_name=study, storage=storage).trials
+    except (KeyError, ValueError):   # not created yet, or a line being written
+        return []

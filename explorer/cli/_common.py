@@ -151,7 +151,8 @@ def _add_supervision(s: argparse.ArgumentParser) -> None:
 FLAG_HELP = {
     "--json": "print the result as JSON (for scripts) instead of tables",
     "--study": "study name, as explorer search named it (DEVICE-SPACE unless given --study)",
-    "--storage": "Optuna storage URL (default: reports/<study>/study.db; postgresql://... for several machines)",
+    "--storage": "Optuna storage URL (default: the journal file reports/<study>/journal.log, or the "
+                 "study's reports/<study>/study.db where it has one; postgresql://... for several machines)",
     "--space": "search space: a shipped name (anytime_depth, paper, tiny) or a YAML file",
     "--data": "data set: synthetic (generated here, cached), synthetic:TRAIN:VAL, nyu:PATH (h5 folder or CSV), "
               "kitti:PATH; sequences: synthetic-seq[:TRAIN:VAL], kitti-seq:DRIVE, frames:FOLDER",

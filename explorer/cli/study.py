@@ -281,8 +281,8 @@ def _register_search(add, reports: dict) -> None:
                    "(default time:uniform:33ms)")
     s.add_argument("--data", default="synthetic")
     s.add_argument("--study", help="study name (default DEVICE-SPACE); the same name resumes")
-    s.add_argument("--storage", help="Optuna storage URL (default reports/<study>/study.db; "
-                   "postgresql://... for several machines)")
+    s.add_argument("--storage", help="Optuna storage URL (default: the journal file "
+                   "reports/<study>/journal.log; postgresql://... for several machines)")
     s.add_argument("--workers", type=int, default=1, help="processes on this machine: sampling (journal storage) "
                    "and the finalists retrained at once (a machine with several GPUs retrains one finalist per GPU)")
     s.add_argument("--time-limit", type=_duration_s, default=None, help="wall clock for the whole run: data, "

@@ -58,7 +58,7 @@ from explorer.study.retry import (
     resume_interrupted,
     set_objective_names,
 )
-from explorer.study.storage import REPORTS_DIR, open_storage, study_dir
+from explorer.study.storage import REPORTS_DIR, local_url, open_storage, study_dir
 from explorer.supernet import default_path, load_supernet, read_supernet, train_supernet
 from explorer.training.train import resolve_accelerator
 
@@ -309,7 +309,8 @@ def search(config: SearchConfig, storage_url: str | None = None, workers: int = 
         raise UserError("--workers must be at least 1")
     if config.supernet:   # checked before the study's storage exists: a refused search creates nothing
         ensure_supernet(config)  # a foreign or corrupt file is one line before anything is measured
-    storage = open_storage(storage_url, config.study, workers, reports, max_retries=config.max_retries)
+    url = storage_url or local_url(config.study, reports)
+    storage = open_storage(url, config.study, workers, reports, max_retries=config.max_retries)
     plan = speeds = None
     sampling_cap = timeout_s
     wanted = (config.finalists, config.finalist_steps)   # before a plan shrinks them
@@ -328,8 +329,6 @@ def search(config: SearchConfig, storage_url: str | None = None, workers: int = 
         failed, retried, not_retried = resume_interrupted(study, config.max_retries)
     if config.keep_weights:
         study.set_user_attr("artifacts_dir", str((study_dir(config.study, reports) / "artifacts").resolve()))
-    url = storage_url or (f"journal:{reports / config.study / 'journal.log'}" if workers > 1
-                          else f"sqlite:///{reports / config.study / 'study.db'}")
     cutoff = None if plan is None else supernet_deadline(plan, time_limit, speeds, "paper" in config.baselines,
                                                          sampling_cap)
     supernet = ensure_supernet(config, on_supernet, on_data, cutoff)

@@ -1,5 +1,10 @@
-"""Optuna storage for studies: SQLite for one process, JournalStorage for several processes on one
-machine, PostgreSQL (or any RDB URL) for several machines. SQLite with several workers is refused."""
+"""Optuna storage for studies: a journal file (Optuna's JournalStorage) for one or several processes on
+one machine, PostgreSQL (or any RDB URL) for several machines; SQLite when asked for (or where a study
+has its ``study.db``), never with several workers.
+
+The journal is the default because a search reads its study far more often than it writes it (the
+sampler, the duplicate check and the trial count read every trial, every trial): a journal is replayed
+once into memory and then read from there, while SQLite answers each read with a query."""
 
 from __future__ import annotations
 
@@ -83,19 +88,24 @@ def journal_path(study: str, reports: Path = REPORTS_DIR) -> Path:
     return study_dir(study, reports) / "journal.log"
 
 
+def local_url(study: str, reports: Path = REPORTS_DIR) -> str:
+    """The storage URL of ``study`` on this machine: its journal file in reports/<study>/, or the
+    SQLite database there when the study has one and no journal."""
+    if not journal_path(study, reports).exists() and (study_dir(study, reports) / "study.db").exists():
+        return default_url(study, reports)
+    return f"journal:{journal_path(study, reports)}"
+
+
 def open_storage(url: str | None, study: str, workers: int = 1, reports: Path = REPORTS_DIR,
                  create: bool = True, max_retries: int | None = None) -> optuna.storages.BaseStorage:
-    """The storage for ``study``. ``url`` None: SQLite in reports/<study>/ for one worker, a journal
-    file there for several. A ``journal:PATH`` URL names a journal file explicitly. ``max_retries``
-    (searching workers): on RDB storage, a trial whose worker stopped is tried again that many times."""
+    """The storage for ``study``. ``url`` None: :func:`local_url`. A ``journal:PATH`` URL names a
+    journal file explicitly. ``max_retries`` (searching workers): on RDB storage, a trial whose worker
+    stopped is tried again that many times."""
     if url is None:
-        if workers > 1 or journal_path(study, reports).exists():
-            url = f"journal:{journal_path(study, reports)}"
-        else:
-            url = default_url(study, reports)
+        url = local_url(study, reports)
     if url.startswith("sqlite") and workers > 1:
-        raise UserError("SQLite cannot take several workers safely: drop --storage to use a journal file on "
-                        "this machine, or give --storage postgresql://... for several machines")
+        raise UserError(f"SQLite ({url}) cannot take several workers safely: use --workers 1 with it, a "
+                        "--storage journal:PATH on this machine, or --storage postgresql://... for several machines")
     if url.startswith("journal:"):
         from optuna.storages.journal import JournalFileBackend
         path = Path(url[len("journal:"):])
@@ -195,11 +205,7 @@ def _with_driver(url: str) -> str:
 
 def find_storage(study: str, url: str | None, reports: Path = REPORTS_DIR) -> optuna.storages.BaseStorage:
     """The storage of an existing study (for report, rescore, export)."""
-    if url is None:
-        if journal_path(study, reports).exists():
-            return open_storage(f"journal:{journal_path(study, reports)}", study, create=False)
-        return open_storage(default_url(study, reports), study, create=False)
-    return open_storage(url, study, create=False)
+    return open_storage(url or local_url(study, reports), study, create=False)
 
 
 def load_study(study: str, url: str | None = None, reports: Path = REPORTS_DIR) -> optuna.Study:

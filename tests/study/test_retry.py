@@ -4,7 +4,6 @@ candidate and attributes; a trial that fails by its own fault (NaN) is not; miss
 import json
 import os
 import signal
-import sqlite3
 import subprocess
 import sys
 import time
@@ -18,7 +17,8 @@ from explorer.study.results import missing_baselines, trials_frame
 from explorer.study.retry import (CTRL_C, RetryStaleTrials, counted_trials, enqueue_retry, guarded,
                             interrupted_trials, needs_run, tracked_work)
 from explorer.study.search import SearchConfig, objective_names, search
-from conftest import POSTGRES, TINY_DATA, needs_postgres
+from explorer.study.storage import load_study
+from conftest import POSTGRES, TINY_DATA, journal_trials, needs_postgres
 
 # proxy evaluator: the tiny space does not hold the paper design, so only proxy training runs it as a trial
 TINY = dict(space="tiny", data=TINY_DATA, train_size=(32, 32), input_size=(64, 64), train_steps=6,
@@ -33,19 +33,12 @@ def _explorer(*args, env=None, **kw):
                             stderr=subprocess.PIPE, text=True, env={**os.environ, **(env or {})}, **kw)
 
 
-def _running_trial(db: Path, number: int) -> bool:
+def _running_trial(journal: Path, number: int) -> bool:
     """Trial ``number`` is RUNNING and has its candidate (parameters sampled, costed): killing it now
     interrupts it in training."""
-    if not db.exists():
-        return False
-    try:
-        with sqlite3.connect(db) as con:
-            row = con.execute("select t.state, (select count(*) from trial_user_attributes a where "
-                              "a.trial_id = t.trial_id and a.key = 'candidate_key') from trials t "
-                              "where t.number = ?", (number,)).fetchone()
-    except sqlite3.OperationalError:  # not created yet, or locked for a moment
-        return False
-    return row is not None and row[0] == "RUNNING" and row[1] > 0
+    trials = journal_trials(journal, journal.parent.name)
+    return len(trials) > number and trials[number].state.name == "RUNNING" and \
+        "candidate_key" in trials[number].user_attrs
 
 
 def _kill_when_running(proc, running, what: str) -> None:
@@ -59,13 +52,13 @@ def _kill_when_running(proc, running, what: str) -> None:
     proc.wait()
 
 
-def _load(db: Path, name: str) -> optuna.Study:
-    return optuna.load_study(study_name=name, storage=f"sqlite:///{db}")
+def _load(journal: Path, name: str) -> optuna.Study:
+    return load_study(name, None, journal.parent.parent)
 
 
 @pytest.mark.slow
 def test_kill_9_during_the_paper_baseline_then_resume(tmp_path):
-    db = tmp_path / "kp" / "study.db"
+    db = tmp_path / "kp" / "journal.log"
     args = ["search", "--study", "kp", "--reports", tmp_path, "--trials", 4, *CLI_TINY]
     proc = _explorer(*args, start_new_session=True)
     _kill_when_running(proc, lambda: _running_trial(db, 0), "the paper baseline")
@@ -91,7 +84,7 @@ def test_kill_9_during_the_paper_baseline_then_resume(tmp_path):
 
 @pytest.mark.slow
 def test_kill_9_during_a_sampled_trial_retries_it_once(tmp_path):
-    db = tmp_path / "ks" / "study.db"
+    db = tmp_path / "ks" / "journal.log"
     # tiny candidates train fast: more steps keep the kill inside the trial
     args = ["search", "--study", "ks", "--reports", tmp_path, "--trials", 3, "--no-baselines", *CLI_TINY,
             "--proxy-steps", 40]

@@ -1,6 +1,5 @@
 import os
 import signal
-import sqlite3
 import subprocess
 import sys
 import time
@@ -15,8 +14,9 @@ from explorer.cost import candidate_cost, get_device
 from explorer.errors import UserError
 from explorer.study.results import rescore, scored_trials, trials_frame
 from explorer.study.search import SearchConfig, search
+from explorer.study.storage import load_study
 from explorer.space import Candidate
-from conftest import POSTGRES, TINY_DATA, needs_postgres
+from conftest import POSTGRES, TINY_DATA, journal_trials, needs_postgres
 
 # These tests exercise storage, workers and resume with the proxy evaluator (tests/test_supernet.py
 # covers the supernet evaluator, tests/test_finalists.py the end of a study).
@@ -45,7 +45,7 @@ def test_tiny_search_end_to_end(finished):
     for key in ("candidate", "path_metrics", "workloads", "latency_ms", "energy_j", "params", "macs", "losses"):
         assert key in t.user_attrs
     assert set(t.user_attrs["losses"]) == {"time:uniform:30ms", "energy:uniform:0.5J"}
-    assert (reports / "tiny-e2e" / "study.db").is_file()
+    assert (reports / "tiny-e2e" / "journal.log").is_file()   # the default storage of a study
     assert any((reports / "tiny-e2e" / "artifacts").iterdir())
 
 
@@ -103,19 +103,13 @@ def _explorer(*args, **kw):
                             stderr=subprocess.PIPE, text=True, **kw)
 
 
-def _states(db: Path) -> list[str]:
-    if not db.exists():
-        return []
-    with sqlite3.connect(db) as con:
-        try:
-            return [r[0] for r in con.execute("select state from trials order by number")]
-        except sqlite3.OperationalError:
-            return []
+def _states(journal: Path) -> list[str]:
+    return [t.state.name for t in journal_trials(journal, journal.parent.name)]
 
 
 @pytest.mark.slow
 def test_kill_9_then_resume(tmp_path):
-    db = tmp_path / "killed" / "study.db"
+    db = tmp_path / "killed" / "journal.log"
     proc = _explorer("search", "--study", "killed", "--reports", tmp_path, "--trials", "50",
                      "--timeout", "0", *CLI_TINY, start_new_session=True)
     deadline = time.time() + 240
@@ -139,7 +133,7 @@ def test_kill_9_then_resume(tmp_path):
     assert after.count("COMPLETE") >= complete_before          # nothing finished was lost
     assert after[len(before) - 1] == "FAIL"                     # the interrupted trial
     assert "RUNNING" not in after
-    study = optuna.load_study(study_name="killed", storage=f"sqlite:///{db}")
+    study = load_study("killed", None, tmp_path)
     assert "interrupted" in study.trials[len(before) - 1].system_attrs["fail_reason"]
     assert [t.user_attrs.get("retry_of") for t in study.trials].count(len(before) - 1) == 1  # tried again
 

@@ -1,4 +1,5 @@
-"""The study database: SQLite in write-ahead-log mode while a search writes, one plain file after."""
+"""Where a study lives: a journal file by default; SQLite (write-ahead log while a search writes, one
+plain file after) when asked for or where the study has its database."""
 
 import sqlite3
 import subprocess
@@ -17,8 +18,29 @@ def _journal_mode(storage_obj) -> str:
         return connection.execute(text("PRAGMA journal_mode")).scalar()
 
 
-def test_a_search_writes_through_a_write_ahead_log(tmp_path):
+def _sqlite(tmp_path) -> str:
+    return f"sqlite:///{tmp_path / 's' / 'study.db'}"
+
+
+def test_a_new_study_is_a_journal_file(tmp_path):
     st = storage.open_storage(None, "s", reports=tmp_path)
+    optuna.create_study(storage=st, study_name="s").optimize(lambda t: t.suggest_float("x", 0, 1), n_trials=2)
+    assert isinstance(st, optuna.storages.JournalStorage)
+    assert sorted(p.name for p in (tmp_path / "s").iterdir()) == ["journal.log"]
+    assert len(storage.load_study("s", None, tmp_path).trials) == 2
+
+
+def test_a_study_with_its_sqlite_database_stays_in_it(tmp_path):
+    (tmp_path / "s").mkdir()
+    optuna.create_study(storage=_sqlite(tmp_path), study_name="s").optimize(lambda t: t.suggest_int("x", 0, 9),
+                                                                            n_trials=2)
+    assert storage.local_url("s", tmp_path) == _sqlite(tmp_path)
+    assert len(storage.load_study("s", None, tmp_path).trials) == 2
+    assert not (tmp_path / "s" / "journal.log").exists()
+
+
+def test_sqlite_writes_through_a_write_ahead_log(tmp_path):
+    st = storage.open_storage(_sqlite(tmp_path), "s")
     optuna.create_study(storage=st, study_name="s").optimize(lambda t: t.suggest_float("x", 0, 1), n_trials=2)
     assert _journal_mode(st) == "wal"
 
@@ -37,7 +59,7 @@ def test_on_a_network_filesystem_the_database_keeps_its_rollback_journal(tmp_pat
     monkeypatch.setattr(storage, "MOUNTS", mounts)
     assert storage.on_network_filesystem(tmp_path / "s" / "study.db")
     assert not storage.on_network_filesystem(Path("/var/lib/x.db"))
-    st = storage.open_storage(None, "s", reports=tmp_path)
+    st = storage.open_storage(_sqlite(tmp_path), "s")
     optuna.create_study(storage=st, study_name="s")
     assert _journal_mode(st) == "delete"
 
@@ -47,9 +69,9 @@ def test_mounts_that_cannot_be_read_count_as_local(tmp_path, monkeypatch):
     assert not storage.on_network_filesystem(tmp_path)
 
 
-def test_after_the_search_process_ends_the_study_is_one_file(tmp_path):
+def test_after_the_search_process_ends_the_sqlite_study_is_one_file(tmp_path):
     script = ("import optuna, sys; from pathlib import Path; from explorer.study.storage import open_storage\n"
-              "st = open_storage(None, 's', reports=Path(sys.argv[1]))\n"
+              "st = open_storage(f'sqlite:///{sys.argv[1]}/s/study.db', 's')\n"
               "optuna.create_study(storage=st, study_name='s').optimize(lambda t: t.suggest_int('x', 0, 9), n_trials=3)\n")
     subprocess.run([sys.executable, "-c", script, str(tmp_path)], check=True, capture_output=True)
     assert sorted(p.name for p in (tmp_path / "s").iterdir()) == ["study.db"]

@@ -8,6 +8,7 @@ from explorer.training.selfsup import hint_loss
 from explorer.errors import UserError
 from explorer.model.exits import interpolate_scan
 from explorer.training.train import TrainConfig
+from explorer.study.storage import load_study
 
 SEQ = "synthetic-seq:6:3"
 
@@ -82,7 +83,7 @@ def test_cli_search_with_depth_hints_records_them(run_cli, tmp_path):
                            "--proxy-steps", "2", "--batch-size", "3", "--trials", "1", "--timeout", "0",
                            "--no-baselines", "--evaluator", "proxy", "--finalists", "0", "--reports", tmp_path)
     assert code == 0, err
-    study = optuna.load_study(study_name="hs", storage=f"sqlite:///{tmp_path / 'hs' / 'study.db'}")
+    study = load_study("hs", None, tmp_path)
     assert study.user_attrs["config"]["hints"] is True and study.user_attrs["config"]["poses"] == "given"
     assert any(t.state == optuna.trial.TrialState.COMPLETE for t in study.trials)
     assert "self supervision with depth hints" in (tmp_path / "hs" / "report.html").read_text()

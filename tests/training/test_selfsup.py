@@ -10,6 +10,7 @@ from explorer.errors import UserError
 from explorer.model import build_network
 from explorer.training.pose_net import PoseNet, transform_from_parameters
 from explorer.study.search import SearchConfig, create_or_resume
+from explorer.study.storage import load_study
 from explorer.training.selfsup import SelfSupervisedLoss, photometric_error, reprojection_loss, warp
 from explorer.space import SearchSpace
 from explorer.training.train import TrainConfig, train
@@ -144,7 +145,7 @@ def test_cli_search_self_supervised_and_its_report(run_cli, tmp_path):
                              "--batch-size", "4", "--trials", "1", "--timeout", "0", "--no-baselines",
                              "--evaluator", "proxy", "--finalists", "0", "--reports", tmp_path)
     assert code == 0, err
-    study = optuna.load_study(study_name="ss", storage=f"sqlite:///{tmp_path / 'ss' / 'study.db'}")
+    study = load_study("ss", None, tmp_path)
     assert study.user_attrs["config"]["supervision"] == "self"
     assert any(t.state == optuna.trial.TrialState.COMPLETE for t in study.trials)
     assert "self supervision" in (tmp_path / "ss" / "report.html").read_text()
