@@ -10,6 +10,7 @@ Each repetition clones, sets up its own .venv (pip's cache helps the later ones)
 its own data, so that none of them starts warm. About 17 minutes a repetition.
 """
 
+import math
 import multiprocessing as mp
 import os
 import shutil
@@ -22,6 +23,9 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from harness import ROOT, Bench  # noqa: E402
 
+from explorer.study.results import is_retrained, scored_trials, unbeaten_baseline, winner  # noqa: E402
+from explorer.study.storage import load_study  # noqa: E402
+
 STUDY = "tx2-anytime_depth"
 
 
@@ -32,14 +36,12 @@ def _spin() -> None:
 
 def _summary_is_honest(clone: Path, stdout: str) -> tuple[float, bool]:
     """(retrained winner / best retrained baseline, whether the summary said what it had to)."""
-    code = ("import sys; from explorer.study.storage import load_study; "
-            "from explorer.study.results import best_trial, unbeaten_baseline; "
-            f"s = load_study({STUDY!r}, None, 'reports'); b = best_trial(s); "
-            "base = best_trial(s, baseline=True); "
-            "print(b.values[0] / base.values[0] if b and base else 'nan', unbeaten_baseline(s) is not None)")
-    out = subprocess.run([str(clone / ".venv" / "bin" / "python"), "-c", code], cwd=clone, check=True,
-                         capture_output=True, text=True).stdout.split()
-    ratio, unbeaten = float(out[0]), out[1] == "True"
+    study = load_study(STUDY, None, clone / "reports")
+    best = winner(study)
+    bases = [t for t in scored_trials(study) if is_retrained(t) and t.user_attrs.get("baseline")]
+    base = min(bases, key=lambda t: t.values[0], default=None)
+    ratio = best.values[0] / base.values[0] if best and base and is_retrained(best) else math.nan
+    unbeaten = unbeaten_baseline(study) is not None
     said = "no searched candidate beat" in stdout
     return ratio, said == unbeaten and (ratio <= 1.0 or said)
 
@@ -60,7 +62,6 @@ def one_run(bench: Bench, loads: int, limit_s: float, rep: int) -> None:
             for p in spinners:
                 p.terminate()
         wall = time.time() - t0
-        (ROOT / "benchmarks" / "results").mkdir(exist_ok=True)
         tail = "\n".join(run.stdout.splitlines()[-25:])
         print(f"  rep {rep}: make search exit {run.returncode}, {wall:.0f} s\n{tail}", flush=True)
         if run.returncode != 0:

@@ -110,32 +110,41 @@ class Supernet(nn.Module):
         self._plans: OrderedDict[Candidate, tuple] = OrderedDict()
 
     # -- candidates as views ------------------------------------------------------------------------
-    def _plan(self, candidate: Candidate) -> tuple[AnytimeDepthNet, list[tuple]]:
-        """A weightless (meta) network of ``candidate`` and, per tensor, where it lives here."""
-        if candidate in self._plans:
-            self._plans.move_to_end(candidate)
-            return self._plans[candidate]
+    def _check_contains(self, candidate: Candidate) -> None:
         # the weights do not depend on the precision a candidate is deployed at
         as_searched = dataclasses.replace(candidate, precision=self.space.precision[0])
         if not self.space.contains(as_searched) and candidate != self.largest:
             raise UserError(f"candidate {candidate.key} is outside the supernet's space '{self.space.name}': "
                             "train a supernet for a space that contains it")
-        with torch.device("meta"):
-            template = build_network(candidate)
+
+    @staticmethod
+    def _entries(network: AnytimeDepthNet) -> list[tuple]:
+        """Per tensor of ``network``: its key there, its name here, its stage, local name and shape."""
         entries = []
-        for spec in template.specs:
-            module = template.stages[spec.name]
+        for spec in network.specs:
+            module = network.stages[spec.name]
             for local, t in [*module.named_parameters(), *module.named_buffers()]:
                 entries.append((f"stages.{spec.name}.{local}", super_name(spec, local), spec, local, t.shape))
-        plan = (template, entries)
+        return entries
+
+    def _plan(self, candidate: Candidate) -> tuple[AnytimeDepthNet, list[tuple]]:
+        """A weightless (meta) network of ``candidate`` and, per tensor, where it lives here."""
+        if candidate in self._plans:
+            self._plans.move_to_end(candidate)
+            return self._plans[candidate]
+        self._check_contains(candidate)
+        with torch.device("meta"):
+            template = build_network(candidate)
+        plan = (template, self._entries(template))
         self._plans[candidate] = plan
         if len(self._plans) > 64:
             self._plans.popitem(last=False)
         return plan
 
-    def subnet_tensors(self, candidate: Candidate) -> dict[str, torch.Tensor]:
+    def subnet_tensors(self, candidate: Candidate, entries: list[tuple] | None = None) -> dict[str, torch.Tensor]:
         """``candidate``'s parameters and buffers, as slices of this supernet's."""
-        _, entries = self._plan(candidate)
+        if entries is None:
+            _, entries = self._plan(candidate)
         full = {**dict(self.slots.named_parameters()), **dict(self.slots.named_buffers())}
         return {key: slice_of(spec, local, full[name], shape, self.ecu_channels)
                 for key, name, spec, local, shape in entries}
@@ -152,10 +161,14 @@ class Supernet(nn.Module):
 
     def extract(self, candidate: Candidate) -> AnytimeDepthNet:
         """An ordinary network of ``candidate`` carrying copies of its slices of the supernet."""
+        self._check_contains(candidate)
         net = build_network(candidate)
-        tensors = self.subnet_tensors(candidate)
-        state = net.state_dict()
-        net.load_state_dict({k: tensors[k].detach().clone() for k in state})
+        # the network at hand says where its tensors live (a meta template would be a second build, as
+        # long as this one on a CPU); load_state_dict copies, so the slices need no copy of their own
+        entries = self._plans[candidate][1] if candidate in self._plans else self._entries(net)
+        tensors = self.subnet_tensors(candidate, entries)
+        with torch.no_grad():
+            net.load_state_dict({k: tensors[k] for k in net.state_dict()})
         return net.to(next(self.parameters()).device)
 
     def extract_encoder(self, width_mult: float) -> ImageEncoder:
