@@ -69,6 +69,21 @@ def check_numbers(args: argparse.Namespace) -> None:
             raise UserError(f"{flag} {value:g}: must be {bound}")
 
 
+def train_on_free_cores() -> None:
+    """PyTorch's CPU threads set to the cores other work leaves free (explorer.training.cpu), said on
+    stdout when that is fewer than usual (stderr is for the one line of an error). Data preparation
+    runs on the CPU whatever trains."""
+    import torch
+
+    from explorer.console import console
+    from explorer.training.cpu import use_free_cores
+    usual = torch.get_num_threads()
+    threads, busy = use_free_cores()
+    if busy is not None and threads < usual:
+        console.print(f"{busy:.1f} of this machine's cores are busy with other work: PyTorch runs on "
+                          f"{threads} thread(s) instead of {usual}", markup=False, highlight=False)
+
+
 def write_output(path: str | Path, text: str) -> Path:
     """A command's output file (profile, CSV table), written whole: its folder made, the file swapped in
     (``explorer.files.write_atomically``); a path that cannot be written is one line."""

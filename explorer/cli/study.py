@@ -7,7 +7,7 @@ from pathlib import Path
 
 from explorer.errors import UserError
 from explorer.cli._common import (HEAD_KINDS, _add_supervision, _count, _duration_s, _ms, _size, deprecated_alias,
-                                  write_output)
+                                  train_on_free_cores, write_output)
 
 
 def cmd_search(args) -> None:
@@ -19,6 +19,7 @@ def cmd_search(args) -> None:
     cfg = _search_config(args)
     reports = Path(args.reports)
     timeout, limit = _time_limits(args, started)
+    train_on_free_cores()
     with progress(transient=True) as bar:
         shown = _SearchProgress(bar, cfg.study, args.trials, timeout)
         if limit is not None:

@@ -9,7 +9,7 @@ from pathlib import Path
 from explorer.errors import UserError
 from explorer.space import check_size
 from explorer.cli.inspect import _candidates_of
-from explorer.cli._common import HEAD_KINDS, _Parser, _size, _add_supervision, deprecated_alias
+from explorer.cli._common import HEAD_KINDS, _Parser, _size, _add_supervision, deprecated_alias, train_on_free_cores
 
 
 def cmd_train(args) -> None:
@@ -36,6 +36,7 @@ def cmd_train(args) -> None:
     if cfg.exit_weights:
         console.print("exit loss weights: " + " ".join(f"{w:.3f}" for w in cfg.exit_weights))
     accelerator = resolve_accelerator(args.accelerator)
+    train_on_free_cores()
     with progress(transient=True) as bar:
         task = bar.add_task("generating synthetic scenes (once, then cached)", total=None, status="")
         train_set = open_dataset(args.data, "train", cfg.input_size, seed=cfg.seed,
@@ -109,6 +110,7 @@ def cmd_supernet_train(args) -> None:
     space = SearchSpace.from_yaml(args.space)   # the numbers were checked by check_numbers (AT_LEAST)
     recipe = supernet_recipe(args)
     out = Path(args.out) if args.out else default_path(space, args.data, recipe)
+    train_on_free_cores()
     with progress() as bar:
         task = bar.add_task("supernet", total=recipe.steps, status="")
         data = bar.add_task("data", total=None, status="", visible=False)

@@ -49,6 +49,7 @@ from explorer.study.planning import (
     TimeLimit,
     replan_finalists,
     replan_sampling,
+    retrain_seconds,
     supernet_deadline,
 )
 from explorer.study.retry import (
@@ -418,6 +419,16 @@ def _replan_finalists(study: optuna.Study, config: SearchConfig, plan: "Plan", s
                             baseline_count=len(config.baselines), wanted=wanted)
     config = dataclasses.replace(config, finalists=plan.finalists,
                                  finalist_steps=plan.finalist_steps if steps_free or not done else max(done))
+    # the best finalist and the paper design are retrained whatever the time, once started: when even
+    # they no longer fit, none is (a winner retrained alone could not be compared)
+    must_s = retrain_seconds(speeds, 1, 1.0 if "paper" in config.baselines else 0.0, config.finalist_steps)
+    left = time_limit.remaining() - RESERVE_S
+    if config.finalists and not done and must_s > left:
+        plan = dataclasses.replace(plan, finalists=0, retrain_jobs=0, retrain_s=0.0, changes=plan.changes + (
+            f"no finalist retrained: the best one and the paper design need about {must_s / 60:.1f} min at "
+            f"{config.finalist_steps} steps on this machine now, {max(left, 0) / 60:.1f} min are left: the winner "
+            "is the search's best estimate, not retrained (give a longer --time-limit)",))
+        config = dataclasses.replace(config, finalists=0)
     _publish_plan(study, plan, on_plan)
     return config, plan
 

@@ -110,7 +110,8 @@ def open_storage(url: str | None, study: str, workers: int = 1, reports: Path = 
         from optuna.storages.journal import JournalFileBackend
         path = Path(url[len("journal:"):])
         if not create and not path.exists():
-            raise UserError(f"no study journal at {path}")
+            raise UserError(f"no study journal at {path} (run `explorer search --study {study}` first, "
+                            "or give --storage)")
         _check_journal(path)
         _make_parent(path, "study journal")
         return optuna.storages.JournalStorage(JournalFileBackend(str(path)))

@@ -93,8 +93,8 @@ def test_anytime_calculator(run_cli):
     (("search", "--baselines", "s2d-resnet18", "--train-size", "48x48"), "divisible by 32"),
     (("search", "--baselines", "monodepth2-resnet18", "--train-size", "32x32"), "at least 64"),
     (("search", "--baselines", "paper", "--no-baselines"), "not both"),
-    (("rescore", "--study", "nope", "--device", "rpi4", "--budget", "time:uniform:33ms"), "no study database"),
-    (("report", "--study", "nope"), "no study database"),
+    (("rescore", "--study", "nope", "--device", "rpi4", "--budget", "time:uniform:33ms"), "no study journal"),
+    (("report", "--study", "nope"), "no study journal"),
     (("export", "--out", "x"), "either --study"),
     (("evaluate", "missing.pt"), "no such file"),
 ])

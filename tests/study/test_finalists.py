@@ -146,14 +146,15 @@ def test_a_time_limit_measures_the_machine_and_records_its_plan(tmp_path):
 
 
 @pytest.mark.slow
-def test_a_time_limit_too_short_retrains_fewer_finalists_and_says_so(tmp_path):
+def test_a_time_limit_too_short_for_any_retraining_retrains_none_and_says_so(tmp_path):
     import dataclasses
     from explorer.study.planning import TimeLimit
     out = search(dataclasses.replace(CFG, study="tight"), n_trials=3, timeout_s=None, reports=tmp_path,
                  time_limit=TimeLimit(1.0, free=frozenset({"finalists", "finalist_steps"})))
-    assert out.config.finalists == 1 and out.config.finalist_steps == 5   # never more steps than asked
-    assert any("longer --time-limit" in c for c in out.study.user_attrs["plan"]["changes"])
-    assert len([t for t in finalist_trials(out.study) if not t.user_attrs.get("baseline")]) == 1
+    assert out.config.finalists == 0 and out.config.finalist_steps == 5   # never more steps than asked
+    changes = out.study.user_attrs["plan"]["changes"]
+    assert any(c.startswith("no finalist retrained") and "longer --time-limit" in c for c in changes)
+    assert finalist_trials(out.study) == []
 
 
 @pytest.mark.slow
@@ -269,3 +270,27 @@ def test_a_supernet_the_time_limit_stopped_still_serves_the_study(tmp_path, monk
     estimates = [t for t in out.study.trials if t.state == optuna.trial.TrialState.COMPLETE and not is_retrained(t)]
     assert estimates and all(t.user_attrs["evaluator"]["evaluator"] == "supernet" for t in estimates)
     assert finalist_trials(out.study)
+
+
+@pytest.mark.parametrize("step_s, retrained", [(0.01, 1), (30.0, 0)])
+def test_when_even_the_best_finalist_and_the_paper_design_no_longer_fit_none_is_retrained(monkeypatch, step_s,
+                                                                                          retrained):
+    """The machine slowed after planning so much that the two retrainings a comparison needs would
+    overrun the time limit: none starts, and the plan says why."""
+    import dataclasses
+    import explorer.study.search as search_module
+    from explorer.space import SearchSpace
+    from explorer.study.planning import Plan, Speeds, TimeLimit
+    study = optuna.create_study(storage=optuna.storages.InMemoryStorage())
+    cand = next(iter(SearchSpace.from_yaml("tiny").enumerate()))
+    study.add_trial(optuna.trial.create_trial(values=[0.3], user_attrs={
+        "candidate": cand.to_dict(), "candidate_key": cand.key, "path_metrics": [], "workloads": []}))
+    speeds = Speeds(retrain_step_s=step_s, retrain_eval_s=0.1, supernet_step_s=0.0, finalist_step_s=(step_s,))
+    monkeypatch.setattr(search_module, "_measure_again", lambda config, speeds, chosen: speeds)
+    config = dataclasses.replace(CFG, finalists=1, finalist_steps=150, baselines=("paper",))
+    plan = Plan(limit_s=600.0, supernet_steps=0, supernet_s=0.0, sampling_s=60.0, finalists=1, finalist_steps=150,
+                retrain_jobs=2, retrain_s=10.0)
+    limit = TimeLimit(600.0, started=__import__("time").time() - 300.0, free=frozenset())
+    config, plan = search_module._replan_finalists(study, config, plan, speeds, limit, (1, 150), None)
+    assert config.finalists == plan.finalists == retrained
+    assert any(c.startswith("no finalist retrained") for c in plan.changes) == (retrained == 0)
