@@ -83,7 +83,8 @@ if __name__ == "__main__":
     ap.add_argument("--limit-s", type=float, default=960.0, help="make search's limit (SEARCH_LIMIT_S)")
     args = bench.parse_args(ap)
     bench.note(f"{args.loads} CPU-bound load(s) on {os.cpu_count()} cores; limit {args.limit_s:.0f} s; "
-               "fresh clone, .venv and cache each repetition")
+               "fresh clone, .venv and cache each repetition; the clone is of the last commit, so what is "
+               "uncommitted in this checkout (the record's dirty flag) is not measured")
     bench.figure("wall_s", "make search wall time, setup included", "s", "lower")
     bench.figure("over_limit", "wall time / limit (target 1.10 or less)", "x", "lower")
     bench.figure("winner_over_best_baseline", "retrained winner / best retrained baseline", "x", "lower")
