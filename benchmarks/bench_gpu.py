@@ -12,8 +12,8 @@ sampling time spent in the evaluator; and what bf16 autocast does to the superne
 Step times are the median over a run's steps after the first two (start-up and warm-up left out), read
 after each step's losses reach the host (so a GPU's queue is drained every step). Utilisation is sampled
 with pynvml where it imports, else nvidia-smi, every 0.1-0.2 s over the timed steps ("n/a" without
-either). On a CUDA device the CPU's step time at the default recipe is measured in the same run, for
-the speed-up. The search trains its small supernet once (not timed), then samples for --search-seconds
+either). On a CUDA device the CPU's step time at the default recipe (on --cpu-threads threads) is
+measured in the same run, for the speed-up. The search trains its small supernet once (not timed), then samples for --search-seconds
 per repetition; its sampling time runs from the first trial's start to the last one's end. bf16 is
 measured once per run: two supernets trained alike, one under autocast, evaluated in float32 on the
 same validation frames and subnets.
@@ -227,6 +227,8 @@ def options(bench: Bench):
                     "at the default recipe (default 100; 0 skips it)")
     ap.add_argument("--data", default="synthetic:400:100",
                     help="data set of every training and search (default synthetic:400:100)")
+    ap.add_argument("--cpu-threads", type=int, default=2, help="threads of the CPU step the GPU's is compared "
+                    "with (default 2: the 2-core machine the targets name)")
     ap.add_argument("--no-torchrun", action="store_true", help="skip the two-process comparison")
     # one process of the torchrun comparison (internal)
     ap.add_argument("--worker", help=argparse_hidden())
@@ -255,7 +257,8 @@ def declare(bench: Bench, on_gpu: bool) -> None:
     if on_gpu:
         bench.figure("gpu_util_default", "GPU utilisation, default recipe", "%", better="higher")
         bench.figure("gpu_util_large", "GPU utilisation, large recipe", "%", better="higher")
-        bench.figure("cpu_step_s_default", "CPU supernet step, 64x64 batch 16", "s", better="lower")
+        bench.figure("cpu_step_s_default", "CPU supernet step on --cpu-threads threads, 64x64 batch 16", "s",
+                     better="lower")
         bench.figure("gpu_speedup_default", "CPU / GPU step time, default recipe", "x", better="higher")
 
 
@@ -268,7 +271,13 @@ def one_repetition(bench: Bench, args, device: str, util: Utilisation | None, re
                                           args.data, on_gpu, util))
     _add_util(bench, "gpu_util_large", util)
     if on_gpu:
-        cpu = bench.add("cpu_step_s_default", train_steps("cpu", size, batch, args.steps, args.data, False))
+        import torch
+        threads = torch.get_num_threads()
+        torch.set_num_threads(args.cpu_threads)
+        try:
+            cpu = bench.add("cpu_step_s_default", train_steps("cpu", size, batch, args.steps, args.data, False))
+        finally:
+            torch.set_num_threads(threads)
         bench.add("gpu_speedup_default", cpu / bench.figures["step_s_default"].reps[-1])
     if not args.no_torchrun:   # in an order that turns over from one repetition to the next
         got = interleave({n: (lambda n=n: processes_step(device, n, args.steps, args.data)) for n in (1, 2)}, rep)

@@ -134,13 +134,26 @@ def machine() -> dict:
             "platform": platform.platform(),
             "python": platform.python_version(),
             "torch": _version("torch"),
-            "onnxruntime": _version("onnxruntime")}
+            "onnxruntime": _version("onnxruntime"),
+            "gpu": _gpu_name()}
+
+
+def _gpu_name() -> str | None:
+    """The name of the GPU PyTorch trains on, where the benchmark imported torch and it sees one."""
+    torch = sys.modules.get("torch")
+    try:
+        return torch.cuda.get_device_name() if torch is not None and torch.cuda.is_available() else None
+    except Exception:   # a broken driver: the record says nothing rather than failing the run
+        return None
 
 
 def git_state(root: Path = ROOT) -> tuple[str, bool]:
     """(short commit, dirty) of the checkout; ("unknown", True) outside git. The results and label
     folders are left out of the dirty check: records and cached trainings written there are not a
-    change to what was measured."""
+    change to what was measured. A copy of a clean checkout without its ``.git`` (a benchmark run on
+    another machine) names its commit in ``BENCH_COMMIT``."""
+    if os.environ.get("BENCH_COMMIT"):
+        return os.environ["BENCH_COMMIT"], False
     def git(*args: str) -> str:
         return subprocess.run(["git", *args], cwd=root, capture_output=True, text=True, check=True).stdout
     try:

@@ -18,7 +18,8 @@ import harness  # noqa: E402
 
 RECORD_KEYS = {"schema", "benchmark", "title", "description", "command", "commit", "dirty", "date", "machine",
                "figures", "notes"}
-MACHINE_KEYS = {"cpu_model", "cpu_flags", "cores", "peak_gmacs_fp32", "platform", "python", "torch", "onnxruntime"}
+MACHINE_KEYS = {"cpu_model", "cpu_flags", "cores", "peak_gmacs_fp32", "platform", "python", "torch", "onnxruntime",
+                "gpu"}
 FIGURE_KEYS = {"name", "label", "unit", "reps", "median", "min", "max", "better"}
 
 
@@ -75,6 +76,14 @@ def test_machine_identity_has_the_keys():
     assert isinstance(m["cores"], int) and m["cores"] >= 1
     assert m["peak_gmacs_fp32"] is None or m["peak_gmacs_fp32"] > 0
     assert all(isinstance(m[k], str) for k in ("platform", "python", "torch", "onnxruntime"))
+    assert m["gpu"] is None or isinstance(m["gpu"], str)
+
+
+def test_a_copy_without_git_names_its_commit(tmp_path, monkeypatch):
+    monkeypatch.delenv("BENCH_COMMIT", raising=False)
+    assert harness.git_state(tmp_path) == ("unknown", True)
+    monkeypatch.setenv("BENCH_COMMIT", "abc1234")
+    assert harness.git_state(tmp_path) == ("abc1234", False)
 
 
 def _bench(tmp_path, argv=("--reps", "3")) -> harness.Bench:

@@ -243,7 +243,8 @@ def _benchmark_section(name: str, path: Path, rec: dict, root: Path) -> str:
         rel = path.as_posix()
     m = rec["machine"]
     peak = m["peak_gmacs_fp32"]
-    machine = f"{m['cpu_model']}, {m['cores']} cores" + (f", peak {_num(peak)} GMAC/s fp32" if peak else "")
+    machine = f"{m['cpu_model']}, {m['cores']} cores" + (f", peak {_num(peak)} GMAC/s fp32" if peak else "") + \
+        (f"; GPU {m['gpu']}" if m.get("gpu") else "")
     commit = f"`{rec['commit']}`" + (" (with uncommitted changes)" if rec["dirty"] else "")
     # the benchmark's name is the heading's anchor: the design guide links to benchmarks.md#NAME
     lines = [f"## {rec['title']} {{#{name}}}\n", f"`{name}`: {rec['description']}\n"]
