@@ -14,7 +14,9 @@ after each step's losses reach the host (so a GPU's queue is drained every step)
 with pynvml where it imports, else nvidia-smi, every 0.1-0.2 s over the timed steps ("n/a" without
 either). On a CUDA device the CPU's step time at the default recipe (on --cpu-threads threads) is
 measured in the same run, for the speed-up. The search trains its small supernet once (not timed), then samples for --search-seconds
-per repetition; its sampling time runs from the first trial's start to the last one's end. bf16 is
+per repetition; its sampling time runs from the first trial's start to the last one's end. Before the
+repetitions, --warmup-steps untimed steps at each recipe and an untimed search let cuDNN build its
+plans for the shapes subnets have: the figures are a long run's steady state. bf16 is
 measured once per run: two supernets trained alike, one under autocast, evaluated in float32 on the
 same validation frames and subnets.
 """
@@ -220,6 +222,8 @@ def options(bench: Bench):
     ap.add_argument("--large-size", type=_size, default=LARGE[0], help="the large recipe's size HxW (default 224x224)")
     ap.add_argument("--large-batch", type=int, default=LARGE[1], help="the large recipe's batch (default 64)")
     ap.add_argument("--large-steps", type=int, default=None, help="steps at the large recipe (default --steps)")
+    ap.add_argument("--warmup-steps", type=int, default=40, help="untimed steps at each recipe, and an untimed "
+                    "search, before the repetitions (default 40; 0: none)")
     ap.add_argument("--search-seconds", type=float, default=20.0, help="sampling time of each search (default 20)")
     ap.add_argument("--search-supernet-steps", type=int, default=30,
                     help="steps of the search's supernet, trained once before the repetitions (default 30)")
@@ -289,6 +293,18 @@ def one_repetition(bench: Bench, args, device: str, util: Utilisation | None, re
     bench.add("evaluator_share", share)
 
 
+def warm_up(args, device: str) -> None:
+    """The recipes' and the search's first steps, untimed: the timings are then a long run's steady state.
+    cuDNN builds a plan for each convolution shape it has not seen, and a random subnet's shapes are
+    mostly new in a run's first steps (on an H100 those steps took several times a later one)."""
+    started = time.perf_counter()
+    train_steps(device, DEFAULT[0], DEFAULT[1], args.warmup_steps, args.data, False)
+    train_steps(device, args.large_size, args.large_batch, args.warmup_steps, args.data, device == "cuda")
+    search_rate(device, args.data, args.search_seconds, args.search_supernet_steps)
+    print(f"warm-up: {args.warmup_steps} steps a recipe and a search, {time.perf_counter() - started:.0f} s",
+          flush=True)
+
+
 def _add_util(bench: Bench, name: str, util: Utilisation | None) -> None:
     value = util.take() if util is not None else None
     if value is None:
@@ -318,6 +334,8 @@ def main() -> None:
         bench.note(f"data {args.data}; large recipe {args.large_size[0]}x{args.large_size[1]}, batch "
                    f"{args.large_batch}{', bf16 autocast' if on_gpu else ', float32'}; {args.steps} steps a timing; "
                    f"searches sample {args.search_seconds:g} s on a {args.search_supernet_steps}-step supernet")
+        if args.warmup_steps:
+            warm_up(args, device)
         for rep in bench.repetitions():
             one_repetition(bench, args, device, util if on_gpu else None, rep)
     if args.amp_steps:

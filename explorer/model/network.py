@@ -4,7 +4,7 @@ including exit head i has run; the same list drives training, costing, export an
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from typing import Hashable
+from typing import Hashable, Mapping
 
 import torch
 from torch import nn
@@ -124,11 +124,16 @@ class AnytimeDepthNet(nn.Module):
     (N, 1, H, W) metres. ``image`` is (N, 3, H, W) RGB in [0, 1], H and W divisible by the stride;
     ``scan`` is (N, W) metres (0 = no return) lying on image row ``scan_row`` (default H // 2)."""
 
-    def __init__(self, candidate: Candidate, paper_graph: bool = False) -> None:
+    def __init__(self, candidate: Candidate, paper_graph: bool = False,
+                 stages: Mapping[str, nn.Module] | None = None) -> None:
+        """``stages``: the stage modules by name where they are built already (a supernet's weightless
+        templates, shared by the candidates that have the stage); the others are built here."""
         super().__init__()
         self.candidate = candidate
         self.specs = stage_specs(candidate, paper_graph)
-        self.stages = nn.ModuleDict({s.name: s.config.build() for s in self.specs})
+        stages = stages or {}
+        self.stages = nn.ModuleDict({s.name: stages[s.name] if s.name in stages else s.config.build()
+                                     for s in self.specs})
 
     @property
     def stride(self) -> int:

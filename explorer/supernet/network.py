@@ -108,6 +108,8 @@ class Supernet(nn.Module):
         self.slots = nn.ModuleDict(slots)
         self.ecu_channels = ImageEncoderConfig(self.largest.encoder_blocks, self.largest.width_mult).out_channels()
         self._plans: OrderedDict[Candidate, tuple] = OrderedDict()
+        self._stage_plans: dict[tuple[str, object], tuple[nn.Module, list[tuple]]] = {}
+        self._tensors: dict[str, torch.Tensor] | None = None   # by name; see _named_tensors
 
     # -- candidates as views ------------------------------------------------------------------------
     def _check_contains(self, candidate: Candidate) -> None:
@@ -133,28 +135,58 @@ class Supernet(nn.Module):
             self._plans.move_to_end(candidate)
             return self._plans[candidate]
         self._check_contains(candidate)
-        with torch.device("meta"):
-            template = build_network(candidate)
-        plan = (template, self._entries(template))
+        stages = {spec.name: self._stage_plan(spec) for spec in stage_specs(candidate)}
+        template = AnytimeDepthNet(candidate, stages={name: module for name, (module, _) in stages.items()})
+        plan = (template, [entry for _, entries in stages.values() for entry in entries])
         self._plans[candidate] = plan
         if len(self._plans) > 64:
             self._plans.popitem(last=False)
         return plan
 
+    def _stage_plan(self, spec: StageSpec) -> tuple[nn.Module, list[tuple]]:
+        """A weightless (meta) module of stage ``spec`` and its ``_entries``, built once per stage name
+        and config: a random subnet is mostly stages other subnets had, and building them took most of
+        a step's host time (a GPU waited on it). Keyed by name too, so that no network holds one module
+        twice (a parameter swap for one would then be the other's)."""
+        key = (spec.name, spec.config)
+        if key not in self._stage_plans:
+            with torch.device("meta"):
+                module = spec.config.build()
+            self._stage_plans[key] = (module, [
+                (f"stages.{spec.name}.{local}", super_name(spec, local), spec, local, t.shape)
+                for local, t in [*module.named_parameters(), *module.named_buffers()]])
+        return self._stage_plans[key]
+
     def subnet_tensors(self, candidate: Candidate, entries: list[tuple] | None = None) -> dict[str, torch.Tensor]:
         """``candidate``'s parameters and buffers, as slices of this supernet's."""
         if entries is None:
             _, entries = self._plan(candidate)
-        full = {**dict(self.slots.named_parameters()), **dict(self.slots.named_buffers())}
+        full = self._named_tensors()
         return {key: slice_of(spec, local, full[name], shape, self.ecu_channels)
                 for key, name, spec, local, shape in entries}
+
+    def _named_tensors(self) -> dict[str, torch.Tensor]:
+        """This supernet's parameters and buffers by name, looked up once: training updates them in
+        place, and only moving the module (``_apply``: ``to``, ``cuda``, ``float``) replaces them."""
+        if self._tensors is None:
+            self._tensors = {**dict(self.slots.named_parameters()), **dict(self.slots.named_buffers())}
+        return self._tensors
+
+    def _apply(self, fn, *args, **kwargs):
+        self._tensors = None
+        return super()._apply(fn, *args, **kwargs)
 
     def forward_subnet(self, candidate: Candidate, image: torch.Tensor, scan: torch.Tensor,
                        scan_row: int | None = None) -> list[torch.Tensor]:
         """``candidate``'s forward pass on this supernet's weights (differentiable, no copies)."""
         template, _ = self._plan(candidate)
-        template.train(self.training)
-        return functional_call(template, self.subnet_tensors(candidate), (image, scan, scan_row))
+        for stage in template.stages.values():   # a stage module's mode is its children's: train() sets both
+            if stage.training != self.training:
+                stage.train(self.training)
+        # tie_weights=False: a template holds no module twice (see _stage_plan), so there is nothing to
+        # untie, and looking for it walked every module of the template at every call
+        return functional_call(template, self.subnet_tensors(candidate), (image, scan, scan_row),
+                               tie_weights=False)
 
     def forward(self, image: torch.Tensor, scan: torch.Tensor, scan_row: int | None = None) -> list[torch.Tensor]:
         return self.forward_subnet(self.largest, image, scan, scan_row)

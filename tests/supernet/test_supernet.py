@@ -344,3 +344,20 @@ def test_an_unknown_teacher_depths_is_refused(tmp_path):
     with pytest.raises(UserError, match="cycle, max"):
         train_supernet(SearchSpace.from_yaml("tiny"), TINY_DATA, recipe, tmp_path / "s.pt")
     assert not (tmp_path / "s.pt").exists()
+
+
+def test_candidates_share_their_stages_weightless_modules_and_still_compute_their_own_networks(default_space):
+    net = Supernet(default_space).eval()
+    rng = random.Random(3)
+    image, scan = _inputs(2)
+    first = random_training_subnet(default_space, rng)
+    other = next(c for c in (random_training_subnet(default_space, rng) for _ in range(1000))
+                 if c != first and (c.encoder_blocks, c.width_mult) == (first.encoder_blocks, first.width_mult))
+    plans = [net._plan(c)[0] for c in (first, other)]
+    shared = [n for n in plans[0].stages if n in plans[1].stages and plans[0].stages[n] is plans[1].stages[n]]
+    assert "image_encoder" in shared    # built once, for both
+    for cand in (first, other, first):
+        with torch.no_grad():
+            a = net.forward_subnet(cand, image, scan)
+            b = net.extract(cand).eval()(image, scan)
+        assert all(torch.allclose(x, y, atol=1e-6) for x, y in zip(a, b)), cand
