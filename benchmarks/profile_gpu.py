@@ -5,7 +5,8 @@ PyTorch sees a GPU, else the CPU). Not a benchmark: it records nothing, it says 
     python benchmarks/profile_gpu.py --device cpu --steps 4 --search-seconds 10 --out profile/
 
 Writes to --out:
-- ``step_<recipe>.txt``: torch.profiler's operators over --steps supernet steps (after 3 untimed ones)
+- ``step_<recipe>.txt``: torch.profiler's operators over --steps supernet steps (after --warmup-steps
+  untimed ones in a supernet of their own, and 3 in the profiled one)
   at the default recipe (64x64, batch 16) and at the GPU recipe (224x224, batch 64, bf16 on CUDA),
   by their own host time and by their own device time, with the wall time per step and the device's
   busy share (its kernels' time over the wall time);
@@ -16,6 +17,7 @@ Writes to --out:
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import cProfile
 import io
 import pstats
@@ -30,13 +32,19 @@ from bench_gpu import search_config  # noqa: E402
 RECIPES = {"default": ((64, 64), 16, False), "gpu": ((224, 224), 64, True)}
 
 
-def profile_steps(device: str, name: str, steps: int, data: str, out: Path) -> str:
+def profile_steps(device: str, name: str, steps: int, data: str, out: Path, warmup: int = 0) -> str:
     import torch
+    from torch.autograd import DeviceType
     from torch.profiler import ProfilerActivity, profile, schedule
     from explorer.space import SearchSpace
     from explorer.supernet import SupernetRecipe, train_supernet
     size, batch, amp = RECIPES[name]
     recipe = SupernetRecipe(steps=steps + 4, batch_size=batch, input_size=size, amp=amp and device == "cuda")
+    space = SearchSpace.from_yaml("anytime_depth")
+    if warmup:   # cuDNN's plans for the shapes subnets have, built before the profile (a long run's state)
+        with tempfile.TemporaryDirectory() as tmp:
+            train_supernet(space, data, dataclasses.replace(recipe, steps=warmup, seed=1), Path(tmp) / "w.pt",
+                           torch.device(device), checkpoint_every=10**9)
     activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if device == "cuda" else [])
     marks: list[float] = []
     with profile(activities=activities, schedule=schedule(wait=0, warmup=3, active=steps, repeat=1)) as prof:
@@ -44,12 +52,13 @@ def profile_steps(device: str, name: str, steps: int, data: str, out: Path) -> s
             marks.append(time.perf_counter())
             prof.step()
         with tempfile.TemporaryDirectory() as tmp:
-            train_supernet(SearchSpace.from_yaml("anytime_depth"), data, recipe, Path(tmp) / "s.pt",
+            train_supernet(space, data, recipe, Path(tmp) / "s.pt",
                            torch.device(device), progress=progress, checkpoint_every=10**9)
     wall = (marks[3 + steps - 1] - marks[2]) / steps if len(marks) >= 3 + steps else float("nan")
     events = prof.key_averages()
-    busy = sum(getattr(e, "self_device_time_total", 0.0) for e in events) / 1e6 / steps
-    head = (f"{name}: {size[0]}x{size[1]}, batch {batch}, bf16 {recipe.amp}, {device}\n"
+    # the kernels alone: operators' and annotations' device time also counts their kernels'
+    busy = sum(e.self_device_time_total for e in events if e.device_type == DeviceType.CUDA) / 1e6 / steps
+    head = (f"{name}: {size[0]}x{size[1]}, batch {batch}, bf16 {recipe.amp}, {device}, after {warmup} steps\n"
             f"wall per step {wall:.4f} s; device kernels per step {busy:.4f} s; busy share "
             f"{busy / wall if wall == wall and wall > 0 else float('nan'):.2f}\n")
     text = head + "\n-- by own host time --\n" + events.table(sort_by="self_cpu_time_total", row_limit=30)
@@ -86,6 +95,8 @@ def main() -> None:
     ap.add_argument("--out", type=Path, required=True, help="folder for the profiles (made if missing)")
     ap.add_argument("--device", default="auto", choices=["auto", "cuda", "cpu"])
     ap.add_argument("--steps", type=int, default=8, help="profiled supernet steps per recipe (default 8)")
+    ap.add_argument("--warmup-steps", type=int, default=30, help="untimed steps per recipe before its profile "
+                    "(default 30)")
     ap.add_argument("--search-seconds", type=float, default=15.0, help="sampling time of the profiled search")
     ap.add_argument("--recipes", default="default,gpu", help="recipes to profile (default: default,gpu)")
     ap.add_argument("--data", default="synthetic:400:100", help="data set (default synthetic:400:100)")
@@ -94,7 +105,7 @@ def main() -> None:
     device = args.device if args.device != "auto" else ("cuda" if torch.cuda.is_available() else "cpu")
     args.out.mkdir(parents=True, exist_ok=True)
     for name in args.recipes.split(","):
-        print(profile_steps(device, name, args.steps, args.data, args.out), flush=True)
+        print(profile_steps(device, name, args.steps, args.data, args.out, args.warmup_steps), flush=True)
     print(profile_search(device, args.data, args.search_seconds, args.out), flush=True)
 
 

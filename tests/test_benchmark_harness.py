@@ -208,3 +208,16 @@ def test_a_benchmark_answers_help_from_the_command_line():
                           text=True, timeout=120, cwd=BENCHMARKS.parent)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert "--reps" in proc.stdout and "Path 0" in proc.stdout
+
+
+@pytest.mark.slow
+def test_the_profiler_says_where_a_step_and_a_search_spend_their_time(tmp_path):
+    from conftest import TINY_DATA
+    proc = subprocess.run([sys.executable, str(BENCHMARKS / "profile_gpu.py"), "--device", "cpu", "--steps", "2",
+                           "--warmup-steps", "1", "--search-seconds", "2", "--recipes", "default", "--data", TINY_DATA,
+                           "--out", str(tmp_path)], capture_output=True, text=True, timeout=600, cwd=BENCHMARKS.parent)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    step = (tmp_path / "step_default.txt").read_text()
+    assert "wall per step" in step and "aten::convolution_backward" in step   # the operators, by host time
+    search = (tmp_path / "search.txt").read_text()
+    assert "trials in 2 s" in search and "explorer/study/search.py" in search   # the search's functions
