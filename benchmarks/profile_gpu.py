@@ -56,8 +56,10 @@ def profile_steps(device: str, name: str, steps: int, data: str, out: Path, warm
                            torch.device(device), progress=progress, checkpoint_every=10**9)
     wall = (marks[3 + steps - 1] - marks[2]) / steps if len(marks) >= 3 + steps else float("nan")
     events = prof.key_averages()
-    # the kernels alone: operators' and annotations' device time also counts their kernels'
-    busy = sum(e.self_device_time_total for e in events if e.device_type == DeviceType.CUDA) / 1e6 / steps
+    # the kernels alone, as the table's total counts them: a step's annotation spans its kernels
+    busy = sum(e.self_device_time_total for e in events
+               if e.device_type == DeviceType.CUDA and not getattr(e, "is_user_annotation", False)
+               and not e.key.startswith("ProfilerStep")) / 1e6 / steps
     head = (f"{name}: {size[0]}x{size[1]}, batch {batch}, bf16 {recipe.amp}, {device}, after {warmup} steps\n"
             f"wall per step {wall:.4f} s; device kernels per step {busy:.4f} s; busy share "
             f"{busy / wall if wall == wall and wall > 0 else float('nan'):.2f}\n")
