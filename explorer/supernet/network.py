@@ -194,14 +194,17 @@ class Supernet(nn.Module):
     def extract(self, candidate: Candidate) -> AnytimeDepthNet:
         """An ordinary network of ``candidate`` carrying copies of its slices of the supernet."""
         self._check_contains(candidate)
-        net = build_network(candidate)
+        # built where the supernet is: on a GPU, a network built on the CPU would copy each slice to the
+        # host and back, two transfers (and a wait) per tensor
+        with next(self.parameters()).device:
+            net = build_network(candidate)
         # the network at hand says where its tensors live (a meta template would be a second build, as
         # long as this one on a CPU); load_state_dict copies, so the slices need no copy of their own
         entries = self._plans[candidate][1] if candidate in self._plans else self._entries(net)
         tensors = self.subnet_tensors(candidate, entries)
         with torch.no_grad():
             net.load_state_dict({k: tensors[k] for k in net.state_dict()})
-        return net.to(next(self.parameters()).device)
+        return net
 
     def extract_encoder(self, width_mult: float) -> ImageEncoder:
         """The whole image encoder (the space's deepest) at ``width_mult``, carrying copies of its
@@ -209,8 +212,10 @@ class Supernet(nn.Module):
         if width_mult not in self.space.width_mult:
             raise ValueError(f"width {width_mult} is not one of the space's {self.space.width_mult}")
         spec = StageSpec("image_encoder", ImageEncoderConfig(self.largest.encoder_blocks, width_mult), ("image",), ("enc",))
-        encoder = spec.config.build()
-        full = {**dict(self.slots.named_parameters()), **dict(self.slots.named_buffers())}
-        encoder.load_state_dict({local: slice_of(spec, local, full[super_name(spec, local)], t.shape).detach().clone()
-                                 for local, t in encoder.state_dict().items()})
-        return encoder.to(next(self.parameters()).device)
+        with next(self.parameters()).device:   # as in extract
+            encoder = spec.config.build()
+        full = self._named_tensors()
+        with torch.no_grad():   # load_state_dict copies
+            encoder.load_state_dict({local: slice_of(spec, local, full[super_name(spec, local)], t.shape)
+                                     for local, t in encoder.state_dict().items()})
+        return encoder
