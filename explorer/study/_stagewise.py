@@ -19,17 +19,16 @@ from __future__ import annotations
 from collections import OrderedDict
 from contextlib import contextmanager
 from dataclasses import dataclass, field
-from typing import Hashable
+from typing import Callable, Hashable
 
 import pandas as pd
 import torch
 
 from explorer.metrics import MetricAverager, batch_depth_metrics
-from explorer.model import AnytimeDepthNet
 from explorer.model.exits import ExitHead, interpolate_scan
 from explorer.model.image_encoder import ImageEncoder, ImageEncoderConfig
+from explorer.model.network import StageSpec
 from explorer.space import MOBILENET_V1_BLOCKS
-from explorer.supernet import super_name
 from explorer.training.train import batch_row, image_batch
 
 
@@ -97,20 +96,10 @@ class SharedEncoder:
             self.calibration = [encoder.block_features(x, blocks) for x in calibration.images]
         with torch.no_grad():
             self.validation = [encoder.block_features(x, blocks) for x in validation.images]
-        self.statistics = {k: v.clone() for k, v in encoder.named_buffers()}
-
-    def load_statistics(self, net: AnytimeDepthNet) -> None:
-        """Copies the recalibrated statistics into ``net``'s image encoder stages."""
-        with torch.no_grad():
-            for spec in net.specs:
-                if isinstance(spec.config, ImageEncoderConfig):
-                    for local, buffer in net.stages[spec.name].named_buffers():
-                        buffer.copy_(self.statistics[super_name(spec, local).removeprefix("image_encoder.")])
 
 
 @dataclass
 class _StageResult:
-    statistics: dict[str, torch.Tensor]
     calibration: list[tuple[torch.Tensor, ...]] | None     # training-mode outputs (not kept for exits)
     validation: list[tuple[torch.Tensor, ...]] | None      # eval-mode outputs (not kept for exits)
     metrics: dict[str, float] = field(default_factory=dict)   # an exit's path metrics
@@ -158,10 +147,9 @@ def _path_metrics(outputs: list[torch.Tensor], depths: list[torch.Tensor]) -> di
     return averager.result()
 
 
-def _run_stage(net: AnytimeDepthNet, spec, calibration: list[dict], validation: list[dict],
+def _run_stage(module: torch.nn.Module, spec: StageSpec, calibration: list[dict], validation: list[dict],
                cal_frames: Frames, val_frames: Frames) -> _StageResult:
     """Recalibrates the stage's statistics on the calibration inputs, then runs the validation ones."""
-    module = net.stages[spec.name]
 
     def call(env: dict, row: int):
         args = [env[n] for n in spec.inputs] + ([row] if spec.uses_scan_row else [])
@@ -177,19 +165,18 @@ def _run_stage(net: AnytimeDepthNet, spec, calibration: list[dict], validation: 
     module.eval()
     with torch.no_grad():
         val_outs = [call(env, row) for env, row in zip(validation, val_frames.rows)]
-    statistics = {k: v.clone() for k, v in module.named_buffers()}
     if exit_stage:
-        return _StageResult(statistics, None, None, _path_metrics([o[0] for o in val_outs], val_frames.depths))
-    return _StageResult(statistics, cal_outs, val_outs, nbytes=_nbytes(cal_outs) + _nbytes(val_outs))
+        return _StageResult(None, None, _path_metrics([o[0] for o in val_outs], val_frames.depths))
+    return _StageResult(cal_outs, val_outs, nbytes=_nbytes(cal_outs) + _nbytes(val_outs))
 
 
-def evaluate_stagewise(net: AnytimeDepthNet, encoder: SharedEncoder, cal_frames: Frames, val_frames: Frames,
-                       memo: StageMemo) -> pd.DataFrame:
-    """Recalibrates ``net``'s statistics and returns its per-path metrics on the validation frames,
-    exactly as :func:`explorer.study.evaluators.recalibrate_batchnorm` then :func:`explorer.training.train.evaluate`
-    would, reusing what ``memo`` and ``encoder`` hold."""
-    net.eval()
-    encoder.load_statistics(net)
+def evaluate_stagewise(specs: list[StageSpec], stage_module: Callable[[StageSpec], torch.nn.Module],
+                       encoder: SharedEncoder, cal_frames: Frames, val_frames: Frames, memo: StageMemo) -> pd.DataFrame:
+    """The per-path metrics on the validation frames of the network of stages ``specs``, its statistics
+    recalibrated, exactly as :func:`explorer.study.evaluators.recalibrate_batchnorm` then
+    :func:`explorer.training.train.evaluate` would give them, reusing what ``memo`` and ``encoder``
+    hold. ``stage_module(spec)`` makes a stage's module with its weights, for the stages ``memo``
+    lacks: the others are never built."""
     calibration = [{"image": x, "scan": s} for x, s in zip(cal_frames.images, cal_frames.scans)]
     validation = [{"image": x, "scan": s} for x, s in zip(val_frames.images, val_frames.scans)]
     keys: dict[str, Hashable] = {"image": "image", "scan": "scan"}
@@ -197,7 +184,7 @@ def evaluate_stagewise(net: AnytimeDepthNet, encoder: SharedEncoder, cal_frames:
         height = val_frames.images[0].shape[2]
         memo.path_0 = _path_metrics([interpolate_scan(s, height) for s in val_frames.scans], val_frames.depths)
     rows = [{"path": 0, **memo.path_0}]
-    for spec in net.specs:
+    for spec in specs:
         if isinstance(spec.config, ImageEncoderConfig):
             for name, block in zip(spec.outputs, spec.config.output_blocks()):
                 keys[name] = ("encoder", encoder.width_mult, block)
@@ -209,12 +196,8 @@ def evaluate_stagewise(net: AnytimeDepthNet, encoder: SharedEncoder, cal_frames:
         key = (spec.name, spec.config, tuple(keys[n] for n in spec.inputs))
         result = memo.get(key)
         if result is None:
-            result = _run_stage(net, spec, calibration, validation, cal_frames, val_frames)
+            result = _run_stage(stage_module(spec), spec, calibration, validation, cal_frames, val_frames)
             memo.put(key, result)
-        else:
-            with torch.no_grad():
-                for local, buffer in net.stages[spec.name].named_buffers():
-                    buffer.copy_(result.statistics[local])
         for i, name in enumerate(spec.outputs):
             keys[name] = (key, i)
         if spec.path is not None:

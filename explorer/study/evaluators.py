@@ -117,17 +117,29 @@ class SupernetEvaluator:
 
     def __call__(self, candidate: Candidate, checkpoint: Path | None = None,
                  report: Callable | None = None) -> Evaluation:
+        """``candidate``'s metrics. Stage by stage, no network is made (only the stages not met
+        before, one by one), and the Evaluation holds none: ``network_of`` makes it when asked."""
         t0 = time.perf_counter()
-        net = self.supernet.extract(candidate).to(memory_format=torch.channels_last)  # see train.image_batch
+        net = None
         if self.stagewise:
-            metrics = evaluate_stagewise(net, self.shared_encoder(candidate.width_mult), *self._frames, self.memo)
+            metrics = evaluate_stagewise(self.supernet.stages_of(candidate), self._stage_module,
+                                         self.shared_encoder(candidate.width_mult), *self._frames, self.memo)
         else:
-            recalibrate_batchnorm(net, self.calibration)
+            net = self.network_of(candidate)
             metrics = evaluate(net, self.validation, accelerator=self.device)
-        net.to(memory_format=torch.contiguous_format)
         info = {"evaluator": self.name, "seconds": time.perf_counter() - t0, "supernet": str(self.file),
                 "supernet_key": self.key}
         return Evaluation(metrics, info, net)
+
+    def network_of(self, candidate: Candidate) -> AnytimeDepthNet:
+        """``candidate``'s slice as an ordinary network, BatchNorm recalibrated: the network whose metrics
+        the evaluation gives."""
+        net = self.supernet.extract(candidate).to(memory_format=torch.channels_last)  # see train.image_batch
+        recalibrate_batchnorm(net, self.calibration)
+        return net.to(memory_format=torch.contiguous_format)
+
+    def _stage_module(self, spec) -> torch.nn.Module:
+        return self.supernet.extract_stage(spec).to(memory_format=torch.channels_last)
 
     def shared_encoder(self, width_mult: float):
         """The image encoder of ``width_mult``, recalibrated, with its features (made on first use)."""

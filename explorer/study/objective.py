@@ -15,11 +15,7 @@ from explorer.data import open_dataset
 from explorer.deploy.export import quantization_effect
 from explorer.space import Candidate, SearchSpace
 from explorer.study.config import SearchConfig, baseline_model, json_safe
-from explorer.study.evaluators import (
-    ProxyEvaluator,
-    SupernetEvaluator,
-    recalibrate_batchnorm,
-)
+from explorer.study.evaluators import ProxyEvaluator, SupernetEvaluator
 from explorer.study.results import compact_workloads
 from explorer.supernet import default_path
 from explorer.training.depth_hints import with_hints
@@ -141,10 +137,9 @@ class Objective:
             except Pruned as exc:
                 raise optuna.TrialPruned(str(exc)) from None
             path_metrics = json_safe(result.metrics.drop(columns=["path"]).to_dict("records"))
-            if candidate.precision == "int8":
-                if result.info["evaluator"] == "supernet":   # stage-by-stage evaluation left the slice's BN as it was
-                    recalibrate_batchnorm(result.network, self.evaluator.calibration)
-                path_metrics = self.quantized(trial, result.network, path_metrics, cost)
+            if candidate.precision == "int8":   # a stage-by-stage evaluation made no network
+                net = result.network if result.network is not None else self.evaluator.network_of(candidate)
+                path_metrics = self.quantized(trial, net, path_metrics, cost)
             trial.set_user_attr("path_metrics", path_metrics)
             trial.set_user_attr("evaluator", json_safe(result.info))
             if result.info["evaluator"] == "proxy":

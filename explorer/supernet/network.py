@@ -206,6 +206,23 @@ class Supernet(nn.Module):
             net.load_state_dict({k: tensors[k] for k in net.state_dict()})
         return net
 
+    def stages_of(self, candidate: Candidate) -> list[StageSpec]:
+        """``candidate``'s stages, in order (refused, in one clear line, outside this supernet's space)."""
+        self._check_contains(candidate)
+        return stage_specs(candidate)
+
+    def extract_stage(self, spec: StageSpec) -> nn.Module:
+        """Stage ``spec``'s module alone, carrying copies of its slices (as ``extract`` for a whole
+        candidate): an evaluation that already has a candidate's other stages builds this one only."""
+        with next(self.parameters()).device:   # as in extract
+            module = spec.config.build()
+        full = self._named_tensors()
+        with torch.no_grad():   # load_state_dict copies
+            module.load_state_dict({local: slice_of(spec, local, full[super_name(spec, local)], t.shape,
+                                                    self.ecu_channels)
+                                    for local, t in module.state_dict().items()})
+        return module
+
     def extract_encoder(self, width_mult: float) -> ImageEncoder:
         """The whole image encoder (the space's deepest) at ``width_mult``, carrying copies of its
         slices: every candidate of that width runs a prefix of it, split at its exits."""

@@ -148,21 +148,22 @@ def test_shared_encoder_features_give_the_same_evaluation(tmp_path):
     assert {c.width_mult for c in candidates} == {0.25, 0.5} and any(c.encoder_exits for c in candidates)
     for cand in candidates:
         a, b = shared(cand), alone(cand)
-        assert all(torch.allclose(x, y, atol=1e-5) for x, y in zip(a.network.state_dict().values(),
+        assert a.network is None    # stage by stage, no whole network was made; asked for, it is the same
+        assert all(torch.allclose(x, y, atol=1e-5) for x, y in zip(shared.network_of(cand).state_dict().values(),
                                                                    b.network.state_dict().values())), cand
         assert list(a.metrics.columns) == list(b.metrics.columns) and list(a.metrics["path"]) == list(b.metrics["path"])
         assert (a.metrics["rmse"] - b.metrics["rmse"]).abs().max() < 1e-4, cand
     assert sorted(shared._encoders) == [0.25, 0.5]
-    assert shared.memo.hits >= 2 * len(shared.supernet.extract(first).specs) - 4   # the repeat and its neighbours
+    assert shared.memo.hits >= 2 * len(shared.supernet.stages_of(first)) - 4   # the repeat and its neighbours
 
 
 def test_stage_memo_keeps_to_its_size():
     memo = StageMemo(max_bytes=100)
     for k in range(5):
-        memo.put(k, _StageResult({}, [], [], nbytes=40))
+        memo.put(k, _StageResult([], [], nbytes=40))
     assert list(memo.entries) == [3, 4] and memo.nbytes == 80
     assert memo.get(3) is not None and memo.get(0) is None
-    memo.put(9, _StageResult({}, [], [], nbytes=400))      # larger than the whole memo: not kept
+    memo.put(9, _StageResult([], [], nbytes=400))      # larger than the whole memo: not kept
     assert 9 not in memo.entries
 
 
@@ -361,3 +362,12 @@ def test_candidates_share_their_stages_weightless_modules_and_still_compute_thei
             a = net.forward_subnet(cand, image, scan)
             b = net.extract(cand).eval()(image, scan)
         assert all(torch.allclose(x, y, atol=1e-6) for x, y in zip(a, b)), cand
+
+
+def test_a_stage_extracted_alone_is_that_stage_of_the_extracted_network(default_space):
+    net = Supernet(default_space)
+    cand = random_training_subnet(default_space, random.Random(4))
+    whole = net.extract(cand)
+    for spec in net.stages_of(cand):
+        alone, inside = net.extract_stage(spec).state_dict(), whole.stages[spec.name].state_dict()
+        assert alone.keys() == inside.keys() and all(torch.equal(alone[k], inside[k]) for k in alone), spec.name
