@@ -137,7 +137,7 @@ def supernet_recipe(args):
         changes["lr_end"] = args.lr / 10
     return dataclasses.replace(RECIPES[args.recipe], **changes, random_subnets=args.random_subnets,
                                micro_batches=args.micro_batches, seed=args.seed, teacher_depths=args.teacher_depths,
-                               head_kinds=args.head_kinds)
+                               head_kinds=args.head_kinds, distill=args.distill)
 
 
 def _supernet_status(record: dict) -> str:
@@ -208,7 +208,7 @@ def register(sub, add, reports: dict) -> None:
 
 def _register_supernet(sp) -> None:
     nsub = sp.add_subparsers(dest="sub", required=True, parser_class=_Parser, metavar="SUBCOMMAND")
-    s = nsub.add_parser("train", help="train (or resume) a supernet: sandwich rule, in-place distillation",
+    s = nsub.add_parser("train", help="train (or resume) a supernet: the sandwich rule",
                         description="Train the supernet of a space once; every study on that space, data and "
                         "recipe reuses it. Resumes after a kill. Data parallel under torchrun "
                         "(torchrun --nproc_per_node N -m explorer supernet train ...).")
@@ -236,6 +236,9 @@ def _register_supernet(sp) -> None:
                    "of exit head (depth x residual): rotate (default) hands the kinds in turn to every subnet of a "
                    "step, so each kind trains on the largest, the smallest and random backbones; cover gives the "
                    "random subnets the kinds the largest and smallest do not train; random lets them draw one")
+    s.add_argument("--distill", type=float, default=0.0, metavar="W", help="weight, in the other subnets' "
+                   "loss, of the largest subnet's last exit (in-place distillation; default 0: off, the supernet "
+                   "ranked stand-alone results better without it)")
     s.add_argument("--micro-batches", type=int, default=1, help="split each process's batch (gradient "
                    "accumulation; BatchNorm statistics per micro-batch)")
     s.add_argument("--seed", type=int, default=0)

@@ -1,10 +1,12 @@
-"""Supernet training: the sandwich rule with in-place distillation, atomic checkpoints and resume,
-a cache keyed by (space, data, recipe), and data parallelism under ``torchrun``.
+"""Supernet training: the sandwich rule, atomic checkpoints and resume, a cache keyed by (space,
+data, recipe), and data parallelism under ``torchrun``.
 
-Each step trains the largest subnet on the labels (its encoder depth turning over the space's depths,
-``teacher_depths="cycle"``), then the smallest and a few random ones on the labels and on the
-largest subnet's last exit (detached): every subnet keeps every exit, so every head is trained at
-every step. Gradients of all subnets are summed before one optimizer step.
+Each step trains the largest subnet (its encoder depth turning over the space's depths,
+``teacher_depths="cycle"``), the smallest and a few random ones on the labels: every subnet keeps
+every exit, so every head is trained at every step. With ``distill`` > 0 the others also learn the
+largest subnet's last exit (in-place distillation); by default they do not, because the supernet
+then ranked stand-alone results better (benchmarks/bench_fidelity.py, 2 seeds each). Gradients of
+all subnets are summed before one optimizer step.
 
 Data parallel: each of the W processes takes its share of the same global batch and the same
 subnets; gradients are averaged with an all-reduce. BatchNorm statistics are per process (as in
@@ -59,7 +61,7 @@ class SupernetRecipe:
     lr_end: float = 2e-4
     weight_decay: float = 1e-4
     random_subnets: int = 1          # besides the largest and the smallest, per step
-    distill: float = 0.5             # weight of the largest subnet's output in the others' loss
+    distill: float = 0.0             # weight of the largest subnet's output in the others' loss
     teacher_depths: str = "cycle"    # "cycle": the largest subnet's encoder depth turns over the space's; "max"
     micro_batches: int = 1           # per process; BatchNorm statistics are per micro-batch
     seed: int = 0
@@ -390,6 +392,8 @@ def _pace(step_seconds: float, accelerator: torch.device) -> dict:
 
 def _check_recipe(recipe: SupernetRecipe, world: int, space: SearchSpace) -> None:
     check_size(recipe.input_size, space.max_stride, "--train-size")
+    if not 0 <= recipe.distill <= 1:
+        raise UserError(f"--distill {recipe.distill}: give a weight between 0 (off, the default) and 1")
     if recipe.head_kinds not in HEAD_KINDS:
         raise UserError(f"head kinds '{recipe.head_kinds}': choose one of {', '.join(HEAD_KINDS)}")
     if recipe.teacher_depths not in TEACHER_DEPTHS:
