@@ -229,7 +229,7 @@ def _register_supernet(sp) -> None:
     s.add_argument("--random-subnets", type=int, default=1, help="random subnets per step besides the largest "
                    "and the smallest (default 1)")
     s.add_argument("--teacher-depths", choices=["cycle", "max"], default="cycle",
-                   help="encoder depth of the subnet trained on the labels (and distilled from): cycle (default) "
+                   help="encoder depth of the largest subnet (the one distilled from, with --distill): cycle (default) "
                    "turns over the space's depths step by step, so shallow encoders are not ranked below deep "
                    "ones for lack of training; max always takes the deepest (the plain sandwich rule)")
     s.add_argument("--head-kinds", choices=HEAD_KINDS, default="rotate", help="which subnet trains which kind "
