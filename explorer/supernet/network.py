@@ -120,14 +120,16 @@ class Supernet(nn.Module):
                             "train a supernet for a space that contains it")
 
     @staticmethod
-    def _entries(network: AnytimeDepthNet) -> list[tuple]:
-        """Per tensor of ``network``: its key there, its name here, its stage, local name and shape."""
-        entries = []
-        for spec in network.specs:
-            module = network.stages[spec.name]
-            for local, t in [*module.named_parameters(), *module.named_buffers()]:
-                entries.append((f"stages.{spec.name}.{local}", super_name(spec, local), spec, local, t.shape))
-        return entries
+    def _stage_entries(spec: StageSpec, module: nn.Module) -> list[tuple]:
+        """Per tensor of stage ``spec``'s ``module``: its key in a network, its name here, its stage,
+        local name and shape."""
+        return [(f"stages.{spec.name}.{local}", super_name(spec, local), spec, local, t.shape)
+                for local, t in [*module.named_parameters(), *module.named_buffers()]]
+
+    @classmethod
+    def _entries(cls, network: AnytimeDepthNet) -> list[tuple]:
+        """``_stage_entries`` of every stage of ``network``."""
+        return [e for spec in network.specs for e in cls._stage_entries(spec, network.stages[spec.name])]
 
     def _plan(self, candidate: Candidate) -> tuple[AnytimeDepthNet, list[tuple]]:
         """A weightless (meta) network of ``candidate`` and, per tensor, where it lives here."""
@@ -144,7 +146,7 @@ class Supernet(nn.Module):
         return plan
 
     def _stage_plan(self, spec: StageSpec) -> tuple[nn.Module, list[tuple]]:
-        """A weightless (meta) module of stage ``spec`` and its ``_entries``, built once per stage name
+        """A weightless (meta) module of stage ``spec`` and its ``_stage_entries``, built once per stage name
         and config: a random subnet is mostly stages other subnets had, and building them took most of
         a step's host time (a GPU waited on it). Keyed by name too, so that no network holds one module
         twice (a parameter swap for one would then be the other's)."""
@@ -152,9 +154,7 @@ class Supernet(nn.Module):
         if key not in self._stage_plans:
             with torch.device("meta"):
                 module = spec.config.build()
-            self._stage_plans[key] = (module, [
-                (f"stages.{spec.name}.{local}", super_name(spec, local), spec, local, t.shape)
-                for local, t in [*module.named_parameters(), *module.named_buffers()]])
+            self._stage_plans[key] = (module, self._stage_entries(spec, module))
         return self._stage_plans[key]
 
     def subnet_tensors(self, candidate: Candidate, entries: list[tuple] | None = None) -> dict[str, torch.Tensor]:
@@ -228,11 +228,5 @@ class Supernet(nn.Module):
         slices: every candidate of that width runs a prefix of it, split at its exits."""
         if width_mult not in self.space.width_mult:
             raise ValueError(f"width {width_mult} is not one of the space's {self.space.width_mult}")
-        spec = StageSpec("image_encoder", ImageEncoderConfig(self.largest.encoder_blocks, width_mult), ("image",), ("enc",))
-        with next(self.parameters()).device:   # as in extract
-            encoder = spec.config.build()
-        full = self._named_tensors()
-        with torch.no_grad():   # load_state_dict copies
-            encoder.load_state_dict({local: slice_of(spec, local, full[super_name(spec, local)], t.shape)
-                                     for local, t in encoder.state_dict().items()})
-        return encoder
+        return self.extract_stage(StageSpec("image_encoder", ImageEncoderConfig(self.largest.encoder_blocks, width_mult),
+                                            ("image",), ("enc",)))
