@@ -132,7 +132,8 @@ def supernet_recipe(args):
     import dataclasses
     from explorer.supernet.train import RECIPES
     changes = {k: v for k, v in (("steps", args.steps), ("batch_size", args.batch_size),
-                                 ("input_size", args.train_size), ("lr", args.lr), ("amp", args.amp)) if v is not None}
+                                 ("input_size", args.train_size), ("lr", args.lr), ("amp", args.amp),
+                                 ("shrink", args.shrink)) if v is not None}
     if args.lr is not None:
         changes["lr_end"] = args.lr / 10
     return dataclasses.replace(RECIPES[args.recipe], **changes, random_subnets=args.random_subnets,
@@ -236,6 +237,9 @@ def _register_supernet(sp) -> None:
                    "of exit head (depth x residual): rotate (default) hands the kinds in turn to every subnet of a "
                    "step, so each kind trains on the largest, the smallest and random backbones; cover gives the "
                    "random subnets the kinds the largest and smallest do not train; random lets them draw one")
+    s.add_argument("--shrink", type=float, metavar="F", help="progressive shrinking: this fraction of the steps "
+                   "trains full-width subnets only (depths, exits and heads still vary) before every width trains "
+                   "(default: the recipe's, 0.5; 0: every width from the start)")
     s.add_argument("--distill", type=float, default=0.0, metavar="W", help="weight, in the other subnets' "
                    "loss, of the largest subnet's last exit (in-place distillation; default 0: off, the supernet "
                    "ranked stand-alone results better without it)")

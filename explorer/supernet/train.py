@@ -8,6 +8,13 @@ largest subnet's last exit (in-place distillation); by default they do not, beca
 then ranked stand-alone results better (benchmarks/bench_fidelity.py, 2 seeds each). Gradients of
 all subnets are summed before one optimizer step.
 
+Progressive shrinking (``shrink``, as in Once-for-All): for the first half of the steps every subnet
+keeps the full widths (encoder depths, exits, LiDAR paths and heads still vary), and the smallest
+subnet's place goes to a random one; then every width trains. Without it the supernet ranked wide
+networks too low and narrow ones too high: the channels only wide subnets use trained on a fraction
+of the steps, while the smallest trained every step. With it, it ranked stand-alone results better
+(benchmarks/bench_fidelity.py, 2 seeds each).
+
 Data parallel: each of the W processes takes its share of the same global batch and the same
 subnets; gradients are averaged with an all-reduce. BatchNorm statistics are per process (as in
 DistributedDataParallel without SyncBatchNorm), so one process with ``micro_batches=W`` computes
@@ -43,7 +50,7 @@ from explorer.supernet.network import (
     space_key,
     with_head_kind,
 )
-from explorer.training.train import TrainConfig, batch_row, lr_at
+from explorer.training.train import TrainConfig, adamw, batch_row, lr_at
 
 FORMAT = "anytime-explorer-supernet/1"
 TEACHER_DEPTHS = ("cycle", "max")
@@ -67,6 +74,7 @@ class SupernetRecipe:
     seed: int = 0
     amp: bool = False                # bf16 autocast of the forward passes (the GPU recipe's)
     head_kinds: str = "rotate"       # which subnet trains which kind of exit head (see _subnets)
+    shrink: float = 0.5              # this fraction of the steps first trains full widths only (see _subnets)
 
     def to_dict(self) -> dict:
         d = dataclasses.asdict(self)
@@ -77,7 +85,8 @@ class SupernetRecipe:
     def from_dict(cls, d: dict) -> "SupernetRecipe":
         known = {f.name for f in dataclasses.fields(cls)}
         # files made before these fields trained the way they were then
-        d = {"teacher_depths": "max", "head_kinds": "random", **{k: v for k, v in d.items() if k in known}}
+        d = {"teacher_depths": "max", "head_kinds": "random", "shrink": 0.0,
+             **{k: v for k, v in d.items() if k in known}}
         d["input_size"] = tuple(d["input_size"])
         return cls(**d)
 
@@ -89,6 +98,8 @@ class SupernetRecipe:
             d.pop("amp")
         if d["head_kinds"] == "random":
             d.pop("head_kinds")
+        if not d["shrink"]:
+            d.pop("shrink")
         return d
 
 
@@ -252,8 +263,13 @@ def _subnets(largest: Candidate, smallest: Candidate, space: SearchSpace, recipe
     kind then trains on every kind of backbone (with 3 subnets a step, 3 steps in 4; with 4, every step),
     where the others train a kind on one backbone alone (the largest's residual depth-2 heads, the
     smallest's plain depth-1 heads).
+
+    In the first ``recipe.shrink`` of the steps every subnet has the full widths, and a random one
+    takes the smallest's place (progressive shrinking).
     """
     randoms = [random_training_subnet(space, rng) for _ in range(recipe.random_subnets)]
+    if step < recipe.shrink * recipe.steps:   # progressive shrinking: widths stay full at first
+        smallest, *randoms = [_full_width(c, largest) for c in [random_training_subnet(space, rng)] + randoms]
     subnets = [_teacher(largest, space, recipe, step), smallest] + randoms
     every = [(d, r) for d in sorted(set(space.head_depth)) for r in sorted(set(space.exit_residual))]
     if recipe.head_kinds == "rotate":
@@ -265,6 +281,15 @@ def _subnets(largest: Candidate, smallest: Candidate, space: SearchSpace, recipe
             subnets[2:] = [with_head_kind(c, space, *kinds[(step * len(randoms) + j) % len(kinds)])
                            for j, c in enumerate(randoms)]
     return subnets
+
+
+def _full_width(candidate: Candidate, largest: Candidate) -> Candidate:
+    """``candidate`` with every width of ``largest`` (its depths, exits, LiDAR path and heads kept)."""
+    widths = dict(width_mult=largest.width_mult, decoder_widths=largest.decoder_widths,
+                  head_width=largest.head_width if candidate.head_depth == 2 else 0)
+    if candidate.ecu:
+        widths.update(lidar_width=largest.lidar_width, ecu_width=largest.ecu_width)
+    return dataclasses.replace(candidate, **widths)
 
 
 def train_supernet(space: SearchSpace, data: str, recipe: SupernetRecipe = SupernetRecipe(),
@@ -286,7 +311,7 @@ def train_supernet(space: SearchSpace, data: str, recipe: SupernetRecipe = Super
         raise ValueError("a deadline would stop the processes at different steps: give it to one process only")
     torch.manual_seed(recipe.seed)  # every process starts from the same weights
     net = Supernet(space).to(device=accelerator, memory_format=torch.channels_last)  # see train.image_batch
-    opt = torch.optim.AdamW(net.parameters(), lr=recipe.lr, weight_decay=recipe.weight_decay)
+    opt = adamw(net.parameters(), recipe.lr, recipe.weight_decay)
     step, history, seconds = _resume(out, space, data, recipe, net, opt)
     if world > 1:
         _check_same_start(step, out)
@@ -394,6 +419,9 @@ def _check_recipe(recipe: SupernetRecipe, world: int, space: SearchSpace) -> Non
     check_size(recipe.input_size, space.max_stride, "--train-size")
     if not 0 <= recipe.distill <= 1:
         raise UserError(f"--distill {recipe.distill}: give a weight between 0 (off, the default) and 1")
+    if not 0 <= recipe.shrink < 1:
+        raise UserError(f"--shrink {recipe.shrink}: give the fraction of the steps trained at full widths first, "
+                        "from 0 (off) to below 1")
     if recipe.head_kinds not in HEAD_KINDS:
         raise UserError(f"head kinds '{recipe.head_kinds}': choose one of {', '.join(HEAD_KINDS)}")
     if recipe.teacher_depths not in TEACHER_DEPTHS:

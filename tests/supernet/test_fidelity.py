@@ -23,7 +23,7 @@ def _kinds(space, recipe, step):
 
 
 def test_covering_head_kinds_trains_every_kind_every_other_step(default_space):
-    recipe = SupernetRecipe(head_kinds="cover")
+    recipe = SupernetRecipe(head_kinds="cover", shrink=0.0)   # the smallest in its place every step
     every = {(d, r) for d in default_space.head_depth for r in default_space.exit_residual}
     for step in range(6):
         assert set(_kinds(default_space, recipe, step) + _kinds(default_space, recipe, step + 1)) == every
@@ -101,3 +101,38 @@ def test_the_default_search_quotes_a_measured_fidelity(default_space):
     assert entry is not None, "the default recipe changed: measure it (benchmarks/bench_fidelity.py --store)"
     assert len(entry["tau"]) >= 2 and entry["candidates"] >= 24
     assert "Kendall tau" in describe_fidelity(entry)
+
+
+def _widths(c):
+    return c.width_mult, c.decoder_widths, c.lidar_width, c.ecu_width
+
+
+def test_progressive_shrinking_trains_full_widths_first_then_every_width(default_space):
+    recipe = SupernetRecipe(steps=100, shrink=0.5)
+    largest = largest_candidate(default_space)
+    early = [c for step in range(50) for c in _subnets(largest, smallest_candidate(default_space), default_space,
+                                                        recipe, step, random.Random(step))]
+    late = [c for step in range(50, 100) for c in _subnets(largest, smallest_candidate(default_space), default_space,
+                                                           recipe, step, random.Random(step))]
+    assert all(c.width_mult == largest.width_mult and c.decoder_widths == largest.decoder_widths for c in early)
+    assert all(c.lidar_width == largest.lidar_width for c in early if c.ecu)
+    assert len({c.encoder_blocks for c in early}) > 1 and len({c.ecu for c in early}) == 2   # depths still vary
+    assert len({_widths(c) for c in late}) > 10
+    for c in early + late:
+        assert default_space.contains(dataclasses.replace(c, exits=(4,), encoder_exits=(), lidar_exit=False))
+
+
+def test_shrinking_keeps_the_cache_keys_of_supernets_trained_without_it_and_reads_their_files():
+    plain = SupernetRecipe(shrink=0.0)
+    assert "shrink" not in plain.identity()
+    assert SupernetRecipe().identity()["shrink"] == 0.5     # the default shrinks: a supernet of its own
+    old = plain.to_dict()
+    del old["shrink"]
+    assert SupernetRecipe.from_dict(old).shrink == 0.0
+
+
+@pytest.mark.parametrize("shrink", [-0.1, 1.0])
+def test_a_shrink_fraction_outside_0_to_1_is_refused(tmp_path, shrink):
+    with pytest.raises(UserError, match="--shrink"):
+        train_supernet(SearchSpace.from_yaml("tiny"), TINY_DATA, SupernetRecipe(shrink=shrink), tmp_path / "s.pt")
+    assert not (tmp_path / "s.pt").exists()
