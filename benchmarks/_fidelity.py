@@ -94,12 +94,14 @@ def estimate(evaluator, cand: Candidate) -> float:
 def estimates(file: Path, cands: list[Candidate], space: SearchSpace, calibration_images: int = 256,
               config: SearchConfig | None = None) -> dict[Candidate, float]:
     """The supernet estimate of every one of ``cands`` in the space, cached per supernet file (its name and
-    size), recalibration frames and candidate in ``estimates.json`` beside the labels: a benchmark run
-    after the supernet is trained finds them, however many labels exist by then."""
+    size and time: a supernet trained again is estimated again), recalibration frames and candidate in
+    ``estimates.json`` beside the labels: a benchmark run after the supernet is trained finds them,
+    however many labels exist by then."""
     import json
     config = config or SearchConfig(study="fidelity")
     file = Path(file)
-    tag = f"{file.stem}|{file.stat().st_size}|{calibration_images}|{config.val_limit}"
+    stat = file.stat()
+    tag = f"{file.stem}|{stat.st_size}|{stat.st_mtime_ns}|{calibration_images}|{config.val_limit}"
     cache_file = CACHE_DIR / "estimates.json"
     cache = json.loads(cache_file.read_text()) if cache_file.is_file() else {}
     inside = [c for c in cands if space.contains(c)]
