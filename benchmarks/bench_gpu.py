@@ -35,7 +35,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from harness import ROOT, Bench, interleave, rotated  # noqa: E402
+from harness import ROOT, Bench, interleave  # noqa: E402
 
 DEFAULT, LARGE = ((64, 64), 16), ((224, 224), 64)
 
@@ -101,10 +101,9 @@ def physical_index(index: int) -> int:
 
 # -- supernet training ------------------------------------------------------------------------------
 def train_steps(device: str, size: tuple[int, int], batch: int, steps: int, data: str, amp: bool,
-                util: Utilisation | None = None, out: Path | None = None, overlap: bool | None = None) -> float:
+                util: Utilisation | None = None, out: Path | None = None) -> float:
     """Median seconds per step of ``steps`` supernet steps on ``device`` (the first two left out; NaN in a
-    torchrun process other than the first, whose progress is not reported). ``overlap``: backward passes
-    on a thread of their own (None: training's default)."""
+    torchrun process other than the first, whose progress is not reported)."""
     import torch
     from explorer.space import SearchSpace
     from explorer.supernet import SupernetRecipe, train_supernet
@@ -118,7 +117,7 @@ def train_steps(device: str, size: tuple[int, int], batch: int, steps: int, data
             util.active = step >= 2 and step < total
     with tempfile.TemporaryDirectory() as tmp:
         train_supernet(SearchSpace.from_yaml("anytime_depth"), data, recipe, out or Path(tmp) / "s.pt",
-                       torch.device(device), progress=progress, checkpoint_every=10**9, overlap_backward=overlap)
+                       torch.device(device), progress=progress, checkpoint_every=10**9)
     if util is not None:
         util.active = False
     return statistics.median(times) if times else float("nan")   # under torchrun, rank 0 alone is told
@@ -260,13 +259,6 @@ def declare(bench: Bench, on_gpu: bool) -> None:
     bench.figure("amp_loss_ratio", "bf16 / float32 supernet validation L1", "x", better="lower")
     bench.figure("amp_rank_tau", "Kendall tau, bf16 vs float32 supernet rankings", "", better="higher")
     if on_gpu:
-        bench.figure("step_s_default_serial", "GPU step, 64x64 batch 16, backward passes in turn", "s",
-                     better="lower")
-        bench.figure("step_s_large_serial", "GPU step, large recipe, backward passes in turn", "s", better="lower")
-        bench.figure("overlap_speedup_default", "in turn / overlapped backward, step time, 64x64 batch 16", "x",
-                     better="higher")
-        bench.figure("overlap_speedup_large", "in turn / overlapped backward, step time, large recipe", "x",
-                     better="higher")
         bench.figure("gpu_util_default", "GPU utilisation, default recipe", "%", better="higher")
         bench.figure("gpu_util_large", "GPU utilisation, large recipe", "%", better="higher")
         bench.figure("cpu_step_s_default", "CPU supernet step on --cpu-threads threads, 64x64 batch 16", "s",
@@ -277,23 +269,12 @@ def declare(bench: Bench, on_gpu: bool) -> None:
 def one_repetition(bench: Bench, args, device: str, util: Utilisation | None, rep: int) -> None:
     on_gpu = device == "cuda"
     size, batch = DEFAULT
-    large = (args.large_size, args.large_batch, args.large_steps or args.steps, args.data, on_gpu)
-    runs = {"default": lambda: bench.add("step_s_default", train_steps(device, size, batch, args.steps, args.data,
-                                                                       False, util)),
-            "large": lambda: bench.add("step_s_large", train_steps(device, *large, util))}
-    if on_gpu:   # the backward passes in turn (as on a CPU) against overlapped (CUDA's default), interleaved
-        runs["default_serial"] = lambda: bench.add("step_s_default_serial", train_steps(
-            device, size, batch, args.steps, args.data, False, overlap=False))
-        runs["large_serial"] = lambda: bench.add("step_s_large_serial", train_steps(device, *large, overlap=False))
-    for name in rotated(list(runs), rep):
-        runs[name]()
-        if name in ("default", "large"):   # the samples of this run's steps alone
-            _add_util(bench, f"gpu_util_{name}", util)
+    bench.add("step_s_default", train_steps(device, size, batch, args.steps, args.data, False, util))
+    _add_util(bench, "gpu_util_default", util)
+    bench.add("step_s_large", train_steps(device, args.large_size, args.large_batch, args.large_steps or args.steps,
+                                          args.data, on_gpu, util))
+    _add_util(bench, "gpu_util_large", util)
     if on_gpu:
-        bench.add("overlap_speedup_default", bench.figures["step_s_default_serial"].reps[-1]
-                  / bench.figures["step_s_default"].reps[-1])
-        bench.add("overlap_speedup_large", bench.figures["step_s_large_serial"].reps[-1]
-                  / bench.figures["step_s_large"].reps[-1])
         import torch
         threads = torch.get_num_threads()
         torch.set_num_threads(args.cpu_threads)

@@ -92,10 +92,6 @@ def with_head_kind(candidate: Candidate, space: SearchSpace, depth: int, residua
                                head_width=max(space.head_width) if depth == 2 else 0)
 
 
-#: the BatchNorm buffers a training forward pass updates in place and its backward pass reads
-_RUNNING = ("running_mean", "running_var")
-
-
 class Supernet(nn.Module):
     def __init__(self, space: SearchSpace) -> None:
         super().__init__()
@@ -181,29 +177,16 @@ class Supernet(nn.Module):
         return super()._apply(fn, *args, **kwargs)
 
     def forward_subnet(self, candidate: Candidate, image: torch.Tensor, scan: torch.Tensor,
-                       scan_row: int | None = None, own_statistics: bool = False) -> list[torch.Tensor]:
-        """``candidate``'s forward pass on this supernet's weights (differentiable, no copies).
-
-        ``own_statistics``: in training, the BatchNorm running statistics are updated on copies, written
-        back once the pass is done. The backward pass keeps what BatchNorm read, and a view of the
-        supernet's statistics would be changed by the next subnet's forward pass: with copies, that pass
-        may run while this one's backward pass still does (see ``train._Backward``)."""
-        template, entries = self._plan(candidate)
+                       scan_row: int | None = None) -> list[torch.Tensor]:
+        """``candidate``'s forward pass on this supernet's weights (differentiable, no copies)."""
+        template, _ = self._plan(candidate)
         for stage in template.stages.values():   # a stage module's mode is its children's: train() sets both
             if stage.training != self.training:
                 stage.train(self.training)
-        tensors = self.subnet_tensors(candidate, entries)
-        statistics = [k for k in tensors if k.endswith(_RUNNING)] if own_statistics and self.training else []
-        views = [tensors[k] for k in statistics]
-        for k in statistics:
-            tensors[k] = tensors[k].clone()
         # tie_weights=False: a template holds no module twice (see _stage_plan), so there is nothing to
         # untie, and looking for it walked every module of the template at every call
-        outs = functional_call(template, tensors, (image, scan, scan_row), tie_weights=False)
-        if views:
-            with torch.no_grad():
-                torch._foreach_copy_(views, [tensors[k] for k in statistics])
-        return outs
+        return functional_call(template, self.subnet_tensors(candidate), (image, scan, scan_row),
+                               tie_weights=False)
 
     def forward(self, image: torch.Tensor, scan: torch.Tensor, scan_row: int | None = None) -> list[torch.Tensor]:
         return self.forward_subnet(self.largest, image, scan, scan_row)

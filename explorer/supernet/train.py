@@ -29,7 +29,6 @@ import json
 import os
 import random
 import time
-from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -298,16 +297,13 @@ def train_supernet(space: SearchSpace, data: str, recipe: SupernetRecipe = Super
                    progress: Callable[[int, int, dict], None] | None = None,
                    data_progress: Callable[[int, int], None] | None = None,
                    checkpoint_every: int = 100, stop_after_steps: int | None = None,
-                   checkpoint_seconds: float = CHECKPOINT_SECONDS, deadline: float | None = None,
-                   overlap_backward: bool | None = None) -> Path:
+                   checkpoint_seconds: float = CHECKPOINT_SECONDS, deadline: float | None = None) -> Path:
     """Trains (or resumes, or finds already trained) the supernet of (space, data, recipe) and
     returns its file. ``accelerator``: the torch device to train on (default: this process's GPU
     where there is one, else the CPU). ``stop_after_steps`` ends this call after that many more steps,
     short of ``recipe.steps``, with the file saved to resume from; so does reaching ``deadline`` (a
     time.time(), one process only: a search's time limit). The file is saved every
-    ``checkpoint_every`` steps and at least every ``checkpoint_seconds``: a killed run loses at most that.
-    ``overlap_backward``: each subnet's backward pass runs while the next one's forward pass is built
-    (see :class:`_Backward`; default: on CUDA). The update is the same either way."""
+    ``checkpoint_every`` steps and at least every ``checkpoint_seconds``: a killed run loses at most that."""
     out = Path(out) if out else default_path(space, data, recipe)
     rank, world, accelerator = _distributed(accelerator)
     _check_recipe(recipe, world, space)
@@ -333,32 +329,29 @@ def train_supernet(space: SearchSpace, data: str, recipe: SupernetRecipe = Super
     saved = t0
     ledger = _Ledger(history, progress if rank == 0 else None, recipe.steps, accelerator)
     skip = step % len(loader)  # resume mid-epoch on the batches that were not seen
-    overlap = accelerator.type == "cuda" if overlap_backward is None else overlap_backward
-    with _Backward(overlap) as backward:
-        while step < stop:
-            train_set.epoch = epoch
-            gen.manual_seed(recipe.seed + epoch)
-            for i, batch in enumerate(loader):
-                if i < skip:
-                    continue
-                if deadline is not None and time.time() >= deadline:
-                    stop = step
-                if step >= stop:
-                    break
-                rng = random.Random(recipe.seed * 1_000_003 + step)  # the same subnets on every process
-                subnets = _subnets(largest, smallest, space, recipe, step, rng)
-                for g in opt.param_groups:
-                    g["lr"] = lr_at(lr_cfg, step)
-                step += 1
-                ledger.add(step, _sandwich_step(net, opt, batch, subnets, recipe, accelerator, rank, world,
-                                                 backward))
-                now = time.perf_counter()
-                if (step % checkpoint_every == 0 or now - saved >= checkpoint_seconds) and step < stop and rank == 0:
-                    ledger.settle()
-                    save(out, net, recipe, data, step, opt, history, seconds + now - t0)
-                    saved = time.perf_counter()
-            skip = 0
-            epoch += 1
+    while step < stop:
+        train_set.epoch = epoch
+        gen.manual_seed(recipe.seed + epoch)
+        for i, batch in enumerate(loader):
+            if i < skip:
+                continue
+            if deadline is not None and time.time() >= deadline:
+                stop = step
+            if step >= stop:
+                break
+            rng = random.Random(recipe.seed * 1_000_003 + step)  # the same subnets on every process
+            subnets = _subnets(largest, smallest, space, recipe, step, rng)
+            for g in opt.param_groups:
+                g["lr"] = lr_at(lr_cfg, step)
+            step += 1
+            ledger.add(step, _sandwich_step(net, opt, batch, subnets, recipe, accelerator, rank, world))
+            now = time.perf_counter()
+            if (step % checkpoint_every == 0 or now - saved >= checkpoint_seconds) and step < stop and rank == 0:
+                ledger.settle()
+                save(out, net, recipe, data, step, opt, history, seconds + now - t0)
+                saved = time.perf_counter()
+        skip = 0
+        epoch += 1
     ledger.settle()
     if rank == 0:
         save(out, net, recipe, data, step, opt, history, seconds + time.perf_counter() - t0)
@@ -413,38 +406,6 @@ class _Ledger:
         self.last = now
 
 
-class _Backward:
-    """Runs a step's backward passes, in the order they come. With ``overlap``, on a thread of their own:
-    PyTorch's autograd engine launches a backward pass's kernels without holding Python's lock, so the
-    host builds and launches the next subnet's forward pass meanwhile (on a GPU the host sets a step's
-    pace). Without, each runs where it is asked for: on a CPU the two would compete for the same cores.
-    One thread: the gradients are summed in the same order either way."""
-
-    def __init__(self, overlap: bool) -> None:
-        self.overlaps = overlap
-        self._pool = ThreadPoolExecutor(1, thread_name_prefix="backward") if overlap else None
-        self._pending: list[Future] = []
-
-    def start(self, loss: torch.Tensor) -> None:
-        if self._pool is None:
-            loss.backward()
-        else:
-            self._pending.append(self._pool.submit(loss.backward))
-
-    def wait(self) -> None:
-        """Returns once every backward pass started is done (raising what one of them raised)."""
-        pending, self._pending = self._pending, []
-        for done in pending:
-            done.result()
-
-    def __enter__(self) -> "_Backward":
-        return self
-
-    def __exit__(self, *exc) -> None:
-        if self._pool is not None:
-            self._pool.shutdown(wait=True)
-
-
 def _pace(step_seconds: float, accelerator: torch.device) -> dict:
     """What progress shows besides the losses: the step's wall time and, on CUDA, the most GPU memory
     the process has held (MiB)."""
@@ -489,13 +450,12 @@ def _resume(out: Path, space: SearchSpace, data: str, recipe: SupernetRecipe, ne
 
 
 def _sandwich_step(net: Supernet, opt: torch.optim.Optimizer, batch: dict, subnets: list[Candidate],
-                   recipe: SupernetRecipe, accelerator: torch.device, rank: int, world: int,
-                   backward: "_Backward") -> torch.Tensor:
+                   recipe: SupernetRecipe, accelerator: torch.device, rank: int, world: int) -> torch.Tensor:
     """One optimizer step on process ``rank``'s share of ``batch``: every subnet's gradients summed
     (and averaged over the ``world`` processes), the first subnet's last exit distilled into the
     others; the subnets' losses, left on the device (no wait for the GPU here: :class:`_Ledger` reads
     them once the next step is queued); ``recipe.amp`` runs the forward passes under bf16 autocast (no
-    loss scaling: bf16 has float32's range). ``backward`` runs the backward passes (see :class:`_Backward`)."""
+    loss scaling: bf16 has float32's range)."""
     per_rank = recipe.batch_size // world
     net.train()
     opt.zero_grad(set_to_none=True)
@@ -510,13 +470,12 @@ def _sandwich_step(net: Supernet, opt: torch.optim.Optimizer, batch: dict, subne
         teacher = None
         for j, cand in enumerate(subnets):
             with torch.autocast(accelerator.type, dtype=torch.bfloat16, enabled=recipe.amp):
-                outs = net.forward_subnet(cand, image[part], scan[part], row, own_statistics=backward.overlaps)
+                outs = net.forward_subnet(cand, image[part], scan[part], row)
                 loss = _subnet_loss(outs, depth[part], teacher, recipe.distill)
             if j == 0:
                 teacher = outs[-1].detach().float()
-            backward.start(loss / recipe.micro_batches)
+            (loss / recipe.micro_batches).backward()
             losses[j] += loss.detach().double() / recipe.micro_batches
-    backward.wait()
     if world > 1:
         _average_gradients(net, world)
     opt.step()

@@ -125,26 +125,3 @@ def test_a_loss_read_one_step_late_still_stops_training_before_it_is_saved(tmp_p
         train_supernet(SearchSpace.from_yaml("tiny"), TINY_DATA, RECIPE, out, checkpoint_every=1)
     state = torch.load(out, weights_only=True)
     assert state["step"] == 1 and len(state["history"]) == 1
-
-
-def test_backward_passes_overlapping_the_next_forward_pass_train_the_same_supernet(tmp_path):
-    """On CUDA each subnet's backward pass runs on a thread of its own while the next forward pass is
-    launched; the weights, the optimizer state and the BatchNorm statistics must come out as in turn."""
-    space = SearchSpace.from_yaml("tiny")
-    recipe = dataclasses.replace(RECIPE, steps=4, random_subnets=2, distill=0.5)
-    files = {o: train_supernet(space, TINY_DATA, recipe, tmp_path / f"{o}.pt", overlap_backward=o)
-             for o in (False, True)}
-    serial, overlapped = (_weights(files[o]) for o in (False, True))
-    assert serial.keys() == overlapped.keys() and any("running_var" in k for k in serial)
-    for key in serial:
-        assert torch.equal(serial[key], overlapped[key]), key
-    moved = _weights(train_supernet(space, TINY_DATA, dataclasses.replace(recipe, steps=1), tmp_path / "one.pt"))
-    assert any(not torch.equal(moved[k], serial[k]) for k in serial if "running_mean" in k)   # they do train
-
-
-def test_a_failed_backward_pass_on_its_thread_is_raised_by_the_step():
-    backward = supernet_train._Backward(overlap=True)
-    with backward:
-        backward.start(torch.zeros(2, requires_grad=True) * 2)   # not a scalar
-        with pytest.raises(RuntimeError, match="scalar"):
-            backward.wait()
