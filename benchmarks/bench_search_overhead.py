@@ -1,7 +1,9 @@
 """A search's bookkeeping per trial, without the evaluator: the sampler (TPE as a search sets it up),
 sampling a candidate of the default space, costing its paths on the TX2 profile, and the storage
-writes of its parameters and attributes, and the reads the sampler makes. Four storages: the journal
-file a search on this machine keeps its study in (:func:`explorer.study.storage.open_storage`),
+writes of its parameters and attributes, and the reads the sampler makes. Five storages: the journal
+file a search on this machine keeps its study in (:func:`explorer.study.storage.open_storage`, synced
+to the disk at trial state changes), the same journal as Optuna's file backend writes it (synced
+after every line),
 SQLite as Optuna opens it (a rollback journal, synced at every commit), SQLite as ``explorer search``
 opens it for ``--storage sqlite:///...`` (a write-ahead log, synced at checkpoints), and memory (what
 the sampler and the costing take alone).
@@ -28,7 +30,7 @@ from explorer.study.storage import open_storage
 
 from harness import Bench, rotated
 
-STORAGES = ("journal", "sqlite_synced", "sqlite_wal", "memory")
+STORAGES = ("journal", "journal_each", "sqlite_synced", "sqlite_wal", "memory")
 
 
 def _storage(kind: str, folder: Path):
@@ -38,6 +40,9 @@ def _storage(kind: str, folder: Path):
         return optuna.storages.RDBStorage(f"sqlite:///{folder / 'study.db'}")
     if kind == "journal":
         return open_storage(None, "bench", reports=folder.parent)
+    if kind == "journal_each":
+        from optuna.storages.journal import JournalFileBackend
+        return optuna.storages.JournalStorage(JournalFileBackend(str(folder / "journal.log")))
     return open_storage(f"sqlite:///{folder / 'study.db'}", "bench")
 
 
@@ -75,13 +80,15 @@ if __name__ == "__main__":
     ap.add_argument("--trials", type=int, default=150, help="trials per storage and repetition")
     args = bench.parse_args(ap)
     config = SearchConfig(study="bench")
-    labels = {"journal": "journal file (the default)", "sqlite_synced": "SQLite, synced at every commit", "sqlite_wal": "SQLite, write-ahead log",
+    labels = {"journal": "journal file (the default)", "journal_each": "journal file, synced after every line",
+              "sqlite_synced": "SQLite, synced at every commit", "sqlite_wal": "SQLite, write-ahead log",
               "memory": "in memory (sampler and costing alone)"}
     for kind in STORAGES:
         bench.figure(f"{kind}_ms", f"{labels[kind]}, wall", "ms", "lower")
         bench.figure(f"{kind}_cpu_ms", f"{labels[kind]}, CPU", "ms", "lower")
     bench.figure("synced_over_wal", "synced / write-ahead log, wall", "x", "higher")
     bench.figure("wal_over_journal", "SQLite write-ahead log / journal file, wall", "x", "higher")
+    bench.figure("each_over_journal", "journal synced every line / at state changes, wall", "x", "higher")
     for rep in bench.repetitions():
         got = {kind: _per_trial(kind, args.trials, config) for kind in rotated(STORAGES, rep)}
         for kind in STORAGES:
@@ -89,4 +96,5 @@ if __name__ == "__main__":
             bench.add(f"{kind}_cpu_ms", got[kind][1])
         bench.add("synced_over_wal", got["sqlite_synced"][0] / got["sqlite_wal"][0])
         bench.add("wal_over_journal", got["sqlite_wal"][0] / got["journal"][0])
+        bench.add("each_over_journal", got["journal_each"][0] / got["journal"][0])
     bench.finish()

@@ -107,14 +107,14 @@ def open_storage(url: str | None, study: str, workers: int = 1, reports: Path = 
         raise UserError(f"SQLite ({url}) cannot take several workers safely: use --workers 1 with it, a "
                         "--storage journal:PATH on this machine, or --storage postgresql://... for several machines")
     if url.startswith("journal:"):
-        from optuna.storages.journal import JournalFileBackend
+        from explorer.study._journal import TrialSyncedJournal
         path = Path(url[len("journal:"):])
         if not create and not path.exists():
             raise UserError(f"no study journal at {path} (run `explorer search --study {study}` first, "
                             "or give --storage)")
         _check_journal(path)
         _make_parent(path, "study journal")
-        return optuna.storages.JournalStorage(JournalFileBackend(str(path)))
+        return optuna.storages.JournalStorage(TrialSyncedJournal(str(path)))
     if url.startswith("sqlite:///"):
         path = Path(url[len("sqlite:///"):])
         if not create and not path.exists():
