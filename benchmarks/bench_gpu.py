@@ -218,17 +218,17 @@ def options(bench: Bench):
     ap = bench.parser()
     ap.add_argument("--device", default="auto", choices=["auto", "cuda", "cpu"],
                     help="where to train and search (default: CUDA where PyTorch sees a GPU, else the CPU)")
-    ap.add_argument("--steps", type=int, default=15, help="supernet steps per timing (default 15)")
+    ap.add_argument("--steps", type=int, default=10, help="supernet steps per timing (default 10)")
     ap.add_argument("--large-size", type=_size, default=LARGE[0], help="the large recipe's size HxW (default 224x224)")
     ap.add_argument("--large-batch", type=int, default=LARGE[1], help="the large recipe's batch (default 64)")
     ap.add_argument("--large-steps", type=int, default=None, help="steps at the large recipe (default --steps)")
-    ap.add_argument("--warmup-steps", type=int, default=40, help="untimed steps at each recipe, and an untimed "
-                    "search, before the repetitions (default 40; 0: none)")
-    ap.add_argument("--search-seconds", type=float, default=20.0, help="sampling time of each search (default 20)")
+    ap.add_argument("--warmup-steps", type=int, default=20, help="untimed steps at each recipe, and an untimed "
+                    "search, before the repetitions (default 20; 0: none)")
+    ap.add_argument("--search-seconds", type=float, default=8.0, help="sampling time of each search (default 8)")
     ap.add_argument("--search-supernet-steps", type=int, default=30,
                     help="steps of the search's supernet, trained once before the repetitions (default 30)")
-    ap.add_argument("--amp-steps", type=int, default=100, help="steps of each supernet of the bf16 comparison, "
-                    "at the default recipe (default 100; 0 skips it)")
+    ap.add_argument("--amp-steps", type=int, default=60, help="steps of each supernet of the bf16 comparison, "
+                    "at the default recipe (default 60; 0 skips it)")
     ap.add_argument("--data", default="synthetic:400:100",
                     help="data set of every training and search (default synthetic:400:100)")
     ap.add_argument("--cpu-threads", type=int, default=2, help="threads of the CPU step the GPU's is compared "
