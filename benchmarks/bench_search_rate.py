@@ -15,7 +15,7 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_gpu import search_rate  # noqa: E402
+from bench_gpu import search_config, search_rate  # noqa: E402
 from harness import Bench  # noqa: E402
 
 
@@ -32,7 +32,6 @@ def main() -> None:
     args = bench.parse_args(ap)
     import torch
     from explorer.study.search import ensure_supernet
-    from bench_gpu import search_config
     device = args.device if args.device != "auto" else ("cuda" if torch.cuda.is_available() else "cpu")
     ensure_supernet(search_config("search-rate", device, args.data, args.supernet_steps))   # not timed
     rate = bench.figure("candidates_per_minute", "distinct candidates per minute", "1/min", "higher")

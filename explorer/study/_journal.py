@@ -1,8 +1,8 @@
 """A study's journal file, synced to the disk once a trial's state changes rather than at every write.
 
 Optuna's ``JournalFileBackend`` calls ``fsync`` after each write, and a trial writes a line per
-parameter and attribute (about 35 in the default space): on a GPU, where a candidate is evaluated in
-tens of milliseconds, those waits for the disk were a tenth of a search's time. Every line is still
+parameter and attribute (about 35 in the default space): those waits for the disk weigh most where a
+candidate is evaluated in tens of milliseconds (on a GPU). Every line is still
 written and flushed under the journal's lock at once, so another process reads it at once and a
 killed process loses nothing; what waits for the next trial state change is only the disk's copy,
 which matters if the machine itself goes down (then the running trial's last lines may be lost, and
