@@ -222,3 +222,9 @@ def explain(parser: argparse.ArgumentParser) -> None:
                 and not isinstance(action, argparse._AppendAction)):
             text += f" (default {_default_text(default)})"
         action.help = text
+
+
+def smallest_status(record: dict) -> str:
+    """A supernet step's smallest-subnet loss for progress, or that no subnet is the smallest yet
+    (progressive shrinking trains full widths first)."""
+    return "full widths" if record["smallest"] is None else f"smallest {record['smallest']:.3f}"

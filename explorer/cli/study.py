@@ -7,7 +7,7 @@ from pathlib import Path
 
 from explorer.errors import UserError
 from explorer.cli._common import (HEAD_KINDS, _add_supervision, _count, _duration_s, _ms, _size, deprecated_alias,
-                                  train_on_free_cores, write_output)
+                                  smallest_status, train_on_free_cores, write_output)
 
 
 def cmd_search(args) -> None:
@@ -90,7 +90,7 @@ class _SearchProgress:
             self.phases["supernet"] = self.bar.add_task("supernet (once per space, data, recipe)", total=steps,
                                                         status="")
         self.bar.update(self.phases["supernet"], completed=step, status=f"largest {record['largest']:.3f}, "
-                        f"smallest {record['smallest']:.3f}")
+                        f"{smallest_status(record)}")
 
     def finalist(self, i: int, n: int, what: str) -> None:
         if "finalists" not in self.phases:

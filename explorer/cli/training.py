@@ -9,7 +9,8 @@ from pathlib import Path
 from explorer.errors import UserError
 from explorer.space import check_size
 from explorer.cli.inspect import _candidates_of
-from explorer.cli._common import HEAD_KINDS, _Parser, _size, _add_supervision, deprecated_alias, train_on_free_cores
+from explorer.cli._common import (HEAD_KINDS, _add_supervision, _Parser, _size, deprecated_alias, smallest_status,
+                                  train_on_free_cores)
 
 
 def cmd_train(args) -> None:
@@ -143,7 +144,7 @@ def supernet_recipe(args):
 
 def _supernet_status(record: dict) -> str:
     """The losses, the last step's time and, on CUDA, the most GPU memory held so far."""
-    text = (f"largest {record['largest']:.3f}, smallest {record['smallest']:.3f}, random {record['random']:.3f}, "
+    text = (f"largest {record['largest']:.3f}, {smallest_status(record)}, random {record['random']:.3f}, "
             f"{record['step_seconds']:.3f} s/step")
     if "gpu_memory_mb" in record:
         text += f", GPU {record['gpu_memory_mb']:.0f} MiB"

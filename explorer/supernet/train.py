@@ -343,8 +343,9 @@ def train_supernet(space: SearchSpace, data: str, recipe: SupernetRecipe = Super
             subnets = _subnets(largest, smallest, space, recipe, step, rng)
             for g in opt.param_groups:
                 g["lr"] = lr_at(lr_cfg, step)
+            shrinking = step < recipe.shrink * recipe.steps   # as _subnets decides
             step += 1
-            ledger.add(step, _sandwich_step(net, opt, batch, subnets, recipe, accelerator, rank, world))
+            ledger.add(step, _sandwich_step(net, opt, batch, subnets, recipe, accelerator, rank, world), shrinking)
             now = time.perf_counter()
             if (step % checkpoint_every == 0 or now - saved >= checkpoint_seconds) and step < stop and rank == 0:
                 ledger.settle()
@@ -380,25 +381,27 @@ class _Ledger:
     def __init__(self, history: list[dict], progress: Callable[[int, int, dict], None] | None, total: int,
                  accelerator: torch.device) -> None:
         self.history, self.progress, self.total, self.accelerator = history, progress, total, accelerator
-        self.pending: tuple[int, torch.Tensor] | None = None
+        self.pending: tuple[int, torch.Tensor, bool] | None = None
         self.last = time.perf_counter()
 
-    def add(self, step: int, losses: torch.Tensor) -> None:
-        """Step ``step`` is queued with ``losses`` (one per subnet, on the device): the step before it
-        is read."""
+    def add(self, step: int, losses: torch.Tensor, shrinking: bool = False) -> None:
+        """Step ``step`` is queued with ``losses`` (one per subnet, on the device; ``shrinking``: the
+        second subnet is a random full-width one, not the smallest): the step before it is read."""
         self.settle()
-        self.pending = (step, losses)
+        self.pending = (step, losses, shrinking)
 
     def settle(self) -> None:
         """Reads the pending step (waiting for the device), checks and records it."""
         if self.pending is None:
             return
-        (step, losses), self.pending = self.pending, None
+        (step, losses, shrinking), self.pending = self.pending, None
         values = losses.tolist()
         if not all(map(lambda v: v == v and abs(v) != float("inf"), values)):
             raise FloatingPointError(f"supernet loss became {values} at step {step - 1}")
-        record = {"step": step, "largest": values[0], "smallest": values[1],
-                  "random": sum(values[2:]) / max(len(values) - 2, 1)}
+        # while shrinking, no subnet is the smallest: the record says so rather than mislabel one
+        others = values[1:] if shrinking else values[2:]
+        record = {"step": step, "largest": values[0], "smallest": None if shrinking else values[1],
+                  "random": sum(others) / max(len(others), 1)}
         self.history.append(record)
         now = time.perf_counter()
         if self.progress:

@@ -201,6 +201,17 @@ def test_resume_continues_exactly(tmp_path):
     assert all(torch.allclose(a[k].float(), b[k].float(), atol=1e-6) for k in a if "running" not in k)
 
 
+def test_progress_names_no_smallest_subnet_while_widths_stay_full(tmp_path):
+    from explorer.cli._common import smallest_status
+    seen = []
+    file = train_supernet(SearchSpace.from_yaml("tiny"), TINY_DATA, RECIPE, tmp_path / "s.pt",
+                          progress=lambda step, total, record: seen.append(smallest_status(record)))
+    assert RECIPE.shrink == 0.5 and len(seen) == RECIPE.steps
+    assert seen[:2] == ["full widths"] * 2 and all(s.startswith("smallest ") for s in seen[2:])
+    history = torch.load(file, weights_only=True)["history"]
+    assert [h["smallest"] is None for h in history] == [True, True, False, False]
+
+
 def test_a_long_step_count_is_still_saved_by_time(tmp_path, monkeypatch):
     """Checkpoints every N steps lose a slow machine's minutes: the file is also saved by time."""
     import explorer.supernet.train as supernet_train
