@@ -5,7 +5,7 @@ torchrun against one; a short supernet search's distinct candidates per minute a
 sampling time spent in the evaluator; and what bf16 autocast does to the supernet's validation loss.
 
     python benchmarks/bench_gpu.py                      # the GPU where PyTorch sees one, else the CPU
-    python benchmarks/bench_gpu.py --device cpu         # the same figures on the CPU
+    python benchmarks/bench_gpu.py --device cpu         # the same figures on the CPU (printed, not recorded)
     python benchmarks/bench_gpu.py --steps 4 --large-size 64x64 --large-batch 8 --search-seconds 10 \\
         --amp-steps 2 --data synthetic:64:32 --reps 1 --no-record      # a smoke run
 
@@ -35,7 +35,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from harness import ROOT, Bench, interleave  # noqa: E402
+from harness import RESULTS, ROOT, Bench, interleave  # noqa: E402
 
 DEFAULT, LARGE = ((64, 64), 16), ((224, 224), 64)
 
@@ -325,6 +325,11 @@ def main() -> None:
     if device == "cuda" and not torch.cuda.is_available():
         raise SystemExit("bench_gpu: --device cuda, but PyTorch sees no GPU (use --device cpu)")
     on_gpu = device == "cuda"
+    if not on_gpu and args.results == RESULTS and not args.no_record:
+        # the project's records of this benchmark are a GPU's (the docs quote the latest as one); a CPU's
+        # search rate has its own benchmark, bench_search_rate
+        print("bench_gpu: no GPU, so no record in benchmarks/results (give --results DIR to keep one)", flush=True)
+        args.no_record = True
     declare(bench, on_gpu)
     from explorer.study.search import ensure_supernet
     ensure_supernet(search_config("gpu-bench", device, args.data, args.search_supernet_steps))   # not timed
