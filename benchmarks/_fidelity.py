@@ -119,13 +119,15 @@ def estimates(file: Path, cands: list[Candidate], space: SearchSpace, calibratio
     return {c: cache[f"{tag}|{c.key}"] for c in inside}
 
 
-def fine_tuned_estimate(evaluator, cand: Candidate, steps: int, config: SearchConfig | None = None) -> float:
+def fine_tuned_estimate(evaluator, cand: Candidate, steps: int, config: SearchConfig | None = None,
+                        lr_scale: float = 0.1) -> float:
     """The anytime loss of ``cand``'s slice of the supernet after ``steps`` steps of stand-alone training
-    (the finalists' recipe, a tenth of its learning rate), on the search's validation frames."""
+    (the finalists' recipe at ``lr_scale`` times its learning rate), on the search's validation frames."""
     from explorer.data import open_dataset
     from explorer.training.train import train
     config = config or SearchConfig(study="fidelity")
-    cfg = dataclasses.replace(config.finalist_config(seed=0), steps=steps, lr=config.lr / 10, lr_end=config.lr / 100)
+    cfg = dataclasses.replace(config.finalist_config(seed=0), steps=steps, lr=config.lr * lr_scale,
+                              lr_end=config.lr * lr_scale / 10)
     net = evaluator.supernet.extract(cand)
     tr = open_dataset(config.data, "train", config.train_size, seed=0)
     va = open_dataset(config.data, "val", config.train_size, train_augment=False)

@@ -138,7 +138,7 @@ def score_all(bench: Bench, args, space: SearchSpace, config: SearchConfig, cand
         items += [(name, file, "compared") for name, file in
                   supernet_files(args.compare, args.compare_recipe, args.compare_seeds, space, config)]
     sweep = [int(n) for n in args.calibration_sweep.split(",") if n]
-    recipes = []
+    recipes, scored = [], []
     for rep in bench.repetitions(len(items)):
         name, file, prefix = items[rep]
         state = read_supernet(file)
@@ -151,14 +151,31 @@ def score_all(bench: Bench, args, space: SearchSpace, config: SearchConfig, cand
         print_rows(est, table)
         if prefix != "supernet":
             continue
+        scored.append(est)
         for n in sweep:
             _add_ranks(bench, f"calib{n}", f"supernet, BatchNorm recalibrated on {n} frames",
                        {c: v for c, v in estimates(file, cands, space, n, config).items() if c in table}, table)
         if args.fine_tune_steps:   # every slice trained a few steps alone, as a search could its top estimates
             evaluator = supernet_evaluator(file, space, config, calibration_images=args.calibration_images)
-            tuned = {c: fine_tuned_estimate(evaluator, c, args.fine_tune_steps) for c in est if c in table}
-            _add_ranks(bench, "fine_tuned", f"supernet slices fine-tuned {args.fine_tune_steps} steps", tuned, table)
+            tuned = {c: fine_tuned_estimate(evaluator, c, args.fine_tune_steps, lr_scale=args.fine_tune_lr)
+                     for c in est if c in table}
+            _add_ranks(bench, "fine_tuned", f"supernet slices fine-tuned {args.fine_tune_steps} steps "
+                       f"at {args.fine_tune_lr:g}x the learning rate", tuned, table)
+    supernets_agreement(bench, scored, table)
     return recipes
+
+
+def supernets_agreement(bench: Bench, scored: list[dict], table: dict) -> None:
+    """Kendall tau between the first two scored supernets' estimates: where they agree far better with
+    each other than with the labels, the estimate's error is the weight sharing's bias, which another
+    seed or more supernets averaged do not remove, rather than noise."""
+    if len(scored) < 2:
+        return
+    both = [c for c in scored[0] if c in scored[1] and c in table]
+    if len(both) >= 3:
+        tau = rank_figures([scored[0][c] for c in both], [scored[1][c] for c in both])["tau"]
+        bench.add(bench.figure("supernets_tau", "supernet: Kendall tau between the first two supernets' estimates",
+                               "", None), tau)
 
 
 def main() -> None:
@@ -179,6 +196,8 @@ def main() -> None:
                     "BatchNorm recalibration frame counts, e.g. 64,1024")
     ap.add_argument("--fine-tune-steps", type=int, default=0, help="also rank every candidate's slice after "
                     "this many steps of stand-alone training (0: not)")
+    ap.add_argument("--fine-tune-lr", type=float, default=0.1, help="with --fine-tune-steps: the fine-tuning's "
+                    "learning rate as a fraction of the search's (default 0.1)")
     ap.add_argument("--label-seeds", default=",".join(map(str, LABEL_SEEDS)), help="seeds of the stand-alone labels")
     ap.add_argument("--cached-labels", action="store_true", help="score with the labels already cached, train none")
     ap.add_argument("--store", action="store_true", help="store the supernets' figures as the package's "
