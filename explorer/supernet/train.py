@@ -268,7 +268,7 @@ def _subnets(largest: Candidate, smallest: Candidate, space: SearchSpace, recipe
     takes the smallest's place (progressive shrinking).
     """
     randoms = [random_training_subnet(space, rng) for _ in range(recipe.random_subnets)]
-    if step < recipe.shrink * recipe.steps:   # progressive shrinking: widths stay full at first
+    if _shrinking(recipe, step):   # progressive shrinking: widths stay full at first
         smallest, *randoms = [_full_width(c, largest) for c in [random_training_subnet(space, rng)] + randoms]
     subnets = [_teacher(largest, space, recipe, step), smallest] + randoms
     every = [(d, r) for d in sorted(set(space.head_depth)) for r in sorted(set(space.exit_residual))]
@@ -281,6 +281,11 @@ def _subnets(largest: Candidate, smallest: Candidate, space: SearchSpace, recipe
             subnets[2:] = [with_head_kind(c, space, *kinds[(step * len(randoms) + j) % len(kinds)])
                            for j, c in enumerate(randoms)]
     return subnets
+
+
+def _shrinking(recipe: SupernetRecipe, step: int) -> bool:
+    """Whether step ``step`` (from 0) trains full widths only (progressive shrinking's first phase)."""
+    return step < recipe.shrink * recipe.steps
 
 
 def _full_width(candidate: Candidate, largest: Candidate) -> Candidate:
@@ -343,7 +348,7 @@ def train_supernet(space: SearchSpace, data: str, recipe: SupernetRecipe = Super
             subnets = _subnets(largest, smallest, space, recipe, step, rng)
             for g in opt.param_groups:
                 g["lr"] = lr_at(lr_cfg, step)
-            shrinking = step < recipe.shrink * recipe.steps   # as _subnets decides
+            shrinking = _shrinking(recipe, step)
             step += 1
             ledger.add(step, _sandwich_step(net, opt, batch, subnets, recipe, accelerator, rank, world), shrinking)
             now = time.perf_counter()
