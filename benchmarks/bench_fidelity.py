@@ -114,6 +114,11 @@ def score_supernet(bench: Bench, prefix: str, est: dict, table: dict) -> None:
     """The rank figures (``*_{prefix}``) of one supernet's estimates over the labelled candidates."""
     est = {c: v for c, v in est.items() if c in table}
     _add_ranks(bench, prefix, prefix.replace("_", " "), est, table)
+    short = [c for c in est if "finalist" in table[c]]
+    if len(short) >= 3:   # whether the estimate orders candidates as a short training does
+        bench.add(bench.figure(f"tau_{prefix}_vs_finalist", f"{prefix.replace('_', ' ')}: Kendall tau against "
+                               "the finalists' recipe", "", None),
+                  rank_figures([est[c] for c in short], [table[c]["finalist"] for c in short])["tau"])
     for kind in (False, True):   # plain and residual heads, where the estimate was seen to part
         sub = [c for c in est if c.exit_residual == kind]
         if len(sub) >= 4:
