@@ -24,6 +24,12 @@ from explorer.model.exits import ExitHead
 #: supernet's weights where the features barely vary (a channel a ReLU keeps at zero, say)
 RIDGE = 1e-4
 
+#: output layers reading more channels keep the supernet's weights: a depth-1 head on the encoder or the
+#: first decoder stages reads hundreds of channels at a coarse stride, where the calibration frames hold
+#: few more distinct feature vectors than the layer has weights (a fit would follow their noise), and
+#: solving for them would cost more than the rest of the evaluation
+MAX_CHANNELS = 64
+
 
 class HeadRefit:
     """The normal equations of ``head``'s output layer, accumulated batch by batch (float64), then solved."""
@@ -31,6 +37,7 @@ class HeadRefit:
     def __init__(self, head: ExitHead) -> None:
         self.head = head
         self.layer = head.layers[-1]
+        self.active = self.layer.in_channels <= MAX_CHANNELS
         n = self.layer.in_channels + 1
         self.gram = torch.zeros(n, n, dtype=torch.float64)
         self.rhs = torch.zeros(n, dtype=torch.float64)
@@ -38,29 +45,37 @@ class HeadRefit:
     def add(self, args: tuple[torch.Tensor, ...], depth: torch.Tensor) -> None:
         """One batch: the head's inputs ``args`` (as its forward takes them) and the depth (N, 1, H, W)
         its output should give (0: no depth)."""
+        if not self.active:
+            return
         with torch.no_grad():
-            basis, scan = self._basis(*args)
-            depth = depth.to(basis.device)
-            valid = (depth > 0)[:, 0]
+            rows_at, cols_at = _grid(depth.shape[2]), _grid(depth.shape[3])
+            basis, scan = self._basis(rows_at, cols_at, *args)
+            depth = depth.to(basis.device)[:, 0][:, rows_at][:, :, cols_at]
             target = depth if scan is None else depth - scan
+            valid = depth > 0
             rows = basis.permute(0, 2, 3, 1)[valid].double()
             rows = torch.cat([rows, torch.ones(len(rows), 1, dtype=rows.dtype, device=rows.device)], 1)
             self.gram += (rows.T @ rows).cpu()
-            self.rhs += (rows.T @ target[:, 0][valid].double()).cpu()
+            self.rhs += (rows.T @ target[valid].double()).cpu()
 
-    def _basis(self, x: torch.Tensor, *extra: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """What the output layer reads, per channel up-sampled as its output would be, and the scan a
-        residual head adds (None for a plain one): ``ExitHead.forward`` up to its output layer."""
+    def _basis(self, rows_at: slice, cols_at: slice, x: torch.Tensor, *extra: torch.Tensor
+               ) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """What the output layer reads, per channel up-sampled as its output would be, at the output
+        pixels ``rows_at`` x ``cols_at`` only, and the scan a residual head adds there (None for a plain
+        one): ``ExitHead.forward`` up to its output layer."""
         head = self.head
         if head.config.lidar_channels:
             x = head.add(x, head.fuse(extra[0]).unsqueeze(2))
         features = head.layers[:-1](x)
-        features = head.resize(head.nearest(features))
-        return features, (extra[-1] if head.config.residual else None)
+        up_rows = _upsampling(head, features.shape[2], "rows", features)[rows_at]
+        up_cols = _upsampling(head, features.shape[3], "cols", features)[cols_at]
+        basis = up_rows @ features.contiguous() @ up_cols.T
+        scan = extra[-1][:, 0][:, rows_at][:, :, cols_at] if head.config.residual else None
+        return basis, scan
 
     def apply(self) -> None:
-        """Sets the output layer to the fit (left as it is without a pixel with depth)."""
-        if self.gram[-1, -1] == 0:
+        """Sets the output layer to the fit (left as it is without a pixel with depth, or too wide)."""
+        if not self.active or self.gram[-1, -1] == 0:
             return
         layer = self.layer
         current = torch.cat([layer.weight.detach().flatten(), layer.bias.detach()]).double().cpu()
@@ -70,6 +85,27 @@ class HeadRefit:
         with torch.no_grad():
             layer.weight.copy_(solution[:-1].view_as(layer.weight))
             layer.bias.fill_(float(solution[-1]))
+
+
+#: the fit reads about this many pixels per frame and side (a regular grid): enough for a few dozen
+#: weights over hundreds of frames, and the output's every pixel would make the refit cost more than
+#: the rest of an evaluation
+GRID = 16
+
+
+def _grid(size: int) -> slice:
+    """The rows (or columns) of an output of ``size`` the fit reads: every k-th, about ``GRID`` of them."""
+    step = max(1, size // GRID)
+    return slice(step // 2, None, step)
+
+
+def _upsampling(head: ExitHead, size: int, axis: str, like: torch.Tensor) -> torch.Tensor:
+    """The head's up-sampling (nearest, then bilinear) along one axis as a matrix (output x ``size``):
+    it is separable, so a constant row (or column) up-samples to the matrix's rows times a constant."""
+    eye = torch.eye(size, dtype=like.dtype, device=like.device)
+    probe = eye.view(size, 1, size, 1) if axis == "rows" else eye.view(size, 1, 1, size)
+    out = head.resize(head.nearest(probe))
+    return (out[:, 0, :, 0] if axis == "rows" else out[:, 0, 0, :]).T
 
 
 @contextmanager
