@@ -15,10 +15,12 @@ recalibration, it uses training frames only and changes no weight another candid
 from __future__ import annotations
 
 from contextlib import contextmanager
+from functools import lru_cache
 
 import torch
 
 from explorer.model.exits import ExitHead
+from explorer.model.ops import Resize
 
 #: ridge weight, relative to the mean diagonal of the normal equations, pulling the fit towards the
 #: supernet's weights where the features barely vary (a channel a ReLU keeps at zero, say)
@@ -30,6 +32,11 @@ RIDGE = 1e-4
 #: solving for them would cost more than the rest of the evaluation
 MAX_CHANNELS = 64
 
+#: the fit reads the first this many calibration frames: with about 256 pixels each, tens of thousands of
+#: rows for at most 65 weights, at a quarter of the cost of all 256 frames (a search evaluates every new
+#: exit head so)
+FRAMES = 64
+
 
 class HeadRefit:
     """The normal equations of ``head``'s output layer, accumulated batch by batch (float64), then solved."""
@@ -38,6 +45,7 @@ class HeadRefit:
         self.head = head
         self.layer = head.layers[-1]
         self.active = self.layer.in_channels <= MAX_CHANNELS
+        self.frames = 0
         n = self.layer.in_channels + 1
         self.gram = torch.zeros(n, n, dtype=torch.float64)
         self.rhs = torch.zeros(n, dtype=torch.float64)
@@ -45,8 +53,9 @@ class HeadRefit:
     def add(self, args: tuple[torch.Tensor, ...], depth: torch.Tensor) -> None:
         """One batch: the head's inputs ``args`` (as its forward takes them) and the depth (N, 1, H, W)
         its output should give (0: no depth)."""
-        if not self.active:
+        if not self.active or self.frames >= FRAMES:
             return
+        self.frames += len(depth)
         with torch.no_grad():
             rows_at, cols_at = _grid(depth.shape[2]), _grid(depth.shape[3])
             basis, scan = self._basis(rows_at, cols_at, *args)
@@ -100,11 +109,19 @@ def _grid(size: int) -> slice:
 
 
 def _upsampling(head: ExitHead, size: int, axis: str, like: torch.Tensor) -> torch.Tensor:
-    """The head's up-sampling (nearest, then bilinear) along one axis as a matrix (output x ``size``):
-    it is separable, so a constant row (or column) up-samples to the matrix's rows times a constant."""
-    eye = torch.eye(size, dtype=like.dtype, device=like.device)
+    """The head's up-sampling (nearest, then bilinear) along one axis as a matrix (output x ``size``)."""
+    return _upsampling_matrix(size, head.nearest.factor, head.resize.factor, head.resize.products, axis,
+                              like.dtype, like.device)
+
+
+@lru_cache(maxsize=256)
+def _upsampling_matrix(size: int, nearest: int, bilinear: int, products: bool, axis: str, dtype: torch.dtype,
+                       device: torch.device) -> torch.Tensor:
+    """Up-sampling is separable: a constant row (or column) up-samples to the matrix's rows times a
+    constant, so up-sampling the unit rows (columns) gives the matrix."""
+    eye = torch.eye(size, dtype=dtype, device=device)
     probe = eye.view(size, 1, size, 1) if axis == "rows" else eye.view(size, 1, 1, size)
-    out = head.resize(head.nearest(probe))
+    out = Resize(bilinear, "bilinear", products)(Resize(nearest, "nearest")(probe))
     return (out[:, 0, :, 0] if axis == "rows" else out[:, 0, 0, :]).T
 
 
