@@ -92,25 +92,22 @@ def estimate(evaluator, cand: Candidate) -> float:
 
 
 def estimates(file: Path, cands: list[Candidate], space: SearchSpace, calibration_images: int = 256,
-              config: SearchConfig | None = None, refit_heads: bool = True) -> dict[Candidate, float]:
+              config: SearchConfig | None = None) -> dict[Candidate, float]:
     """The supernet estimate of every one of ``cands`` in the space, cached per supernet file (its name and
-    size and time: a supernet trained again is estimated again), recalibration frames, head refit
-    (``refit_heads``, as the search's evaluator) and candidate in
+    size and time: a supernet trained again is estimated again), recalibration frames and candidate in
     ``estimates.json`` beside the labels: a benchmark run after the supernet is trained finds them,
     however many labels exist by then."""
     import json
     config = config or SearchConfig(study="fidelity")
     file = Path(file)
     stat = file.stat()
-    tag = f"{file.stem}|{stat.st_size}|{stat.st_mtime_ns}|{calibration_images}|{config.val_limit}" + \
-        ("|refit" if refit_heads else "")
+    tag = f"{file.stem}|{stat.st_size}|{stat.st_mtime_ns}|{calibration_images}|{config.val_limit}"
     cache_file = CACHE_DIR / "estimates.json"
     cache = json.loads(cache_file.read_text()) if cache_file.is_file() else {}
     inside = [c for c in cands if space.contains(c)]
     missing = [c for c in inside if f"{tag}|{c.key}" not in cache]
     if missing:
-        evaluator = supernet_evaluator(file, space, config, calibration_images=calibration_images,
-                                       refit_heads=refit_heads)
+        evaluator = supernet_evaluator(file, space, config, calibration_images=calibration_images)
         new = {f"{tag}|{c.key}": estimate(evaluator, c) for c in missing}
         CACHE_DIR.mkdir(parents=True, exist_ok=True)
         with locked_file(cache_file):

@@ -7,7 +7,7 @@ seed-to-seed tau bounds any of them.
 
     python benchmarks/bench_fidelity.py [--candidates 24] [--supernet-seeds 0,1] [--supernet FILE ...]
         [--supernet-recipe K=V,...] [--compare-recipe head_kinds=cover] [--calibration-sweep 64,1024]
-        [--fine-tune-steps 30] [--compare-no-refit] [--store]
+        [--fine-tune-steps 30] [--store]
     python benchmarks/bench_fidelity.py --labels-only --worker 0   # fill the label cache (several workers may)
 
 Each repetition is one supernet: trained here with each of --supernet-seeds (the search's recipe, cached
@@ -158,10 +158,6 @@ def score_all(bench: Bench, args, space: SearchSpace, config: SearchConfig, cand
             continue
         scored.append(est)
         finalist_gap(bench, "supernet", "supernet", est, table)
-        if args.compare_no_refit:   # the same supernet, its exit heads as trained (the estimate before the refit)
-            plain = estimates(file, cands, space, args.calibration_images, config, refit_heads=False)
-            _add_ranks(bench, "no_refit", "supernet without the head refit", plain, table)
-            finalist_gap(bench, "no_refit", "supernet without the head refit", plain, table)
         for n in sweep:
             _add_ranks(bench, f"calib{n}", f"supernet, BatchNorm recalibrated on {n} frames",
                        {c: v for c, v in estimates(file, cands, space, n, config).items() if c in table}, table)
@@ -213,8 +209,6 @@ def main() -> None:
     ap.add_argument("--compare-seeds", default="0,1", help="seeds of the --compare-recipe supernets")
     ap.add_argument("--calibration-sweep", default="", help="also the scored supernets' figures with these "
                     "BatchNorm recalibration frame counts, e.g. 64,1024")
-    ap.add_argument("--compare-no-refit", action="store_true", help="also score each supernet without the "
-                    "exit heads' refit (figures *_no_refit)")
     ap.add_argument("--fine-tune-steps", type=int, default=0, help="also rank every candidate's slice after "
                     "this many steps of stand-alone training (0: not)")
     ap.add_argument("--fine-tune-lr", type=float, default=0.1, help="with --fine-tune-steps: the fine-tuning's "

@@ -28,7 +28,6 @@ from explorer.metrics import MetricAverager, batch_depth_metrics
 from explorer.model.exits import ExitHead, interpolate_scan
 from explorer.model.image_encoder import ImageEncoder, ImageEncoderConfig
 from explorer.model.network import StageSpec
-from explorer.study._refit import HeadRefit
 from explorer.space import MOBILENET_V1_BLOCKS
 from explorer.training.train import batch_row, image_batch
 
@@ -149,9 +148,8 @@ def _path_metrics(outputs: list[torch.Tensor], depths: list[torch.Tensor]) -> di
 
 
 def _run_stage(module: torch.nn.Module, spec: StageSpec, calibration: list[dict], validation: list[dict],
-               cal_frames: Frames, val_frames: Frames, refit: bool = False) -> _StageResult:
-    """Recalibrates the stage's statistics on the calibration inputs, then runs the validation ones;
-    ``refit``: an exit head's output layer is first fitted to the calibration frames' depth (``_refit``)."""
+               cal_frames: Frames, val_frames: Frames) -> _StageResult:
+    """Recalibrates the stage's statistics on the calibration inputs, then runs the validation ones."""
 
     def call(env: dict, row: int):
         args = [env[n] for n in spec.inputs] + ([row] if spec.uses_scan_row else [])
@@ -165,11 +163,6 @@ def _run_stage(module: torch.nn.Module, spec: StageSpec, calibration: list[dict]
         with recalibrating(module):
             cal_outs = [call(env, row) for env, row in zip(calibration, cal_frames.rows)]
     module.eval()
-    if refit and exit_stage and isinstance(module, ExitHead) and all(d is not None for d in cal_frames.depths):
-        fit = HeadRefit(module)
-        for env, depth in zip(calibration, cal_frames.depths):
-            fit.add(tuple(env[n] for n in spec.inputs), depth)
-        fit.apply()
     with torch.no_grad():
         val_outs = [call(env, row) for env, row in zip(validation, val_frames.rows)]
     if exit_stage:
@@ -178,12 +171,10 @@ def _run_stage(module: torch.nn.Module, spec: StageSpec, calibration: list[dict]
 
 
 def evaluate_stagewise(specs: list[StageSpec], stage_module: Callable[[StageSpec], torch.nn.Module],
-                       encoder: SharedEncoder, cal_frames: Frames, val_frames: Frames, memo: StageMemo,
-                       refit: bool = False) -> pd.DataFrame:
+                       encoder: SharedEncoder, cal_frames: Frames, val_frames: Frames, memo: StageMemo) -> pd.DataFrame:
     """The per-path metrics on the validation frames of the network of stages ``specs``, its statistics
     recalibrated, exactly as :func:`explorer.study.evaluators.recalibrate_batchnorm` then
-    :func:`explorer.training.train.evaluate` would give them (``refit``: with the exit heads refitted, as
-    :func:`explorer.study.evaluators.recalibrate_batchnorm` does), reusing what ``memo`` and ``encoder``
+    :func:`explorer.training.train.evaluate` would give them, reusing what ``memo`` and ``encoder``
     hold. ``stage_module(spec)`` makes a stage's module with its weights, for the stages ``memo``
     lacks: the others are never built."""
     calibration = [{"image": x, "scan": s} for x, s in zip(cal_frames.images, cal_frames.scans)]
@@ -205,7 +196,7 @@ def evaluate_stagewise(specs: list[StageSpec], stage_module: Callable[[StageSpec
         key = (spec.name, spec.config, tuple(keys[n] for n in spec.inputs))
         result = memo.get(key)
         if result is None:
-            result = _run_stage(stage_module(spec), spec, calibration, validation, cal_frames, val_frames, refit)
+            result = _run_stage(stage_module(spec), spec, calibration, validation, cal_frames, val_frames)
             memo.put(key, result)
         for i, name in enumerate(spec.outputs):
             keys[name] = (key, i)

@@ -10,7 +10,6 @@ Both return an :class:`Evaluation`: per-path metrics on the validation set plus 
 from __future__ import annotations
 
 import time
-from contextlib import nullcontext
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
@@ -20,7 +19,6 @@ import torch
 
 from explorer.model import AnytimeDepthNet, build_network
 from explorer.space import Candidate
-from explorer.study._refit import recording_head_inputs, refit_recorded
 from explorer.study._stagewise import (
     Frames,
     SharedEncoder,
@@ -65,16 +63,13 @@ class ProxyEvaluator:
         return Evaluation(result.metrics, info, net, checkpoint)
 
 
-def recalibrate_batchnorm(net: torch.nn.Module, batches: list[dict], refit_heads: bool = False) -> None:
+def recalibrate_batchnorm(net: torch.nn.Module, batches: list[dict]) -> None:
     """Re-estimates every BatchNorm's running statistics as the plain average over ``batches`` (the
-    supernet's statistics mix many subnets); weights are left untouched, except with ``refit_heads``:
-    then each exit head's output layer is fitted to the batches' depth (:mod:`explorer.study._refit`)."""
+    supernet's statistics mix many subnets); weights are left untouched."""
     device = next(net.parameters()).device
-    with recording_head_inputs(net) if refit_heads else nullcontext({}) as record:
-        with recalibrating(net):
-            for b in batches:
-                net(image_batch(b, device), b["scan"].to(device), batch_row(b))
-    refit_recorded(record, [b["depth"] for b in batches])
+    with recalibrating(net):
+        for b in batches:
+            net(image_batch(b, device), b["scan"].to(device), batch_row(b))
 
 
 def _batches(dataset, count: int, batch_size: int) -> list[dict]:
@@ -98,17 +93,13 @@ class SupernetEvaluator:
     stages and exit heads by what they read, up to ``memo_bytes`` of kept outputs); the result is
     the same as recalibrating and evaluating each candidate whole (``stagewise=False``).
     ``require_complete=False`` takes a supernet short of its steps (a search's time limit stopped it).
-    ``batch_size`` (default: 32 frames on a CPU, each frame set whole on a GPU) sets how frames are batched.
-    ``refit_heads`` (the default) fits each exit head's output layer to the candidate on the calibration
-    frames (:mod:`explorer.study._refit`): a shared head fits the average candidate, and without the refit
-    the supernet ranked plain-head candidates too low."""
+    ``batch_size`` (default: 32 frames on a CPU, each frame set whole on a GPU) sets how frames are batched."""
 
     name = "supernet"
 
     def __init__(self, supernet_file: str | Path, space, train_set, val_set, device: torch.device,
                  val_limit: int | None = None, calibration_images: int = 256, batch_size: int | None = None,
-                 stagewise: bool = True, memo_bytes: int = 2 * 2 ** 30, require_complete: bool = True,
-                 refit_heads: bool = True) -> None:
+                 stagewise: bool = True, memo_bytes: int = 2 * 2 ** 30, require_complete: bool = True) -> None:
         self.file = Path(supernet_file)
         self.supernet, state = load_supernet(self.file, space, require_complete)
         self.supernet.to(device).eval()
@@ -119,7 +110,6 @@ class SupernetEvaluator:
         self.calibration = _batches(train_set, calibration_images, batch_size)
         self.validation = _batches(val_set, val_limit or len(val_set), batch_size)
         self.stagewise = stagewise
-        self.refit_heads = refit_heads and all(b.get("depth") is not None for b in self.calibration)
         if stagewise:
             self._frames = Frames.of(self.calibration, device), Frames.of(self.validation, device)
             self.memo = StageMemo(memo_bytes)
@@ -133,20 +123,19 @@ class SupernetEvaluator:
         net = None
         if self.stagewise:
             metrics = evaluate_stagewise(self.supernet.stages_of(candidate), self._stage_module,
-                                         self.shared_encoder(candidate.width_mult), *self._frames, self.memo,
-                                         refit=self.refit_heads)
+                                         self.shared_encoder(candidate.width_mult), *self._frames, self.memo)
         else:
             net = self.network_of(candidate)
             metrics = evaluate(net, self.validation, accelerator=self.device)
         info = {"evaluator": self.name, "seconds": time.perf_counter() - t0, "supernet": str(self.file),
-                "supernet_key": self.key, "refit_heads": self.refit_heads}
+                "supernet_key": self.key}
         return Evaluation(metrics, info, net)
 
     def network_of(self, candidate: Candidate) -> AnytimeDepthNet:
-        """``candidate``'s slice as an ordinary network, BatchNorm recalibrated (and its exit heads refitted):
-        the network whose metrics the evaluation gives."""
+        """``candidate``'s slice as an ordinary network, BatchNorm recalibrated: the network whose metrics
+        the evaluation gives."""
         net = self.supernet.extract(candidate).to(memory_format=torch.channels_last)  # see train.image_batch
-        recalibrate_batchnorm(net, self.calibration, self.refit_heads)
+        recalibrate_batchnorm(net, self.calibration)
         return net.to(memory_format=torch.contiguous_format)
 
     def _stage_module(self, spec) -> torch.nn.Module:

@@ -374,6 +374,5 @@ def _supernet_network(study: optuna.Study, trial: optuna.trial.FrozenTrial):
     calibration = open_dataset(cfg.get("data", "synthetic"), "train", tuple(cfg.get("train_size", (64, 64))),
                                train_augment=False)
     sub = net.extract(Candidate.from_dict(trial.user_attrs["candidate"]))
-    # as the search evaluated it (its exit heads refitted where the evaluation says so)
-    recalibrate_batchnorm(sub, _batches(calibration, 64, 32), bool(trial.user_attrs["evaluator"].get("refit_heads")))
+    recalibrate_batchnorm(sub, _batches(calibration, 64, 32))
     return sub
