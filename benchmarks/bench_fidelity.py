@@ -114,11 +114,14 @@ def score_supernet(bench: Bench, prefix: str, est: dict, table: dict) -> None:
     """The rank figures (``*_{prefix}``) of one supernet's estimates over the labelled candidates."""
     est = {c: v for c, v in est.items() if c in table}
     _add_ranks(bench, prefix, prefix.replace("_", " "), est, table)
-    short = [c for c in est if "finalist" in table[c]]
-    if len(short) >= 3:   # whether the estimate orders candidates as a short training does
-        bench.add(bench.figure(f"tau_{prefix}_vs_finalist", f"{prefix.replace('_', ' ')}: Kendall tau against "
-                               "the finalists' recipe", "", None),
-                  rank_figures([est[c] for c in short], [table[c]["finalist"] for c in short])["tau"])
+    retrained = [c for c in est if "finalist" in table[c]]
+    if len(retrained) >= 3:   # against what a search's report shows beside an estimate: the retrained figure
+        what = prefix.replace("_", " ")
+        bench.add(bench.figure(f"tau_{prefix}_vs_finalist", f"{what}: Kendall tau against the finalists' recipe",
+                               "", None),
+                  rank_figures([est[c] for c in retrained], [table[c]["finalist"] for c in retrained])["tau"])
+        bench.add(bench.figure(f"gap_{prefix}", f"{what}: median |estimate - finalists' recipe| (anytime loss)",
+                               "", "lower"), statistics.median(abs(est[c] - table[c]["finalist"]) for c in retrained))
     for kind in (False, True):   # plain and residual heads, where the estimate was seen to part
         sub = [c for c in est if c.exit_residual == kind]
         if len(sub) >= 4:
@@ -157,7 +160,6 @@ def score_all(bench: Bench, args, space: SearchSpace, config: SearchConfig, cand
         if prefix != "supernet":
             continue
         scored.append(est)
-        finalist_gap(bench, "supernet", "supernet", est, table)
         for n in sweep:
             _add_ranks(bench, f"calib{n}", f"supernet, BatchNorm recalibrated on {n} frames",
                        {c: v for c, v in estimates(file, cands, space, n, config).items() if c in table}, table)
@@ -169,15 +171,6 @@ def score_all(bench: Bench, args, space: SearchSpace, config: SearchConfig, cand
                        f"at {args.fine_tune_lr:g}x the learning rate", tuned, table)
     supernets_agreement(bench, scored, table)
     return recipes
-
-
-def finalist_gap(bench: Bench, prefix: str, what: str, est: dict, table: dict) -> None:
-    """How far the estimate is from what the candidate scores once retrained with the finalists' recipe
-    (the search's retrained figure beside each estimate): median absolute difference of the anytime loss."""
-    gaps = [abs(est[c] - table[c]["finalist"]) for c in est if c in table and "finalist" in table[c]]
-    if gaps:
-        bench.add(bench.figure(f"gap_{prefix}", f"{what}: median |estimate - finalists' recipe| (anytime loss)",
-                               "", "lower"), statistics.median(gaps))
 
 
 def supernets_agreement(bench: Bench, scored: list[dict], table: dict) -> None:
