@@ -110,13 +110,14 @@ def label_figures(bench: Bench, labelled: list, table: dict, per_seed: dict) -> 
             bench.note(f"{name} recipe ranked over {len(have)} candidates")
 
 
-def score_supernet(bench: Bench, prefix: str, est: dict, table: dict) -> None:
-    """The rank figures (``*_{prefix}``) of one supernet's estimates over the labelled candidates."""
+def score_supernet(bench: Bench, prefix: str, est: dict, table: dict, what: str = "") -> None:
+    """The rank figures (``*_{prefix}``) of one supernet's estimates over the labelled candidates,
+    labelled ``what`` (default: the prefix)."""
     est = {c: v for c, v in est.items() if c in table}
-    _add_ranks(bench, prefix, prefix.replace("_", " "), est, table)
+    what = what or prefix.replace("_", " ")
+    _add_ranks(bench, prefix, what, est, table)
     retrained = [c for c in est if "finalist" in table[c]]
     if len(retrained) >= 3:   # against what a search's report shows beside an estimate: the retrained figure
-        what = prefix.replace("_", " ")
         bench.add(bench.figure(f"tau_{prefix}_vs_finalist", f"{what}: Kendall tau against the finalists' recipe",
                                "", None),
                   rank_figures([est[c] for c in retrained], [table[c]["finalist"] for c in retrained])["tau"])
@@ -127,7 +128,7 @@ def score_supernet(bench: Bench, prefix: str, est: dict, table: dict) -> None:
         if len(sub) >= 4:
             t = rank_figures([est[c] for c in sub], [table[c]["long"] for c in sub])["tau"]
             head = "residual" if kind else "plain"
-            bench.add(bench.figure(f"tau_{prefix}_{head}", f"{prefix.replace('_', ' ')}: Kendall tau over {head}-head "
+            bench.add(bench.figure(f"tau_{prefix}_{head}", f"{what}: Kendall tau over {head}-head "
                                    "candidates", "", "higher"), t)
 
 
@@ -155,7 +156,10 @@ def score_all(bench: Bench, args, space: SearchSpace, config: SearchConfig, cand
         bench.note(f"{prefix} {name}: {state['step']} steps, recipe {state['recipe']}, trained in "
                    f"{state['seconds'] / 60:.1f} min; BatchNorm recalibrated on {args.calibration_images} frames")
         est = estimates(file, cands, space, args.calibration_images, config)
-        score_supernet(bench, prefix, est, table)
+        # a compared supernet's figures say what it changes, so that a reader of the record need not
+        # look for it in the command
+        changes = args.compare_recipe if prefix == "compared" and not args.compare else ""
+        score_supernet(bench, prefix, est, table, f"compared ({changes})" if changes else "")
         print_rows(est, table)
         if prefix != "supernet":
             continue
