@@ -7,7 +7,7 @@ seed-to-seed tau bounds any of them.
 
     python benchmarks/bench_fidelity.py [--candidates 24] [--supernet-seeds 0,1] [--supernet FILE ...]
         [--supernet-recipe K=V,...] [--compare-recipe head_kinds=cover] [--calibration-sweep 64,1024]
-        [--fine-tune-steps 30] [--store]
+        [--fine-tune-steps 30] [--predictor] [--store]
     python benchmarks/bench_fidelity.py --labels-only --worker 0   # fill the label cache (several workers may)
 
 Each repetition is one supernet: trained here with each of --supernet-seeds (the search's recipe, cached
@@ -32,7 +32,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _fidelity import (CANDIDATE_SEED, LABEL_SEEDS, estimates, fidelity_candidates,  # noqa: E402
                        fine_tuned_estimate, label_jobs, label_recipes, labels_of, rank_figures, run_label_jobs,
                        supernet_evaluator)
-from _labels import BUDGET  # noqa: E402
+from _labels import BUDGET, cached  # noqa: E402
+from _predictor import median_tau  # noqa: E402
 from harness import ROOT, Bench  # noqa: E402
 
 from explorer.space import SearchSpace  # noqa: E402
@@ -173,8 +174,26 @@ def score_all(bench: Bench, args, space: SearchSpace, config: SearchConfig, cand
                      for c in est if c in table}
             _add_ranks(bench, "fine_tuned", f"supernet slices fine-tuned {args.fine_tune_steps} steps "
                        f"at {args.fine_tune_lr:g}x the learning rate", tuned, table)
+        if args.predictor:
+            evaluator = supernet_evaluator(file, space, config, calibration_images=args.calibration_images)
+            predictor_figures(bench, evaluator, [c for c in est if c in table], table)
     supernets_agreement(bench, scored, table)
     return recipes
+
+
+def predictor_figures(bench: Bench, evaluator, cands: list, table: dict) -> None:
+    """Kendall tau of the supernet's estimate corrected by an accuracy predictor (benchmarks/_predictor.py)
+    fitted on other candidates' finalist-recipe results: 6 of them (what one earlier study retrains: 3
+    finalists, 3 baselines; median of 20 draws) and all the others."""
+    finalist = dataclasses.replace(label_recipes()["finalist"], seed=LABEL_SEEDS[0])
+    retrained = {c: cached(c, finalist)["rmse"] for c in cands if cached(c, finalist)}
+    estimated = {c: [float(x) for x in evaluator(c).metrics["rmse"]] for c in retrained}
+    labels = {c: table[c]["long"] for c in retrained}
+    for count, name, what in ((6, "predictor6", "6 other candidates' (one earlier study's)"),
+                              (len(labels) - 1, "predictor_all", "all the other candidates'")):
+        bench.add(bench.figure(f"tau_{name}", f"supernet corrected by a predictor fitted on {what} finalists' "
+                               "recipe results: Kendall tau against the long labels", "", "higher"),
+                  median_tau(estimated, retrained, labels, count))
 
 
 def supernets_agreement(bench: Bench, scored: list[dict], table: dict) -> None:
@@ -210,6 +229,8 @@ def main() -> None:
                     "this many steps of stand-alone training (0: not)")
     ap.add_argument("--fine-tune-lr", type=float, default=0.1, help="with --fine-tune-steps: the fine-tuning's "
                     "learning rate as a fraction of the search's (default 0.1)")
+    ap.add_argument("--predictor", action="store_true", help="also rank the supernet's estimate corrected by an "
+                    "accuracy predictor fitted on other candidates' finalists' recipe results (held out)")
     ap.add_argument("--label-seeds", default=",".join(map(str, LABEL_SEEDS)), help="seeds of the stand-alone labels")
     ap.add_argument("--cached-labels", action="store_true", help="score with the labels already cached, train none")
     ap.add_argument("--store", action="store_true", help="store the supernets' figures as the package's "
