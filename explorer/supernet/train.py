@@ -75,7 +75,6 @@ class SupernetRecipe:
     amp: bool = False                # bf16 autocast of the forward passes (the GPU recipe's)
     head_kinds: str = "rotate"       # which subnet trains which kind of exit head (see _subnets)
     shrink: float = 0.5              # this fraction of the steps first trains full widths only (see _subnets)
-    ema: float = 0.0                 # decay of an exponential moving average of the weights, evaluated (0: off)
 
     def to_dict(self) -> dict:
         d = dataclasses.asdict(self)
@@ -101,8 +100,6 @@ class SupernetRecipe:
             d.pop("head_kinds")
         if not d["shrink"]:
             d.pop("shrink")
-        if not d["ema"]:
-            d.pop("ema")
         return d
 
 
@@ -129,8 +126,7 @@ CHECKPOINT_SECONDS = 60.0
 
 
 def save(path: Path, net: Supernet, recipe: SupernetRecipe, data: str, step: int,
-         optimizer: torch.optim.Optimizer | None, history: list[dict], seconds: float,
-         average: "_Average | None" = None) -> None:
+         optimizer: torch.optim.Optimizer | None, history: list[dict], seconds: float) -> None:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     state = {"format": FORMAT, "space": space_identity(net.space), "space_key": space_key(net.space),
@@ -138,8 +134,6 @@ def save(path: Path, net: Supernet, recipe: SupernetRecipe, data: str, step: int
              "recipe": recipe.to_dict(), "step": step, "complete": step >= recipe.steps,
              "state_dict": net.state_dict(), "optimizer": optimizer.state_dict() if optimizer else None,
              "history": history, "seconds": seconds}
-    if average is not None:
-        state["ema_state_dict"] = average.state_dict(net)
     remove_dead_scratch(path.parent)   # what a save killed midway left (a supernet is tens of MB)
     tmp = path.with_name(f"{path.name}.tmp{os.getpid()}")
     torch.save(state, tmp)
@@ -182,8 +176,8 @@ def load(path: str | Path, space: SearchSpace | None = None, require_complete: b
     if space is None:
         space = SearchSpace.from_dict(_yaml(state["space_yaml"]), source=str(path))
     net = Supernet(space)
-    try:  # the weights' moving average where the recipe kept one: the weights it evaluates
-        net.load_state_dict(state.get("ema_state_dict") or state["state_dict"])
+    try:
+        net.load_state_dict(state["state_dict"])
     except RuntimeError as exc:
         raise UserError(f"supernet {path}: its tensors do not fit space '{space.name}' "
                         f"({str(exc).splitlines()[0][:100]})") from None
@@ -324,7 +318,6 @@ def train_supernet(space: SearchSpace, data: str, recipe: SupernetRecipe = Super
     net = Supernet(space).to(device=accelerator, memory_format=torch.channels_last)  # see train.image_batch
     opt = adamw(net.parameters(), recipe.lr, recipe.weight_decay)
     step, history, seconds = _resume(out, space, data, recipe, net, opt)
-    average = _Average(net, recipe.ema, out) if recipe.ema else None
     if world > 1:
         _check_same_start(step, out)
     if step >= recipe.steps:
@@ -358,43 +351,20 @@ def train_supernet(space: SearchSpace, data: str, recipe: SupernetRecipe = Super
             shrinking = _shrinking(recipe, step)
             step += 1
             ledger.add(step, _sandwich_step(net, opt, batch, subnets, recipe, accelerator, rank, world), shrinking)
-            if average is not None:
-                average.update(net)
             now = time.perf_counter()
             if (step % checkpoint_every == 0 or now - saved >= checkpoint_seconds) and step < stop and rank == 0:
                 ledger.settle()
-                save(out, net, recipe, data, step, opt, history, seconds + now - t0, average)
+                save(out, net, recipe, data, step, opt, history, seconds + now - t0)
                 saved = time.perf_counter()
         skip = 0
         epoch += 1
     ledger.settle()
     if rank == 0:
-        save(out, net, recipe, data, step, opt, history, seconds + time.perf_counter() - t0, average)
+        save(out, net, recipe, data, step, opt, history, seconds + time.perf_counter() - t0)
     if world > 1:
         import torch.distributed as dist
         dist.barrier()
     return out
-
-
-class _Average:
-    """An exponential moving average of the supernet's parameters (``torch.optim.swa_utils``), resumed
-    from the file ``out`` where it holds one. Its state dict is the network's with the averaged
-    parameters (buffers as trained: BatchNorm statistics are recalibrated per candidate anyway)."""
-
-    def __init__(self, net: Supernet, decay: float, out: Path) -> None:
-        from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
-        self.model = AveragedModel(net, multi_avg_fn=get_ema_multi_avg_fn(decay))
-        saved = read(out).get("ema_state_dict") if out.is_file() else None
-        if saved:
-            self.model.module.load_state_dict(saved)
-            self.model.n_averaged.fill_(1)
-
-    def update(self, net: Supernet) -> None:
-        self.model.update_parameters(net)
-
-    def state_dict(self, net: Supernet) -> dict:
-        averaged = dict(self.model.module.named_parameters())
-        return {k: averaged[k].detach() if k in averaged else v for k, v in net.state_dict().items()}
 
 
 def _check_same_start(step: int, out: Path) -> None:
