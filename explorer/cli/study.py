@@ -291,7 +291,7 @@ def _register_search(add, reports: dict) -> None:
                    "The machine is measured first (seconds); sampling, the finalists' steps (to 2/3), the supernet's "
                    "steps, then the finalists shrink to fit where not given, and the plan is printed")
     s.add_argument("--timeout", type=_duration_s, default=None, help="stop sampling after this long (default 3m: "
-                   "100-500 supernet estimates, by the machine; 0 = none)")
+                   "hundreds to over a thousand supernet estimates on a 2-core CPU, by its speed; 0 = none)")
     s.add_argument("--trials", type=int, default=None, help="stop after this many finished trials")
     s.add_argument("--objectives", default="anytime_loss", help="e.g. anytime_loss,params (NSGA-II)")
     s.add_argument("--metric", default="rmse", choices=["rmse", "mae", "rel"])
