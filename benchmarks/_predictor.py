@@ -10,7 +10,6 @@ estimate comes from a fit that did not see it, so the rank figures are held out.
 from __future__ import annotations
 
 import math
-import statistics
 
 import numpy as np
 from _labels import BUDGET
@@ -21,6 +20,8 @@ from explorer.cost import candidate_cost, get_device
 from explorer.space import Candidate
 
 PATH_KINDS = ("lidar", "encoder3", "encoder5", "exit0", "exit1", "exit2", "exit3", "exit4")
+#: the columns of exit_features: the path kinds, 7 descriptions, the supernet's error, a constant
+FEATURE_COUNT = len(PATH_KINDS) + 9
 RIDGE = 1.0     # the regression's penalty: with a handful of candidates the fit must stay small
 
 
@@ -75,7 +76,3 @@ def held_out_taus(estimated: dict, retrained: dict, labels: dict, train_count: i
             values.append(corrected(c, estimated[c], fit(chosen, estimated, retrained)))
         taus.append(float(kendalltau(values, [labels[c] for c in cands]).statistic))
     return taus
-
-
-def median_tau(*args, **kw) -> float:
-    return statistics.median(held_out_taus(*args, **kw))

@@ -33,7 +33,7 @@ from _fidelity import (CANDIDATE_SEED, LABEL_SEEDS, estimates, fidelity_candidat
                        fine_tuned_estimate, label_jobs, label_recipes, labels_of, rank_figures, run_label_jobs,
                        supernet_evaluator)
 from _labels import BUDGET, cached  # noqa: E402
-from _predictor import median_tau  # noqa: E402
+from _predictor import held_out_taus  # noqa: E402
 from harness import ROOT, Bench  # noqa: E402
 
 from explorer.space import SearchSpace  # noqa: E402
@@ -186,14 +186,15 @@ def predictor_figures(bench: Bench, evaluator, cands: list, table: dict) -> None
     fitted on other candidates' finalist-recipe results: 6 of them (what one earlier study retrains: 3
     finalists, 3 baselines; median of 20 draws) and all the others."""
     finalist = dataclasses.replace(label_recipes()["finalist"], seed=LABEL_SEEDS[0])
-    retrained = {c: cached(c, finalist)["rmse"] for c in cands if cached(c, finalist)}
+    entries = {c: cached(c, finalist) for c in cands}
+    retrained = {c: entry["rmse"] for c, entry in entries.items() if entry}
     estimated = {c: [float(x) for x in evaluator(c).metrics["rmse"]] for c in retrained}
     labels = {c: table[c]["long"] for c in retrained}
     for count, name, what in ((6, "predictor6", "6 other candidates' (one earlier study's)"),
                               (len(labels) - 1, "predictor_all", "all the other candidates'")):
         bench.add(bench.figure(f"tau_{name}", f"supernet corrected by a predictor fitted on {what} finalists' "
                                "recipe results: Kendall tau against the long labels", "", "higher"),
-                  median_tau(estimated, retrained, labels, count))
+                  statistics.median(held_out_taus(estimated, retrained, labels, count)))
 
 
 def supernets_agreement(bench: Bench, scored: list[dict], table: dict) -> None:

@@ -14,7 +14,7 @@ import _predictor  # noqa: E402
 
 from explorer.space import SearchSpace  # noqa: E402
 
-NO_CORRECTION = np.zeros(len(_predictor.PATH_KINDS) + 9)
+NO_CORRECTION = np.zeros(_predictor.FEATURE_COUNT)
 
 
 def _candidates(count=12):
