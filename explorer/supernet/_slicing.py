@@ -20,9 +20,8 @@ from explorer.model.lidar_exit import LidarExitConfig
 from explorer.model.network import StageSpec
 
 
-def slot_of(spec: StageSpec, head_widths: bool = False) -> str:
-    """The supernet module that holds ``spec``'s weights (``head_widths``: an exit head's own per input
-    width)."""
+def slot_of(spec: StageSpec) -> str:
+    """The supernet module that holds ``spec``'s weights."""
     cfg = spec.config
     if isinstance(cfg, ImageEncoderConfig):
         return "image_encoder"
@@ -38,18 +37,17 @@ def slot_of(spec: StageSpec, head_widths: bool = False) -> str:
     if isinstance(cfg, DecoderStageConfig):
         return spec.name
     if isinstance(cfg, ExitHeadConfig):
-        return f"{spec.name}_d{cfg.depth}" + ("_r" if cfg.residual else "") + \
-            (f"_c{cfg.in_channels}" if head_widths else "")
+        return f"{spec.name}_d{cfg.depth}" + ("_r" if cfg.residual else "")
     raise TypeError(f"no supernet slot for stage {spec.name} ({type(cfg).__name__})")
 
 
-def super_name(spec: StageSpec, local: str, head_widths: bool = False) -> str:
+def super_name(spec: StageSpec, local: str) -> str:
     """The supernet tensor name of tensor ``local`` of ``spec``'s module."""
     cfg = spec.config
     if isinstance(cfg, ImageEncoderConfig) and local.startswith("blocks."):
         _, j, rest = local.split(".", 2)
         local = f"blocks.{cfg.start + int(j)}.{rest}"
-    return f"{slot_of(spec, head_widths)}.{local}"
+    return f"{slot_of(spec)}.{local}"
 
 
 def slice_of(spec: StageSpec, local: str, full: torch.Tensor, shape: torch.Size, wide_ecu_channels: int = 0

@@ -93,24 +93,18 @@ def with_head_kind(candidate: Candidate, space: SearchSpace, depth: int, residua
 
 
 class Supernet(nn.Module):
-    def __init__(self, space: SearchSpace, head_widths: bool = False) -> None:
+    def __init__(self, space: SearchSpace) -> None:
         super().__init__()
         self.space = space
-        self.head_widths = head_widths
         self.largest = largest_candidate(space)
         slots: dict[str, nn.Module] = {}
         for depth, residual in itertools.product(sorted(set(space.head_depth)), sorted(set(space.exit_residual))):
             widest = largest_candidate(space, depth, residual)
-            variants = [widest]
-            if head_widths:   # every input width an exit head can have: each its own head
-                variants += [dataclasses.replace(widest, width_mult=w, decoder_widths=d)
-                             for w in space.width_mult for d in itertools.product(*space.decoder_widths)]
             # the whole image encoder in one slot; encoder exits split a candidate's encoder into views of it
-            for cand in variants:
-                for spec in stage_specs(dataclasses.replace(cand, encoder_exits=())) + stage_specs(cand):
-                    slot = slot_of(spec, head_widths)
-                    if slot not in slots and not (isinstance(spec.config, ImageEncoderConfig) and spec.config.start):
-                        slots[slot] = spec.config.build()
+            for spec in stage_specs(dataclasses.replace(widest, encoder_exits=())) + stage_specs(widest):
+                slot = slot_of(spec)
+                if slot not in slots and not (isinstance(spec.config, ImageEncoderConfig) and spec.config.start):
+                    slots[slot] = spec.config.build()
         self.slots = nn.ModuleDict(slots)
         self.ecu_channels = ImageEncoderConfig(self.largest.encoder_blocks, self.largest.width_mult).out_channels()
         self._plans: OrderedDict[Candidate, tuple] = OrderedDict()
@@ -125,15 +119,17 @@ class Supernet(nn.Module):
             raise UserError(f"candidate {candidate.key} is outside the supernet's space '{self.space.name}': "
                             "train a supernet for a space that contains it")
 
-    def _stage_entries(self, spec: StageSpec, module: nn.Module) -> list[tuple]:
+    @staticmethod
+    def _stage_entries(spec: StageSpec, module: nn.Module) -> list[tuple]:
         """Per tensor of stage ``spec``'s ``module``: its key in a network, its name here, its stage,
         local name and shape."""
-        return [(f"stages.{spec.name}.{local}", super_name(spec, local, self.head_widths), spec, local, t.shape)
+        return [(f"stages.{spec.name}.{local}", super_name(spec, local), spec, local, t.shape)
                 for local, t in [*module.named_parameters(), *module.named_buffers()]]
 
-    def _entries(self, network: AnytimeDepthNet) -> list[tuple]:
+    @classmethod
+    def _entries(cls, network: AnytimeDepthNet) -> list[tuple]:
         """``_stage_entries`` of every stage of ``network``."""
-        return [e for spec in network.specs for e in self._stage_entries(spec, network.stages[spec.name])]
+        return [e for spec in network.specs for e in cls._stage_entries(spec, network.stages[spec.name])]
 
     def _plan(self, candidate: Candidate) -> tuple[AnytimeDepthNet, list[tuple]]:
         """A weightless (meta) network of ``candidate`` and, per tensor, where it lives here."""
@@ -222,7 +218,7 @@ class Supernet(nn.Module):
             module = spec.config.build()
         full = self._named_tensors()
         with torch.no_grad():   # load_state_dict copies
-            module.load_state_dict({local: slice_of(spec, local, full[super_name(spec, local, self.head_widths)], t.shape,
+            module.load_state_dict({local: slice_of(spec, local, full[super_name(spec, local)], t.shape,
                                                     self.ecu_channels)
                                     for local, t in module.state_dict().items()})
         return module

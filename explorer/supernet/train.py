@@ -75,7 +75,6 @@ class SupernetRecipe:
     amp: bool = False                # bf16 autocast of the forward passes (the GPU recipe's)
     head_kinds: str = "rotate"       # which subnet trains which kind of exit head (see _subnets)
     shrink: float = 0.5              # this fraction of the steps first trains full widths only (see _subnets)
-    head_widths: bool = False        # an exit head's own weights per input width (not a slice of the widest)
 
     def to_dict(self) -> dict:
         d = dataclasses.asdict(self)
@@ -101,8 +100,6 @@ class SupernetRecipe:
             d.pop("head_kinds")
         if not d["shrink"]:
             d.pop("shrink")
-        if not d["head_widths"]:
-            d.pop("head_widths")
         return d
 
 
@@ -178,7 +175,7 @@ def load(path: str | Path, space: SearchSpace | None = None, require_complete: b
                         f"{state['recipe']['steps']}: run `explorer supernet train` again to finish it")
     if space is None:
         space = SearchSpace.from_dict(_yaml(state["space_yaml"]), source=str(path))
-    net = Supernet(space, SupernetRecipe.from_dict(state["recipe"]).head_widths)
+    net = Supernet(space)
     try:
         net.load_state_dict(state["state_dict"])
     except RuntimeError as exc:
@@ -318,7 +315,7 @@ def train_supernet(space: SearchSpace, data: str, recipe: SupernetRecipe = Super
     if deadline is not None and world > 1:
         raise ValueError("a deadline would stop the processes at different steps: give it to one process only")
     torch.manual_seed(recipe.seed)  # every process starts from the same weights
-    net = Supernet(space, recipe.head_widths).to(device=accelerator, memory_format=torch.channels_last)  # see train.image_batch
+    net = Supernet(space).to(device=accelerator, memory_format=torch.channels_last)  # see train.image_batch
     opt = adamw(net.parameters(), recipe.lr, recipe.weight_decay)
     step, history, seconds = _resume(out, space, data, recipe, net, opt)
     if world > 1:
