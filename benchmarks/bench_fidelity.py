@@ -7,7 +7,7 @@ seed-to-seed tau bounds any of them.
 
     python benchmarks/bench_fidelity.py [--candidates 24] [--supernet-seeds 0,1] [--supernet FILE ...]
         [--supernet-recipe K=V,...] [--compare-recipe head_kinds=cover] [--calibration-sweep 64,1024]
-        [--fine-tune-steps 30] [--predictor] [--store]
+        [--fine-tune-steps 30] [--predictor] [--per-exit] [--store]
     python benchmarks/bench_fidelity.py --labels-only --worker 0   # fill the label cache (several workers may)
 
 Each repetition is one supernet: trained here with each of --supernet-seeds (the search's recipe, cached
@@ -33,6 +33,7 @@ from _fidelity import (CANDIDATE_SEED, LABEL_SEEDS, estimates, fidelity_candidat
                        fine_tuned_estimate, label_jobs, label_recipes, labels_of, rank_figures, run_label_jobs,
                        supernet_evaluator)
 from _labels import BUDGET, cached  # noqa: E402
+from _per_exit import exact_at_taus, path_taus  # noqa: E402
 from _predictor import held_out_taus  # noqa: E402
 from harness import ROOT, Bench  # noqa: E402
 
@@ -174,9 +175,12 @@ def score_all(bench: Bench, args, space: SearchSpace, config: SearchConfig, cand
                      for c in est if c in table}
             _add_ranks(bench, "fine_tuned", f"supernet slices fine-tuned {args.fine_tune_steps} steps "
                        f"at {args.fine_tune_lr:g}x the learning rate", tuned, table)
-        if args.predictor:
+        if args.predictor or args.per_exit:
             evaluator = supernet_evaluator(file, space, config, calibration_images=args.calibration_images)
+        if args.predictor:
             predictor_figures(bench, evaluator, [c for c in est if c in table], table)
+        if args.per_exit:
+            per_exit_figures(bench, evaluator, [c for c in est if c in table], name)
     supernets_agreement(bench, scored, table)
     return recipes
 
@@ -195,6 +199,25 @@ def predictor_figures(bench: Bench, evaluator, cands: list, table: dict) -> None
         bench.add(bench.figure(f"tau_{name}", f"supernet corrected by a predictor fitted on {what} finalists' "
                                "recipe results: Kendall tau against the long labels", "", "higher"),
                   statistics.median(held_out_taus(estimated, retrained, labels, count)))
+
+
+def per_exit_figures(bench: Bench, evaluator, cands: list, name: str) -> None:
+    """Per kind of path (benchmarks/_per_exit.py): the supernet's Kendall tau of that path's error over the
+    candidates with it, and of the anytime loss were the supernet exact at that path alone."""
+    long = label_recipes()["long"]
+    labels = {}
+    for c in cands:
+        entries = [e for e in (cached(c, dataclasses.replace(long, seed=s)) for s in LABEL_SEEDS) if e]
+        labels[c] = [statistics.mean(v) for v in zip(*(e["rmse"] for e in entries))]
+    estimated = {c: [float(x) for x in evaluator(c).metrics["rmse"]] for c in cands}
+    for kind, tau in exact_at_taus(estimated, labels).items():
+        what = "the supernet as it is" if kind == "none" else f"the supernet exact at path {kind}"
+        bench.add(bench.figure(f"tau_exact_{kind}", f"{what}: Kendall tau against the long labels", "", None), tau)
+    for kind, (tau, gap, count) in path_taus(estimated, labels).items():
+        bench.add(bench.figure(f"tau_path_{kind}", f"path {kind}: Kendall tau of its error over the candidates "
+                               "with it", "", None), tau)
+        bench.add(bench.figure(f"gap_path_{kind}", f"path {kind}: mean overestimate of its error", "", None), gap)
+        bench.note(f"{name}: path {kind} on {count} candidates, Kendall tau {tau:.3f}, mean overestimate {gap:+.4f}")
 
 
 def supernets_agreement(bench: Bench, scored: list[dict], table: dict) -> None:
@@ -232,6 +255,8 @@ def main() -> None:
                     "learning rate as a fraction of the search's (default 0.1)")
     ap.add_argument("--predictor", action="store_true", help="also rank the supernet's estimate corrected by an "
                     "accuracy predictor fitted on other candidates' finalists' recipe results (held out)")
+    ap.add_argument("--per-exit", action="store_true", help="also, per kind of path, the supernet's rank figures "
+                    "of its error and of the anytime loss were the supernet exact there (where the ranking is lost)")
     ap.add_argument("--label-seeds", default=",".join(map(str, LABEL_SEEDS)), help="seeds of the stand-alone labels")
     ap.add_argument("--cached-labels", action="store_true", help="score with the labels already cached, train none")
     ap.add_argument("--store", action="store_true", help="store the supernets' figures as the package's "
