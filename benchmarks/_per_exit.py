@@ -31,7 +31,7 @@ def path_taus(estimated: dict, labels: dict, least: int = 4) -> dict[str, tuple[
         truth = _by_kind(cand, labels[cand])
         for kind, value in _by_kind(cand, errors).items():
             pairs.setdefault(kind, []).append((value, truth[kind]))
-    return {kind: (float(kendalltau(*zip(*p)).statistic), sum(e - t for e, t in p) / len(p), len(p))
+    return {kind: (float(kendalltau(*zip(*p)).statistic), float(sum(e - t for e, t in p) / len(p)), len(p))
             for kind, p in pairs.items() if len(p) >= least}
 
 
