@@ -75,7 +75,6 @@ class SupernetRecipe:
     amp: bool = False                # bf16 autocast of the forward passes (the GPU recipe's)
     head_kinds: str = "rotate"       # which subnet trains which kind of exit head (see _subnets)
     shrink: float = 0.5              # this fraction of the steps first trains full widths only (see _subnets)
-    last_exit_weight: float = 1.0    # the last exit's weight in a subnet's loss (the others' is 1)
 
     def to_dict(self) -> dict:
         d = dataclasses.asdict(self)
@@ -101,8 +100,6 @@ class SupernetRecipe:
             d.pop("head_kinds")
         if not d["shrink"]:
             d.pop("shrink")
-        if d["last_exit_weight"] == 1.0:
-            d.pop("last_exit_weight")
         return d
 
 
@@ -223,18 +220,17 @@ def _backend(accelerator: torch.device) -> str:
     return "nccl" if local <= torch.cuda.device_count() else "gloo"
 
 
-def _exits_l1(outs: list[torch.Tensor], target: torch.Tensor, last_weight: float = 1.0) -> torch.Tensor:
-    """``multi_exit_loss`` with equal weights but the last exit's (``last_weight``), without reading each
-    exit's loss back to the host (a wait for the GPU per exit)."""
+def _exits_l1(outs: list[torch.Tensor], target: torch.Tensor) -> torch.Tensor:
+    """``multi_exit_loss`` with equal weights, without reading each exit's loss back to the host (a
+    wait for the GPU per exit)."""
     valid = target > 0
     n = valid.sum().clamp(min=1)
-    weights = [1.0] * (len(outs) - 2) + [last_weight]
-    return sum(w * ((o - target).abs() * valid).sum() / n for w, o in zip(weights, outs[1:])) / sum(weights)
+    return sum(((o - target).abs() * valid).sum() / n for o in outs[1:]) / (len(outs) - 1)
 
 
 def _subnet_loss(outs: list[torch.Tensor], target: torch.Tensor, teacher: torch.Tensor | None,
-                 distill: float, last_weight: float = 1.0) -> torch.Tensor:
-    loss = _exits_l1([o.float() for o in outs], target, last_weight)
+                 distill: float) -> torch.Tensor:
+    loss = _exits_l1([o.float() for o in outs], target)
     if teacher is None or distill <= 0:
         return loss
     soft = sum((o.float() - teacher).abs().mean() for o in outs[1:]) / (len(outs) - 1)
@@ -483,7 +479,7 @@ def _sandwich_step(net: Supernet, opt: torch.optim.Optimizer, batch: dict, subne
         for j, cand in enumerate(subnets):
             with torch.autocast(accelerator.type, dtype=torch.bfloat16, enabled=recipe.amp):
                 outs = net.forward_subnet(cand, image[part], scan[part], row)
-                loss = _subnet_loss(outs, depth[part], teacher, recipe.distill, recipe.last_exit_weight)
+                loss = _subnet_loss(outs, depth[part], teacher, recipe.distill)
             if j == 0:
                 teacher = outs[-1].detach().float()
             (loss / recipe.micro_batches).backward()
