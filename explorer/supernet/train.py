@@ -54,7 +54,7 @@ from explorer.training.train import TrainConfig, adamw, batch_row, lr_at
 
 FORMAT = "anytime-explorer-supernet/1"
 TEACHER_DEPTHS = ("cycle", "max")
-HEAD_KINDS = ("rotate", "cover", "random", "all")
+HEAD_KINDS = ("rotate", "cover", "random")
 
 
 @dataclass(frozen=True)
@@ -272,8 +272,6 @@ def _subnets(largest: Candidate, smallest: Candidate, space: SearchSpace, recipe
         smallest, *randoms = [_full_width(c, largest) for c in [random_training_subnet(space, rng)] + randoms]
     subnets = [_teacher(largest, space, recipe, step), smallest] + randoms
     every = [(d, r) for d in sorted(set(space.head_depth)) for r in sorted(set(space.exit_residual))]
-    if recipe.head_kinds == "all":   # every subnet once per kind: the backbones train under every kind each step
-        return [with_head_kind(c, space, *kind) for c in subnets for kind in every]
     if recipe.head_kinds == "rotate":
         return [with_head_kind(c, space, *every[(step * len(subnets) + j) % len(every)])
                 for j, c in enumerate(subnets)]
