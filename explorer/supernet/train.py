@@ -75,7 +75,6 @@ class SupernetRecipe:
     amp: bool = False                # bf16 autocast of the forward passes (the GPU recipe's)
     head_kinds: str = "rotate"       # which subnet trains which kind of exit head (see _subnets)
     shrink: float = 0.5              # this fraction of the steps first trains full widths only (see _subnets)
-    shrink_upper: float = 0.0        # then this fraction trains the upper half of each width's choices only
 
     def to_dict(self) -> dict:
         d = dataclasses.asdict(self)
@@ -101,8 +100,6 @@ class SupernetRecipe:
             d.pop("head_kinds")
         if not d["shrink"]:
             d.pop("shrink")
-        if not d["shrink_upper"]:
-            d.pop("shrink_upper")
         return d
 
 
@@ -273,9 +270,6 @@ def _subnets(largest: Candidate, smallest: Candidate, space: SearchSpace, recipe
     randoms = [random_training_subnet(space, rng) for _ in range(recipe.random_subnets)]
     if _shrinking(recipe, step):   # progressive shrinking: widths stay full at first
         smallest, *randoms = [_full_width(c, largest) for c in [random_training_subnet(space, rng)] + randoms]
-    elif step < (recipe.shrink + recipe.shrink_upper) * recipe.steps:   # then the wider widths only
-        smallest, *randoms = [_upper_widths(c, space, rng, j == 0)
-                              for j, c in enumerate([smallest] + randoms)]
     subnets = [_teacher(largest, space, recipe, step), smallest] + randoms
     every = [(d, r) for d in sorted(set(space.head_depth)) for r in sorted(set(space.exit_residual))]
     if recipe.head_kinds == "rotate":
@@ -292,20 +286,6 @@ def _subnets(largest: Candidate, smallest: Candidate, space: SearchSpace, recipe
 def _shrinking(recipe: SupernetRecipe, step: int) -> bool:
     """Whether step ``step`` (from 0) trains full widths only (progressive shrinking's first phase)."""
     return step < recipe.shrink * recipe.steps
-
-
-def _upper_widths(candidate: Candidate, space: SearchSpace, rng: random.Random, narrowest: bool) -> Candidate:
-    """``candidate`` with each width drawn from the upper half of the space's choices (the narrowest of
-    them with ``narrowest``)."""
-    def pick(choices):
-        upper = sorted(choices)[len(choices) // 2:]
-        return upper[0] if narrowest else rng.choice(upper)
-    widths = dict(width_mult=pick(space.width_mult), decoder_widths=tuple(pick(c) for c in space.decoder_widths))
-    if candidate.head_depth == 2:
-        widths["head_width"] = pick(space.head_width)
-    if candidate.ecu:
-        widths.update(lidar_width=pick(space.lidar_width), ecu_width=pick(space.ecu_width))
-    return dataclasses.replace(candidate, **widths)
 
 
 def _full_width(candidate: Candidate, largest: Candidate) -> Candidate:
