@@ -175,24 +175,25 @@ def score_all(bench: Bench, args, space: SearchSpace, config: SearchConfig, cand
                      for c in est if c in table}
             _add_ranks(bench, "fine_tuned", f"supernet slices fine-tuned {args.fine_tune_steps} steps "
                        f"at {args.fine_tune_lr:g}x the learning rate", tuned, table)
-        if args.predictor or args.per_exit:
+        if args.predictor or args.per_exit:   # both read the supernet's error at every path
             evaluator = supernet_evaluator(file, space, config, calibration_images=args.calibration_images)
+            per_path = {c: [float(x) for x in evaluator(c).metrics["rmse"]] for c in est if c in table}
         if args.predictor:
-            predictor_figures(bench, evaluator, [c for c in est if c in table], table)
+            predictor_figures(bench, per_path, table)
         if args.per_exit:
-            per_exit_figures(bench, evaluator, [c for c in est if c in table], name)
+            per_exit_figures(bench, per_path, name)
     supernets_agreement(bench, scored, table)
     return recipes
 
 
-def predictor_figures(bench: Bench, evaluator, cands: list, table: dict) -> None:
+def predictor_figures(bench: Bench, per_path: dict, table: dict) -> None:
     """Kendall tau of the supernet's estimate corrected by an accuracy predictor (benchmarks/_predictor.py)
     fitted on other candidates' finalist-recipe results: 6 of them (what one earlier study retrains: 3
     finalists, 3 baselines; median of 20 draws) and all the others."""
     finalist = dataclasses.replace(label_recipes()["finalist"], seed=LABEL_SEEDS[0])
-    entries = {c: cached(c, finalist) for c in cands}
+    entries = {c: cached(c, finalist) for c in per_path}
     retrained = {c: entry["rmse"] for c, entry in entries.items() if entry}
-    estimated = {c: [float(x) for x in evaluator(c).metrics["rmse"]] for c in retrained}
+    estimated = {c: per_path[c] for c in retrained}
     labels = {c: table[c]["long"] for c in retrained}
     for count, name, what in ((6, "predictor6", "6 other candidates' (one earlier study's)"),
                               (len(labels) - 1, "predictor_all", "all the other candidates'")):
@@ -201,15 +202,15 @@ def predictor_figures(bench: Bench, evaluator, cands: list, table: dict) -> None
                   statistics.median(held_out_taus(estimated, retrained, labels, count)))
 
 
-def per_exit_figures(bench: Bench, evaluator, cands: list, name: str) -> None:
+def per_exit_figures(bench: Bench, estimated: dict, name: str) -> None:
     """Per kind of path (benchmarks/_per_exit.py): the supernet's Kendall tau of that path's error over the
-    candidates with it, and of the anytime loss were the supernet exact at that path alone."""
+    candidates with it, and of the anytime loss were the supernet exact at that path alone. ``estimated``:
+    {candidate: the supernet's error at every path}."""
     long = label_recipes()["long"]
     labels = {}
-    for c in cands:
+    for c in estimated:
         entries = [e for e in (cached(c, dataclasses.replace(long, seed=s)) for s in LABEL_SEEDS) if e]
         labels[c] = [statistics.mean(v) for v in zip(*(e["rmse"] for e in entries))]
-    estimated = {c: [float(x) for x in evaluator(c).metrics["rmse"]] for c in cands}
     for kind, tau in exact_at_taus(estimated, labels).items():
         what = "the supernet as it is" if kind == "none" else f"the supernet exact at path {kind}"
         bench.add(bench.figure(f"tau_exact_{kind}", f"{what}: Kendall tau against the long labels", "", None), tau)
