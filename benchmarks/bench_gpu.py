@@ -9,16 +9,19 @@ sampling time spent in the evaluator; and what bf16 autocast does to the superne
     python benchmarks/bench_gpu.py --steps 4 --large-size 64x64 --large-batch 8 --search-seconds 10 \\
         --amp-steps 2 --data synthetic:64:32 --reps 1 --no-record      # a smoke run
 
-Step times are the median over a run's steps after the first two (start-up and warm-up left out), read
-after each step's losses reach the host (so a GPU's queue is drained every step). Utilisation is sampled
-with pynvml where it imports, else nvidia-smi, every 0.1-0.2 s over the timed steps ("n/a" without
-either). On a CUDA device the CPU's step time at the default recipe (on --cpu-threads threads) is
-measured in the same run, for the speed-up. The search trains its small supernet once (not timed), then samples for --search-seconds
-per repetition; its sampling time runs from the first trial's start to the last one's end. Before the
-repetitions, --warmup-steps untimed steps at each recipe and an untimed search let cuDNN build its
-plans for the shapes subnets have: the figures are a long run's steady state. bf16 is
-measured once per run: two supernets trained alike, one under autocast, evaluated in float32 on the
-same validation frames and subnets.
+Step times are the median over a timed run's last --steps steps, after --warmup-steps untimed ones in
+the same run (on a CPU, 3): by then the run's CUDA graphs of its stages are captured and cuDNN has
+its plans, a long run's steady state. Every width trains from the first step (no progressive
+shrinking) so that the untimed steps meet most stage configurations. Step times are read after each
+step's losses reach the host (a GPU's queue is drained every step). On a GPU the default recipe is
+timed with and without CUDA graphs, in turn. Utilisation is sampled with pynvml where it imports,
+else nvidia-smi, every 0.1-0.2 s over the timed steps ("n/a" without either). On a CUDA device the
+CPU's step time at the default recipe (on --cpu-threads threads) is measured in the same run, for the
+speed-up. The search trains its small supernet once (not timed), then samples for --search-seconds
+per repetition; its sampling time runs from the first trial's start to the last one's end. Before
+the repetitions, a few steps at each recipe and an untimed search start the process's CUDA context
+and libraries. bf16 is measured once per run: two supernets trained alike, one under autocast,
+evaluated in float32 on the same validation frames and subnets.
 """
 
 from __future__ import annotations
@@ -101,20 +104,25 @@ def physical_index(index: int) -> int:
 
 # -- supernet training ------------------------------------------------------------------------------
 def train_steps(device: str, size: tuple[int, int], batch: int, steps: int, data: str, amp: bool,
-                util: Utilisation | None = None, out: Path | None = None) -> float:
-    """Median seconds per step of ``steps`` supernet steps on ``device`` (the first two left out; NaN in a
-    torchrun process other than the first, whose progress is not reported)."""
+                util: Utilisation | None = None, out: Path | None = None, warm: int = 2,
+                graphs: bool = True) -> float:
+    """Median seconds per step of the last ``steps`` of ``warm + steps`` supernet steps on ``device``
+    (NaN in a torchrun process other than the first, whose progress is not reported). Every width
+    trains from the first step (no progressive shrinking), so that the untimed ``warm`` steps meet most
+    of the stage configurations a run has: their CUDA graphs (``graphs``) are captured and cuDNN's plans
+    made before the timing, as in a long run's steady state."""
     import torch
     from explorer.space import SearchSpace
     from explorer.supernet import SupernetRecipe, train_supernet
-    recipe = SupernetRecipe(steps=steps, batch_size=batch, input_size=size, amp=amp)
+    recipe = SupernetRecipe(steps=warm + steps, batch_size=batch, input_size=size, amp=amp, shrink=0.0,
+                            cuda_graphs=graphs)
     times: list[float] = []
 
     def progress(step, total, record):
-        if step > 2:
+        if step > warm:
             times.append(record["step_seconds"])
         if util is not None:
-            util.active = step >= 2 and step < total
+            util.active = step >= warm and step < total
     with tempfile.TemporaryDirectory() as tmp:
         train_supernet(SearchSpace.from_yaml("anytime_depth"), data, recipe, out or Path(tmp) / "s.pt",
                        torch.device(device), progress=progress, checkpoint_every=10**9)
@@ -125,18 +133,18 @@ def train_steps(device: str, size: tuple[int, int], batch: int, steps: int, data
 
 def worker(args) -> None:
     """One process of the torchrun comparison: trains, and rank 0 writes its median step time."""
-    seconds = train_steps(args.device, args.size, args.batch, args.steps, args.data, amp=False)
+    seconds = train_steps(args.device, args.size, args.batch, args.steps, args.data, amp=False, warm=args.warmup_steps)
     if int(os.environ.get("RANK", "0")) == 0:
         Path(args.worker).write_text(json.dumps({"step_s": seconds}))
 
 
-def processes_step(device: str, nproc: int, steps: int, data: str) -> float:
+def processes_step(device: str, nproc: int, steps: int, data: str, warm: int) -> float:
     """Median step time of ``nproc`` processes sharing ``device`` at the default recipe (torchrun for 2+)."""
     (size, batch) = DEFAULT
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "times.json"
         script = [str(Path(__file__).resolve()), "--worker", str(out), "--device", device, "--steps", str(steps),
-                  "--data", data, "--size", f"{size[0]}x{size[1]}", "--batch", str(batch)]
+                  "--warmup-steps", str(warm), "--data", data, "--size", f"{size[0]}x{size[1]}", "--batch", str(batch)]
         launch = [sys.executable] + (["-m", "torch.distributed.run", "--standalone", "--nproc_per_node", str(nproc)]
                                      if nproc > 1 else [])
         env = {**os.environ, "PYTHONPATH": str(ROOT)}
@@ -222,8 +230,9 @@ def options(bench: Bench):
     ap.add_argument("--large-size", type=_size, default=LARGE[0], help="the large recipe's size HxW (default 224x224)")
     ap.add_argument("--large-batch", type=int, default=LARGE[1], help="the large recipe's batch (default 64)")
     ap.add_argument("--large-steps", type=int, default=None, help="steps at the large recipe (default --steps)")
-    ap.add_argument("--warmup-steps", type=int, default=20, help="untimed steps at each recipe, and an untimed "
-                    "search, before the repetitions (default 20; 0: none)")
+    ap.add_argument("--warmup-steps", type=int, default=30, help="untimed steps before each timing on the GPU, "
+                    "in the same run (its stage graphs captured, cuDNN's plans made; default 30); the CPU's "
+                    "timings take 3")
     ap.add_argument("--search-seconds", type=float, default=8.0, help="sampling time of each search (default 8)")
     ap.add_argument("--search-supernet-steps", type=int, default=30,
                     help="steps of the search's supernet, trained once before the repetitions (default 30)")
@@ -260,6 +269,12 @@ def declare(bench: Bench, on_gpu: bool) -> None:
     bench.figure("amp_rank_tau", "Kendall tau, bf16 vs float32 supernet rankings", "", better="higher")
     if on_gpu:
         bench.figure("gpu_util_default", "GPU utilisation, default recipe", "%", better="higher")
+        bench.figure("step_s_default_no_graphs", "GPU supernet step, 64x64 batch 16, no CUDA graphs", "s",
+                     better="lower")
+        bench.figure("graphs_speedup_default", "step time without / with CUDA graphs, default recipe", "x",
+                     better="higher")
+        bench.figure("gpu_util_default_no_graphs", "GPU utilisation, default recipe, no CUDA graphs", "%",
+                     better="higher")
         bench.figure("gpu_util_large", "GPU utilisation, large recipe", "%", better="higher")
         bench.figure("cpu_step_s_default", "CPU supernet step on --cpu-threads threads, 64x64 batch 16", "s",
                      better="lower")
@@ -269,22 +284,34 @@ def declare(bench: Bench, on_gpu: bool) -> None:
 def one_repetition(bench: Bench, args, device: str, util: Utilisation | None, rep: int) -> None:
     on_gpu = device == "cuda"
     size, batch = DEFAULT
-    bench.add("step_s_default", train_steps(device, size, batch, args.steps, args.data, False, util))
-    _add_util(bench, "gpu_util_default", util)
+    warm = args.warmup_steps if on_gpu else 3
+
+    def default(graphs: bool) -> float:
+        seconds = train_steps(device, size, batch, args.steps, args.data, False, util, warm=warm, graphs=graphs)
+        _add_util(bench, "gpu_util_default" if graphs else "gpu_util_default_no_graphs", util)
+        return seconds
+    if on_gpu:   # with and without CUDA graphs, in turn (a CPU has no graphs)
+        got = interleave({g: (lambda g=g: default(g)) for g in (True, False)}, rep)
+        bench.add("step_s_default", got[True])
+        bench.add("step_s_default_no_graphs", got[False])
+        bench.add("graphs_speedup_default", got[False] / got[True])
+    else:
+        bench.add("step_s_default", default(False))
     bench.add("step_s_large", train_steps(device, args.large_size, args.large_batch, args.large_steps or args.steps,
-                                          args.data, on_gpu, util))
+                                          args.data, on_gpu, util, warm=warm))
     _add_util(bench, "gpu_util_large", util)
     if on_gpu:
         import torch
         threads = torch.get_num_threads()
         torch.set_num_threads(args.cpu_threads)
         try:
-            cpu = bench.add("cpu_step_s_default", train_steps("cpu", size, batch, args.steps, args.data, False))
+            cpu = bench.add("cpu_step_s_default", train_steps("cpu", size, batch, args.steps, args.data, False, warm=3))
         finally:
             torch.set_num_threads(threads)
         bench.add("gpu_speedup_default", cpu / bench.figures["step_s_default"].reps[-1])
     if not args.no_torchrun:   # in an order that turns over from one repetition to the next
-        got = interleave({n: (lambda n=n: processes_step(device, n, args.steps, args.data)) for n in (1, 2)}, rep)
+        got = interleave({n: (lambda n=n: processes_step(device, n, args.steps, args.data, warm)) for n in (1, 2)},
+                         rep)
         bench.add("step_s_one_process", got[1])
         bench.add("step_s_two_processes", got[2])
         bench.add("two_process_speedup", got[1] / got[2])
@@ -298,10 +325,10 @@ def warm_up(args, device: str) -> None:
     cuDNN builds a plan for each convolution shape it has not seen, and a random subnet's shapes are
     mostly new in a run's first steps (on an H100 those steps took several times a later one)."""
     started = time.perf_counter()
-    train_steps(device, DEFAULT[0], DEFAULT[1], args.warmup_steps, args.data, False)
-    train_steps(device, args.large_size, args.large_batch, args.warmup_steps, args.data, device == "cuda")
+    train_steps(device, DEFAULT[0], DEFAULT[1], 3, args.data, False)
+    train_steps(device, args.large_size, args.large_batch, 3, args.data, device == "cuda")
     search_rate(device, args.data, args.search_seconds, args.search_supernet_steps)
-    print(f"warm-up: {args.warmup_steps} steps a recipe and a search, {time.perf_counter() - started:.0f} s",
+    print(f"warm-up: a few steps a recipe and a search, {time.perf_counter() - started:.0f} s",
           flush=True)
 
 

@@ -139,7 +139,7 @@ def supernet_recipe(args):
         changes["lr_end"] = args.lr / 10
     return dataclasses.replace(RECIPES[args.recipe], **changes, random_subnets=args.random_subnets,
                                micro_batches=args.micro_batches, seed=args.seed, teacher_depths=args.teacher_depths,
-                               head_kinds=args.head_kinds, distill=args.distill)
+                               head_kinds=args.head_kinds, distill=args.distill, cuda_graphs=args.cuda_graphs)
 
 
 def _supernet_status(record: dict) -> str:
@@ -246,6 +246,9 @@ def _register_supernet(sp) -> None:
                    "ranked stand-alone results better without it)")
     s.add_argument("--micro-batches", type=int, default=1, help="split each process's batch (gradient "
                    "accumulation; BatchNorm statistics per micro-batch)")
+    s.add_argument("--cuda-graphs", action=argparse.BooleanOptionalAction, default=True,
+                   help="on a GPU, replay each stage from a CUDA graph, captured the first time a subnet has it "
+                   "(default: on; the same updates, launched at once instead of kernel by kernel)")
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--accelerator", default="auto", choices=["auto", "cpu", "cuda"])
     s.add_argument("--out", help="supernet file to write (default: a file in the cache, where searches find it); "

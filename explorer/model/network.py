@@ -4,7 +4,7 @@ including exit head i has run; the same list drives training, costing, export an
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from typing import Hashable, Mapping
+from typing import Callable, Hashable, Mapping, Sequence
 
 import torch
 from torch import nn
@@ -119,6 +119,10 @@ def stage_specs(candidate: Candidate, paper_graph: bool = False) -> list[StageSp
     return specs
 
 
+#: runs a stage in its module's place: (spec, module, tensor inputs, scan row) -> outputs
+StageCall = Callable[[StageSpec, nn.Module, list[torch.Tensor], int], Sequence[torch.Tensor]]
+
+
 class AnytimeDepthNet(nn.Module):
     """``forward(image, scan, scan_row=None)`` returns the depth maps of paths 0..K, each
     (N, 1, H, W) metres. ``image`` is (N, 3, H, W) RGB in [0, 1], H and W divisible by the stride;
@@ -148,22 +152,26 @@ class AnytimeDepthNet(nn.Module):
         if scan.shape != (image.shape[0], w):
             raise ValueError(f"scan must be (N, W) = ({image.shape[0]}, {w}), got {tuple(scan.shape)}")
 
-    def run_stage(self, spec: StageSpec, env: dict[str, torch.Tensor], scan_row: int) -> None:
+    def run_stage(self, spec: StageSpec, env: dict[str, torch.Tensor], scan_row: int,
+                  call_stage: StageCall | None = None) -> None:
         args = [env[name] for name in spec.inputs]
-        if spec.uses_scan_row:
-            args.append(scan_row)
-        out = self.stages[spec.name](*args)
-        outs = out if isinstance(out, tuple) else (out,)
+        if call_stage is not None:
+            outs = tuple(call_stage(spec, self.stages[spec.name], args, scan_row))
+        else:
+            out = self.stages[spec.name](*args, *((scan_row,) if spec.uses_scan_row else ()))
+            outs = out if isinstance(out, tuple) else (out,)
         env.update(zip(spec.outputs, outs))
 
-    def forward(self, image: torch.Tensor, scan: torch.Tensor,
-                scan_row: int | None = None) -> list[torch.Tensor]:
+    def forward(self, image: torch.Tensor, scan: torch.Tensor, scan_row: int | None = None,
+                call_stage: StageCall | None = None) -> list[torch.Tensor]:
+        """``call_stage(spec, module, tensor inputs, scan_row)``, where given, runs each stage in the
+        module's place and returns its outputs as a sequence (a supernet's CUDA graphs do)."""
         self.check_input(image, scan)
         scan_row = image.shape[2] // 2 if scan_row is None else int(scan_row)
         env: dict[str, torch.Tensor] = {"image": image, "scan": scan}
         depths = [interpolate_scan(scan, image.shape[2])]
         for spec in self.specs:
-            self.run_stage(spec, env, scan_row)
+            self.run_stage(spec, env, scan_row, call_stage)
             if spec.path is not None:
                 depths.append(env[spec.outputs[0]])
         return depths

@@ -26,6 +26,7 @@ from explorer.model import AnytimeDepthNet, build_network, stage_specs
 from explorer.model.image_encoder import ImageEncoder, ImageEncoderConfig
 from explorer.model.network import StageSpec
 from explorer.space import Candidate, SearchSpace
+from explorer.supernet._graphs import StageGraphs
 from explorer.supernet._slicing import slice_of, slot_of, super_name
 
 
@@ -177,16 +178,39 @@ class Supernet(nn.Module):
         return super()._apply(fn, *args, **kwargs)
 
     def forward_subnet(self, candidate: Candidate, image: torch.Tensor, scan: torch.Tensor,
-                       scan_row: int | None = None) -> list[torch.Tensor]:
-        """``candidate``'s forward pass on this supernet's weights (differentiable, no copies)."""
+                       scan_row: int | None = None, graphs: StageGraphs | None = None) -> list[torch.Tensor]:
+        """``candidate``'s forward pass on this supernet's weights (differentiable, no copies);
+        ``graphs``: each stage replayed from its CUDA graph (``explorer.supernet._graphs``)."""
         template, _ = self._plan(candidate)
         for stage in template.stages.values():   # a stage module's mode is its children's: train() sets both
             if stage.training != self.training:
                 stage.train(self.training)
+        if graphs is not None:
+            return template(image, scan, scan_row, call_stage=lambda *a: self._graphed_stage(graphs, *a))
         # tie_weights=False: a template holds no module twice (see _stage_plan), so there is nothing to
         # untie, and looking for it walked every module of the template at every call
         return functional_call(template, self.subnet_tensors(candidate), (image, scan, scan_row),
                                tie_weights=False)
+
+    def _graphed_stage(self, graphs: StageGraphs, spec: StageSpec, module: nn.Module, args: list[torch.Tensor],
+                       scan_row: int) -> list[torch.Tensor]:
+        """Stage ``spec`` (its weightless ``module``) on ``args``, replayed from its graph in ``graphs``."""
+        _, entries = self._stage_plan(spec)
+        full = self._named_tensors()
+        tensors = [full[name] for _, name, _, _, _ in entries]
+        params = [t for t in tensors if t.requires_grad]
+        if not params:   # nothing to train (path 0 as a stage): a graph would save nothing worth its memory
+            return [module(*args)]
+        row = (scan_row,) if spec.uses_scan_row else ()
+
+        def run(*inputs: torch.Tensor) -> tuple[torch.Tensor, ...]:
+            views = {local: slice_of(spec, local, full[name], shape, self.ecu_channels)
+                     for _, name, _, local, shape in entries}
+            out = functional_call(module, views, (*inputs, *row), tie_weights=False)
+            return out if isinstance(out, tuple) else (out,)
+        key = (spec.name, spec.config, row, module.training)
+        buffers = [t for t in tensors if not t.requires_grad]
+        return graphs.run(key, run, args, params, buffers)
 
     def forward(self, image: torch.Tensor, scan: torch.Tensor, scan_row: int | None = None) -> list[torch.Tensor]:
         return self.forward_subnet(self.largest, image, scan, scan_row)

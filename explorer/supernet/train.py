@@ -41,6 +41,7 @@ from explorer.data.synthetic import cache_dir
 from explorer.errors import UserError
 from explorer.files import remove_dead_scratch
 from explorer.space import Candidate, SearchSpace, check_size
+from explorer.supernet._graphs import StageGraphs
 from explorer.supernet.network import (
     Supernet,
     largest_candidate,
@@ -75,6 +76,7 @@ class SupernetRecipe:
     amp: bool = False                # bf16 autocast of the forward passes (the GPU recipe's)
     head_kinds: str = "rotate"       # which subnet trains which kind of exit head (see _subnets)
     shrink: float = 0.5              # this fraction of the steps first trains full widths only (see _subnets)
+    cuda_graphs: bool = True         # on CUDA, each stage replayed from a CUDA graph (supernet/_graphs.py)
 
     def to_dict(self) -> dict:
         d = dataclasses.asdict(self)
@@ -94,6 +96,7 @@ class SupernetRecipe:
         """What changes the trained weights' meaning (how the work is spread does not)."""
         d = self.to_dict()
         d.pop("micro_batches")
+        d.pop("cuda_graphs")
         if not d["amp"]:     # files and caches made before the field keep their keys
             d.pop("amp")
         if d["head_kinds"] == "random":
@@ -333,6 +336,7 @@ def train_supernet(space: SearchSpace, data: str, recipe: SupernetRecipe = Super
     epoch, t0 = step // len(loader), time.perf_counter()
     saved = t0
     ledger = _Ledger(history, progress if rank == 0 else None, recipe.steps, accelerator)
+    graphs = StageGraphs() if recipe.cuda_graphs and accelerator.type == "cuda" else None
     skip = step % len(loader)  # resume mid-epoch on the batches that were not seen
     while step < stop:
         train_set.epoch = epoch
@@ -350,7 +354,8 @@ def train_supernet(space: SearchSpace, data: str, recipe: SupernetRecipe = Super
                 g["lr"] = lr_at(lr_cfg, step)
             shrinking = _shrinking(recipe, step)
             step += 1
-            ledger.add(step, _sandwich_step(net, opt, batch, subnets, recipe, accelerator, rank, world), shrinking)
+            ledger.add(step, _sandwich_step(net, opt, batch, subnets, recipe, accelerator, rank, world, graphs),
+                       shrinking)
             now = time.perf_counter()
             if (step % checkpoint_every == 0 or now - saved >= checkpoint_seconds) and step < stop and rank == 0:
                 ledger.settle()
@@ -458,12 +463,14 @@ def _resume(out: Path, space: SearchSpace, data: str, recipe: SupernetRecipe, ne
 
 
 def _sandwich_step(net: Supernet, opt: torch.optim.Optimizer, batch: dict, subnets: list[Candidate],
-                   recipe: SupernetRecipe, accelerator: torch.device, rank: int, world: int) -> torch.Tensor:
+                   recipe: SupernetRecipe, accelerator: torch.device, rank: int, world: int,
+                   graphs: StageGraphs | None = None) -> torch.Tensor:
     """One optimizer step on process ``rank``'s share of ``batch``: every subnet's gradients summed
     (and averaged over the ``world`` processes), the first subnet's last exit distilled into the
     others; the subnets' losses, left on the device (no wait for the GPU here: :class:`_Ledger` reads
     them once the next step is queued); ``recipe.amp`` runs the forward passes under bf16 autocast (no
-    loss scaling: bf16 has float32's range)."""
+    loss scaling: bf16 has float32's range); ``graphs``: the stages replayed from CUDA graphs (autocast's
+    weight cache off: a graph must not keep a cast copy from its capture)."""
     per_rank = recipe.batch_size // world
     net.train()
     opt.zero_grad(set_to_none=True)
@@ -477,16 +484,21 @@ def _sandwich_step(net: Supernet, opt: torch.optim.Optimizer, batch: dict, subne
         part = slice(chunk * per_rank // recipe.micro_batches, (chunk + 1) * per_rank // recipe.micro_batches)
         teacher = None
         for j, cand in enumerate(subnets):
-            with torch.autocast(accelerator.type, dtype=torch.bfloat16, enabled=recipe.amp):
-                outs = net.forward_subnet(cand, image[part], scan[part], row)
+            with torch.autocast(accelerator.type, dtype=torch.bfloat16, enabled=recipe.amp,
+                                cache_enabled=graphs is None):
+                outs = net.forward_subnet(cand, image[part], scan[part], row, graphs)
                 loss = _subnet_loss(outs, depth[part], teacher, recipe.distill)
-            if j == 0:
-                teacher = outs[-1].detach().float()
+            if j == 0 and recipe.distill > 0:   # a copy: a graph's output is overwritten by its next replay
+                teacher = outs[-1].detach().float().clone()
             (loss / recipe.micro_batches).backward()
             losses[j] += loss.detach().double() / recipe.micro_batches
+    if graphs is not None:
+        graphs.gradients_to()
     if world > 1:
         _average_gradients(net, world)
     opt.step()
+    if graphs is not None:
+        graphs.clear()
     return losses
 
 
