@@ -226,13 +226,13 @@ def options(bench: Bench):
     ap = bench.parser()
     ap.add_argument("--device", default="auto", choices=["auto", "cuda", "cpu"],
                     help="where to train and search (default: CUDA where PyTorch sees a GPU, else the CPU)")
-    ap.add_argument("--steps", type=int, default=10, help="supernet steps per timing (default 10)")
+    ap.add_argument("--steps", type=int, default=20, help="timed supernet steps per timing (default 20)")
     ap.add_argument("--large-size", type=_size, default=LARGE[0], help="the large recipe's size HxW (default 224x224)")
     ap.add_argument("--large-batch", type=int, default=LARGE[1], help="the large recipe's batch (default 64)")
     ap.add_argument("--large-steps", type=int, default=None, help="steps at the large recipe (default --steps)")
-    ap.add_argument("--warmup-steps", type=int, default=30, help="untimed steps before each timing on the GPU, "
-                    "in the same run (its stage graphs captured, cuDNN's plans made; default 30); the CPU's "
-                    "timings take 3")
+    ap.add_argument("--warmup-steps", type=int, default=60, help="untimed steps before each timing on the GPU, "
+                    "in the same run (its stage graphs captured, cuDNN's plans made; default 60); the CPU's "
+                    "timings take 3, the torchrun comparison's at most 10")
     ap.add_argument("--search-seconds", type=float, default=8.0, help="sampling time of each search (default 8)")
     ap.add_argument("--search-supernet-steps", type=int, default=30,
                     help="steps of the search's supernet, trained once before the repetitions (default 30)")
@@ -310,8 +310,8 @@ def one_repetition(bench: Bench, args, device: str, util: Utilisation | None, re
             torch.set_num_threads(threads)
         bench.add("gpu_speedup_default", cpu / bench.figures["step_s_default"].reps[-1])
     if not args.no_torchrun:   # in an order that turns over from one repetition to the next
-        got = interleave({n: (lambda n=n: processes_step(device, n, args.steps, args.data, warm)) for n in (1, 2)},
-                         rep)
+        got = interleave({n: (lambda n=n: processes_step(device, n, args.steps, args.data, min(warm, 10)))
+                          for n in (1, 2)}, rep)
         bench.add("step_s_one_process", got[1])
         bench.add("step_s_two_processes", got[2])
         bench.add("two_process_speedup", got[1] / got[2])

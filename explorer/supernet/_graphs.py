@@ -140,21 +140,21 @@ class _nothing:
 
 
 class _Replay(torch.autograd.Function):
-    """A stage's graph as one autograd node. The params come in only so that the outputs require
-    grad even where no input does (the first stage): their gradients go to the accumulators."""
+    """A stage's graph as one autograd node. One of the stage's params comes in (``anchor``) only so
+    that the outputs require grad even where no input does (the first stage): the params' gradients go
+    to the accumulators, not through autograd."""
 
     @staticmethod
-    def forward(ctx, graph: _StageGraph, n_inputs: int, *tensors: torch.Tensor):
-        ctx.graph, ctx.n_inputs, ctx.n_params = graph, n_inputs, len(tensors) - n_inputs
-        ctx.grad_inputs = [x.requires_grad for x in tensors[:n_inputs]]
-        return tuple(graph.forward(tensors[:n_inputs]))
+    def forward(ctx, graph: _StageGraph, anchor: torch.Tensor, *inputs: torch.Tensor):
+        ctx.graph = graph
+        ctx.grad_inputs = [x.requires_grad for x in inputs]
+        return tuple(graph.forward(inputs))
 
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, *grads: torch.Tensor):
         got = iter(ctx.graph.backward(grads))
-        inputs = [next(got) if needs else None for needs in ctx.grad_inputs]
-        return (None, None, *inputs, *([None] * ctx.n_params))
+        return (None, None, *[next(got) if needs else None for needs in ctx.grad_inputs])
 
 
 class StageGraphs:
@@ -197,7 +197,7 @@ class StageGraphs:
         self.graphs.move_to_end(key)
         for p in graph.used:
             self._touched[id(p)] = p
-        return list(_Replay.apply(graph, len(inputs), *inputs, *params))
+        return list(_Replay.apply(graph, params[0], *inputs))
 
     def _make_room(self) -> None:
         """Before a capture on a GPU with under a quarter of its memory free, the least recently used

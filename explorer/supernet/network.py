@@ -111,6 +111,7 @@ class Supernet(nn.Module):
         self._plans: OrderedDict[Candidate, tuple] = OrderedDict()
         self._stage_plans: dict[tuple[str, object], tuple[nn.Module, list[tuple]]] = {}
         self._tensors: dict[str, torch.Tensor] | None = None   # by name; see _named_tensors
+        self._graph_stages: dict[tuple, tuple] = {}   # see _graph_stage
 
     # -- candidates as views ------------------------------------------------------------------------
     def _check_contains(self, candidate: Candidate) -> None:
@@ -175,6 +176,7 @@ class Supernet(nn.Module):
 
     def _apply(self, fn, *args, **kwargs):
         self._tensors = None
+        self._graph_stages = {}
         return super()._apply(fn, *args, **kwargs)
 
     def forward_subnet(self, candidate: Candidate, image: torch.Tensor, scan: torch.Tensor,
@@ -195,22 +197,28 @@ class Supernet(nn.Module):
     def _graphed_stage(self, graphs: StageGraphs, spec: StageSpec, module: nn.Module, args: list[torch.Tensor],
                        scan_row: int) -> list[torch.Tensor]:
         """Stage ``spec`` (its weightless ``module``) on ``args``, replayed from its graph in ``graphs``."""
+        row = (scan_row,) if spec.uses_scan_row else ()
+        key = (spec.name, spec.config, row, module.training)
+        if key not in self._graph_stages:
+            self._graph_stages[key] = self._graph_stage(spec, module, row)
+        run, params, buffers = self._graph_stages[key]
+        if not params:   # nothing to train (path 0 as a stage): a graph would save nothing worth its memory
+            return [module(*args, *row)]
+        return graphs.run(key, run, args, params, buffers)
+
+    def _graph_stage(self, spec: StageSpec, module: nn.Module, row: tuple) -> tuple:
+        """(the function a graph of stage ``spec`` captures, the params it reads, the buffers it changes):
+        looked up once per stage, as the graph itself is (a step runs some fifty stages)."""
         _, entries = self._stage_plan(spec)
         full = self._named_tensors()
         tensors = [full[name] for _, name, _, _, _ in entries]
-        params = [t for t in tensors if t.requires_grad]
-        if not params:   # nothing to train (path 0 as a stage): a graph would save nothing worth its memory
-            return [module(*args)]
-        row = (scan_row,) if spec.uses_scan_row else ()
 
         def run(*inputs: torch.Tensor) -> tuple[torch.Tensor, ...]:
             views = {local: slice_of(spec, local, full[name], shape, self.ecu_channels)
                      for _, name, _, local, shape in entries}
             out = functional_call(module, views, (*inputs, *row), tie_weights=False)
             return out if isinstance(out, tuple) else (out,)
-        key = (spec.name, spec.config, row, module.training)
-        buffers = [t for t in tensors if not t.requires_grad]
-        return graphs.run(key, run, args, params, buffers)
+        return run, [t for t in tensors if t.requires_grad], [t for t in tensors if not t.requires_grad]
 
     def forward(self, image: torch.Tensor, scan: torch.Tensor, scan_row: int | None = None) -> list[torch.Tensor]:
         return self.forward_subnet(self.largest, image, scan, scan_row)

@@ -225,15 +225,17 @@ def _backend(accelerator: torch.device) -> str:
 
 def _exits_l1(outs: list[torch.Tensor], target: torch.Tensor) -> torch.Tensor:
     """``multi_exit_loss`` with equal weights, without reading each exit's loss back to the host (a
-    wait for the GPU per exit)."""
+    wait for the GPU per exit), over the exits stacked (every exit is at full resolution): a handful of
+    kernels whatever the number of exits."""
     valid = target > 0
     n = valid.sum().clamp(min=1)
-    return sum(((o - target).abs() * valid).sum() / n for o in outs[1:]) / (len(outs) - 1)
+    stacked = torch.stack(outs[1:]).float()
+    return torch.where(valid, (stacked - target).abs(), 0.0).sum() / (n * (len(outs) - 1))
 
 
 def _subnet_loss(outs: list[torch.Tensor], target: torch.Tensor, teacher: torch.Tensor | None,
                  distill: float) -> torch.Tensor:
-    loss = _exits_l1([o.float() for o in outs], target)
+    loss = _exits_l1(outs, target)
     if teacher is None or distill <= 0:
         return loss
     soft = sum((o.float() - teacher).abs().mean() for o in outs[1:]) / (len(outs) - 1)
@@ -472,7 +474,8 @@ def _sandwich_step(net: Supernet, opt: torch.optim.Optimizer, batch: dict, subne
     loss scaling: bf16 has float32's range); ``graphs``: the stages replayed from CUDA graphs (autocast's
     weight cache off: a graph must not keep a cast copy from its capture)."""
     per_rank = recipe.batch_size // world
-    net.train()
+    if not net.training:   # train() walks every module of the supernet: a step's worth of host time on a GPU
+        net.train()
     opt.zero_grad(set_to_none=True)
     lo = rank * per_rank
     image, scan, depth = (batch[k][lo:lo + per_rank].to(accelerator, non_blocking=True)
