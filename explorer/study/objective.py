@@ -17,6 +17,7 @@ from explorer.space import Candidate, SearchSpace
 from explorer.study.config import SearchConfig, baseline_model, json_safe
 from explorer.study.evaluators import ProxyEvaluator, SupernetEvaluator
 from explorer.study.results import compact_workloads
+from explorer.study.sampling import unseen
 from explorer.supernet import default_path
 from explorer.training.depth_hints import with_hints
 from explorer.training.train import Pruned, resolve_accelerator
@@ -28,6 +29,28 @@ def hinted_if_asked(config: SearchConfig, train_set, progress: Callable[[int, in
     if not config.hints:
         return train_set
     return with_hints(train_set, progress=progress)
+
+
+class FinishedTwins:
+    """The first complete trial that evaluated each candidate (not a baseline or a finalist's
+    retraining): what a trial reuses when the sampler proposes a candidate again. The index is kept up
+    to date with the new complete trials only (a finished trial no longer changes), so a look-up costs
+    the same at trial 100 and at trial 10,000 (benchmarks/bench_long_study.py)."""
+
+    def __init__(self) -> None:
+        self._first: dict[str, optuna.trial.FrozenTrial] = {}
+        self._indexed: set[int] = set()
+
+    def find(self, study: optuna.Study, key: str) -> optuna.trial.FrozenTrial | None:
+        complete = study.get_trials(deepcopy=False, states=(optuna.trial.TrialState.COMPLETE,))
+        for t in unseen(complete, self._indexed):
+            self._indexed.add(t.number)
+            if not t.user_attrs.get("baseline") and "path_metrics" in t.user_attrs and \
+                    "finalist" not in t.user_attrs:
+                first = self._first.setdefault(t.user_attrs.get("candidate_key"), t)
+                if t.number < first.number:   # an earlier trial that finished later
+                    self._first[t.user_attrs.get("candidate_key")] = t
+        return self._first.get(key)
 
 
 class Objective:
@@ -53,6 +76,7 @@ class Objective:
         else:
             self.evaluator = ProxyEvaluator(self.train_set, self.val_set, self.train_cfg, self.torch_device,
                                             val_limit=config.val_limit, seed=config.seed)
+        self.twins = FinishedTwins()
         self.artifacts = None
         if config.keep_weights and study_path is not None:
             from optuna.artifacts import FileSystemArtifactStore
@@ -107,7 +131,7 @@ class Objective:
             if reason:
                 trial.set_user_attr("rejected", reason)
                 raise optuna.TrialPruned(reason)
-            done = self._finished_twin(trial, candidate.key)
+            done = self.twins.find(trial.study, candidate.key)
             if done is not None:
                 # the sampler proposed a candidate already evaluated: reuse what was paid for
                 for key in ("path_metrics", "train", "losses", "weights_artifact", "evaluator", "path_metrics_fp32",
@@ -169,14 +193,6 @@ class Objective:
         trial.set_user_attr("quantization", json_safe({k: effect[k] for k in ("rmse_degradation", "frames")}))
         return [{k: v * r.get(k, 1.0) if isinstance(v, (int, float)) else v for k, v in m.items()}
                 for m, r in zip(path_metrics, effect["ratios"])]
-
-    @staticmethod
-    def _finished_twin(trial: optuna.Trial, key: str) -> optuna.trial.FrozenTrial | None:
-        for t in trial.study.get_trials(deepcopy=False, states=(optuna.trial.TrialState.COMPLETE,)):
-            if t.user_attrs.get("candidate_key") == key and not t.user_attrs.get("baseline") and \
-                    "path_metrics" in t.user_attrs and "finalist" not in t.user_attrs:
-                return t
-        return None
 
     def _rejection(self, pm, latency) -> str:
         cfg = self.config

@@ -24,6 +24,21 @@ KEEP_BEST = 25
 FINISHED = (TrialState.COMPLETE, TrialState.PRUNED)
 
 
+def unseen(trials: Sequence[FrozenTrial], seen: set[int]) -> list[FrozenTrial]:
+    """The trials of ``trials`` whose numbers are not in ``seen``, in order. ``trials`` are finished
+    trials in order of number (a study's, which only grow) and ``seen`` holds numbers of some of them, so
+    as many are new as the counts differ: they are looked for from the end, where trials finish, and a
+    search of thousands of trials does not walk them all at every trial."""
+    missing = len(trials) - len(seen)
+    new: list[FrozenTrial] = []
+    for t in reversed(trials):
+        if len(new) >= missing:
+            break
+        if t.number not in seen:
+            new.append(t)
+    return new[::-1]
+
+
 class RecentTrialsTPE(optuna.samplers.BaseSampler):
     """A ``TPESampler(**tpe_options)`` asked about the best ``KEEP_BEST`` finished trials and the latest
     ones, between ``window`` and ``2 * window`` trials in all (the view is extended by each new trial
@@ -54,7 +69,7 @@ class RecentTrialsTPE(optuna.samplers.BaseSampler):
     def view(self, study: optuna.Study) -> optuna.Study:
         """The study TPE reads: an in-memory copy of the trials it needs (parameters, values, state)."""
         finished = study.get_trials(deepcopy=False, states=FINISHED)
-        new = [t for t in finished if t.number not in self._seen]
+        new = unseen(finished, self._seen)
         if self._view is None or len(self._in_view) + len(new) > 2 * self.window:
             self._rebuild(study, finished)
         elif new:

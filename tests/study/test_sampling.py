@@ -5,7 +5,7 @@ import warnings
 import optuna
 import pytest
 
-from explorer.study.sampling import KEEP_BEST, RecentTrialsTPE
+from explorer.study.sampling import KEEP_BEST, RecentTrialsTPE, unseen
 
 
 OPTIONS = dict(seed=3, n_startup_trials=5, multivariate=True, group=True)
@@ -74,3 +74,12 @@ def test_a_window_smaller_than_the_good_group_or_a_constant_liar_is_refused():
         RecentTrialsTPE(window=KEEP_BEST)
     with pytest.raises(ValueError):
         RecentTrialsTPE(constant_liar=True)
+
+
+def test_the_trials_not_seen_yet_are_found_however_late_they_finished():
+    study = _run(optuna.samplers.RandomSampler(seed=0), 12)
+    trials = study.get_trials(deepcopy=False)
+    seen = {t.number for t in trials if t.number not in (2, 10)}   # trial 2 finished late, 10 is new
+    assert [t.number for t in unseen(trials, seen)] == [2, 10]
+    assert unseen(trials, {t.number for t in trials}) == []
+    assert [t.number for t in unseen(trials, set())] == list(range(12))
