@@ -22,6 +22,7 @@ accumulators: the tests check the bookkeeping on a CPU against training without 
 
 from __future__ import annotations
 
+import warnings
 from collections import OrderedDict
 from typing import Callable, Hashable, Sequence
 
@@ -163,7 +164,8 @@ class StageGraphs:
     ``run`` replays the graph of ``key`` (capturing it the first time); after a step's backward passes,
     ``gradients_to`` gives the params their gradients and ``clear`` readies the accumulators for the
     next step. At most ``limit`` graphs are kept (the least recently used go first): each holds its
-    stage's activations."""
+    stage's activations. Should a capture fail (an operation or a driver that CUDA graphs do not
+    support), a warning says so and the run goes on without graphs, as ``--no-cuda-graphs`` trains."""
 
     def __init__(self, emulate: bool = False, limit: int = 1024) -> None:
         self.emulate, self.limit = emulate, limit
@@ -171,6 +173,7 @@ class StageGraphs:
         self._accumulators: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}   # id(param) -> (param, sum)
         self._touched: dict[int, torch.Tensor] = {}
         self.captures = 0
+        self.failed = ""     # why a capture failed: the rest of the run trains without graphs
 
     def _accumulator(self, param: torch.Tensor) -> torch.Tensor:
         if id(param) not in self._accumulators:
@@ -182,6 +185,8 @@ class StageGraphs:
         """``fn(*inputs)``'s outputs, differentiable in ``inputs`` and (through the accumulators) in
         ``params``. ``key`` names everything the graph depends on besides ``inputs``' values (the stage,
         its config, the inputs' shapes and the mode); ``buffers``: the tensors ``fn`` changes in place."""
+        if self.failed:
+            return list(fn(*inputs))
         key = (key, tuple(_signature(x) for x in inputs), torch.is_autocast_enabled("cuda"),
                torch.is_autocast_enabled("cpu"), torch.is_grad_enabled())
         graph = self.graphs.get(key)
@@ -189,7 +194,14 @@ class StageGraphs:
             self._make_room()
             for p in params:
                 self._accumulator(p)   # allocated outside the graph's memory
-            graph = _StageGraph(fn, inputs, params, buffers, self._accumulator, self.emulate)
+            try:
+                graph = _StageGraph(fn, inputs, params, buffers, self._accumulator, self.emulate)
+            except Exception as exc:   # PyTorch raises several types for what it cannot capture
+                self.failed = f"{type(exc).__name__}: {str(exc).splitlines()[0][:160] if str(exc) else ''}"
+                warnings.warn(f"CUDA graphs: capturing a stage failed ({self.failed}); this run goes on "
+                              "without them", RuntimeWarning, stacklevel=2)
+                self.graphs.clear()
+                return list(fn(*inputs))
             self.captures += 1
             self.graphs[key] = graph
             if len(self.graphs) > self.limit:

@@ -107,3 +107,21 @@ def test_real_cuda_graphs_train_as_training_without_them(space, tmp_path):
         losses[graphs] = torch.tensor([[r["largest"], r["random"]] for r in history])
     # cuDNN's backward kernels sum in no fixed order: the runs agree to rounding, not bit for bit
     assert torch.allclose(losses[True], losses[False], rtol=1e-3), (losses[True], losses[False])
+
+
+def test_a_stage_that_cannot_be_captured_leaves_the_run_to_train_without_graphs():
+    graphs = StageGraphs(emulate=True)
+    w = torch.ones(2, requires_grad=True)
+    calls = []
+
+    def stage(v):
+        calls.append(1)
+        if len(calls) == 1:
+            raise RuntimeError("operation not permitted when stream is capturing")
+        return (v * w * 3,)
+    with pytest.warns(RuntimeWarning, match="capturing a stage failed"):
+        (out,) = graphs.run("stage", stage, [torch.ones(2)], [w], [])
+    out.sum().backward()
+    assert torch.equal(w.grad, torch.full((2,), 3.0))     # through autograd, as without graphs
+    (out,) = graphs.run("other", lambda v: (v * w,), [torch.ones(2)], [w], [])
+    assert graphs.captures == 0 and "not permitted" in graphs.failed
