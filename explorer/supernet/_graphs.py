@@ -73,19 +73,21 @@ class _StageGraph:
         side = torch.cuda.Stream() if not self.emulate else None
         if side is not None:
             side.wait_stream(torch.cuda.current_stream())
-        with torch.cuda.stream(side) if side is not None else _nothing():
-            for _ in range(WARMUP_RUNS):
-                outs = self._run()
-                needed = [o for o in outs if o.requires_grad]
-                grads = torch.autograd.grad(needed, self._grad_inputs(), [torch.zeros_like(o) for o in needed],
-                                            allow_unused=True)
+        try:
+            with torch.cuda.stream(side) if side is not None else _nothing():
+                for _ in range(WARMUP_RUNS):
+                    outs = self._run()
+                    needed = [o for o in outs if o.requires_grad]
+                    grads = torch.autograd.grad(needed, self._grad_inputs(), [torch.zeros_like(o) for o in needed],
+                                                allow_unused=True)
+        finally:   # a stage that fails here leaves the statistics as it found them
+            if side is not None:
+                torch.cuda.current_stream().wait_stream(side)
+            with torch.no_grad():
+                for b, s in zip(buffers, saved):
+                    b.copy_(s)
         n = sum(x.requires_grad for x in self.static_in)
         self.used = [p for p, g in zip(self.params, grads[n:]) if g is not None]
-        if side is not None:
-            torch.cuda.current_stream().wait_stream(side)
-        with torch.no_grad():
-            for b, s in zip(buffers, saved):
-                b.copy_(s)
         return outs
 
     def _capture(self) -> None:

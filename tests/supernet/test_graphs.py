@@ -112,15 +112,18 @@ def test_real_cuda_graphs_train_as_training_without_them(space, tmp_path):
 def test_a_stage_that_cannot_be_captured_leaves_the_run_to_train_without_graphs():
     graphs = StageGraphs(emulate=True)
     w = torch.ones(2, requires_grad=True)
+    statistics = torch.zeros(2)
     calls = []
 
     def stage(v):
         calls.append(1)
-        if len(calls) == 1:
+        statistics.add_(1.0)      # as BatchNorm's running statistics, before the operation that fails
+        if len(calls) == 2:
             raise RuntimeError("operation not permitted when stream is capturing")
         return (v * w * 3,)
     with pytest.warns(RuntimeWarning, match="capturing a stage failed"):
-        (out,) = graphs.run("stage", stage, [torch.ones(2)], [w], [])
+        (out,) = graphs.run("stage", stage, [torch.ones(2)], [w], [statistics])
+    assert torch.equal(statistics, torch.ones(2))     # the warm-up's two runs undone; the run without graphs kept
     out.sum().backward()
     assert torch.equal(w.grad, torch.full((2,), 3.0))     # through autograd, as without graphs
     (out,) = graphs.run("other", lambda v: (v * w,), [torch.ones(2)], [w], [])
