@@ -6,7 +6,7 @@ PyTorch sees a GPU, else the CPU). Not a benchmark: it records nothing, it says 
 
 Writes to --out:
 - ``step_<recipe>.txt``: torch.profiler's operators over --steps supernet steps (after --warmup-steps
-  untimed ones in a supernet of their own, and 3 in the profiled one)
+  untimed ones and 3 more in the same run, every width training from the start)
   at the default recipe (64x64, batch 16) and at the GPU recipe (224x224, batch 64, bf16 on CUDA),
   by their own host time and by their own device time, with the wall time per step and the device's
   busy share (its kernels' time over the wall time);
@@ -17,7 +17,6 @@ Writes to --out:
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import cProfile
 import io
 import pstats
@@ -39,21 +38,21 @@ def profile_steps(device: str, name: str, steps: int, data: str, out: Path, warm
     from explorer.space import SearchSpace
     from explorer.supernet import SupernetRecipe, train_supernet
     size, batch, amp = RECIPES[name]
-    recipe = SupernetRecipe(steps=steps + 4, batch_size=batch, input_size=size, amp=amp and device == "cuda")
+    # the untimed steps run first in the same run (every width from the start, as bench_gpu times), so
+    # that its stage graphs are captured and cuDNN's plans made before the profile: a long run's state
+    recipe = SupernetRecipe(steps=warmup + 3 + steps, batch_size=batch, input_size=size,
+                            amp=amp and device == "cuda", shrink=0.0)
     space = SearchSpace.from_yaml("anytime_depth")
-    if warmup:   # cuDNN's plans for the shapes subnets have, built before the profile (a long run's state)
-        with tempfile.TemporaryDirectory() as tmp:
-            train_supernet(space, data, dataclasses.replace(recipe, steps=warmup, seed=1), Path(tmp) / "w.pt",
-                           torch.device(device), checkpoint_every=10**9)
     activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if device == "cuda" else [])
     marks: list[float] = []
-    with profile(activities=activities, schedule=schedule(wait=0, warmup=3, active=steps, repeat=1)) as prof:
+    with profile(activities=activities, schedule=schedule(wait=warmup, warmup=3, active=steps, repeat=1)) as prof:
         def progress(step, total, record):
             marks.append(time.perf_counter())
             prof.step()
         with tempfile.TemporaryDirectory() as tmp:
             train_supernet(space, data, recipe, Path(tmp) / "s.pt",
                            torch.device(device), progress=progress, checkpoint_every=10**9)
+    marks = marks[warmup:]
     wall = (marks[3 + steps - 1] - marks[2]) / steps if len(marks) >= 3 + steps else float("nan")
     events = prof.key_averages()
     # the kernels alone, as the table's total counts them: a step's annotation spans its kernels
@@ -97,8 +96,8 @@ def main() -> None:
     ap.add_argument("--out", type=Path, required=True, help="folder for the profiles (made if missing)")
     ap.add_argument("--device", default="auto", choices=["auto", "cuda", "cpu"])
     ap.add_argument("--steps", type=int, default=8, help="profiled supernet steps per recipe (default 8)")
-    ap.add_argument("--warmup-steps", type=int, default=30, help="untimed steps per recipe before its profile "
-                    "(default 30)")
+    ap.add_argument("--warmup-steps", type=int, default=60, help="untimed steps per recipe before its profile, "
+                    "in the same run (default 60: its stage graphs captured, cuDNN's plans made)")
     ap.add_argument("--search-seconds", type=float, default=15.0, help="sampling time of the profiled search")
     ap.add_argument("--recipes", default="default,gpu", help="recipes to profile (default: default,gpu)")
     ap.add_argument("--data", default="synthetic:400:100", help="data set (default synthetic:400:100)")
