@@ -15,6 +15,10 @@ networks too low and narrow ones too high: the channels only wide subnets use tr
 of the steps, while the smallest trained every step. With it, it ranked stand-alone results better
 (benchmarks/bench_fidelity.py, 2 seeds each).
 
+On a GPU each stage of a subnet is replayed from a CUDA graph (``recipe.cuda_graphs``,
+``explorer.supernet._graphs``): the default recipe's kernels are too small for anything but their
+launches to set the step's time.
+
 Data parallel: each of the W processes takes its share of the same global batch and the same
 subnets; gradients are averaged with an all-reduce. BatchNorm statistics are per process (as in
 DistributedDataParallel without SyncBatchNorm), so one process with ``micro_batches=W`` computes
