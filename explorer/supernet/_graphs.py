@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import warnings
 from collections import OrderedDict
+from contextlib import nullcontext
 from typing import Callable, Hashable, Sequence
 
 import torch
@@ -61,7 +62,12 @@ class _StageGraph:
             self._capture()
 
     def _grad_inputs(self) -> list[torch.Tensor]:
+        """The inputs that take gradients, then the params: ``autograd.grad``'s order here."""
         return [x for x in self.static_in if x.requires_grad] + self.params
+
+    @property
+    def _n_grad_inputs(self) -> int:
+        return sum(x.requires_grad for x in self.static_in)
 
     def _run(self) -> tuple[torch.Tensor, ...]:
         with torch.enable_grad():
@@ -74,7 +80,7 @@ class _StageGraph:
         if side is not None:
             side.wait_stream(torch.cuda.current_stream())
         try:
-            with torch.cuda.stream(side) if side is not None else _nothing():
+            with torch.cuda.stream(side) if side is not None else nullcontext():
                 for _ in range(WARMUP_RUNS):
                     outs = self._run()
                     needed = [o for o in outs if o.requires_grad]
@@ -86,8 +92,7 @@ class _StageGraph:
             with torch.no_grad():
                 for b, s in zip(buffers, saved):
                     b.copy_(s)
-        n = sum(x.requires_grad for x in self.static_in)
-        self.used = [p for p, g in zip(self.params, grads[n:]) if g is not None]
+        self.used = [p for p, g in zip(self.params, grads[self._n_grad_inputs:]) if g is not None]
         return outs
 
     def _capture(self) -> None:
@@ -102,7 +107,7 @@ class _StageGraph:
 
     def _backward(self, outs: list[torch.Tensor], grad_outs: list[torch.Tensor]) -> list[torch.Tensor | None]:
         """The inputs' gradients; the params' are added to their accumulators."""
-        n = sum(x.requires_grad for x in self.static_in)
+        n = self._n_grad_inputs
         grads = torch.autograd.grad(outs, self._grad_inputs(), grad_outs, allow_unused=True)
         pairs = [(self.accumulators(p), g) for p, g in zip(self.params, grads[n:]) if g is not None]
         if pairs:
@@ -125,21 +130,12 @@ class _StageGraph:
         if self.emulate:
             needed = [(o, g) for o, g in zip(self._live, grads) if o.requires_grad]
             with torch.enable_grad():
-                got = self._backward([o for o, _ in needed], [g for _, g in needed])
-            return got
+                return self._backward([o for o, _ in needed], [g for _, g in needed])
         for static, g in zip(self.static_grad_out, grads):
             if static.data_ptr() != g.data_ptr():
                 static.copy_(g)
         self.backward_graph.replay()
         return [g.detach() for g in self.static_grad_in]
-
-
-class _nothing:
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        return False
 
 
 class _Replay(torch.autograd.Function):
@@ -172,7 +168,8 @@ class StageGraphs:
     def __init__(self, emulate: bool = False, limit: int = 1024) -> None:
         self.emulate, self.limit = emulate, limit
         self.graphs: OrderedDict[Hashable, _StageGraph] = OrderedDict()
-        self._accumulators: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}   # id(param) -> (param, sum)
+        # id(param) -> (param, sum): the param is held so that its id stays its own
+        self._accumulators: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}
         self._touched: dict[int, torch.Tensor] = {}
         self.captures = 0
         self.failed = ""     # why a capture failed: the rest of the run trains without graphs

@@ -111,7 +111,7 @@ class Supernet(nn.Module):
         self._plans: OrderedDict[Candidate, tuple] = OrderedDict()
         self._stage_plans: dict[tuple[str, object], tuple[nn.Module, list[tuple]]] = {}
         self._tensors: dict[str, torch.Tensor] | None = None   # by name; see _named_tensors
-        self._graph_stages: dict[tuple, tuple] = {}   # see _graph_stage
+        self._graph_stages: dict[tuple, tuple] = {}   # see _stage_function
 
     # -- candidates as views ------------------------------------------------------------------------
     def _check_contains(self, candidate: Candidate) -> None:
@@ -200,13 +200,13 @@ class Supernet(nn.Module):
         row = (scan_row,) if spec.uses_scan_row else ()
         key = (spec.name, spec.config, row, module.training)
         if key not in self._graph_stages:
-            self._graph_stages[key] = self._graph_stage(spec, module, row)
+            self._graph_stages[key] = self._stage_function(spec, module, row)
         run, params, buffers = self._graph_stages[key]
         if not params:   # nothing to train (path 0 as a stage): a graph would save nothing worth its memory
             return [module(*args, *row)]
         return graphs.run(key, run, args, params, buffers)
 
-    def _graph_stage(self, spec: StageSpec, module: nn.Module, row: tuple) -> tuple:
+    def _stage_function(self, spec: StageSpec, module: nn.Module, row: tuple) -> tuple:
         """(the function a graph of stage ``spec`` captures, the params it reads, the buffers it changes):
         looked up once per stage, as the graph itself is (a step runs some fifty stages)."""
         _, entries = self._stage_plan(spec)
