@@ -53,3 +53,16 @@ def exact_at_taus(estimated: dict, labels: dict) -> dict[str, float]:
             values.append(anytime_loss(costs[c], errors, BUDGET))
         out[kind] = float(kendalltau(values, truth).statistic)
     return out
+
+
+def last_exit_taus(estimated: dict, labels: dict, least: int = 4) -> dict[str, float]:
+    """{"plain", "residual": Kendall tau of the estimated against the labelled error at the last decoder
+    exit, over the candidates with that head kind} (kinds with at least ``least`` candidates). Beside
+    the same figure for a stand-alone recipe, it says whether the supernet orders an exit worse than
+    training every candidate alone would."""
+    out = {}
+    for residual, name in ((False, "plain"), (True, "residual")):
+        cands = [c for c in estimated if c.exit_residual == residual]
+        if len(cands) >= least:
+            out[name] = float(kendalltau([estimated[c][-1] for c in cands], [labels[c][-1] for c in cands]).statistic)
+    return out

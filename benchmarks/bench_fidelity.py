@@ -33,7 +33,7 @@ from _fidelity import (CANDIDATE_SEED, LABEL_SEEDS, estimates, fidelity_candidat
                        fine_tuned_estimate, label_jobs, label_recipes, labels_of, rank_figures, run_label_jobs,
                        supernet_evaluator)
 from _labels import BUDGET, cached  # noqa: E402
-from _per_exit import exact_at_taus, path_taus  # noqa: E402
+from _per_exit import exact_at_taus, last_exit_taus, path_taus  # noqa: E402
 from _predictor import held_out_taus  # noqa: E402
 from harness import ROOT, Bench  # noqa: E402
 
@@ -202,15 +202,38 @@ def predictor_figures(bench: Bench, per_path: dict, table: dict) -> None:
                   statistics.median(held_out_taus(estimated, retrained, labels, count)))
 
 
+def long_errors(cands) -> dict:
+    """{candidate: the long labels' error at every path (mean over the label seeds)}."""
+    long = label_recipes()["long"]
+    labels = {}
+    for c in cands:
+        entries = [e for e in (cached(c, dataclasses.replace(long, seed=s)) for s in LABEL_SEEDS) if e]
+        labels[c] = [statistics.mean(v) for v in zip(*(e["rmse"] for e in entries))]
+    return labels
+
+
+def add_last_exit_figures(bench: Bench, prefix: str, what: str, estimated: dict, labels: dict) -> None:
+    """Kendall tau of the last decoder exit's error within each head kind (``tau_{prefix}_last_{kind}``)."""
+    for kind, tau in last_exit_taus(estimated, labels).items():
+        bench.add(bench.figure(f"tau_{prefix}_last_{kind}", f"{what}: Kendall tau of the last exit's error over "
+                               f"{kind}-head candidates", "", "higher"), tau)
+
+
+def finalist_per_exit_figures(bench: Bench, labelled: list) -> None:
+    """The finalists' recipe (every candidate trained alone) ordering the last exit's error within each head
+    kind: the supernet's own figure read beside it says whether weight sharing loses what training alone
+    keeps."""
+    finalist = dataclasses.replace(label_recipes()["finalist"], seed=LABEL_SEEDS[0])
+    errors = {c: entry["rmse"] for c in labelled if (entry := cached(c, finalist))}
+    add_last_exit_figures(bench, "finalist", "finalist recipe", errors, long_errors(errors))
+
+
 def per_exit_figures(bench: Bench, estimated: dict, name: str) -> None:
     """Per kind of path (benchmarks/_per_exit.py): the supernet's Kendall tau of that path's error over the
     candidates with it, and of the anytime loss were the supernet exact at that path alone. ``estimated``:
     {candidate: the supernet's error at every path}."""
-    long = label_recipes()["long"]
-    labels = {}
-    for c in estimated:
-        entries = [e for e in (cached(c, dataclasses.replace(long, seed=s)) for s in LABEL_SEEDS) if e]
-        labels[c] = [statistics.mean(v) for v in zip(*(e["rmse"] for e in entries))]
+    labels = long_errors(estimated)
+    add_last_exit_figures(bench, "supernet", "supernet", estimated, labels)
     for kind, tau in exact_at_taus(estimated, labels).items():
         what = "the supernet as it is" if kind == "none" else f"the supernet exact at path {kind}"
         bench.add(bench.figure(f"tau_exact_{kind}", f"{what}: Kendall tau against the long labels", "", None), tau)
@@ -285,6 +308,8 @@ def main() -> None:
                f"{rec['long'].batch_size} at {rec['long'].input_size[0]}x{rec['long'].input_size[1]}; anytime loss "
                f"on tx2, {BUDGET}")
     label_figures(bench, labelled, table, per_seed)
+    if args.per_exit:
+        finalist_per_exit_figures(bench, labelled)
     recipes = score_all(bench, args, space, config, cands, table)
     path = bench.finish()
     if args.store:

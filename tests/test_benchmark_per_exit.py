@@ -43,3 +43,17 @@ def test_per_path_figures_single_out_the_misordered_path():
     tau, overestimate, count = figures[last]
     assert count == len(cands) and abs(overestimate - 0.1) < 1e-9 and tau < 0.9
     assert all(t > 1 - 1e-9 and abs(gap) < 1e-12 for k, (t, gap, _) in figures.items() if k != last)
+
+
+def test_last_exit_figures_follow_the_head_kind_whose_order_is_wrong():
+    cands, _, labels = _scrambled_at_last_exit(count=24)
+    estimated = {}
+    plain = [c for c in cands if not c.exit_residual]
+    reversed_last = sorted((labels[c][-1] for c in plain), reverse=True)
+    order = sorted(plain, key=lambda c: labels[c][-1])
+    for c in cands:   # residual heads exact, plain heads in reverse order
+        estimated[c] = list(labels[c])
+    for c, value in zip(order, reversed_last):
+        estimated[c] = labels[c][:-1] + [value]
+    taus = _per_exit.last_exit_taus(estimated, labels)
+    assert taus["residual"] > 1 - 1e-9 and taus["plain"] < -1 + 1e-9
