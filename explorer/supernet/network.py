@@ -62,10 +62,6 @@ def _extreme_candidate(space: SearchSpace, pick, head_depth: int | None, residua
         lidar_first=pick(space.lidar_first), exit_residual=residual)
 
 
-def _encoder_slot(width_mult: float) -> str:
-    return f"image_encoder_w{width_mult:g}".replace(".", "_")
-
-
 def largest_candidate(space: SearchSpace, head_depth: int | None = None, residual: bool | None = None
                       ) -> Candidate:
     """The biggest network of ``space`` with every exit it allows."""
@@ -98,11 +94,10 @@ def with_head_kind(candidate: Candidate, space: SearchSpace, depth: int, residua
 
 
 class Supernet(nn.Module):
-    def __init__(self, space: SearchSpace, encoder_per_width: bool = False) -> None:
+    def __init__(self, space: SearchSpace) -> None:
         super().__init__()
         self.space = space
         self.largest = largest_candidate(space)
-        self.encoder_per_width = encoder_per_width
         slots: dict[str, nn.Module] = {}
         for depth, residual in itertools.product(sorted(set(space.head_depth)), sorted(set(space.exit_residual))):
             widest = largest_candidate(space, depth, residual)
@@ -111,10 +106,6 @@ class Supernet(nn.Module):
                 slot = slot_of(spec)
                 if slot not in slots and not (isinstance(spec.config, ImageEncoderConfig) and spec.config.start):
                     slots[slot] = spec.config.build()
-        if encoder_per_width:   # an image encoder of its own per narrower width (see fork_encoders)
-            for wm in space.width_mult:
-                if wm != self.largest.width_mult:
-                    slots[_encoder_slot(wm)] = ImageEncoderConfig(self.largest.encoder_blocks, wm).build()
         self.slots = nn.ModuleDict(slots)
         self.ecu_channels = ImageEncoderConfig(self.largest.encoder_blocks, self.largest.width_mult).out_channels()
         self._plans: OrderedDict[Candidate, tuple] = OrderedDict()
@@ -130,38 +121,17 @@ class Supernet(nn.Module):
             raise UserError(f"candidate {candidate.key} is outside the supernet's space '{self.space.name}': "
                             "train a supernet for a space that contains it")
 
-    def _super_name(self, spec: StageSpec, local: str) -> str:
-        """The name here of tensor ``local`` of ``spec``'s module."""
-        name = super_name(spec, local)
-        cfg = spec.config
-        if self.encoder_per_width and isinstance(cfg, ImageEncoderConfig) and cfg.width_mult != self.largest.width_mult:
-            return _encoder_slot(cfg.width_mult) + name[len("image_encoder"):]
-        return name
-
-    def _stage_entries(self, spec: StageSpec, module: nn.Module) -> list[tuple]:
+    @staticmethod
+    def _stage_entries(spec: StageSpec, module: nn.Module) -> list[tuple]:
         """Per tensor of stage ``spec``'s ``module``: its key in a network, its name here, its stage,
         local name and shape."""
-        return [(f"stages.{spec.name}.{local}", self._super_name(spec, local), spec, local, t.shape)
+        return [(f"stages.{spec.name}.{local}", super_name(spec, local), spec, local, t.shape)
                 for local, t in [*module.named_parameters(), *module.named_buffers()]]
 
-    def _entries(self, network: AnytimeDepthNet) -> list[tuple]:
+    @classmethod
+    def _entries(cls, network: AnytimeDepthNet) -> list[tuple]:
         """``_stage_entries`` of every stage of ``network``."""
-        return [e for spec in network.specs for e in self._stage_entries(spec, network.stages[spec.name])]
-
-    @torch.no_grad()
-    def fork_encoders(self) -> None:
-        """Each narrower width's own image encoder set to its slice of the shared (widest) one: from here
-        on the widths train apart (few-shot weight sharing: one supernet, split where sharing hurts)."""
-        full = self._named_tensors()
-        for wm in self.space.width_mult:
-            if wm == self.largest.width_mult:
-                continue
-            slot = _encoder_slot(wm)
-            for name, tensor in [*self.slots[slot].named_parameters(), *self.slots[slot].named_buffers()]:
-                if tensor.dim():
-                    tensor.copy_(full[f"image_encoder.{name}"][tuple(slice(0, n) for n in tensor.shape)])
-                else:
-                    tensor.copy_(full[f"image_encoder.{name}"])
+        return [e for spec in network.specs for e in cls._stage_entries(spec, network.stages[spec.name])]
 
     def _plan(self, candidate: Candidate) -> tuple[AnytimeDepthNet, list[tuple]]:
         """A weightless (meta) network of ``candidate`` and, per tensor, where it lives here."""
@@ -280,7 +250,7 @@ class Supernet(nn.Module):
             module = spec.config.build()
         full = self._named_tensors()
         with torch.no_grad():   # load_state_dict copies
-            module.load_state_dict({local: slice_of(spec, local, full[self._super_name(spec, local)], t.shape,
+            module.load_state_dict({local: slice_of(spec, local, full[super_name(spec, local)], t.shape,
                                                     self.ecu_channels)
                                     for local, t in module.state_dict().items()})
         return module

@@ -81,7 +81,6 @@ class SupernetRecipe:
     head_kinds: str = "rotate"       # which subnet trains which kind of exit head (see _subnets)
     shrink: float = 0.5              # this fraction of the steps first trains full widths only (see _subnets)
     cuda_graphs: bool = True         # on CUDA, each stage replayed from a CUDA graph (supernet/_graphs.py)
-    encoder_per_width: bool = False  # each width its own image encoder once widths vary (Supernet.fork_encoders)
 
     def to_dict(self) -> dict:
         d = dataclasses.asdict(self)
@@ -108,8 +107,6 @@ class SupernetRecipe:
             d.pop("head_kinds")
         if not d["shrink"]:
             d.pop("shrink")
-        if not d["encoder_per_width"]:
-            d.pop("encoder_per_width")
         return d
 
 
@@ -185,7 +182,7 @@ def load(path: str | Path, space: SearchSpace | None = None, require_complete: b
                         f"{state['recipe']['steps']}: run `explorer supernet train` again to finish it")
     if space is None:
         space = SearchSpace.from_dict(_yaml(state["space_yaml"]), source=str(path))
-    net = Supernet(space, encoder_per_width=state["recipe"].get("encoder_per_width", False))
+    net = Supernet(space)
     try:
         net.load_state_dict(state["state_dict"])
     except RuntimeError as exc:
@@ -327,7 +324,7 @@ def train_supernet(space: SearchSpace, data: str, recipe: SupernetRecipe = Super
     if deadline is not None and world > 1:
         raise ValueError("a deadline would stop the processes at different steps: give it to one process only")
     torch.manual_seed(recipe.seed)  # every process starts from the same weights
-    net = Supernet(space, recipe.encoder_per_width).to(device=accelerator, memory_format=torch.channels_last)  # see train.image_batch
+    net = Supernet(space).to(device=accelerator, memory_format=torch.channels_last)  # see train.image_batch
     opt = adamw(net.parameters(), recipe.lr, recipe.weight_decay)
     step, history, seconds = _resume(out, space, data, recipe, net, opt)
     if world > 1:
@@ -362,8 +359,6 @@ def train_supernet(space: SearchSpace, data: str, recipe: SupernetRecipe = Super
             for g in opt.param_groups:
                 g["lr"] = lr_at(lr_cfg, step)
             shrinking = _shrinking(recipe, step)
-            if recipe.encoder_per_width and not shrinking and (step == 0 or _shrinking(recipe, step - 1)):
-                net.fork_encoders()
             step += 1
             ledger.add(step, _sandwich_step(net, opt, batch, subnets, recipe, accelerator, rank, world, graphs),
                        shrinking)
