@@ -326,10 +326,12 @@ def store(bench: Bench, space: SearchSpace, config: SearchConfig, recipes: list,
     figs = {k: [round(v, 4) for v in bench.figures[f"{k}_supernet"].reps] for k in FIGURES
             if bench.figures.get(f"{k}_supernet")}
     spread = bench.figures.get("labels_seed_tau")
+    finalist = bench.figures.get("tau_finalist")
     baselines = {make().key for make in BASELINES.values()}
     entry = {**figs, "candidates": sum(c.key not in baselines for c in labelled), "label_steps": label_steps,
              "label_seeds": list(seeds),
              "labels_seed_tau": round(spread.reps[0], 4) if spread and spread.reps else None,
+             "finalist_tau": round(finalist.reps[0], 4) if finalist and finalist.reps else None,
              "supernet_seeds": [r.seed for r in recipes], "date": bench.started.strftime("%Y-%m-%d"),
              "record": str(record.relative_to(ROOT)) if record else None}
     store_fidelity(space, config.data, recipes[0], entry)

@@ -37,7 +37,7 @@ def load_record(file: Path = FILE) -> dict:
 def measured_fidelity(space: SearchSpace, data: str, recipe: SupernetRecipe, file: Path = FILE) -> dict | None:
     """The stored fidelity of supernets of (space, data, recipe), or None where none was measured:
     {"tau": [one per supernet], "spearman": [...], "recall": [...], "candidates": n, "label_steps": ...,
-    "label_seeds": ..., "labels_seed_tau": ..., "benchmark": "command", "date": ...}."""
+    "label_seeds": ..., "labels_seed_tau": ..., "finalist_tau": the finalists' recipe's tau, "date": ...}."""
     return load_record(file).get(fidelity_key(space, data, recipe))
 
 
@@ -62,6 +62,10 @@ def describe_fidelity(entry: dict | None) -> str:
     recall_text = f", {low if low == high else f'{low}-{high}'} of the best 5 in its best 10" if recall else ""
     spread = entry.get("labels_seed_tau")
     spread_text = f"; the labels' own seed-to-seed tau is {spread:.2f}" if spread is not None else ""
+    finalist = entry.get("finalist_tau")
+    # what the finalists' retraining itself ranks at: the scale against which to read the estimate's figure
+    finalist_text = (f", and the same candidates trained alone with the finalists' recipe rank them at "
+                     f"{finalist:.2f}" if finalist is not None else "")
     return (f"the supernet's ranking of this space was measured at Kendall tau {span} ({len(tau)} supernet(s)"
             f"{recall_text}) against {entry['candidates']} random candidates and the baselines trained alone "
-            f"{entry['label_steps']} steps{spread_text} ({entry.get('date', 'undated')})")
+            f"{entry['label_steps']} steps{spread_text}{finalist_text} ({entry.get('date', 'undated')})")

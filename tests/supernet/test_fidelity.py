@@ -85,6 +85,8 @@ def test_a_stored_fidelity_is_found_for_every_seed_of_its_recipe_only(default_sp
     assert "Kendall tau 0.71-0.74" in text and "4-5 of the best 5" in text and "1200 steps" in text
     assert "unmeasured" in describe_fidelity(None)
     assert ", 3 of the best 5" in describe_fidelity({**entry, "recall": [3, 3]})
+    assert "finalists' recipe" not in text
+    assert "finalists' recipe rank them at 0.70" in describe_fidelity({**entry, "finalist_tau": 0.698})
 
 
 def test_the_shipped_record_reads(default_space):
