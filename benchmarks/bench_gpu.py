@@ -207,7 +207,7 @@ def amp_effect(device: str, data: str, steps: int, size: tuple[int, int], batch:
     with tempfile.TemporaryDirectory() as tmp:
         for amp in (False, True):
             out = Path(tmp) / f"amp{amp}.pt"
-            train_steps(device, size, batch, steps, data, amp, out=out)
+            train_steps(device, size, batch, steps, data, amp, out=out, warm=0)   # trained, not timed
             net = load_supernet(out, space)[0].to(device).train()
             with torch.no_grad():
                 losses[amp] = [float(multi_exit_loss(net.forward_subnet(c, image, scan, frames[0]["scan_row"]),

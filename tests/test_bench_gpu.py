@@ -31,7 +31,7 @@ def test_a_tiny_configuration_runs_on_the_cpu_and_writes_its_record(tmp_path):
     env = {**os.environ, "OMP_NUM_THREADS": "1", "ANYTIME_EXPLORER_CACHE": str(tmp_path / "cache")}
     proc = subprocess.run([sys.executable, str(SCRIPT), "--device", "cpu", "--steps", "3", "--large-size", "32x32",
                            "--large-batch", "8", "--search-seconds", "4", "--search-supernet-steps", "2",
-                           "--amp-steps", "3", "--warmup-steps", "1", "--data", "synthetic:32:16", "--reps", "1",
+                           "--amp-steps", "1", "--warmup-steps", "1", "--data", "synthetic:32:16", "--reps", "1",
                            "--results", str(tmp_path)],
                           capture_output=True, text=True, timeout=900, cwd=ROOT, env=env)
     assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
