@@ -190,9 +190,7 @@ def predictor_figures(bench: Bench, per_path: dict, table: dict) -> None:
     """Kendall tau of the supernet's estimate corrected by an accuracy predictor (benchmarks/_predictor.py)
     fitted on other candidates' finalist-recipe results: 6 of them (what one earlier study retrains: 3
     finalists, 3 baselines; median of 20 draws) and all the others."""
-    finalist = dataclasses.replace(label_recipes()["finalist"], seed=LABEL_SEEDS[0])
-    entries = {c: cached(c, finalist) for c in per_path}
-    retrained = {c: entry["rmse"] for c, entry in entries.items() if entry}
+    retrained = finalist_errors(per_path)
     estimated = {c: per_path[c] for c in retrained}
     labels = {c: table[c]["long"] for c in retrained}
     for count, name, what in ((6, "predictor6", "6 other candidates' (one earlier study's)"),
@@ -212,6 +210,13 @@ def long_errors(cands) -> dict:
     return labels
 
 
+def finalist_errors(cands) -> dict:
+    """{candidate: its error at every path trained alone with the finalists' recipe (first label seed)},
+    for the candidates that have it."""
+    finalist = dataclasses.replace(label_recipes()["finalist"], seed=LABEL_SEEDS[0])
+    return {c: entry["rmse"] for c in cands if (entry := cached(c, finalist))}
+
+
 def add_last_exit_figures(bench: Bench, prefix: str, what: str, estimated: dict, labels: dict) -> None:
     """Kendall tau of the last decoder exit's error within each head kind (``tau_{prefix}_last_{kind}``)."""
     for kind, tau in last_exit_taus(estimated, labels).items():
@@ -223,8 +228,7 @@ def finalist_per_exit_figures(bench: Bench, labelled: list) -> None:
     """The finalists' recipe (every candidate trained alone) ordering the last exit's error within each head
     kind: the supernet's own figure read beside it says whether weight sharing loses what training alone
     keeps."""
-    finalist = dataclasses.replace(label_recipes()["finalist"], seed=LABEL_SEEDS[0])
-    errors = {c: entry["rmse"] for c in labelled if (entry := cached(c, finalist))}
+    errors = finalist_errors(labelled)
     add_last_exit_figures(bench, "finalist", "finalist recipe", errors, long_errors(errors))
 
 
