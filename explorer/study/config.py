@@ -23,6 +23,7 @@ from explorer.space import (
 )
 from explorer.study.evaluators import EVALUATORS
 from explorer.supernet import SupernetRecipe
+from explorer.training.deployment import DeploymentRecipe
 from explorer.training.train import PROXY, TrainConfig
 
 BASELINES: dict[str, Callable[[], Candidate]] = {
@@ -75,6 +76,7 @@ class SearchConfig:
     supernet_steps: int = 600
     finalists: int = 3                           # retrained stand-alone at the end (0 = none)
     finalist_steps: int = 300
+    tune_steps: int = 20                         # the finalists' steps at --input-size after --train-size
     max_retries: int = 2          # an interrupted trial (killed, Ctrl-C, lost worker) is tried again
     supervision: str = "supervised"              # supervised | self | mixed (see explorer.training.selfsup)
     poses: str = "net"                           # self-supervision's camera motion: net | given
@@ -118,6 +120,11 @@ class SearchConfig:
         return dataclasses.replace(self.train_config(), steps=self.finalist_steps, eval_every=0,
                                    seed=self.seed if seed is None else seed)
 
+    def finalist_recipe(self) -> DeploymentRecipe:
+        """The finalists' whole recipe: ``finalist_config`` at the training size, then ``tune_steps`` at
+        the deployment size, where every path is measured (explorer.training.deployment)."""
+        return DeploymentRecipe(self.finalist_config(), tuple(self.input_size), self.tune_steps)
+
     def supernet_recipe(self):
         return SupernetRecipe(steps=self.supernet_steps, batch_size=self.batch_size, input_size=self.train_size,
                               lr=self.lr, lr_end=self.lr / 10, seed=self.seed, amp=self.amp,
@@ -149,6 +156,8 @@ class SearchConfig:
                             "(or give --evaluator supernet)")
         if self.supernet_steps < 1 or self.finalist_steps < 1:
             raise UserError("--supernet-steps and --finalist-steps must be at least 1")
+        if self.tune_steps < 0:
+            raise UserError("--tune-steps must be 0 (none) or more")
         if self.finalists < 0:
             raise UserError("--finalists must be 0 (none) or more")
         if self.max_retries < 0:

@@ -27,7 +27,8 @@ from explorer.study.config import baseline_model, json_safe
 from explorer.study.objective import Objective
 from explorer.study.planning import SAFETY
 from explorer.study.storage import study_dir
-from explorer.training.train import train
+from explorer.training.deployment import DeploymentRecipe, train_for_deployment
+from explorer.training.train import evaluated_frames
 
 FINALIST = "finalist"
 
@@ -116,7 +117,7 @@ def finalist_jobs(study: optuna.Study, config, extra: int = 0) -> list[FinalistJ
     rest = finalists[1:] + [j for j in baselines if j.baseline != "paper"]
     jobs = [dataclasses.replace(j, must=True) for j in must] + rest + \
         [dataclasses.replace(_job(t), optional=True) for t in chosen[config.finalists:]]
-    recipe = config.finalist_config().to_dict()
+    recipe = config.finalist_recipe().to_dict()
     done = {(t.user_attrs["candidate_key"], t.user_attrs.get("baseline", "")) for t in finalist_trials(study)
             if t.user_attrs[FINALIST].get("recipe") == recipe}
     return [j for j in jobs if (j.model().key, j.baseline) not in done]
@@ -136,7 +137,7 @@ def retrain_finalists(study: optuna.Study, config, reports: Path,
     if not todo:
         return finalist_trials(study)
     make_objective = functools.partial(Objective, _proxy_view(config), study_dir(config.study, reports))
-    run_job = functools.partial(train_finalist, recipe=config.finalist_config(),
+    run_job = functools.partial(train_finalist, recipe=config.finalist_recipe(),
                                 folder=study_dir(config.study, reports) / "finalists")
     devices = finalist_devices(config.accelerator, workers)[:len(todo)]
     runner = WorkerPool(devices, make_objective, run_job) if len(devices) > 1 else InProcess(make_objective, run_job)
@@ -187,23 +188,25 @@ def _proxy_view(config):
     return dataclasses.replace(config, evaluator="proxy", pruning=False)
 
 
-def train_finalist(objective, job: FinalistJob, recipe, folder: Path) -> dict:
-    """Trains ``job``'s network with ``recipe`` (resuming its checkpoint in ``folder``) and returns what
-    its trial stores: ``values``, ``user_attrs`` and the ``checkpoint`` with the weights. Runs in this
-    process or in a worker; the study itself is written by the caller."""
+def train_finalist(objective, job: FinalistJob, recipe: DeploymentRecipe, folder: Path) -> dict:
+    """Trains ``job``'s network with ``recipe`` (resuming its checkpoint in ``folder``), measures every path
+    at the deployment size, and returns what its trial stores: ``values``, ``user_attrs`` and the
+    ``checkpoint`` with the weights. Runs in this process or in a worker; the study itself is written by
+    the caller."""
     import torch
     folder.mkdir(parents=True, exist_ok=True)
     candidate = job.model()
     checkpoint = folder / f"{candidate.key}.pt"     # a kill resumes from here
     holder = optuna.trial.FixedTrial({})           # collects user attrs like a live trial
     cost, pm, latency = objective.describe(holder, candidate)
-    torch.manual_seed(recipe.seed)
+    torch.manual_seed(recipe.train.seed)
     net = build_model(candidate)
-    result = train(net, objective.train_set, objective.val_set, recipe, objective.torch_device,
-                   checkpoint=checkpoint, val_limit=objective.config.val_limit)
+    data = objective.deployment_data()
+    result = train_for_deployment(net, data, recipe, objective.torch_device, checkpoint=checkpoint,
+                                  val_limit=objective.config.val_limit)
     path_metrics = json_safe(result.metrics.drop(columns=["path"]).to_dict("records"))
     if candidate.precision == "int8":
-        path_metrics = objective.quantized(holder, net, path_metrics, cost)
+        path_metrics = objective.quantized(holder, net, path_metrics, cost, recipe.deploy_size)
     path_losses = [m[objective.config.metric] for m in path_metrics]
     if any(not math.isfinite(v) for v in path_losses):
         checkpoint.unlink(missing_ok=True)
@@ -212,15 +215,23 @@ def train_finalist(objective, job: FinalistJob, recipe, folder: Path) -> dict:
     values = objective.values(losses, pm, latency)
     attrs = dict(holder.user_attrs)
     attrs.update({"path_metrics": path_metrics, "losses": losses,
+                  "measured": measurement(objective.config, data.deploy_val, recipe.deploy_size),
                   "train": {"seconds": result.seconds, "steps": result.steps,
                             "images_per_second": result.images_per_second, "device": str(objective.torch_device)},
-                  "evaluator": {"evaluator": "retrained", "steps": recipe.steps},
+                  "evaluator": {"evaluator": "retrained", "steps": recipe.train.steps,
+                                "tune_steps": recipe.tune_steps if recipe.tunes else 0},
                   FINALIST: {"estimate_trial": job.estimate_number, "estimated": job.estimated,
                              "recipe": recipe.to_dict()}})
     if job.baseline:
         attrs["baseline"] = job.baseline
     return {"values": list(values) if isinstance(values, tuple) else [values], "user_attrs": attrs,
             "checkpoint": str(checkpoint)}
+
+
+def measurement(config, val_set, size: tuple[int, int]) -> dict:
+    """Where a retrained network's per-path figures come from: which frames, at which size."""
+    return {"data": config.data, "split": "val", "frames": evaluated_frames(val_set, config.val_limit),
+            "input_size": list(size)}
 
 
 def _store(study: optuna.Study, artifacts, result: dict) -> None:

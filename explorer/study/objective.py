@@ -20,6 +20,7 @@ from explorer.study.results import compact_workloads
 from explorer.study.sampling import unseen
 from explorer.supernet import default_path
 from explorer.training.depth_hints import with_hints
+from explorer.training.deployment import DeploymentData
 from explorer.training.train import Pruned, resolve_accelerator
 
 
@@ -76,12 +77,26 @@ class Objective:
         else:
             self.evaluator = ProxyEvaluator(self.train_set, self.val_set, self.train_cfg, self.torch_device,
                                             val_limit=config.val_limit, seed=config.seed)
+        self._deployment: DeploymentData | None = None
         self.twins = FinishedTwins()
         self.artifacts = None
         if config.keep_weights and study_path is not None:
             from optuna.artifacts import FileSystemArtifactStore
             (study_path / "artifacts").mkdir(parents=True, exist_ok=True)
             self.artifacts = FileSystemArtifactStore(str(study_path / "artifacts"))
+
+    def deployment_data(self) -> DeploymentData:
+        """The frames a finalist trains and is measured on: the study's training set, and the training and
+        validation sets at the deployment size (--input-size; opened once, when first asked for)."""
+        if self._deployment is None:
+            cfg = self.config
+            if tuple(cfg.input_size) == tuple(cfg.train_size):
+                self._deployment = DeploymentData(self.train_set, self.train_set, self.val_set)
+            else:
+                deploy_train = hinted_if_asked(cfg, open_dataset(cfg.data, "train", cfg.input_size, seed=cfg.seed), None)
+                self._deployment = DeploymentData(self.train_set, deploy_train, open_dataset(
+                    cfg.data, "val", cfg.input_size, train_augment=False))
+        return self._deployment
 
     def candidate_for(self, trial: optuna.Trial) -> tuple[Candidate, str]:
         baseline = trial.user_attrs.get("baseline", "")
@@ -179,14 +194,15 @@ class Objective:
                 trial.set_user_attr("weights_artifact", artifact)
         return self.values(losses, pm, latency)
 
-    def quantized(self, trial, net, path_metrics: list[dict], cost) -> list[dict]:
+    def quantized(self, trial, net, path_metrics: list[dict], cost, size: tuple[int, int] | None = None) -> list[dict]:
         """An int8 candidate's metrics: those of its fp32 weights ``net`` (on the frames every trial
-        uses) times what quantizing its graphs does to each path, measured with onnxruntime
+        uses, at ``size``: the training size unless given) times what quantizing its graphs does to each
+        path, measured with onnxruntime
         (explorer.deploy.quantize); both, and the change, are kept on ``trial``. The graphs quantized are those
         the device profile prices int8 (``CandidateCost.int8_graphs``), as its latency assumes."""
         net.eval()
         graphs = cost.int8_graphs(self.device_profile)
-        effect = quantization_effect(net, self.config.train_size, self.config.data,
+        effect = quantization_effect(net, tuple(size or self.config.train_size), self.config.data,
                                      eval_frames=self.config.val_limit or 32, stages=graphs)
         trial.set_user_attr("int8_graphs", list(graphs))
         trial.set_user_attr("path_metrics_fp32", path_metrics)

@@ -60,6 +60,7 @@ class Speeds:
     supernet_step_s: float       # one sandwich step (0 when no supernet is trained)
     baseline_step_s: tuple[tuple[str, float], ...] = ()   # the other baselines, same recipe
     finalist_step_s: tuple[float, ...] = ()   # the finalists chosen so far, best first, same recipe
+    tune_s: float = 0.0          # the paper design's tuning phase at the deployment size, its measurement included
 
     def relative_training(self, baseline: str) -> float | None:
         """A baseline's training step over the paper design's, if it was measured."""
@@ -109,7 +110,7 @@ class Plan:
 def retrain_seconds(speeds: Speeds, finalists: int, baselines: float, steps: int) -> float:
     """``baselines`` counts paper designs' worth of training (a reference network counts more)."""
     jobs = speeds.finalist_load(finalists) + baselines
-    return SAFETY * jobs * (steps * speeds.retrain_step_s + speeds.retrain_eval_s) if jobs else 0.0
+    return SAFETY * jobs * (steps * speeds.retrain_step_s + speeds.retrain_eval_s + speeds.tune_s) if jobs else 0.0
 
 
 def plan_run(remaining_s: float, limit_s: float, speeds: Speeds, *, sampling_s: float | None,
@@ -266,10 +267,12 @@ def _seconds_per_step(marks: dict[int, float]) -> float:
 
 
 def measure_speeds(config, train_set, val_set, device, supernet: bool, steps: int = 6,
-                   baselines: tuple[str, ...] = (), finalists: tuple = ()) -> Speeds:
+                   baselines: tuple[str, ...] = (), finalists: tuple = (), deployment=None) -> Speeds:
     """A few steps of the paper design with the study's recipe, of each baseline named in ``baselines``
     and each candidate in ``finalists`` with the same recipe and, when one must be trained, of the
-    supernet with its recipe (on a throw-away file): the median seconds a step, warm-up left out."""
+    supernet with its recipe (on a throw-away file): the median seconds a step, warm-up left out. With
+    ``deployment`` (:class:`~explorer.training.deployment.DeploymentData`) and a recipe that tunes, the
+    paper design's tuning phase too: a few steps at the deployment size and its measurement there."""
     import tempfile
     from pathlib import Path
 
@@ -291,6 +294,7 @@ def measure_speeds(config, train_set, val_set, device, supernet: bool, steps: in
               progress=lambda s, n, r: marks.setdefault(s, time.perf_counter()))
         return _seconds_per_step(marks)
 
+    tune_s = _tune_seconds(config, deployment, device) if deployment is not None else 0.0
     baseline_steps = tuple((name, step_of(baseline_model(name))) for name in baselines)
     finalist_steps = tuple(step_of(candidate) for candidate in finalists)
     supernet_step = 0.0
@@ -301,7 +305,24 @@ def measure_speeds(config, train_set, val_set, device, supernet: bool, steps: in
                            dataclasses.replace(config.supernet_recipe(), steps=steps), Path(tmp) / "probe.pt",
                            device, progress=lambda s, n, r: marks.setdefault(s, time.perf_counter()))
         supernet_step = _seconds_per_step(marks)
-    return Speeds(retrain_step, retrain_eval, supernet_step, baseline_steps, finalist_steps)
+    return Speeds(retrain_step, retrain_eval, supernet_step, baseline_steps, finalist_steps, tune_s)
+
+
+def _tune_seconds(config, deployment, device, steps: int = 4) -> float:
+    """The paper design's tuning phase at the deployment size, from ``steps`` of it: its steps and its
+    validation pass there (0 when the recipe does not tune)."""
+    import torch
+    recipe = config.finalist_recipe()
+    if not recipe.tunes:
+        return 0.0
+    marks: dict[int, float] = {}
+    tune = dataclasses.replace(recipe.tune_config(), steps=steps)
+    torch.manual_seed(0)
+    t0 = time.perf_counter()
+    result = train(build_network(paper_candidate()), deployment.deploy_train, deployment.deploy_val, tune, device,
+                   progress=lambda s, n, r: marks.setdefault(s, time.perf_counter()), val_limit=config.val_limit)
+    evaluation = max(time.perf_counter() - t0 - result.seconds, 0.0)
+    return recipe.tune_steps * _seconds_per_step(marks) + evaluation
 
 
 @dataclass(frozen=True)

@@ -62,6 +62,7 @@ from explorer.study.retry import (
 from explorer.study.sampling import RecentTrialsTPE
 from explorer.study.storage import REPORTS_DIR, local_url, open_storage, study_dir
 from explorer.supernet import default_path, load_supernet, read_supernet, train_supernet
+from explorer.training.deployment import DeploymentData
 from explorer.training.train import resolve_accelerator
 
 
@@ -258,7 +259,8 @@ def plan_search(config: SearchConfig, storage: optuna.storages.BaseStorage, limi
     must_measure_supernet = trains_supernet and ("supernet_steps" in free or config.supernet_steps not in cached)
     speeds = planning.measure_speeds(config, train_set, val_set, resolve_accelerator(config.accelerator),
                                      supernet=must_measure_supernet,
-                                     baselines=_measured_baselines(config) if config.finalists else ())
+                                     baselines=_measured_baselines(config) if config.finalists else (),
+                                     deployment=_deployment_data(config, train_set) if config.finalists else None)
     trial_s = 0.0 if config.evaluator == "supernet" else planning.SAFETY * (
         config.train_steps * speeds.retrain_step_s + speeds.retrain_eval_s)
 
@@ -291,7 +293,13 @@ def _measure_again(config: SearchConfig, speeds, finalists: tuple[Candidate, ...
     val_set = open_dataset(config.data, "val", config.train_size, train_augment=False)
     fresh = planning.measure_speeds(config, train_set, val_set, resolve_accelerator(config.accelerator), supernet=False,
                                     baselines=_measured_baselines(config), finalists=finalists)
-    return dataclasses.replace(fresh, supernet_step_s=speeds.supernet_step_s)
+    return dataclasses.replace(fresh, supernet_step_s=speeds.supernet_step_s, tune_s=speeds.tune_s)
+
+
+def _deployment_data(config: SearchConfig, train_set) -> DeploymentData:
+    """The frames the finalists' tuning reads and is measured on, at the deployment size."""
+    return DeploymentData(train_set, open_dataset(config.data, "train", config.input_size, seed=config.seed),
+                          open_dataset(config.data, "val", config.input_size, train_augment=False))
 
 
 def search(config: SearchConfig, storage_url: str | None = None, workers: int = 1,
@@ -447,7 +455,7 @@ def _retrain_finalists(study: optuna.Study, config: SearchConfig, plan: "Plan | 
         extra = max(wanted[0] - config.finalists, 0) if "finalists" in time_limit.free else 0
         deadline = time_limit.started + time_limit.seconds - RESERVE_S
     retrain_finalists(study, config, reports, progress=on_finalist, extra=extra, deadline=deadline, workers=workers)
-    recipe = config.finalist_config().to_dict()
+    recipe = config.finalist_recipe().to_dict()
     now = [t for t in finalist_trials(study) if t.user_attrs["finalist"].get("recipe") == recipe]
     retrained = sum(1 for t in now if not t.user_attrs.get("baseline"))
     skipped = max(config.finalists - retrained, 0) + len(set(config.baselines) - {t.user_attrs.get("baseline") for t in now})

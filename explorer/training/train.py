@@ -206,6 +206,13 @@ def evaluate(net: AnytimeDepthNet, dataset, batch_size: int = 8, accelerator: to
     return pd.DataFrame(rows)
 
 
+def evaluated_frames(dataset, limit: int | None, batch_size: int = 8) -> int:
+    """How many frames ``evaluate(dataset, batch_size, limit=limit)`` measures: the first ones of the set,
+    up to the batch that reaches ``limit``."""
+    n = len(dataset)
+    return n if not limit else min(n, -(-limit // batch_size) * batch_size)
+
+
 def _median_ratio(pred: torch.Tensor, target: torch.Tensor) -> float:
     valid = target > 0
     if not bool(valid.any()):

@@ -10,7 +10,8 @@ from explorer.space import Candidate
 from explorer.training.train import evaluate, save_checkpoint
 
 CFG = SearchConfig(study="fin", space="tiny", data=TINY_DATA, train_size=(32, 32), input_size=(64, 64), batch_size=8,
-                   val_limit=8, evaluator="supernet", supernet_steps=4, finalists=2, finalist_steps=5)
+                   val_limit=8, evaluator="supernet", supernet_steps=4, finalists=2, finalist_steps=5,
+                   tune_steps=2)
 
 
 @pytest.fixture(scope="module")
@@ -34,7 +35,9 @@ def test_best_candidates_and_baselines_are_retrained(finished):
     # the best estimate, then the best of the other encoder
     assert picked == {first.user_attrs["candidate_key"], runner_up.user_attrs["candidate_key"]}
     for t in fin:
-        assert t.user_attrs["train"]["steps"] == 5 and "weights_artifact" in t.user_attrs
+        assert t.user_attrs["train"]["steps"] == 5 + 2 and "weights_artifact" in t.user_attrs
+        # trained at 32x32, tuned and measured at the deployment size, on named frames
+        assert t.user_attrs["measured"] == {"data": TINY_DATA, "split": "val", "frames": 8, "input_size": [64, 64]}
         assert t.params == {}                                    # samplers never learn from them
     win = winner(out.study)
     assert is_retrained(win) and win.values[0] == min(t.values[0] for t in fin if not t.user_attrs.get("baseline"))
@@ -85,13 +88,17 @@ def test_an_interrupted_retraining_resumes_from_its_checkpoint(finished, tmp_pat
         if t.state == optuna.trial.TrialState.COMPLETE and not is_retrained(t):
             fresh.add_trial(t)
     cand = Candidate.from_dict(best_trial(fresh).user_attrs["candidate"])
-    # a kill after the last step, before its trial was stored: the checkpoint holds finished weights
-    recipe = cfg.finalist_config()
+    # a kill after the tuning's last step, before its trial was stored: both phases' checkpoints hold
+    # finished weights
+    recipe = cfg.finalist_recipe()
     torch.manual_seed(123)
     net = build_network(cand)
     ckpt = tmp_path / "fin2" / "finalists" / f"{cand.key}.pt"
-    save_checkpoint(ckpt, net, recipe, recipe.steps, torch.optim.AdamW(net.parameters()))
-    expected = evaluate(net, open_dataset(TINY_DATA, "val", (32, 32), train_augment=False), limit=8)
+    save_checkpoint(ckpt, net, recipe.train, recipe.train.steps, torch.optim.AdamW(net.parameters()))
+    save_checkpoint(ckpt.with_name(f"{cand.key}-tune.pt"), net, recipe.tune_config(), recipe.tune_steps,
+                    torch.optim.AdamW(net.parameters()))
+    # measured at the deployment size
+    expected = evaluate(net, open_dataset(TINY_DATA, "val", (64, 64), train_augment=False), limit=8)
     retrain_finalists(fresh, cfg, tmp_path)
     done = finalist_trials(fresh)
     assert [t.user_attrs["candidate_key"] for t in done] == [cand.key]

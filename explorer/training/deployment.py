@@ -1,0 +1,86 @@
+"""Training a network for the size it is deployed at: most steps at a small training size (cheap), then
+a short tuning phase at the deployment size, then every path measured there.
+
+A network trained at 64x64 and run at 224x224 sees objects three times larger in pixels than it
+learned, and its BatchNorm statistics no longer match its activations: on the default space its exits
+fell from 0.32-0.36 m RMSE at 64x64 to 0.44-0.47 m at 224x224, barely better than the scan alone.
+Re-estimating the BatchNorm statistics at 224x224 alone did not help (0.45-0.46 m); a few steps of
+training at the deployment size did (0.33-0.35 m with 20 steps), as FixRes ("Fixing the train-test
+resolution discrepancy", Touvron et al., 2019) found for classification. ``benchmarks/bench_resolution.py``
+compares this with training at the deployment size from the start and other splits, at equal time.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+from explorer.training.train import TrainConfig, TrainResult, train
+
+#: the tuning phase's learning rate, as a fraction of the recipe's (it continues a trained network)
+TUNE_LR_SCALE = 0.25
+
+
+@dataclass(frozen=True)
+class DeploymentRecipe:
+    """``train`` at its own input size, then ``tune_steps`` steps at ``deploy_size`` (none when the two
+    sizes are the same); the result is measured at ``deploy_size``."""
+
+    train: TrainConfig
+    deploy_size: tuple[int, int]
+    tune_steps: int = 20
+
+    @property
+    def tunes(self) -> bool:
+        return self.tune_steps > 0 and tuple(self.deploy_size) != tuple(self.train.input_size)
+
+    def tune_config(self) -> TrainConfig:
+        """The tuning phase: the same recipe at the deployment size, a lower learning rate."""
+        lr = self.train.lr * TUNE_LR_SCALE
+        return dataclasses.replace(self.train, steps=self.tune_steps, input_size=tuple(self.deploy_size), lr=lr,
+                                   lr_end=lr / 10, eval_every=0)
+
+    def to_dict(self) -> dict:
+        """What a finalist's record keeps: the first phase's recipe (its keys as before), the deployment
+        size and the tuning steps."""
+        return {**self.train.to_dict(), "deploy_size": list(self.deploy_size),
+                "tune_steps": self.tune_steps if self.tunes else 0}
+
+
+@dataclass(frozen=True)
+class DeploymentData:
+    """The frames a deployment-size training reads: the training set at the training size, and the
+    training and validation sets at the deployment size (the validation set is what every path is
+    measured on)."""
+
+    train: object
+    deploy_train: object
+    deploy_val: object
+
+
+def train_for_deployment(net, data: DeploymentData, recipe: DeploymentRecipe, accelerator: torch.device | None,
+                         checkpoint: Path | None = None, val_limit: int | None = None) -> TrainResult:
+    """Trains ``net`` with ``recipe`` and returns the result with its per-path metrics measured at the
+    deployment size on the first ``val_limit`` validation frames. Each phase checkpoints on its own
+    file (``checkpoint`` and its ``-tune`` sibling), so a killed run resumes in the phase it was in."""
+    if not recipe.tunes:   # measured where it is deployed, whatever size it was trained at
+        return train(net, data.train, data.deploy_val, recipe.train, accelerator, checkpoint=checkpoint,
+                     val_limit=val_limit)
+    # no validation pass at the training size ([] evaluates nothing): its figures are not the network's
+    first = train(net, data.train, [], recipe.train, accelerator, checkpoint=checkpoint)
+    tune_checkpoint = None if checkpoint is None else checkpoint.with_name(f"{checkpoint.stem}-tune{checkpoint.suffix}")
+    tuned = train(net, data.deploy_train, data.deploy_val, recipe.tune_config(), accelerator, checkpoint=tune_checkpoint,
+                  val_limit=val_limit)
+    if tune_checkpoint is not None and checkpoint is not None:
+        tune_checkpoint.replace(checkpoint)   # one file: the network as measured
+    return TrainResult(tuned.metrics, first.history + tuned.history, first.seconds + tuned.seconds,
+                       _rate(first, tuned), first.steps + tuned.steps)
+
+
+def _rate(*results: TrainResult) -> float:
+    seconds = sum(r.seconds for r in results)
+    images = sum(r.images_per_second * r.seconds for r in results)
+    return images / seconds if seconds > 0 else 0.0
