@@ -21,23 +21,25 @@ def _percent(text: str) -> float:
 
 def cmd_export(args) -> None:
     from explorer.console import console, err_console, print_frame, progress
-    from explorer.deploy.export import Quantization, export_from_checkpoint
+    from explorer.deploy.export import Measurement, Quantization, export_from_checkpoint
     from explorer.study.export import AS_SEARCHED, export_from_study
     if bool(args.study) == bool(args.checkpoint):
         raise UserError("give either --study S (optionally --trial N) or --checkpoint FILE")
     if args.quantize not in (None, "none", "int8"):
         raise UserError(f"--quantize {args.quantize}: use int8 or none")
+    if args.eval_frames is not None and args.eval_frames < 1:
+        raise UserError("--eval-frames must be at least 1")
+    # a study's own data and frames unless told; a checkpoint's: the generated scenes
+    data = args.data or (None if args.study else "synthetic")
+    if data is None and args.quantize == "int8":
+        err_console.print("no --data: calibrating and measuring on the study's data")
     quant = None
     if args.quantize == "int8":
-        data = args.data
-        if data is None:   # just the frames calibration and the check read, not the whole default set
-            data = f"synthetic:{args.calibration_frames}:{args.eval_frames}"
-            err_console.print(f"no --data: calibrating on {data} (generated scenes); give --data for your own frames")
         quant = Quantization(data=data, calibration_frames=args.calibration_frames,
-                             eval_frames=args.eval_frames, max_degradation=args.max_degradation / 100,
+                             eval_frames=args.eval_frames or 96, max_degradation=args.max_degradation / 100,
                              force=args.force, stages=args.int8_stages or "faster")
-    elif args.force or args.data or args.int8_stages:
-        raise UserError("--data, --force and --int8-stages are read by --quantize int8 only")
+    elif args.force or args.int8_stages:
+        raise UserError("--force and --int8-stages are read by --quantize int8 only")
     elif args.quantize is None and args.study:
         quant = AS_SEARCHED
     # what the export is doing shows on one status line that a refusal clears: its error is then the
@@ -47,10 +49,12 @@ def cmd_export(args) -> None:
         say = lambda msg: bar.update(task, status=str(msg))  # noqa: E731
         if args.study:
             manifest = export_from_study(args.study, args.trial, Path(args.out), args.storage,
-                                         Path(args.reports), args.input_size, args.device, quant, say)
+                                         Path(args.reports), args.input_size, args.device, quant, say,
+                                         data=data, eval_frames=args.eval_frames)
         else:
             manifest = export_from_checkpoint(Path(args.checkpoint), Path(args.out), args.input_size, args.device,
-                                              quant, say)
+                                              quant, say, Measurement(data, args.eval_frames or 96))
+    _print_measured(manifest)
     console.print(f"exported {len(manifest['stages'])} stage graphs to {args.out} (max |onnx - torch| "
                   f"{manifest['verification']['max_abs_diff']:.2e}{' before quantization' if manifest.get('quantization') else ''})")
     if manifest.get("quantization"):
@@ -69,6 +73,26 @@ def cmd_export(args) -> None:
         if q.get("kept_fp32_for_accuracy"):
             console.print(f"kept fp32 because int8 took a path past --max-degradation: "
                           f"{', '.join(q['kept_fp32_for_accuracy'])}")
+
+
+def _print_measured(manifest: dict) -> None:
+    """The export's own figures, where they come from, and a line when it is deployed at a size its
+    weights were not trained or tuned at."""
+    import pandas as pd
+    from explorer.console import console, print_frame
+    measured = manifest.get("measured")
+    if not measured:
+        return
+    size = "x".join(map(str, manifest["input_size"]))
+    frame = pd.DataFrame({"path": range(len(manifest["path_metrics"])),
+                          "rmse (m)": [m["rmse"] for m in manifest["path_metrics"]],
+                          "delta1": [m["delta1"] for m in manifest["path_metrics"]]})
+    print_frame(frame, f"measured on the exported graphs at {size}, {measured['frames']} validation frames of "
+                f"{measured['data']}")
+    tuned = manifest.get("tuned_size")
+    if tuned and list(tuned) != list(manifest["input_size"]):
+        console.print(f"exported at {size}, but its weights were trained at {'x'.join(map(str, tuned))}: the manifest "
+                      f"holds what they do at {size} (above), not the study's figures", markup=False, highlight=False)
 
 
 def cmd_run(args) -> None:
@@ -118,10 +142,11 @@ def register(sub, add, reports: dict) -> None:
                    help="int8: static quantization (onnxruntime QDQ) calibrated on --data; every path's metrics "
                    "are measured again and written beside the fp32 ones (default: as the trial was searched, "
                    "int8 for a candidate of precision int8, else none)")
-    s.add_argument("--data", help="frames to calibrate (train split) and check (val split) int8 on "
-                   "(default synthetic)")
+    s.add_argument("--data", help="frames every exported path is measured on (val split) and int8 is "
+                   "calibrated on (train split) (default: the study's data; for a checkpoint, synthetic)")
     s.add_argument("--calibration-frames", type=int, default=32, help="frames to calibrate on (default 32)")
-    s.add_argument("--eval-frames", type=int, default=64, help="validation frames to compare on (default 64)")
+    s.add_argument("--eval-frames", type=int, default=None, help="validation frames (the split's first) every "
+                   "path is measured on (default: those of the study's figures, 96)")
     s.add_argument("--max-degradation", type=_percent, default=3.0, metavar="PCT",
                    help="refuse int8 if a path's RMSE grows by more than this (default 3%%)")
     s.add_argument("--force", action="store_true", help="export int8 even past --max-degradation")

@@ -52,7 +52,7 @@ def _search_config(args):
         evaluator=args.evaluator, supernet=args.supernet,
         supernet_steps=600 if args.supernet_steps is None else args.supernet_steps,
         finalists=3 if args.finalists is None else args.finalists,
-        finalist_steps=300 if args.finalist_steps is None else args.finalist_steps,
+        finalist_steps=300 if args.finalist_steps is None else args.finalist_steps, tune_steps=args.tune_steps,
         max_retries=args.max_retries,
         supervision=args.supervision, poses=args.poses, hints=args.depth_hints)
     cfg.validate()
@@ -157,7 +157,7 @@ def _print_outcome(study, cfg, storage_url: str, reports: Path, write_report: bo
     from explorer.console import console, print_frame
     from explorer.cost import get_device
     from explorer.study.results import (baseline_label, baseline_trial, best_trial, estimate_fidelity,
-                                        finalists_agreement, finalists_frame, is_retrained,
+                                        figures_source, finalists_agreement, finalists_frame, is_retrained,
                                         missing_baselines, path_table, unbeaten_baseline, winner)
     from explorer.space import Candidate
     states = [t.state for t in study.get_trials(deepcopy=False)]
@@ -176,6 +176,7 @@ def _print_outcome(study, cfg, storage_url: str, reports: Path, write_report: bo
                       f"{how}, for {cfg.budgets[0]} on {cfg.device}")
         console.print(f"  {cand.describe()}")
         print_frame(path_table(best, [get_device(cfg.device)]), f"{lead}, per path")
+        console.print(f"  {figures_source(best, cfg.to_dict())}", markup=False, highlight=False)
         fin = finalists_frame(study)
         if not fin.empty:
             cols = ["model", "candidate_key", "estimated", "retrained", "estimated_rank", "retrained_rank"]
@@ -308,12 +309,16 @@ def _register_search(add, reports: dict) -> None:
     s.add_argument("--finalists", type=int, default=None, help="best candidates (one per image encoder first) "
                    "retrained stand-alone at the end, next to the baselines (default 3, fewer if --time-limit needs; 0 = none)")
     s.add_argument("--finalist-steps", type=int, default=None, help="steps of the finalists' longer recipe "
-                   "(default 300, down to 150 if --time-limit needs)")
+                   "(default 300, down to 150 if --time-limit needs), at --train-size")
+    s.add_argument("--tune-steps", type=int, default=20, help="steps the finalists and baselines then train at "
+                   "--input-size, where every path of theirs is measured (default 20; 0 = none: measured there as "
+                   "trained; none when the two sizes are equal)")
     s.add_argument("--proxy-steps", type=int, default=150, help="training steps of each candidate the proxy "
                    "evaluator trains (default 150)")
     deprecated_alias(s, "--train-steps", "--proxy-steps")
     s.add_argument("--train-size", type=_size, default=(64, 64), help="training resolution HxW of the proxy "
-                   "candidates, the supernet and the finalists (default 64x64)")
+                   "candidates, the supernet and the finalists' first steps (default 64x64): the search's estimates "
+                   "are made at this size")
     s.add_argument("--batch-size", type=int, default=16)
     s.add_argument("--amp", action="store_true", help="bf16 autocast of the supernet's forward passes: for a GPU "
                    "(with --train-size 224x224 --batch-size 64, the GPU recipe of `explorer supernet train`); "
@@ -322,7 +327,8 @@ def _register_search(add, reports: dict) -> None:
                    "trains which kind of exit head: rotate (default; every kind on every kind of backbone), cover, "
                    "random (as supernets made before rotate); part of the study's identity")
     s.add_argument("--input-size", type=_size, default=(224, 224),
-                   help="deployment resolution HxW, at which paths are costed (default 224x224)")
+                   help="deployment resolution HxW, at which paths are costed and the finalists and baselines "
+                   "tuned and measured (default 224x224)")
     deprecated_alias(s, "--input", "--input-size")
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--accelerator", default="auto", choices=["auto", "cpu", "cuda"])

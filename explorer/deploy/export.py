@@ -44,7 +44,7 @@ def verify(graphs, net: AnytimeDepthNet, input_size: tuple[int, int], scan_row: 
 class Quantization:
     """What ``explorer export --quantize int8`` asks for (see :mod:`explorer.deploy.quantize`)."""
 
-    data: str = "synthetic"
+    data: str | None = "synthetic"   # None: the frames the export is measured on (a study's own)
     calibration_frames: int = 32
     eval_frames: int = 64
     max_degradation: float = MAX_DEGRADATION
@@ -53,17 +53,52 @@ class Quantization:
     stages: "str | tuple[str, ...]" = "faster"
 
 
+@dataclass(frozen=True)
+class Measurement:
+    """The frames an export's paths are measured on with onnxruntime: the first ``frames`` of the
+    validation split of ``data`` (a study's own: the frames its figures are measured on)."""
+
+    data: str = "synthetic"
+    frames: int = 96
+
+
+def measure_export(model_dir: Path, measurement: Measurement, input_size: tuple[int, int]) -> dict:
+    """Per-path metrics of the graphs in ``model_dir`` as they stand, run by the project's runtime on
+    ``measurement``'s frames at ``input_size``, and what they were measured on."""
+    from explorer.data import open_dataset
+    from explorer.deploy.runtime import AnytimeRunner, path_metrics
+    ds = open_dataset(measurement.data, "val", tuple(input_size), train_augment=False)
+    frames = [ds[i] for i in range(min(measurement.frames, len(ds)))]
+    if not frames:
+        raise UserError(f"--data {measurement.data}: its validation split has no frames to measure the export on")
+    metrics = path_metrics(AnytimeRunner(model_dir, warmup=False, arenas="shared"), frames)
+    return {"path_metrics": [{k: v for k, v in m.items() if k != "path"} for m in metrics],
+            "measured": {"data": measurement.data, "split": "val", "frames": len(frames),
+                         "input_size": list(input_size), "by": "onnxruntime, the exported graphs"}}
+
+
 def export_network(net: AnytimeDepthNet, out_dir: Path, input_size: tuple[int, int],
                    scan_row: int | None = None, path_metrics: list[dict] | None = None,
                    devices: Sequence[str] = ("tx2", "rpi4"), source: dict | None = None,
                    quantization: Quantization | None = None,
-                   progress: Callable[[str], None] | None = None) -> dict:
+                   progress: Callable[[str], None] | None = None,
+                   measurement: Measurement | None = None, tuned_size: tuple[int, int] | None = None) -> dict:
     """Writes the stage graphs and the manifest to ``out_dir``, whole: everything is built, checked
     (and, with ``quantization``, quantized and measured) in a scratch folder that then replaces
     ``out_dir``; a refused or killed export leaves ``out_dir`` as it was. The manifest records each
-    graph's SHA-256, which the runtime checks."""
+    graph's SHA-256, which the runtime checks. With ``measurement`` every path of the exported graphs
+    is measured on its frames at ``input_size`` and the manifest's ``path_metrics`` are those figures,
+    never ``path_metrics`` given for another size; ``tuned_size`` is the size the weights were trained
+    (or tuned) at, recorded beside it."""
     with replacing_folder(out_dir, MANIFEST) as scratch:
         manifest = _export_fp32(net, scratch, input_size, scan_row, path_metrics, devices, source)
+        if tuned_size is not None:
+            manifest["tuned_size"] = list(tuned_size)
+        if measurement is not None:
+            write_json(scratch / MANIFEST, manifest)   # what the runtime reads
+            if progress:
+                progress(f"measuring every path on {measurement.frames} validation frames of {measurement.data}")
+            manifest.update(measure_export(scratch, measurement, input_size))
         write_json(scratch / MANIFEST, manifest)   # what quantization reads and rewrites
         if quantization is not None:
             from explorer.deploy.quantize import (
@@ -120,11 +155,14 @@ def _export_fp32(net: AnytimeDepthNet, out_dir: Path, input_size: tuple[int, int
 
 def export_from_checkpoint(ckpt: Path, out_dir: Path, input_size: tuple[int, int] | None = None,
                            devices: Sequence[str] | None = None, quantization: Quantization | None = None,
-                           progress: Callable[[str], None] | None = None) -> dict:
+                           progress: Callable[[str], None] | None = None,
+                           measurement: Measurement | None = None) -> dict:
     net, state = network_from_checkpoint(ckpt)
-    size = tuple(input_size or state["train_config"]["input_size"])
+    trained = tuple(state["train_config"]["input_size"])
+    size = tuple(input_size or trained)
     return export_network(net, out_dir, size, devices=devices or ("tx2", "rpi4"),
-                          source={"checkpoint": str(ckpt)}, quantization=quantization, progress=progress)
+                          source={"checkpoint": str(ckpt)}, quantization=quantization, progress=progress,
+                          measurement=measurement, tuned_size=trained)
 
 
 def quantization_effect(net, input_size: tuple[int, int], data: str, calibration_frames: int = 16,

@@ -54,10 +54,12 @@ MAX_DEGRADATION = 0.03
 
 
 def _frames(data: str, input_size: tuple[int, int], count: int, split: str) -> list[dict]:
+    """Calibration frames spread over the training split (not its first scenes only); evaluation frames
+    are the validation split's first ``count``, those a study measures its networks on."""
     ds = open_dataset(data, split, input_size, train_augment=False)
     if len(ds) == 0:
         raise UserError(f"--data {data}: its {split} split has no frames to quantize with")
-    step = max(len(ds) // count, 1)   # spread over the split, not its first scenes only
+    step = max(len(ds) // count, 1) if split == "train" else 1
     return [ds[i] for i in range(0, len(ds), step)[:count]]
 
 

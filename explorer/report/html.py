@@ -24,6 +24,7 @@ from explorer.study.results import (
     baseline_label,
     baseline_trial,
     estimate_fidelity,
+    figures_source,
     finalists_agreement,
     finalists_frame,
     is_retrained,
@@ -176,6 +177,7 @@ def _best(study: optuna.Study, best: optuna.trial.FrozenTrial, retrained: bool, 
     evaluator = (best.user_attrs.get("evaluator") or {}).get("evaluator", "proxy")
     how = "retrained" if retrained else f"estimated by the {evaluator} evaluator"
     out = {"number": best.number, "value": best.values[0], "key": cand.key, "how": how,
+           "figures": figures_source(best, study.user_attrs.get("config", {})),
            "architecture": cand.describe(), "yaml": cand.to_yaml(),
            "table": _frame_html(path_table(best, devs), "best-table")}
     paper = baseline_trial(study, "paper", retrained=retrained)

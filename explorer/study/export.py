@@ -3,10 +3,11 @@ of it: its data, its device, whether it was searched as int8."""
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 from typing import Callable, Sequence
 
-from explorer.deploy.export import Quantization, export_network
+from explorer.deploy.export import Measurement, Quantization, export_network
 from explorer.errors import UserError
 from explorer.study.results import best_trial, scored_trials, trial_network, winner
 from explorer.study.storage import load_study
@@ -18,9 +19,13 @@ AS_SEARCHED = "as-searched"
 def export_from_study(study_name: str, trial_number: int | None, out_dir: Path, storage: str | None,
                       reports: Path, input_size: tuple[int, int] | None = None,
                       devices: Sequence[str] | None = None, quantization: Quantization | str | None = None,
-                      progress: Callable[[str], None] | None = None) -> dict:
+                      progress: Callable[[str], None] | None = None, data: str | None = None,
+                      eval_frames: int | None = None) -> dict:
     """Exports trial ``trial_number`` of study ``study_name`` (default: the winner, else the best
-    baseline) to ``out_dir``; ``quantization=AS_SEARCHED``: int8 where the trial was searched as int8."""
+    baseline) to ``out_dir``; ``quantization=AS_SEARCHED``: int8 where the trial was searched as int8.
+    Every path of the exported graphs is measured on the first ``eval_frames`` validation frames of
+    ``data`` (default: the study's data and the frames its figures come from); the study's own figures
+    are kept beside them only when they were measured at the size exported."""
     study = load_study(study_name, storage, reports)
     trials = {t.number: t for t in scored_trials(study)}
     if trial_number is None:
@@ -34,13 +39,22 @@ def export_from_study(study_name: str, trial_number: int | None, out_dir: Path, 
         trial = trials[trial_number]
     net = trial_network(study, trial)
     cfg = study.user_attrs.get("config", {})
+    measured = trial.user_attrs.get("measured")     # a retrained trial: measured at the deployment size
+    measurement = Measurement(data=data or cfg.get("data", "synthetic"),
+                              frames=eval_frames or (measured or {}).get("frames") or cfg.get("val_limit") or 96)
+    if isinstance(quantization, Quantization) and quantization.data is None:   # the study's frames
+        quantization = dataclasses.replace(quantization, data=measurement.data)
     if quantization == AS_SEARCHED:   # an int8 candidate was costed and measured as int8: export it so
         searched = trial.user_attrs.get("int8_graphs")   # the stage graphs its device priced int8
-        quantization = Quantization(data=cfg.get("data", "synthetic"),
+        quantization = Quantization(data=measurement.data, eval_frames=measurement.frames,
                                     stages="faster" if searched is None else tuple(searched)) \
             if net.candidate.precision == "int8" else None
     size = tuple(input_size or cfg.get("input_size", (224, 224)))
     devs = list(devices or dict.fromkeys([cfg.get("device", "tx2"), "tx2", "rpi4"]))
-    return export_network(net, out_dir, size, path_metrics=trial.user_attrs.get("path_metrics"), devices=devs,
-                          source={"study": study_name, "trial": trial.number, "objective": trial.values[0]},
-                          quantization=quantization, progress=progress)
+    tuned = tuple(measured["input_size"]) if measured else tuple(cfg.get("train_size", (64, 64)))
+    source = {"study": study_name, "trial": trial.number, "objective": trial.values[0],
+              "figures": "retrained, measured" if measured else "estimated by the search"}
+    if measured and tuple(measured["input_size"]) == size:
+        source.update(study_path_metrics=trial.user_attrs.get("path_metrics"), study_measured=measured)
+    return export_network(net, out_dir, size, devices=devs, source=source, quantization=quantization,
+                          progress=progress, measurement=measurement, tuned_size=tuned)

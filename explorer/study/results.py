@@ -177,6 +177,19 @@ def is_retrained(trial: optuna.trial.FrozenTrial) -> bool:
     return "finalist" in trial.user_attrs
 
 
+def figures_source(trial: optuna.trial.FrozenTrial, config: dict) -> str:
+    """Where a trial's per-path figures come from, in words: measured on a retrained network at the
+    deployment size (on which frames), or estimated by the search at its training size."""
+    measured = trial.user_attrs.get("measured")
+    if measured:
+        size = "x".join(map(str, measured["input_size"]))
+        return (f"Per-path figures measured on the retrained network at {size}, the deployment size, on the first "
+                f"{measured['frames']} validation frames of {measured['data']}")
+    size = "x".join(map(str, config.get("train_size", (64, 64))))
+    how = (trial.user_attrs.get("evaluator") or {}).get("evaluator", "proxy")
+    return f"Per-path figures estimated by the search ({how}) at {size}, not at the deployment size"
+
+
 def best_trial(study: optuna.Study, baseline: bool = False) -> optuna.trial.FrozenTrial | None:
     """The search's lowest estimate among scored trials (baselines excluded unless ``baseline``;
     retrained finalists excluded: see :func:`winner`)."""
