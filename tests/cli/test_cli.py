@@ -176,9 +176,10 @@ def test_search_rescore_report_export_cli(run_cli, tmp_path):
     code, out, err = run_cli("search", "--study", "cli", "--space", "tiny", "--data", TINY_DATA,
                              "--train-size", "32x32", "--input-size", "64x64", "--proxy-steps", "4",
                              "--batch-size", "8", "--trials", "5", "--timeout", "0", "--supernet-steps", "4",
-                             "--finalists", "1", "--finalist-steps", "4", *common)
+                             "--finalists", "1", "--finalist-steps", "4", "--tune-steps", "2", *common)
     assert code == 0, err
     assert "ratio to the retrained paper-design baseline" in out and (tmp_path / "cli" / "report.html").is_file()
+    assert "measured on the retrained network at 64x64, the deployment size, on the first 16 validation" in " ".join(out.split())
     assert "finalists: search estimate vs retrained" in out
     code, out, _ = run_cli("rescore", "--study", "cli", "--device", "rpi4", "--budget", "energy:uniform:0.5J",
                            "--json", *common)
@@ -187,5 +188,9 @@ def test_search_rescore_report_export_cli(run_cli, tmp_path):
     assert code == 0, err
     manifest = json.loads((tmp_path / "m" / "manifest.json").read_text())
     assert manifest["source"]["study"] == "cli" and manifest["path_metrics"]
+    assert manifest["measured"]["input_size"] == [64, 64] and "trained at" not in out
+    code, out, err = run_cli("export", "--study", "cli", "--out", tmp_path / "m32", "--input-size", "32x32", *common)
+    assert code == 0, err
+    assert "exported at 32x32, but its weights were trained at 64x64" in " ".join(out.split())
     code, _, err = run_cli("export", "--study", "cli", "--trial", "999", "--out", tmp_path / "m2", *common)
     assert code == 2 and "not a completed trial" in err

@@ -301,3 +301,26 @@ def test_when_even_the_best_finalist_and_the_paper_design_no_longer_fit_none_is_
     config, plan = search_module._replan_finalists(study, config, plan, speeds, limit, (1, 150), None)
     assert config.finalists == plan.finalists == retrained
     assert any(c.startswith("no finalist retrained") for c in plan.changes) == (retrained == 0)
+
+
+@pytest.mark.slow
+def test_the_exported_winner_measures_what_the_study_reported(finished, tmp_path, capsys):
+    """Trained at 32x32, deployed at 64x64: the study's figures for its winner and the paper design are
+    those of the exported graphs at 64x64 on the same frames; exported at another size, the manifest
+    holds what was measured there, never the study's figures."""
+    from explorer.anytime import anytime_loss
+    from explorer.study.export import export_from_study
+    out, reports = finished
+    for trial in (winner(out.study), baseline_trial(out.study, "paper", retrained=True)):
+        manifest = export_from_study("fin", trial.number, tmp_path / f"t{trial.number}", None, reports)
+        assert manifest["measured"] == {**trial.user_attrs["measured"], "by": "onnxruntime, the exported graphs"}
+        assert manifest["input_size"] == manifest["tuned_size"] == [64, 64]
+        exported = [p["rmse"] for p in manifest["path_metrics"]]
+        assert exported == pytest.approx([p["rmse"] for p in trial.user_attrs["path_metrics"]], abs=0.01)
+        assert manifest["source"]["study_path_metrics"] == trial.user_attrs["path_metrics"]
+        costs = [c for c in manifest["expected_cost"]["tx2"]["latency_ms"]]
+        assert anytime_loss(costs, exported, "time:uniform:33ms") == pytest.approx(trial.values[0], abs=0.01)
+    other = export_from_study("fin", None, tmp_path / "at32", None, reports, input_size=(32, 32))
+    assert other["measured"]["input_size"] == [32, 32] and other["tuned_size"] == [64, 64]
+    assert "study_path_metrics" not in other["source"]
+    assert [p["rmse"] for p in other["path_metrics"]] != [p["rmse"] for p in winner(out.study).user_attrs["path_metrics"]]
