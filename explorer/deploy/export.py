@@ -14,11 +14,11 @@ import torch
 
 from explorer import __version__
 from explorer.cost import candidate_cost, get_device
-from explorer.deploy.manifest import MANIFEST, file_sha256
+from explorer.deploy.manifest import MANIFEST, file_sha256, write_manifest
 from explorer.deploy.quantize import MAX_DEGRADATION
 from explorer.deploy.sessions import session
 from explorer.errors import UserError
-from explorer.files import replacing_folder, write_json
+from explorer.files import replacing_folder
 from explorer.model import AnytimeDepthNet
 from explorer.model.onnx import OPSET, example_inputs, export_segments
 from explorer.training.train import network_from_checkpoint
@@ -95,11 +95,11 @@ def export_network(net: AnytimeDepthNet, out_dir: Path, input_size: tuple[int, i
         if tuned_size is not None:
             manifest["tuned_size"] = list(tuned_size)
         if measurement is not None:
-            write_json(scratch / MANIFEST, manifest)   # what the runtime reads
+            write_manifest(scratch, manifest)   # what the runtime reads
             if progress:
                 progress(f"measuring every path on {measurement.frames} validation frames of {measurement.data}")
             manifest.update(measure_export(scratch, measurement, input_size))
-        write_json(scratch / MANIFEST, manifest)   # what quantization reads and rewrites
+        write_manifest(scratch, manifest)   # what quantization reads and rewrites
         if quantization is not None:
             from explorer.deploy.quantize import (
                 quantize_export,  # onnxruntime.quantization: only when asked
@@ -111,7 +111,7 @@ def export_network(net: AnytimeDepthNet, out_dir: Path, input_size: tuple[int, i
             manifest["path_metrics"] = manifest["path_metrics_int8"]
         for stage in manifest["stages"]:
             stage["sha256"] = file_sha256(scratch / stage["file"])
-        write_json(scratch / MANIFEST, manifest)
+        write_manifest(scratch, manifest)
     return manifest
 
 

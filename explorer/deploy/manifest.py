@@ -7,12 +7,12 @@ from __future__ import annotations
 
 import hashlib
 from pathlib import Path, PurePosixPath
-from typing import Annotated, Any, Optional
+from typing import Annotated, Any, Literal, Optional
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from explorer.errors import UserError
-from explorer.files import read_json
+from explorer.files import read_json, write_json
 
 MANIFEST = "manifest.json"
 Side = Annotated[int, Field(gt=0)]
@@ -34,7 +34,27 @@ class Stage(BaseModel):
         return file
 
 
+class Measured(BaseModel):
+    """Where an export's ``path_metrics`` come from: the first ``frames`` of a split of ``data``, run at
+    ``input_size`` through the exported graphs."""
+
+    data: str
+    split: str
+    frames: Annotated[int, Field(ge=1)]
+    input_size: tuple[Side, Side]
+    by: str = "onnxruntime, the exported graphs"
+
+
+class ExpectedCost(BaseModel):
+    latency_ms: list[float]
+    energy_j: list[float]
+    calibrated: bool
+
+
 class Manifest(BaseModel):
+    """``manifest.json``, the one definition of what an export writes and what the runtime reads (see
+    the file formats page). Keys this version does not know are kept (a newer export's additions)."""
+
     model_config = ConfigDict(extra="allow")
 
     format: str = Field(pattern=r"^anytime-explorer/1$")
@@ -43,6 +63,32 @@ class Manifest(BaseModel):
     paths: Annotated[int, Field(ge=1)]
     stages: list[Stage] = Field(min_length=1)
     candidate: dict[str, Any]
+    candidate_key: Optional[str] = None
+    explorer_version: Optional[str] = None
+    opset: Optional[int] = None
+    architecture: Optional[str] = None
+    precision: Literal["fp32", "int8"] = "fp32"
+    path_metrics: list[dict[str, float]] = Field(default_factory=list)
+    measured: Optional[Measured] = None
+    tuned_size: Optional[tuple[Side, Side]] = None
+    expected_cost: dict[str, ExpectedCost] = Field(default_factory=dict)
+    params: list[float] = Field(default_factory=list)
+    macs: list[float] = Field(default_factory=list)
+    verification: dict[str, float] = Field(default_factory=dict)
+    source: dict[str, Any] = Field(default_factory=dict)
+
+    @model_validator(mode="after")
+    def _one_figure_per_path(self) -> "Manifest":
+        if self.path_metrics and len(self.path_metrics) != self.paths:
+            raise ValueError(f"path_metrics has {len(self.path_metrics)} entries for {self.paths} paths")
+        return self
+
+
+def write_manifest(folder: Path, manifest: dict) -> None:
+    """Writes ``manifest`` to ``folder`` after checking it against the schema: an export never writes
+    a manifest its runtime would refuse."""
+    Manifest.model_validate(manifest)
+    write_json(Path(folder) / MANIFEST, manifest)
 
 
 def file_sha256(path: Path) -> str:

@@ -77,3 +77,19 @@ def test_graphs_without_hashes_are_still_checked_as_a_chain(model, tmp_path):
 
 def test_a_whole_export_loads(model):
     assert AnytimeRunner(model, warmup=False).input_size == (64, 64)
+
+
+def test_an_export_writes_only_what_its_schema_accepts(model, tmp_path):
+    """The export goes through the same schema the runtime reads: figures for the wrong number of paths,
+    or a measurement without its frames, are refused before anything is written."""
+    import pydantic
+
+    from explorer.deploy.manifest import write_manifest
+    manifest = json.loads((model / MANIFEST).read_text())
+    write_manifest(tmp_path, manifest)
+    assert json.loads((tmp_path / MANIFEST).read_text()) == manifest
+    for bad in ({"path_metrics": [{"rmse": 0.3}]},
+                {"measured": {"data": "synthetic", "split": "val", "input_size": [64, 64]}}):
+        with pytest.raises(pydantic.ValidationError):
+            write_manifest(tmp_path / "bad", {**manifest, **bad})
+        assert not (tmp_path / "bad" / MANIFEST).exists()
