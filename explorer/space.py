@@ -29,7 +29,8 @@ MOBILENET_V1_BLOCKS: tuple[tuple[int, int, int], ...] = (
     (512, 1024, 2), (1024, 1024, 1),
 )
 
-SPACES_DIR = Path(__file__).resolve().parent.parent / "search_spaces"
+#: the shipped search spaces, package data (the repository links them as search_spaces/ at its top)
+SPACES_DIR = Path(__file__).resolve().parent / "search_spaces"
 
 
 def encoder_stride(blocks: int) -> int:

@@ -54,7 +54,8 @@ def describe_fidelity(entry: dict | None) -> str:
     """One sentence on how far the supernet's estimate can be trusted, from a stored entry."""
     if not entry:
         return ("no fidelity measurement exists for this space, data and supernet recipe "
-                "(benchmarks/bench_fidelity.py measures one): the estimate's ranking of the space is unmeasured")
+                "(the project's fidelity benchmark, in a clone of its repository, measures one): the estimate's "
+                "ranking of the space is unmeasured")
     tau = entry["tau"]
     span = f"{min(tau):.2f}" if len(tau) == 1 else f"{min(tau):.2f}-{max(tau):.2f}"
     recall = entry.get("recall") or []
