@@ -135,17 +135,15 @@ def read_json(path: str | Path, what: str = "JSON file") -> Any:
 
 
 @contextmanager
-def writing_atomically(path: str | Path, mode: str = "wb", umask_mode: bool = False) -> Iterator[Any]:
+def writing_atomically(path: str | Path, mode: str = "wb") -> Iterator[Any]:
     """A file opened on a scratch name beside ``path`` (``.NAME.XXXX.tmpPID``), flushed to disk and
     renamed onto ``path`` when the block ends, removed when it raises: readers, and a process killed
-    midway, see the old file or the new one. ``umask_mode``: readable as the umask allows (a scratch
-    file is private otherwise)."""
+    midway, see the old file or the new one. The file gets the mode a plain ``open`` would give it (0644
+    under the usual umask): ``mkstemp`` makes its scratch private, and an export or a profile is often
+    read by another user or a service."""
     p = Path(path)
     fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=f".tmp{os.getpid()}", dir=p.parent)
-    if umask_mode:
-        umask = os.umask(0)
-        os.umask(umask)
-        os.fchmod(fd, 0o666 & ~umask)
+    os.fchmod(fd, 0o666 & ~current_umask())
     try:
         with os.fdopen(fd, mode) as f:
             yield f
@@ -155,6 +153,13 @@ def writing_atomically(path: str | Path, mode: str = "wb", umask_mode: bool = Fa
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+
+
+def current_umask() -> int:
+    """The process's umask (read by setting it, then putting it back)."""
+    umask = os.umask(0o022)
+    os.umask(umask)
+    return umask
 
 
 def write_atomically(path: str | Path, data: "str | bytes") -> Path:
@@ -240,7 +245,7 @@ def replacing_folder(target: str | Path, marker: str) -> Iterator[Path]:
     scratch = target.with_name(f".{target.name}.tmp{os.getpid()}")
     shutil.rmtree(scratch, ignore_errors=True)
     try:
-        scratch.mkdir()
+        scratch.mkdir(mode=0o777)   # as the umask allows, like any folder the user makes
     except OSError as exc:
         raise UserError(f"{target.parent}: cannot write there ({exc.strerror})") from None
     try:

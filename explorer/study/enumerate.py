@@ -232,7 +232,7 @@ def _scratch(path: str | Path | None, mode: str):
         raise UserError(f"{path}: cannot write it ({exc.strerror})") from None
     if not os.access(path.parent, os.W_OK):
         raise UserError(f"{path}: cannot write it (Permission denied)")
-    with writing_atomically(path, mode, umask_mode=True) as f:   # a table is for whoever may read the folder
+    with writing_atomically(path, mode) as f:
         yield f
 
 

@@ -93,3 +93,18 @@ def test_an_export_writes_only_what_its_schema_accepts(model, tmp_path):
         with pytest.raises(pydantic.ValidationError):
             write_manifest(tmp_path / "bad", {**manifest, **bad})
         assert not (tmp_path / "bad" / MANIFEST).exists()
+
+
+def test_an_exports_files_are_readable_as_the_umask_allows(tmp_path):
+    """An export is copied for other users and services: its files get the mode a plain write would
+    give them (0644 under umask 022), not the private mode of the scratch files they are written as."""
+    import os
+    import stat
+    old = os.umask(0o022)
+    try:
+        export_network(build_network(paper_candidate()), tmp_path / "m", (64, 64), devices=())
+    finally:
+        os.umask(old)
+    files = list((tmp_path / "m").iterdir())
+    assert files and {stat.S_IMODE(f.stat().st_mode) for f in files} == {0o644}
+    assert stat.S_IMODE((tmp_path / "m").stat().st_mode) == 0o755
