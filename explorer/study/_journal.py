@@ -34,6 +34,7 @@ class TrialSyncedJournal(JournalFileBackend):
         sync = any(log.get("op_code") in _SYNC_AFTER for log in logs)
         self._file_lock.acquire()
         try:
+            _cut_torn_tail(self._path)
             with open(self._path, "ab") as f:
                 f.write(text.encode("utf-8"))
                 f.flush()
@@ -41,3 +42,38 @@ class TrialSyncedJournal(JournalFileBackend):
                     os.fsync(f.fileno())
         finally:
             self._file_lock.release()
+
+
+def _cut_torn_tail(path: str) -> None:
+    """Removes a last line without its newline, the trace of a writer that died mid-write (a machine
+    that went down): appended to, it would fuse with the next line into one that no reader can parse,
+    and the study could not be opened again. Called under the journal's lock, where every writer writes
+    whole lines, so such a tail is never a write in progress. The cut bytes are kept beside the journal
+    (``.torn``); they are part of one operation of the trial that was running, which is tried again."""
+    try:
+        with open(path, "rb+") as f:
+            size = f.seek(0, os.SEEK_END)
+            if size == 0:
+                return
+            f.seek(size - 1)
+            if f.read(1) == b"\n":
+                return
+            keep = size
+            while keep > 0:   # back to the last newline, a block at a time
+                start = max(keep - 65536, 0)
+                f.seek(start)
+                block = f.read(keep - start)
+                cut = block.rfind(b"\n")
+                if cut >= 0:
+                    keep = start + cut + 1
+                    break
+                keep = start
+            f.seek(keep)
+            torn = f.read()
+            with open(f"{path}.torn", "ab") as aside:
+                aside.write(torn + b"\n")
+            f.truncate(keep)
+            f.flush()
+            os.fsync(f.fileno())
+    except FileNotFoundError:
+        return
