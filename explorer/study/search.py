@@ -60,7 +60,7 @@ from explorer.study.retry import (
     set_objective_names,
 )
 from explorer.study.sampling import RecentTrialsTPE
-from explorer.study.storage import REPORTS_DIR, local_url, open_storage, study_dir
+from explorer.study.storage import REPORTS_DIR, local_url, open_storage, searching_alone, study_dir
 from explorer.supernet import default_path, load_supernet, read_supernet, train_supernet
 from explorer.training.deployment import DeploymentData
 from explorer.training.train import resolve_accelerator
@@ -321,6 +321,15 @@ def search(config: SearchConfig, storage_url: str | None = None, workers: int = 
     if config.supernet:   # checked before the study's storage exists: a refused search creates nothing
         ensure_supernet(config)  # a foreign or corrupt file is one line before anything is measured
     url = storage_url or local_url(config.study, reports)
+    with searching_alone(url, config.study):
+        return _search(config, url, storage_url, workers, n_trials, timeout_s, reports, on_trial, on_poll, on_data,
+                       on_supernet, on_finalist, time_limit, on_plan)
+
+
+def _search(config: SearchConfig, url: str, storage_url: str | None, workers: int, n_trials: int | None,
+            timeout_s: float | None, reports: Path, on_trial, on_poll, on_data, on_supernet, on_finalist,
+            time_limit: "TimeLimit | None", on_plan) -> SearchOutcome:
+    """:func:`search`'s run, under the study's search lock."""
     storage = open_storage(url, config.study, workers, reports, max_retries=config.max_retries)
     plan = speeds = None
     sampling_cap = timeout_s

@@ -8,6 +8,7 @@ once into memory and then read from there, while SQLite answers each read with a
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import re
@@ -202,6 +203,40 @@ def _with_driver(url: str) -> str:
                 raise UserError("PostgreSQL storage needs a driver: pip install 'anytime-explorer[postgres]'")
             return "postgresql+psycopg2://" + url[len("postgresql://"):]
     return url
+
+
+@contextlib.contextmanager
+def searching_alone(url: str, study: str):
+    """Holds the study's search lock on this machine while a search runs, for a journal or SQLite
+    study: a second search started on the same study (another terminal) is refused in one line instead
+    of failing the first one's running trial. Workers of one search (``--workers``) run under their
+    parent's lock; PostgreSQL studies are shared by design (several machines) and take none."""
+    if url.startswith("journal:"):
+        file = Path(url[len("journal:"):])
+    elif url.startswith("sqlite:///"):
+        file = Path(url[len("sqlite:///"):])
+    else:
+        yield
+        return
+    import fcntl
+    _make_parent(file, "study")
+    lock_path = file.with_name(f".{file.name}.search-lock")
+    with open(lock_path, "a+") as lock:
+        try:
+            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            lock.seek(0)
+            holder = lock.read().strip() or "another process"
+            raise UserError(f"study '{study}' is being searched by {holder} on this machine: wait for it to end, "
+                            "or stop it and resume (one search with --workers N samples in parallel)") from None
+        lock.seek(0)
+        lock.truncate()
+        lock.write(f"process {os.getpid()}")
+        lock.flush()
+        try:
+            yield
+        finally:
+            fcntl.flock(lock, fcntl.LOCK_UN)
 
 
 def find_storage(study: str, url: str | None, reports: Path = REPORTS_DIR) -> optuna.storages.BaseStorage:

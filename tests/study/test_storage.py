@@ -92,3 +92,21 @@ def test_a_killed_search_loses_no_committed_trial(tmp_path):
     assert done.returncode == -9
     study = optuna.load_study(study_name="s", storage=storage.open_storage(None, "s", reports=tmp_path))
     assert len(study.trials) == 5
+
+
+@pytest.mark.parametrize("kind", ["journal", "sqlite"])
+def test_a_second_search_on_a_study_being_searched_is_refused_and_touches_nothing(tmp_path, run_cli, kind):
+    """Two terminals on one study: the second search says so in one line (exit 2) and leaves the first
+    one's trials alone; once the first has ended, the study resumes as usual."""
+    from conftest import TINY_DATA
+    url = f"journal:{tmp_path / 'cc' / 'journal.log'}" if kind == "journal" else _sqlite(tmp_path)
+    args = ["search", "--study", "cc", "--space", "tiny", "--data", TINY_DATA, "--train-size", "32x32",
+            "--input-size", "32x32", "--evaluator", "proxy", "--proxy-steps", "2", "--batch-size", "8",
+            "--no-baselines", "--finalists", "0", "--trials", "1", "--timeout", "0", "--no-report",
+            "--reports", tmp_path, "--storage", url]
+    with storage.searching_alone(url, "cc"):                 # the first search, still running
+        code, _, err = run_cli(*args)
+        assert code == 2 and "is being searched by process" in err and len(err.strip().splitlines()) == 1
+        assert not (tmp_path / "cc" / "journal.log").exists() and not (tmp_path / "s" / "study.db").exists()
+    code, _, err = run_cli(*args)
+    assert code == 0, err
