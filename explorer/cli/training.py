@@ -18,8 +18,8 @@ def cmd_train(args) -> None:
     from explorer.console import console, print_frame, progress
     from explorer.data import open_dataset
     from explorer.model import build_network
-    from explorer.training.train import (RECIPES, check_data_for, check_spec_for, load_encoder_weights,
-                                         resolve_accelerator, train)
+    from explorer.training.train import (RECIPES, check_checkpoint_target, check_data_for, check_spec_for,
+                                         load_encoder_weights, resolve_accelerator, train)
     candidate = _candidates_of(args.candidate)
     if len(candidate) != 1:
         raise UserError(f"{args.candidate} holds {len(candidate)} candidates: train takes one")
@@ -34,6 +34,8 @@ def cmd_train(args) -> None:
     cfg.validate()
     check_size(cfg.input_size, candidate.stride, "--train-size")
     check_spec_for(cfg, args.data)
+    out = Path(args.out or f"reports/checkpoints/{candidate.key}.pt")
+    check_checkpoint_target(out, candidate)
     if cfg.exit_weights:
         console.print("exit loss weights: " + " ".join(f"{w:.3f}" for w in cfg.exit_weights))
     accelerator = resolve_accelerator(args.accelerator)
@@ -55,7 +57,6 @@ def cmd_train(args) -> None:
     if args.encoder_weights:
         n = load_encoder_weights(net, args.encoder_weights)
         console.print(f"loaded {n} encoder tensors from {args.encoder_weights}")
-    out = Path(args.out or f"reports/checkpoints/{candidate.key}.pt")
     with progress() as bar:
         task = bar.add_task(f"training ({cfg.supervision})", total=cfg.steps, status="")
         result = train(net, train_set, val_set, cfg, accelerator, checkpoint=out,

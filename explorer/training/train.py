@@ -263,6 +263,21 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
     return state
 
 
+def check_checkpoint_target(path: str | Path, candidate: Candidate) -> None:
+    """Refuses (UserError) to train ``candidate`` onto ``path`` when the file there is not a checkpoint of
+    the same network: training resumes from its own checkpoint and never replaces someone else's."""
+    p = Path(path)
+    if p.is_dir():
+        raise UserError(f"--out {p}: is a folder; give a checkpoint file to write")
+    if not p.exists():
+        return
+    state = load_checkpoint(p)        # an unreadable or foreign file is one line
+    if state["candidate"] != candidate.to_dict():
+        other = Candidate.from_dict(state["candidate"]).key
+        raise UserError(f"--out {p} holds the checkpoint of another network ({other}, not {candidate.key}): give "
+                        "another --out, or delete it first")
+
+
 def network_from_checkpoint(path: str | Path) -> tuple[AnytimeDepthNet, dict]:
     state = load_checkpoint(path)
     net = build_network(Candidate.from_dict(state["candidate"], source=str(path)))

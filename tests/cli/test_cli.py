@@ -152,6 +152,13 @@ def test_data_inspect_train_evaluate(run_cli, tmp_path):
     assert code == 0, err
     code, out, _ = run_cli("evaluate", ckpt, "--data", TINY_DATA, "--json")
     assert code == 0 and len(json.loads(out)["paths"]) >= 2
+    # another network's training never replaces this checkpoint
+    before = ckpt.read_bytes()
+    other = tmp_path / "other.yaml"
+    other.write_text(list(SearchSpace.from_yaml("tiny").enumerate())[1].to_yaml())
+    code, _, err = run_cli("train", other, "--data", TINY_DATA, "--steps", "1", "--batch-size", "8",
+                           "--train-size", "32x32", "--out", ckpt)
+    assert code == 2 and "holds the checkpoint of another network" in err and ckpt.read_bytes() == before
     # exits weighted by their share of the anytime loss: recorded in the checkpoint's recipe
     import torch
     from explorer.anytime import exit_loss_weights
