@@ -141,6 +141,7 @@ def save(path: Path, net: Supernet, recipe: SupernetRecipe, data: str, step: int
              "recipe": recipe.to_dict(), "step": step, "complete": step >= recipe.steps,
              "state_dict": net.state_dict(), "optimizer": optimizer.state_dict() if optimizer else None,
              "history": history, "seconds": seconds}
+    state["digest"] = tensors_digest(state["state_dict"], state["optimizer"])
     remove_dead_scratch(path.parent)   # what a save killed midway left (a supernet is tens of MB)
     tmp = path.with_name(f"{path.name}.tmp{os.getpid()}")
     torch.save(state, tmp)
@@ -154,18 +155,54 @@ def _space_text(space: SearchSpace) -> str:
         return ""
 
 
+#: what every supernet file holds
+_KEYS = ("space_key", "space_name", "space_yaml", "recipe", "step", "state_dict")
+
+
+def tensors_digest(*trees) -> str:
+    """SHA-256 over every tensor in ``trees`` (nested dicts and lists), names and bytes: what a file's
+    weights and optimizer state were saved as (``torch.load`` checks no checksum of its own)."""
+    digest = hashlib.sha256()
+
+    def walk(node, name: str) -> None:
+        if isinstance(node, torch.Tensor):
+            digest.update(name.encode())
+            digest.update(node.detach().cpu().contiguous().view(-1).view(torch.uint8).numpy().tobytes())
+        elif isinstance(node, dict):
+            for key in sorted(node, key=str):
+                walk(node[key], f"{name}/{key}")
+        elif isinstance(node, (list, tuple)):
+            for i, item in enumerate(node):
+                walk(item, f"{name}/{i}")
+    for i, tree in enumerate(trees):
+        walk(tree, str(i))
+    return digest.hexdigest()
+
+
 def read(path: str | Path) -> dict:
-    """A supernet file's contents; one clear error if it is missing, corrupt or not a supernet."""
+    """A supernet file's contents; one clear error if it is missing, corrupt, damaged (its tensors no
+    longer match the digest they were saved with, or, in a file saved without one, not finite) or not a
+    supernet."""
     p = Path(path)
     if not p.is_file():
         raise UserError(f"supernet {p}: no such file (train one with `explorer supernet train`)")
     try:
         state = torch.load(p, map_location="cpu", weights_only=True)
-    except Exception as exc:  # torch raises several types for truncated or foreign files
-        raise UserError(f"supernet {p}: unreadable ({str(exc).splitlines()[0][:100]}); "
-                        "delete it and train again") from None
+    except Exception as exc:  # torch raises several types for truncated, empty or foreign files
+        why = (str(exc).strip().splitlines() or [type(exc).__name__])[0][:100]
+        raise UserError(f"supernet {p}: unreadable ({why}); delete it and train again") from None
     if not isinstance(state, dict) or state.get("format") != FORMAT:
         raise UserError(f"supernet {p}: not an anytime-explorer supernet file (format {FORMAT})")
+    missing = [k for k in _KEYS if k not in state]
+    if missing or not isinstance(state["state_dict"], dict):
+        raise UserError(f"supernet {p}: incomplete file (no {', '.join(missing) or 'weights'}); delete it and "
+                        "train again")
+    damaged = "its tensors do not match the digest they were saved with" if "digest" in state and \
+        tensors_digest(state["state_dict"], state.get("optimizer")) != state["digest"] else \
+        next((f"non-finite weights in {k}" for k, v in state["state_dict"].items()
+              if v.is_floating_point() and not bool(torch.isfinite(v).all())), None)
+    if damaged:
+        raise UserError(f"supernet {p}: damaged ({damaged}); delete it and train again")
     return state
 
 

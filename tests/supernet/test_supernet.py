@@ -382,3 +382,36 @@ def test_a_stage_extracted_alone_is_that_stage_of_the_extracted_network(default_
     for spec in net.stages_of(cand):
         alone, inside = net.extract_stage(spec).state_dict(), whole.stages[spec.name].state_dict()
         assert alone.keys() == inside.keys() and all(torch.equal(alone[k], inside[k]) for k in alone), spec.name
+
+
+def test_a_damaged_or_incomplete_supernet_file_is_one_line_exit_2(tmp_path, run_cli):
+    """torch.load checks no checksum: a weight or an optimizer moment overwritten on disk, an empty
+    file, or a file with only its format are refused before any candidate is estimated."""
+    space = SearchSpace.from_yaml("tiny")
+    file = train_supernet(space, TINY_DATA, RECIPE, tmp_path / "tiny.pt")
+    state = torch.load(file, weights_only=True)
+    weights = dict(state["state_dict"])
+    name = next(k for k, v in weights.items() if v.is_floating_point() and v.numel() > 4)
+    weights[name] = torch.rand_like(weights[name])                # random values, all finite
+    moments = state["optimizer"]["state"][0]
+    damaged = {"weights": {**state, "state_dict": weights},
+               "optimizer": {**state, "optimizer": {**state["optimizer"], "state": {
+                   **state["optimizer"]["state"], 0: {**moments, "exp_avg": moments["exp_avg"] * 2}}}},
+               "no digest, a NaN": {**{k: v for k, v in state.items() if k != "digest"},
+                                    "state_dict": {**weights, name: weights[name] * float("nan")}},
+               "only its format": {"format": state["format"]}}
+    for what, content in damaged.items():
+        bad = tmp_path / f"{what}.pt"
+        torch.save(content, bad)
+        for args in (("supernet", "show", bad), ("search", "--space", "tiny", "--data", TINY_DATA, "--evaluator",
+                                                  "supernet", "--supernet", bad, "--reports", tmp_path, "--trials", "1")):
+            code, _, err = run_cli(*args)
+            assert code == 2 and len(err.strip().splitlines()) == 1, (what, err)
+            assert ("damaged" if what != "only its format" else "incomplete") in err, (what, err)
+    empty = tmp_path / "empty.pt"
+    empty.write_bytes(b"")
+    code, _, err = run_cli("supernet", "show", empty)
+    assert code == 2 and "unreadable" in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "tiny-search").exists()
+    code, _, err = run_cli("supernet", "show", file)
+    assert code == 0, err
