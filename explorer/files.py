@@ -95,11 +95,20 @@ def open_image(path: Path):
         raise UserError(f"{path}: unreadable image ({type(exc).__name__}: {str(exc).splitlines()[0][:120]})") from None
 
 
+#: Pillow's modes of 16-bit (and 32-bit integer) single-channel images
+WIDE_GREY = ("I;16", "I;16B", "I;16L", "I;16N", "I")
+
+
 def read_image(path: Path, mode: str | None = None) -> np.ndarray:
-    """The pixels of an image file (converted to ``mode`` if given), or one UserError line."""
+    """The pixels of an image file (converted to ``mode`` if given), or one UserError line. A 16-bit
+    grey image read as RGB is scaled from its 16-bit range (Pillow's own conversion clips it at 255,
+    white)."""
     from PIL import Image
     with open_image(path) as im:
         try:
+            if mode == "RGB" and im.mode in WIDE_GREY:
+                grey = np.asarray(im).astype(np.float64).clip(0, 65535) / 65535.0 * 255.0
+                return np.repeat(np.rint(grey).astype(np.uint8)[..., None], 3, axis=2)
             return np.asarray(im.convert(mode) if mode else im)
         except Image.DecompressionBombError:
             raise UserError(f"{path}: the image claims more pixels than any camera frame") from None

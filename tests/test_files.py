@@ -139,3 +139,17 @@ def test_a_generation_stopped_by_sigterm_leaves_nothing_after_the_next_start(tmp
     child.wait()
     subprocess.run([sys.executable, "-c", code.replace("600:100", "8:4")], env=env, check=True)
     assert not [p.name for p in tmp_path.iterdir() if ".tmp" in p.name]
+
+
+def test_a_16_bit_grey_frame_is_scaled_not_clipped_to_white(tmp_path):
+    """A 16-bit camera frame (mono industrial cameras write them) keeps its contrast as RGB."""
+    import numpy as np
+    from PIL import Image
+
+    from explorer.files import read_image
+    ramp = np.tile(np.linspace(0, 65535, 64).astype(np.uint16), (8, 1))
+    Image.fromarray(ramp).save(tmp_path / "f.png")
+    rgb = read_image(tmp_path / "f.png", "RGB")
+    assert rgb.shape == (8, 64, 3) and rgb.dtype == np.uint8
+    assert rgb[0, 0, 0] == 0 and rgb[0, -1, 0] == 255 and (rgb[0, 1:, 0] >= rgb[0, :-1, 0]).all()
+    assert (rgb == 255).mean() < 0.05                                  # not clipped to white
