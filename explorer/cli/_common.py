@@ -116,7 +116,31 @@ def _size(text: str) -> tuple[int, int]:
         raise argparse.ArgumentTypeError(f"'{text}' is not HxW (e.g. 224x224)") from None
     if h < 1 or w < 1:
         raise argparse.ArgumentTypeError(f"'{text}': sides must be positive")
+    if max(h, w) > MAX_SIDE:
+        raise argparse.ArgumentTypeError(f"'{text}': at most {MAX_SIDE} pixels a side (a camera frame these "
+                                         "networks take; 224x224 is the paper's)")
     return h, w
+
+
+#: the largest image side a size option takes: a 4K frame's width
+MAX_SIDE = 4096
+#: --threads: onnxruntime's pools at most this large (more than any machine's cores only oversubscribes)
+MAX_THREADS = 1024
+#: --workers: search processes on one machine (each holds torch and the data: about 1 GB)
+MAX_WORKERS = 64
+
+
+def _bounded_int(low: int, high: int, what: str):
+    """An argparse type: a whole number from ``low`` to ``high`` (``what`` names the limit's reason)."""
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"'{text}' is not a whole number") from None
+        if not low <= value <= high:
+            raise argparse.ArgumentTypeError(f"'{text}': give {low} to {high} ({what})")
+        return value
+    return parse
 
 
 def _count(text: str) -> float:

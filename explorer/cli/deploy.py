@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 
 from explorer.errors import UserError
-from explorer.cli._common import _add_provider, _ms, _size, deprecated_alias
+from explorer.cli._common import MAX_THREADS, _add_provider, _bounded_int, _ms, _size, deprecated_alias
 
 
 def _percent(text: str) -> float:
@@ -165,7 +165,7 @@ def register(sub, add, reports: dict) -> None:
     s.add_argument("--deadline", type=_ms, required=True, help="e.g. 8ms")
     s.add_argument("--out", help="depth map file to write: .png (16-bit, millimetres) or .npy (metres) "
                    "(default: none written)")
-    s.add_argument("--threads", type=int, default=None)
+    s.add_argument("--threads", type=_bounded_int(1, MAX_THREADS, "threads"), default=None)
     _add_provider(s)
     s.add_argument("--json", action="store_true")
 
@@ -173,8 +173,8 @@ def register(sub, add, reports: dict) -> None:
     s.add_argument("model", help="folder written by explorer export")
     s.add_argument("--data", default="synthetic", help="frames to measure on (validation split)")
     s.add_argument("--device", help="host profile from explorer calibrate (default: calibrate now)")
-    s.add_argument("--frames", type=int, default=16, help="validation frames, each run at every deadline "
+    s.add_argument("--frames", type=_bounded_int(1, 10_000, "validation frames"), default=16, help="validation frames, each run at every deadline "
                    "(default 16)")
-    s.add_argument("--deadlines", type=int, default=40)
+    s.add_argument("--deadlines", type=_bounded_int(2, 10_000, "deadlines, each run on every frame"), default=40)
     _add_provider(s)
     s.add_argument("--json", action="store_true")

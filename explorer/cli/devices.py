@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from explorer.errors import UserError
-from explorer.cli._common import _add_provider, _check_provider, write_output
+from explorer.cli._common import MAX_THREADS, _add_provider, _bounded_int, _check_provider, write_output
 
 
 def cmd_devices(args) -> None:
@@ -113,7 +113,7 @@ def register(sub, add, reports: dict) -> None:
                    "and onnxruntime) for a device, instead of measuring here")
     s.add_argument("--fit", metavar="RESULTS.json", help="fit --out to what probe.pyz measured on a device")
     s.add_argument("--name", help="profile name (default: the file's stem)")
-    s.add_argument("--threads", type=int, default=None)
+    s.add_argument("--threads", type=_bounded_int(1, MAX_THREADS, "threads"), default=None)
     s.add_argument("--repeats", type=int, default=25)
     _add_provider(s)
     s.add_argument("--no-energy", dest="energy", action="store_false", help="do not sample power sensors")

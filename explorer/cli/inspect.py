@@ -6,7 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from explorer.errors import UserError
-from explorer.cli._common import _Parser, _add_provider, _check_provider, _size, deprecated_alias
+from explorer.cli._common import MAX_THREADS, _Parser, _add_provider, _bounded_int, _check_provider, _size, deprecated_alias
 
 
 def cmd_space_show(args) -> None:
@@ -205,7 +205,7 @@ def register(sub, add, reports: dict) -> None:
     s.add_argument("--device", help="device profile name or YAML file")
     s.add_argument("--measure", action="store_true", help="also measure on this machine with onnxruntime "
                    "(--provider, --threads, --repeats)")
-    s.add_argument("--threads", type=int, default=None, help="onnxruntime threads (default: all cores)")
+    s.add_argument("--threads", type=_bounded_int(1, MAX_THREADS, "threads"), default=None, help="onnxruntime threads (default: all cores)")
     s.add_argument("--repeats", type=int, default=20)
     _add_provider(s)
     s.add_argument("--json", action="store_true")

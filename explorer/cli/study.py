@@ -6,8 +6,8 @@ import time
 from pathlib import Path
 
 from explorer.errors import UserError
-from explorer.cli._common import (HEAD_KINDS, _add_supervision, _count, _duration_s, _ms, _size, deprecated_alias,
-                                  smallest_status, train_on_free_cores, write_output)
+from explorer.cli._common import (HEAD_KINDS, MAX_WORKERS, _add_supervision, _bounded_int, _count, _duration_s, _ms,
+                                  _size, deprecated_alias, smallest_status, train_on_free_cores, write_output)
 
 
 def cmd_search(args) -> None:
@@ -285,7 +285,7 @@ def _register_search(add, reports: dict) -> None:
     s.add_argument("--study", help="study name (default DEVICE-SPACE); the same name resumes")
     s.add_argument("--storage", help="Optuna storage URL (default: the journal file "
                    "reports/<study>/journal.log; postgresql://... for several machines)")
-    s.add_argument("--workers", type=int, default=1, help="processes on this machine: sampling (journal storage) "
+    s.add_argument("--workers", type=_bounded_int(1, MAX_WORKERS, "processes on this machine"), default=1, help="processes on this machine: sampling (journal storage) "
                    "and the finalists retrained at once (a machine with several GPUs retrains one finalist per GPU)")
     s.add_argument("--time-limit", type=_duration_s, default=None, help="wall clock for the whole run: data, "
                    "supernet training, sampling, finalists (default 16m, none when --timeout is given; 0 = none). "

@@ -56,6 +56,10 @@ class DataSpec:
         return f"{self.kind}:{self.path}"
 
 
+#: the most frames a generated data set may have (train and val): about 15 GB on disk at 224x224
+MAX_GENERATED = 100_000
+
+
 def parse_data_spec(spec: str | DataSpec) -> DataSpec:
     if isinstance(spec, DataSpec):
         return spec
@@ -71,6 +75,9 @@ def parse_data_spec(spec: str | DataSpec) -> DataSpec:
         val = nums[1] if len(nums) > 1 else max(train // 10, 4)
         if train < 1 or val < 1:
             raise UserError(f"data '{spec}': frame counts must be positive")
+        if train + val > MAX_GENERATED:
+            raise UserError(f"data '{spec}': at most {MAX_GENERATED:,} generated frames in all (each is kept on "
+                            "disk); use real data for more")
         return DataSpec(kind, "", train, val)
     if kind in ("nyu", "kitti", "kitti-seq", "frames"):
         if not rest:

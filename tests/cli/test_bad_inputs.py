@@ -105,6 +105,12 @@ BAD = {
                                    "--steps", "1"],
     "missing supernet": ["search", "--space", "tiny", "--evaluator", "supernet", "--supernet", "missing.pt",
                          "--trials", "1"],
+    # bounds: each of these ran for minutes, took gigabytes or started a process per unit
+    "huge input size": ["profile", "paper", "--input-size", "65536x65536", "--device", "tx2"],
+    "huge generated data": ["data", "inspect", "--data", "synthetic:50000000:10"],
+    "endless deadlines": ["curve", "empty_model", "--deadlines", "100000000", "--device", "tx2"],
+    "a thread per unit": RUN + ["--deadline", "5ms", "--threads", "100000"],
+    "a thousand workers": ["search", "--workers", "1000", "--trials", "1"],
 }
 
 
