@@ -261,7 +261,7 @@ TX2_RATE_OF = {"conv": "conv", "pointwise": "pointwise", "pointwise_1ch": "point
 TX2_OVERHEAD_OF = {"conv": "conv", "pointwise": "pointwise", "pointwise_1ch": "pointwise", "depthwise": "depthwise",
                    "conv1d": "depthwise", "deconv": "conv", **{k: "memory" for k in MEMORY_KINDS}}
 TX2_SOURCES = [
-    "../shared/data/tx2-tvm-kernels/kernels.csv (TVM-tuned kernels from the fast-depth project)",
+    "142 TVM-tuned convolution kernels timed on a Jetson TX2 (GPU and CPU), from the fast-depth project's tuning logs",
     "paper Table 1: paper design paths 1-4 at 6.4/8.0/9.8/12.2 ms; FastDepth 17.1 ms at 224x224; "
     "S2D (ResNet-50) 554.7 ms at 228x304 (TVM, TX2 GPU)",
     "paper Table 3: S2D (ResNet-18) 374.7 ms at 228x912; MonoDepth2 (ResNet-18) 77.26 ms at 192x640",

@@ -74,11 +74,14 @@ def step_curves(rows, device: DeviceProfile, budget: str) -> str:
 
 
 def pareto(frame: pd.DataFrame, xcol: str, xlabel: str) -> str:
-    """The completed trials' anytime loss against ``xcol``, their front, and the baselines as stars."""
+    """The search's estimates of anytime loss against ``xcol`` and their front; beside them, told apart
+    in the legend, what was measured on retrained networks (finalists, baselines) and the baselines'
+    estimates, each labelled once."""
     fig, ax = plt.subplots(figsize=(5.2, 3.6))
     done = frame[(frame["state"] == "COMPLETE") & frame["value"].notna()]
-    cand = done[done["baseline"] == ""]
-    ax.scatter(cand[xcol], cand["value"], s=18, alpha=0.7, label="trials", color="#999999")
+    measured = done["figures"].astype(str).str.startswith("measured")
+    cand = done[(done["baseline"] == "") & ~measured]
+    ax.scatter(cand[xcol], cand["value"], s=18, alpha=0.7, label="trials (estimates)", color="#999999")
     pts = cand.sort_values(xcol)
     front, best = [], np.inf
     for _, r in pts.iterrows():
@@ -87,16 +90,26 @@ def pareto(frame: pd.DataFrame, xcol: str, xlabel: str) -> str:
             front.append((r[xcol], r["value"]))
     if front:
         fx, fy = zip(*front)
-        ax.step(fx, fy, where="post", color="#d62728", lw=1.5, label="Pareto front")
+        ax.step(fx, fy, where="post", color="#d62728", lw=1.5, label="front of the estimates")
+    finalists = done[(done["baseline"] == "") & measured]
+    if not finalists.empty:
+        ax.scatter(finalists[xcol], finalists["value"], marker="D", s=36, color="#111111", zorder=4,
+                   label="finalists (measured)")
     for _, r in done[done["baseline"] != ""].iterrows():
-        ax.scatter([r[xcol]], [r["value"]], marker="*", s=120, color=colour(r["baseline"]),
-                   label=baseline_label(r["baseline"]), zorder=3)
+        kind = "measured" if str(r["figures"]).startswith("measured") else "estimate"
+        ax.scatter([r[xcol]], [r["value"]], marker="*" if kind == "measured" else "x", s=120 if kind == "measured" else 50,
+                   color=colour(r["baseline"]), label=f"{baseline_label(r['baseline'])} ({kind})", zorder=3)
     ax.set_xscale("log")
+    # a space spans less than a decade of MACs: ticks at 1, 2 and 5 of each decade, in engineering units
+    ax.xaxis.set_major_locator(matplotlib.ticker.LogLocator(subs=(1.0, 2.0, 5.0)))
+    ax.xaxis.set_major_formatter(matplotlib.ticker.EngFormatter())
     ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
     ax.set_xlabel(xlabel)
     ax.set_ylabel("anytime loss")
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=7)
+    handles, labels = ax.get_legend_handles_labels()
+    unique = dict(zip(labels, handles))
+    ax.legend(unique.values(), unique.keys(), fontsize=7)
     return png(fig)
 
 

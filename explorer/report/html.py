@@ -43,7 +43,7 @@ TABLE2_BUDGETS = ("time:uniform:100ms", "time:uniform:50ms", "time:uniform:33ms"
                   "energy:uniform:0.5J", "energy:uniform:0.25J")
 
 #: the columns of the table of all trials, in order (those the frame has)
-TRIAL_COLUMNS = ["number", "state", "value", "baseline", "retry_of", "candidate_key", "params", "macs", "paths",
+TRIAL_COLUMNS = ["number", "state", "value", "figures", "baseline", "retry_of", "candidate_key", "params", "macs", "paths",
                  "first_exit_ms", "last_exit_ms", "last_rmse", "duration_s", "reason", "architecture"]
 
 
@@ -121,6 +121,8 @@ def build_context(study: optuna.Study, devices: Sequence[str] | None = None,
     ctx["table2"] = _table2(ranked + baselines, best, devs, dists, cfg.get("metric", "rmse"))
     ctx["references"] = _frame_html(reference_table(devs), "references")
     _add_figures(ctx, study, frame, best, baselines, primary, dists, data)
+    if best is not None and not frame.empty:
+        frame.loc[frame["number"] == best.number, "figures"] = "measured: the winner" if retrained else "estimate: the best"
     ctx["trials"] = (_frame_html(frame[[c for c in TRIAL_COLUMNS if c in frame.columns]], "trials")
                      if not frame.empty else "")
     return ctx
@@ -152,9 +154,18 @@ def _finalists(study: optuna.Study, finalist_steps) -> dict:
     and the retraining steps they really ran."""
     out = {"finalist_steps": finalist_steps, "finalists": "", "finalists_tau": None, "finalists_rows": 0,
            "fidelity": estimate_fidelity(study)}
-    recipes = sorted({t.user_attrs["finalist"]["recipe"]["steps"] for t in finalist_trials(study)})
+    finals = finalist_trials(study)
+    recipes = sorted({t.user_attrs["finalist"]["recipe"]["steps"] for t in finals})
     if recipes:   # a --time-limit plan may have sized them after the study was created
         out["finalist_steps"] = ", ".join(map(str, recipes))
+    measured = [t for t in finals if t.user_attrs.get("measured")]
+    if measured:
+        recipe, where = measured[-1].user_attrs["finalist"]["recipe"], measured[-1].user_attrs["measured"]
+        size = "x".join(map(str, where["input_size"]))
+        tune = f", then {recipe['tune_steps']} at {size}" if recipe.get("tune_steps") else ""
+        out["measured_recipe"] = (f"finalists and baselines retrained alone {out['finalist_steps']} steps at "
+                                  f"{'x'.join(map(str, recipe['input_size']))}{tune}; every path measured at {size} "
+                                  f"on the first {where['frames']} validation frames of {where['data']}")
     fin = finalists_frame(study)
     if not fin.empty:
         agreement = finalists_agreement(study)
@@ -165,9 +176,16 @@ def _finalists(study: optuna.Study, finalist_steps) -> dict:
 
 
 def _wall_time(study: optuna.Study) -> str:
+    """The runs' wall time as each search recorded it (data, supernet, sampling and retraining), or,
+    for a study made before runs were recorded, the span of its trials, said so."""
+    runs = study.user_attrs.get("runs") or []
+    if runs:
+        total = sum(r["seconds"] for r in runs) / 60
+        return f"{total:.1f} min" + (f" over {len(runs)} runs" if len(runs) > 1 else "")
     starts = [t.datetime_start for t in study.trials if t.datetime_start]
     ends = [t.datetime_complete for t in study.trials if t.datetime_complete]
-    return f"{(max(ends) - min(starts)).total_seconds() / 60:.1f} min" if starts and ends else "n/a"
+    return (f"{(max(ends) - min(starts)).total_seconds() / 60:.1f} min from the first trial to the last (the "
+            "supernet's training before them not counted)") if starts and ends else "n/a"
 
 
 def _best(study: optuna.Study, best: optuna.trial.FrozenTrial, retrained: bool, devs: list) -> dict:

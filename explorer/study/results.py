@@ -125,6 +125,7 @@ def trials_frame(study: optuna.Study) -> pd.DataFrame:
         row = {"number": t.number, "state": t.state.name,
                "value": (t.values[0] if t.values else np.nan),
                "baseline": ua.get("baseline", ""),
+               "figures": figures_kind(t) if t.values else "",
                "evaluator": (ua.get("evaluator") or {}).get("evaluator", "proxy" if "train" in ua else ""),
                "candidate_key": ua.get("candidate_key", ""),
                "architecture": (Candidate.from_dict(ua["candidate"]).describe() if "candidate" in ua
@@ -158,7 +159,7 @@ def rescore(study: optuna.Study, device: str | DeviceProfile, budgets: Sequence[
     rows = []
     for t in scored_trials(study):
         row = {"number": t.number, "baseline": t.user_attrs.get("baseline", ""),
-               "candidate_key": t.user_attrs.get("candidate_key", "")}
+               "candidate_key": t.user_attrs.get("candidate_key", ""), "figures": figures_kind(t)}
         for d in dists:
             row[d.spec] = trial_anytime_loss(t, profile, d, metric)
         ms = trial_path_costs(t, profile, "time")
@@ -169,7 +170,16 @@ def rescore(study: optuna.Study, device: str | DeviceProfile, budgets: Sequence[
     frame = pd.DataFrame(rows)
     if frame.empty:
         return frame
-    return frame.sort_values(dists[0].spec, kind="stable").reset_index(drop=True)
+    # what was measured ranks before what was estimated; a network appears once, by its best figures
+    frame = frame.assign(_estimate=frame["figures"] != "measured")
+    frame = frame.sort_values(["_estimate", dists[0].spec], kind="stable")
+    frame = frame.drop_duplicates(["candidate_key", "baseline"]).drop(columns="_estimate")
+    return frame.reset_index(drop=True)
+
+
+def figures_kind(trial: optuna.trial.FrozenTrial) -> str:
+    """"measured" for a retrained network (finalist or baseline), "estimate" for a search trial."""
+    return "measured" if is_retrained(trial) else "estimate"
 
 
 def is_retrained(trial: optuna.trial.FrozenTrial) -> bool:

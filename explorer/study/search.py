@@ -321,9 +321,15 @@ def search(config: SearchConfig, storage_url: str | None = None, workers: int = 
     if config.supernet:   # checked before the study's storage exists: a refused search creates nothing
         ensure_supernet(config)  # a foreign or corrupt file is one line before anything is measured
     url = storage_url or local_url(config.study, reports)
+    started = time_limit.started if time_limit is not None else time.time()
     with searching_alone(url, config.study):
-        return _search(config, url, storage_url, workers, n_trials, timeout_s, reports, on_trial, on_poll, on_data,
-                       on_supernet, on_finalist, time_limit, on_plan)
+        outcome = _search(config, url, storage_url, workers, n_trials, timeout_s, reports, on_trial, on_poll, on_data,
+                          on_supernet, on_finalist, time_limit, on_plan)
+        runs = outcome.study.user_attrs.get("runs") or []
+        outcome.study.set_user_attr("runs", runs + [{"started": time.strftime("%Y-%m-%d %H:%M:%S",
+                                                                              time.localtime(started)),
+                                                     "seconds": round(time.time() - started, 1)}])
+    return outcome
 
 
 def _search(config: SearchConfig, url: str, storage_url: str | None, workers: int, n_trials: int | None,

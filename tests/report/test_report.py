@@ -91,3 +91,34 @@ def test_report_in_headless_chromium(study_with_everything, tmp_path):
     assert shot.is_file() and shot.stat().st_size > 50_000, proc.stderr[-2000:]
     console = [l for l in proc.stderr.splitlines() if "CONSOLE" in l or "Uncaught" in l]
     assert not console, console
+
+
+@pytest.mark.parametrize("width", [1280, 390])
+def test_report_fits_the_screen_and_every_image_loads(study_with_everything, tmp_path, width):
+    """At a laptop's width and a phone's, nothing is wider than the viewport (wide tables scroll inside
+    their card) and every figure decodes."""
+    chromium = shutil.which("chromium") or shutil.which("chromium-browser")
+    if not chromium:
+        pytest.skip("Debian's chromium is not installed (make test installs it when it can)")
+    import html as html_lib
+    study, reports = study_with_everything
+    report = write_report(study, reports / "rep").read_text()
+    # the report in a frame of the screen's width (headless windows are 500 px or wider); a srcdoc frame
+    # shares its parent's origin, so the parent measures it once it has loaded
+    page = tmp_path / "probe.html"
+    page.write_text(
+        f'<html><body><iframe id="f" style="border:0" width="{width}" height="1500" '
+        f'srcdoc="{html_lib.escape(report, quote=True)}"></iframe><script>'
+        "document.getElementById('f').addEventListener('load', () => { const d = document.getElementById('f')"
+        ".contentDocument; const imgs = [...d.images]; document.body.setAttribute('data-probe', "
+        "[d.documentElement.scrollWidth, d.documentElement.clientWidth, imgs.length, "
+        "imgs.filter(i => !i.complete || i.naturalWidth === 0).length].join(',')); });</script></body></html>")
+    args = [chromium, "--headless", "--no-sandbox", "--disable-gpu", "--no-first-run", "--disable-sync",
+            "--disable-background-networking", "--disable-component-update", f"--user-data-dir={tmp_path / 'p'}",
+            "--window-size=1400,1600", "--hide-scrollbars", "--virtual-time-budget=10000", "--dump-dom",
+            page.resolve().as_uri()]
+    dom = subprocess.run(args, capture_output=True, text=True, timeout=120).stdout
+    probe_values = dom.split('data-probe="', 1)[1].split('"', 1)[0]
+    scroll_width, viewport, images, broken = map(int, probe_values.split(","))
+    assert viewport == width and scroll_width <= viewport, probe_values
+    assert images >= 3 and broken == 0, probe_values
