@@ -20,12 +20,14 @@ from explorer.space import Candidate
 
 def curve_check(model_dir: Path, data: str, device: str | None = None, frames: int = 16,
                 deadlines: int = 40, progress: Callable[[int, int], None] | None = None,
-                provider: str = "CPUExecutionProvider") -> dict:
+                provider: str = "CPUExecutionProvider", calibration: dict | None = None,
+                calibration_progress: Callable[[int, int], None] | None = None) -> dict:
     """The anytime curve measured on this machine next to the one a host profile predicts.
 
     Per-path losses come from the exported graphs on ``frames`` validation frames; the prediction
     prices the paths with ``device`` (a profile from ``explorer calibrate``; calibrated now, with
-    ``provider``, if None); the graphs run on ``provider``;
+    ``provider``, if None, with ``calibration``'s options to :func:`calibrate`); the graphs run on
+    ``provider``;
     the measurement runs every frame under ``deadlines`` deadlines spread evenly over (0, B_max),
     B_max = 1.25 x the predicted last path. Written to ``model_dir/anytime_curve.json``.
     """
@@ -34,7 +36,8 @@ def curve_check(model_dir: Path, data: str, device: str | None = None, frames: i
     ds = open_dataset(data, "val", runner.input_size, train_augment=False)
     items = [ds[i] for i in range(min(frames, len(ds)))]
     losses = [m["rmse"] for m in path_metrics(runner, items)]
-    profile = get_device(device) if device else calibrate(scale=0.5, provider=provider)
+    profile = get_device(device) if device else calibrate(**{"scale": 0.5, **(calibration or {})}, provider=provider,
+                                                          progress=calibration_progress)
     precision = runner.manifest.get("precision", "fp32")
     priced = precision if precision in profile.precisions else "fp32"   # else the fp32 prediction, said so
     costs = candidate_cost(dataclasses.replace(cand, precision=priced), runner.input_size).path_latency_ms(profile)
@@ -48,7 +51,8 @@ def curve_check(model_dir: Path, data: str, device: str | None = None, frames: i
         if progress:
             progress(i + 1, len(grid))
     result = {"candidate_key": cand.key, "device": profile.name, "provider": provider,
-              "precision": precision, "priced_precision": priced, "frames": len(items), "b_max_ms": b_max,
+              "precision": precision, "priced_precision": priced, "frames": len(items), "data": data,
+              "input_size": list(runner.input_size), "b_max_ms": b_max,
               "path_losses": losses, "predicted_costs_ms": costs,
               "predicted_anytime_loss": anytime_loss(costs, losses, f"time:uniform:{b_max}ms"),
               "measured": measured, "measured_anytime_loss": float(np.mean(measured["loss"]))}

@@ -108,18 +108,33 @@ def cmd_run(args) -> None:
 
 
 def cmd_curve(args) -> None:
-    from explorer.console import console, print_json, progress
     from explorer.calibration.curve import curve_check
+    from explorer.cli.devices import QUICK_PROBE
+    from explorer.console import console, err_console, print_json, progress
+    calibration = None
+    if not args.device:
+        calibration = {"scale": 0.35, **QUICK_PROBE} if args.quick else {"scale": 0.5}
+        err_console.print("no --device: this machine is calibrated first, "
+                          + ("quickly (a third of the sweep)" if args.quick else
+                             "which takes several minutes (--quick: a third of the sweep)")
+                          + "; `explorer calibrate --out mybox.yaml` once, then --device mybox.yaml, skips it",
+                          markup=False, highlight=False)
     with progress(transient=True) as bar:
+        cal = bar.add_task("calibrating this machine", total=None, status="") if calibration else None
         task = bar.add_task("deadlines", total=args.deadlines, status="")
         res = curve_check(Path(args.model), args.data, args.device, args.frames, args.deadlines,
-                          progress=lambda i, n: bar.update(task, completed=i), provider=args.provider)
+                          progress=lambda i, n: bar.update(task, completed=i), provider=args.provider,
+                          calibration=calibration,
+                          calibration_progress=(lambda i, n: bar.update(cal, completed=i, total=n)) if cal is not None
+                          else None)
     if args.json:
         print_json(res)
         return
     m, p = res["measured_anytime_loss"], res["predicted_anytime_loss"]
+    size = "x".join(map(str, res["input_size"]))
     console.print(f"anytime loss U(0, {res['b_max_ms']:.1f} ms) on this machine: measured {m:.4f}, predicted by "
-                  f"{res['device']} {p:.4f} ({m / p - 1:+.1%}); written to {Path(args.model) / 'anytime_curve.json'}")
+                  f"{res['device']} {p:.4f} ({m / p - 1:+.1%}); on {res['frames']} validation frames of {res['data']} "
+                  f"at {size}; written to {Path(args.model) / 'anytime_curve.json'}")
     if res["precision"] != res["priced_precision"]:
         console.print(f"(the model is {res['precision']}; the profile prices {res['priced_precision']} layers only, "
                       f"so the prediction is an {res['priced_precision']} one)")
@@ -172,7 +187,9 @@ def register(sub, add, reports: dict) -> None:
     s = add("curve", cmd_curve, "measure an exported model's anytime curve here and compare with the prediction")
     s.add_argument("model", help="folder written by explorer export")
     s.add_argument("--data", default="synthetic", help="frames to measure on (validation split)")
-    s.add_argument("--device", help="host profile from explorer calibrate (default: calibrate now)")
+    s.add_argument("--device", help="host profile from explorer calibrate (default: calibrate this machine now, "
+                   "several minutes)")
+    s.add_argument("--quick", action="store_true", help="without --device: calibrate quickly (a third of the sweep)")
     s.add_argument("--frames", type=_bounded_int(1, 10_000, "validation frames"), default=16, help="validation frames, each run at every deadline "
                    "(default 16)")
     s.add_argument("--deadlines", type=_bounded_int(2, 10_000, "deadlines, each run on every frame"), default=40)

@@ -159,6 +159,22 @@ def test_int8_runs_under_deadlines(int8_export, run_cli):
                               "--deadlines", "3")
     assert code == 0, err
     assert "the model is int8" in text and json.loads((out / "anytime_curve.json").read_text())["precision"] == "int8"
+    assert "on 2 validation frames of" in " ".join(text.split())
+
+
+def test_curve_without_a_profile_says_it_calibrates_first(exported, run_cli, monkeypatch):
+    """No --device: the machine is calibrated before any deadline runs, which the user is told at once,
+    with the ways to skip it; --quick asks for the short calibration."""
+    from conftest import TINY_DATA
+    from explorer.calibration import curve
+    from explorer.cost import get_device
+    asked = []
+    monkeypatch.setattr(curve, "calibrate", lambda **kw: asked.append(kw) or get_device("tx2-cpu"))
+    out, _ = exported
+    code, _, err = run_cli("curve", out, "--data", TINY_DATA, "--frames", "1", "--deadlines", "2", "--quick")
+    assert code == 0, err
+    assert "calibrated first" in err and "--device mybox.yaml" in err
+    assert asked and asked[0]["scale"] == 0.35
 
 
 def test_int8_stages_hand_each_other_uint8(int8_export):
