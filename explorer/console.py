@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import sys
 from typing import Any
 
@@ -12,8 +13,19 @@ from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn, 
                            TimeRemainingColumn)
 from rich.table import Table
 
-console = Console(stderr=False, highlight=False)
-err_console = Console(stderr=True, highlight=False)
+#: off a terminal (a log, a pipe) rich would cut tables at 80 columns: lines this wide instead, unless
+#: COLUMNS says otherwise
+LOG_WIDTH = 200
+
+
+def _console(stderr: bool) -> Console:
+    stream = sys.stderr if stderr else sys.stdout
+    wide = None if stream.isatty() or os.environ.get("COLUMNS") else LOG_WIDTH
+    return Console(stderr=stderr, highlight=False, width=wide)
+
+
+console = _console(stderr=False)
+err_console = _console(stderr=True)
 
 
 class _Progress(Progress):
@@ -43,8 +55,9 @@ def _fmt(v: Any) -> str:
 
 def print_frame(frame: pd.DataFrame, title: str | None = None) -> None:
     table = Table(title=title, show_lines=False)
-    for col in frame.columns:
-        table.add_column(str(col), justify="right" if pd.api.types.is_numeric_dtype(frame[col]) else "left")
+    for col in frame.columns:   # a cell that does not fit wraps, never ends in an ellipsis
+        table.add_column(str(col), justify="right" if pd.api.types.is_numeric_dtype(frame[col]) else "left",
+                         overflow="fold")
     for row in frame.itertuples(index=False):
         table.add_row(*(_fmt(v) for v in row))
     console.print(table)
