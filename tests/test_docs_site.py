@@ -36,6 +36,11 @@ def test_site_builds_strict(tmp_path):
     assert "explorer search" in cli and "--budget" in cli
     assert (site / "benchmarks" / "index.html").is_file()
     assert (site / "reference" / "space" / "index.html").is_file()
+    # every cross-reference rendered: no Sphinx role left as text on any page
+    import re
+    left = {str(p.relative_to(site)): m for p in site.rglob("*.html")
+            if (m := re.findall(r":(?:func|class|meth|mod|attr|data|exc|obj):[`<]", p.read_text()))}
+    assert not left, left
 
 
 def _record(benchmark: str, stamp: str, commit: str, median: float) -> dict:

@@ -93,6 +93,16 @@ def on_page_markdown(markdown, page, config, files):
     return markdown
 
 
+#: a Sphinx cross-reference role as it reaches the HTML from a docstring or a record (``:func:`name```)
+ROLE = re.compile(r":(?:py:)?(?:func|class|meth|mod|attr|data|exc|obj|const):<code>(~?)([^<]*)</code>")
+
+
+def on_page_content(html, page, config, files):
+    """The package's docstrings use Sphinx roles, which mkdocstrings leaves as text: each becomes the
+    code it names (``~a.b.C`` as ``C``, as Sphinx shows it)."""
+    return ROLE.sub(lambda m: f"<code>{m.group(2).rsplit('.', 1)[-1] if m.group(1) else m.group(2)}</code>", html)
+
+
 def _fill(markdown: str, placeholder: str, src: str, make) -> str:
     if placeholder not in markdown:
         log.warning("%s: placeholder %s is missing, nothing generated", src, placeholder)
