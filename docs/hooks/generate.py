@@ -240,10 +240,47 @@ def benchmarks_markdown(records: dict[str, tuple[Path, dict]], root: Path, probl
                 "writes its record to `benchmarks/results/<benchmark>/<UTC time>-<commit>.json`, and the next "
                 "build of this site shows the latest record of each benchmark here.\n")
     else:
-        text = "\n".join(_benchmark_section(name, path, rec, root) for name, (path, rec) in sorted(records.items()))
+        text = _summary(records) + "\n".join(_benchmark_section(name, path, rec, root)
+                                            for name, (path, rec) in sorted(records.items()))
     if problems:
         text += "\n!!! warning \"Records left out\"\n\n" + "".join(f"    - `{p}`\n" for p in problems)
     return text
+
+
+#: what a user asks first, each answered by one figure of one benchmark's latest record
+SUMMARY = (
+    ("How long `make search` takes from a fresh clone, setup included (a busy machine)", "bench_make_search_load", "wall_s", 1 / 60, "min"),
+    ("Candidates the search estimates a minute (2-core CPU)", "bench_search_rate", "candidates_per_minute", 1, ""),
+    ("How well the estimate ranks the space (Kendall tau against long stand-alone trainings)", "bench_fidelity",
+     "tau_supernet", 1, ""),
+    ("...and the long trainings' own seed-to-seed tau, the ceiling", "bench_fidelity", "labels_seed_tau", 1, ""),
+    ("How the ranking at the search's 64x64 carries to 224x224 (Kendall tau)", "bench_resolution",
+     "tau_small_to_deploy", 1, ""),
+    ("The paper design at 224x224 with the study's recipe (anytime loss, m)", "bench_resolution",
+     "anytime_tuned", 1, ""),
+    ("...trained at 64x64 only, run at 224x224", "bench_resolution", "anytime_small", 1, ""),
+    ("Supernet training step: 2 CPU threads of the GPU machine over its GPU", "bench_gpu", "gpu_speedup_default", 1,
+     "x"),
+)
+
+
+def _summary(records: dict[str, tuple[Path, dict]]) -> str:
+    """The page's opening table: the figures a user cares about, each from its record (left out where no
+    record holds it)."""
+    rows = []
+    for question, bench, name, scale, unit in SUMMARY:
+        figure = next((f for f in records.get(bench, (None, {"figures": []}))[1]["figures"] if f["name"] == name),
+                      None)
+        if figure is None:
+            continue
+        spread = f"{_num(figure['min'] * scale)} – {_num(figure['max'] * scale)}"
+        rows.append(f"| {question} | **{_num(figure['median'] * scale)}** {unit} | {spread} | "
+                    f"[{bench}](#{bench}) |")
+    if not rows:
+        return ""
+    return ("## At a glance {#at-a-glance}\n\nMedians of the latest records (min – max over their repetitions); "
+            "each links to its benchmark below.\n\n| question | median | min – max | record |\n|---|---:|---:|---|\n"
+            + "\n".join(rows) + "\n\n")
 
 
 def _benchmark_section(name: str, path: Path, rec: dict, root: Path) -> str:
