@@ -176,7 +176,7 @@ def _print_outcome(study, cfg, storage_url: str, reports: Path, write_report: bo
                       f"{how}, for {cfg.budgets[0]} on {cfg.device}")
         console.print(f"  {cand.describe()}")
         print_frame(path_table(best, [get_device(cfg.device)]), f"{lead}, per path")
-        console.print(f"  {figures_source(best, cfg.to_dict())}", markup=False, highlight=False)
+        console.print(f"  {figures_source(best, cfg.train_size)}", markup=False, highlight=False)
         fin = finalists_frame(study)
         if not fin.empty:
             cols = ["model", "candidate_key", "estimated", "retrained", "estimated_rank", "retrained_rank"]

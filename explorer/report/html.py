@@ -19,6 +19,7 @@ from explorer.cost import reference_table
 from explorer.cost.devices import DeviceProfile, get_device
 from explorer.report import figures
 from explorer.space import Candidate
+from explorer.study.config import study_config
 from explorer.study.finalists import finalist_trials
 from explorer.study.results import (
     baseline_label,
@@ -195,7 +196,7 @@ def _best(study: optuna.Study, best: optuna.trial.FrozenTrial, retrained: bool, 
     evaluator = (best.user_attrs.get("evaluator") or {}).get("evaluator", "proxy")
     how = "retrained" if retrained else f"estimated by the {evaluator} evaluator"
     out = {"number": best.number, "value": best.values[0], "key": cand.key, "how": how,
-           "figures": figures_source(best, study.user_attrs.get("config", {})),
+           "figures": figures_source(best, study_config(study).train_size),
            "architecture": cand.describe(), "yaml": cand.to_yaml(),
            "table": _frame_html(path_table(best, devs), "best-table")}
     paper = baseline_trial(study, "paper", retrained=retrained)

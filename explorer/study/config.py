@@ -196,5 +196,16 @@ class SearchConfig:
                 "amp": False, "head_kinds": "random"}
 
 
+def study_config(study) -> SearchConfig:
+    """The configuration an Optuna ``study`` was created with, as a checked :class:`SearchConfig`: the one
+    place a study's stored settings are read back. A study made by an older version lacks later
+    settings, which read as what it ran with; a study made outside ``explorer search`` (no stored
+    settings) reads as the defaults."""
+    stored = study.user_attrs.get("config")
+    if not stored:
+        return SearchConfig(study=study.study_name)
+    return SearchConfig.from_dict({"study": study.study_name, **SearchConfig.defaults_of_older_studies(), **stored})
+
+
 def json_safe(x):
     return json.loads(json.dumps(x, default=float))

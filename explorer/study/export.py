@@ -9,6 +9,7 @@ from typing import Callable, Sequence
 
 from explorer.deploy.export import Measurement, Quantization, export_network
 from explorer.errors import UserError
+from explorer.study.config import study_config
 from explorer.study.results import best_trial, scored_trials, trial_network, winner
 from explorer.study.storage import load_study
 
@@ -38,10 +39,10 @@ def export_from_study(study_name: str, trial_number: int | None, out_dir: Path, 
     else:
         trial = trials[trial_number]
     net = trial_network(study, trial)
-    cfg = study.user_attrs.get("config", {})
+    cfg = study_config(study)
     measured = trial.user_attrs.get("measured")     # a retrained trial: measured at the deployment size
-    measurement = Measurement(data=data or cfg.get("data", "synthetic"),
-                              frames=eval_frames or (measured or {}).get("frames") or cfg.get("val_limit") or 96)
+    measurement = Measurement(data=data or cfg.data,
+                              frames=eval_frames or (measured or {}).get("frames") or cfg.val_limit or 96)
     if isinstance(quantization, Quantization) and quantization.data is None:   # the study's frames
         quantization = dataclasses.replace(quantization, data=measurement.data)
     if quantization == AS_SEARCHED:   # an int8 candidate was costed and measured as int8: export it so
@@ -49,9 +50,9 @@ def export_from_study(study_name: str, trial_number: int | None, out_dir: Path, 
         quantization = Quantization(data=measurement.data, eval_frames=measurement.frames,
                                     stages="faster" if searched is None else tuple(searched)) \
             if net.candidate.precision == "int8" else None
-    size = tuple(input_size or cfg.get("input_size", (224, 224)))
-    devs = list(devices or dict.fromkeys([cfg.get("device", "tx2"), "tx2", "rpi4"]))
-    tuned = tuple(measured["input_size"]) if measured else tuple(cfg.get("train_size", (64, 64)))
+    size = tuple(input_size or cfg.input_size)
+    devs = list(devices or dict.fromkeys([cfg.device, "tx2", "rpi4"]))
+    tuned = tuple(measured["input_size"]) if measured else tuple(cfg.train_size)
     source = {"study": study_name, "trial": trial.number, "objective": trial.values[0],
               "figures": "retrained, measured" if measured else "estimated by the search"}
     if measured and tuple(measured["input_size"]) == size:

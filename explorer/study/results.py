@@ -17,7 +17,7 @@ from explorer.data import open_dataset
 from explorer.errors import UserError
 from explorer.model.reference import REFERENCES
 from explorer.space import Candidate
-from explorer.study.config import DEFAULT_BASELINES
+from explorer.study.config import DEFAULT_BASELINES, study_config
 from explorer.study.evaluators import _batches, recalibrate_batchnorm
 from explorer.study.retry import interrupted_trials, retries_by_origin
 from explorer.study.storage import load_study
@@ -36,8 +36,8 @@ def baseline_label(name: str) -> str:
 def study_baselines(study: optuna.Study) -> list[str]:
     """The baselines a study was created to compare against (--baselines), in order; for a study made
     with --no-baselines, the default ones (so that summaries can say why they are missing)."""
-    chosen = study.user_attrs.get("config", {}).get("baselines", True)
-    names = list(DEFAULT_BASELINES) if isinstance(chosen, bool) or not chosen else list(chosen)
+    chosen = study_config(study).baselines if study.user_attrs.get("config") else DEFAULT_BASELINES
+    names = list(chosen or DEFAULT_BASELINES)
     # a resumed run may have been given more (--baselines): they have trials of their own
     tagged = (t.user_attrs.get("baseline") for t in study.get_trials(deepcopy=False))
     return list(dict.fromkeys(names + [b for b in tagged if b]))
@@ -187,15 +187,15 @@ def is_retrained(trial: optuna.trial.FrozenTrial) -> bool:
     return "finalist" in trial.user_attrs
 
 
-def figures_source(trial: optuna.trial.FrozenTrial, config: dict) -> str:
+def figures_source(trial: optuna.trial.FrozenTrial, train_size: tuple[int, int]) -> str:
     """Where a trial's per-path figures come from, in words: measured on a retrained network at the
-    deployment size (on which frames), or estimated by the search at its training size."""
+    deployment size (on which frames), or estimated by the search at its ``train_size``."""
     measured = trial.user_attrs.get("measured")
     if measured:
         size = "x".join(map(str, measured["input_size"]))
         return (f"Per-path figures measured on the retrained network at {size}, the deployment size, on the first "
                 f"{measured['frames']} validation frames of {measured['data']}")
-    size = "x".join(map(str, config.get("train_size", (64, 64))))
+    size = "x".join(map(str, train_size))
     how = (trial.user_attrs.get("evaluator") or {}).get("evaluator", "proxy")
     return f"Per-path figures estimated by the search ({how}) at {size}, not at the deployment size"
 
@@ -269,13 +269,10 @@ def estimate_fidelity(study: optuna.Study) -> str | None:
     supernets of the same space, data and recipe (or that none was measured); None for a study that
     did not estimate with a supernet."""
     from explorer.space import SearchSpace
-    from explorer.study.config import SearchConfig
     from explorer.supernet import SupernetRecipe, describe_fidelity, measured_fidelity, read_supernet
-    cfg = study.user_attrs.get("config")
-    if not cfg:
+    if not study.user_attrs.get("config"):
         return None
-    # a study made by an older version lacks later settings: they read as what it ran with
-    config = SearchConfig.from_dict({"study": study.study_name, **SearchConfig.defaults_of_older_studies(), **cfg})
+    config = study_config(study)
     if config.evaluator != "supernet":
         return None
     recipe = config.supernet_recipe()
@@ -295,7 +292,7 @@ def missing_baselines(study: optuna.Study) -> list[dict]:
     trials = study.get_trials(deepcopy=False)
     scored = {t.user_attrs.get("baseline") for t in scored_trials(study)}
     interrupted = interrupted_trials(study, trials)
-    with_baselines = bool(study.user_attrs.get("config", {}).get("baselines", True))
+    with_baselines = bool(study_config(study).baselines) if study.user_attrs.get("config") else True
     out = []
     for name in study_baselines(study):
         label = baseline_label(name)
@@ -393,9 +390,8 @@ def _supernet_network(study: optuna.Study, trial: optuna.trial.FrozenTrial):
         raise UserError(f"trial {trial.number} was estimated with supernet {file}, which is not on this machine: "
                         "export a retrained finalist instead (the default)")
     net, _ = load_supernet(file)
-    cfg = study.user_attrs.get("config", {})
-    calibration = open_dataset(cfg.get("data", "synthetic"), "train", tuple(cfg.get("train_size", (64, 64))),
-                               train_augment=False)
+    cfg = study_config(study)
+    calibration = open_dataset(cfg.data, "train", cfg.train_size, train_augment=False)
     sub = net.extract(Candidate.from_dict(trial.user_attrs["candidate"]))
     recalibrate_batchnorm(sub, _batches(calibration, 64, 32))
     return sub

@@ -58,15 +58,26 @@ def test_rescore_equals_direct_computation(finished):
         cost = candidate_cost(cand, (64, 64))
         losses = [m["rmse"] for m in t.user_attrs["path_metrics"]]
         direct = anytime_loss(cost.path_costs(rpi4, "time"), losses, "time:uniform:100ms")
-        row = frame[frame["number"] == t.number].iloc[0]
+        rows = frame[frame["number"] == t.number]
+        if rows.empty:   # a network is listed once: by its measured (retrained) row, else its first estimate
+            same_network = (frame["candidate_key"] == t.user_attrs["candidate_key"]) & \
+                (frame["baseline"] == t.user_attrs.get("baseline", ""))
+            assert same_network.sum() == 1
+            continue
+        row = rows.iloc[0]
         assert row["time:uniform:100ms"] == pytest.approx(direct, rel=1e-9)
         direct_e = anytime_loss(cost.path_costs(rpi4, "energy"), losses, "energy:uniform:0.25J")
         assert row["energy:uniform:0.25J"] == pytest.approx(direct_e, rel=1e-9)
-    assert frame["time:uniform:100ms"].is_monotonic_increasing
+    # what was measured first, then the estimates, each ranked; no network twice
+    assert list(frame["figures"]) == sorted(frame["figures"], key=lambda kind: kind != "measured")
+    for _, part in frame.groupby("figures"):
+        assert part["time:uniform:100ms"].is_monotonic_increasing
+    assert not frame.duplicated(["candidate_key", "baseline"]).any()
     # re-scoring on the study's own device and budget gives back the stored objective
     same = rescore(out.study, "tx2", ["time:uniform:30ms"]).set_index("number")
     for t in scored_trials(out.study):
-        assert same.loc[t.number, "time:uniform:30ms"] == pytest.approx(t.values[0])
+        if t.number in same.index:
+            assert same.loc[t.number, "time:uniform:30ms"] == pytest.approx(t.values[0])
 
 
 def test_resume_with_other_settings_is_refused(finished):
