@@ -150,13 +150,17 @@ def counted_trials(study: optuna.Study) -> int:
 
 
 class StopAfterTrials:
-    """Like ``optuna.study.MaxTrialsCallback``, counting what :func:`counted_trials` counts."""
+    """Like ``optuna.study.MaxTrialsCallback``, counting what :func:`counted_trials` counts, and the
+    trials other workers are running: a worker does not start a trial that theirs will make one too many
+    (``--workers 2 --trials 2`` runs two trials, not three)."""
 
     def __init__(self, n_trials: int) -> None:
         self.n_trials = n_trials
 
     def __call__(self, study: optuna.Study, trial: FrozenTrial) -> None:
-        if counted_trials(study) >= self.n_trials:
+        running = [t for t in study.get_trials(deepcopy=False, states=(TrialState.RUNNING,))
+                   if "finalist" not in t.user_attrs]
+        if counted_trials(study) + len(running) >= self.n_trials:
             study.stop()
 
 

@@ -405,6 +405,8 @@ def _run_workers(study: optuna.Study, config: SearchConfig, url: str, workers: i
     """Samples in ``workers`` spawned processes sharing the study at ``url`` (the cores split among
     them), polling the study every 2 s until all have finished."""
     open_dataset(config.data, "val", config.train_size, progress=on_data)  # generate once, not per worker
+    if n_trials is not None:   # each worker starts one trial before it can count: no more workers than trials
+        workers = max(1, min(workers, n_trials - counted_trials(study)))
     import multiprocessing as mp
     ctx = mp.get_context("spawn")
     threads = max(1, (os.cpu_count() or 1) // workers)

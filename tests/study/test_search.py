@@ -198,4 +198,6 @@ def test_two_workers_on_a_journal_file(tmp_path):
     trials = out.study.get_trials()
     assert len({t.number for t in trials}) == len(trials) >= 6
     assert all(t.state.is_finished() for t in trials)
+    from explorer.study.retry import counted_trials
+    assert counted_trials(out.study) == 6          # the workers stop together, not one trial each past it
     assert [t.user_attrs.get("baseline") for t in trials].count("paper") == 1
