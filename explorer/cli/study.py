@@ -235,6 +235,39 @@ def cmd_rescore(args) -> None:
         print_frame(frame.head(args.top), f"{args.study} re-scored for {args.device} (sorted by {args.budget[0]})")
 
 
+def cmd_envelope(args) -> None:
+    import pandas as pd
+
+    from explorer.console import console, print_frame, print_json, progress
+    from explorer.study.config import study_config
+    from explorer.study.envelope import envelope, train_envelope
+    from explorer.study.storage import load_study
+    if args.networks < 1:
+        raise UserError("--networks must be at least 1")
+    study = load_study(args.study, args.storage, Path(args.reports))
+    config = study_config(study)
+    deadline = time.time() + args.time_limit if args.time_limit else None
+    train_on_free_cores()
+    with progress(transient=True) as bar:
+        task = bar.add_task("dedicated networks", total=None, status="")
+        train_envelope(study, args.networks, Path(args.reports), deadline,
+                       progress=lambda i, n, what: bar.update(task, completed=i, total=n, status=what))
+    found = envelope(study)
+    if found is None:
+        raise UserError(f"study '{args.study}' has no retrained winner or no dedicated network to compare: run "
+                        "the search with finalists, and give the envelope time (--time-limit)")
+    if args.json:
+        print_json({"loss": found.loss, "winner_loss": found.winner_loss, "ratio": found.ratio,
+                    "costs": found.costs, "errors": found.errors, "networks": found.networks})
+        return
+    print_frame(pd.DataFrame(found.networks), f"dedicated networks (single exit), retrained and measured at "
+                f"{'x'.join(map(str, config.input_size))}, costed on {config.device}")
+    line = f"envelope of dedicated networks: anytime loss {found.loss:.4f} for {config.budgets[0]} on {config.device}"
+    if found.ratio is not None:
+        line += f"; the winner {found.winner_loss:.4f}, [bold]{found.ratio:.3f}[/bold] x the envelope"
+    console.print(line)
+
+
 def cmd_report(args) -> None:
     from explorer.console import console
     from explorer.report import write_report
@@ -249,6 +282,18 @@ def cmd_report(args) -> None:
 def register(sub, add, reports: dict) -> None:
     """Adds this group's commands to the ``explorer`` parser."""
     _register_search(add, reports)
+
+    s = add("envelope", cmd_envelope, "the envelope of dedicated single-exit networks: how close the winner comes "
+            "to the best network for each deadline known in advance")
+    s.add_argument("--study", required=True)
+    s.add_argument("--storage")
+    s.add_argument("--networks", type=int, default=4, help="dedicated networks spread over the budget's range, "
+                   "chosen from the search's estimates and retrained with the finalists' recipe (default 4; those "
+                   "already retrained are kept, a killed run resumes)")
+    s.add_argument("--time-limit", type=_duration_s, default=None, help="start no network that would end after "
+                   "this long (default: none)")
+    s.add_argument("--json", action="store_true")
+    s.add_argument("--reports", **reports)
 
     s = add("rescore", cmd_rescore, "rank a finished study's trials for another device or budget")
     s.add_argument("--study", required=True)

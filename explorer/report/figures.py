@@ -53,10 +53,16 @@ def png(fig) -> str:
     return base64.b64encode(buf.getvalue()).decode()
 
 
-def step_curves(rows, device: DeviceProfile, budget: str) -> str:
-    """Each (label, trial, colour) row's anytime curve on ``device`` under ``budget``."""
+def step_curves(rows, device: DeviceProfile, budget: str, envelope=None) -> str:
+    """Each (label, trial, colour) row's anytime curve on ``device`` under ``budget``, over the
+    ``envelope`` of dedicated networks (explorer.study.envelope.Envelope) where given."""
     dist = parse_budget(budget)
     fig, ax = plt.subplots(figsize=(6.4, 3.6))
+    if envelope is not None:
+        xs, ys = envelope.curve(dist.upper)
+        ax.fill_between(xs, ys, step="post", color="#cbd5e1", alpha=0.5, lw=0)
+        ax.step(xs, ys, where="post", color="#64748b", lw=1.2, ls="--",
+                label=f"envelope of {len(envelope.networks)} dedicated networks: L = {envelope.loss:.3f}")
     for label, trial, line_colour in rows:
         if trial_precision(trial) not in device.precisions:
             continue   # an int8 design on a profile without int8 rates: no curve to draw

@@ -223,13 +223,19 @@ def _add_figures(ctx: dict, study: optuna.Study, frame: pd.DataFrame, best, base
                  primary: DeviceProfile, dists: list, data: str | None) -> None:
     """Draws the figures into ``ctx["figures"]``; a figure that cannot be drawn is left out, with a
     note where the reader can do something about it."""
+    from explorer.study.envelope import envelope
+    found = envelope(study) if best is not None and primary.name == study_config(study).device else None
+    if found is not None:
+        ctx["envelope"] = {"loss": found.loss, "ratio": found.ratio, "networks": len(found.networks)}
     curve_rows = []
     if best is not None:
         curve_rows.append((_label(best, best), best, figures.COLOURS["best"]))
     curve_rows += [(_label(t, best), t, figures.colour(t.user_attrs["baseline"])) for t in baselines]
     if curve_rows:
-        ctx["figures"]["curve_time"] = figures.step_curves(curve_rows, primary, next(
-            (d.spec for d in dists if d.kind == "time"), "time:uniform:33ms"))
+        time_budget = next((d.spec for d in dists if d.kind == "time"), "time:uniform:33ms")
+        ctx["figures"]["curve_time"] = figures.step_curves(
+            curve_rows, primary, time_budget,
+            found if found is not None and time_budget == study_config(study).budgets[0] else None)
         energy = next((d.spec for d in dists if d.kind == "energy"), None)
         if energy and primary.active_power_w > 0:
             ctx["figures"]["curve_energy"] = figures.step_curves(curve_rows, primary, energy)

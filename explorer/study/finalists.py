@@ -31,6 +31,8 @@ from explorer.training.deployment import DeploymentRecipe, train_for_deployment
 from explorer.training.train import evaluated_frames
 
 FINALIST = "finalist"
+#: the tag of a dedicated network retrained for the envelope (explorer.study.envelope): never an estimate
+ENVELOPE = "envelope"
 
 
 def is_finalist(trial: optuna.trial.FrozenTrial) -> bool:
@@ -40,7 +42,8 @@ def is_finalist(trial: optuna.trial.FrozenTrial) -> bool:
 def estimate_trials(study: optuna.Study) -> list[optuna.trial.FrozenTrial]:
     """Completed search trials with metrics (finalists' retrainings excluded)."""
     return [t for t in study.get_trials(deepcopy=False, states=(optuna.trial.TrialState.COMPLETE,))
-            if "path_metrics" in t.user_attrs and "workloads" in t.user_attrs and not is_finalist(t)]
+            if "path_metrics" in t.user_attrs and "workloads" in t.user_attrs and not is_finalist(t)
+            and ENVELOPE not in t.user_attrs]
 
 
 def finalist_trials(study: optuna.Study) -> list[optuna.trial.FrozenTrial]:

@@ -47,7 +47,7 @@ class FinishedTwins:
         for t in unseen(complete, self._indexed):
             self._indexed.add(t.number)
             if not t.user_attrs.get("baseline") and "path_metrics" in t.user_attrs and \
-                    "finalist" not in t.user_attrs:
+                    "finalist" not in t.user_attrs and "envelope" not in t.user_attrs:
                 first = self._first.setdefault(t.user_attrs.get("candidate_key"), t)
                 if t.number < first.number:   # an earlier trial that finished later
                     self._first[t.user_attrs.get("candidate_key")] = t

@@ -91,9 +91,10 @@ def trial_anytime_loss(trial: optuna.trial.FrozenTrial, device: DeviceProfile, b
 
 
 def scored_trials(study: optuna.Study) -> list[optuna.trial.FrozenTrial]:
-    """Completed trials that carry per-path metrics and workloads (everything re-scoring needs)."""
+    """Completed trials that carry per-path metrics and workloads (everything re-scoring needs); the
+    dedicated networks of the envelope (explorer.study.envelope) are a comparison of their own."""
     return [t for t in study.get_trials(deepcopy=False, states=(optuna.trial.TrialState.COMPLETE,))
-            if "path_metrics" in t.user_attrs and "workloads" in t.user_attrs]
+            if "path_metrics" in t.user_attrs and "workloads" in t.user_attrs and "envelope" not in t.user_attrs]
 
 
 def _reason(t: optuna.trial.FrozenTrial, interrupted: dict[int, str], retries: dict) -> str:
@@ -179,7 +180,7 @@ def rescore(study: optuna.Study, device: str | DeviceProfile, budgets: Sequence[
 
 def figures_kind(trial: optuna.trial.FrozenTrial) -> str:
     """"measured" for a retrained network (finalist or baseline), "estimate" for a search trial."""
-    return "measured" if is_retrained(trial) else "estimate"
+    return "measured" if is_retrained(trial) or "envelope" in trial.user_attrs else "estimate"
 
 
 def is_retrained(trial: optuna.trial.FrozenTrial) -> bool:

@@ -143,9 +143,9 @@ class RetryStaleTrials:
 
 def counted_trials(study: optuna.Study) -> int:
     """Finished trials that count toward ``--trials``: an interrupted one does not (its retry does),
-    nor a finalist's retraining (it is not a sampled trial)."""
+    nor a finalist's or a dedicated network's retraining (they are not sampled trials)."""
     done = study.get_trials(deepcopy=False, states=(TrialState.COMPLETE, TrialState.PRUNED, TrialState.FAIL))
-    done = [t for t in done if "finalist" not in t.user_attrs]
+    done = [t for t in done if "finalist" not in t.user_attrs and "envelope" not in t.user_attrs]
     return len(done) - len(interrupted_trials(study, done))
 
 

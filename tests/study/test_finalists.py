@@ -324,3 +324,36 @@ def test_the_exported_winner_measures_what_the_study_reported(finished, tmp_path
     assert other["measured"]["input_size"] == [32, 32] and other["tuned_size"] == [64, 64]
     assert "study_path_metrics" not in other["source"]
     assert [p["rmse"] for p in other["path_metrics"]] != [p["rmse"] for p in winner(out.study).user_attrs["path_metrics"]]
+
+
+@pytest.mark.slow
+def test_the_envelope_of_dedicated_networks(finished, run_cli):
+    """Single-exit twins of the search's candidates, retrained with the finalists' recipe and measured at
+    the deployment size, never count as estimates or finalists; the envelope serves each budget with the
+    best of them ready by it, and the winner is compared with it."""
+    from explorer.anytime import anytime_loss
+    from explorer.study.envelope import dedicated, envelope, envelope_trials
+    from explorer.study.finalists import estimate_trials
+    out, reports = finished
+    before_winner = winner(out.study).number
+    code, text, err = run_cli("envelope", "--study", "fin", "--networks", "2", "--reports", reports)
+    assert code == 0, err
+    made = envelope_trials(out.study)
+    assert 1 <= len(made) <= 2
+    for t in made:
+        cand = Candidate.from_dict(t.user_attrs["candidate"])
+        assert cand == dedicated(cand) and cand.num_paths == 2
+        assert t.user_attrs["measured"]["input_size"] == [64, 64]
+    assert winner(out.study).number == before_winner                     # never a finalist
+    assert not {t.number for t in made} & {t.number for t in estimate_trials(out.study)}
+    found = envelope(out.study)
+    assert found.costs[0] == 0 and all(a < b for a, b in zip(found.costs, found.costs[1:]))
+    assert all(a > b for a, b in zip(found.errors, found.errors[1:]))  # each step serves budgets better
+    assert found.loss == pytest.approx(anytime_loss(found.costs, found.errors, "time:uniform:33ms"))
+    assert found.ratio == pytest.approx(winner(out.study).values[0] / found.loss)
+    assert "x the envelope" in " ".join(text.split())
+    code, _, _ = run_cli("envelope", "--study", "fin", "--networks", "2", "--reports", reports)   # cached
+    assert code == 0 and len(envelope_trials(out.study)) == len(made)
+    from explorer.report import write_report
+    html = write_report(out.study, out_dir=reports / "envelope-report").read_text()
+    assert 'id="envelope-ratio"' in html and f"{found.ratio:.3f}" in html

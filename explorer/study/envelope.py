@@ -1,0 +1,166 @@
+"""The envelope of dedicated networks: how good a study's winner is, not only against the paper design.
+
+If the deadline were known in advance, one would run the best single-exit network of the space that is
+ready by then. The anytime loss of that oracle (each budget served by the most accurate dedicated
+network ready by it, the scan before the first) is what an anytime network of the same space and
+recipe can approach: sharing one backbone among exits costs something, and the envelope says how much.
+
+The dedicated networks are the single-exit twins of the search's candidates (the same network with its
+last exit only), chosen along the cost range from the estimate: the front of estimated last-path error
+against the twin's cost on the study's device, spread over the budget's range. They are retrained with
+the finalists' recipe at the deployment size (explorer.study.finalists) and stored as trials tagged
+``envelope``, so the work is cached and a killed run resumes; the study's single-exit baselines that
+were retrained with the same recipe join them at no cost.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+import time
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import optuna
+
+from explorer.anytime import anytime_curve, anytime_loss, parse_budget
+from explorer.cost import get_device, model_cost
+from explorer.space import Candidate
+from explorer.study._finalist_pool import InProcess
+from explorer.study.config import SearchConfig, study_config
+from explorer.study.finalists import ENVELOPE, FINALIST, FinalistJob, estimate_trials, finalist_trials, train_finalist
+from explorer.study.objective import Objective
+from explorer.study.planning import SAFETY
+from explorer.study.results import winner
+from explorer.study.storage import study_dir
+
+
+def dedicated(candidate: Candidate) -> Candidate:
+    """``candidate`` with its last exit only: the network one would run for one known deadline."""
+    return dataclasses.replace(candidate, exits=(max(candidate.exits),), encoder_exits=(), lidar_exit=False)
+
+
+def envelope_trials(study: optuna.Study) -> list[optuna.trial.FrozenTrial]:
+    return [t for t in study.get_trials(deepcopy=False, states=(optuna.trial.TrialState.COMPLETE,))
+            if ENVELOPE in t.user_attrs]
+
+
+def choose_networks(study: optuna.Study, config: SearchConfig, count: int) -> list[Candidate]:
+    """``count`` dedicated networks spread over the budget's range: the single-exit twins of the search's
+    candidates on the front of estimated last-path error against their last path's cost on the device,
+    the one nearest each of ``count`` evenly spaced costs up to the budget's upper end."""
+    device, budget = get_device(config.device), parse_budget(config.budgets[0])
+    best: dict[str, tuple[float, float, Candidate]] = {}
+    for t in estimate_trials(study):
+        if t.user_attrs.get("baseline") or "candidate" not in t.user_attrs:
+            continue
+        twin = dedicated(Candidate.from_dict(t.user_attrs["candidate"]))
+        error = float(t.user_attrs["path_metrics"][-1][config.metric])
+        if twin.key not in best or error < best[twin.key][1]:
+            cost = model_cost(twin, config.input_size).path_costs(device, budget.kind)[-1]
+            best[twin.key] = (cost, error, twin)
+    front, lowest = [], math.inf
+    for cost, error, twin in sorted(best.values(), key=lambda x: x[0]):
+        if error < lowest and cost <= budget.upper:
+            lowest = error
+            front.append((cost, twin))
+    if len(front) <= count:
+        return [twin for _, twin in front]
+    targets = np.linspace(front[0][0], front[-1][0], count)
+    chosen: list[Candidate] = []
+    for target in targets:
+        nearest = min((pair for pair in front if pair[1] not in chosen), key=lambda p: abs(p[0] - target))
+        chosen.append(nearest[1])
+    return chosen
+
+
+def train_envelope(study: optuna.Study, count: int, reports: Path, deadline: float | None = None,
+                   progress: Callable[[int, int, str], None] | None = None) -> list[optuna.trial.FrozenTrial]:
+    """Retrains the chosen dedicated networks not yet retrained with the study's finalists' recipe (one at
+    a time; with a ``deadline``, a network starts only if the longest so far says it ends before it)."""
+    config = study_config(study)
+    recipe = config.finalist_recipe()
+    done = {t.user_attrs["candidate_key"] for t in envelope_trials(study)
+            if t.user_attrs[ENVELOPE].get("recipe") == recipe.to_dict()}
+    todo = [c for c in choose_networks(study, config, count) if c.key not in done]
+    if not todo:
+        return envelope_trials(study)
+    folder = study_dir(config.study, reports) / ENVELOPE
+    runner = InProcess(functools.partial(Objective, dataclasses.replace(config, evaluator="proxy", pruning=False),
+                                         study_dir(config.study, reports)),
+                       functools.partial(train_finalist, recipe=recipe, folder=folder))
+    took: list[float] = []
+    for i, candidate in enumerate(todo):
+        if deadline is not None and took and time.time() + SAFETY * max(took) > deadline:
+            if progress:
+                progress(i, len(todo), f"no time for the {len(todo) - i} other network(s): give a longer --time-limit")
+            break
+        if progress:
+            progress(i, len(todo), f"training {candidate.key} ({candidate.describe()[:60]})")
+        started = time.time()
+        result = runner.submit(FinalistJob(candidate.to_dict())).result()
+        took.append(time.time() - started)
+        attrs = dict(result["user_attrs"])
+        attrs[ENVELOPE] = attrs.pop(FINALIST)      # never a finalist: it cannot be the winner
+        study.add_trial(optuna.trial.create_trial(values=result["values"], user_attrs=attrs,
+                                                  state=optuna.trial.TrialState.COMPLETE))
+        Path(result["checkpoint"]).unlink(missing_ok=True)
+    if progress:
+        progress(len(todo), len(todo), "dedicated networks retrained")
+    return envelope_trials(study)
+
+
+def envelope_members(study: optuna.Study) -> list[optuna.trial.FrozenTrial]:
+    """The dedicated networks of the envelope: those retrained for it and the single-exit baselines
+    retrained with the same recipe."""
+    recipe = study_config(study).finalist_recipe().to_dict()
+    mine = [t for t in envelope_trials(study) if t.user_attrs[ENVELOPE].get("recipe") == recipe]
+    single = [t for t in finalist_trials(study) if t.user_attrs.get("baseline") and "candidate" in t.user_attrs
+              and len(t.user_attrs["path_metrics"]) == 2 and t.user_attrs[FINALIST].get("recipe") == recipe]
+    return mine + single
+
+
+@dataclasses.dataclass(frozen=True)
+class Envelope:
+    """The oracle's steps (cost, error) from the scan on, its anytime loss, the winner's, and which
+    networks make it."""
+
+    costs: list[float]
+    errors: list[float]
+    loss: float
+    winner_loss: float | None
+    networks: list[dict]
+
+    @property
+    def ratio(self) -> float | None:
+        return self.winner_loss / self.loss if self.winner_loss is not None and self.loss > 0 else None
+
+    def curve(self, upper: float) -> tuple[np.ndarray, np.ndarray]:
+        return anytime_curve(self.costs, self.errors, upper)
+
+
+def envelope(study: optuna.Study) -> Envelope | None:
+    """The envelope of the study's dedicated networks on its device and first budget (None before any
+    is retrained). Each budget is served by the most accurate network ready by it; before the first,
+    by the scan (path 0, as the winner measured it)."""
+    from explorer.study.results import trial_losses, trial_path_costs
+    config = study_config(study)
+    members = envelope_members(study)
+    best = winner(study)
+    if not members or best is None:
+        return None
+    device, budget = get_device(config.device), parse_budget(config.budgets[0])
+    points = sorted(((trial_path_costs(t, device, budget.kind)[-1], trial_losses(t, config.metric)[-1], t)
+                     for t in members), key=lambda p: (p[0], p[1]))
+    costs, errors = [0.0], [trial_losses(best, config.metric)[0]]
+    for cost, error, _ in points:
+        if error < errors[-1]:             # a later network that is no better serves no budget
+            costs.append(cost)
+            errors.append(error)
+    networks = [{"number": t.number, "candidate_key": t.user_attrs["candidate_key"],
+                 "baseline": t.user_attrs.get("baseline", ""), "cost": cost, config.metric: error}
+                for cost, error, t in points]
+    return Envelope(costs, errors, anytime_loss(costs, errors, budget),
+                    best.values[0] if "finalist" in best.user_attrs else None, networks)
