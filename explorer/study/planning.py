@@ -89,6 +89,7 @@ class Plan:
     retrain_s: float
     changes: tuple[str, ...] = ()
     trial_s: float = 0.0         # a trial started just before the sampling deadline may run this long
+    tune: str = ""               # the retrainings' tuning at the deployment size, in words ("" = none)
 
     @property
     def expected_s(self) -> float:
@@ -100,8 +101,9 @@ class Plan:
     def describe(self) -> str:
         supernet = (f"supernet {self.supernet_steps} steps (~{self.supernet_s / 60:.1f} min)" if self.supernet_s
                     else f"supernet {self.supernet_steps} steps (cached)")
+        tune = f" + {self.tune}" if self.tune else ""
         retrain = (f"{self.finalists} finalist(s) and {self.retrain_jobs - self.finalists} baseline(s) retrained "
-                   f"{self.finalist_steps} steps (~{self.retrain_s / 60:.1f} min)" if self.retrain_jobs else
+                   f"{self.finalist_steps} steps{tune} (~{self.retrain_s / 60:.1f} min)" if self.retrain_jobs else
                    "no retraining")
         return (f"plan for --time-limit {self.limit_s / 60:g}m: {supernet}, sampling {self.sampling_s / 60:.1f} min, "
                 f"{retrain}")

@@ -278,6 +278,9 @@ def plan_search(config: SearchConfig, storage: optuna.storages.BaseStorage, limi
         chosen = plan(max(larger), False, True)
     config = dataclasses.replace(config, supernet_steps=chosen.supernet_steps, finalists=chosen.finalists,
                                  finalist_steps=chosen.finalist_steps)
+    recipe = config.finalist_recipe()
+    if recipe.tunes:
+        chosen = dataclasses.replace(chosen, tune=f"{recipe.tune_steps} at {'x'.join(map(str, recipe.deploy_size))}")
     return config, chosen, speeds
 
 
