@@ -199,5 +199,10 @@ def test_search_rescore_report_export_cli(run_cli, tmp_path):
     code, out, err = run_cli("export", "--study", "cli", "--out", tmp_path / "m32", "--input-size", "32x32", *common)
     assert code == 0, err
     assert "exported at 32x32, but its weights were trained at 64x64" in " ".join(out.split())
+    at32 = json.loads((tmp_path / "m32" / "manifest.json").read_text())
+    # what was measured at 32x32, never the study's figures for 64x64
+    assert at32["measured"]["input_size"] == [32, 32] and at32["tuned_size"] == [64, 64]
+    assert "study_path_metrics" not in at32["source"] and "study_path_metrics" in manifest["source"]
+    assert at32["path_metrics"] != manifest["path_metrics"]
     code, _, err = run_cli("export", "--study", "cli", "--trial", "999", "--out", tmp_path / "m2", *common)
     assert code == 2 and "not a completed trial" in err

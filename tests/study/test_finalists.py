@@ -306,8 +306,7 @@ def test_when_even_the_best_finalist_and_the_paper_design_no_longer_fit_none_is_
 @pytest.mark.slow
 def test_the_exported_winner_measures_what_the_study_reported(finished, tmp_path, capsys):
     """Trained at 32x32, deployed at 64x64: the study's figures for its winner and the paper design are
-    those of the exported graphs at 64x64 on the same frames; exported at another size, the manifest
-    holds what was measured there, never the study's figures."""
+    those of the exported graphs at 64x64 on the same frames (another size: tests/cli/test_cli.py)."""
     from explorer.anytime import anytime_loss
     from explorer.study.export import export_from_study
     out, reports = finished
@@ -320,10 +319,6 @@ def test_the_exported_winner_measures_what_the_study_reported(finished, tmp_path
         assert manifest["source"]["study_path_metrics"] == trial.user_attrs["path_metrics"]
         costs = [c for c in manifest["expected_cost"]["tx2"]["latency_ms"]]
         assert anytime_loss(costs, exported, "time:uniform:33ms") == pytest.approx(trial.values[0], abs=0.01)
-    other = export_from_study("fin", None, tmp_path / "at32", None, reports, input_size=(32, 32))
-    assert other["measured"]["input_size"] == [32, 32] and other["tuned_size"] == [64, 64]
-    assert "study_path_metrics" not in other["source"]
-    assert [p["rmse"] for p in other["path_metrics"]] != [p["rmse"] for p in winner(out.study).user_attrs["path_metrics"]]
 
 
 @pytest.mark.slow
@@ -336,10 +331,10 @@ def test_the_envelope_of_dedicated_networks(finished, run_cli):
     from explorer.study.finalists import estimate_trials
     out, reports = finished
     before_winner = winner(out.study).number
-    code, text, err = run_cli("envelope", "--study", "fin", "--networks", "2", "--reports", reports)
+    code, text, err = run_cli("envelope", "--study", "fin", "--networks", "1", "--reports", reports)
     assert code == 0, err
     made = envelope_trials(out.study)
-    assert 1 <= len(made) <= 2
+    assert len(made) == 1
     for t in made:
         cand = Candidate.from_dict(t.user_attrs["candidate"])
         assert cand == dedicated(cand) and cand.num_paths == 2
@@ -352,7 +347,7 @@ def test_the_envelope_of_dedicated_networks(finished, run_cli):
     assert found.loss == pytest.approx(anytime_loss(found.costs, found.errors, "time:uniform:33ms"))
     assert found.ratio == pytest.approx(winner(out.study).values[0] / found.loss)
     assert "x the envelope" in " ".join(text.split())
-    code, _, _ = run_cli("envelope", "--study", "fin", "--networks", "2", "--reports", reports)   # cached
+    code, _, _ = run_cli("envelope", "--study", "fin", "--networks", "1", "--reports", reports)   # cached
     assert code == 0 and len(envelope_trials(out.study)) == len(made)
     from explorer.report import write_report
     html = write_report(out.study, out_dir=reports / "envelope-report").read_text()
