@@ -15,8 +15,12 @@ ROOT = Path(__file__).resolve().parents[1]
 
 @pytest.mark.slow
 def test_the_wheel_installed_elsewhere_finds_its_spaces_and_profiles(tmp_path):
-    built = tmp_path / "dist"
-    subprocess.run([sys.executable, "-m", "pip", "wheel", str(ROOT), "--no-deps", "--no-build-isolation", "-q",
+    import shutil
+    built, source = tmp_path / "dist", tmp_path / "source"
+    # built from a copy: setuptools writes build/ and the egg-info beside the sources
+    shutil.copytree(ROOT, source, symlinks=True, ignore=shutil.ignore_patterns(
+        ".git", ".venv", ".cache", "build", "*.egg-info", "reports", "tests", "benchmarks", "docs", "__pycache__"))
+    subprocess.run([sys.executable, "-m", "pip", "wheel", str(source), "--no-deps", "--no-build-isolation", "-q",
                     "-w", str(built)], check=True, cwd=tmp_path, capture_output=True)
     wheel = next(built.glob("anytime_explorer-*.whl"))
     env_dir = tmp_path / "venv"

@@ -374,11 +374,6 @@ def _search(config: SearchConfig, url: str, storage_url: str | None, workers: in
         objective = Objective(config, study_dir(config.study, reports), on_data)
         cb = [lambda s, t: on_trial(s, t)] if on_trial else []
         _optimize(study, objective, n_trials, deadline, cb)
-        # the sampler's evaluator (the supernet, its batches and memo) is not needed by the retrainings:
-        # let it go before they load their own data
-        del objective
-        gc.unfreeze()
-        gc.collect()
     else:
         _run_workers(study, config, url, workers, n_trials, deadline, reports, on_poll, on_data)
     if plan is not None and (config.finalists or config.baselines):
