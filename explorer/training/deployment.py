@@ -2,12 +2,11 @@
 a short tuning phase at the deployment size, then every path measured there.
 
 A network trained at 64x64 and run at 224x224 sees objects three times larger in pixels than it
-learned, and its BatchNorm statistics no longer match its activations: on the default space its exits
-fell from 0.32-0.36 m RMSE at 64x64 to 0.44-0.47 m at 224x224, barely better than the scan alone.
-Re-estimating the BatchNorm statistics at 224x224 alone did not help (0.45-0.46 m); a few steps of
-training at the deployment size did (0.33-0.35 m with 20 steps), as FixRes ("Fixing the train-test
-resolution discrepancy", Touvron et al., 2019) found for classification. ``benchmarks/bench_resolution.py``
-compares this with training at the deployment size from the start and other splits, at equal time.
+learned, and its BatchNorm statistics no longer match its activations: its exits lose most of what
+they gained over the scan. A few steps of training at the deployment size repair that, as FixRes
+("Fixing the train-test resolution discrepancy", Touvron et al., 2019) found for classification.
+``benchmarks/bench_resolution.py`` compares this with training only small, training at the
+deployment size from the start and progressive resizing, at equal time (its record holds the figures).
 """
 
 from __future__ import annotations
