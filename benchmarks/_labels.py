@@ -21,6 +21,7 @@ from explorer.data import open_dataset
 from explorer.model import build_network
 from explorer.space import Candidate
 from explorer.training.train import TrainConfig, train
+from explorer.study import trial_record
 
 CACHE_DIR = Path(os.environ.get("ANYTIME_BENCH_CACHE") or Path(__file__).resolve().parents[1] / "reports" / "bench")
 BUDGET = "time:uniform:33ms"
@@ -127,5 +128,5 @@ def candidates_of(args) -> dict[str, Candidate]:
         from explorer.study.results import winner
         from explorer.study.storage import load_study
         win = winner(load_study(args.study, None, Path(args.reports)))
-        cands["winner"] = Candidate.from_dict(win.user_attrs["candidate"])
+        cands["winner"] = Candidate.from_dict(trial_record(win).candidate)
     return cands

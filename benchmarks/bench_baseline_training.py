@@ -19,6 +19,7 @@ import torch
 from explorer.data import open_dataset
 from explorer.study.planning import measure_speeds
 from explorer.study.search import SearchConfig, baseline_load
+from explorer.study import trial_record
 
 from harness import Bench, rotated
 
@@ -28,7 +29,7 @@ def finalists_of(study_file: str, count: int) -> tuple:
     from explorer.space import Candidate
     from explorer.study.finalists import choose_finalists
     study = optuna.load_study(study_name=None, storage=f"sqlite:///{study_file}")
-    return tuple(Candidate.from_dict(t.user_attrs["candidate"]) for t in choose_finalists(study, count))
+    return tuple(Candidate.from_dict(trial_record(t).candidate) for t in choose_finalists(study, count))
 
 
 if __name__ == "__main__":

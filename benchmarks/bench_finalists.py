@@ -34,7 +34,7 @@ def _estimates(config: SearchConfig, count: int, seed: int = 0) -> list[optuna.t
     for _ in range(count):
         cand = space.sample(sampler.ask())
         out.append(optuna.trial.create_trial(values=[rng.uniform(0.3, 0.6)], user_attrs={
-            "candidate": cand.to_dict(), "candidate_key": cand.key, "path_metrics": [], "workloads": []}))
+            "candidate": cand.to_dict(), "candidate_key": cand.key, "path_metrics": [], "workloads": {}}))
     return out
 
 
@@ -44,7 +44,7 @@ def _retrain(config: SearchConfig, estimates, workers: int) -> float:
         study.add_trial(t)
     with tempfile.TemporaryDirectory() as reports:
         start = time.perf_counter()
-        retrain_finalists(study, config, Path(reports), workers=workers)
+        retrain_finalists(study, config.resolve(), Path(reports), workers=workers)
         seconds = time.perf_counter() - start
     expected = config.finalists + len(config.baselines)
     if len(finalist_trials(study)) != expected:

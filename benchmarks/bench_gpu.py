@@ -39,6 +39,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from harness import RESULTS, ROOT, Bench, interleave  # noqa: E402
+from explorer.study import trial_record  # noqa: E402
 
 DEFAULT, LARGE = ((64, 64), 16), ((224, 224), 64)
 
@@ -180,9 +181,9 @@ def search_rate(device: str, data: str, seconds: float, supernet_steps: int) -> 
     if not trials:
         raise RuntimeError("the search finished no trial")
     wall = (max(t.datetime_complete for t in trials) - min(t.datetime_start for t in trials)).total_seconds()
-    evaluated = [t for t in trials if "duplicate_of" not in t.user_attrs and "evaluator" in t.user_attrs]
-    distinct = len({t.user_attrs.get("candidate_key") for t in trials})
-    in_evaluator = sum(float(t.user_attrs["evaluator"].get("seconds", 0.0)) for t in evaluated)
+    evaluated = [t for t in trials if trial_record(t).duplicate_of is None and trial_record(t).evaluator]
+    distinct = len({trial_record(t).candidate_key for t in trials})
+    in_evaluator = sum(float(trial_record(t).evaluator.get("seconds", 0.0)) for t in evaluated)
     return distinct / wall * 60.0, in_evaluator / wall
 
 
@@ -359,7 +360,7 @@ def main() -> None:
         args.no_record = True
     declare(bench, on_gpu)
     from explorer.study.search import ensure_supernet
-    ensure_supernet(search_config("gpu-bench", device, args.data, args.search_supernet_steps))   # not timed
+    ensure_supernet(search_config("gpu-bench", device, args.data, args.search_supernet_steps).resolve())   # not timed
     with Utilisation(torch.cuda.current_device() if on_gpu else None) as util:
         if on_gpu:
             bench.note(f"{torch.cuda.get_device_name()}; utilisation read with {util.source or 'nothing (n/a)'}")

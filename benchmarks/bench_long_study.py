@@ -28,6 +28,7 @@ from explorer.study.sampling import RecentTrialsTPE
 from explorer.study.storage import open_storage
 
 from harness import Bench, interleave
+from explorer.study import trial_record
 
 ASKS = 20
 
@@ -53,8 +54,8 @@ def finished_trials(space: SearchSpace, n: int, seed: int) -> list:
 def walk(study: optuna.Study, key: str):
     """The finished twin of ``key`` by walking every complete trial (the comparison)."""
     for t in study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,)):
-        if t.user_attrs.get("candidate_key") == key and not t.user_attrs.get("baseline") and \
-                "path_metrics" in t.user_attrs and "finalist" not in t.user_attrs:
+        if trial_record(t).candidate_key == key and not trial_record(t).baseline and \
+                trial_record(t).path_metrics is not None and not trial_record(t).is_retrained:
             return t
     return None
 

@@ -25,6 +25,7 @@ from harness import ROOT, Bench  # noqa: E402
 
 from explorer.study.results import is_retrained, scored_trials, unbeaten_baseline, winner  # noqa: E402
 from explorer.study.storage import load_study  # noqa: E402
+from explorer.study import trial_record  # noqa: E402
 
 STUDY = "tx2-anytime_depth"
 
@@ -38,7 +39,7 @@ def _summary_is_honest(clone: Path, stdout: str) -> tuple[float, bool]:
     """(retrained winner / best retrained baseline, whether the summary said what it had to)."""
     study = load_study(STUDY, None, clone / "reports")
     best = winner(study)
-    bases = [t for t in scored_trials(study) if is_retrained(t) and t.user_attrs.get("baseline")]
+    bases = [t for t in scored_trials(study) if is_retrained(t) and trial_record(t).baseline]
     base = min(bases, key=lambda t: t.values[0], default=None)
     ratio = best.values[0] / base.values[0] if best and base and is_retrained(best) else math.nan
     unbeaten = unbeaten_baseline(study) is not None

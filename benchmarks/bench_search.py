@@ -26,6 +26,7 @@ from harness import ROOT, Bench, interleave  # noqa: E402
 from explorer.space import Candidate, paper_candidate  # noqa: E402
 from explorer.study.results import baseline_trial, best_trial, finalists_frame, winner  # noqa: E402
 from explorer.study.storage import load_study  # noqa: E402
+from explorer.study import trial_record  # noqa: E402
 
 
 def run_search(bench: Bench, study: str, reports: Path, extra: list[str]) -> None:
@@ -59,7 +60,7 @@ if __name__ == "__main__":
     if not fin.empty:
         print(fin.to_string(index=False))
     win = winner(study)
-    cand = Candidate.from_dict(win.user_attrs["candidate"])
+    cand = Candidate.from_dict(trial_record(win).candidate)
     bench.note(f"study {args.study}: {len(study.trials)} trials; winner trial {win.number} {cand.key}: "
                f"{cand.describe()}")
     long = recipe(600)

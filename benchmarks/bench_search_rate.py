@@ -33,7 +33,7 @@ def main() -> None:
     import torch
     from explorer.study.search import ensure_supernet
     device = args.device if args.device != "auto" else ("cuda" if torch.cuda.is_available() else "cpu")
-    ensure_supernet(search_config("search-rate", device, args.data, args.supernet_steps))   # not timed
+    ensure_supernet(search_config("search-rate", device, args.data, args.supernet_steps).resolve())   # not timed
     rate = bench.figure("candidates_per_minute", "distinct candidates per minute", "1/min", "higher")
     per_ten = bench.figure("candidates_per_10_min", "distinct candidates per 10 minutes", "", "higher")
     share = bench.figure("evaluator_share", "share of sampling time in the evaluator", "", "higher")

@@ -36,6 +36,7 @@ from explorer.space import (SearchSpace, fastdepth_candidate, paper_candidate,  
 from explorer.study.evaluators import SupernetEvaluator  # noqa: E402
 from explorer.study.search import SearchConfig  # noqa: E402
 from explorer.supernet import default_path, read_supernet, train_supernet  # noqa: E402
+from explorer.study import trial_record  # noqa: E402
 
 
 def label_candidates(space: SearchSpace, n: int) -> list:
@@ -65,8 +66,8 @@ def replayed(study_file: str, space: SearchSpace) -> list:
     from explorer.space import Candidate
     storage = f"sqlite:///{Path(study_file).resolve()}"
     study = optuna.load_study(study_name=optuna.get_all_study_names(storage)[0], storage=storage)
-    cands = [Candidate.from_dict(t.user_attrs["candidate"]) for t in study.trials
-             if "candidate" in t.user_attrs and not t.user_attrs.get("baseline") and "duplicate_of" not in t.user_attrs]
+    cands = [Candidate.from_dict(trial_record(t).candidate) for t in study.trials
+             if trial_record(t).candidate and not trial_record(t).baseline and trial_record(t).duplicate_of is None]
     return [c for c in cands if space.contains(c)]
 
 

@@ -74,7 +74,7 @@ def profile_search(device: str, data: str, seconds: float, out: Path) -> str:
     from explorer.study.search import ensure_supernet, search
     optuna.logging.set_verbosity(optuna.logging.WARNING)
     config = search_config("gpu-profile", device, data, 30)
-    ensure_supernet(config)
+    ensure_supernet(config.resolve())
     prof = cProfile.Profile()
     with tempfile.TemporaryDirectory() as tmp:
         prof.enable()

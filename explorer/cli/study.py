@@ -140,10 +140,11 @@ def _baselines(args) -> tuple[str, ...]:
 
 def _print_retries(outcome, cfg) -> None:
     from explorer.console import err_console
+    from explorer.study import trial_record
     from explorer.study.results import baseline_label
     trials = {t.number: t for t in outcome.study.get_trials(deepcopy=False)}
     def what(n: int) -> str:
-        b = trials[n].user_attrs.get("baseline") if n in trials else None
+        b = trial_record(trials[n]).baseline if n in trials else None
         return f"trial {n}" + (f" ({baseline_label(b)})" if b else "")
     for old, new in outcome.retried.items():
         err_console.print(f"{what(old)} was interrupted: tried again as trial {new}")
@@ -155,11 +156,12 @@ def _print_retries(outcome, cfg) -> None:
 def _print_outcome(study, cfg, storage_url: str, reports: Path, write_report: bool) -> None:
     import optuna
     from explorer.console import console, print_frame
-    from explorer.cost import get_device
     from explorer.study.results import (baseline_label, baseline_trial, best_trial, estimate_fidelity,
                                         figures_source, finalists_agreement, finalists_frame, is_retrained,
                                         missing_baselines, path_table, unbeaten_baseline, winner)
     from explorer.space import Candidate
+    from explorer.study import trial_record
+    from explorer.study.config import study_context
     states = [t.state for t in study.get_trials(deepcopy=False)]
     count = {s.name.lower(): states.count(s) for s in optuna.trial.TrialState if states.count(s)}
     console.print(f"study [bold]{cfg.study}[/bold]: " + ", ".join(f"{v} {k}" for k, v in count.items()))
@@ -168,14 +170,15 @@ def _print_outcome(study, cfg, storage_url: str, reports: Path, write_report: bo
         console.print("no candidate trial completed yet: run longer (--timeout / --trials)")
     else:
         retrained = is_retrained(best)
-        cand = Candidate.from_dict(best.user_attrs["candidate"])
-        how = "retrained" if retrained else f"estimated ({(best.user_attrs.get('evaluator') or {}).get('evaluator', 'proxy')})"
+        rec = trial_record(best)
+        cand = Candidate.from_dict(rec.candidate)
+        how = "retrained" if retrained else f"estimated ({rec.evaluator_name})"
         unbeaten = unbeaten_baseline(study)
         lead = "best searched candidate" if unbeaten is not None else "winner"
         console.print(f"{lead}: trial {best.number} ({cand.key}) anytime loss [bold]{best.values[0]:.4f}[/bold] "
                       f"{how}, for {cfg.budgets[0]} on {cfg.device}")
         console.print(f"  {cand.describe()}")
-        print_frame(path_table(best, [get_device(cfg.device)]), f"{lead}, per path")
+        print_frame(path_table(best, [study_context(study).device]), f"{lead}, per path")
         console.print(f"  {figures_source(best, cfg.train_size)}", markup=False, highlight=False)
         fin = finalists_frame(study)
         if not fin.empty:
@@ -193,10 +196,10 @@ def _print_outcome(study, cfg, storage_url: str, reports: Path, write_report: bo
             kind = "retrained " if retrained else ""
             console.print(f"ratio to the {kind}paper-design baseline ({paper.values[0]:.4f}): "
                           f"[bold]{best.values[0] / paper.values[0]:.3f}[/bold]")
-        if retrained and estimate is not None and estimate.number != best.user_attrs["finalist"].get("estimate_trial"):
+        if retrained and estimate is not None and estimate.number != rec.finalist.estimate_trial:
             console.print(f"  (the search's best estimate was trial {estimate.number}; retraining ranked another first)")
         if unbeaten is not None:   # said plainly: the study's best model is then a baseline, not a candidate
-            console.print(f"[bold]no searched candidate beat the {baseline_label(unbeaten.user_attrs['baseline'])} "
+            console.print(f"[bold]no searched candidate beat the {baseline_label(trial_record(unbeaten).baseline)} "
                           f"after retraining[/bold] ({best.values[0]:.4f} against {unbeaten.values[0]:.4f}): the best "
                           "model this study found is that baseline; give the search more time (--time-limit) or more "
                           "finalists (--finalists)")

@@ -1,11 +1,12 @@
-"""The report's figures, each a PNG as base64 text for embedding: anytime step curves, Pareto fronts,
-Optuna's history and importances, depth maps of every path, and a measured curve beside its
-prediction."""
+"""The report's figures, each a PNG as base64 text for embedding: anytime step curves, the winner's
+paths on a time axis, Pareto fronts, Optuna's history and importances, depth maps of every path, and a
+measured curve beside its prediction."""
 
 from __future__ import annotations
 
 import base64
 import io
+import math
 import warnings
 from pathlib import Path
 
@@ -23,8 +24,11 @@ from explorer.cost.devices import DeviceProfile  # noqa: E402
 from explorer.data import open_dataset
 from explorer.errors import UserError  # noqa: E402
 from explorer.model.reference import REFERENCES
+from explorer.study.config import study_config  # noqa: E402
+from explorer.study.records import trial_record  # noqa: E402
 from explorer.study.results import (  # noqa: E402
     baseline_label,
+    figures_kind,
     trial_anytime_loss,
     trial_losses,
     trial_network,
@@ -133,38 +137,137 @@ def optuna_plot(fn, study) -> str | None:
         return None
 
 
-def depth_maps(study: optuna.Study, trial: optuna.trial.FrozenTrial, data: str | None, count: int = 3):
-    """Every path's depth map on a few validation images (needs the trial's stored weights): (PNG,
-    "") or (None, why not)."""
+def worse_than_earlier(errors) -> dict[int, int]:
+    """The paths ordered badly: {path: the earlier path with a lower error}. A budget that reaches such a
+    path returns a worse map than one that stopped before it."""
+    out, best = {}, 0
+    for i in range(1, len(errors)):
+        if errors[i] > errors[best]:
+            out[i] = best
+        elif errors[i] < errors[best]:
+            best = i
+    return out
+
+
+def path_timeline(trial: optuna.trial.FrozenTrial, device: DeviceProfile, budget: str) -> tuple[str | None, dict]:
+    """A trial's paths on a time axis: a bar per path from 0 to when its output is ready on ``device``
+    (the cost model's estimate, as in the path table), its RMSE on the right, the end of ``budget``'s
+    range marked, and the paths worse than an earlier one in red. (PNG, worse_than_earlier), or (None,
+    {}) where ``device`` cannot price the trial's precision."""
+    costs = trial_path_costs(trial, device, "time")
+    if any(math.isnan(c) for c in costs):
+        return None, {}
+    errors, dist = trial_losses(trial), parse_budget(budget)
+    worse = worse_than_earlier(errors)
+    # Optuna's plots switch the global style to ggplot: this one keeps its own look whatever ran before
+    with plt.style.context("default"):
+        fig, ax = plt.subplots(figsize=(4.6, 0.45 * len(errors) + 1.4))
+        _draw_paths(ax, costs, errors, worse, dist)
+        ax.set_xlabel(f"ms until the path's output is ready\n(estimated on {device.name})", fontsize=11)
+        rmse = ax.twinx()
+        rmse.set_ylim(ax.get_ylim())
+        rmse.set_yticks(range(len(errors)), [f"{e:.3g} m" for e in errors], fontsize=11)
+        for i, label in enumerate(rmse.get_yticklabels()):
+            label.set_color("#b91c1c" if i in worse else "#111111")
+        rmse.set_ylabel(f"RMSE, {figures_kind(trial)}", fontsize=11)
+        return png(fig), worse
+
+
+def _draw_paths(ax, costs: list[float], errors: list[float], worse: dict, dist) -> None:
+    """The bars of :func:`path_timeline`, the budget's end and the region past it."""
+    n, right = len(errors), max(max(costs), dist.upper) * 1.06
+    ax.axvspan(dist.upper, right, color="#e5e7eb", lw=0)
+    for i, c in enumerate(costs):
+        bad = i in worse
+        ax.barh(i, c, height=0.6, color="#fca5a5" if bad else "#93c5fd", edgecolor="#b91c1c" if bad else "#1f77b4",
+                hatch="//" if bad else None, lw=1)
+        ax.plot([c], [i], "o", ms=5, color="#b91c1c" if bad else "#1f77b4", clip_on=False)
+        if bad:   # inside a long bar, beside a short one
+            inside = c > 0.55 * right
+            ax.text(c - 0.02 * right if inside else c + 0.03 * right, i, f"worse than path {worse[i]}",
+                    ha="right" if inside else "left", va="center", fontsize=10, color="#7f1d1d",
+                    bbox=dict(facecolor="white", edgecolor="none", pad=1, alpha=0.85))
+    mark = f"B_max {dist.upper:g} ms" if dist.name == "uniform" else f"{dist.spec}: almost all by {dist.upper:g} ms"
+    ax.axvline(dist.upper, color="#111111", ls="--", lw=1.2, label=mark)
+    ax.set_xlim(0, right)
+    ax.set_ylim(n - 0.5, -0.5)        # path 0 on top, as in the table
+    ax.set_yticks(range(n), ["path 0 (scan)"] + [f"path {i}" for i in range(1, n)], fontsize=11)
+    ax.tick_params(axis="x", labelsize=11)
+    ax.grid(axis="x", alpha=0.3)
+    ax.legend(loc="lower right", bbox_to_anchor=(1.0, 1.0), fontsize=10, frameon=False)
+
+
+def depth_map_size(study: optuna.Study, trial: optuna.trial.FrozenTrial) -> tuple[int, int]:
+    """The input size a trial's figures hold at: a retrained network's deployment size (where it was
+    measured, and runs as shipped), else the study's training size (where the search estimated it)."""
+    measured = trial_record(trial).measured
+    return tuple(measured.input_size) if measured else tuple(study_config(study).train_size)
+
+
+def depth_maps(study: optuna.Study, trial: optuna.trial.FrozenTrial, data: str | None,
+               device: DeviceProfile | None = None, count: int = 3):
+    """Every path's depth map on a few validation images at :func:`depth_map_size` (needs the trial's
+    stored weights), each path's column titled with its time on ``device`` and its RMSE: (PNG, "") or
+    (None, why not)."""
     import torch
-    cfg = study.user_attrs.get("config", {})
     try:
         net = trial_network(study, trial)
     except UserError as exc:
         return None, str(exc)
-    size = tuple(cfg.get("train_size", (64, 64)))
     try:
-        ds = open_dataset(data or cfg.get("data", "synthetic"), "val", size, train_augment=False)
+        ds = open_dataset(data or study_config(study).data, "val", depth_map_size(study, trial),
+                          train_augment=False)
     except UserError as exc:
         return None, str(exc)
-    n = min(count, len(ds))
-    paths = net.candidate.num_paths
-    fig, axes = plt.subplots(n, paths + 2, figsize=(1.6 * (paths + 2), 1.6 * n), squeeze=False)
+    items = [ds[i] for i in range(min(count, len(ds)))]
+    if not items:
+        return None, "the data set has no validation frames"
     with torch.no_grad():
-        for i in range(n):
-            item = ds[i]
-            outs = net(item["image"][None], item["scan"][None], item["scan_row"])
-            vmax = float(item["depth"].max())
+        outs = [net(item["image"][None], item["scan"][None], item["scan_row"]) for item in items]
+    legend = (f"ms: estimated on {device.name}\n" if device is not None else "") + f"m: RMSE, {figures_kind(trial)}"
+    return png(_map_grid(items, outs, _path_titles(trial, net.candidate.num_paths, device), legend)), ""
+
+
+def _path_titles(trial: optuna.trial.FrozenTrial, paths: int, device: DeviceProfile | None) -> list[str]:
+    """A column title per path, in short lines that stay legible on a phone: its name, its time on
+    ``device`` (where it prices the trial) and its RMSE."""
+    costs = trial_path_costs(trial, device, "time") if device is not None else []
+    errors = trial_losses(trial)
+    titles = []
+    for p in range(paths):
+        lines = [f"path {p}"]
+        if p < len(costs) and not math.isnan(costs[p]):
+            lines.append(f"{costs[p]:.3g} ms")
+        if p < len(errors):
+            lines.append(f"{errors[p]:.3g} m")
+        titles.append("\n".join(lines))
+    return titles
+
+
+def _map_grid(items: list, outs: list, titles: list[str], legend: str):
+    """A row per frame (image, ground truth, then every path), one depth scale for all with its colour bar."""
+    vmax = max(float(item["depth"].max()) for item in items)
+    cols = len(titles) + 2
+    height, width = items[0]["depth"].shape[-2:]
+    # the page scales a figure down to the screen: at 1.5 in a column, 16 pt titles stay legible at 390 px
+    cell = 1.5
+    with plt.style.context("default"):   # whatever style Optuna's plots left behind
+        fig, axes = plt.subplots(len(items), cols, figsize=(cell * cols + 0.8, cell * height / width * len(items) + 1.4),
+                                 squeeze=False, layout="constrained")
+        for i, (item, out) in enumerate(zip(items, outs)):
             axes[i, 0].imshow(item["image"].permute(1, 2, 0).numpy())
-            axes[i, 1].imshow(item["depth"][0].numpy(), cmap="viridis", vmin=0, vmax=vmax)
-            for p, o in enumerate(outs):
+            shown = axes[i, 1].imshow(item["depth"][0].numpy(), cmap="viridis", vmin=0, vmax=vmax)
+            for p, o in enumerate(out):
                 axes[i, p + 2].imshow(o[0, 0].numpy(), cmap="viridis", vmin=0, vmax=vmax)
-            if i == 0:
-                for j, title in enumerate(["image", "ground truth"] + [f"path {p}" for p in range(paths)]):
-                    axes[0, j].set_title(title, fontsize=8)
-    for ax in axes.flat:
-        ax.axis("off")
-    return png(fig), ""
+        for j, title in enumerate(["image", "ground\ntruth"] + titles):
+            axes[0, j].set_title(title, fontsize=16)
+        for ax in axes.flat:
+            ax.axis("off")
+        fig.suptitle(legend, fontsize=16)
+        bar = fig.colorbar(shown, ax=axes, fraction=0.04, aspect=30)
+        bar.set_label("depth (m)", fontsize=16)
+        bar.ax.tick_params(labelsize=14)
+    return fig
 
 
 def measured_curve(curve: Path) -> str | None:

@@ -19,12 +19,14 @@ from explorer.cost import reference_table
 from explorer.cost.devices import DeviceProfile, get_device
 from explorer.report import figures
 from explorer.space import Candidate
-from explorer.study.config import study_config
+from explorer.study.config import StudyContext, study_config, study_context
 from explorer.study.finalists import finalist_trials
+from explorer.study.records import StudyRecord, study_record, trial_record
 from explorer.study.results import (
     baseline_label,
     baseline_trial,
     estimate_fidelity,
+    figures_kind,
     figures_source,
     finalists_agreement,
     finalists_frame,
@@ -49,7 +51,7 @@ TRIAL_COLUMNS = ["number", "state", "value", "figures", "baseline", "retry_of", 
 
 
 def _label(t: optuna.trial.FrozenTrial, best: optuna.trial.FrozenTrial | None) -> str:
-    b = t.user_attrs.get("baseline")
+    b = trial_record(t).baseline
     if b:
         return baseline_label(b)
     return f"best (trial {t.number})" if best is not None and t.number == best.number else f"trial {t.number}"
@@ -87,8 +89,9 @@ def build_context(study: optuna.Study, devices: Sequence[str] | None = None,
                   budgets: Sequence[str] | None = None, data: str | None = None) -> dict:
     """Everything the report's template shows of ``study``: on the study's device first, then
     ``devices``; under the study's budgets, then ``budgets`` (default: the paper's Table 2 ones)."""
-    cfg = study.user_attrs.get("config", {})
-    primary, devs = _devices(study, cfg, devices)
+    stored, context = study_record(study), study_context(study)
+    cfg, config = stored.config or {}, context.config
+    primary, devs = _devices(context, devices)
     budget_list = list(dict.fromkeys(list(cfg.get("budgets", [])) + list(budgets or TABLE2_BUDGETS)))
     dists = [parse_budget(b) for b in budget_list]
     frame = trials_frame(study)
@@ -96,16 +99,16 @@ def build_context(study: optuna.Study, devices: Sequence[str] | None = None,
     retrained = best is not None and is_retrained(best)
     scored = scored_trials(study)
     # the three best candidates of the winner's kind (retrained or estimated), and the baselines alike
-    ranked = sorted([t for t in scored if not t.user_attrs.get("baseline") and is_retrained(t) == retrained],
+    ranked = sorted([t for t in scored if not trial_record(t).baseline and is_retrained(t) == retrained],
                     key=lambda t: t.values[0])[:3]
     baselines = [t for name in study_baselines(study) if (t := baseline_trial(study, name, retrained=retrained))]
     ctx: dict = {"study": study.study_name, "config": cfg,
                  "states": frame["state"].value_counts().to_dict() if not frame.empty else {},
                  "versions": _versions(), "generated": time.strftime("%Y-%m-%d %H:%M:%S"), "figures": {},
-                 "notes": _notes(study, devs, scored), "evaluator": cfg.get("evaluator", "proxy"),
-                 "finalist_steps": cfg.get("finalist_steps"), "plan": study.user_attrs.get("plan")}
+                 "notes": _notes(stored, devs, scored), "evaluator": cfg.get("evaluator", "proxy"),
+                 "finalist_steps": cfg.get("finalist_steps"), "plan": stored.plan}
     ctx.update(_finalists(study, ctx["finalist_steps"]))
-    ctx["wall_time"] = _wall_time(study)
+    ctx["wall_time"] = _wall_time(study, stored)
     ctx["devices"] = [{"name": d.name, "description": d.description, "calibrated": d.calibrated,
                        "fit": d.provenance.get("fit", []), "sources": d.provenance.get("sources", []),
                        "conditions": d.provenance.get("conditions")} for d in devs]
@@ -117,9 +120,9 @@ def build_context(study: optuna.Study, devices: Sequence[str] | None = None,
     ctx["missing_baselines"] = missing_baselines(study)
     ctx["no_ratio"] = next((m["why"] for m in ctx["missing_baselines"] if m["name"] == "paper"), "")
     unbeaten = unbeaten_baseline(study)
-    ctx["unbeaten"] = ({"label": baseline_label(unbeaten.user_attrs["baseline"]), "value": unbeaten.values[0]}
+    ctx["unbeaten"] = ({"label": baseline_label(trial_record(unbeaten).baseline), "value": unbeaten.values[0]}
                        if unbeaten is not None and best is not None else None)
-    ctx["table2"] = _table2(ranked + baselines, best, devs, dists, cfg.get("metric", "rmse"))
+    ctx["table2"] = _table2(ranked + baselines, best, devs, dists, config.metric)
     ctx["references"] = _frame_html(reference_table(devs), "references")
     _add_figures(ctx, study, frame, best, baselines, primary, dists, data)
     if best is not None and not frame.empty:
@@ -129,22 +132,21 @@ def build_context(study: optuna.Study, devices: Sequence[str] | None = None,
     return ctx
 
 
-def _devices(study: optuna.Study, cfg: dict, devices: Sequence[str] | None) -> tuple[DeviceProfile, list]:
-    """(the study's own device profile, it and the other ``devices`` asked for, default tx2 and rpi4)."""
-    study_device = study.user_attrs.get("device_profile")
-    primary = get_device(cfg.get("device", "tx2")) if not study_device else \
-        DeviceProfile.from_dict(study_device, "study")
+def _devices(context: StudyContext, devices: Sequence[str] | None) -> tuple[DeviceProfile, list]:
+    """(the study's own device profile, as stored when it was made; it and the other ``devices`` asked
+    for, default tx2 and rpi4)."""
+    primary = context.device
     return primary, [primary] + [get_device(d) for d in (devices or ["tx2", "rpi4"]) if d != primary.name]
 
 
-def _notes(study: optuna.Study, devs: list[DeviceProfile], scored: list) -> list[str]:
+def _notes(stored: StudyRecord, devs: list[DeviceProfile], scored: list) -> list[str]:
     """What the reader should know about cells left empty and baselines without estimates."""
     notes = []
     lacking = [d.name for d in devs if "int8" not in d.precisions]
     if lacking and any(trial_precision(t) == "int8" for t in scored):
         notes.append(f"int8 designs are not priced on {', '.join(lacking)}: those profiles have no int8 "
                      "rates, so their cells there are empty.")
-    for name, why in (study.user_attrs.get("baselines_not_estimated") or {}).items():
+    for name, why in stored.baselines_not_estimated.items():
         notes.append(f"Baseline {baseline_label(name)} has no search estimate: {why}.")
     return notes
 
@@ -156,17 +158,17 @@ def _finalists(study: optuna.Study, finalist_steps) -> dict:
     out = {"finalist_steps": finalist_steps, "finalists": "", "finalists_tau": None, "finalists_rows": 0,
            "fidelity": estimate_fidelity(study)}
     finals = finalist_trials(study)
-    recipes = sorted({t.user_attrs["finalist"]["recipe"]["steps"] for t in finals})
+    recipes = sorted({trial_record(t).finalist.recipe["steps"] for t in finals})
     if recipes:   # a --time-limit plan may have sized them after the study was created
         out["finalist_steps"] = ", ".join(map(str, recipes))
-    measured = [t for t in finals if t.user_attrs.get("measured")]
+    measured = [trial_record(t) for t in finals if trial_record(t).measured]
     if measured:
-        recipe, where = measured[-1].user_attrs["finalist"]["recipe"], measured[-1].user_attrs["measured"]
-        size = "x".join(map(str, where["input_size"]))
+        recipe, where = measured[-1].finalist.recipe, measured[-1].measured
+        size = "x".join(map(str, where.input_size))
         tune = f", then {recipe['tune_steps']} at {size}" if recipe.get("tune_steps") else ""
         out["measured_recipe"] = (f"finalists and baselines retrained alone {out['finalist_steps']} steps at "
                                   f"{'x'.join(map(str, recipe['input_size']))}{tune}; every path measured at {size} "
-                                  f"on the first {where['frames']} validation frames of {where['data']}")
+                                  f"on the first {where.frames} validation frames of {where.data}")
     fin = finalists_frame(study)
     if not fin.empty:
         agreement = finalists_agreement(study)
@@ -176,10 +178,10 @@ def _finalists(study: optuna.Study, finalist_steps) -> dict:
     return out
 
 
-def _wall_time(study: optuna.Study) -> str:
+def _wall_time(study: optuna.Study, stored: StudyRecord) -> str:
     """The runs' wall time as each search recorded it (data, supernet, sampling and retraining), or,
     for a study made before runs were recorded, the span of its trials, said so."""
-    runs = study.user_attrs.get("runs") or []
+    runs = stored.runs
     if runs:
         total = sum(r["seconds"] for r in runs) / 60
         return f"{total:.1f} min" + (f" over {len(runs)} runs" if len(runs) > 1 else "")
@@ -192,8 +194,8 @@ def _wall_time(study: optuna.Study) -> str:
 def _best(study: optuna.Study, best: optuna.trial.FrozenTrial, retrained: bool, devs: list) -> dict:
     """The winner (Table 1 style): its architecture, how its loss was found, its paths on every
     device, and its loss over the paper design's where that has one of the same kind."""
-    cand = Candidate.from_dict(best.user_attrs["candidate"])
-    evaluator = (best.user_attrs.get("evaluator") or {}).get("evaluator", "proxy")
+    cand = Candidate.from_dict(trial_record(best).candidate)
+    evaluator = trial_record(best).evaluator_name
     how = "retrained" if retrained else f"estimated by the {evaluator} evaluator"
     out = {"number": best.number, "value": best.values[0], "key": cand.key, "how": how,
            "figures": figures_source(best, study_config(study).train_size),
@@ -224,18 +226,19 @@ def _add_figures(ctx: dict, study: optuna.Study, frame: pd.DataFrame, best, base
     """Draws the figures into ``ctx["figures"]``; a figure that cannot be drawn is left out, with a
     note where the reader can do something about it."""
     from explorer.study.envelope import envelope
-    found = envelope(study) if best is not None and primary.name == study_config(study).device else None
+    config = study_config(study)
+    found = envelope(study) if best is not None and primary.name == config.device else None
     if found is not None:
         ctx["envelope"] = {"loss": found.loss, "ratio": found.ratio, "networks": len(found.networks)}
     curve_rows = []
     if best is not None:
         curve_rows.append((_label(best, best), best, figures.COLOURS["best"]))
-    curve_rows += [(_label(t, best), t, figures.colour(t.user_attrs["baseline"])) for t in baselines]
+    curve_rows += [(_label(t, best), t, figures.colour(trial_record(t).baseline)) for t in baselines]
+    time_budget = next((d.spec for d in dists if d.kind == "time"), "time:uniform:33ms")
     if curve_rows:
-        time_budget = next((d.spec for d in dists if d.kind == "time"), "time:uniform:33ms")
         ctx["figures"]["curve_time"] = figures.step_curves(
             curve_rows, primary, time_budget,
-            found if found is not None and time_budget == study_config(study).budgets[0] else None)
+            found if found is not None and time_budget == config.budgets[0] else None)
         energy = next((d.spec for d in dists if d.kind == "energy"), None)
         if energy and primary.active_power_w > 0:
             ctx["figures"]["curve_energy"] = figures.step_curves(curve_rows, primary, energy)
@@ -249,11 +252,51 @@ def _add_figures(ctx: dict, study: optuna.Study, frame: pd.DataFrame, best, base
             if png:
                 ctx["figures"][name] = png
     if best is not None:
-        png, note = figures.depth_maps(study, best, data)
-        if png:
-            ctx["figures"]["depth_maps"] = png
-        elif note:
-            ctx["notes"].append(f"Depth maps left out: {note}.")
+        _winner_figures(ctx, study, best, primary, time_budget, data)
+
+
+def _winner_figures(ctx: dict, study: optuna.Study, best, primary: DeviceProfile, budget: str,
+                    data: str | None) -> None:
+    """The winner's paths on a time axis and its depth maps, each with its alt text and caption: the
+    times are the cost model's estimates on ``primary``, the errors the winner's own figures."""
+    kind = figures_kind(best)
+    size = "x".join(map(str, figures.depth_map_size(study, best)))
+    errors = (f"measured on the retrained network at {size}" if kind == "measured"
+              else f"estimated by the search at {size}")
+    timeline, worse = figures.path_timeline(best, primary, budget)
+    if timeline:
+        ctx["figures"]["paths"] = timeline
+        ctx["paths_figure"] = _timeline_words(best, primary, budget, worse, kind, errors)
+    png, note = figures.depth_maps(study, best, data, primary)
+    if png:
+        ctx["figures"]["depth_maps"] = png
+        ctx["depth_maps_figure"] = {
+            "alt": f"Depth maps of every path of trial {best.number} on the first validation frames at {size}, "
+                   "beside each image and its ground truth, coloured by depth in metres",
+            "caption": f"The first validation frames at {size}, "
+                       + ("the deployment size the winner was measured at and runs at as shipped. " if kind == "measured"
+                          else "the study's training size, where the search estimated the winner. ")
+                       + f"Each path's column gives its time on {primary.name} (estimated by the cost model) and its "
+                         f"RMSE over all the frames its figures come from ({errors}). One colour scale, in metres."}
+    elif note:
+        ctx["notes"].append(f"Depth maps left out: {note}.")
+
+
+def _timeline_words(best, device: DeviceProfile, budget: str, worse: dict, kind: str, errors: str) -> dict:
+    """The alt text and caption of the winner's paths on a time axis."""
+    dist = parse_budget(budget)
+    mark = (f"B_max = {dist.upper:g} ms of {dist.spec}: a path ready after it is never returned under that budget"
+            if dist.name == "uniform" else f"where {dist.spec} has almost all its mass ({dist.upper:g} ms)")
+    badly = "; ".join(f"path {i} is worse than path {j}" for i, j in worse.items())
+    order = (f"In red, hatched: {badly}; a budget that reaches such a path returns a worse map than one that "
+             "stopped before it." if worse else "Every path is better than the ones before it.")
+    alt = (f"Trial {best.number}'s paths on a time axis: a bar per path up to when its output is ready on "
+           f"{device.name} (estimated), its RMSE ({kind}) on the right, the budget's end at {dist.upper:g} ms "
+           "marked" + (f"; {badly}" if worse else ""))
+    caption = (f"Each bar runs from a frame's arrival to when that path's output is ready on {device.name}, as the "
+               f"cost model estimates it (the table's {device.name} ms); on the right, each path's RMSE ({errors}). "
+               f"The dashed line is {mark}. {order}")
+    return {"alt": alt, "caption": caption}
 
 
 def write_report(study: optuna.Study, out_dir: str | Path, devices: Sequence[str] | None = None,

@@ -7,9 +7,11 @@ import json
 from dataclasses import dataclass
 from typing import Callable
 
-from explorer.anytime import parse_budget
+import yaml
+
+from explorer.anytime import BudgetDistribution, parse_budget
 from explorer.cost import get_device
-from explorer.cost.devices import check_budget_priced
+from explorer.cost.devices import DeviceProfile, check_budget_priced
 from explorer.data import parse_data_spec
 from explorer.errors import UserError
 from explorer.model.reference import REFERENCES, ReferenceModel
@@ -22,6 +24,7 @@ from explorer.space import (
     paper_nee_candidate,
 )
 from explorer.study.evaluators import EVALUATORS
+from explorer.study.records import study_record
 from explorer.supernet import SupernetRecipe
 from explorer.training.deployment import DeploymentRecipe
 from explorer.training.train import PROXY, TrainConfig
@@ -130,14 +133,22 @@ class SearchConfig:
                               lr=self.lr, lr_end=self.lr / 10, seed=self.seed, amp=self.amp,
                               head_kinds=self.head_kinds)
 
-    def validate(self) -> None:
-        space = SearchSpace.from_yaml(self.space)
-        get_device(self.device)
+    def resolve(self) -> "StudyContext":
+        """Checks the settings (one line per mistake) and resolves the names they give (space, device,
+        budgets) into what the layers below receive: done once, at the edge."""
+        space, profile = SearchSpace.from_yaml(self.space), get_device(self.device)
         if not self.budgets:
             raise UserError("give at least one --budget")
-        profile = get_device(self.device)
-        for b in self.budgets:
-            check_budget_priced(profile, parse_budget(b))
+        budgets = tuple(parse_budget(b) for b in self.budgets)
+        for b in budgets:
+            check_budget_priced(profile, b)
+        self._check(space, profile)
+        return StudyContext(self, space, profile, budgets)
+
+    def validate(self) -> None:
+        self.resolve()
+
+    def _check(self, space: SearchSpace, profile: DeviceProfile) -> None:
         bad = [o for o in self.objectives if o not in OBJECTIVES]
         if bad or not self.objectives or self.objectives[0] != "anytime_loss":
             raise UserError(f"--objectives must start with anytime_loss and use only {list(OBJECTIVES)}")
@@ -172,8 +183,7 @@ class SearchConfig:
                     raise UserError(f"--baselines {name} needs --train-size sides divisible by {model.stride} and "
                                     f"at least {model.min_side}, got {h}x{w} (e.g. 64x64)")
         self.train_config().validate()
-        space = SearchSpace.from_yaml(self.space)
-        if "int8" in space.precision and "int8" not in get_device(self.device).precisions:
+        if "int8" in space.precision and "int8" not in profile.precisions:
             raise UserError(f"the space {space.name} lists precision int8, but the {self.device} profile prices no "
                             "int8 graphs: give --device a profile that does (`explorer calibrate --out mybox.yaml` "
                             "times int8 layers) or keep the space's precision at fp32")
@@ -196,12 +206,46 @@ class SearchConfig:
                 "amp": False, "head_kinds": "random"}
 
 
+@dataclass(frozen=True)
+class StudyContext:
+    """A study's settings with their names resolved: its search space, device profile and budgets. Made
+    once, at the edge (:meth:`SearchConfig.resolve` for a new run, :func:`study_context` for a stored
+    study), and handed down instead of names."""
+
+    config: SearchConfig
+    space: SearchSpace
+    device: DeviceProfile
+    budgets: tuple[BudgetDistribution, ...]
+
+    @property
+    def budget(self) -> BudgetDistribution:
+        """The budget the study minimizes the anytime loss for (the first)."""
+        return self.budgets[0]
+
+    def with_config(self, config: SearchConfig) -> "StudyContext":
+        """The same context for settings that differ in how the run goes (steps, finalists), not in
+        what is resolved."""
+        return dataclasses.replace(self, config=config)
+
+
+def study_context(study) -> StudyContext:
+    """A stored study's context: its settings, the space and device profile it was created with (as it
+    stored them: an edited space file or a recalibrated profile does not change a finished study), and
+    its budgets."""
+    config, stored = study_config(study), study_record(study)
+    space = (SearchSpace.from_dict(yaml.safe_load(stored.space_yaml), source=config.space) if stored.space_yaml
+             else SearchSpace.from_yaml(config.space))
+    device = (DeviceProfile.from_dict(stored.device_profile, "study") if stored.device_profile
+              else get_device(config.device))
+    return StudyContext(config, space, device, tuple(parse_budget(b) for b in config.budgets))
+
+
 def study_config(study) -> SearchConfig:
     """The configuration an Optuna ``study`` was created with, as a checked :class:`SearchConfig`: the one
     place a study's stored settings are read back. A study made by an older version lacks later
     settings, which read as what it ran with; a study made outside ``explorer search`` (no stored
     settings) reads as the defaults."""
-    stored = study.user_attrs.get("config")
+    stored = study_record(study).config
     if not stored:
         return SearchConfig(study=study.study_name)
     return SearchConfig.from_dict({"study": study.study_name, **SearchConfig.defaults_of_older_studies(), **stored})

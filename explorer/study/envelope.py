@@ -25,14 +25,15 @@ from typing import Callable
 import numpy as np
 import optuna
 
-from explorer.anytime import anytime_curve, anytime_loss, parse_budget
-from explorer.cost import get_device, model_cost
+from explorer.anytime import anytime_curve, anytime_loss
+from explorer.cost import model_cost
 from explorer.space import Candidate
 from explorer.study._finalist_pool import InProcess
-from explorer.study.config import SearchConfig, study_config
-from explorer.study.finalists import ENVELOPE, FINALIST, FinalistJob, estimate_trials, finalist_trials, train_finalist
+from explorer.study.config import StudyContext, study_config, study_context
+from explorer.study.finalists import FinalistJob, proxy_view, estimate_trials, finalist_trials, train_finalist
 from explorer.study.objective import Objective
 from explorer.study.planning import SAFETY
+from explorer.study.records import record_values, trial_record
 from explorer.study.results import winner
 from explorer.study.storage import study_dir
 
@@ -44,20 +45,21 @@ def dedicated(candidate: Candidate) -> Candidate:
 
 def envelope_trials(study: optuna.Study) -> list[optuna.trial.FrozenTrial]:
     return [t for t in study.get_trials(deepcopy=False, states=(optuna.trial.TrialState.COMPLETE,))
-            if ENVELOPE in t.user_attrs]
+            if trial_record(t).is_envelope]
 
 
-def choose_networks(study: optuna.Study, config: SearchConfig, count: int) -> list[Candidate]:
+def choose_networks(study: optuna.Study, context: StudyContext, count: int) -> list[Candidate]:
     """``count`` dedicated networks spread over the budget's range: the single-exit twins of the search's
     candidates on the front of estimated last-path error against their last path's cost on the device,
     the one nearest each of ``count`` evenly spaced costs up to the budget's upper end."""
-    device, budget = get_device(config.device), parse_budget(config.budgets[0])
+    config, device, budget = context.config, context.device, context.budget
     best: dict[str, tuple[float, float, Candidate]] = {}
     for t in estimate_trials(study):
-        if t.user_attrs.get("baseline") or "candidate" not in t.user_attrs:
+        rec = trial_record(t)
+        if rec.baseline or rec.candidate is None:
             continue
-        twin = dedicated(Candidate.from_dict(t.user_attrs["candidate"]))
-        error = float(t.user_attrs["path_metrics"][-1][config.metric])
+        twin = dedicated(Candidate.from_dict(rec.candidate))
+        error = rec.losses_of(config.metric)[-1]
         if twin.key not in best or error < best[twin.key][1]:
             cost = model_cost(twin, config.input_size).path_costs(device, budget.kind)[-1]
             best[twin.key] = (cost, error, twin)
@@ -80,15 +82,16 @@ def train_envelope(study: optuna.Study, count: int, reports: Path, deadline: flo
                    progress: Callable[[int, int, str], None] | None = None) -> list[optuna.trial.FrozenTrial]:
     """Retrains the chosen dedicated networks not yet retrained with the study's finalists' recipe (one at
     a time; with a ``deadline``, a network starts only if the longest so far says it ends before it)."""
-    config = study_config(study)
+    context = study_context(study)
+    config = context.config
     recipe = config.finalist_recipe()
-    done = {t.user_attrs["candidate_key"] for t in envelope_trials(study)
-            if t.user_attrs[ENVELOPE].get("recipe") == recipe.to_dict()}
-    todo = [c for c in choose_networks(study, config, count) if c.key not in done]
+    done = {trial_record(t).candidate_key for t in envelope_trials(study)
+            if trial_record(t).envelope.recipe == recipe.to_dict()}
+    todo = [c for c in choose_networks(study, context, count) if c.key not in done]
     if not todo:
         return envelope_trials(study)
-    folder = study_dir(config.study, reports) / ENVELOPE
-    runner = InProcess(functools.partial(Objective, dataclasses.replace(config, evaluator="proxy", pruning=False),
+    folder = study_dir(config.study, reports) / "envelope"
+    runner = InProcess(functools.partial(Objective, context.with_config(proxy_view(config)),
                                          study_dir(config.study, reports)),
                        functools.partial(train_finalist, recipe=recipe, folder=folder))
     took: list[float] = []
@@ -103,7 +106,7 @@ def train_envelope(study: optuna.Study, count: int, reports: Path, deadline: flo
         result = runner.submit(FinalistJob(candidate.to_dict())).result()
         took.append(time.time() - started)
         attrs = dict(result["user_attrs"])
-        attrs[ENVELOPE] = attrs.pop(FINALIST)      # never a finalist: it cannot be the winner
+        attrs.update(record_values(envelope=attrs.pop("finalist")))   # never a finalist: it cannot be the winner
         study.add_trial(optuna.trial.create_trial(values=result["values"], user_attrs=attrs,
                                                   state=optuna.trial.TrialState.COMPLETE))
         Path(result["checkpoint"]).unlink(missing_ok=True)
@@ -116,10 +119,14 @@ def envelope_members(study: optuna.Study) -> list[optuna.trial.FrozenTrial]:
     """The dedicated networks of the envelope: those retrained for it and the single-exit baselines
     retrained with the same recipe."""
     recipe = study_config(study).finalist_recipe().to_dict()
-    mine = [t for t in envelope_trials(study) if t.user_attrs[ENVELOPE].get("recipe") == recipe]
-    single = [t for t in finalist_trials(study) if t.user_attrs.get("baseline") and "candidate" in t.user_attrs
-              and len(t.user_attrs["path_metrics"]) == 2 and t.user_attrs[FINALIST].get("recipe") == recipe]
+    mine = [t for t in envelope_trials(study) if trial_record(t).envelope.recipe == recipe]
+    single = [t for t in finalist_trials(study) if _single_exit_baseline(trial_record(t), recipe)]
     return mine + single
+
+
+def _single_exit_baseline(rec, recipe: dict) -> bool:
+    return bool(rec.baseline and rec.candidate is not None and len(rec.path_metrics) == 2
+                and rec.finalist.recipe == recipe)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -146,12 +153,12 @@ def envelope(study: optuna.Study) -> Envelope | None:
     is retrained). Each budget is served by the most accurate network ready by it; before the first,
     by the scan (path 0, as the winner measured it)."""
     from explorer.study.results import trial_losses, trial_path_costs
-    config = study_config(study)
+    context = study_context(study)
+    config, device, budget = context.config, context.device, context.budget
     members = envelope_members(study)
     best = winner(study)
     if not members or best is None:
         return None
-    device, budget = get_device(config.device), parse_budget(config.budgets[0])
     points = sorted(((trial_path_costs(t, device, budget.kind)[-1], trial_losses(t, config.metric)[-1], t)
                      for t in members), key=lambda p: (p[0], p[1]))
     costs, errors = [0.0], [trial_losses(best, config.metric)[0]]
@@ -159,8 +166,8 @@ def envelope(study: optuna.Study) -> Envelope | None:
         if error < errors[-1]:             # a later network that is no better serves no budget
             costs.append(cost)
             errors.append(error)
-    networks = [{"number": t.number, "candidate_key": t.user_attrs["candidate_key"],
-                 "baseline": t.user_attrs.get("baseline", ""), "cost": cost, config.metric: error}
+    networks = [{"number": t.number, "candidate_key": trial_record(t).candidate_key,
+                 "baseline": trial_record(t).baseline or "", "cost": cost, config.metric: error}
                 for cost, error, t in points]
     return Envelope(costs, errors, anytime_loss(costs, errors, budget),
-                    best.values[0] if "finalist" in best.user_attrs else None, networks)
+                    best.values[0] if trial_record(best).is_retrained else None, networks)

@@ -10,6 +10,7 @@ from typing import Callable, Sequence
 from explorer.deploy.export import Measurement, Quantization, export_network
 from explorer.errors import UserError
 from explorer.study.config import study_config
+from explorer.study.records import trial_record
 from explorer.study.results import best_trial, scored_trials, trial_network, winner
 from explorer.study.storage import load_study
 
@@ -40,22 +41,23 @@ def export_from_study(study_name: str, trial_number: int | None, out_dir: Path, 
         trial = trials[trial_number]
     net = trial_network(study, trial)
     cfg = study_config(study)
-    measured = trial.user_attrs.get("measured")     # a retrained trial: measured at the deployment size
+    rec = trial_record(trial)
+    measured = rec.measured     # a retrained trial: measured at the deployment size
     measurement = Measurement(data=data or cfg.data,
-                              frames=eval_frames or (measured or {}).get("frames") or cfg.val_limit or 96)
+                              frames=eval_frames or (measured.frames if measured else None) or cfg.val_limit or 96)
     if isinstance(quantization, Quantization) and quantization.data is None:   # the study's frames
         quantization = dataclasses.replace(quantization, data=measurement.data)
     if quantization == AS_SEARCHED:   # an int8 candidate was costed and measured as int8: export it so
-        searched = trial.user_attrs.get("int8_graphs")   # the stage graphs its device priced int8
+        searched = rec.int8_graphs   # the stage graphs its device priced int8
         quantization = Quantization(data=measurement.data, eval_frames=measurement.frames,
                                     stages="faster" if searched is None else tuple(searched)) \
             if net.candidate.precision == "int8" else None
     size = tuple(input_size or cfg.input_size)
     devs = list(devices or dict.fromkeys([cfg.device, "tx2", "rpi4"]))
-    tuned = tuple(measured["input_size"]) if measured else tuple(cfg.train_size)
+    tuned = tuple(measured.input_size) if measured else tuple(cfg.train_size)
     source = {"study": study_name, "trial": trial.number, "objective": trial.values[0],
               "figures": "retrained, measured" if measured else "estimated by the search"}
-    if measured and tuple(measured["input_size"]) == size:
-        source.update(study_path_metrics=trial.user_attrs.get("path_metrics"), study_measured=measured)
+    if measured and tuple(measured.input_size) == size:
+        source.update(study_path_metrics=rec.path_metrics, study_measured=measured.model_dump(mode="json"))
     return export_network(net, out_dir, size, devices=devs, source=source, quantization=quantization,
                           progress=progress, measurement=measurement, tuned_size=tuned)

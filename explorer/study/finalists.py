@@ -23,27 +23,24 @@ import optuna
 from explorer.model import build_model
 from explorer.space import Candidate
 from explorer.study._finalist_pool import InProcess, WorkerPool, finalist_devices
-from explorer.study.config import baseline_model, json_safe
+from explorer.study.config import StudyContext, baseline_model, json_safe
 from explorer.study.objective import Objective
 from explorer.study.planning import SAFETY
+from explorer.study.records import Measured, Retraining, record_values, trial_record
 from explorer.study.storage import study_dir
 from explorer.training.deployment import DeploymentRecipe, train_for_deployment
 from explorer.training.train import evaluated_frames
 
-FINALIST = "finalist"
-#: the tag of a dedicated network retrained for the envelope (explorer.study.envelope): never an estimate
-ENVELOPE = "envelope"
 
 
 def is_finalist(trial: optuna.trial.FrozenTrial) -> bool:
-    return FINALIST in trial.user_attrs
+    return trial_record(trial).is_retrained
 
 
 def estimate_trials(study: optuna.Study) -> list[optuna.trial.FrozenTrial]:
     """Completed search trials with metrics (finalists' retrainings excluded)."""
     return [t for t in study.get_trials(deepcopy=False, states=(optuna.trial.TrialState.COMPLETE,))
-            if "path_metrics" in t.user_attrs and "workloads" in t.user_attrs and not is_finalist(t)
-            and ENVELOPE not in t.user_attrs]
+            if trial_record(t).is_estimate]
 
 
 def finalist_trials(study: optuna.Study) -> list[optuna.trial.FrozenTrial]:
@@ -52,7 +49,7 @@ def finalist_trials(study: optuna.Study) -> list[optuna.trial.FrozenTrial]:
 
 
 def _encoder(trial: optuna.trial.FrozenTrial) -> tuple:
-    c = trial.user_attrs["candidate"]
+    c = trial_record(trial).candidate
     return c.get("encoder_blocks"), c.get("width_mult")
 
 
@@ -68,8 +65,8 @@ def choose_finalists(study: optuna.Study, count: int) -> list[optuna.trial.Froze
     """
     ranked, seen = [], set()
     for t in sorted(estimate_trials(study), key=lambda t: t.values[0]):
-        key = t.user_attrs["candidate_key"]
-        if not t.user_attrs.get("baseline") and key not in seen:
+        key = trial_record(t).candidate_key
+        if not trial_record(t).baseline and key not in seen:
             seen.add(key)
             ranked.append(t)
     chosen, encoders = [], set()
@@ -103,7 +100,7 @@ class FinalistJob:
 
 
 def _job(trial: optuna.trial.FrozenTrial | None, baseline: str = "", **flags) -> FinalistJob:
-    return FinalistJob(None if baseline else trial.user_attrs["candidate"], baseline,
+    return FinalistJob(None if baseline else trial_record(trial).candidate, baseline,
                        trial.number if trial else None, trial.values[0] if trial else None, **flags)
 
 
@@ -114,19 +111,19 @@ def finalist_jobs(study: optuna.Study, config, extra: int = 0) -> list[FinalistJ
     finalists = [_job(t) for t in chosen[:config.finalists]]
     baselines = []
     if config.baselines:
-        estimated = {t.user_attrs.get("baseline"): t for t in estimate_trials(study) if t.user_attrs.get("baseline")}
+        estimated = {trial_record(t).baseline: t for t in estimate_trials(study) if trial_record(t).baseline}
         baselines = [_job(estimated.get(name), name) for name in config.baselines]
     must = finalists[:1] + [j for j in baselines if j.baseline == "paper"]
     rest = finalists[1:] + [j for j in baselines if j.baseline != "paper"]
     jobs = [dataclasses.replace(j, must=True) for j in must] + rest + \
         [dataclasses.replace(_job(t), optional=True) for t in chosen[config.finalists:]]
     recipe = config.finalist_recipe().to_dict()
-    done = {(t.user_attrs["candidate_key"], t.user_attrs.get("baseline", "")) for t in finalist_trials(study)
-            if t.user_attrs[FINALIST].get("recipe") == recipe}
+    done = {(trial_record(t).candidate_key, trial_record(t).baseline or "") for t in finalist_trials(study)
+            if trial_record(t).finalist.recipe == recipe}
     return [j for j in jobs if (j.model().key, j.baseline) not in done]
 
 
-def retrain_finalists(study: optuna.Study, config, reports: Path,
+def retrain_finalists(study: optuna.Study, context: StudyContext, reports: Path,
                       progress: Callable[[int, int, str], None] | None = None, extra: int = 0,
                       deadline: float | None = None, workers: int = 1) -> list[optuna.trial.FrozenTrial]:
     """Retrains the finalists and the baselines (those not retrained yet with this recipe), then up to
@@ -136,10 +133,12 @@ def retrain_finalists(study: optuna.Study, config, reports: Path,
     finalists and baselines rather than overrun; one that turned out faster gets the extras).
     ``workers``: processes retraining at once on a CPU or a single GPU; a machine with several GPUs
     retrains one finalist per GPU."""
+    config = context.config
     todo = finalist_jobs(study, config, extra)
     if not todo:
         return finalist_trials(study)
-    make_objective = functools.partial(Objective, _proxy_view(config), study_dir(config.study, reports))
+    make_objective = functools.partial(Objective, context.with_config(proxy_view(config)),
+                                       study_dir(config.study, reports))
     run_job = functools.partial(train_finalist, recipe=config.finalist_recipe(),
                                 folder=study_dir(config.study, reports) / "finalists")
     devices = finalist_devices(config.accelerator, workers)[:len(todo)]
@@ -186,7 +185,7 @@ def _dispatch(todo: list[FinalistJob], runner, slots: int, deadline: float | Non
             store(future.result())
 
 
-def _proxy_view(config):
+def proxy_view(config):
     """The study's settings with the proxy evaluator: a finalist is trained, never sliced."""
     return dataclasses.replace(config, evaluator="proxy", pruning=False)
 
@@ -216,33 +215,31 @@ def train_finalist(objective, job: FinalistJob, recipe: DeploymentRecipe, folder
         raise FloatingPointError(f"finalist {candidate.key}: non-finite validation loss {path_losses}")
     losses = objective.losses_for(cost, path_losses)
     values = objective.values(losses, pm, latency)
-    attrs = dict(holder.user_attrs)
-    attrs.update({"path_metrics": path_metrics, "losses": losses,
-                  "measured": measurement(objective.config, data.deploy_val, recipe.deploy_size),
-                  "train": {"seconds": result.seconds, "steps": result.steps,
-                            "images_per_second": result.images_per_second, "device": str(objective.torch_device)},
-                  "evaluator": {"evaluator": "retrained", "steps": recipe.train.steps,
-                                "tune_steps": recipe.tune_steps if recipe.tunes else 0},
-                  FINALIST: {"estimate_trial": job.estimate_number, "estimated": job.estimated,
-                             "recipe": recipe.to_dict()}})
-    if job.baseline:
-        attrs["baseline"] = job.baseline
+    attrs = {**holder.user_attrs, **record_values(
+        path_metrics=path_metrics, losses=losses,
+        measured=measurement(objective.config, data.deploy_val, recipe.deploy_size),
+        train={"seconds": result.seconds, "steps": result.steps, "images_per_second": result.images_per_second,
+               "device": str(objective.torch_device)},
+        evaluator={"evaluator": "retrained", "steps": recipe.train.steps,
+                   "tune_steps": recipe.tune_steps if recipe.tunes else 0},
+        finalist=Retraining(estimate_trial=job.estimate_number, estimated=job.estimated, recipe=recipe.to_dict()),
+        baseline=job.baseline or None)}
     return {"values": list(values) if isinstance(values, tuple) else [values], "user_attrs": attrs,
             "checkpoint": str(checkpoint)}
 
 
-def measurement(config, val_set, size: tuple[int, int]) -> dict:
+def measurement(config, val_set, size: tuple[int, int]) -> Measured:
     """Where a retrained network's per-path figures come from: which frames, at which size."""
-    return {"data": config.data, "split": "val", "frames": evaluated_frames(val_set, config.val_limit),
-            "input_size": list(size)}
+    return Measured(data=config.data, split="val", frames=evaluated_frames(val_set, config.val_limit),
+                    input_size=tuple(size))
 
 
 def _store(study: optuna.Study, artifacts, result: dict) -> None:
     """One retrained finalist as a trial of ``study``, its weights as an artifact; the checkpoint goes."""
     attrs, checkpoint = dict(result["user_attrs"]), Path(result["checkpoint"])
     if artifacts is not None:
-        attrs["weights_artifact"] = optuna.artifacts.upload_artifact(
-            artifact_store=artifacts, file_path=str(checkpoint), study_or_trial=study)
+        attrs.update(record_values(weights_artifact=optuna.artifacts.upload_artifact(
+            artifact_store=artifacts, file_path=str(checkpoint), study_or_trial=study)))
     study.add_trial(optuna.trial.create_trial(values=result["values"], user_attrs=attrs,
                                               state=optuna.trial.TrialState.COMPLETE))
     checkpoint.unlink(missing_ok=True)

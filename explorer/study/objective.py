@@ -3,19 +3,20 @@ estimate its accuracy with the evaluator, and store everything re-scoring needs.
 
 
 import math
-import tempfile
 from pathlib import Path
 from typing import Callable
 
 import optuna
 
-from explorer.anytime import anytime_loss, parse_budget
-from explorer.cost import get_device, model_cost
+from explorer.anytime import anytime_loss
+from explorer.cost import model_cost
 from explorer.data import open_dataset
 from explorer.deploy.export import quantization_effect
-from explorer.space import Candidate, SearchSpace
-from explorer.study.config import SearchConfig, baseline_model, json_safe
+from explorer.files import scratch_dir
+from explorer.space import Candidate
+from explorer.study.config import SearchConfig, StudyContext, baseline_model, json_safe
 from explorer.study.evaluators import ProxyEvaluator, SupernetEvaluator
+from explorer.study.records import record, trial_record
 from explorer.study.results import compact_workloads
 from explorer.study.sampling import unseen
 from explorer.supernet import default_path
@@ -46,23 +47,21 @@ class FinishedTwins:
         complete = study.get_trials(deepcopy=False, states=(optuna.trial.TrialState.COMPLETE,))
         for t in unseen(complete, self._indexed):
             self._indexed.add(t.number)
-            if not t.user_attrs.get("baseline") and "path_metrics" in t.user_attrs and \
-                    "finalist" not in t.user_attrs and "envelope" not in t.user_attrs:
-                first = self._first.setdefault(t.user_attrs.get("candidate_key"), t)
+            rec = trial_record(t)
+            if not rec.baseline and rec.path_metrics is not None and rec.retraining is None:
+                first = self._first.setdefault(rec.candidate_key, t)
                 if t.number < first.number:   # an earlier trial that finished later
-                    self._first[t.user_attrs.get("candidate_key")] = t
+                    self._first[rec.candidate_key] = t
         return self._first.get(key)
 
 
 class Objective:
     """Callable for ``study.optimize``: everything a worker needs, data loaded once."""
 
-    def __init__(self, config: SearchConfig, study_path: Path | None,
+    def __init__(self, context: StudyContext, study_path: Path | None,
                  data_progress: Callable[[int, int], None] | None = None) -> None:
-        self.config = config
-        self.space = SearchSpace.from_yaml(config.space)
-        self.device_profile = get_device(config.device)
-        self.budgets = [parse_budget(b) for b in config.budgets]
+        config = self.config = context.config
+        self.space, self.device_profile, self.budgets = context.space, context.device, list(context.budgets)
         self.train_cfg = config.train_config()
         self.torch_device = resolve_accelerator(config.accelerator)
         self.train_set = hinted_if_asked(config, open_dataset(config.data, "train", config.train_size, seed=config.seed,
@@ -99,7 +98,7 @@ class Objective:
         return self._deployment
 
     def candidate_for(self, trial: optuna.Trial) -> tuple[Candidate, str]:
-        baseline = trial.user_attrs.get("baseline", "")
+        baseline = trial_record(trial).baseline or ""
         if baseline:
             return baseline_model(baseline), baseline
         return self.space.sample(trial), ""
@@ -117,11 +116,9 @@ class Objective:
         pm = cost.path_params_macs()
         latency = cost.path_latency_ms(self.device_profile)
         what = {"candidate": candidate.to_dict()} if isinstance(candidate, Candidate) else {"reference": candidate.name}
-        attrs = {**what, "candidate_key": candidate.key, "params": [p for p, _ in pm],
-                 "macs": [m for _, m in pm], "latency_ms": latency,
-                 "energy_j": cost.path_energy_j(self.device_profile), "workloads": compact_workloads(cost)}
-        for k, v in attrs.items():
-            trial.set_user_attr(k, v)
+        record(trial, **what, candidate_key=candidate.key, params=[p for p, _ in pm], macs=[m for _, m in pm],
+               latency_ms=latency, energy_j=cost.path_energy_j(self.device_profile),
+               workloads=compact_workloads(cost))
         return cost, pm, latency
 
     def values(self, losses: dict[str, float], pm, latency):
@@ -144,16 +141,15 @@ class Objective:
         if not baseline:
             reason = self._rejection(pm, latency)
             if reason:
-                trial.set_user_attr("rejected", reason)
+                record(trial, rejected=reason)
                 raise optuna.TrialPruned(reason)
             done = self.twins.find(trial.study, candidate.key)
             if done is not None:
                 # the sampler proposed a candidate already evaluated: reuse what was paid for
-                for key in ("path_metrics", "train", "losses", "weights_artifact", "evaluator", "path_metrics_fp32",
-                            "quantization", "int8_graphs"):
-                    if key in done.user_attrs:
-                        trial.set_user_attr(key, done.user_attrs[key])
-                trial.set_user_attr("duplicate_of", done.number)
+                paid = trial_record(done)
+                record(trial, **{key: getattr(paid, key) for key in (
+                    "path_metrics", "train", "losses", "weights_artifact", "evaluator", "path_metrics_fp32",
+                    "quantization", "int8_graphs")}, duplicate_of=done.number)
                 return done.values[0] if len(done.values) == 1 else tuple(done.values)
         primary = self.budgets[0]
         costs = cost.path_costs(self.device_profile, primary.kind)
@@ -165,11 +161,11 @@ class Objective:
             trial.report(value, step)
             if trial.should_prune():
                 reason = f"pruned: anytime loss {value:.4f} at step {step} (worst quarter)"
-                trial.set_user_attr("pruned", reason)
+                record(trial, pruned=reason)
                 raise Pruned(reason)
 
         keep = self.artifacts is not None and self.evaluator.name == "proxy"
-        with tempfile.TemporaryDirectory() as tmp:
+        with scratch_dir("trial") as tmp:
             ckpt = Path(tmp) / f"{candidate.key}.pt"
             try:
                 result = self.evaluator(candidate, checkpoint=ckpt if keep else None, report=report)
@@ -179,19 +175,18 @@ class Objective:
             if candidate.precision == "int8":   # a stage-by-stage evaluation made no network
                 net = result.network if result.network is not None else self.evaluator.network_of(candidate)
                 path_metrics = self.quantized(trial, net, path_metrics, cost)
-            trial.set_user_attr("path_metrics", path_metrics)
-            trial.set_user_attr("evaluator", json_safe(result.info))
+            record(trial, path_metrics=path_metrics, evaluator=json_safe(result.info))
             if result.info["evaluator"] == "proxy":
-                trial.set_user_attr("train", {k: result.info[k] for k in ("seconds", "steps", "images_per_second")})
+                record(trial, train={k: result.info[k] for k in ("seconds", "steps", "images_per_second")})
             path_losses = [m[cfg.metric] for m in path_metrics]
             if any(not math.isfinite(v) for v in path_losses):
                 raise FloatingPointError(f"non-finite validation {cfg.metric}: {path_losses}")
             losses = self.losses_for(cost, path_losses)
-            trial.set_user_attr("losses", losses)
+            record(trial, losses=losses)
             if keep:
                 artifact = optuna.artifacts.upload_artifact(
                     artifact_store=self.artifacts, file_path=str(ckpt), study_or_trial=trial)
-                trial.set_user_attr("weights_artifact", artifact)
+                record(trial, weights_artifact=artifact)
         return self.values(losses, pm, latency)
 
     def quantized(self, trial, net, path_metrics: list[dict], cost, size: tuple[int, int] | None = None) -> list[dict]:
@@ -204,9 +199,8 @@ class Objective:
         graphs = cost.int8_graphs(self.device_profile)
         effect = quantization_effect(net, tuple(size or self.config.train_size), self.config.data,
                                      eval_frames=self.config.val_limit or 32, stages=graphs)
-        trial.set_user_attr("int8_graphs", list(graphs))
-        trial.set_user_attr("path_metrics_fp32", path_metrics)
-        trial.set_user_attr("quantization", json_safe({k: effect[k] for k in ("rmse_degradation", "frames")}))
+        record(trial, int8_graphs=list(graphs), path_metrics_fp32=path_metrics,
+               quantization=json_safe({k: effect[k] for k in ("rmse_degradation", "frames")}))
         return [{k: v * r.get(k, 1.0) if isinstance(v, (int, float)) else v for k, v in m.items()}
                 for m, r in zip(path_metrics, effect["ratios"])]
 

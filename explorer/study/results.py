@@ -19,6 +19,7 @@ from explorer.model.reference import REFERENCES
 from explorer.space import Candidate
 from explorer.study.config import DEFAULT_BASELINES, study_config
 from explorer.study.evaluators import _batches, recalibrate_batchnorm
+from explorer.study.records import study_record, trial_record
 from explorer.study.retry import interrupted_trials, retries_by_origin
 from explorer.study.storage import load_study
 from explorer.supernet import load_supernet
@@ -36,10 +37,10 @@ def baseline_label(name: str) -> str:
 def study_baselines(study: optuna.Study) -> list[str]:
     """The baselines a study was created to compare against (--baselines), in order; for a study made
     with --no-baselines, the default ones (so that summaries can say why they are missing)."""
-    chosen = study_config(study).baselines if study.user_attrs.get("config") else DEFAULT_BASELINES
+    chosen = study_config(study).baselines if study_record(study).config else DEFAULT_BASELINES
     names = list(chosen or DEFAULT_BASELINES)
     # a resumed run may have been given more (--baselines): they have trials of their own
-    tagged = (t.user_attrs.get("baseline") for t in study.get_trials(deepcopy=False))
+    tagged = (trial_record(t).baseline for t in study.get_trials(deepcopy=False))
     return list(dict.fromkeys(names + [b for b in tagged if b]))
 
 
@@ -63,13 +64,13 @@ def expand_workloads(compact: dict) -> tuple[list[Workload], list[list[str]]]:
 
 
 def trial_precision(trial: optuna.trial.FrozenTrial) -> str:
-    return (trial.user_attrs.get("candidate") or {}).get("precision", "fp32")
+    return trial_record(trial).precision
 
 
 def trial_path_costs(trial: optuna.trial.FrozenTrial, device: DeviceProfile, kind: str) -> list[float]:
     """Per-path cost (path 0 included) of a stored trial on ``device``: ms for time, J for energy;
     NaN where the device cannot price the trial's precision (int8 on a profile without int8 rates)."""
-    wl, path_stages = expand_workloads(trial.user_attrs["workloads"])
+    wl, path_stages = expand_workloads(trial_record(trial).workloads)
     precision = trial_precision(trial)
     if precision not in device.precisions:
         return [0.0] + [math.nan] * len(path_stages)
@@ -80,7 +81,7 @@ def trial_path_costs(trial: optuna.trial.FrozenTrial, device: DeviceProfile, kin
 
 
 def trial_losses(trial: optuna.trial.FrozenTrial, metric: str = "rmse") -> list[float]:
-    return [float(m[metric]) for m in trial.user_attrs["path_metrics"]]
+    return trial_record(trial).losses_of(metric)
 
 
 def trial_anytime_loss(trial: optuna.trial.FrozenTrial, device: DeviceProfile, budget, metric: str = "rmse") -> float:
@@ -94,19 +95,19 @@ def scored_trials(study: optuna.Study) -> list[optuna.trial.FrozenTrial]:
     """Completed trials that carry per-path metrics and workloads (everything re-scoring needs); the
     dedicated networks of the envelope (explorer.study.envelope) are a comparison of their own."""
     return [t for t in study.get_trials(deepcopy=False, states=(optuna.trial.TrialState.COMPLETE,))
-            if "path_metrics" in t.user_attrs and "workloads" in t.user_attrs and "envelope" not in t.user_attrs]
+            if trial_record(t).is_scored and not trial_record(t).is_envelope]
 
 
 def _reason(t: optuna.trial.FrozenTrial, interrupted: dict[int, str], retries: dict) -> str:
-    ua = t.user_attrs
-    reason = (ua.get("rejected") or ua.get("pruned") or interrupted.get(t.number)
+    rec = trial_record(t)
+    reason = (rec.rejected or rec.pruned or interrupted.get(t.number)
               or t.system_attrs.get("fail_reason", "")
-              or (f"same candidate as trial {ua['duplicate_of']}" if "duplicate_of" in ua else ""))
+              or (f"same candidate as trial {rec.duplicate_of}" if rec.duplicate_of is not None else ""))
     if t.number in interrupted:
         retry = retries.get(t.number)
         reason += f"; tried again as trial {retry.number}" if retry is not None else "; not tried again"
-    if "retry_of" in ua:
-        reason = f"retry of trial {ua['retry_of']}" + (f"; {reason}" if reason else "")
+    if rec.retry_of is not None:
+        reason = f"retry of trial {rec.retry_of}" + (f"; {reason}" if reason else "")
     return reason
 
 
@@ -122,28 +123,29 @@ def trials_frame(study: optuna.Study) -> pd.DataFrame:
     trials = study.get_trials(deepcopy=False)
     interrupted, retries = interrupted_trials(study, trials), retries_by_origin(trials)
     for t in trials:
-        ua = t.user_attrs
+        rec = trial_record(t)
+        latency = rec.latency_ms or []
         row = {"number": t.number, "state": t.state.name,
                "value": (t.values[0] if t.values else np.nan),
-               "baseline": ua.get("baseline", ""),
-               "figures": figures_kind(t) if t.values else "",
-               "evaluator": (ua.get("evaluator") or {}).get("evaluator", "proxy" if "train" in ua else ""),
-               "candidate_key": ua.get("candidate_key", ""),
-               "architecture": (Candidate.from_dict(ua["candidate"]).describe() if "candidate" in ua
-                                else _reference_description(ua.get("reference"))),
-               "params": (ua.get("params") or [np.nan])[-1],
-               "macs": (ua.get("macs") or [np.nan])[-1],
-               "paths": len(ua.get("path_metrics", [])) or np.nan,
-               "first_exit_ms": (ua.get("latency_ms") or [0, np.nan])[1] if len(ua.get("latency_ms") or []) > 1 else np.nan,
-               "last_exit_ms": (ua.get("latency_ms") or [np.nan])[-1],
-               "last_rmse": (ua.get("path_metrics") or [{"rmse": np.nan}])[-1]["rmse"],
+               "baseline": rec.baseline or "",
+               "figures": rec.figures if t.values else "",
+               "evaluator": rec.evaluator_name if rec.evaluator or rec.train else "",
+               "candidate_key": rec.candidate_key or "",
+               "architecture": (Candidate.from_dict(rec.candidate).describe() if rec.candidate
+                                else _reference_description(rec.reference)),
+               "params": (rec.params or [np.nan])[-1],
+               "macs": (rec.macs or [np.nan])[-1],
+               "paths": len(rec.path_metrics or []) or np.nan,
+               "first_exit_ms": latency[1] if len(latency) > 1 else np.nan,
+               "last_exit_ms": latency[-1] if latency else np.nan,
+               "last_rmse": (rec.path_metrics or [{"rmse": np.nan}])[-1]["rmse"],
                "duration_s": t.duration.total_seconds() if t.duration else np.nan,
-               "retry_of": ua.get("retry_of", np.nan),
+               "retry_of": rec.retry_of if rec.retry_of is not None else np.nan,
                "reason": _reason(t, interrupted, retries)}
         if t.values and len(t.values) > 1:
             for i, v in enumerate(t.values):
                 row[f"value_{i}"] = v
-        for spec, v in (ua.get("losses") or {}).items():
+        for spec, v in (rec.losses or {}).items():
             row[f"L[{spec}]"] = v
         rows.append(row)
     return pd.DataFrame(rows)
@@ -159,14 +161,15 @@ def rescore(study: optuna.Study, device: str | DeviceProfile, budgets: Sequence[
         check_budget_priced(profile, d)
     rows = []
     for t in scored_trials(study):
-        row = {"number": t.number, "baseline": t.user_attrs.get("baseline", ""),
-               "candidate_key": t.user_attrs.get("candidate_key", ""), "figures": figures_kind(t)}
+        rec = trial_record(t)
+        row = {"number": t.number, "baseline": rec.baseline or "", "candidate_key": rec.candidate_key or "",
+               "figures": rec.figures}
         for d in dists:
             row[d.spec] = trial_anytime_loss(t, profile, d, metric)
         ms = trial_path_costs(t, profile, "time")
         row["first_exit_ms"] = ms[1] if len(ms) > 1 else np.nan
         row["last_exit_ms"] = ms[-1]
-        row["params"] = t.user_attrs["params"][-1]
+        row["params"] = rec.params[-1]
         rows.append(row)
     frame = pd.DataFrame(rows)
     if frame.empty:
@@ -180,37 +183,37 @@ def rescore(study: optuna.Study, device: str | DeviceProfile, budgets: Sequence[
 
 def figures_kind(trial: optuna.trial.FrozenTrial) -> str:
     """"measured" for a retrained network (finalist or baseline), "estimate" for a search trial."""
-    return "measured" if is_retrained(trial) or "envelope" in trial.user_attrs else "estimate"
+    return trial_record(trial).figures
 
 
 def is_retrained(trial: optuna.trial.FrozenTrial) -> bool:
     """A finalist: retrained stand-alone with the study's longer recipe (see explorer.study.finalists)."""
-    return "finalist" in trial.user_attrs
+    return trial_record(trial).is_retrained
 
 
 def figures_source(trial: optuna.trial.FrozenTrial, train_size: tuple[int, int]) -> str:
     """Where a trial's per-path figures come from, in words: measured on a retrained network at the
     deployment size (on which frames), or estimated by the search at its ``train_size``."""
-    measured = trial.user_attrs.get("measured")
-    if measured:
-        size = "x".join(map(str, measured["input_size"]))
+    rec = trial_record(trial)
+    if rec.measured:
+        size = "x".join(map(str, rec.measured.input_size))
         return (f"Per-path figures measured on the retrained network at {size}, the deployment size, on the first "
-                f"{measured['frames']} validation frames of {measured['data']}")
+                f"{rec.measured.frames} validation frames of {rec.measured.data}")
     size = "x".join(map(str, train_size))
-    how = (trial.user_attrs.get("evaluator") or {}).get("evaluator", "proxy")
+    how = rec.evaluator_name
     return f"Per-path figures estimated by the search ({how}) at {size}, not at the deployment size"
 
 
 def best_trial(study: optuna.Study, baseline: bool = False) -> optuna.trial.FrozenTrial | None:
     """The search's lowest estimate among scored trials (baselines excluded unless ``baseline``;
     retrained finalists excluded: see :func:`winner`)."""
-    pool = [t for t in scored_trials(study) if (baseline or not t.user_attrs.get("baseline")) and not is_retrained(t)]
+    pool = [t for t in scored_trials(study) if (baseline or not trial_record(t).baseline) and not is_retrained(t)]
     return min(pool, key=lambda t: t.values[0], default=None)
 
 
 def winner(study: optuna.Study) -> optuna.trial.FrozenTrial | None:
     """The study's answer: the best retrained finalist, or the best estimate while none is retrained."""
-    retrained = [t for t in scored_trials(study) if is_retrained(t) and not t.user_attrs.get("baseline")]
+    retrained = [t for t in scored_trials(study) if is_retrained(t) and not trial_record(t).baseline]
     return min(retrained, key=lambda t: t.values[0], default=None) or best_trial(study)
 
 
@@ -219,7 +222,7 @@ def unbeaten_baseline(study: optuna.Study) -> optuna.trial.FrozenTrial | None:
     the study found is that baseline, whatever the search estimated: the summary and the report say so
     instead of calling the searched candidate a winner."""
     best = winner(study)
-    baselines = [t for t in scored_trials(study) if is_retrained(t) and t.user_attrs.get("baseline")]
+    baselines = [t for t in scored_trials(study) if is_retrained(t) and trial_record(t).baseline]
     base = min(baselines, key=lambda t: t.values[0], default=None)
     if best is None or base is None or not is_retrained(best):
         return None
@@ -228,7 +231,7 @@ def unbeaten_baseline(study: optuna.Study) -> optuna.trial.FrozenTrial | None:
 
 def baseline_trial(study: optuna.Study, name: str, retrained: bool = False) -> optuna.trial.FrozenTrial | None:
     """Baseline ``name``'s trial: its search estimate, or its retraining with ``retrained``."""
-    return next((t for t in scored_trials(study) if t.user_attrs.get("baseline") == name
+    return next((t for t in scored_trials(study) if trial_record(t).baseline == name
                  and is_retrained(t) == retrained), None)
 
 
@@ -239,10 +242,10 @@ def finalists_frame(study: optuna.Study) -> pd.DataFrame:
     for t in scored_trials(study):
         if not is_retrained(t):
             continue
-        fin = t.user_attrs["finalist"]
-        rows.append({"model": baseline_label(t.user_attrs["baseline"]) if t.user_attrs.get("baseline") else "finalist",
-                     "candidate_key": t.user_attrs["candidate_key"], "estimate_trial": fin.get("estimate_trial"),
-                     "estimated": fin.get("estimated"), "retrained": t.values[0], "trial": t.number})
+        rec = trial_record(t)
+        rows.append({"model": baseline_label(rec.baseline) if rec.baseline else "finalist",
+                     "candidate_key": rec.candidate_key, "estimate_trial": rec.finalist.estimate_trial,
+                     "estimated": rec.finalist.estimated, "retrained": t.values[0], "trial": t.number})
     frame = pd.DataFrame(rows)
     if frame.empty:
         return frame
@@ -271,7 +274,7 @@ def estimate_fidelity(study: optuna.Study) -> str | None:
     did not estimate with a supernet."""
     from explorer.space import SearchSpace
     from explorer.supernet import SupernetRecipe, describe_fidelity, measured_fidelity, read_supernet
-    if not study.user_attrs.get("config"):
+    if not study_record(study).config:
         return None
     config = study_config(study)
     if config.evaluator != "supernet":
@@ -291,26 +294,27 @@ def missing_baselines(study: optuna.Study) -> list[dict]:
     happened to it: not run (--no-baselines, or not yet: queued), still running, failed (its reason),
     interrupted and not tried again. Summaries and reports print these instead of dropping a row."""
     trials = study.get_trials(deepcopy=False)
-    scored = {t.user_attrs.get("baseline") for t in scored_trials(study)}
+    scored = {trial_record(t).baseline for t in scored_trials(study)}
     interrupted = interrupted_trials(study, trials)
-    with_baselines = bool(study_config(study).baselines) if study.user_attrs.get("config") else True
+    stored = study_record(study)
+    with_baselines = bool(study_config(study).baselines) if stored.config else True
     out = []
     for name in study_baselines(study):
         label = baseline_label(name)
         if name in scored:
             continue
-        tagged = [t for t in trials if t.user_attrs.get("baseline") == name]
+        tagged = [t for t in trials if trial_record(t).baseline == name]
         if not tagged:
-            skipped = (study.user_attrs.get("baselines_not_estimated") or {}).get(name)
+            skipped = stored.baselines_not_estimated.get(name)
             why = ("not run: the study was created with --no-baselines" if not with_baselines
                    else f"not estimated: {skipped}; not retrained yet (--finalists 0, or the study has "
                    "not ended)" if skipped else "not run: it is not in this study")
             out.append({"name": name, "label": label, "why": why})
             continue
         t = tagged[-1]  # the latest attempt
-        ua, state = t.user_attrs, t.state
-        earlier = f" (trial {ua['retry_of']} was {interrupted.get(ua['retry_of'], 'interrupted')})" \
-            if "retry_of" in ua else ""
+        rec, state = trial_record(t), t.state
+        earlier = f" (trial {rec.retry_of} was {interrupted.get(rec.retry_of, 'interrupted')})" \
+            if rec.retry_of is not None else ""
         if state == optuna.trial.TrialState.WAITING:
             why = f"not run yet: queued as trial {t.number}{earlier}; run the search longer"
         elif state == optuna.trial.TrialState.RUNNING:
@@ -323,7 +327,7 @@ def missing_baselines(study: optuna.Study) -> list[dict]:
         elif state == optuna.trial.TrialState.FAIL:
             why = f"failed in trial {t.number}: {t.system_attrs.get('fail_reason') or 'no reason recorded'}"
         elif state == optuna.trial.TrialState.PRUNED:
-            why = f"pruned in trial {t.number}: {ua.get('pruned') or ua.get('rejected') or 'no reason recorded'}"
+            why = f"pruned in trial {t.number}: {rec.pruned or rec.rejected or 'no reason recorded'}"
         else:
             why = f"trial {t.number} finished without per-path metrics"
         out.append({"name": name, "label": label, "why": why})
@@ -332,7 +336,8 @@ def missing_baselines(study: optuna.Study) -> list[dict]:
 
 def path_table(trial: optuna.trial.FrozenTrial, devices: Sequence[DeviceProfile] = ()) -> pd.DataFrame:
     """Table 1 of the paper for one trial: per path, cost per device, RMSE, REL, delta1, params, MACs."""
-    metrics = trial.user_attrs["path_metrics"]
+    rec = trial_record(trial)
+    metrics = rec.path_metrics
     frame = pd.DataFrame({"path": range(len(metrics))})
     for dev in devices:
         frame[f"{dev.name} ms"] = trial_path_costs(trial, dev, "time")
@@ -340,8 +345,8 @@ def path_table(trial: optuna.trial.FrozenTrial, devices: Sequence[DeviceProfile]
             frame[f"{dev.name} J"] = trial_path_costs(trial, dev, "energy")
     for m in ("rmse", "rel", "delta1"):
         frame[m] = [pm[m] for pm in metrics]
-    frame["params"] = trial.user_attrs["params"]
-    frame["macs"] = trial.user_attrs["macs"]
+    frame["params"] = rec.params
+    frame["macs"] = rec.macs
     return frame
 
 
@@ -358,21 +363,22 @@ def study_frame(study: str, storage: str | None = None, reports: str = "reports"
 def trial_network(study: optuna.Study, trial: optuna.trial.FrozenTrial):
     """The trained network of a trial, from the study's artifact store (raises UserError when its
     weights are not stored on this machine)."""
-    import tempfile
     from pathlib import Path
 
     from optuna.artifacts import FileSystemArtifactStore, download_artifact
-    if trial.user_attrs.get("reference"):
-        raise UserError(f"trial {trial.number} is the reference network {trial.user_attrs['reference']}, a baseline "
+
+    from explorer.files import scratch_dir
+    rec = trial_record(trial)
+    if rec.reference:
+        raise UserError(f"trial {trial.number} is the reference network {rec.reference}, a baseline "
                         "for comparison: export a candidate's trial")
-    artifact = trial.user_attrs.get("weights_artifact")
-    root = study.user_attrs.get("artifacts_dir")
-    if not artifact and (trial.user_attrs.get("evaluator") or {}).get("evaluator") == "supernet":
+    artifact, root = rec.weights_artifact, study_record(study).artifacts_dir
+    if not artifact and rec.evaluator_name == "supernet":
         return _supernet_network(study, trial)
     if not artifact or not root or not Path(root).is_dir():
         raise UserError(f"trial {trial.number} has no stored weights here (searched with --no-weights, or its "
                         "artifacts live on another machine): train it with `explorer train` and use the checkpoint")
-    with tempfile.TemporaryDirectory() as tmp:
+    with scratch_dir("weights") as tmp:
         f = Path(tmp) / "w.pt"
         try:
             download_artifact(artifact_store=FileSystemArtifactStore(root), file_path=str(f), artifact_id=artifact)
@@ -386,13 +392,14 @@ def _supernet_network(study: optuna.Study, trial: optuna.trial.FrozenTrial):
     """A supernet-estimated trial's network: its slice of the supernet, BatchNorm recalibrated on
     the study's training data, exactly as the search evaluated it."""
     from pathlib import Path
-    file = Path(trial.user_attrs["evaluator"]["supernet"])
+    rec = trial_record(trial)
+    file = Path(rec.evaluator["supernet"])
     if not file.is_file():
         raise UserError(f"trial {trial.number} was estimated with supernet {file}, which is not on this machine: "
                         "export a retrained finalist instead (the default)")
     net, _ = load_supernet(file)
     cfg = study_config(study)
     calibration = open_dataset(cfg.data, "train", cfg.train_size, train_augment=False)
-    sub = net.extract(Candidate.from_dict(trial.user_attrs["candidate"]))
+    sub = net.extract(Candidate.from_dict(rec.candidate))
     recalibrate_batchnorm(sub, _batches(calibration, 64, 32))
     return sub

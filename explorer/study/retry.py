@@ -32,6 +32,8 @@ from typing import Any, Callable, Iterator, Mapping, Sequence
 import optuna
 from optuna.trial import FrozenTrial, TrialState
 
+from explorer.study.records import VERSION_KEY, record_values, trial_record
+
 INTERRUPTED = "interrupted"
 KILLED = "interrupted (process killed)"      # fail_interrupted_trials writes this
 CTRL_C = "interrupted (Ctrl-C)"
@@ -74,7 +76,7 @@ def was_interrupted(study: optuna.Study, trial: FrozenTrial) -> bool:
 
 def retries_by_origin(trials: Sequence[FrozenTrial]) -> dict[int, FrozenTrial]:
     """Interrupted trial number -> the trial that retries it."""
-    return {int(t.user_attrs["retry_of"]): t for t in trials if "retry_of" in t.user_attrs}
+    return {trial_record(t).retry_of: t for t in trials if trial_record(t).retry_of is not None}
 
 
 def enqueue_retry(study: optuna.Study, trial: FrozenTrial, max_retries: int) -> int | None:
@@ -86,9 +88,9 @@ def enqueue_retry(study: optuna.Study, trial: FrozenTrial, max_retries: int) -> 
         return None
     keys = trial.system_attrs.get(INPUT_ATTRS)
     if keys is None:  # started before input attributes were recorded: the baseline tag is the input
-        keys = [k for k in ("baseline",) if k in trial.user_attrs]
-    user_attrs = {k: trial.user_attrs[k] for k in keys if k in trial.user_attrs and k != "retry_of"}
-    user_attrs["retry_of"] = trial.number
+        keys = ["baseline"]
+    given = {k: trial.user_attrs[k] for k in keys if k in trial.user_attrs and k not in ("retry_of", VERSION_KEY)}
+    user_attrs = record_values(**given, retry_of=trial.number)
     system_attrs: dict[str, Any] = {"failed_trial": history[0], "retry_history": history}
     if "fixed_params" in trial.system_attrs:
         system_attrs["fixed_params"] = trial.system_attrs["fixed_params"]
@@ -145,7 +147,7 @@ def counted_trials(study: optuna.Study) -> int:
     """Finished trials that count toward ``--trials``: an interrupted one does not (its retry does),
     nor a finalist's or a dedicated network's retraining (they are not sampled trials)."""
     done = study.get_trials(deepcopy=False, states=(TrialState.COMPLETE, TrialState.PRUNED, TrialState.FAIL))
-    done = [t for t in done if "finalist" not in t.user_attrs and "envelope" not in t.user_attrs]
+    done = [t for t in done if trial_record(t).retraining is None]
     return len(done) - len(interrupted_trials(study, done))
 
 
@@ -159,7 +161,7 @@ class StopAfterTrials:
 
     def __call__(self, study: optuna.Study, trial: FrozenTrial) -> None:
         running = [t for t in study.get_trials(deepcopy=False, states=(TrialState.RUNNING,))
-                   if "finalist" not in t.user_attrs]
+                   if trial_record(t).retraining is None]
         if counted_trials(study) + len(running) >= self.n_trials:
             study.stop()
 

@@ -21,7 +21,7 @@ from typing import Callable
 import optuna
 
 from explorer import __version__
-from explorer.cost import candidate_cost, get_device, model_cost
+from explorer.cost import candidate_cost, model_cost
 from explorer.data import open_dataset
 from explorer.errors import UserError
 from explorer.space import Candidate, SearchSpace, paper_candidate
@@ -31,6 +31,7 @@ from explorer.study.config import (  # noqa: F401
     DEFAULT_BASELINES,
     OBJECTIVES,
     SearchConfig,
+    StudyContext,
     baseline_model,
     json_safe,
     objective_names,
@@ -59,6 +60,7 @@ from explorer.study.retry import (
     resume_interrupted,
     set_objective_names,
 )
+from explorer.study.records import record_study, record_values, study_record, trial_record
 from explorer.study.sampling import RecentTrialsTPE
 from explorer.study.storage import REPORTS_DIR, local_url, open_storage, searching_alone, study_dir
 from explorer.supernet import default_path, load_supernet, read_supernet, train_supernet
@@ -87,10 +89,11 @@ def make_pruner(config: SearchConfig) -> optuna.pruners.BasePruner:
                                            n_warmup_steps=max(config.train_steps // 2, 0))
 
 
-def create_or_resume(config: SearchConfig, storage: optuna.storages.BaseStorage) -> optuna.Study:
+def create_or_resume(context: StudyContext, storage: optuna.storages.BaseStorage) -> optuna.Study:
     """Creates the study (and enqueues the baselines, once) or resumes it after checking that its
     settings match. Only the process that creates the study enqueues, so concurrent starts on one
     database never duplicate the baselines."""
+    config, space = context.config, context.space
     directions = ["minimize"] * len(config.objectives)
     try:
         study = optuna.create_study(study_name=config.study, storage=storage, directions=directions,
@@ -101,12 +104,9 @@ def create_or_resume(config: SearchConfig, storage: optuna.storages.BaseStorage)
                                   pruner=make_pruner(config))
         created = False
     if created:
-        space = SearchSpace.from_yaml(config.space)
-        study.set_user_attr("config", config.to_dict())
-        study.set_user_attr("explorer_version", __version__)
-        study.set_user_attr("space_yaml", Path(space.source).read_text())
-        study.set_user_attr("device_profile", get_device(config.device).to_dict())
-        study.set_user_attr("created", time.strftime("%Y-%m-%d %H:%M:%S"))
+        record_study(study, config=config.to_dict(), explorer_version=__version__,
+                     space_yaml=Path(space.source).read_text(), device_profile=context.device.to_dict(),
+                     created=time.strftime("%Y-%m-%d %H:%M:%S"))
         if config.baselines:
             skipped = {}
             for name in config.baselines:
@@ -119,11 +119,11 @@ def create_or_resume(config: SearchConfig, storage: optuna.storages.BaseStorage)
                     skipped[name] = (f"outside the space '{space.name}': the supernet cannot estimate it, so it "
                                      "is compared after retraining (finalists) only")
                     continue
-                study.enqueue_trial({}, user_attrs={"baseline": name})
-            study.set_user_attr("baselines_not_estimated", skipped)
+                study.enqueue_trial({}, user_attrs=record_values(baseline=name))
+            record_study(study, baselines_not_estimated=skipped)
         set_objective_names(study, objective_names(config))
     else:
-        old = study.user_attrs.get("config")
+        old = study_record(study).config
         if old:
             prev = SearchConfig.from_dict({**SearchConfig.defaults_of_older_studies(), **old})
             diff = [k for k in SearchConfig.IDENTITY if getattr(prev, k) != getattr(config, k)]
@@ -154,11 +154,12 @@ def run_worker(config_dict: dict, storage_url: str | None, n_trials: int | None,
     """One worker process of a multi-process search (spawned)."""
     import torch
     torch.set_num_threads(max(threads, 1))
-    config = SearchConfig.from_dict(config_dict)
+    context = SearchConfig.from_dict(config_dict).resolve()   # this process's edge
+    config = context.config
     storage = open_storage(storage_url, config.study, workers=2, reports=Path(reports), max_retries=config.max_retries)
     study = optuna.load_study(study_name=config.study, storage=storage, sampler=make_sampler(config, worker),
                               pruner=make_pruner(config))
-    objective = Objective(config, study_dir(config.study, Path(reports)))
+    objective = Objective(context, study_dir(config.study, Path(reports)))
     _optimize(study, objective, n_trials, deadline)
 
 
@@ -183,15 +184,15 @@ def _optimize(study: optuna.Study, objective: Objective, n_trials: int | None, d
                    catch=(Exception,), gc_after_trial=False)
 
 
-def ensure_supernet(config: SearchConfig, progress: Callable[[int, int, dict], None] | None = None,
+def ensure_supernet(context: StudyContext, progress: Callable[[int, int, dict], None] | None = None,
                     data_progress: Callable[[int, int], None] | None = None,
                     deadline: float | None = None) -> Path | None:
     """The supernet file the study's evaluator reads: the given one (checked), or the cached one for
     (space, data, recipe), trained here first if it is missing or unfinished (until ``deadline`` at
     the latest: then it is left unfinished, to be finished by the next study with its recipe)."""
+    config, space = context.config, context.space
     if config.evaluator != "supernet":
         return None
-    space = SearchSpace.from_yaml(config.space)
     if config.supernet:
         load_supernet(config.supernet, space)  # one clear line if it is foreign, corrupt or unfinished
         return Path(config.supernet)
@@ -202,7 +203,7 @@ def ensure_supernet(config: SearchConfig, progress: Callable[[int, int, dict], N
 
 def _existing_config(storage: optuna.storages.BaseStorage, name: str) -> dict | None:
     try:
-        return optuna.load_study(study_name=name, storage=storage).user_attrs.get("config")
+        return study_record(optuna.load_study(study_name=name, storage=storage)).config
     except KeyError:
         return None
 
@@ -318,27 +319,27 @@ def search(config: SearchConfig, storage_url: str | None = None, workers: int = 
     supernet's training and the finalists' retraining are not counted), then retrains the finalists.
     With ``time_limit`` the whole run is sized to it first (explorer.study.planning): ``timeout_s`` is then
     the most sampling may take."""
-    config.validate()
+    context = config.resolve()
     if workers < 1:
         raise UserError("--workers must be at least 1")
     if config.supernet:   # checked before the study's storage exists: a refused search creates nothing
-        ensure_supernet(config)  # a foreign or corrupt file is one line before anything is measured
+        ensure_supernet(context)  # a foreign or corrupt file is one line before anything is measured
     url = storage_url or local_url(config.study, reports)
     started = time_limit.started if time_limit is not None else time.time()
     with searching_alone(url, config.study):
-        outcome = _search(config, url, storage_url, workers, n_trials, timeout_s, reports, on_trial, on_poll, on_data,
+        outcome = _search(context, url, storage_url, workers, n_trials, timeout_s, reports, on_trial, on_poll, on_data,
                           on_supernet, on_finalist, time_limit, on_plan)
-        runs = outcome.study.user_attrs.get("runs") or []
-        outcome.study.set_user_attr("runs", runs + [{"started": time.strftime("%Y-%m-%d %H:%M:%S",
-                                                                              time.localtime(started)),
-                                                     "seconds": round(time.time() - started, 1)}])
+        runs = study_record(outcome.study).runs
+        record_study(outcome.study, runs=runs + [{"started": time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(started)),
+                                                  "seconds": round(time.time() - started, 1)}])
     return outcome
 
 
-def _search(config: SearchConfig, url: str, storage_url: str | None, workers: int, n_trials: int | None,
+def _search(context: StudyContext, url: str, storage_url: str | None, workers: int, n_trials: int | None,
             timeout_s: float | None, reports: Path, on_trial, on_poll, on_data, on_supernet, on_finalist,
             time_limit: "TimeLimit | None", on_plan) -> SearchOutcome:
     """:func:`search`'s run, under the study's search lock."""
+    config = context.config
     storage = open_storage(url, config.study, workers, reports, max_retries=config.max_retries)
     plan = speeds = None
     sampling_cap = timeout_s
@@ -348,21 +349,21 @@ def _search(config: SearchConfig, url: str, storage_url: str | None, workers: in
         timeout_s = plan.sampling_s
         if on_plan:
             on_plan(plan)
-    study = create_or_resume(config, storage)
+    study = create_or_resume(context.with_config(config), storage)
     if plan is not None:
-        study.set_user_attr("plan", plan.to_dict())
+        record_study(study, plan=plan.to_dict())
     # No worker of this run has started yet; on local storage nobody else can be running: its RUNNING
     # trials were interrupted (kill -9), and are tried again. RDB storage does this by heartbeat.
     failed, retried, not_retried = 0, {}, []
     if storage_url is None or storage_url.startswith("sqlite"):
         failed, retried, not_retried = resume_interrupted(study, config.max_retries)
     if config.keep_weights:
-        study.set_user_attr("artifacts_dir", str((study_dir(config.study, reports) / "artifacts").resolve()))
+        record_study(study, artifacts_dir=str((study_dir(config.study, reports) / "artifacts").resolve()))
     cutoff = None if plan is None else supernet_deadline(plan, time_limit, speeds, "paper" in config.baselines,
                                                          sampling_cap)
-    supernet = ensure_supernet(config, on_supernet, on_data, cutoff)
+    supernet = ensure_supernet(context, on_supernet, on_data, cutoff)
     if supernet is not None:
-        study.set_user_attr("supernet", str(supernet.resolve()))
+        record_study(study, supernet=str(supernet.resolve()))
         plan = _note_unfinished(supernet, plan)
     if plan is not None:
         plan = replan_sampling(plan, time_limit.remaining(), sampling_cap)
@@ -371,7 +372,7 @@ def _search(config: SearchConfig, url: str, storage_url: str | None, workers: in
     t0 = time.time()
     deadline = None if timeout_s is None else t0 + timeout_s
     if workers == 1:
-        objective = Objective(config, study_dir(config.study, reports), on_data)
+        objective = Objective(context.with_config(config), study_dir(config.study, reports), on_data)
         cb = [lambda s, t: on_trial(s, t)] if on_trial else []
         _optimize(study, objective, n_trials, deadline, cb)
     else:
@@ -379,8 +380,8 @@ def _search(config: SearchConfig, url: str, storage_url: str | None, workers: in
     if plan is not None and (config.finalists or config.baselines):
         config, plan = _replan_finalists(study, config, plan, speeds, time_limit, wanted, on_plan)
     if config.finalists:
-        config, plan = _retrain_finalists(study, config, plan, time_limit, wanted, reports, on_finalist, on_plan,
-                                          workers)
+        config, plan = _retrain_finalists(study, context.with_config(config), plan, time_limit, wanted, reports,
+                                          on_finalist, on_plan, workers)
     return SearchOutcome(study, url, time.time() - t0, failed, retried, not_retried, config, plan)
 
 
@@ -397,7 +398,7 @@ def _note_unfinished(supernet: Path, plan: "Plan | None") -> "Plan | None":
 
 def _publish_plan(study: optuna.Study, plan: "Plan", on_plan: Callable[["Plan"], None] | None) -> None:
     """Records the plan as it stands now in the study, and tells the caller."""
-    study.set_user_attr("plan", plan.to_dict())
+    record_study(study, plan=plan.to_dict())
     if on_plan:
         on_plan(plan)
 
@@ -435,12 +436,12 @@ def _replan_finalists(study: optuna.Study, config: SearchConfig, plan: "Plan", s
                       ) -> tuple[SearchConfig, "Plan"]:
     """Sizes the finalists' retraining to what is left of ``time_limit`` once sampling is over:
     (config with the finalists and steps that fit, the plan as re-made)."""
-    done = [t.user_attrs["finalist"]["recipe"]["steps"] for t in finalist_trials(study)]
+    done = [trial_record(t).finalist.recipe["steps"] for t in finalist_trials(study)]
     steps_free = "finalist_steps" in time_limit.free and not done   # a resumed study keeps its recipe
     # the machine may be busier or freer than when it was first measured, and the finalists are known
     # now: measure it again, on them (seconds)
     count = max(config.finalists, wanted[0]) if "finalists" in time_limit.free else config.finalists
-    chosen = tuple(Candidate.from_dict(t.user_attrs["candidate"]) for t in choose_finalists(study, count))
+    chosen = tuple(Candidate.from_dict(trial_record(t).candidate) for t in choose_finalists(study, count))
     speeds = _measure_again(config, speeds, chosen)
     plan = replan_finalists(plan, time_limit.remaining(), speeds, baseline_load(config, speeds),
                             steps_free=steps_free, finalists_free="finalists" in time_limit.free,
@@ -461,24 +462,25 @@ def _replan_finalists(study: optuna.Study, config: SearchConfig, plan: "Plan", s
     return config, plan
 
 
-def _retrain_finalists(study: optuna.Study, config: SearchConfig, plan: "Plan | None",
+def _retrain_finalists(study: optuna.Study, context: StudyContext, plan: "Plan | None",
                        time_limit: "TimeLimit | None", wanted: tuple[int, int], reports: Path,
                        on_finalist: Callable[[int, int, str], None] | None,
                        on_plan: Callable[["Plan"], None] | None, workers: int = 1
                        ) -> tuple[SearchConfig, "Plan | None"]:
     """Retrains the finalists and the baselines (``workers`` at once, or one per GPU); (config, plan)
     counting the finalists retrained."""
+    config = context.config
     # the re-plan stood on a few steps' measurement: finalists it dropped are retrained after the
     # others when the time those took says they still fit
     extra, deadline = 0, None
     if plan is not None:   # the time limit holds even when the machine slowed after planning
         extra = max(wanted[0] - config.finalists, 0) if "finalists" in time_limit.free else 0
         deadline = time_limit.started + time_limit.seconds - RESERVE_S
-    retrain_finalists(study, config, reports, progress=on_finalist, extra=extra, deadline=deadline, workers=workers)
+    retrain_finalists(study, context, reports, progress=on_finalist, extra=extra, deadline=deadline, workers=workers)
     recipe = config.finalist_recipe().to_dict()
-    now = [t for t in finalist_trials(study) if t.user_attrs["finalist"].get("recipe") == recipe]
-    retrained = sum(1 for t in now if not t.user_attrs.get("baseline"))
-    skipped = max(config.finalists - retrained, 0) + len(set(config.baselines) - {t.user_attrs.get("baseline") for t in now})
+    now = [trial_record(t) for t in finalist_trials(study) if trial_record(t).finalist.recipe == recipe]
+    retrained = sum(1 for rec in now if not rec.baseline)
+    skipped = max(config.finalists - retrained, 0) + len(set(config.baselines) - {rec.baseline for rec in now})
     if plan is not None and skipped:
         plan = dataclasses.replace(plan, changes=plan.changes + (
             f"{skipped} finalist(s) or baseline(s) not retrained: the machine ran slower than planned and the "

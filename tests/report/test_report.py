@@ -54,6 +54,66 @@ def test_finalists_agreement_is_named_for_what_it_is(study_with_everything):
     assert "unmeasured" in estimate_fidelity(study)
 
 
+def test_report_draws_the_winners_paths_on_a_time_axis(study_with_everything):
+    from explorer.study.results import is_retrained, winner
+    study, reports = study_with_everything
+    assert is_retrained(winner(study))
+    html = write_report(study, reports / "rep").read_text()
+    figure = html.split('<figure id="paths-figure">', 1)[1].split("</figure>", 1)[0]
+    assert '<img alt="Trial ' in figure and "data:image/png;base64," in figure
+    # the times are the cost model's, the errors the retrained winner's, at the size it was measured at
+    assert "ready on tx2 (estimated)" in figure and "RMSE (measured)" in figure
+    assert "measured on the retrained network at 64x64" in figure and "B_max = 30 ms of time:uniform:30ms" in figure
+
+
+def test_paths_worse_than_an_earlier_one_are_marked(study_with_everything, monkeypatch):
+    from explorer.cost.devices import get_device
+    from explorer.report import figures
+    from explorer.study.results import winner
+    assert figures.worse_than_earlier([0.5, 0.4, 0.45, 0.3, 0.3, 0.35]) == {2: 1, 5: 3}
+    assert figures.worse_than_earlier([0.5, 0.6]) == {1: 0}
+    study, _ = study_with_everything
+    best = winner(study)
+    # the winner as it would be had every path improved on the ones before but the last
+    metrics = [{**m, "rmse": 1.0 - 0.1 * p} for p, m in enumerate(best.user_attrs["path_metrics"])]
+    metrics[-1]["rmse"] = metrics[-2]["rmse"] + 0.05
+    bad = optuna.trial.create_trial(values=best.values, user_attrs={**best.user_attrs, "path_metrics": metrics})
+    drawn = []
+    real_png = figures.png
+    monkeypatch.setattr(figures, "png", lambda fig: drawn.append([t.get_text() for ax in fig.axes for t in ax.texts]
+                                                                 + [ax.get_xlabel() for ax in fig.axes]) or real_png(fig))
+    image, worse = figures.path_timeline(bad, get_device("tx2"), "time:uniform:30ms")
+    last = len(metrics) - 1
+    assert image and worse == {last: last - 1}
+    assert f"worse than path {last - 1}" in drawn[0] and any("estimated on tx2" in t for t in drawn[0])
+
+
+def test_depth_maps_are_drawn_at_the_deployment_size(study_with_everything, monkeypatch):
+    """A retrained winner was measured, and ships, at the deployment size: its maps are drawn there, each
+    path titled with its time on the device and its RMSE, over a colour bar in metres."""
+    from explorer.cost.devices import get_device
+    from explorer.report import figures
+    from explorer.study.results import trial_losses, trial_path_costs, winner
+    study, _ = study_with_everything
+    best = winner(study)
+    deployed = tuple(best.user_attrs["measured"]["input_size"])
+    assert deployed != tuple(study.user_attrs["config"]["train_size"])
+    sizes, drawn = [], []
+    real_open, real_png = figures.open_dataset, figures.png
+    monkeypatch.setattr(figures, "open_dataset",
+                        lambda spec, split, size, **kw: sizes.append(tuple(size)) or real_open(spec, split, size, **kw))
+    monkeypatch.setattr(figures, "png", lambda fig: drawn.append(
+        ([ax.get_title() for ax in fig.axes], [ax.get_ylabel() for ax in fig.axes], fig.get_suptitle()))
+        or real_png(fig))
+    device = get_device("tx2")
+    image, why = figures.depth_maps(study, best, None, device)
+    assert image and not why and sizes == [deployed]
+    titles, labels, legend = drawn[0]
+    for p, (ms, rmse) in enumerate(zip(trial_path_costs(best, device, "time"), trial_losses(best))):
+        assert f"path {p}\n{ms:.3g} ms\n{rmse:.3g} m" in titles
+    assert "depth (m)" in labels and legend == "ms: estimated on tx2\nm: RMSE, measured"
+
+
 def test_report_escapes_user_strings(tmp_path):
     study = optuna.create_study(study_name="<script>alert(1)</script>")
     study.set_user_attr("config", {"device": "tx2", "data": "<b>x</b>", "budgets": ["time:uniform:33ms"]})

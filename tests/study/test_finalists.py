@@ -52,7 +52,7 @@ def test_finalists_spread_over_image_encoders():
 
     def add(value, blocks, width, key, baseline=None):
         cand = {"encoder_blocks": blocks, "width_mult": width}
-        attrs = {"candidate": cand, "candidate_key": key, "path_metrics": [], "workloads": []}
+        attrs = {"candidate": cand, "candidate_key": key, "path_metrics": [], "workloads": {}}
         study.add_trial(optuna.trial.create_trial(values=[value], user_attrs={**attrs, **({"baseline": baseline} if baseline else {})}))
 
     add(0.29, 9, 1.0, "paper", baseline="paper")   # baselines are never finalists
@@ -99,7 +99,7 @@ def test_an_interrupted_retraining_resumes_from_its_checkpoint(finished, tmp_pat
                     torch.optim.AdamW(net.parameters()))
     # measured at the deployment size
     expected = evaluate(net, open_dataset(TINY_DATA, "val", (64, 64), train_augment=False), limit=8)
-    retrain_finalists(fresh, cfg, tmp_path)
+    retrain_finalists(fresh, cfg.resolve(), tmp_path)
     done = finalist_trials(fresh)
     assert [t.user_attrs["candidate_key"] for t in done] == [cand.key]
     # nothing was trained again: the metrics are those of the checkpoint's weights
@@ -122,13 +122,13 @@ def test_finalists_a_replan_dropped_are_retrained_when_the_others_leave_time(fin
 
     said = []
     roomy = study_of_estimates("fin3")
-    retrain_finalists(roomy, cfg, tmp_path, extra=1, deadline=time.time() + 600,
+    retrain_finalists(roomy, cfg.resolve(), tmp_path, extra=1, deadline=time.time() + 600,
                       progress=lambda i, n, what: said.append(what))
     wanted = [t.user_attrs["candidate_key"] for t in choose_finalists(roomy, 2)]
     assert [t.user_attrs["candidate_key"] for t in finalist_trials(roomy)] == wanted   # the planned one first
     # a deadline the first finalist's time says cannot be met: only the planned one
     tight = study_of_estimates("fin4")
-    retrain_finalists(tight, dataclasses.replace(cfg, study="fin4"), tmp_path, extra=1, deadline=time.time(),
+    retrain_finalists(tight, dataclasses.replace(cfg, study="fin4").resolve(), tmp_path, extra=1, deadline=time.time(),
                       progress=lambda i, n, what: said.append(what))
     assert [t.user_attrs["candidate_key"] for t in finalist_trials(tight)] == wanted[:1]
     assert any(what.startswith("no time for") for what in said)
@@ -192,16 +192,16 @@ def test_a_reference_network_joins_the_study_as_a_baseline(tmp_path):
 def test_a_baseline_that_beats_every_retrained_candidate_is_named():
     from explorer.study.results import unbeaten_baseline
     study = optuna.create_study(storage=optuna.storages.InMemoryStorage())
-    attrs = {"candidate": {}, "path_metrics": [], "workloads": []}
+    attrs = {"candidate": {}, "path_metrics": [], "workloads": {}}
 
     def add(value, key, **extra):
         study.add_trial(optuna.trial.create_trial(values=[value], user_attrs={**attrs, "candidate_key": key, **extra}))
 
     add(0.30, "a")                                                  # the search's estimate
-    add(0.35, "a", finalist={"estimate_trial": 0})                   # retrained: worse than estimated
-    add(0.33, "paper", baseline="paper", finalist={})                # the paper design, retrained
+    add(0.35, "a", finalist={"estimate_trial": 0, "recipe": {}})                   # retrained: worse than estimated
+    add(0.33, "paper", baseline="paper", finalist={"recipe": {}})                # the paper design, retrained
     assert unbeaten_baseline(study).user_attrs["baseline"] == "paper"
-    add(0.32, "b", finalist={"estimate_trial": 0})                   # a candidate that beats it
+    add(0.32, "b", finalist={"estimate_trial": 0, "recipe": {}})                   # a candidate that beats it
     assert unbeaten_baseline(study) is None
 
 
@@ -218,19 +218,19 @@ def test_a_deadline_keeps_the_best_finalist_and_the_paper_design_and_drops_the_r
         if i == 4:
             break
         study.add_trial(optuna.trial.create_trial(values=[0.3 + i / 100], user_attrs={
-            "candidate": cand.to_dict(), "candidate_key": cand.key, "path_metrics": [], "workloads": []}))
+            "candidate": cand.to_dict(), "candidate_key": cand.key, "path_metrics": [], "workloads": {}}))
     retrained = []
     monkeypatch.setattr(finalists, "Objective", lambda *a, **k: None)
     monkeypatch.setattr(finalists, "train_finalist", lambda obj, job, **k: (
         time.sleep(0.05), retrained.append(job.baseline or job.model().key)))
     monkeypatch.setattr(finalists, "_store", lambda study, artifacts, result: None)
     config = dataclasses.replace(CFG, finalists=3, baselines=("fastdepth", "paper", "paper-nee"))
-    retrain_finalists(study, config, tmp_path, deadline=time.time() + 0.12)
+    retrain_finalists(study, config.resolve(), tmp_path, deadline=time.time() + 0.12)
     best = choose_finalists(study, 1)[0].user_attrs["candidate_key"]
     assert retrained[:2] == [best, "paper"]                  # whatever the time
     assert 2 <= len(retrained) < 6                           # the rest only while they fit
     retrained.clear()
-    retrain_finalists(study, config, tmp_path, deadline=None)
+    retrain_finalists(study, config.resolve(), tmp_path, deadline=None)
     assert len(retrained) == 6                               # no time limit: every job
 
 
@@ -250,9 +250,9 @@ def test_finalists_retrained_by_two_workers_match_one_process(finished, tmp_path
         return s
 
     one, two = study_of_estimates(), study_of_estimates()
-    retrain_finalists(one, cfg, tmp_path / "one")
+    retrain_finalists(one, cfg.resolve(), tmp_path / "one")
     said = []
-    retrain_finalists(two, cfg, tmp_path / "two", workers=2, progress=lambda i, n, what: said.append(what))
+    retrain_finalists(two, cfg.resolve(), tmp_path / "two", workers=2, progress=lambda i, n, what: said.append(what))
     key = lambda t: (t.user_attrs["candidate_key"], t.user_attrs.get("baseline", ""))   # noqa: E731
     a, b = sorted(finalist_trials(one), key=key), sorted(finalist_trials(two), key=key)
     assert [key(t) for t in a] == [key(t) for t in b] and len(a) == 3
@@ -291,7 +291,7 @@ def test_when_even_the_best_finalist_and_the_paper_design_no_longer_fit_none_is_
     study = optuna.create_study(storage=optuna.storages.InMemoryStorage())
     cand = next(iter(SearchSpace.from_yaml("tiny").enumerate()))
     study.add_trial(optuna.trial.create_trial(values=[0.3], user_attrs={
-        "candidate": cand.to_dict(), "candidate_key": cand.key, "path_metrics": [], "workloads": []}))
+        "candidate": cand.to_dict(), "candidate_key": cand.key, "path_metrics": [], "workloads": {}}))
     speeds = Speeds(retrain_step_s=step_s, retrain_eval_s=0.1, supernet_step_s=0.0, finalist_step_s=(step_s,))
     monkeypatch.setattr(search_module, "_measure_again", lambda config, speeds, chosen: speeds)
     config = dataclasses.replace(CFG, finalists=1, finalist_steps=150, baselines=("paper",))

@@ -17,7 +17,7 @@ def test_the_first_evaluation_of_a_candidate_is_its_twin_and_new_trials_are_inde
     optuna.logging.set_verbosity(optuna.logging.WARNING)
     study = optuna.create_study()
     twins = FinishedTwins()
-    study.add_trials([_trial("a", baseline="paper"), _trial("a", finalist=True), _trial("b")])
+    study.add_trials([_trial("a", baseline="paper"), _trial("a", finalist={"recipe": {}}), _trial("b")])
     assert twins.find(study, "a") is None                  # a baseline's or a finalist's run is not a twin
     assert twins.find(study, "b").number == 2
     study.add_trials([_trial("a"), _trial("a")])

@@ -13,6 +13,7 @@ from pathlib import Path
 import optuna
 import pytest
 
+from explorer.study.records import RECORD_VERSION, VERSION_KEY
 from explorer.study.results import missing_baselines, trials_frame
 from explorer.study.retry import (CTRL_C, RetryStaleTrials, counted_trials, enqueue_retry, guarded,
                             interrupted_trials, needs_run, tracked_work)
@@ -138,7 +139,7 @@ def test_ctrl_c_is_an_interruption_an_error_is_not():
 
     def stopped(trial):
         trial.suggest_float("x", 0, 1)
-        trial.set_user_attr("path_metrics", [1.0])   # a result of the stopped run: not carried over
+        trial.set_user_attr("path_metrics", [{"rmse": 1.0}])   # a result of the stopped run: not carried over
         raise KeyboardInterrupt
 
     with pytest.raises(KeyboardInterrupt):
@@ -146,7 +147,7 @@ def test_ctrl_c_is_an_interruption_an_error_is_not():
     first, retry = study.trials
     assert first.state == optuna.trial.TrialState.FAIL and first.system_attrs["fail_reason"] == CTRL_C
     assert retry.state == optuna.trial.TrialState.WAITING and retry.params == {"x": 0.25}
-    assert retry.user_attrs == {"baseline": "paper", "retry_of": 0}
+    assert retry.user_attrs == {"baseline": "paper", "retry_of": 0, VERSION_KEY: RECORD_VERSION}
     assert counted_trials(study) == 0
 
     def broken(trial):
@@ -186,7 +187,7 @@ def test_a_stale_trial_on_rdb_is_marked_and_retried():
                                               user_attrs={"baseline": "fastdepth"}))
     RetryStaleTrials(max_retries=2, grace_period_s=120)(study, study.trials[0])
     assert "no heartbeat for 120 s" in interrupted_trials(study)[0]
-    assert study.trials[1].user_attrs == {"baseline": "fastdepth", "retry_of": 0}
+    assert study.trials[1].user_attrs == {"baseline": "fastdepth", "retry_of": 0, VERSION_KEY: RECORD_VERSION}
     assert counted_trials(study) == 0
 
 

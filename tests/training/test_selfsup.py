@@ -99,11 +99,11 @@ def test_short_self_supervised_training_lowers_the_loss():
 def test_supervision_is_part_of_a_studys_identity(tmp_path):
     storage = optuna.storages.InMemoryStorage()
     cfg = SearchConfig(study="s", space="tiny", data=SEQ, supervision="self", baselines=False)
-    create_or_resume(cfg, storage)
+    create_or_resume(cfg.resolve(), storage)
     assert SearchConfig.from_dict(optuna.load_study(study_name="s", storage=storage).user_attrs["config"]).supervision == "self"
     assert cfg.train_config().supervision == "self"
     with pytest.raises(UserError, match="supervision='self'"):
-        create_or_resume(SearchConfig(study="s", space="tiny", data=SEQ, baselines=False, evaluator="proxy"), storage)
+        create_or_resume(SearchConfig(study="s", space="tiny", data=SEQ, baselines=False, evaluator="proxy").resolve(), storage)
     with pytest.raises(UserError, match="supervision 'weak'"):
         SearchConfig(study="t", space="tiny", supervision="weak").validate()
     with pytest.raises(UserError, match="needs sequence data"):

@@ -1,0 +1,208 @@
+"""What a study stores in Optuna, typed: a trial's record (:class:`TrialRecord`) and the study's own
+(:class:`StudyRecord`). This is the one module that names the stored keys.
+
+Each field is one Optuna user attribute, so a study stays readable by Optuna's own tools (the dashboard,
+``optuna.load_study``) and a running trial can record what it knows as it goes (its costs first, its
+metrics when its evaluation ends). Writes go through :func:`record` / :func:`record_study`, which check
+each value against the schema; reads go through :func:`trial_record` / :func:`study_record`, which
+validate what was stored and turn a damaged or newer record into one line (UserError)."""
+
+from __future__ import annotations
+
+from typing import Any, Optional
+
+import optuna
+from pydantic import BaseModel, ConfigDict, ValidationError
+
+from explorer.errors import UserError
+
+RECORD_VERSION = 1          # bumped when a field changes meaning; added fields keep the version
+VERSION_KEY = "record_version"
+PathMetrics = list[dict[str, Any]]
+
+
+class Measured(BaseModel):
+    """Where a retrained network's per-path figures come from: the first ``frames`` of a split of
+    ``data``, at ``input_size`` (the deployment size)."""
+
+    data: str
+    split: str
+    frames: int
+    input_size: tuple[int, int]
+
+
+class Retraining(BaseModel):
+    """A network retrained stand-alone with the finalists' ``recipe`` (a finalist, a baseline or a
+    dedicated network of the envelope): which search trial estimated it, and at what value."""
+
+    model_config = ConfigDict(extra="allow")
+
+    recipe: dict[str, Any]
+    estimate_trial: Optional[int] = None
+    estimated: Optional[float] = None
+
+
+class TrialRecord(BaseModel):
+    """Everything a trial stores. A sampled trial holds its candidate, costs and estimated metrics; a
+    retrained one holds ``finalist`` (or ``envelope``) and ``measured`` too; a baseline is tagged by
+    ``baseline``; a trial that did not complete says why (``rejected``, ``pruned``, ``duplicate_of``)."""
+
+    model_config = ConfigDict(frozen=True, extra="ignore")
+
+    record_version: int = RECORD_VERSION
+    baseline: Optional[str] = None          # a baseline's name ("paper", ...): compared, never the winner
+    reference: Optional[str] = None         # a reference network outside every space
+    candidate: Optional[dict[str, Any]] = None
+    candidate_key: Optional[str] = None
+    params: Optional[list[int]] = None      # per path, path 0 (the LiDAR-only path) first
+    macs: Optional[list[int]] = None
+    latency_ms: Optional[list[float]] = None
+    energy_j: Optional[list[float]] = None
+    workloads: Optional[dict[str, Any]] = None   # compact per-layer workloads: re-costing on any device
+    path_metrics: Optional[PathMetrics] = None
+    path_metrics_fp32: Optional[PathMetrics] = None
+    int8_graphs: Optional[list[str]] = None
+    quantization: Optional[dict[str, Any]] = None
+    evaluator: Optional[dict[str, Any]] = None
+    train: Optional[dict[str, Any]] = None
+    losses: Optional[dict[str, float]] = None   # budget spec -> anytime loss
+    weights_artifact: Optional[str] = None
+    rejected: Optional[str] = None
+    pruned: Optional[str] = None
+    duplicate_of: Optional[int] = None
+    retry_of: Optional[int] = None
+    finalist: Optional[Retraining] = None
+    envelope: Optional[Retraining] = None
+    measured: Optional[Measured] = None
+
+    @property
+    def retraining(self) -> Retraining | None:
+        return self.finalist or self.envelope
+
+    @property
+    def is_retrained(self) -> bool:
+        """A finalist or baseline retrained with the study's longer recipe (see explorer.study.finalists)."""
+        return self.finalist is not None
+
+    @property
+    def is_envelope(self) -> bool:
+        return self.envelope is not None
+
+    @property
+    def is_scored(self) -> bool:
+        """Carries what re-scoring needs (per-path metrics and workloads)."""
+        return self.path_metrics is not None and self.workloads is not None
+
+    @property
+    def is_estimate(self) -> bool:
+        """A search trial's estimate (not a retraining), scored."""
+        return self.is_scored and self.finalist is None and self.envelope is None
+
+    @property
+    def figures(self) -> str:
+        """"measured" for a retrained network, "estimate" for a search trial."""
+        return "measured" if self.retraining is not None else "estimate"
+
+    @property
+    def evaluator_name(self) -> str:
+        return (self.evaluator or {}).get("evaluator", "proxy")
+
+    @property
+    def precision(self) -> str:
+        return (self.candidate or {}).get("precision", "fp32")
+
+    def losses_of(self, metric: str = "rmse") -> list[float]:
+        return [float(m[metric]) for m in self.path_metrics or []]
+
+
+class StudyRecord(BaseModel):
+    """What a study stores about itself: its configuration (read as a checked SearchConfig by
+    explorer.study.config.study_config), the space and device profile it was created with, its plan
+    and runs."""
+
+    model_config = ConfigDict(frozen=True, extra="ignore")
+
+    config: Optional[dict[str, Any]] = None
+    explorer_version: Optional[str] = None
+    space_yaml: Optional[str] = None
+    device_profile: Optional[dict[str, Any]] = None
+    created: Optional[str] = None
+    baselines_not_estimated: dict[str, str] = {}
+    plan: Optional[dict[str, Any]] = None
+    runs: list[dict[str, Any]] = []
+    artifacts_dir: Optional[str] = None
+    supernet: Optional[str] = None
+
+
+TRIAL_FIELDS = frozenset(TrialRecord.model_fields)
+STUDY_FIELDS = frozenset(StudyRecord.model_fields)
+_cache: dict[int, tuple[optuna.trial.FrozenTrial, tuple, TrialRecord]] = {}
+
+
+def trial_record(trial: optuna.trial.FrozenTrial | optuna.Trial) -> TrialRecord:
+    """``trial``'s record, validated. A finished trial's record is read once (a study's tables ask for
+    it many times); a record of a newer version or a damaged one is one line."""
+    attrs = trial.user_attrs
+    stamp = (len(attrs), getattr(trial, "state", None))
+    cached = _cache.get(id(trial))
+    if cached is not None and cached[0] is trial and cached[1] == stamp:
+        return cached[2]
+    version = attrs.get(VERSION_KEY, RECORD_VERSION)
+    if not isinstance(version, int) or version > RECORD_VERSION:
+        raise UserError(f"trial {trial.number} was stored by a newer anytime-explorer (record version {version}): "
+                        "upgrade anytime-explorer to read this study")
+    try:
+        out = TrialRecord.model_validate(attrs)
+    except ValidationError as exc:
+        raise UserError(f"trial {trial.number}'s stored record is damaged ({_first_error(exc)}): "
+                        "run the trial again or restore the study's storage") from None
+    if isinstance(trial, optuna.trial.FrozenTrial) and trial.state.is_finished():
+        if len(_cache) > 100_000:
+            _cache.clear()
+        _cache[id(trial)] = (trial, stamp, out)
+    return out
+
+
+def record_values(**fields: Any) -> dict[str, Any]:
+    """``fields`` checked against the schema, as the JSON values a trial stores (for trials created
+    whole, e.g. ``optuna.trial.create_trial(user_attrs=...)``)."""
+    fields = {k: v for k, v in fields.items() if v is not None}     # an absent field reads as None
+    unknown = set(fields) - TRIAL_FIELDS
+    if unknown:
+        raise TypeError(f"not fields of a trial record: {sorted(unknown)}")
+    checked = TrialRecord.model_validate(fields)
+    out = checked.model_dump(mode="json", include=set(fields))
+    out.setdefault(VERSION_KEY, RECORD_VERSION)
+    return out
+
+
+def record(trial: optuna.Trial, **fields: Any) -> None:
+    """Stores ``fields`` on a live ``trial`` (each checked against :class:`TrialRecord`)."""
+    for key, value in record_values(**fields).items():
+        if key == VERSION_KEY and key in trial.user_attrs:
+            continue
+        trial.set_user_attr(key, value)
+
+
+def study_record(study: optuna.Study) -> StudyRecord:
+    try:
+        return StudyRecord.model_validate(study.user_attrs)
+    except ValidationError as exc:
+        raise UserError(f"study '{study.study_name}''s stored settings are damaged ({_first_error(exc)}): "
+                        "restore the study's storage") from None
+
+
+def record_study(study: optuna.Study, **fields: Any) -> None:
+    """Stores ``fields`` on ``study`` (each checked against :class:`StudyRecord`)."""
+    unknown = set(fields) - STUDY_FIELDS
+    if unknown:
+        raise TypeError(f"not fields of a study record: {sorted(unknown)}")
+    checked = StudyRecord.model_validate(fields)
+    for key, value in checked.model_dump(mode="json", include=set(fields)).items():
+        study.set_user_attr(key, value)
+
+
+def _first_error(exc: ValidationError) -> str:
+    err = exc.errors()[0]
+    where = ".".join(str(p) for p in err.get("loc", ()))
+    return f"{where}: {err.get('msg', 'invalid')}"

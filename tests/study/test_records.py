@@ -1,0 +1,73 @@
+"""A study's stored records: written through one schema, validated when read back."""
+
+import optuna
+import pytest
+from pydantic import ValidationError
+
+from explorer.errors import UserError
+from explorer.study.records import (
+    RECORD_VERSION, VERSION_KEY, Measured, Retraining, record, record_study, record_values, study_record, trial_record,
+)
+
+
+def _study() -> optuna.Study:
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    return optuna.create_study()
+
+
+def test_a_live_trial_records_typed_fields_that_read_back_as_the_schema():
+    study = _study()
+    trial = study.ask()
+    record(trial, candidate_key="k", params=[0, 10], path_metrics=[{"rmse": 0.5}, {"rmse": 0.4}],
+           measured=Measured(data="synthetic", split="val", frames=8, input_size=(64, 64)))
+    study.tell(trial, 0.4)
+    rec = trial_record(study.trials[0])
+    assert rec.candidate_key == "k" and rec.params == [0, 10] and rec.losses_of("rmse") == [0.5, 0.4]
+    assert rec.measured.input_size == (64, 64) and rec.record_version == RECORD_VERSION
+    assert study.trials[0].user_attrs["measured"] == {"data": "synthetic", "split": "val", "frames": 8,
+                                                      "input_size": [64, 64]}   # plain JSON in Optuna's storage
+    assert not rec.is_retrained and rec.figures == "estimate"
+
+
+def test_writes_are_checked_against_the_schema():
+    with pytest.raises(TypeError, match="not fields"):
+        record_values(candidate_keys="typo")
+    with pytest.raises(ValidationError):
+        record_values(params="many")
+    with pytest.raises(TypeError, match="not fields"):
+        record_study(_study(), plans={})
+
+
+def test_a_retraining_reads_as_measured_and_an_envelope_is_neither_estimate_nor_finalist():
+    attrs = record_values(path_metrics=[{"rmse": 0.3}], workloads={}, finalist=Retraining(recipe={"steps": 5}))
+    study = _study()
+    study.add_trial(optuna.trial.create_trial(values=[0.3], user_attrs=attrs))
+    study.add_trial(optuna.trial.create_trial(values=[0.3], user_attrs={**attrs, "finalist": None,
+                                                                        "envelope": {"recipe": {}}}))
+    fin, env = (trial_record(t) for t in study.trials)
+    assert fin.is_retrained and fin.figures == "measured" and not fin.is_estimate
+    assert env.is_envelope and not env.is_retrained and not env.is_estimate and env.figures == "measured"
+
+
+@pytest.mark.parametrize("attrs, says", [
+    ({"params": "lots"}, r"damaged \(params"),
+    ({"finalist": {"estimate_trial": 3}}, r"damaged \(finalist\.recipe"),
+    ({VERSION_KEY: RECORD_VERSION + 1}, "newer anytime-explorer"),
+])
+def test_a_damaged_or_newer_record_is_one_line(attrs, says):
+    study = _study()
+    study.add_trial(optuna.trial.create_trial(values=[1.0], user_attrs=attrs))
+    with pytest.raises(UserError, match=says) as caught:
+        trial_record(study.trials[0])
+    assert "\n" not in str(caught.value)
+
+
+def test_the_study_record_holds_what_the_study_stored():
+    study = _study()
+    record_study(study, runs=[{"started": "now", "seconds": 3.0}], baselines_not_estimated={"x": "why"})
+    stored = study_record(study)
+    assert stored.runs[0]["seconds"] == 3.0 and stored.baselines_not_estimated == {"x": "why"}
+    assert stored.config is None and stored.plan is None
+    study.set_user_attr("runs", "not a list")
+    with pytest.raises(UserError, match="damaged"):
+        study_record(study)
