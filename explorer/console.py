@@ -9,7 +9,7 @@ from typing import Any
 
 import pandas as pd
 from rich.console import Console
-from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn,
+from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TaskID, TextColumn, TimeElapsedColumn,
                            TimeRemainingColumn)
 from rich.table import Table
 
@@ -45,6 +45,27 @@ def progress(transient: bool = False) -> Progress:
     return _Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
                      TimeElapsedColumn(), TimeRemainingColumn(), TextColumn("{task.fields[status]}"),
                      console=err_console, transient=transient)
+
+
+class Phases:
+    """``progress(what, done, total)`` of work in phases (``explorer calibrate``'s: exporting, timing,
+    timing again, ...) on ``bar``, one task per phase, each counted from 0: rich stops a task's clock for
+    good once its count reaches its total, so one task carried on from phase to phase showed a frozen
+    clock and an ETA of 0:00:00 while the work went on. A phase that starts again (a second pass of
+    timing again) takes the place of its earlier line. ``prefix`` goes before every phase's name."""
+
+    def __init__(self, bar: Progress, prefix: str = "") -> None:
+        self.bar, self.prefix = bar, prefix
+        self.task: TaskID | None = None
+        self.what, self.done = "", 0
+
+    def __call__(self, what: str, done: int, total: int | None) -> None:
+        if self.task is None or what != self.what or done < self.done:
+            for earlier in [t.id for t in self.bar.tasks if t.description == self.prefix + what]:
+                self.bar.remove_task(earlier)
+            self.task, self.what = self.bar.add_task(self.prefix + what, total=total, status=""), what
+        self.done = done
+        self.bar.update(self.task, completed=done, total=total)
 
 
 def _fmt(v: Any) -> str:

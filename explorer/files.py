@@ -11,6 +11,7 @@ beside it (named with its pid) is cleaned, or restored, by the next writer.
 from __future__ import annotations
 
 import json
+import math
 import os
 import re
 import shutil
@@ -23,6 +24,10 @@ import numpy as np
 import yaml
 
 from explorer.errors import UserError
+# scratch folders named by pid, cleaned when their process is gone; SIGTERM that unwinds (the probe
+# holds them: it ships alone, and may import nothing of the package)
+from explorer.probe.scratch import (process_alive, remove_stale_scratch, scratch_dir,  # noqa: F401
+                                    sigterm_unwinds)
 
 #: the largest YAML or JSON file the package reads: spaces, profiles and manifests are kilobytes
 MAX_TEXT_BYTES = 16 * 1024 * 1024
@@ -183,16 +188,6 @@ def write_json(path: str | Path, data: Any, indent: int = 2) -> Path:
     return write_atomically(path, json.dumps(data, indent=indent) + "\n")
 
 
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:   # someone else's live process
-        return True
-    return True
-
-
 def _leftovers(target: Path) -> Iterator[tuple[Path, str, int]]:
     pattern = re.compile(rf"\.{re.escape(target.name)}\.(tmp|old)(\d+)")
     for p in target.parent.glob(f".{target.name}.*"):
@@ -213,7 +208,7 @@ def remove_dead_scratch(folder: str | Path) -> list[Path]:
         return removed
     for p in folder.iterdir():
         m = SCRATCH.fullmatch(p.name)
-        if m and not _alive(int(m.group(1))):
+        if m and not process_alive(int(m.group(1))):
             if p.is_dir():
                 shutil.rmtree(p, ignore_errors=True)
             else:
@@ -227,7 +222,7 @@ def recover_folder(target: str | Path) -> None:
     and a previous version it had moved aside is put back if ``target`` is missing."""
     target = Path(target)
     for path, kind, pid in _leftovers(target):
-        if _alive(pid) and pid != os.getpid():
+        if process_alive(pid) and pid != os.getpid():
             continue
         if kind == "old" and not target.exists():
             os.rename(path, target)
@@ -267,3 +262,44 @@ def replacing_folder(target: str | Path, marker: str) -> Iterator[Path]:
         os.rename(target, aside)   # a kill between these renames is undone by recover_folder
     os.rename(scratch, target)
     shutil.rmtree(aside, ignore_errors=True)
+
+
+def read_choices(raw: Any, where: str, kind: type, allow_empty: bool = False) -> list:
+    """A YAML list of choices (one value is a list of one) of ``kind``, checked: no repeats, no negative
+    integers, positive numbers; one UserError line naming ``where`` otherwise."""
+    if not isinstance(raw, list):
+        raw = [raw]
+    if not raw and not allow_empty:
+        raise UserError(f"{where}: the list of choices is empty: give at least one value")
+    out = []
+    for v in raw:
+        if kind is bool:
+            if not isinstance(v, bool):
+                raise UserError(f"{where}: {v!r} is not true/false")
+        elif kind is int:
+            if isinstance(v, bool) or not isinstance(v, int):
+                raise UserError(f"{where}: {v!r} is not an integer")
+            if v < 0:
+                raise UserError(f"{where}: {v} must not be negative")
+        elif kind is float:
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 < v < math.inf:
+                raise UserError(f"{where}: {v!r} is not a positive number")
+            v = float(v)
+        elif not isinstance(v, kind):
+            raise UserError(f"{where}: {v!r} is not a {kind.__name__}")
+        out.append(v)
+    if len(set(out)) != len(out):
+        raise UserError(f"{where}: choices {raw} repeat a value")
+    return out
+
+
+def read_stage_choices(raw: Any, where: str) -> tuple[tuple[int, ...], ...]:
+    if not isinstance(raw, list) or not raw:
+        raise UserError(f"{where}: give one list of width choices per decoder stage, e.g. [[256, 512], [64, 128]]")
+    stages = []
+    for k, stage in enumerate(raw, start=1):
+        choices = read_choices(stage, f"{where}[stage {k}]", int)
+        if any(c < 1 for c in choices):
+            raise UserError(f"{where}[stage {k}]: widths must be positive")
+        stages.append(tuple(choices))
+    return tuple(stages)

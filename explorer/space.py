@@ -15,12 +15,12 @@ import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, Callable, Iterator
 
 import yaml
 
 from explorer.errors import UserError
-from explorer.files import read_yaml
+from explorer.files import read_choices, read_stage_choices, read_yaml
 
 #: MobileNet v1 depthwise-separable blocks (in, out, stride), after conv0 (3 -> 32, stride 2).
 MOBILENET_V1_BLOCKS: tuple[tuple[int, int, int], ...] = (
@@ -238,14 +238,67 @@ def fastdepth_candidate() -> Candidate:
 
 
 # ------------------------------------------------------------------------------------------------
-_SPACE_SCHEMA: dict[str, dict[str, str]] = {
-    "image_encoder": {"blocks": "encoder_blocks", "width_mult": "width_mult", "exits": "encoder_exits"},
-    "lidar_encoder": {"depth": "lidar_depth", "width": "lidar_width", "first": "lidar_first"},
-    "ecu": {"enabled": "ecu", "band": "ecu_band", "width": "ecu_width"},
-    "decoder": {"widths": "decoder_widths"},
-    "exits": {"optional": "exits", "required": "required_exits", "head_depth": "head_depth",
-              "head_width": "head_width", "lidar_only": "lidar_exit", "residual": "exit_residual"},
-}
+@dataclass(frozen=True)
+class Dimension:
+    """One searched dimension, declared once: the :class:`Candidate` field it sets, where a space's YAML
+    lists its choices (``section.key``), the kind of its values ("positions": one yes/no parameter per
+    optional place; "stages": one choice per decoder stage), and when a trial draws it (``applies``, on
+    the parameters drawn before; ``several``: only where the space offers several choices)."""
+
+    field: str
+    section: str
+    key: str
+    kind: Any
+    applies: Callable[[dict], bool] | None = None
+    several: bool = False
+
+
+def _ecu_on(params: dict) -> bool:
+    return bool(params["ecu"])
+
+
+def _ecu_and_encoder_exits(params: dict) -> bool:   # the stage order matters only then
+    return bool(params["ecu"]) and any(v for k, v in params.items() if k.startswith("encoder_exit_"))
+
+
+#: The family's dimensions, in the order a trial draws them (the order fixes what a seeded sampler draws).
+DIMENSIONS: tuple[Dimension, ...] = (
+    Dimension("ecu", "ecu", "enabled", bool),
+    Dimension("lidar_depth", "lidar_encoder", "depth", int, _ecu_on),
+    Dimension("lidar_width", "lidar_encoder", "width", int, _ecu_on),
+    Dimension("ecu_band", "ecu", "band", int, _ecu_on),
+    Dimension("ecu_width", "ecu", "width", int, _ecu_on),
+    Dimension("head_depth", "exits", "head_depth", int),
+    Dimension("head_width", "exits", "head_width", int, lambda params: params["head_depth"] == 2),
+    Dimension("exits", "exits", "optional", "positions"),
+    Dimension("encoder_exits", "image_encoder", "exits", "positions"),
+    Dimension("lidar_first", "lidar_encoder", "first", bool, _ecu_and_encoder_exits),
+    Dimension("lidar_exit", "exits", "lidar_only", bool),
+    Dimension("precision", "", "precision", str, several=True),
+    Dimension("exit_residual", "exits", "residual", bool, several=True),
+    Dimension("encoder_blocks", "image_encoder", "blocks", int),
+    Dimension("width_mult", "image_encoder", "width_mult", float),
+    Dimension("decoder_widths", "decoder", "widths", "stages"),
+)
+#: a space's field for a dimension of optional places, and the prefix of its parameters
+_POSITIONS = {"exits": ("optional_exits", "exit"), "encoder_exits": ("optional_encoder_exits", "encoder_exit")}
+#: YAML section -> {key: field}; ``exits.required`` lists places that are always there (not a dimension)
+_SPACE_SCHEMA: dict[str, dict[str, str]] = {"exits": {"required": "required_exits"}}
+for _dim in filter(lambda d: d.section, DIMENSIONS):
+    _SPACE_SCHEMA.setdefault(_dim.section, {})[_dim.key] = _dim.field
+_KINDS = {**{d.field: d.kind for d in DIMENSIONS}, "required_exits": "positions"}
+
+
+@dataclass(frozen=True)
+class _Param:
+    """One Optuna parameter of a space: its name, choices, dimension, and its value in a candidate."""
+
+    name: str
+    choices: tuple
+    dimension: Dimension
+    value_of: Callable[[Candidate], Any]
+
+
 _TOP_KEYS = set(_SPACE_SCHEMA) | {"name", "description", "precision"}
 
 
@@ -321,31 +374,9 @@ class SearchSpace:
             if bad:
                 raise UserError(f"{source}: unknown key(s) {bad} in '{section}'; known: {sorted(fields)}")
             for key, field in fields.items():
-                where = f"{source}: {section}.{key}"
-                if key not in body:
-                    default = getattr(defaults, field, None)
-                    if field == "decoder_widths":
-                        values[field] = tuple((w,) for w in default)
-                    elif field == "exits":
-                        values["optional_exits"] = tuple(default[:-1])
-                    elif field in ("required_exits", "encoder_exits"):
-                        pass  # dataclass defaults: none
-                    else:
-                        values[field] = (default,)
-                    continue
-                raw = body[key]
-                if field == "decoder_widths":
-                    values[field] = _stage_choices(raw, where)
-                elif field in ("exits", "required_exits", "encoder_exits"):
-                    name = {"exits": "optional_exits", "encoder_exits": "optional_encoder_exits"}.get(field, field)
-                    values[name] = tuple(_choices(raw, where, int, allow_empty=True))
-                elif field in ("ecu", "lidar_first", "lidar_exit", "exit_residual"):
-                    values[field] = tuple(_choices(raw, where, bool))
-                else:
-                    kind = float if field == "width_mult" else int
-                    values[field] = tuple(_choices(raw, where, kind))
+                _parse_choices(values, field, body, key, f"{source}: {section}.{key}", defaults)
         if "precision" in data:
-            values["precision"] = tuple(_choices(data["precision"], f"{source}: precision", str))
+            values["precision"] = tuple(read_choices(data["precision"], f"{source}: precision", str))
             bad = [p for p in values["precision"] if p not in PRECISIONS]
             if bad:
                 raise UserError(f"{source}: precision {bad} unknown: list some of {list(PRECISIONS)}")
@@ -395,32 +426,31 @@ class SearchSpace:
         next(iter(self.enumerate()))
 
     # -- dimensions ----------------------------------------------------------------------------
+    def _params(self) -> list[_Param]:
+        """The space's Optuna parameters, in the order :meth:`sample` draws them (from :data:`DIMENSIONS`)."""
+        out = []
+        for dim in DIMENSIONS:
+            if dim.kind == "positions":
+                field, prefix = _POSITIONS[dim.field]
+                out += [_Param(f"{prefix}_{k}", (False, True), dim, lambda c, k=k, f=dim.field: k in getattr(c, f))
+                        for k in getattr(self, field)]
+            elif dim.kind == "stages":
+                out += [_Param(f"decoder_width_{k}", choices, dim, lambda c, k=k: c.decoder_widths[k - 1])
+                        for k, choices in enumerate(self.decoder_widths, start=1)]
+            elif self._lists(dim):
+                out.append(_Param(dim.field, getattr(self, dim.field), dim, lambda c, f=dim.field: getattr(c, f)))
+        return out
+
+    def _lists(self, dim: Dimension) -> bool:
+        if dim.several:
+            return len(getattr(self, dim.field)) > 1
+        if dim.applies is _ecu_and_encoder_exits:   # drawn only where both can be chosen
+            return bool(self.optional_encoder_exits) and True in self.ecu
+        return True
+
     def dimensions(self) -> dict[str, tuple]:
-        dims: dict[str, tuple] = {
-            "encoder_blocks": self.encoder_blocks,
-            "width_mult": self.width_mult,
-            "ecu": self.ecu,
-            "lidar_depth": self.lidar_depth,
-            "lidar_width": self.lidar_width,
-            "ecu_band": self.ecu_band,
-            "ecu_width": self.ecu_width,
-        }
-        for k, choices in enumerate(self.decoder_widths, start=1):
-            dims[f"decoder_width_{k}"] = choices
-        for e in self.optional_exits:
-            dims[f"exit_{e}"] = (False, True)
-        dims["head_depth"] = self.head_depth
-        dims["head_width"] = self.head_width
-        for k in self.optional_encoder_exits:
-            dims[f"encoder_exit_{k}"] = (False, True)
-        if self.optional_encoder_exits and True in self.ecu:
-            dims["lidar_first"] = self.lidar_first
-        dims["lidar_exit"] = self.lidar_exit
-        if len(self.exit_residual) > 1:
-            dims["exit_residual"] = self.exit_residual
-        if len(self.precision) > 1:
-            dims["precision"] = self.precision
-        return dims
+        """Every parameter a trial may draw, with its choices."""
+        return {p.name: p.choices for p in self._params()}
 
     @property
     def size(self) -> int:
@@ -471,33 +501,22 @@ class SearchSpace:
 
     def sample(self, trial: Any) -> Candidate:
         """Draw a candidate with an Optuna trial (conditional dimensions only when they apply)."""
-        s = trial.suggest_categorical
-        ecu = s("ecu", list(self.ecu))
-        lidar = dict(lidar_depth=0, lidar_width=0, ecu_band=0, ecu_width=0)
-        if ecu:
-            lidar = dict(lidar_depth=s("lidar_depth", list(self.lidar_depth)),
-                         lidar_width=s("lidar_width", list(self.lidar_width)),
-                         ecu_band=s("ecu_band", list(self.ecu_band)),
-                         ecu_width=s("ecu_width", list(self.ecu_width)))
-        head_depth = s("head_depth", list(self.head_depth))
-        head_width = s("head_width", list(self.head_width)) if head_depth == 2 else 0
-        exits = sorted([e for e in self.optional_exits if s(f"exit_{e}", [False, True])]
-                       + list(self.required_exits))
-        encoder_exits = tuple(k for k in self.optional_encoder_exits if s(f"encoder_exit_{k}", [False, True]))
-        lidar_first = s("lidar_first", list(self.lidar_first)) if ecu and encoder_exits else False
-        lidar_exit = s("lidar_exit", list(self.lidar_exit))
-        precision = s("precision", list(self.precision)) if len(self.precision) > 1 else self.precision[0]
-        residual = s("exit_residual", list(self.exit_residual)) if len(self.exit_residual) > 1 else self.exit_residual[0]
-        return Candidate(
-            precision=precision, exit_residual=residual,
-            encoder_exits=encoder_exits, lidar_first=lidar_first, lidar_exit=lidar_exit,
-            encoder_blocks=s("encoder_blocks", list(self.encoder_blocks)),
-            width_mult=s("width_mult", list(self.width_mult)),
-            ecu=ecu, **lidar,
-            decoder_widths=tuple(s(f"decoder_width_{k}", list(c))
-                                 for k, c in enumerate(self.decoder_widths, start=1)),
-            exits=tuple(exits) + (len(self.decoder_widths),),
-            head_depth=head_depth, head_width=head_width)
+        params: dict[str, Any] = {}
+        for p in self._params():
+            if p.dimension.applies is None or p.dimension.applies(params):
+                params[p.name] = trial.suggest_categorical(p.name, list(p.choices))
+        return self.candidate_of(params)
+
+    def candidate_of(self, params: dict[str, Any]) -> Candidate:
+        """The candidate that the parameters :meth:`sample` drew stand for (a dimension not drawn takes
+        its first choice, which the candidate's canonical form makes irrelevant)."""
+        scalars = {d.field: params.get(d.field, getattr(self, d.field)[0]) for d in DIMENSIONS
+                   if not isinstance(d.kind, str)}
+        last = len(self.decoder_widths)
+        exits = sorted([e for e in self.optional_exits if params[f"exit_{e}"]] + list(self.required_exits))
+        return Candidate(**scalars, exits=tuple(exits) + (last,),
+                         encoder_exits=tuple(k for k in self.optional_encoder_exits if params[f"encoder_exit_{k}"]),
+                         decoder_widths=tuple(params[f"decoder_width_{k}"] for k in range(1, last + 1)))
 
     def random_candidates(self, count: int, seed: int = 0) -> list[Candidate]:
         """``count`` distinct candidates drawn at random (each dimension uniformly, as :meth:`sample`
@@ -514,27 +533,11 @@ class SearchSpace:
 
     def params_of(self, candidate: Candidate) -> dict[str, Any]:
         """The Optuna parameters that :meth:`sample` would draw for ``candidate`` (for enqueueing)."""
-        p: dict[str, Any] = {"ecu": candidate.ecu, "encoder_blocks": candidate.encoder_blocks,
-                             "width_mult": candidate.width_mult, "head_depth": candidate.head_depth}
-        if candidate.ecu:
-            p.update(lidar_depth=candidate.lidar_depth, lidar_width=candidate.lidar_width,
-                     ecu_band=candidate.ecu_band, ecu_width=candidate.ecu_width)
-        if candidate.head_depth == 2:
-            p["head_width"] = candidate.head_width
-        for k, w in enumerate(candidate.decoder_widths, start=1):
-            p[f"decoder_width_{k}"] = w
-        for e in self.optional_exits:
-            p[f"exit_{e}"] = e in candidate.exits
-        for k in self.optional_encoder_exits:
-            p[f"encoder_exit_{k}"] = k in candidate.encoder_exits
-        if candidate.ecu and candidate.encoder_exits:
-            p["lidar_first"] = candidate.lidar_first
-        p["lidar_exit"] = candidate.lidar_exit
-        if len(self.exit_residual) > 1:
-            p["exit_residual"] = candidate.exit_residual
-        if len(self.precision) > 1:
-            p["precision"] = candidate.precision
-        return p
+        params: dict[str, Any] = {}
+        for p in self._params():
+            if p.dimension.applies is None or p.dimension.applies(params):
+                params[p.name] = p.value_of(candidate)
+        return params
 
     def contains(self, candidate: Candidate) -> bool:
         d = self.dimensions()
@@ -556,40 +559,24 @@ class _RandomTrial:
         return self.rng.choice(list(choices))
 
 
-def _choices(raw: Any, where: str, kind: type, allow_empty: bool = False) -> list:
-    if not isinstance(raw, list):
-        raw = [raw]
-    if not raw and not allow_empty:
-        raise UserError(f"{where}: the list of choices is empty: give at least one value")
-    out = []
-    for v in raw:
-        if kind is bool:
-            if not isinstance(v, bool):
-                raise UserError(f"{where}: {v!r} is not true/false")
-        elif kind is int:
-            if isinstance(v, bool) or not isinstance(v, int):
-                raise UserError(f"{where}: {v!r} is not an integer")
-            if v < 0:
-                raise UserError(f"{where}: {v} must not be negative")
-        elif kind is float:
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 < v < math.inf:
-                raise UserError(f"{where}: {v!r} is not a positive number")
-            v = float(v)
-        elif not isinstance(v, kind):
-            raise UserError(f"{where}: {v!r} is not a {kind.__name__}")
-        out.append(v)
-    if len(set(out)) != len(out):
-        raise UserError(f"{where}: choices {raw} repeat a value")
-    return out
-
-
-def _stage_choices(raw: Any, where: str) -> tuple[tuple[int, ...], ...]:
-    if not isinstance(raw, list) or not raw:
-        raise UserError(f"{where}: give one list of width choices per decoder stage, e.g. [[256, 512], [64, 128]]")
-    stages = []
-    for k, stage in enumerate(raw, start=1):
-        choices = _choices(stage, f"{where}[stage {k}]", int)
-        if any(c < 1 for c in choices):
-            raise UserError(f"{where}[stage {k}]: widths must be positive")
-        stages.append(tuple(choices))
-    return tuple(stages)
+def _parse_choices(values: dict, field: str, body: dict, key: str, where: str, defaults: Candidate) -> None:
+    """Reads ``body[key]``, the choices of ``field``, into ``values`` (the default candidate's value when
+    the key is absent)."""
+    kind = _KINDS[field]
+    space_field = _POSITIONS[field][0] if field in _POSITIONS else field
+    if key not in body:
+        default = getattr(defaults, field, None)
+        if kind == "stages":
+            values[field] = tuple((w,) for w in default)
+        elif field == "exits":
+            values[space_field] = tuple(default[:-1])
+        elif kind != "positions":    # no required exits, no encoder exits: the dataclass's defaults
+            values[field] = (default,)
+        return
+    raw = body[key]
+    if kind == "stages":
+        values[field] = read_stage_choices(raw, where)
+    elif kind == "positions":
+        values[space_field] = tuple(read_choices(raw, where, int, allow_empty=True))
+    else:
+        values[field] = tuple(read_choices(raw, where, kind))

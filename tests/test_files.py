@@ -141,6 +141,65 @@ def test_a_generation_stopped_by_sigterm_leaves_nothing_after_the_next_start(tmp
     assert not [p.name for p in tmp_path.iterdir() if ".tmp" in p.name]
 
 
+def test_a_scratch_folder_of_a_dead_process_is_removed_when_the_next_is_made(tmp_path, monkeypatch):
+    """kill -9 leaves a scratch folder behind (nothing can catch it): the next one made removes it, and
+    leaves a live process's and every folder not named as scratch."""
+    import tempfile
+    from pathlib import Path
+
+    from explorer.files import scratch_dir
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    dead, alive = _dead_pid(), os.getppid()
+    stale = tmp_path / f"explorer-{dead}-calibrate-k2j4h0ns"
+    (stale / "bundle").mkdir(parents=True)
+    (stale / "bundle" / "L000-conv.onnx").write_bytes(b"graph" * 1000)
+    kept = [f"explorer-{alive}-export-1q2w3e4r", f"explorer-{dead}", "explorer-cache", f"other-{dead}-x"]
+    for name in kept:
+        (tmp_path / name).mkdir()
+    with scratch_dir("calibrate") as tmp:
+        assert Path(tmp).parent == tmp_path and Path(tmp).name.startswith(f"explorer-{os.getpid()}-calibrate-")
+        assert not stale.exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(kept)
+
+
+SCRATCH_THEN_WAIT = ("import sys, time\n"
+                     "from explorer.files import scratch_dir, sigterm_unwinds\n"
+                     "with sigterm_unwinds(), scratch_dir('calibrate') as tmp:\n"
+                     "    open(tmp + '/results.json', 'w').write('{}')\n"
+                     "    print(tmp, flush=True)\n"
+                     "    time.sleep(120)\n")
+
+
+def test_sigterm_unwinds_and_leaves_no_scratch_folder(tmp_path):
+    child = subprocess.Popen([sys.executable, "-c", SCRATCH_THEN_WAIT], env={**os.environ, "TMPDIR": str(tmp_path)},
+                             stdout=subprocess.PIPE, text=True)
+    folder = child.stdout.readline().strip()
+    assert os.path.isdir(folder) and os.path.dirname(folder) == str(tmp_path)
+    child.send_signal(signal.SIGTERM)
+    assert child.wait(timeout=60) == 128 + signal.SIGTERM
+    assert os.listdir(tmp_path) == []
+
+
+@pytest.mark.slow
+def test_a_calibration_stopped_by_sigterm_leaves_nothing_in_the_temporary_folder(tmp_path):
+    """`explorer calibrate`, stopped while it exports its graphs into its scratch folder: the folder
+    goes with it."""
+    env = {**os.environ, "TMPDIR": str(tmp_path / "tmp"), "OMP_NUM_THREADS": "1"}
+    (tmp_path / "tmp").mkdir()
+    with open(tmp_path / "stderr", "w") as err:
+        child = subprocess.Popen([sys.executable, "-m", "explorer", "calibrate", "--quick", "--out",
+                                  str(tmp_path / "p.yaml")], env=env, stdout=subprocess.DEVNULL, stderr=err)
+    deadline = time.time() + 120
+    while (time.time() < deadline and child.poll() is None
+           and not any((tmp_path / "tmp").glob(f"explorer-{child.pid}-calibrate-*/bundle"))):
+        time.sleep(0.1)
+    assert child.poll() is None, (tmp_path / "stderr").read_text()[-2000:]
+    child.send_signal(signal.SIGTERM)
+    assert child.wait(timeout=60) == 128 + signal.SIGTERM
+    # (onnxruntime keeps a small file of its own there)
+    assert not list((tmp_path / "tmp").glob("explorer-*")) and not (tmp_path / "p.yaml").exists()
+
+
 def test_a_16_bit_grey_frame_is_scaled_not_clipped_to_white(tmp_path):
     """A 16-bit camera frame (mono industrial cameras write them) keeps its contrast as RGB."""
     import numpy as np

@@ -81,3 +81,13 @@ def test_bad_yaml_and_candidate_errors(tmp_path):
         Candidate(exits=(0, 1))
     with pytest.raises(UserError, match="stride"):
         Candidate(encoder_blocks=5)
+
+
+def test_every_candidate_field_is_one_declared_dimension_that_a_space_file_can_set(tmp_path):
+    from explorer.space import DIMENSIONS
+    assert sorted(d.field for d in DIMENSIONS) == sorted(f.name for f in dataclasses.fields(Candidate))
+    # each declared YAML key reaches its field: a space offering both values of a yes/no dimension has them
+    for dim in (d for d in DIMENSIONS if d.kind is bool):
+        path = tmp_path / f"{dim.field}.yaml"
+        path.write_text(yaml.safe_dump({"name": "s", dim.section: {dim.key: [False, True]}}))
+        assert getattr(SearchSpace.from_yaml(path), dim.field) == (False, True), dim.field

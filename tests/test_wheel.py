@@ -1,5 +1,5 @@
-"""A normal install works: the wheel carries the shipped search spaces, profiles and templates, and the
-installed command finds them by name from any folder."""
+"""A normal install works: the wheel carries the shipped search spaces, profiles, templates and notebook,
+and the installed command finds them by name from any folder."""
 
 import os
 import subprocess
@@ -48,6 +48,8 @@ def test_the_wheel_installed_elsewhere_finds_its_spaces_and_profiles(tmp_path):
     assert str(site) in where                      # the installed wheel, not the checkout
     assert "encoder_blocks" in run("space", "show", "anytime_depth")
     assert "tx2" in run("profile", "paper", "--device", "tx2")
+    assert "wrote nb/analysis.ipynb" in run("notebook", "--out", "nb")   # the notebook is package data too
+    assert (somewhere / "nb" / "analysis.ipynb").read_bytes() == (ROOT / "notebooks" / "analysis.ipynb").read_bytes()
     out = run("search", "--space", "tiny", "--data", "synthetic:48:16", "--train-size", "32x32", "--input-size",
               "64x64", "--batch-size", "8", "--supernet-steps", "4", "--finalists", "1", "--finalist-steps", "2",
               "--tune-steps", "1", "--trials", "3", "--timeout", "0", "--study", "wheel", "--no-report",

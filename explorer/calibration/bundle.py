@@ -15,7 +15,6 @@ import hashlib
 import json
 import os
 import tarfile
-import tempfile
 from pathlib import Path
 from typing import Callable
 
@@ -37,6 +36,7 @@ from explorer.deploy.int8_graphs import (
     uint8_edges,
 )
 from explorer.errors import UserError
+from explorer.files import scratch_dir
 from explorer.model import build_network
 from explorer.model.onnx import example_inputs, export_segments, export_stages
 from explorer.probe.pack import write_zipapp
@@ -71,7 +71,7 @@ def _zero_weights(model: bytes) -> bytes:
 
 def _int8(model: bytes, feeds: dict[str, np.ndarray]) -> bytes:
     """``model`` statically quantized as ``explorer export --quantize int8`` quantizes stage graphs."""
-    with tempfile.TemporaryDirectory(prefix="explorer-int8-") as tmp:
+    with scratch_dir("int8") as tmp:
         src, dst = Path(tmp) / "fp32.onnx", Path(tmp) / "int8.onnx"
         src.write_bytes(model)
         quantize_graph(src, dst, [feeds])
@@ -186,7 +186,7 @@ def write_bundle(out: Path, **kwargs) -> dict:
     """The bundle as one gzip-compressed tar (``tar xf`` unpacks it); written whole or not at all."""
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    with tempfile.TemporaryDirectory(prefix="explorer-bundle-") as tmp:
+    with scratch_dir("bundle") as tmp:
         manifest = write_bundle_dir(Path(tmp), **kwargs)
         part = out.with_name(f".{out.name}.part")
         try:

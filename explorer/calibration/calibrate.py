@@ -37,6 +37,7 @@ from explorer.cost.fit import (
 from explorer.cost.precision import workload_quantized
 from explorer.cost.workloads import KINDS, Workload
 from explorer.errors import UserError
+from explorer.files import scratch_dir
 from explorer.probe import DEFAULT_PROVIDER
 from explorer.space import Candidate
 
@@ -246,7 +247,7 @@ def with_int8(profile: DeviceProfile, measured: list[tuple[Workload, float]],
 
 
 def calibrate(threads: int | None = None, repeats: int = 25, seed: int = 0, scale: float = 1.0,
-              progress: Callable[[int, int], None] | None = None, name: str = "host",
+              progress: Callable[[str, int, int | None], None] | None = None, name: str = "host",
               stage_candidates: int | None = None, exclude: set[str] = frozenset(),
               provider: str = DEFAULT_PROVIDER, energy: bool = True, sysfs_root: str = "/",
               log: Callable[[str], None] = lambda s: None, results_out: Path | None = None,
@@ -255,53 +256,65 @@ def calibrate(threads: int | None = None, repeats: int = 25, seed: int = 0, scal
     """Bundle, probe and fit in one process (the numbers a separate probe run would give): layer
     sweep plus the stages of ``stage_candidates`` random default-space candidates (none of
     ``exclude``, candidate keys). ``results_out`` / ``bundle_out``: also keep the probe's results /
-    the bundle there. ``remeasure_passes``, ``calm_wait_s``: the probe's (``run_probe``)."""
-    import tempfile
+    the bundle there. ``remeasure_passes``, ``calm_wait_s``: the probe's (``run_probe``).
+    ``progress(what, done, total)``: each phase of the work counted from 0 to its own total (None until
+    it is known), called with 0 when it starts: ``EXPORTING``, the probe's (``TIMING_GRAPHS``, each
+    pass of ``TIMING_AGAIN``, ``MEASURING_ENERGY``), and ``FITTING`` before each round of graphs far
+    above the fit is timed again (``TIMING_AGAIN``) and before the profile is returned."""
+    report = progress or (lambda what, done, total: None)
     try:
         _probe.check_provider(provider)
     except _probe.ProbeError as exc:
         raise UserError(str(exc)) from None
-    with tempfile.TemporaryDirectory(prefix="explorer-calibrate-") as tmp:
+    with scratch_dir("calibrate") as tmp:
         folder = bundle_out or Path(tmp) / "bundle"
-        n_export = [0]
-
-        def exported(i: int, n: int) -> None:
-            n_export[0] = n
-            if progress:
-                progress(i, n)
-
+        report(EXPORTING, 0, None)   # how many graphs: known once the sweep is drawn
         write_bundle_dir(folder, scale=scale, seed=seed, n_stage=stage_candidates, exclude=exclude,
-                         repeats=repeats, progress=exported)
-
-        def measured(i: int, n: int, what: str) -> None:
-            if progress and what != "energy":
-                progress(n_export[0] + i, n_export[0] + n)
-
+                         repeats=repeats, progress=lambda i, n: report(EXPORTING, i, n))
         out = results_out or Path(tmp) / "results.json"
         try:
             results = _probe.run_probe(folder, out, provider, threads, repeats, energy, sysfs_root,
-                                       progress=measured, log=log, remeasure_passes=remeasure_passes,
-                                       calm_wait_s=calm_wait_s)
-            settled: set[str] = set()   # timed again without getting faster: the fit's misses, not the machine's
-            for _ in range(RETIME_ROUNDS):
-                slow = [label for label in slow_outliers(fit_results(results), results) if label not in settled]
-                if not slow:
-                    break
-                log(f"{len(slow)} graphs took {1 + RETIME_ABOVE:.2f}x or more of what the fit of all the others "
-                    "predicts: timing those again")
-                before = {label: _timing(results, label) for label in slow}
-                _probe.set_aside(results, slow)
-                speed = results["speed"]
-                speed["retimed_outliers"] = speed.get("retimed_outliers", 0) + len(slow)
-                _probe.write_atomically(out, results)
-                # those graphs once more each: the round itself is their second timing
-                results = _probe.run_probe(folder, out, provider, threads, repeats, False, sysfs_root,
-                                           progress=measured, log=log, remeasure_passes=0)
-                settled |= {label for label, ms in before.items() if _timing(results, label) > SETTLED * ms}
+                                       progress=lambda i, n, what: report(what, i, n), log=log,
+                                       remeasure_passes=remeasure_passes, calm_wait_s=calm_wait_s)
+            results = _retime_outliers(results, folder, out, provider, threads, repeats, sysfs_root, report, log)
         except _probe.ProbeError as exc:
             raise UserError(str(exc)) from None
-    return fit_results(results, name=name, source=f"explorer calibrate on {platform.node()} at "
-                       f"{datetime.datetime.now().isoformat(timespec='seconds')}")
+    report(FITTING, 0, 1)
+    profile = fit_results(results, name=name, source=f"explorer calibrate on {platform.node()} at "
+                          f"{datetime.datetime.now().isoformat(timespec='seconds')}")
+    report(FITTING, 1, 1)
+    return profile
+
+
+#: ``calibrate``'s own phases (``progress``'s ``what``), beside the probe's
+EXPORTING, FITTING = "exporting graphs", "fitting"
+
+
+def _retime_outliers(results: dict, folder: Path, out: Path, provider: str, threads: int | None, repeats: int,
+                     sysfs_root: str, report: Callable[[str, int, int | None], None],
+                     log: Callable[[str], None]) -> dict:
+    """Up to ``RETIME_ROUNDS`` rounds: the graphs ``slow_outliers`` finds are timed again, each keeping
+    its faster timing (none a third time that kept ``SETTLED`` of its time the second)."""
+    settled: set[str] = set()   # timed again without getting faster: the fit's misses, not the machine's
+    for _ in range(RETIME_ROUNDS):
+        report(FITTING, 0, 1)
+        slow = [label for label in slow_outliers(fit_results(results), results) if label not in settled]
+        report(FITTING, 1, 1)
+        if not slow:
+            break
+        log(f"{len(slow)} graphs took {1 + RETIME_ABOVE:.2f}x or more of what the fit of all the others "
+            "predicts: timing those again")
+        before = {label: _timing(results, label) for label in slow}
+        _probe.set_aside(results, slow)
+        speed = results["speed"]
+        speed["retimed_outliers"] = speed.get("retimed_outliers", 0) + len(slow)
+        _probe.write_atomically(out, results)
+        # those graphs once more each: the round itself is their second timing
+        results = _probe.run_probe(folder, out, provider, threads, repeats, False, sysfs_root,
+                                   progress=lambda i, n, what: report(_probe.TIMING_AGAIN, i, n), log=log,
+                                   remeasure_passes=0)
+        settled |= {label for label, ms in before.items() if _timing(results, label) > SETTLED * ms}
+    return results
 
 
 #: After the probe, graphs whose timing is this much above what the fit of all the timings predicts

@@ -21,7 +21,7 @@ from explorer.space import Candidate
 def curve_check(model_dir: Path, data: str, device: str | None = None, frames: int = 16,
                 deadlines: int = 40, progress: Callable[[int, int], None] | None = None,
                 provider: str = "CPUExecutionProvider", calibration: dict | None = None,
-                calibration_progress: Callable[[int, int], None] | None = None) -> dict:
+                calibration_progress: Callable[[str, int, int | None], None] | None = None) -> dict:
     """The anytime curve measured on this machine next to the one a host profile predicts.
 
     Per-path losses come from the exported graphs on ``frames`` validation frames; the prediction

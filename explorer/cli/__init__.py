@@ -1,5 +1,6 @@
 """The ``explorer`` command line, one module per command group. Every mistake a user can make is one
-line on stderr, exit 2."""
+line on stderr, exit 2. SIGTERM ends a command as Ctrl-C does: what it was writing, and its scratch
+folders, are cleaned up on the way out."""
 
 from __future__ import annotations
 
@@ -8,12 +9,13 @@ import sys
 import warnings
 from typing import Sequence
 
-from explorer.cli import deploy, devices, inspect, study, training
+from explorer.cli import deploy, devices, inspect, notebook, study, training
 from explorer.cli._common import _Parser, check_numbers, explain
 from explorer.cli.study import _print_outcome  # noqa: F401  (the closing summary, for tests and notebooks)
 from explorer.errors import UserError
+from explorer.files import sigterm_unwinds
 
-GROUPS = (inspect, devices, training, study, deploy)
+GROUPS = (inspect, devices, training, study, deploy, notebook)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -47,8 +49,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.command == "devices" and args.name and not args.action:
         args.name, args.action = args.name, "show"
     try:
-        check_numbers(args)
-        args.fn(args)
+        with sigterm_unwinds():
+            check_numbers(args)
+            args.fn(args)
     except UserError as exc:
         sys.stderr.write(f"explorer: error: {exc}\n")
         return 2

@@ -110,7 +110,7 @@ def cmd_run(args) -> None:
 def cmd_curve(args) -> None:
     from explorer.calibration.curve import curve_check
     from explorer.cli.devices import QUICK_PROBE
-    from explorer.console import console, err_console, print_json, progress
+    from explorer.console import Phases, console, err_console, print_json, progress
     calibration = None
     if not args.device:
         calibration = {"scale": 0.35, **QUICK_PROBE} if args.quick else {"scale": 0.5}
@@ -120,13 +120,11 @@ def cmd_curve(args) -> None:
                           + "; `explorer calibrate --out mybox.yaml` once, then --device mybox.yaml, skips it",
                           markup=False, highlight=False)
     with progress(transient=True) as bar:
-        cal = bar.add_task("calibrating this machine", total=None, status="") if calibration else None
         task = bar.add_task("deadlines", total=args.deadlines, status="")
         res = curve_check(Path(args.model), args.data, args.device, args.frames, args.deadlines,
                           progress=lambda i, n: bar.update(task, completed=i), provider=args.provider,
                           calibration=calibration,
-                          calibration_progress=(lambda i, n: bar.update(cal, completed=i, total=n)) if cal is not None
-                          else None)
+                          calibration_progress=Phases(bar, "calibrating this machine: ") if calibration else None)
     if args.json:
         print_json(res)
         return

@@ -39,7 +39,7 @@ def cmd_devices(args) -> None:
 
 
 def cmd_calibrate(args) -> None:
-    from explorer.console import console, progress
+    from explorer.console import Phases, console, progress
     from explorer.calibration.calibrate import calibrate, fit_results, read_results
     from explorer.probe import SPEED_CHECK_EVERY, SPEED_DRIFT_WARN
     if args.bundle and args.fit:
@@ -67,10 +67,9 @@ def cmd_calibrate(args) -> None:
     else:
         _check_provider(args.provider)  # before the progress bar: one line, nothing else
         with progress() as bar:
-            task = bar.add_task("measuring layers", total=None, status="")
             prof = calibrate(threads=args.threads, repeats=args.repeats, scale=0.35 if args.quick else 1.0,
                              name=args.name or out.stem, provider=args.provider, energy=args.energy,
-                             progress=lambda i, n: bar.update(task, completed=i, total=n),
+                             progress=Phases(bar),
                              log=lambda s: bar.console.print(s),
                              **(QUICK_PROBE if args.quick else {}))
     how = f"from {args.fit}" if args.fit else "on this machine"

@@ -4,7 +4,6 @@ an exit, path 0 on its own), plus a manifest. Verified against PyTorch at export
 
 from __future__ import annotations
 
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Sequence
@@ -18,7 +17,7 @@ from explorer.deploy.manifest import MANIFEST, file_sha256, write_manifest
 from explorer.deploy.quantize import MAX_DEGRADATION
 from explorer.deploy.sessions import session
 from explorer.errors import UserError
-from explorer.files import replacing_folder
+from explorer.files import replacing_folder, scratch_dir
 from explorer.model import AnytimeDepthNet
 from explorer.model.onnx import OPSET, example_inputs, export_segments
 from explorer.training.train import network_from_checkpoint
@@ -175,7 +174,7 @@ def quantization_effect(net, input_size: tuple[int, int], data: str, calibration
     if stages == ():   # no graph int8 (none pays on the device): its fp32 metrics
         paths = net.candidate.num_paths
         return {"ratios": [{}] * paths, "rmse_degradation": [0.0] * paths, "frames": 0, "int8_graphs": []}
-    with tempfile.TemporaryDirectory(prefix="explorer-int8-") as tmp:
+    with scratch_dir("int8") as tmp:
         m = export_network(net, Path(tmp) / "model", input_size, devices=(),
                            quantization=Quantization(data=data, calibration_frames=calibration_frames,
                                                      eval_frames=eval_frames, max_degradation=math.inf, force=True,

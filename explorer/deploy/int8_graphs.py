@@ -10,12 +10,12 @@ path lost far more RMSE with full-range weights than with 7 bits on such a machi
 
 import contextlib
 import io
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
 from explorer.cost.precision import FLOAT_STAGES
+from explorer.files import scratch_dir
 from explorer.probe import same_constant, shared_pool_threads
 
 #: a graph with none of these keeps fp32: nothing in it is worth quantizing
@@ -271,7 +271,7 @@ def _quantize(src: Path, dst: Path, feeds: list[dict[str, np.ndarray]]) -> bool:
     if not any(n.op_type in QUANTIZED_OPS for n in onnx.load(str(src)).graph.node):
         dst.write_bytes(src.read_bytes())
         return False
-    with tempfile.TemporaryDirectory() as tmp:
+    with scratch_dir("quantize") as tmp:
         prepared = Path(tmp) / "prepared.onnx"
         quant_pre_process(str(src), str(prepared), skip_symbolic_shape=True)
         model = onnx.load(str(prepared))

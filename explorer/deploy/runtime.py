@@ -7,7 +7,6 @@ from __future__ import annotations
 import io
 import math
 import os
-import tempfile
 import threading
 import time
 import weakref
@@ -22,7 +21,7 @@ from explorer.deploy.manifest import MANIFEST, read_manifest  # noqa: F401  (MAN
 from explorer.deploy.sessions import check_provider
 from explorer.errors import UserError
 from explorer.files import read_image as read_image_file
-from explorer.files import read_text, write_atomically
+from explorer.files import read_text, scratch_dir, write_atomically
 
 #: ``AnytimeRunner(arenas=...)``
 ARENAS = ("both", "shared", "own")
@@ -114,7 +113,7 @@ class AnytimeRunner:
         self.handed_off: dict[str, str] = {}   # tensor passed between stages -> its form ("blocked", ...)
         self._graphs: list[tuple[bytes, bool]] = []   # each session's graph, and whether onnxruntime optimises it
         handoff = handoff and provider == "CPUExecutionProvider"   # its NCHWc kernels and QDQ fusions
-        with tempfile.TemporaryDirectory() as tmp:
+        with scratch_dir("runtime") as tmp:
             optimized = Path(tmp)
             for k, st in enumerate(self.manifest["stages"]):
                 f = self.dir / st["file"]

@@ -17,7 +17,8 @@ of speed is kept in the results.
 
 Modules: ``formats`` (bundle manifest, results file), ``sessions`` (onnxruntime sessions, thread pool,
 arena), ``rewrites`` (graph rewrites shared with the runtime), ``timing`` (timing and speed checks),
-``power`` (power sensors, energy), ``identity`` (the machine), ``run`` (the probe's run and command line).
+``power`` (power sensors, energy), ``identity`` (the machine), ``run`` (the probe's run and command line),
+``scratch`` (scratch folders a killed process does not leave behind, SIGTERM that unwinds).
 """
 
 from .formats import (BUNDLE_FORMAT, DEFAULT_PROVIDER, RESULTS_FORMAT, VERSION, WARMUP, ProbeError, load_manifest,
@@ -27,7 +28,8 @@ from .power import PowerSensor, PowerWindow, find_sensor, idle_power, inference_
 from .rewrites import (NHWC_SUFFIX, SUFFIX, UINT8_NHWC_SUFFIX, UINT8_SUFFIX, blocked_skip_adds,
                        channels_last_skip_adds, hand_off_blocked, hand_off_channels_last, hand_off_quantized,
                        same_constant)
-from .run import candidate_inputs, main, run_probe, schedule
+from .run import MEASURING_ENERGY, TIMING_AGAIN, TIMING_GRAPHS, candidate_inputs, main, run_probe, schedule
+from .scratch import process_alive, remove_stale_scratch, scratch_dir, sigterm_unwinds
 from .sessions import (POOL_ENV, block_size, check_provider, default_threads, session, shared_arena,
                        shared_pool_threads, thread_pool)
 from .timing import (CALM_WAIT_S, REMEASURE_PASSES, SLOW, SPEED_CHECK_EVERY, SPEED_CHECK_REPEATS, SPEED_DRIFT_WARN,

@@ -19,10 +19,16 @@ from .formats import (DEFAULT_PROVIDER, RESULTS_FORMAT, VERSION, WARMUP, ProbeEr
                       write_atomically)
 from .identity import device_identity
 from .power import find_sensor, idle_power, inference_energy
+from .scratch import sigterm_unwinds
 from .sessions import _shared_pool, check_provider, default_threads, session, shared_pool_threads, thread_pool
 from .timing import (CALM_WAIT_S, REMEASURE_PASSES, SPEED_CHECK_EVERY, SPEED_DRIFT_WARN, _random_feeds, chain_runs,
                      chain_sessions, fixed_graph_timer, set_aside, slow_windows, slowness, speed_drift, speed_layer,
                      speed_stage, time_call, time_chain, wait_until_calm)
+
+
+#: What the probe's ``progress(done, total, what)`` counts, each from 0 to its own total: the graphs
+#: not timed yet, each pass of graphs timed again, the candidates whose energy is measured.
+TIMING_GRAPHS, TIMING_AGAIN, MEASURING_ENERGY = "timing graphs", "timing again", "measuring energy"
 
 
 def candidate_inputs(manifest: dict, rng: np.random.Generator, cand: dict | None = None) -> dict[str, np.ndarray]:
@@ -51,7 +57,9 @@ def run_probe(bundle_dir: "str | Path", out: "str | Path", provider: str = DEFAU
     fed by the one before), then, where a power sensor is readable, the energy of whole inferences.
     Returns the results, also written (atomically, after every graph) to ``out``. Graphs timed while a
     speed check showed the machine slow are timed again in up to ``remeasure_passes`` more passes, each
-    after waiting up to ``calm_wait_s`` for the machine's usual speed."""
+    after waiting up to ``calm_wait_s`` for the machine's usual speed. ``progress(done, total, what)``:
+    each pass (``TIMING_GRAPHS``, then ``TIMING_AGAIN``) and the energy (``MEASURING_ENERGY``) counted
+    from 0, called with 0 when it starts."""
     bundle_dir, out = Path(bundle_dir), Path(out)
     manifest = load_manifest(bundle_dir)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -105,8 +113,7 @@ class _Timing:
         self.res, self.manifest, self.bundle_dir, self.out = res, manifest, bundle_dir, out
         self.threads, self.provider, self.repeats, self.progress = threads, provider, repeats, progress
         self.layers, self.cands = manifest["layers"], manifest["candidates"]
-        self.total = len(self.layers) + sum(len(c["graphs"]) for c in self.cands)
-        self.done = 0
+        self.what, self.total, self.done = TIMING_GRAPHS, 0, 0
         self.rng = np.random.default_rng(0)
         self.reference, reference_stage = speed_layer(self.layers), speed_stage(self.cands)
         speed = res.setdefault("speed", {"layer": self.reference["id"] if self.reference else None, "ms": [],
@@ -122,10 +129,21 @@ class _Timing:
                                            (speed["stage"], speed["stage_ms"]))
                        if file]
 
-    def tick(self, what: str) -> None:
+    def start_pass(self, what: str) -> None:
+        """Opens a pass: its progress counts the graphs not timed yet (a resumed run's, or those set
+        aside to be timed again) from 0. A pass that times nothing says nothing."""
+        layers, stages = self.res["layers"], self.res["stages"]
+        self.what, self.done = what, 0
+        self.total = (sum(item["id"] not in layers for item in self.layers)
+                      + sum(g["stage"] not in stages.get(c["key"], {}) for c in self.cands for g in c["graphs"]))
+        if self.progress and self.total:
+            self.progress(0, self.total, what)
+
+    def tick(self) -> None:
+        """One graph timed."""
         self.done += 1
         if self.progress:
-            self.progress(self.done, self.total, what)
+            self.progress(self.done, self.total, self.what)
 
     def check_speed(self) -> float:
         """Times the fixed graphs (and opens a new window of graphs); returns how much slower than
@@ -146,6 +164,7 @@ class _Timing:
             self.timed_after[label] = len(self.speed["ms"]) - 1
 
     def all_passes(self, remeasure_passes: int, calm_wait_s: float, log: Callable[[str], None]) -> None:
+        self.start_pass(TIMING_GRAPHS)
         for attempt in range(remeasure_passes + 1):
             self.since_check = SPEED_CHECK_EVERY   # each pass opens with a check
             timed_before = dict(self.timed_after)
@@ -160,10 +179,10 @@ class _Timing:
             if not again:
                 break
             log(f"the machine ran slower for a while ({len(again)} graphs timed then): timing those again")
-            wait_until_calm(slowness(self.speed)[-1], self.check_speed, 1.0, calm_wait_s)
             set_aside(self.res, again)
+            self.start_pass(TIMING_AGAIN)   # before the wait for calm, which is part of the pass
+            wait_until_calm(slowness(self.speed)[-1], self.check_speed, 1.0, calm_wait_s)
             self.speed["remeasured"] = self.speed.get("remeasured", 0) + len(again)
-            self.done -= self.total   # the progress bar goes round again
 
     def one_pass(self) -> None:
         """Times every graph of the bundle not timed yet, layers and candidates interleaved."""
@@ -181,14 +200,12 @@ class _Timing:
             ms = time_call(lambda: sess.run(None, feeds), WARMUP, self.repeats)
             self.res["layers"][item["id"]] = min(ms, self.earlier.pop(item["id"], ms))
             write_atomically(self.out, self.res)
-        self.tick("layers")
+            self.tick()
 
     def time_candidate(self, item: dict) -> None:
         """Times the candidate's stage graphs not timed yet, in sequence, each fed by the one before."""
         kept = self.res["stages"].setdefault(item["key"], {})
         if all(g["stage"] in kept for g in item["graphs"]):
-            for _ in item["graphs"]:
-                self.tick("stages")
             return
         start = candidate_inputs(self.manifest, self.rng, item)
         chain = chain_sessions([self.bundle_dir / g["file"] for g in item["graphs"]], self.threads, self.provider)
@@ -199,7 +216,7 @@ class _Timing:
             if ms is not None:
                 label = f"{item['key']}/{g['stage']}"
                 kept[g["stage"]] = min(ms, self.earlier.pop(label, ms))
-            self.tick("stages")
+                self.tick()
         write_atomically(self.out, self.res)
 
 
@@ -224,6 +241,9 @@ def _probe_energy(res: dict, manifest: dict, bundle_dir: Path, out: Path, provid
                          "energy not measured"}
         log(res["energy"]["note"])
         return
+    cands = manifest["candidates"]
+    if progress:
+        progress(0, len(cands), MEASURING_ENERGY)   # the idle power first
     e = res["energy"] if res.get("energy") and res["energy"].get("sensor") else None
     if e is None:
         log(f"power sensor: {sensor.name} ({sensor.what}); idle power for {idle_s:g} s")
@@ -231,7 +251,6 @@ def _probe_energy(res: dict, manifest: dict, bundle_dir: Path, out: Path, provid
              "inferences": {}}
         res["energy"] = e
         write_atomically(out, res)
-    cands = manifest["candidates"]
     rng = np.random.default_rng(1)
     for i, cand in enumerate(cands):
         if cand["key"] not in e["inferences"]:
@@ -247,7 +266,7 @@ def _probe_energy(res: dict, manifest: dict, bundle_dir: Path, out: Path, provid
             e["inferences"][cand["key"]] = inference_energy(sensor, inference, e["idle_w"], window_s)
             write_atomically(out, res)
         if progress:
-            progress(i + 1, len(cands), "energy")
+            progress(i + 1, len(cands), MEASURING_ENERGY)
 
 
 def _default_bundle() -> Path:
@@ -291,9 +310,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(f"  {what}: {i}/{n}", file=sys.stderr, flush=True)
 
     try:
-        res = run_probe(args.bundle, args.out, args.provider, args.threads, args.repeats, args.energy,
-                        args.sysfs_root, args.vcgencmd, args.idle, args.window, progress,
-                        log=lambda s: print(s, file=sys.stderr, flush=True))
+        with sigterm_unwinds():   # its scratch folders go with it
+            res = run_probe(args.bundle, args.out, args.provider, args.threads, args.repeats, args.energy,
+                            args.sysfs_root, args.vcgencmd, args.idle, args.window, progress,
+                            log=lambda s: print(s, file=sys.stderr, flush=True))
     except ProbeError as exc:
         print(f"probe.pyz: error: {exc}", file=sys.stderr)
         return 2

@@ -14,6 +14,7 @@ except ImportError:  # the probe's main() says what to install, in one line
 
 from .formats import DEFAULT_PROVIDER, ProbeError
 from .rewrites import NCHWC_DOMAIN, _onnx, blocked_skip_adds, channels_last_skip_adds
+from .scratch import scratch_dir
 
 
 # -- sessions -------------------------------------------------------------------------
@@ -101,8 +102,7 @@ def session(model: "bytes | str | Path", threads: int | None = None, provider: s
     (``blocked_skip_adds``; ``blocked_skips=False``: as onnxruntime left them), ``provider`` first
     (the CPU one takes what it cannot run)."""
     if optimize and blocked_skips and provider == DEFAULT_PROVIDER and _onnx() is not None:
-        import tempfile
-        with tempfile.TemporaryDirectory() as tmp:
+        with scratch_dir("session") as tmp:
             optimized = Path(tmp) / "optimized.onnx"
             sess = _session(model, threads, provider, True, optimized, own_arena)
             graph = _onnx().load(str(optimized))

@@ -15,6 +15,7 @@ except ImportError:  # the probe's main() says what to install, in one line
 
 from .formats import DEFAULT_PROVIDER, WARMUP
 from .rewrites import _onnx, hand_off_blocked, hand_off_channels_last
+from .scratch import scratch_dir
 from .sessions import session
 
 def _random_feeds(inputs: Iterable[dict], rng: np.random.Generator) -> dict[str, np.ndarray]:
@@ -31,10 +32,9 @@ def chain_sessions(models: Sequence["bytes | Path"], threads: "int | None" = Non
     the held-out timings time a candidate's stage graphs with: timed alone, each stage paid the layout
     conversions at its edges that the runtime does not, and the host profile predicted the paper
     design's paths too slow (benchmarks/bench_runtime.py compares predicted and measured paths)."""
-    import tempfile
     if provider != DEFAULT_PROVIDER or _onnx() is None:
         return [session(m, threads, provider) for m in models]
-    with tempfile.TemporaryDirectory() as tmp:
+    with scratch_dir("chain") as tmp:
         sessions = [session(m, threads, provider, save_optimized=Path(tmp) / f"{k}.onnx") for k, m in enumerate(models)]
         try:
             graphs = [_onnx().load(str(Path(tmp) / f"{k}.onnx")) for k in range(len(models))]

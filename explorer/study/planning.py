@@ -275,10 +275,11 @@ def measure_speeds(config, train_set, val_set, device, supernet: bool, steps: in
     supernet with its recipe (on a throw-away file): the median seconds a step, warm-up left out. With
     ``deployment`` (:class:`~explorer.training.deployment.DeploymentData`) and a recipe that tunes, the
     paper design's tuning phase too: a few steps at the deployment size and its measurement there."""
-    import tempfile
     from pathlib import Path
 
     import torch
+
+    from explorer.files import scratch_dir
     marks: dict[int, float] = {}
     recipe = dataclasses.replace(config.finalist_config(), steps=steps)
     torch.manual_seed(0)
@@ -302,7 +303,7 @@ def measure_speeds(config, train_set, val_set, device, supernet: bool, steps: in
     supernet_step = 0.0
     if supernet:
         marks = {}
-        with tempfile.TemporaryDirectory() as tmp:
+        with scratch_dir("planning") as tmp:
             train_supernet(SearchSpace.from_yaml(config.space), config.data,
                            dataclasses.replace(config.supernet_recipe(), steps=steps), Path(tmp) / "probe.pt",
                            device, progress=lambda s, n, r: marks.setdefault(s, time.perf_counter()))

@@ -206,3 +206,28 @@ def test_search_rescore_report_export_cli(run_cli, tmp_path):
     assert at32["path_metrics"] != manifest["path_metrics"]
     code, _, err = run_cli("export", "--study", "cli", "--trial", "999", "--out", tmp_path / "m2", *common)
     assert code == 2 and "not a completed trial" in err
+
+
+def test_notebook_copies_the_shipped_notebook_out_and_keeps_an_edited_copy(run_cli, tmp_path):
+    import explorer
+    from pathlib import Path
+    from explorer.cli.notebook import NOTEBOOKS_DIR
+    # package data: what an installed wheel carries (pyproject's package-data), not the repository's
+    assert NOTEBOOKS_DIR.parent == Path(explorer.__file__).resolve().parent
+    shipped = (NOTEBOOKS_DIR / "analysis.ipynb").read_bytes()
+    out = tmp_path / "analysis"
+    code, stdout, err = run_cli("notebook", "--out", out)
+    assert code == 0, err
+    assert (out / "analysis.ipynb").read_bytes() == shipped and json.loads(shipped)["cells"]
+    assert f"jupyter lab {out / 'analysis.ipynb'}" in " ".join(stdout.split())
+    code, stdout, _ = run_cli("notebook", "--out", out)   # the same again: nothing to refuse
+    assert code == 0 and "unchanged" in stdout
+    (out / "analysis.ipynb").write_text('{"cells": []}')   # the user's own edits
+    code, _, err = run_cli("notebook", "--out", out)
+    assert code == 2 and len(err.strip().splitlines()) == 1 and "--force" in err
+    assert (out / "analysis.ipynb").read_text() == '{"cells": []}'
+    code, _, err = run_cli("notebook", "--out", out, "--force")
+    assert code == 0 and (out / "analysis.ipynb").read_bytes() == shipped
+    (tmp_path / "a-file").write_text("x")
+    code, _, err = run_cli("notebook", "--out", tmp_path / "a-file")
+    assert code == 2 and "is a file" in err

@@ -212,11 +212,14 @@ def test_graphs_timed_while_the_machine_ran_slow_are_timed_again(bundle_dir, tmp
 
     monkeypatch.setattr(probe.timing, "time_call", fake_time_call)
     monkeypatch.setattr(probe.run, "time_chain", _graph_by_graph(fake_time_call))
-    logged = []
-    res = probe.run_probe(bundle_dir, tmp_path / "r.json", repeats=2, energy=False, log=logged.append)
+    logged, shown = [], []
+    res = probe.run_probe(bundle_dir, tmp_path / "r.json", repeats=2, energy=False, log=logged.append,
+                          progress=lambda i, n, what: shown.append((what, i, n)))
     total = len(res["bundle"]["layers"]) + sum(len(c["graphs"]) for c in res["bundle"]["candidates"])
     every = probe.SPEED_CHECK_EVERY
     assert total > 3 * every
+    # the progress counts the pass of timing again on its own, over the graphs it times again
+    assert _passes(shown) == [(probe.TIMING_GRAPHS, total), (probe.TIMING_AGAIN, 2 * every)]
     # the windows on both sides of the slow check: graphs 13-24 and 25-36, timed twice
     assert res["speed"]["remeasured"] == 2 * every and len(timed) == total + 2 * every
     assert probe.speed_drift(res) == pytest.approx(2.0)
@@ -234,6 +237,21 @@ def test_graphs_timed_while_the_machine_ran_slow_are_timed_again(bundle_dir, tmp
     out.write_text(json.dumps(res))
     code, stdout, _ = run_cli("calibrate", "--fit", out, "--out", tmp_path / "box.yaml", "--force")
     assert code == 0 and "varied by 5%" in stdout and "timed again" not in stdout and "calibrate again" not in stdout
+
+
+def _passes(calls: list[tuple[str, int, int | None]]) -> list[tuple[str, int]]:
+    """The passes that progress calls (what, done, total) tell of, as [(what, total)]: each starts at
+    0 and counts up to its total (None until it is known), under one name."""
+    passes: list[list] = []
+    for what, done, total in calls:
+        if done == 0:
+            passes.append([what, total, 0])
+            continue
+        last = passes[-1]
+        assert what == last[0] and last[2] < done <= total and last[1] in (None, total), (what, done, total, last)
+        last[1:] = [total, done]
+    assert all(done == total for _, total, done in passes), passes
+    return [(what, total) for what, total, _ in passes]
 
 
 def _graph_count(bundle_dir) -> int:
@@ -473,9 +491,9 @@ def test_calibration_times_again_the_graphs_far_above_its_fit(tmp_path, monkeypa
             return getattr(probe, name)
 
     monkeypatch.setattr(cal, "_probe", Probe())
-    logged = []
+    logged, shown = [], []
     prof = cal.calibrate(repeats=2, scale=0.05, stage_candidates=1, energy=False, results_out=tmp_path / "r.json",
-                         log=logged.append)
+                         log=logged.append, progress=lambda *call: shown.append(call))
     res = json.loads((tmp_path / "r.json").read_text())
     assert len(calls) >= 2 and calls[1] == (False, 0)   # a round of its own is the second timing
     assert prof.provenance["conditions"]["retimed_outliers"] >= len(inflated) == 1
@@ -484,3 +502,10 @@ def test_calibration_times_again_the_graphs_far_above_its_fit(tmp_path, monkeypa
         key, _, stage = label.partition("/")
         assert res["stages"][key][stage] < ms / 4   # timed again, the faster kept
     assert [label in labels for labels in set_aside for label in stubborn] == [True] + [False] * (len(set_aside) - 1)
+    # every phase counted from 0 to its own total: the rounds of timing again over the graphs they time
+    passes = _passes(shown)
+    graphs = len(res["bundle"]["layers"]) + sum(len(c["graphs"]) for c in res["bundle"]["candidates"])
+    assert passes[0][0] == cal.EXPORTING and passes[0][1] > 0 and passes[1] == (probe.TIMING_GRAPHS, graphs)
+    rounds = [n for (what, n), (before, _) in zip(passes[1:], passes)
+              if what == probe.TIMING_AGAIN and before == cal.FITTING]
+    assert rounds == [len(labels) for labels in set_aside] and passes[-1] == (cal.FITTING, 1)
