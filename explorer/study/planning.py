@@ -268,11 +268,11 @@ def _seconds_per_step(marks: dict[int, float]) -> float:
     return statistics.median(times) if times else 0.0
 
 
-def measure_speeds(config, train_set, val_set, device, supernet: bool, steps: int = 6,
+def measure_speeds(config, train_set, val_set, device, supernet: "SearchSpace | None", steps: int = 6,
                    baselines: tuple[str, ...] = (), finalists: tuple = (), deployment=None) -> Speeds:
     """A few steps of the paper design with the study's recipe, of each baseline named in ``baselines``
     and each candidate in ``finalists`` with the same recipe and, when one must be trained, of the
-    supernet with its recipe (on a throw-away file): the median seconds a step, warm-up left out. With
+    ``supernet`` space's supernet with its recipe (on a throw-away file; None: none): the median seconds a step, warm-up left out. With
     ``deployment`` (:class:`~explorer.training.deployment.DeploymentData`) and a recipe that tunes, the
     paper design's tuning phase too: a few steps at the deployment size and its measurement there."""
     from pathlib import Path
@@ -304,7 +304,7 @@ def measure_speeds(config, train_set, val_set, device, supernet: bool, steps: in
     if supernet:
         marks = {}
         with scratch_dir("planning") as tmp:
-            train_supernet(SearchSpace.from_yaml(config.space), config.data,
+            train_supernet(supernet, config.data,
                            dataclasses.replace(config.supernet_recipe(), steps=steps), Path(tmp) / "probe.pt",
                            device, progress=lambda s, n, r: marks.setdefault(s, time.perf_counter()))
         supernet_step = _seconds_per_step(marks)

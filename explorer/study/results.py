@@ -17,7 +17,7 @@ from explorer.data import open_dataset
 from explorer.errors import UserError
 from explorer.model.reference import REFERENCES
 from explorer.space import Candidate
-from explorer.study.config import DEFAULT_BASELINES, study_config
+from explorer.study.config import DEFAULT_BASELINES, study_config, study_context
 from explorer.study.evaluators import _batches, recalibrate_batchnorm
 from explorer.study.records import study_record, trial_record
 from explorer.study.retry import interrupted_trials, retries_by_origin
@@ -272,7 +272,6 @@ def estimate_fidelity(study: optuna.Study) -> str | None:
     """A sentence on how well the study's supernet ranks its space, as the fidelity benchmark measured
     supernets of the same space, data and recipe (or that none was measured); None for a study that
     did not estimate with a supernet."""
-    from explorer.space import SearchSpace
     from explorer.supernet import SupernetRecipe, describe_fidelity, measured_fidelity, read_supernet
     if not study_record(study).config:
         return None
@@ -283,7 +282,7 @@ def estimate_fidelity(study: optuna.Study) -> str | None:
     try:
         if config.supernet:    # a given file: the recipe it was trained with
             recipe = SupernetRecipe.from_dict(read_supernet(config.supernet)["recipe"])
-        space = SearchSpace.from_yaml(config.space)
+        space = study_context(study).space
     except UserError:
         return None
     return describe_fidelity(measured_fidelity(space, config.data, recipe))

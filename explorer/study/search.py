@@ -208,9 +208,8 @@ def _existing_config(storage: optuna.storages.BaseStorage, name: str) -> dict | 
         return None
 
 
-def _cached_supernet_steps(config: SearchConfig) -> list[int]:
+def _cached_supernet_steps(space: SearchSpace, config: SearchConfig) -> list[int]:
     """Step counts of the finished supernets cached for this space, data and recipe (steps aside)."""
-    space = SearchSpace.from_yaml(config.space)
     found = []
     for steps in sorted({*range(STEP_GRID, MAX_SUPERNET_STEPS + 1, STEP_GRID), config.supernet_steps}):
         path = default_path(space, config.data, dataclasses.replace(config.supernet_recipe(), steps=steps))
@@ -242,10 +241,11 @@ def baseline_load(config: SearchConfig, speeds=None) -> float:
     return load
 
 
-def plan_search(config: SearchConfig, storage: optuna.storages.BaseStorage, limit: "TimeLimit",
+def plan_search(context: StudyContext, storage: optuna.storages.BaseStorage, limit: "TimeLimit",
                 sampling_s: float | None, on_data: Callable[[int, int], None] | None = None):
     """(config as it will run, plan, speeds): the data generated, the machine measured, the run sized
     to what is left of ``limit`` (see explorer.study.planning)."""
+    config = context.config
     free = set(limit.free)
     old = _existing_config(storage, config.study)
     if old and "supernet_steps" in free and "supernet_steps" in old:
@@ -256,10 +256,10 @@ def plan_search(config: SearchConfig, storage: optuna.storages.BaseStorage, limi
     val_set = open_dataset(config.data, "val", config.train_size, train_augment=False)
     os.sync()  # data just generated is still being written back: measured then, steps read 1.6-2x slow
     trains_supernet = config.evaluator == "supernet" and not config.supernet
-    cached = _cached_supernet_steps(config) if trains_supernet else []
+    cached = _cached_supernet_steps(context.space, config) if trains_supernet else []
     must_measure_supernet = trains_supernet and ("supernet_steps" in free or config.supernet_steps not in cached)
     speeds = planning.measure_speeds(config, train_set, val_set, resolve_accelerator(config.accelerator),
-                                     supernet=must_measure_supernet,
+                                     supernet=context.space if must_measure_supernet else None,
                                      baselines=_measured_baselines(config) if config.finalists else (),
                                      deployment=_deployment_data(config, train_set) if config.finalists else None)
     trial_s = 0.0 if config.evaluator == "supernet" else planning.SAFETY * (
@@ -345,7 +345,7 @@ def _search(context: StudyContext, url: str, storage_url: str | None, workers: i
     sampling_cap = timeout_s
     wanted = (config.finalists, config.finalist_steps)   # before a plan shrinks them
     if time_limit is not None:
-        config, plan, speeds = plan_search(config, storage, time_limit, timeout_s, on_data)
+        config, plan, speeds = plan_search(context, storage, time_limit, timeout_s, on_data)
         timeout_s = plan.sampling_s
         if on_plan:
             on_plan(plan)
