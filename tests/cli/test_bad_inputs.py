@@ -37,6 +37,16 @@ def _bomb_png(path: Path) -> None:
     path.write_bytes(bytes(raw))
 
 
+def _damaged_study(journal: Path) -> None:
+    """A study whose one trial's stored metrics are not a list of per-path figures."""
+    import optuna
+    from optuna.storages import JournalStorage
+    from optuna.storages.journal import JournalFileBackend
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    study = optuna.create_study(study_name="dmg", storage=JournalStorage(JournalFileBackend(str(journal))))
+    study.add_trial(optuna.trial.create_trial(values=[1.0], user_attrs={"path_metrics": "oops", "workloads": {}}))
+
+
 def _workspace(root: Path) -> None:
     """The files the bad invocations point at."""
     (root / "random.bin").write_bytes(np.random.default_rng(0).bytes(3000))
@@ -56,6 +66,7 @@ def _workspace(root: Path) -> None:
     (root / "scan.csv").write_text(",".join(["2.0"] * 32))
     (root / "notjournal.log").write_text("this is not a journal\n")
     (root / "zeros.csv").write_text("deadline_ms\n0\n0\n0\n")
+    _damaged_study(root / "damaged.log")
     (root / "edited.json").write_text(json.dumps({"format": "explorer-probe-results", "version": 1,
                                                   "bundle": {}, "device": {}, "conditions": {},
                                                   "layers": {"L0": float("nan")}, "stages": {}}))
@@ -93,6 +104,8 @@ BAD = {
     "sqlite in /proc": ["search", "--space", "tiny", "--storage", "sqlite:////proc/nope/x.db", "--trials", "1"],
     "not a journal": ["rescore", "--study", "s", "--storage", "journal:notjournal.log", "--device", "tx2",
                       "--budget", "time:uniform:33ms"],
+    "damaged trial record": ["rescore", "--study", "dmg", "--storage", "journal:damaged.log", "--device", "tx2",
+                             "--budget", "time:uniform:33ms"],
     "trace of zeros": ["enumerate", "--space", "paper", "--budget", "time:trace:zeros.csv"],
     "energy without energy": ["enumerate", "--space", "paper", "--device", "tx2-cpu", "--budget",
                               "energy:uniform:0.5J"],
