@@ -49,7 +49,7 @@ def _search_config(args):
         max_params=args.max_params,
         max_first_exit_ms=args.max_first_exit, baselines=_baselines(args),
         pruning=not args.no_pruning, keep_weights=not args.no_weights, accelerator=args.accelerator,
-        evaluator=args.evaluator, supernet=args.supernet,
+        evaluator=args.evaluator, sampler=args.sampler, supernet=args.supernet,
         supernet_steps=600 if args.supernet_steps is None else args.supernet_steps,
         finalists=3 if args.finalists is None else args.finalists,
         finalist_steps=300 if args.finalist_steps is None else args.finalist_steps, tune_steps=args.tune_steps,
@@ -350,6 +350,9 @@ def _register_search(add, reports: dict) -> None:
                    help="how a candidate's accuracy is estimated: its slice of the space's supernet (trained "
                    "once, then under a second a candidate) or proxy training alone (~20 s a candidate). "
                    "auto (default): supernet with dense labels, proxy with --supervision self/mixed")
+    s.add_argument("--sampler", default="tpe", choices=["tpe", "random"],
+                   help="how candidates are proposed: tpe (default; Optuna's TPE over the trials so far, NSGA-II "
+                   "with several --objectives) or random (uniformly, each trial independent of the others)")
     s.add_argument("--supernet", help="supernet file (default: the one cached for space, data and recipe, "
                    "trained first if missing)")
     s.add_argument("--supernet-steps", type=int, default=None, help="supernet training steps (default: what "

@@ -10,6 +10,7 @@ Every item is a dict: ``image`` (3, H, W) float in [0, 1], ``depth`` (1, H, W) m
 
 from __future__ import annotations
 
+import weakref
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -89,17 +90,35 @@ def parse_data_spec(spec: str | DataSpec) -> DataSpec:
 
 
 class _SyntheticFrames:
+    """A generated split held in memory as the file stores it: rgb uint8, depth float16 (each frame's
+    depth made float32, the same values, when it is read): half the memory of float32 depth."""
+
     def __init__(self, path: Path, split: str) -> None:
         import h5py
         with h5py.File(path, "r") as f:
             self.rgb = np.asarray(f[split]["rgb"])
-            self.depth = np.asarray(f[split]["depth"], dtype=np.float32)
+            self.depth = np.asarray(f[split]["depth"])
 
     def __len__(self) -> int:
         return len(self.rgb)
 
     def __getitem__(self, i: int) -> RawFrame:
-        return RawFrame(self.rgb[i], self.depth[i], None, f"{i:05d}")
+        return RawFrame(self.rgb[i], self.depth[i].astype(np.float32), None, f"{i:05d}")
+
+
+#: the generated splits in memory, by (file, its modification time, split): a search opens the training
+#: split at the training and at the deployment size, in several places at once, and each data set
+#: reads this one copy of its frames (about 0.5 GB for the default training split), released with
+#: the last of them
+_LOADED: "weakref.WeakValueDictionary[tuple, _SyntheticFrames]" = weakref.WeakValueDictionary()
+
+
+def _synthetic_frames(path: Path, split: str) -> _SyntheticFrames:
+    key = (str(path.resolve()), path.stat().st_mtime_ns, split)
+    frames = _LOADED.get(key)
+    if frames is None:
+        frames = _LOADED[key] = _SyntheticFrames(path, split)
+    return frames
 
 
 class DepthDataset(Dataset):
@@ -177,7 +196,7 @@ def open_dataset(spec: str | DataSpec, split: str, input_size: tuple[int, int] =
     augment = (split == "train") if train_augment is None else train_augment
     if ds.kind == "synthetic":
         cfg = SyntheticConfig(train=ds.train, val=ds.val)
-        frames = _SyntheticFrames(ensure_synthetic(cfg, progress), split)
+        frames = _synthetic_frames(ensure_synthetic(cfg, progress), split)
     else:
         p = Path(ds.path)
         if ds.kind == "nyu":

@@ -107,25 +107,34 @@ class _StageResult:
 
 
 class StageMemo:
-    """Stage results by key, least recently used dropped beyond ``max_bytes`` of kept outputs."""
+    """Stage results by key, least recently used dropped beyond ``max_bytes`` of kept outputs. An exit's
+    result (its path metrics, no tensors) is kept apart, whatever the bytes: it costs nothing to keep,
+    and in one LRU with the decoders' outputs (tens of MB each) a small memo dropped it with them."""
 
     def __init__(self, max_bytes: int) -> None:
         self.max_bytes = max_bytes
         self.entries: OrderedDict[Hashable, _StageResult] = OrderedDict()
+        self.exits: dict[Hashable, _StageResult] = {}
         self.nbytes = 0
         self.hits = self.misses = 0
         self.path_0: dict[str, float] | None = None
 
     def get(self, key: Hashable) -> _StageResult | None:
-        entry = self.entries.get(key)
+        entry = self.exits.get(key)
+        if entry is None:
+            entry = self.entries.get(key)
+            if entry is not None:
+                self.entries.move_to_end(key)
         if entry is None:
             self.misses += 1
             return None
         self.hits += 1
-        self.entries.move_to_end(key)
         return entry
 
     def put(self, key: Hashable, entry: _StageResult) -> None:
+        if entry.calibration is None and entry.validation is None:
+            self.exits[key] = entry
+            return
         if entry.nbytes > self.max_bytes:
             return
         self.entries[key] = entry

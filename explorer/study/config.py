@@ -45,6 +45,8 @@ def baseline_model(name: str):
     raise UserError(f"unknown baseline '{name}': use {', '.join(BASELINES)} or a reference network "
                     f"({', '.join(REFERENCES)})")
 OBJECTIVES = ("anytime_loss", "params", "macs", "first_exit_ms")
+#: how a study proposes candidates: TPE (NSGA-II with several objectives), or uniformly at random
+SAMPLERS = ("tpe", "random")
 
 
 def objective_names(config: "SearchConfig") -> list[str]:
@@ -86,6 +88,7 @@ class SearchConfig:
     hints: bool = False                          # depth hints (explorer.training.depth_hints; poses given)
     amp: bool = False                            # the supernet's forward passes under bf16 autocast (GPUs)
     head_kinds: str = "rotate"                   # which supernet subnet trains which exit-head kind
+    sampler: str = "tpe"                         # tpe (NSGA-II with several objectives) | random (uniform)
 
     def __post_init__(self) -> None:
         if self.evaluator == "auto":  # the supernet is trained with dense labels; self-supervision trains alone
@@ -160,6 +163,8 @@ class SearchConfig:
             check_size(tuple(size), space.max_stride, name)
         if self.train_steps < 1:
             raise UserError("--proxy-steps must be at least 1")
+        if self.sampler not in SAMPLERS:
+            raise UserError(f"--sampler {self.sampler}: use one of {list(SAMPLERS)}")
         if self.evaluator not in EVALUATORS:
             raise UserError(f"--evaluator {self.evaluator}: use one of {list(EVALUATORS)}")
         if self.supernet and self.evaluator != "supernet":

@@ -31,6 +31,11 @@ from explorer.supernet import load_supernet
 from explorer.training.train import TrainConfig, batch_row, evaluate, image_batch, train
 
 EVALUATORS = ("supernet", "proxy")
+#: the stage memo's outputs at most (:class:`explorer.study._stagewise.StageMemo`). A decoder stage's
+#: outputs on the calibration and validation frames take 40-80 MB: replaying a default search's 178
+#: candidates, 2 GiB of them spared about 15% of the stage computations that 512 MiB made, and held a
+#: search at 5 GB while sampling (``benchmarks/bench_search_memory.py`` measures a search's peak)
+MEMO_BYTES = 512 * 2 ** 20
 
 
 @dataclass
@@ -99,7 +104,7 @@ class SupernetEvaluator:
 
     def __init__(self, supernet_file: str | Path, space, train_set, val_set, device: torch.device,
                  val_limit: int | None = None, calibration_images: int = 256, batch_size: int | None = None,
-                 stagewise: bool = True, memo_bytes: int = 2 * 2 ** 30, require_complete: bool = True) -> None:
+                 stagewise: bool = True, memo_bytes: int = MEMO_BYTES, require_complete: bool = True) -> None:
         self.file = Path(supernet_file)
         self.supernet, state = load_supernet(self.file, space, require_complete)
         self.supernet.to(device).eval()

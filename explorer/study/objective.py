@@ -7,6 +7,10 @@ from pathlib import Path
 from typing import Callable
 
 import optuna
+# imported with this module, not in Objective.__init__: optuna.artifacts keeps the ImportErrors of its
+# optional back-ends (boto3, google-cloud) with their tracebacks, whose frames would keep the first
+# Objective that imported it, with its evaluator's caches (a gigabyte), alive as long as the process
+from optuna.artifacts import FileSystemArtifactStore
 
 from explorer.anytime import anytime_loss
 from explorer.cost import model_cost
@@ -73,6 +77,9 @@ class Objective:
             # the study's own supernet may be short of its steps (its time limit stopped it); a given one was checked
             self.evaluator = SupernetEvaluator(file, self.space, calibration, self.val_set, self.torch_device,
                                                val_limit=config.val_limit, require_complete=bool(config.supernet))
+            # the evaluator keeps batches of the first frames: the training set (0.5 GB of frames for the
+            # default data) is not held while sampling (deployment_data opens it again if asked)
+            self.train_set = None
         else:
             self.evaluator = ProxyEvaluator(self.train_set, self.val_set, self.train_cfg, self.torch_device,
                                             val_limit=config.val_limit, seed=config.seed)
@@ -80,7 +87,6 @@ class Objective:
         self.twins = FinishedTwins()
         self.artifacts = None
         if config.keep_weights and study_path is not None:
-            from optuna.artifacts import FileSystemArtifactStore
             (study_path / "artifacts").mkdir(parents=True, exist_ok=True)
             self.artifacts = FileSystemArtifactStore(str(study_path / "artifacts"))
 
@@ -89,11 +95,13 @@ class Objective:
         validation sets at the deployment size (--input-size; opened once, when first asked for)."""
         if self._deployment is None:
             cfg = self.config
+            train_set = self.train_set if self.train_set is not None else hinted_if_asked(
+                cfg, open_dataset(cfg.data, "train", cfg.train_size, seed=cfg.seed), None)
             if tuple(cfg.input_size) == tuple(cfg.train_size):
-                self._deployment = DeploymentData(self.train_set, self.train_set, self.val_set)
+                self._deployment = DeploymentData(train_set, train_set, self.val_set)
             else:
                 deploy_train = hinted_if_asked(cfg, open_dataset(cfg.data, "train", cfg.input_size, seed=cfg.seed), None)
-                self._deployment = DeploymentData(self.train_set, deploy_train, open_dataset(
+                self._deployment = DeploymentData(train_set, deploy_train, open_dataset(
                     cfg.data, "val", cfg.input_size, train_augment=False))
         return self._deployment
 

@@ -65,11 +65,14 @@ from explorer.study.sampling import RecentTrialsTPE
 from explorer.study.storage import REPORTS_DIR, local_url, open_storage, searching_alone, study_dir
 from explorer.supernet import default_path, load_supernet, read_supernet, train_supernet
 from explorer.training.deployment import DeploymentData
+from explorer.training.memory import release_host_memory
 from explorer.training.train import resolve_accelerator
 
 
 def make_sampler(config: SearchConfig, worker: int = 0) -> optuna.samplers.BaseSampler:
     seed = config.seed + 1000 * worker
+    if config.sampler == "random":   # the yardstick the guided samplers must beat (benchmarks/bench_search_value.py)
+        return optuna.samplers.RandomSampler(seed=seed)
     if len(config.objectives) > 1:
         return optuna.samplers.NSGAIISampler(seed=seed)
     import warnings
@@ -361,7 +364,7 @@ def _search(context: StudyContext, url: str, storage_url: str | None, workers: i
         record_study(study, artifacts_dir=str((study_dir(config.study, reports) / "artifacts").resolve()))
     cutoff = None if plan is None else supernet_deadline(plan, time_limit, speeds, "paper" in config.baselines,
                                                          sampling_cap)
-    supernet = ensure_supernet(context, on_supernet, on_data, cutoff)
+    supernet = ensure_supernet(context.with_config(config), on_supernet, on_data, cutoff)   # the planned steps
     if supernet is not None:
         record_study(study, supernet=str(supernet.resolve()))
         plan = _note_unfinished(supernet, plan)
@@ -372,9 +375,15 @@ def _search(context: StudyContext, url: str, storage_url: str | None, workers: i
     t0 = time.time()
     deadline = None if timeout_s is None else t0 + timeout_s
     if workers == 1:
+        release_host_memory()   # the measurements' and the supernet's training's pages, before the sampler's caches
         objective = Objective(context.with_config(config), study_dir(config.study, reports), on_data)
         cb = [lambda s, t: on_trial(s, t)] if on_trial else []
         _optimize(study, objective, n_trials, deadline, cb)
+        # the sampler's caches (the stage memo, the encoders' features) are not the retrainings': their
+        # pages go back before those train at the deployment size (explorer.training.memory)
+        del objective, cb
+        gc.unfreeze()
+        release_host_memory()
     else:
         _run_workers(study, config, url, workers, n_trials, deadline, reports, on_poll, on_data)
     if plan is not None and (config.finalists or config.baselines):

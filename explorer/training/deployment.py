@@ -17,6 +17,7 @@ from pathlib import Path
 
 import torch
 
+from explorer.training.memory import release_host_memory
 from explorer.training.train import TrainConfig, TrainResult, train
 
 #: the tuning phase's learning rate, as a fraction of the recipe's (it continues a trained network)
@@ -70,6 +71,9 @@ def train_for_deployment(net, data: DeploymentData, recipe: DeploymentRecipe, ac
                      val_limit=val_limit)
     # no validation pass at the training size ([] evaluates nothing): its figures are not the network's
     first = train(net, data.train, [], recipe.train, accelerator, checkpoint=checkpoint)
+    # a training step's activations at the deployment size are the most a search allocates at once (over
+    # a gigabyte at 224x224): the tuning starts from the pages what ran before it freed
+    release_host_memory()
     tune_checkpoint = None if checkpoint is None else checkpoint.with_name(f"{checkpoint.stem}-tune{checkpoint.suffix}")
     tuned = train(net, data.deploy_train, data.deploy_val, recipe.tune_config(), accelerator, checkpoint=tune_checkpoint,
                   val_limit=val_limit)

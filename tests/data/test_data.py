@@ -1,3 +1,6 @@
+import gc
+import weakref
+
 import h5py
 import numpy as np
 import pytest
@@ -5,7 +8,7 @@ import torch
 
 from explorer.data import ScanConfig, open_dataset, parse_data_spec, scan_from_image, simulate_scan
 from explorer.data.readers import KittiRaw
-from explorer.data.synthetic import render_scene
+from explorer.data.synthetic import SyntheticConfig, ensure_synthetic, render_scene
 from explorer.errors import UserError
 from explorer.metrics import MetricAverager, batch_depth_metrics, depth_metrics
 from explorer.model import interpolate_scan
@@ -30,6 +33,22 @@ def test_synthetic_dataset_items():
     assert item["depth"].shape == (1, 64, 96) and item["scan"].shape == (96,)
     assert item["scan_row"] == 32
     assert torch.allclose(item["scan"], item["depth"][0, 32])
+
+
+def test_synthetic_frames_held_once_as_stored():
+    """Data sets of one split at two sizes read one copy of its frames, depth kept as the file's float16
+    and read as float32 with the file's values; the copy goes with the last data set."""
+    small, large = open_dataset(TINY_DATA, "train", (64, 64)), open_dataset(TINY_DATA, "train", (224, 224), seed=3)
+    assert small.frames is large.frames and small.frames.depth.dtype == np.float16
+    with h5py.File(ensure_synthetic(SyntheticConfig(train=48, val=16)), "r") as f:
+        stored = np.asarray(f["train"]["depth"][5], dtype=np.float32)
+    frame = large.frames[5]
+    assert frame.depth.dtype == np.float32 and np.array_equal(frame.depth, stored)
+    assert np.array_equal(large[5]["depth"][0].numpy(), stored)
+    held = weakref.ref(small.frames)
+    del small, large, frame
+    gc.collect()
+    assert held() is None
 
 
 def test_scan_simulation():

@@ -167,6 +167,15 @@ def test_stage_memo_keeps_to_its_size():
     assert 9 not in memo.entries
 
 
+def test_stage_memo_keeps_exits_beside_its_outputs():
+    """An exit's metrics (no tensors) stay when the outputs that filled the memo are dropped."""
+    memo = StageMemo(max_bytes=100)
+    memo.put("exit", _StageResult(None, None, {"rmse": 0.5}))
+    for k in range(5):
+        memo.put(k, _StageResult([], [], nbytes=40))
+    assert memo.get("exit").metrics == {"rmse": 0.5} and memo.get(0) is None and memo.nbytes == 80
+
+
 def test_a_few_steps_lower_every_exit_loss_of_random_subnets(tmp_path):
     space = SearchSpace.from_yaml("tiny")
     data = open_dataset(TINY_DATA, "train", (32, 32), train_augment=False)

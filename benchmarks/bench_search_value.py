@@ -1,0 +1,258 @@
+"""Does the search earn its time? Three ways to spend the same wall time on this machine finding a
+network of the default space (tx2, U(0, 33 ms)), each repetition one seed, the strategies interleaved
+(their order rotates from seed to seed), each given ``--time-s`` T seconds with everything it needs:
+
+- ``default``: ``explorer search``'s pipeline through its Python API with ``--time-limit T``: the
+  supernet trained inside T (a fresh cache folder each run, the generated data linked into it), Optuna's
+  TPE sampling its estimates, then the finalists retrained; ``make search``'s settings otherwise, but
+  no baselines (their retraining is not charged to any strategy: the paper design is retrained below).
+- ``random_sampling``: the same with ``--sampler random`` (uniform sampling, the same supernet recipe).
+- ``random_retrained``: candidates drawn at random from the space (``SearchSpace.random_candidates``),
+  no estimate, retrained one after another with the finalists' recipe (``retrain_finalists`` with the
+  deadline a search's finalists get) until T is spent; the best measured one is the winner. Their
+  steps (``--random-steps``, default 150) are those the search's plan gives its finalists at T = 300 s
+  on a 2-core CPU (``make search``'s 300 shrink to 150 to fit).
+
+Then each seed's winners and the paper design are retrained with one longer recipe (``--final-steps``,
+default 300: twice the finalists', at the training size, then the finalists' tuning steps at the
+deployment size), with that seed, and measured at the deployment size on the first 96 validation
+frames. Figures: each winner's anytime loss over the paper design's (``ratio_<strategy>``, below 1 is
+better), the strategies' wall times, how many candidates each estimated and retrained, and the steps
+the searches' supernets got.
+
+    OMP_NUM_THREADS=1 python benchmarks/bench_search_value.py [--reps 3] [--time-s 300] [--threads 1]
+
+The data is generated once in the usual cache before anything is timed (it is every strategy's).
+PyTorch trains on one thread by default: on two cores that other work keeps busy, two threads wait on
+each other at every kernel (a training step measured 13x slower than on one thread, beside one other
+search), and the strategies' time would go to whoever ran in a quiet spell.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import gc
+import os
+import shutil
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import optuna
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from harness import Bench, rotated  # noqa: E402
+
+from explorer.anytime import anytime_loss  # noqa: E402
+from explorer.cost import candidate_cost, get_device  # noqa: E402
+from explorer.data import open_dataset  # noqa: E402
+from explorer.data.synthetic import cache_dir  # noqa: E402
+from explorer.model import build_network  # noqa: E402
+from explorer.space import Candidate, SearchSpace, paper_candidate  # noqa: E402
+from explorer.study.config import SearchConfig  # noqa: E402
+from explorer.study.finalists import estimate_trials, finalist_trials, retrain_finalists  # noqa: E402
+from explorer.study.planning import RESERVE_S, TimeLimit  # noqa: E402
+from explorer.study.records import record_values, study_record, trial_record  # noqa: E402
+from explorer.study.results import winner  # noqa: E402
+from explorer.study.search import search  # noqa: E402
+from explorer.supernet import read_supernet  # noqa: E402
+from explorer.training.deployment import DeploymentData, DeploymentRecipe, train_for_deployment  # noqa: E402
+
+STRATEGIES = ("default", "random_sampling", "random_retrained")
+VAL_FRAMES = 96
+#: `explorer search`'s own cap on sampling (its --timeout default); a time limit shrinks it further
+SAMPLING_CAP_S = 180.0
+#: random candidates put up for retraining: more than T can hold, the deadline decides how many are
+RANDOM_POOL = 60
+
+
+def base_config(seed: int, study: str, **changes) -> SearchConfig:
+    """``make search``'s study (tx2, the default space and budget, 3 finalists of 300 steps, a 600-step
+    supernet, all left to the time limit) without baselines, for ``seed``."""
+    return SearchConfig(study=study, seed=seed, baselines=(), keep_weights=False, **changes)
+
+
+@contextlib.contextmanager
+def fresh_cache(folder: Path, data_cache: Path):
+    """``ANYTIME_EXPLORER_CACHE`` set to the new ``folder``, the generated data linked into it: no
+    supernet is found there, so a strategy that needs one trains it inside its own time."""
+    folder.mkdir(parents=True)
+    for data in data_cache.glob("synthetic-*.h5"):
+        (folder / data.name).symlink_to(data)
+    before = os.environ.get("ANYTIME_EXPLORER_CACHE")
+    os.environ["ANYTIME_EXPLORER_CACHE"] = str(folder)
+    try:
+        yield folder
+    finally:
+        if before is None:
+            os.environ.pop("ANYTIME_EXPLORER_CACHE", None)
+        else:
+            os.environ["ANYTIME_EXPLORER_CACHE"] = before
+        shutil.rmtree(folder, ignore_errors=True)
+
+
+def _candidate(trial: optuna.trial.FrozenTrial | None) -> Candidate:
+    if trial is None:
+        raise SystemExit("a strategy ended without a winner: give it a longer --time-s")
+    return Candidate.from_dict(trial_record(trial).candidate)
+
+
+def searched(config: SearchConfig, seconds: float, reports: Path) -> tuple[Candidate, dict]:
+    """``explorer search --time-limit`` with ``config``: (its winner, what the run did)."""
+    limit = TimeLimit(seconds, time.time(), frozenset({"supernet_steps", "finalists", "finalist_steps"}))
+    outcome = search(config, timeout_s=SAMPLING_CAP_S, reports=reports, time_limit=limit)
+    study, plan = outcome.study, outcome.plan
+    supernet = study_record(study).supernet
+    state = read_supernet(Path(supernet)) if supernet else {}
+    retrained = finalist_trials(study)
+    print(f"    {plan.describe() if plan else 'no plan'}; supernet trained {state.get('step', 0)} steps", flush=True)
+    for change in plan.changes if plan else ():
+        print(f"      {change}", flush=True)
+    return _candidate(winner(study)), {"estimated": len(estimate_trials(study)), "retrained": len(retrained),
+                                       "supernet_steps": state.get("step", 0)}
+
+
+def random_retrained(config: SearchConfig, seconds: float, reports: Path) -> tuple[Candidate, dict]:
+    """Random candidates retrained with the finalists' recipe until ``seconds`` are spent (the best
+    measured one wins): a study holding them as estimate trials (in the order drawn, no estimate), its
+    finalists retrained with the deadline a search gives its own."""
+    started = time.time()
+    context = config.resolve()
+    drawn = context.space.random_candidates(RANDOM_POOL, seed=config.seed)
+    study = optuna.create_study(study_name=config.study, storage=optuna.storages.InMemoryStorage())
+    for rank, candidate in enumerate(drawn):   # the value orders them; choose_finalists spreads encoders
+        study.add_trial(optuna.trial.create_trial(values=[float(rank)], user_attrs=record_values(
+            candidate=candidate.to_dict(), candidate_key=candidate.key, path_metrics=[], workloads={})))
+    context = context.with_config(dataclasses.replace(config, finalists=len(drawn)))
+    done = retrain_finalists(study, context, reports, deadline=started + seconds - RESERVE_S)
+    best = min(done, key=lambda t: t.values[0], default=None)
+    return _candidate(best), {"estimated": 0, "retrained": len(done)}
+
+
+def run_strategy(name: str, seed: int, args, work: Path, data_cache: Path) -> tuple[Candidate, dict]:
+    """One strategy's run for ``seed`` in ``args.time_s`` seconds, in a cache and reports folder of its
+    own: (its winner, what it did, with its wall time)."""
+    study, seconds = f"value-{name}-{seed}", args.time_s
+    reports = work / "reports" / study
+    config = base_config(seed, study, sampler="random" if name == "random_sampling" else "tpe")
+    if name == "random_retrained":
+        config = dataclasses.replace(config, finalist_steps=args.random_steps)
+    print(f"  {name} (seed {seed}):", flush=True)
+    with fresh_cache(work / "cache" / study, data_cache):
+        t0 = time.perf_counter()
+        if name == "random_retrained":
+            best, info = random_retrained(config, seconds, reports)
+        else:
+            best, info = searched(config, seconds, reports)
+        info["seconds"] = time.perf_counter() - t0
+    gc.unfreeze()   # the search froze what it had loaded (explorer.study.search._optimize): let it go
+    gc.collect()
+    shutil.rmtree(reports, ignore_errors=True)
+    print(f"    winner {best.key} after {info['seconds']:.0f} s ({info['estimated']} estimated, "
+          f"{info['retrained']} retrained)", flush=True)
+    return best, info
+
+
+def final_recipe(steps: int) -> DeploymentRecipe:
+    """The longer recipe every winner and the paper design are compared with: the finalists' recipe with
+    ``steps`` at the training size, then the same tuning at the deployment size."""
+    config = base_config(0, "final", finalist_steps=steps)
+    return config.finalist_recipe()
+
+
+def deployment_data(config: SearchConfig) -> DeploymentData:
+    return DeploymentData(open_dataset(config.data, "train", config.train_size, seed=config.seed),
+                          open_dataset(config.data, "train", config.input_size, seed=config.seed),
+                          open_dataset(config.data, "val", config.input_size, train_augment=False))
+
+
+def measured_loss(candidate: Candidate, seed: int, recipe: DeploymentRecipe, data: DeploymentData) -> float:
+    """``candidate`` trained with ``recipe`` and ``seed``: its anytime loss at the deployment size (tx2,
+    the study's budget), every path measured on the first VAL_FRAMES validation frames."""
+    config = base_config(seed, "final")
+    torch.manual_seed(seed)
+    net = build_network(candidate)
+    recipe = dataclasses.replace(recipe, train=dataclasses.replace(recipe.train, seed=seed))
+    result = train_for_deployment(net, data, recipe, torch.device("cpu"), val_limit=VAL_FRAMES)
+    rmse = [float(x) for x in result.metrics[config.metric]]
+    cost = candidate_cost(candidate, tuple(config.input_size)).path_costs(get_device(config.device), "time")
+    return anytime_loss(cost, rmse, config.budgets[0])
+
+
+def declare(bench: Bench, seconds: float, final_steps: int) -> None:
+    for name in STRATEGIES:
+        bench.figure(f"ratio_{name}", f"{name}: winner / paper design, anytime loss after {final_steps} steps + "
+                     "tuning at 224x224", "", better="lower")
+    for name in STRATEGIES:
+        bench.figure(f"seconds_{name}", f"{name}: wall time (T = {seconds:g} s)", "s")
+        bench.figure(f"estimated_{name}", f"{name}: candidates estimated", "")
+        bench.figure(f"retrained_{name}", f"{name}: candidates retrained", "")
+        if name != "random_retrained":
+            bench.figure(f"supernet_steps_{name}", f"{name}: supernet steps trained inside T", "")
+    bench.figure("paper_anytime", f"paper design: anytime loss after {final_steps} steps + tuning at 224x224", "m",
+                 better="lower")
+
+
+def one_seed(bench: Bench, seed: int, args, work: Path, data_cache: Path, data: DeploymentData) -> None:
+    """The three strategies for ``seed``, in the repetition's order; then their winners and the paper
+    design retrained with the longer recipe (a winner two strategies share is trained once)."""
+    winners = {}
+    for name in rotated(list(STRATEGIES), seed):
+        winners[name], info = run_strategy(name, seed, args, work, data_cache)
+        bench.add(f"seconds_{name}", info["seconds"])
+        bench.add(f"estimated_{name}", info["estimated"])
+        bench.add(f"retrained_{name}", info["retrained"])
+        if "supernet_steps" in info:
+            bench.add(f"supernet_steps_{name}", info["supernet_steps"])
+    recipe = final_recipe(args.final_steps)
+    losses: dict[str, float] = {}
+    for candidate in [paper_candidate(), *winners.values()]:
+        if candidate.key not in losses:
+            t0 = time.perf_counter()
+            losses[candidate.key] = measured_loss(candidate, seed, recipe, data)
+            print(f"  final: {candidate.key} anytime loss {losses[candidate.key]:.4f} "
+                  f"({time.perf_counter() - t0:.0f} s)", flush=True)
+    paper = losses[paper_candidate().key]
+    bench.add("paper_anytime", paper)
+    for name in STRATEGIES:
+        bench.add(f"ratio_{name}", losses[winners[name].key] / paper)
+
+
+def main() -> None:
+    bench = Bench(__file__, "the search's value: TPE, random sampling and random retraining at equal time", __doc__)
+    ap = bench.parser()
+    ap.add_argument("--time-s", type=float, default=300.0, help="wall time T of each strategy's run (default 300)")
+    ap.add_argument("--random-steps", type=int, default=150, help="steps at the training size of each random "
+                    "candidate's retraining, before the tuning (default 150: the searches' finalists' at T = 300 s)")
+    ap.add_argument("--final-steps", type=int, default=300, help="steps at the training size of the final "
+                    "comparison's recipe, before the tuning (default 300: twice the finalists')")
+    ap.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
+    args = bench.parse_args(ap)
+    torch.set_num_threads(args.threads)
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    config = base_config(0, "data")
+    data_cache = cache_dir()
+    data = deployment_data(config)   # generated here, before anything is timed
+    open_dataset(config.data, "val", config.train_size, train_augment=False)
+    declare(bench, args.time_s, args.final_steps)
+    bench.note(f"cpu, torch threads {args.threads}; T = {args.time_s:g} s a strategy and seed, supernet and data "
+               f"loading inside it (a fresh cache each run); no baselines retrained inside T; random candidates "
+               f"retrained {args.random_steps} steps + tuning; final recipe "
+               f"{args.final_steps} steps at {config.train_size[0]}x{config.train_size[1]} + {config.tune_steps} at "
+               f"{config.input_size[0]}x{config.input_size[1]}, measured on {VAL_FRAMES} validation frames; "
+               f"{config.device}, {config.budgets[0]}")
+    work = Path(tempfile.mkdtemp(prefix="bench-search-value-"))
+    try:
+        for rep in bench.repetitions():
+            one_seed(bench, rep, args, work, data_cache, data)
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+    bench.finish()
+
+
+if __name__ == "__main__":
+    main()

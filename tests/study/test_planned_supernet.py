@@ -1,0 +1,42 @@
+"""A time limit that sizes the supernet's steps: the supernet trained is the one the plan sized, and
+the study's estimates read it."""
+
+import dataclasses
+
+import optuna
+
+from conftest import TINY_DATA
+from explorer.data.synthetic import cache_dir
+from explorer.space import SearchSpace
+from explorer.study.planning import Plan, Speeds, TimeLimit
+from explorer.study.records import study_record, trial_record
+from explorer.study.search import SearchConfig, search
+from explorer.supernet import default_path, read_supernet
+
+CFG = SearchConfig(study="planned", space="tiny", data=TINY_DATA, train_size=(32, 32), input_size=(64, 64),
+                   batch_size=8, val_limit=8, evaluator="supernet", supernet_steps=4, finalists=0, baselines=())
+
+
+def test_the_supernet_trained_has_the_steps_the_plan_gave_it(tmp_path, monkeypatch):
+    import explorer.study.search as search_module
+    cache = tmp_path / "cache"        # no supernet cached: this study trains its own
+    cache.mkdir()
+    for data in cache_dir().glob("synthetic-*.h5"):   # the tests' data, not generated again
+        (cache / data.name).symlink_to(data)
+    monkeypatch.setenv("ANYTIME_EXPLORER_CACHE", str(cache))
+    plan = Plan(limit_s=600.0, supernet_steps=6, supernet_s=1.0, sampling_s=30.0, finalists=0, finalist_steps=5,
+                retrain_jobs=0, retrain_s=0.0, changes=("supernet 6 steps",))
+
+    def planned(context, storage, limit, sampling_s, on_data=None):   # the machine measured: 6 steps fit
+        return dataclasses.replace(context.config, supernet_steps=6), plan, Speeds(0.01, 0.1, 0.01)
+
+    monkeypatch.setattr(search_module, "plan_search", planned)
+    out = search(CFG, n_trials=3, timeout_s=None, reports=tmp_path / "reports",
+                 time_limit=TimeLimit(600.0, free=frozenset({"supernet_steps"})))
+    space = SearchSpace.from_yaml(CFG.space)
+    trained = default_path(space, CFG.data, dataclasses.replace(CFG, supernet_steps=6).supernet_recipe())
+    assert study_record(out.study).supernet == str(trained.resolve())
+    assert read_supernet(trained)["step"] == 6
+    assert not default_path(space, CFG.data, CFG.supernet_recipe()).exists()   # not the recipe's 4 steps
+    estimates = out.study.get_trials(states=(optuna.trial.TrialState.COMPLETE,))
+    assert estimates and all(trial_record(t).evaluator_name == "supernet" for t in estimates)
