@@ -251,6 +251,7 @@ def benchmarks_markdown(records: dict[str, tuple[Path, dict]], root: Path, probl
 SUMMARY = (
     ("How long `make search` takes from a fresh clone, setup included (a busy machine)", "bench_make_search_load", "wall_s", 1 / 60, "min"),
     ("Candidates the search estimates a minute (2-core CPU)", "bench_search_rate", "candidates_per_minute", 1, ""),
+    ("Peak memory of `make search`'s job (resident, its process tree)", "bench_search_memory", "peak_rss_gb", 1, "GB"),
     ("How well the estimate ranks the space (Kendall tau against long stand-alone trainings)", "bench_fidelity",
      "tau_supernet", 1, ""),
     ("...and the long trainings' own seed-to-seed tau, the ceiling", "bench_fidelity", "labels_seed_tau", 1, ""),
