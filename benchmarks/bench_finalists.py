@@ -5,6 +5,7 @@ the gain is what running whole trainings side by side adds over PyTorch's thread
 machine with several GPUs every worker has a GPU of its own (run it there with ``--accelerator cuda``).
 
     python benchmarks/bench_finalists.py [--reps 3] [--finalists 2] [--steps 60] [--workers 2]
+    python benchmarks/bench_finalists.py --accelerator cuda --size 224x224 --batch-size 64   # a GPU's study
 
 Each repetition retrains the jobs sequentially and in parallel, in an order that rotates, in fresh
 folders (nothing resumes); the estimates they are chosen from are the same every time.
@@ -52,6 +53,11 @@ def _retrain(config: SearchConfig, estimates, workers: int) -> float:
     return seconds
 
 
+def _size(text: str) -> tuple[int, int]:
+    h, w = text.lower().split("x")
+    return int(h), int(w)
+
+
 if __name__ == "__main__":
     bench = Bench(__file__, "Finalists retrained sequentially and by worker processes at once", __doc__)
     ap = bench.parser()
@@ -59,9 +65,14 @@ if __name__ == "__main__":
     ap.add_argument("--steps", type=int, default=60, help="training steps of each retraining")
     ap.add_argument("--workers", type=int, default=2, help="worker processes of the parallel run")
     ap.add_argument("--accelerator", default="cpu", choices=("cpu", "cuda"))
+    ap.add_argument("--size", type=_size, help="train and deploy at this size, HxW (default: the search's "
+                    "defaults, 64x64 then tuned at 224x224); 224x224 with --batch-size 64 is a GPU's study")
+    ap.add_argument("--batch-size", type=int, default=16, help="frames a step (default 16)")
     args = bench.parse_args(ap)
+    sizes = {"train_size": args.size, "input_size": args.size} if args.size else {}
     config = SearchConfig(study="bench-finalists", finalists=args.finalists, finalist_steps=args.steps,
-                          baselines=("paper",), accelerator=args.accelerator, keep_weights=False)
+                          baselines=("paper",), accelerator=args.accelerator, keep_weights=False,
+                          batch_size=args.batch_size, **sizes)
     estimates = _estimates(config, 12)
     open_dataset(config.data, "train", config.train_size, seed=config.seed)   # generated once, before timing
     open_dataset(config.data, "val", config.train_size, train_augment=False)

@@ -38,7 +38,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from harness import RESULTS, ROOT, Bench, interleave  # noqa: E402
+from harness import RESULTS, ROOT, Bench, interleave, python_path  # noqa: E402
 from explorer.study import trial_record  # noqa: E402
 
 DEFAULT, LARGE = ((64, 64), 16), ((224, 224), 64)
@@ -50,7 +50,7 @@ class Utilisation:
     or None (no way to read it here)."""
 
     def __init__(self, index: int | None) -> None:
-        self.index, self.samples, self.active = index, [], False
+        self.index, self.samples, self.times, self.active = index, [], [], False   # values (%), when read
         self.source, self._read = (None, None) if index is None else self._reader(index)
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True) if self._read else None
@@ -76,7 +76,9 @@ class Utilisation:
         while not self._stop.wait(0.1):
             if self.active:
                 try:
-                    self.samples.append(self._read())
+                    value = self._read()
+                    self.samples.append(value)
+                    self.times.append(time.time())
                 except Exception:   # a sample that failed is a sample fewer, not a failed benchmark
                     pass
 
@@ -92,7 +94,7 @@ class Utilisation:
 
     def take(self) -> float | None:
         """The mean of the samples since the last take, or None."""
-        got, self.samples = self.samples, []
+        got, self.samples, self.times = self.samples, [], []
         return statistics.fmean(got) if got else None
 
 
@@ -106,7 +108,7 @@ def physical_index(index: int) -> int:
 # -- supernet training ------------------------------------------------------------------------------
 def train_steps(device: str, size: tuple[int, int], batch: int, steps: int, data: str, amp: bool,
                 util: Utilisation | None = None, out: Path | None = None, warm: int = 2,
-                graphs: bool = True) -> float:
+                graphs: bool = True, micro_batches: int = 1) -> float:
     """Median seconds per step of the last ``steps`` of ``warm + steps`` supernet steps on ``device``
     (NaN in a torchrun process other than the first, whose progress is not reported). Every width
     trains from the first step (no progressive shrinking), so that the untimed ``warm`` steps meet most
@@ -116,7 +118,7 @@ def train_steps(device: str, size: tuple[int, int], batch: int, steps: int, data
     from explorer.space import SearchSpace
     from explorer.supernet import SupernetRecipe, train_supernet
     recipe = SupernetRecipe(steps=warm + steps, batch_size=batch, input_size=size, amp=amp, shrink=0.0,
-                            cuda_graphs=graphs)
+                            cuda_graphs=graphs, micro_batches=micro_batches)
     times: list[float] = []
 
     def progress(step, total, record):
@@ -148,16 +150,16 @@ def processes_step(device: str, nproc: int, steps: int, data: str, warm: int) ->
                   "--warmup-steps", str(warm), "--data", data, "--size", f"{size[0]}x{size[1]}", "--batch", str(batch)]
         launch = [sys.executable] + (["-m", "torch.distributed.run", "--standalone", "--nproc_per_node", str(nproc)]
                                      if nproc > 1 else [])
-        env = {**os.environ, "PYTHONPATH": str(ROOT)}
+        env = {**os.environ, "PYTHONPATH": python_path()}
         if device == "cpu":
-            env["OMP_NUM_THREADS"] = str(max(1, _cores() // nproc))
+            env["OMP_NUM_THREADS"] = str(max(1, cores() // nproc))
         run = subprocess.run(launch + script, cwd=ROOT, env=env, capture_output=True, text=True)
         if run.returncode != 0:
             raise RuntimeError(f"{nproc} process(es) failed: {run.stderr[-2000:]}")
         return json.loads(out.read_text())["step_s"]
 
 
-def _cores() -> int:
+def cores() -> int:
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
 
 
@@ -188,11 +190,10 @@ def search_rate(device: str, data: str, seconds: float, supernet_steps: int) -> 
 
 
 # -- bf16 -------------------------------------------------------------------------------------------
-def amp_effect(device: str, data: str, steps: int, size: tuple[int, int], batch: int) -> tuple[float, float]:
-    """(bf16 / float32 validation L1 over the same subnets, Kendall tau of the two supernets' rankings of
-    them) after ``steps`` steps each, evaluated in float32 with batch statistics."""
+def subnet_losses(files: list[Path], device: str, data: str, size: tuple[int, int]) -> list[list[float]]:
+    """Each supernet file's validation L1 (all exits) on the same 10 subnets of the default space (the
+    largest, the smallest, 8 random) and the same 32 frames, in float32 with batch statistics."""
     import torch
-    from scipy.stats import kendalltau
     from explorer.data import open_dataset
     from explorer.space import SearchSpace
     from explorer.supernet import load_supernet, largest_candidate, random_training_subnet, smallest_candidate
@@ -204,17 +205,26 @@ def amp_effect(device: str, data: str, steps: int, size: tuple[int, int], batch:
     val = open_dataset(data, "val", size, train_augment=False)
     frames = [val[i] for i in range(min(len(val), 32))]
     image, scan, depth = (torch.stack([f[k] for f in frames]).to(device) for k in ("image", "scan", "depth"))
-    losses = {}
+    out = []
+    for file in files:
+        net = load_supernet(file, space)[0].to(device).train()
+        with torch.no_grad():
+            out.append([float(multi_exit_loss(net.forward_subnet(c, image, scan, frames[0]["scan_row"]), depth)[0])
+                        for c in subnets])
+    return out
+
+
+def amp_effect(device: str, data: str, steps: int, size: tuple[int, int], batch: int) -> tuple[float, float]:
+    """(bf16 / float32 validation L1 over the same subnets, Kendall tau of the two supernets' rankings of
+    them) after ``steps`` steps each (:func:`subnet_losses`)."""
+    from scipy.stats import kendalltau
     with tempfile.TemporaryDirectory() as tmp:
-        for amp in (False, True):
-            out = Path(tmp) / f"amp{amp}.pt"
+        files = [Path(tmp) / f"amp{amp}.pt" for amp in (False, True)]
+        for amp, out in zip((False, True), files):
             train_steps(device, size, batch, steps, data, amp, out=out, warm=0)   # trained, not timed
-            net = load_supernet(out, space)[0].to(device).train()
-            with torch.no_grad():
-                losses[amp] = [float(multi_exit_loss(net.forward_subnet(c, image, scan, frames[0]["scan_row"]),
-                                                     depth)[0]) for c in subnets]
-    tau = kendalltau(losses[False], losses[True]).statistic
-    return statistics.fmean(losses[True]) / statistics.fmean(losses[False]), float(tau)
+        plain, bf16 = subnet_losses(files, device, data, size)
+    tau = kendalltau(plain, bf16).statistic
+    return statistics.fmean(bf16) / statistics.fmean(plain), float(tau)
 
 
 # -- the benchmark ----------------------------------------------------------------------------------

@@ -165,6 +165,12 @@ def git_state(root: Path = ROOT) -> tuple[str, bool]:
     return commit or "unknown", bool(changes.strip())
 
 
+def python_path() -> str:
+    """PYTHONPATH for a child process of a benchmark: the repository first, then what this one had
+    (packages installed beside the project on another machine, say)."""
+    return os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH", "")]))
+
+
 def command_line(argv: Sequence[str] | None = None) -> str:
     """The command as a user types it from the repository root: ``python benchmarks/x.py --reps 5``."""
     argv = list(sys.argv if argv is None else argv)

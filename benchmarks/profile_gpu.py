@@ -99,13 +99,13 @@ def main() -> None:
     ap.add_argument("--warmup-steps", type=int, default=60, help="untimed steps per recipe before its profile, "
                     "in the same run (default 60: its stage graphs captured, cuDNN's plans made)")
     ap.add_argument("--search-seconds", type=float, default=15.0, help="sampling time of the profiled search")
-    ap.add_argument("--recipes", default="default,gpu", help="recipes to profile (default: default,gpu)")
+    ap.add_argument("--recipes", default="default,gpu", help="recipes to profile (default: default,gpu; '' for none)")
     ap.add_argument("--data", default="synthetic:400:100", help="data set (default synthetic:400:100)")
     args = ap.parse_args()
     import torch
     device = args.device if args.device != "auto" else ("cuda" if torch.cuda.is_available() else "cpu")
     args.out.mkdir(parents=True, exist_ok=True)
-    for name in args.recipes.split(","):
+    for name in filter(None, args.recipes.split(",")):   # --recipes '' profiles the search alone
         print(profile_steps(device, name, args.steps, args.data, args.out, args.warmup_steps), flush=True)
     print(profile_search(device, args.data, args.search_seconds, args.out), flush=True)
 

@@ -158,7 +158,7 @@ def _print_outcome(study, cfg, storage_url: str, reports: Path, write_report: bo
     from explorer.console import console, print_frame
     from explorer.study.results import (baseline_label, baseline_trial, best_trial, estimate_fidelity,
                                         figures_source, finalists_agreement, finalists_frame, is_retrained,
-                                        missing_baselines, path_table, unbeaten_baseline, winner)
+                                        missing_baselines, path_table, unbeaten_baseline, wall_time, winner)
     from explorer.space import Candidate
     from explorer.study import trial_record
     from explorer.study.config import study_context
@@ -212,6 +212,7 @@ def _print_outcome(study, cfg, storage_url: str, reports: Path, write_report: bo
             lead = "no ratio to the paper-design baseline:" if m["name"] == "paper" and best is not None \
                 else f"baseline {m['label']} missing:"
             console.print(f"{lead} {m['why']}", markup=False, highlight=False)
+    console.print(f"wall time: {wall_time(study)}", markup=False, highlight=False)
     console.print(f"study: {storage_url}")
     if write_report:
         try:

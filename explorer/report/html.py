@@ -39,6 +39,7 @@ from explorer.study.results import (
     trial_precision,
     trials_frame,
     unbeaten_baseline,
+    wall_time,
     winner,
 )
 
@@ -108,7 +109,7 @@ def build_context(study: optuna.Study, devices: Sequence[str] | None = None,
                  "notes": _notes(stored, devs, scored), "evaluator": cfg.get("evaluator", "proxy"),
                  "finalist_steps": cfg.get("finalist_steps"), "plan": stored.plan}
     ctx.update(_finalists(study, ctx["finalist_steps"]))
-    ctx["wall_time"] = _wall_time(study, stored)
+    ctx["wall_time"] = wall_time(study)
     ctx["devices"] = [{"name": d.name, "description": d.description, "calibrated": d.calibrated,
                        "fit": d.provenance.get("fit", []), "sources": d.provenance.get("sources", []),
                        "conditions": d.provenance.get("conditions")} for d in devs]
@@ -176,19 +177,6 @@ def _finalists(study: optuna.Study, finalist_steps) -> dict:
             out["finalists_tau"], out["finalists_rows"] = agreement["tau"], agreement["rows"]
         out["finalists"] = _frame_html(fin, "finalists-table")
     return out
-
-
-def _wall_time(study: optuna.Study, stored: StudyRecord) -> str:
-    """The runs' wall time as each search recorded it (data, supernet, sampling and retraining), or,
-    for a study made before runs were recorded, the span of its trials, said so."""
-    runs = stored.runs
-    if runs:
-        total = sum(r["seconds"] for r in runs) / 60
-        return f"{total:.1f} min" + (f" over {len(runs)} runs" if len(runs) > 1 else "")
-    starts = [t.datetime_start for t in study.trials if t.datetime_start]
-    ends = [t.datetime_complete for t in study.trials if t.datetime_complete]
-    return (f"{(max(ends) - min(starts)).total_seconds() / 60:.1f} min from the first trial to the last (the "
-            "supernet's training before them not counted)") if starts and ends else "n/a"
 
 
 def _best(study: optuna.Study, best: optuna.trial.FrozenTrial, retrained: bool, devs: list) -> dict:

@@ -402,3 +402,20 @@ def _supernet_network(study: optuna.Study, trial: optuna.trial.FrozenTrial):
     sub = net.extract(Candidate.from_dict(rec.candidate))
     recalibrate_batchnorm(sub, _batches(calibration, 64, 32))
     return sub
+
+
+def wall_time(study: optuna.Study) -> str:
+    """The runs' wall time as each search recorded it, the last run's phases beside it (data,
+    measuring, supernet, sampling, finalists), or, for a study made before runs were recorded, the
+    span of its trials, said so."""
+    runs = study_record(study).runs
+    if runs:
+        total = sum(r["seconds"] for r in runs) / 60
+        phases = runs[-1].get("phases") or {}
+        parts = ", ".join(f"{name} {seconds / 60:.1f}" for name, seconds in phases.items())
+        return (f"{total:.1f} min" + (f" over {len(runs)} runs" if len(runs) > 1 else "")
+                + (f" ({'the last: ' if len(runs) > 1 else ''}{parts} min)" if parts else ""))
+    starts = [t.datetime_start for t in study.trials if t.datetime_start]
+    ends = [t.datetime_complete for t in study.trials if t.datetime_complete]
+    return (f"{(max(ends) - min(starts)).total_seconds() / 60:.1f} min from the first trial to the last (the "
+            "supernet's training before them not counted)") if starts and ends else "n/a"

@@ -150,6 +150,19 @@ class SearchOutcome:
     not_retried: list[int] = dataclasses.field(default_factory=list)    # interrupted past --max-retries
     config: SearchConfig | None = None     # as run: a --time-limit plan may have sized its steps
     plan: "Plan | None" = None
+    phases: dict[str, float] = dataclasses.field(default_factory=dict)   # phase -> wall seconds, in order
+
+
+class PhaseClock:
+    """The wall time of a run's phases, in the order they ran: each lap ends where the next begins."""
+
+    def __init__(self, started: float) -> None:
+        self.last, self.seconds = started, {}
+
+    def lap(self, phase: str) -> None:
+        now = time.time()
+        self.seconds[phase] = round(self.seconds.get(phase, 0.0) + now - self.last, 1)
+        self.last = now
 
 
 def run_worker(config_dict: dict, storage_url: str | None, n_trials: int | None, deadline: float | None,
@@ -245,7 +258,8 @@ def baseline_load(config: SearchConfig, speeds=None) -> float:
 
 
 def plan_search(context: StudyContext, storage: optuna.storages.BaseStorage, limit: "TimeLimit",
-                sampling_s: float | None, on_data: Callable[[int, int], None] | None = None):
+                sampling_s: float | None, on_data: Callable[[int, int], None] | None = None,
+                clock: PhaseClock | None = None):
     """(config as it will run, plan, speeds): the data generated, the machine measured, the run sized
     to what is left of ``limit`` (see explorer.study.planning)."""
     config = context.config
@@ -258,6 +272,8 @@ def plan_search(context: StudyContext, storage: optuna.storages.BaseStorage, lim
                                                  progress=on_data), on_data)
     val_set = open_dataset(config.data, "val", config.train_size, train_augment=False)
     os.sync()  # data just generated is still being written back: measured then, steps read 1.6-2x slow
+    if clock is not None:
+        clock.lap("data")
     trains_supernet = config.evaluator == "supernet" and not config.supernet
     cached = _cached_supernet_steps(context.space, config) if trains_supernet else []
     must_measure_supernet = trains_supernet and ("supernet_steps" in free or config.supernet_steps not in cached)
@@ -329,26 +345,29 @@ def search(config: SearchConfig, storage_url: str | None = None, workers: int = 
         ensure_supernet(context)  # a foreign or corrupt file is one line before anything is measured
     url = storage_url or local_url(config.study, reports)
     started = time_limit.started if time_limit is not None else time.time()
+    clock = PhaseClock(started)
     with searching_alone(url, config.study):
         outcome = _search(context, url, storage_url, workers, n_trials, timeout_s, reports, on_trial, on_poll, on_data,
-                          on_supernet, on_finalist, time_limit, on_plan)
+                          on_supernet, on_finalist, time_limit, on_plan, clock)
         runs = study_record(outcome.study).runs
         record_study(outcome.study, runs=runs + [{"started": time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(started)),
-                                                  "seconds": round(time.time() - started, 1)}])
-    return outcome
+                                                  "seconds": round(time.time() - started, 1),
+                                                  "phases": clock.seconds}])
+    return dataclasses.replace(outcome, phases=clock.seconds)
 
 
 def _search(context: StudyContext, url: str, storage_url: str | None, workers: int, n_trials: int | None,
             timeout_s: float | None, reports: Path, on_trial, on_poll, on_data, on_supernet, on_finalist,
-            time_limit: "TimeLimit | None", on_plan) -> SearchOutcome:
-    """:func:`search`'s run, under the study's search lock."""
+            time_limit: "TimeLimit | None", on_plan, clock: PhaseClock) -> SearchOutcome:
+    """:func:`search`'s run, under the study's search lock; ``clock`` is told where each phase ends."""
     config = context.config
     storage = open_storage(url, config.study, workers, reports, max_retries=config.max_retries)
     plan = speeds = None
     sampling_cap = timeout_s
     wanted = (config.finalists, config.finalist_steps)   # before a plan shrinks them
     if time_limit is not None:
-        config, plan, speeds = plan_search(context, storage, time_limit, timeout_s, on_data)
+        config, plan, speeds = plan_search(context, storage, time_limit, timeout_s, on_data, clock)
+        clock.lap("measuring")
         timeout_s = plan.sampling_s
         if on_plan:
             on_plan(plan)
@@ -365,6 +384,8 @@ def _search(context: StudyContext, url: str, storage_url: str | None, workers: i
     cutoff = None if plan is None else supernet_deadline(plan, time_limit, speeds, "paper" in config.baselines,
                                                          sampling_cap)
     supernet = ensure_supernet(context.with_config(config), on_supernet, on_data, cutoff)   # the planned steps
+    if supernet is not None:
+        clock.lap("supernet")
     if supernet is not None:
         record_study(study, supernet=str(supernet.resolve()))
         plan = _note_unfinished(supernet, plan)
@@ -386,11 +407,13 @@ def _search(context: StudyContext, url: str, storage_url: str | None, workers: i
         release_host_memory()
     else:
         _run_workers(study, config, url, workers, n_trials, deadline, reports, on_poll, on_data)
+    clock.lap("sampling")
     if plan is not None and (config.finalists or config.baselines):
         config, plan = _replan_finalists(study, config, plan, speeds, time_limit, wanted, on_plan)
     if config.finalists:
         config, plan = _retrain_finalists(study, context.with_config(config), plan, time_limit, wanted, reports,
                                           on_finalist, on_plan, workers)
+        clock.lap("finalists")
     return SearchOutcome(study, url, time.time() - t0, failed, retried, not_retried, config, plan)
 
 

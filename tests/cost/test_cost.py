@@ -75,3 +75,24 @@ def test_the_scan_fill_search_grows_with_the_width():
         return found[0].bytes_read + found[0].bytes_written
 
     assert nearest(640) / nearest(224) == pytest.approx(640 / 224)
+
+
+def test_tracing_passes_batchnorms_through_and_leaves_the_stage_as_it_was():
+    """A BatchNorm is folded (its parameters only count), so tracing skips its arithmetic, most of the
+    time of tracing a stage on meta tensors: the counts are the stage's, and afterwards its BatchNorms
+    compute again."""
+    from explorer.cost.workloads import trace_stage
+    from explorer.model.network import stage_specs
+    spec = next(s for s in stage_specs(paper_candidate()) if s.inputs == ("image",))
+    stage = spec.config.build().eval()
+    image = torch.rand(1, 3, 64, 64)
+    with torch.no_grad():
+        before = stage(image)
+    records, shapes = trace_stage(stage, spec.name, [image])
+    norms = [m for m in stage.modules() if isinstance(m, (torch.nn.BatchNorm1d, torch.nn.BatchNorm2d))]
+    assert norms and not any("forward" in vars(m) for m in norms)
+    assert sum(r.params for r in records) == sum(p.numel() for p in stage.parameters())
+    with torch.no_grad():
+        after = stage(image)
+    before, after = (x if isinstance(x, tuple) else (x,) for x in (before, after))
+    assert shapes == [tuple(b.shape) for b in before] and all(torch.equal(a, b) for a, b in zip(after, before))

@@ -147,9 +147,15 @@ def test_a_time_limit_measures_the_machine_and_records_its_plan(tmp_path):
     assert plan["supernet_steps"] == CFG.supernet_steps and plan["sampling_s"] > 0
     assert (out.config.finalists, out.config.finalist_steps) == (2, 5)      # time enough: as asked
     assert len([t for t in finalist_trials(out.study) if not t.user_attrs.get("baseline")]) == 2
+    # the run's wall time, phase by phase in the order they ran, adds up to the whole run
+    run = out.study.user_attrs["runs"][-1]
+    assert list(run["phases"]) == ["data", "measuring", "supernet", "sampling", "finalists"]
+    assert sum(run["phases"].values()) == pytest.approx(run["seconds"], abs=0.5)
+    assert run["phases"]["finalists"] > 0 and run["phases"]["measuring"] > 0
     from explorer.report import write_report
     html = write_report(out.study, out_dir=tmp_path / "report").read_text()
     assert 'id="plan"' in html and "supernet 4 steps" in html and "2 finalist(s) retrained 5 steps" in html
+    assert "measuring 0." in html and "finalists " in html   # the wall time row names the phases
 
 
 @pytest.mark.slow

@@ -27,7 +27,7 @@ def test_the_supernet_trained_has_the_steps_the_plan_gave_it(tmp_path, monkeypat
     plan = Plan(limit_s=600.0, supernet_steps=6, supernet_s=1.0, sampling_s=30.0, finalists=0, finalist_steps=5,
                 retrain_jobs=0, retrain_s=0.0, changes=("supernet 6 steps",))
 
-    def planned(context, storage, limit, sampling_s, on_data=None):   # the machine measured: 6 steps fit
+    def planned(context, storage, limit, sampling_s, on_data=None, clock=None):   # the machine measured: 6 steps fit
         return dataclasses.replace(context.config, supernet_steps=6), plan, Speeds(0.01, 0.1, 0.01)
 
     monkeypatch.setattr(search_module, "plan_search", planned)

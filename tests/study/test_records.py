@@ -71,3 +71,17 @@ def test_the_study_record_holds_what_the_study_stored():
     study.set_user_attr("runs", "not a list")
     with pytest.raises(UserError, match="damaged"):
         study_record(study)
+
+
+def test_the_record_version_is_written_once_however_often_a_trial_records():
+    study = _study()
+    study.enqueue_trial({}, user_attrs=record_values(baseline="paper"))
+    for expected in (0, 1):   # an enqueued baseline carries it already; a sampled trial writes it once
+        trial, keys = study.ask(), []
+        write = trial.set_user_attr
+        trial.set_user_attr = lambda k, v, write=write: (keys.append(k), write(k, v))
+        record(trial, candidate_key="k")
+        record(trial, params=[0, 1])
+        record(trial, losses={"uniform:0:10": 1.0})
+        assert keys.count(VERSION_KEY) == expected and trial.user_attrs[VERSION_KEY] == RECORD_VERSION
+        study.tell(trial, 1.0)

@@ -1,0 +1,38 @@
+"""benchmarks/bench_gpu_study.py and bench_torchrun.py: what they read off a study and two supernets."""
+
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+
+@pytest.mark.parametrize("script, option", [("bench_gpu_study.py", "--time-limit"), ("bench_torchrun.py", "--nproc")])
+def test_they_say_what_they_measure(script, option):
+    proc = subprocess.run([sys.executable, str(ROOT / "benchmarks" / script), "--help"], capture_output=True,
+                          text=True, timeout=120, cwd=ROOT)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert option in proc.stdout and "--worker" not in proc.stdout
+
+
+def test_phases_are_placed_on_the_clock_the_study_recorded():
+    from bench_gpu_study import phase_spans
+    started = time.mktime(time.strptime("2026-11-28 10:00:00", "%Y-%m-%d %H:%M:%S"))
+    run = {"started": "2026-11-28 10:00:00", "seconds": 100.0,
+           "phases": {"data": 10.0, "measuring": 5.0, "supernet": 35.0, "sampling": 30.0, "finalists": 20.0}}
+    spans = phase_spans(run, search_end=started + 104.0, export_s=6.0)
+    assert list(spans) == ["data", "measuring", "supernet", "sampling", "finalists", "report", "export"]
+    assert spans["supernet"] == (started + 15.0, started + 50.0)
+    assert spans["finalists"] == (started + 80.0, started + 100.0)
+    assert spans["report"] == (started + 100.0, started + 104.0) and spans["export"] == (started + 104.0, started + 110.0)
+
+
+def test_the_export_gap_is_the_worst_path():
+    from bench_gpu_study import export_gap
+    manifest = {"path_metrics": [{"rmse": 0.50}, {"rmse": 0.40}],
+                "source": {"study_path_metrics": [{"rmse": 0.50}, {"rmse": 0.43}]}}
+    assert export_gap(manifest) == pytest.approx(0.03)
