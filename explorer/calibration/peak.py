@@ -113,7 +113,8 @@ def gemm_gmacs(n: int = 1024, reps: int = 5) -> list[float]:
     graph = helper.make_graph([helper.make_node("MatMul", ["a", "b"], ["c"])], "gemm",
                               [helper.make_tensor_value_info(k, TensorProto.FLOAT, [n, n]) for k in "ab"],
                               [helper.make_tensor_value_info("c", TensorProto.FLOAT, [n, n])])
-    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 13)])
+    # opset 13's IR version: onnx's newest may be past what the installed onnxruntime reads
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 13)], ir_version=7)
     sess = session(model.SerializeToString())   # as every measured graph: the same threads and pool
     rng = np.random.default_rng(0)
     feeds = {k: rng.standard_normal((n, n), dtype=np.float32) for k in "ab"}

@@ -149,7 +149,8 @@ def block_size() -> int:
         y = helper.make_tensor_value_info("y", TensorProto.FLOAT, None)
         node = helper.make_node("ReorderInput", ["x"], ["y"], domain=NCHWC_DOMAIN, channels_last=0)
         model = helper.make_model(helper.make_graph([node], "block", [x], [y]),
-                                  opset_imports=[helper.make_opsetid("", 17), helper.make_opsetid(NCHWC_DOMAIN, 1)])
+                                  opset_imports=[helper.make_opsetid("", 17), helper.make_opsetid(NCHWC_DOMAIN, 1)],
+                                  ir_version=8)   # opset 17's: onnx's newest may be past what onnxruntime reads
         sess = _session(model.SerializeToString(), None, DEFAULT_PROVIDER, False, None, False)
         _POOL["block"] = int(sess.run(None, {"x": np.zeros((1, 4, 1, 1), np.float32)})[0].shape[1])
     return int(_POOL["block"])

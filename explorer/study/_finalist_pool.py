@@ -22,6 +22,8 @@ def finalist_devices(accelerator: str, workers: int) -> list[str]:
     device = resolve_accelerator(accelerator)
     if device.type == "cuda" and torch.cuda.device_count() > 1:
         return [f"cuda:{i}" for i in range(torch.cuda.device_count())]
+    if device.type == "cuda" and device.index is None:   # a worker sets its device, which needs an index
+        device = torch.device("cuda", torch.cuda.current_device())
     return [str(device)] * max(workers, 1)
 
 

@@ -509,3 +509,16 @@ def test_calibration_times_again_the_graphs_far_above_its_fit(tmp_path, monkeypa
     rounds = [n for (what, n), (before, _) in zip(passes[1:], passes)
               if what == probe.TIMING_AGAIN and before == cal.FITTING]
     assert rounds == [len(labels) for labels in set_aside] and passes[-1] == (cal.FITTING, 1)
+
+
+def test_graphs_made_here_carry_their_opsets_ir_version(monkeypatch):
+    # onnx's newest IR version (14 in onnx 1.23) is refused by an older onnxruntime (1.30 reads 13)
+    import onnx
+    from explorer.probe import sessions
+    seen = []
+    real = sessions._session
+    monkeypatch.setattr(sessions, "_session", lambda model, *a: (seen.append(onnx.load_from_string(model)),
+                                                                 real(model, *a))[1])
+    monkeypatch.setattr(sessions, "_POOL", {})
+    sessions.block_size()
+    assert [m.ir_version for m in seen] == [8]

@@ -1,0 +1,23 @@
+"""Which device each finalist worker trains on."""
+
+import torch
+
+import explorer.study._finalist_pool as pool
+
+
+def test_workers_sharing_one_gpu_are_given_its_index(monkeypatch):
+    # a worker process calls torch.cuda.set_device, which refuses a bare "cuda"
+    monkeypatch.setattr(pool, "resolve_accelerator", lambda accelerator: torch.device("cuda"))
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 1)
+    monkeypatch.setattr(torch.cuda, "current_device", lambda: 0)
+    assert pool.finalist_devices("cuda", 2) == ["cuda:0", "cuda:0"]
+
+
+def test_several_gpus_take_one_worker_each_whatever_workers_says(monkeypatch):
+    monkeypatch.setattr(pool, "resolve_accelerator", lambda accelerator: torch.device("cuda"))
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 3)
+    assert pool.finalist_devices("cuda", 1) == ["cuda:0", "cuda:1", "cuda:2"]
+
+
+def test_cpu_workers(monkeypatch):
+    assert pool.finalist_devices("cpu", 2) == ["cpu", "cpu"]
