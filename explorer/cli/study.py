@@ -335,7 +335,7 @@ def _register_search(add, reports: dict) -> None:
     s.add_argument("--storage", help="Optuna storage URL (default: the journal file "
                    "reports/<study>/journal.log; postgresql://... for several machines)")
     s.add_argument("--workers", type=_bounded_int(1, MAX_WORKERS, "processes on this machine"), default=1, help="processes on this machine: sampling (journal storage) "
-                   "and the finalists retrained at once (a machine with several GPUs retrains one finalist per GPU)")
+                   "and the finalists retrained at once on a CPU (with GPUs: one finalist per GPU at once)")
     s.add_argument("--time-limit", type=_duration_s, default=None, help="wall clock for the whole run: data, "
                    "supernet training, sampling, finalists (default 16m, none when --timeout is given; 0 = none). "
                    "The machine is measured first (seconds); sampling, the finalists' steps (to 2/3), the supernet's "

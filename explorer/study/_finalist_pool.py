@@ -1,7 +1,7 @@
 """Where the finalists retrain: in this process, or in worker processes, one per device.
 
-A node with several GPUs retrains one finalist per GPU at once; on a CPU, ``--workers N`` processes
-split the cores. Workers only train: each returns its finalist's metrics to this process, which alone
+A node with several GPUs retrains one finalist per GPU at once; one GPU retrains them one after
+another in this process; on a CPU, ``--workers N`` processes split the cores. Workers only train: each returns its finalist's metrics to this process, which alone
 writes to the study (so SQLite, which takes one writer, serves parallel finalists too).
 """
 
@@ -18,12 +18,13 @@ from explorer.training.train import resolve_accelerator
 
 def finalist_devices(accelerator: str, workers: int) -> list[str]:
     """One entry per worker process, the torch device it trains on: every GPU when this machine has
-    several (one finalist each, whatever ``workers``), else ``workers`` processes on the one device."""
+    several (one finalist each, whatever ``workers``); the one GPU alone when it has one (a worker
+    process spends longer starting CUDA and loading the data than two retrainings gain by sharing the
+    GPU: bench_finalists); else ``workers`` processes sharing the CPU's cores."""
     device = resolve_accelerator(accelerator)
-    if device.type == "cuda" and torch.cuda.device_count() > 1:
-        return [f"cuda:{i}" for i in range(torch.cuda.device_count())]
-    if device.type == "cuda" and device.index is None:   # a worker sets its device, which needs an index
-        device = torch.device("cuda", torch.cuda.current_device())
+    if device.type == "cuda":
+        return [f"cuda:{i}" for i in range(torch.cuda.device_count())] if torch.cuda.device_count() > 1 \
+            else [f"cuda:{device.index if device.index is not None else torch.cuda.current_device()}"]
     return [str(device)] * max(workers, 1)
 
 

@@ -131,8 +131,8 @@ def retrain_finalists(study: optuna.Study, context: StudyContext, reports: Path,
     design are retrained whatever the time; every other job only if it should end before the deadline,
     judged by how long the jobs took here (a machine that slowed after planning drops the last
     finalists and baselines rather than overrun; one that turned out faster gets the extras).
-    ``workers``: processes retraining at once on a CPU or a single GPU; a machine with several GPUs
-    retrains one finalist per GPU."""
+    ``workers``: processes retraining at once on a CPU; a machine with several GPUs retrains one
+    finalist per GPU, a machine with one GPU one after another (see ``finalist_devices``)."""
     config = context.config
     todo = finalist_jobs(study, config, extra)
     if not todo:
