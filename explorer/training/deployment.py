@@ -22,6 +22,10 @@ from explorer.training.train import TrainConfig, TrainResult, train
 
 #: the tuning phase's learning rate, as a fraction of the recipe's (it continues a trained network)
 TUNE_LR_SCALE = 0.25
+#: the most frames the tuning runs through the network at once: its steps' activations at the deployment
+#: size are the most a search holds (over a gigabyte for 16 frames at 224x224), so a batch is split into
+#: parts of this many, one after another (the same mean gradient; BatchNorm's statistics per part)
+TUNE_PART_FRAMES = 8
 
 
 @dataclass(frozen=True)
@@ -41,7 +45,8 @@ class DeploymentRecipe:
         """The tuning phase: the same recipe at the deployment size, a lower learning rate."""
         lr = self.train.lr * TUNE_LR_SCALE
         return dataclasses.replace(self.train, steps=self.tune_steps, input_size=tuple(self.deploy_size), lr=lr,
-                                   lr_end=lr / 10, eval_every=0)
+                                   lr_end=lr / 10, eval_every=0,
+                                   micro_batches=-(-self.train.batch_size // TUNE_PART_FRAMES))
 
     def to_dict(self) -> dict:
         """What a finalist's record keeps: the first phase's recipe (its keys as before), the deployment
@@ -71,8 +76,8 @@ def train_for_deployment(net, data: DeploymentData, recipe: DeploymentRecipe, ac
                      val_limit=val_limit)
     # no validation pass at the training size ([] evaluates nothing): its figures are not the network's
     first = train(net, data.train, [], recipe.train, accelerator, checkpoint=checkpoint)
-    # a training step's activations at the deployment size are the most a search allocates at once (over
-    # a gigabyte at 224x224): the tuning starts from the pages what ran before it freed
+    # a training step's activations at the deployment size are the most a search allocates at once (see
+    # TUNE_PART_FRAMES): the tuning starts from the pages what ran before it freed
     release_host_memory()
     tune_checkpoint = None if checkpoint is None else checkpoint.with_name(f"{checkpoint.stem}-tune{checkpoint.suffix}")
     tuned = train(net, data.deploy_train, data.deploy_val, recipe.tune_config(), accelerator, checkpoint=tune_checkpoint,

@@ -52,6 +52,7 @@ class TrainConfig:
     poses: str = "net"
     scan_loss: bool = True
     hints: bool = False               # depth hints for self-supervision (explorer.training.depth_hints)
+    micro_batches: int = 1            # a step's batch in this many parts, one after another (BatchNorm per part)
 
     @property
     def metric(self) -> bool:
@@ -71,6 +72,8 @@ class TrainConfig:
         d = dataclasses.asdict(self)
         d["input_size"] = list(self.input_size)
         d["exit_weights"] = list(self.exit_weights) if self.exit_weights else None
+        if d["micro_batches"] == 1:   # recipes stored before the field keep their keys
+            del d["micro_batches"]
         return d
 
     @classmethod
@@ -355,18 +358,12 @@ def train(net: AnytimeDepthNet, train_set, val_set, cfg: TrainConfig = PROXY,
             net.train()
             for g in opt.param_groups:
                 g["lr"] = lr_at(cfg, step)
-            image = image_batch(batch, accelerator)
-            with torch.autocast(accelerator.type, dtype=torch.float16, enabled=use_amp):
-                outs = net(image, batch["scan"].to(accelerator), batch_row(batch))
-                loss, per_exit = _training_loss(cfg, selfsup, outs, batch, accelerator)
-            if not torch.isfinite(loss):
-                raise FloatingPointError(f"training loss became {float(loss.detach())} at step {step}")
             opt.zero_grad(set_to_none=True)
-            scaler.scale(loss).backward()
+            loss, per_exit, frames = _backward(net, cfg, selfsup, batch, accelerator, scaler, step)
             scaler.step(opt)
             scaler.update()
             step += 1
-            seen += image.shape[0]
+            seen += frames
             record = {"step": step, "loss": float(loss.detach()), **{f"exit_{i + 1}": l for i, l in enumerate(per_exit)}}
             history.append(record)
             if progress:
@@ -383,6 +380,34 @@ def train(net: AnytimeDepthNet, train_set, val_set, cfg: TrainConfig = PROXY,
         save_checkpoint(checkpoint, net, cfg, step, opt, extra)
     net.to(memory_format=torch.contiguous_format)  # hand back an ordinary module (export, runtime)
     return TrainResult(metrics, history, seconds, seen / seconds if seconds > 0 else 0.0, step)
+
+
+def _backward(net: AnytimeDepthNet, cfg: TrainConfig, selfsup, batch: dict, accelerator: torch.device,
+              scaler: torch.amp.GradScaler, step: int) -> tuple[torch.Tensor, list[float], int]:
+    """One step's forward and backward passes: over the whole batch, or over ``cfg.micro_batches``
+    parts of it one after another (the same mean gradient, each part's activations alone in memory,
+    BatchNorm's statistics per part); (loss, per-exit losses, frames), averaged over the parts."""
+    row, use_amp = batch_row(batch), scaler.is_enabled()
+    frames = len(batch["image"])
+    parts = min(max(cfg.micro_batches, 1), frames)
+    loss_sum, exits_sum = None, None
+    for i in range(parts):
+        part = batch if parts == 1 else _part(batch, slice(i * frames // parts, (i + 1) * frames // parts), frames)
+        with torch.autocast(accelerator.type, dtype=torch.float16, enabled=use_amp):
+            outs = net(image_batch(part, accelerator), part["scan"].to(accelerator), row)
+            loss, per_exit = _training_loss(cfg, selfsup, outs, part, accelerator)
+        if not torch.isfinite(loss):
+            raise FloatingPointError(f"training loss became {float(loss.detach())} at step {step}")
+        scaler.scale(loss / parts).backward()
+        loss_sum = loss.detach() / parts + (0 if loss_sum is None else loss_sum)
+        exits_sum = [e / parts + (0 if exits_sum is None else exits_sum[j]) for j, e in enumerate(per_exit)]
+    return loss_sum, exits_sum, frames
+
+
+def _part(batch: dict, rows: slice, frames: int) -> dict:
+    """The frames ``rows`` of a collated batch (entries that are not per frame are kept whole)."""
+    return {k: v[rows] if not isinstance(v, str) and hasattr(v, "__len__") and len(v) == frames else v
+            for k, v in batch.items()}
 
 
 def _self_supervision(cfg: TrainConfig, train_set, accelerator: torch.device):

@@ -71,3 +71,28 @@ def test_a_checkpoint_save_cleans_what_a_killed_save_left(tmp_path):
     (tmp_path / f"c.pt.tmp{child.pid}").write_bytes(b"half a checkpoint")
     save_checkpoint(tmp_path / "c.pt", build_network(paper_candidate()), TrainConfig(), 1)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["c.pt"]
+
+
+def test_micro_batches_compute_the_whole_batch_update(sets):
+    """Without BatchNorm (whose statistics are per part by design) a batch trained in two parts takes
+    the step the whole batch takes."""
+    import copy
+
+    def without_batchnorm(net):
+        for name, module in list(net.named_modules()):
+            for child, sub in list(module.named_children()):
+                if isinstance(sub, (torch.nn.BatchNorm1d, torch.nn.BatchNorm2d)):
+                    setattr(module, child, torch.nn.Identity())
+        return net
+    torch.manual_seed(0)
+    start = without_batchnorm(build_network(CAND))
+    trained = {}
+    for parts in (1, 2):
+        net = copy.deepcopy(start)
+        cfg = TrainConfig(steps=3, batch_size=8, input_size=(32, 32), optimizer="sgd", lr=0.05, micro_batches=parts)
+        trained[parts] = (train(net, sets[0], [], cfg), net.state_dict())
+    (whole, a), (split, b) = trained[1], trained[2]
+    assert [r["loss"] for r in whole.history] == pytest.approx([r["loss"] for r in split.history], rel=1e-5)
+    assert all(torch.allclose(a[k], b[k], atol=1e-6) for k in a)
+    assert any(not torch.equal(a[k], start.state_dict()[k]) for k in a)   # it trained
+    assert "micro_batches" not in TrainConfig().to_dict()   # recipes stored before keep their keys
