@@ -486,7 +486,8 @@ def _replan_finalists(study: optuna.Study, config: SearchConfig, plan: "Plan", s
     left = time_limit.remaining() - RESERVE_S
     if config.finalists and not done and must_s > left:
         plan = dataclasses.replace(plan, finalists=0, retrain_jobs=0, retrain_s=0.0, changes=plan.changes + (
-            f"no finalist retrained: the best one and the paper design need about {must_s / 60:.1f} min at "
+            f"no finalist retrained: the best one{' and the paper design' if 'paper' in config.baselines else ''} "
+            f"need{'' if 'paper' in config.baselines else 's'} about {must_s / 60:.1f} min at "
             f"{config.finalist_steps} steps on this machine now, {max(left, 0) / 60:.1f} min are left: the winner "
             "is the search's best estimate, not retrained (give a longer --time-limit)",))
         config = dataclasses.replace(config, finalists=0)

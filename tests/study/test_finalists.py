@@ -301,12 +301,18 @@ def test_when_even_the_best_finalist_and_the_paper_design_no_longer_fit_none_is_
     speeds = Speeds(retrain_step_s=step_s, retrain_eval_s=0.1, supernet_step_s=0.0, finalist_step_s=(step_s,))
     monkeypatch.setattr(search_module, "_measure_again", lambda config, speeds, chosen: speeds)
     config = dataclasses.replace(CFG, finalists=1, finalist_steps=150, baselines=("paper",))
-    plan = Plan(limit_s=600.0, supernet_steps=0, supernet_s=0.0, sampling_s=60.0, finalists=1, finalist_steps=150,
-                retrain_jobs=2, retrain_s=10.0)
+    planned = Plan(limit_s=600.0, supernet_steps=0, supernet_s=0.0, sampling_s=60.0, finalists=1, finalist_steps=150,
+                   retrain_jobs=2, retrain_s=10.0)
     limit = TimeLimit(600.0, started=__import__("time").time() - 300.0, free=frozenset())
-    config, plan = search_module._replan_finalists(study, config, plan, speeds, limit, (1, 150), None)
+    config, plan = search_module._replan_finalists(study, config, planned, speeds, limit, (1, 150), None)
     assert config.finalists == plan.finalists == retrained
     assert any(c.startswith("no finalist retrained") for c in plan.changes) == (retrained == 0)
+    if not retrained:   # a study without baselines is not told of a paper design it does not have
+        assert any("the best one and the paper design need" in c for c in plan.changes)
+        alone = dataclasses.replace(config, finalists=1, baselines=())
+        _, plan = search_module._replan_finalists(study, alone, planned, speeds, limit, (1, 150), None)
+        said = [c for c in plan.changes if c.startswith("no finalist retrained")]
+        assert said and "paper" not in said[0] and "the best one needs" in said[0]
 
 
 @pytest.mark.slow
