@@ -92,10 +92,31 @@ def _same_shape(x: torch.Tensor) -> torch.Tensor:
     return x
 
 
+def _run_with_hooks(module: nn.Module, hook, inputs: list):
+    """``module``'s output on ``inputs``, ``hook(name)`` called after each leaf (and each Resize and
+    SkipAdd); the module is left as it was."""
+    handles, norms = [], []
+    for name, m in module.named_modules():
+        if not list(m.children()) or isinstance(m, (ops.Resize, ops.SkipAdd)):
+            handles.append(m.register_forward_hook(hook(name)))
+        if isinstance(m, (nn.BatchNorm1d, nn.BatchNorm2d)):
+            # a BatchNorm keeps its input's shape and is folded (the hook reads its parameters only); on
+            # meta tensors PyTorch runs its Python decomposition, most of the time of tracing a stage
+            m.forward = _same_shape
+            norms.append(m)
+    try:
+        with torch.no_grad():
+            return module(*inputs)
+    finally:
+        for h in handles:
+            h.remove()
+        for m in norms:
+            del m.forward
+
+
 def trace_stage(module: nn.Module, stage: str, inputs: list) -> tuple[list[Workload], list[tuple[int, ...]]]:
     """Run ``module`` on meta tensors of the given shapes (ints pass through) and record layers."""
     records: list[Workload] = []
-    handles = []
 
     def hook(name: str):
         def fn(m: nn.Module, args: tuple, out) -> None:
@@ -157,23 +178,7 @@ def trace_stage(module: nn.Module, stage: str, inputs: list) -> tuple[list[Workl
                                     (n_in + params) * BYTES_PER_VALUE, n_out * BYTES_PER_VALUE))
         return fn
 
-    norms = []
-    for name, m in module.named_modules():
-        if not list(m.children()) or isinstance(m, (ops.Resize, ops.SkipAdd)):
-            handles.append(m.register_forward_hook(hook(name)))
-        if isinstance(m, (nn.BatchNorm1d, nn.BatchNorm2d)):
-            # a BatchNorm keeps its input's shape and is folded (the hook reads its parameters only); on
-            # meta tensors PyTorch runs its Python decomposition, most of the time of tracing a stage
-            m.forward = _same_shape
-            norms.append(m)
-    try:
-        with torch.no_grad():
-            out = module(*inputs)
-    finally:
-        for h in handles:
-            h.remove()
-        for m in norms:
-            del m.forward
+    out = _run_with_hooks(module, hook, inputs)
     outs = out if isinstance(out, tuple) else (out,)
     return records, [tuple(o.shape) for o in outs]
 
