@@ -262,6 +262,10 @@ SUMMARY = (
     ("...trained at 64x64 only, run at 224x224", "bench_resolution", "anytime_small", 1, ""),
     ("Supernet training step: 2 CPU threads of the GPU machine over its GPU", "bench_gpu", "gpu_speedup_default", 1,
      "x"),
+    ("A whole study at 224x224 on one GPU, `--time-limit 4m` (one study)", "bench_gpu_study", "study_s", 1 / 60,
+     "min"),
+    ("...its winner's anytime loss over the paper design's, both retrained at 224x224", "bench_gpu_study",
+     "winner_ratio", 1, "x"),
 )
 
 
