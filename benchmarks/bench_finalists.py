@@ -24,7 +24,7 @@ from explorer.space import SearchSpace
 from explorer.study.config import SearchConfig
 from explorer.study.finalists import finalist_trials, retrain_finalists
 
-from harness import Bench, rotated
+from harness import Bench, image_size, rotated
 
 
 def _estimates(config: SearchConfig, count: int, seed: int = 0) -> list[optuna.trial.FrozenTrial]:
@@ -53,11 +53,6 @@ def _retrain(config: SearchConfig, estimates, workers: int) -> float:
     return seconds
 
 
-def _size(text: str) -> tuple[int, int]:
-    h, w = text.lower().split("x")
-    return int(h), int(w)
-
-
 if __name__ == "__main__":
     bench = Bench(__file__, "Finalists retrained sequentially and by worker processes at once", __doc__)
     ap = bench.parser()
@@ -65,7 +60,7 @@ if __name__ == "__main__":
     ap.add_argument("--steps", type=int, default=60, help="training steps of each retraining")
     ap.add_argument("--workers", type=int, default=2, help="worker processes of the parallel run")
     ap.add_argument("--accelerator", default="cpu", choices=("cpu", "cuda"))
-    ap.add_argument("--size", type=_size, help="train and deploy at this size, HxW (default: the search's "
+    ap.add_argument("--size", type=image_size, help="train and deploy at this size, HxW (default: the search's "
                     "defaults, 64x64 then tuned at 224x224); 224x224 with --batch-size 64 is a GPU's study")
     ap.add_argument("--batch-size", type=int, default=16, help="frames a step (default 16)")
     args = bench.parse_args(ap)

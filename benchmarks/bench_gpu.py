@@ -38,7 +38,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from harness import RESULTS, ROOT, Bench, interleave, python_path  # noqa: E402
+from harness import RESULTS, ROOT, Bench, image_size, interleave, python_path  # noqa: E402
 from explorer.study import trial_record  # noqa: E402
 
 DEFAULT, LARGE = ((64, 64), 16), ((224, 224), 64)
@@ -228,17 +228,12 @@ def amp_effect(device: str, data: str, steps: int, size: tuple[int, int], batch:
 
 
 # -- the benchmark ----------------------------------------------------------------------------------
-def _size(text: str) -> tuple[int, int]:
-    h, w = (int(x) for x in text.lower().split("x"))
-    return h, w
-
-
 def options(bench: Bench):
     ap = bench.parser()
     ap.add_argument("--device", default="auto", choices=["auto", "cuda", "cpu"],
                     help="where to train and search (default: CUDA where PyTorch sees a GPU, else the CPU)")
     ap.add_argument("--steps", type=int, default=20, help="timed supernet steps per timing (default 20)")
-    ap.add_argument("--large-size", type=_size, default=LARGE[0], help="the large recipe's size HxW (default 224x224)")
+    ap.add_argument("--large-size", type=image_size, default=LARGE[0], help="the large recipe's size HxW (default 224x224)")
     ap.add_argument("--large-batch", type=int, default=LARGE[1], help="the large recipe's batch (default 64)")
     ap.add_argument("--large-steps", type=int, default=None, help="steps at the large recipe (default --steps)")
     ap.add_argument("--warmup-steps", type=int, default=60, help="untimed steps before each timing on the GPU, "
@@ -256,7 +251,7 @@ def options(bench: Bench):
     ap.add_argument("--no-torchrun", action="store_true", help="skip the two-process comparison")
     # one process of the torchrun comparison (internal)
     ap.add_argument("--worker", help=argparse_hidden())
-    ap.add_argument("--size", type=_size, default=DEFAULT[0], help=argparse_hidden())
+    ap.add_argument("--size", type=image_size, default=DEFAULT[0], help=argparse_hidden())
     ap.add_argument("--batch", type=int, default=DEFAULT[1], help=argparse_hidden())
     return ap
 

@@ -29,7 +29,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_gpu import Utilisation  # noqa: E402
-from harness import ROOT, Bench, python_path  # noqa: E402
+from harness import ROOT, Bench, image_size, python_path  # noqa: E402
 
 PHASES = ("data", "measuring", "supernet", "sampling", "finalists", "report", "export")
 
@@ -121,16 +121,11 @@ def one_study(bench: Bench, args, rep: int, util: Utilisation) -> None:
     bench.add("winner_ratio", best.values[0] / paper.values[0])
 
 
-def _size(text: str) -> tuple[int, int]:
-    h, w = text.lower().split("x")
-    return int(h), int(w)
-
-
 def main() -> None:
     bench = Bench(__file__, "a whole study at the deployment size on one GPU: phases, utilisation, winner", __doc__)
     ap = bench.parser()
     ap.add_argument("--time-limit", default="4m", help="the study's --time-limit (default 4m)")
-    ap.add_argument("--size", type=_size, default=(224, 224), help="training and deployment size (default 224x224)")
+    ap.add_argument("--size", type=image_size, default=(224, 224), help="training and deployment size (default 224x224)")
     ap.add_argument("--batch-size", type=int, default=64, help="frames a step (default 64)")
     ap.add_argument("--no-amp", dest="amp", action="store_false", help="float32 instead of bf16 autocast")
     ap.add_argument("--accelerator", default="cuda", choices=("cuda", "cpu"), help="where to train (default cuda)")

@@ -21,6 +21,7 @@ over from one repetition to the next. On a CPU each of the N processes gets 1/N 
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import subprocess
@@ -30,7 +31,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_gpu import cores, subnet_losses, train_steps  # noqa: E402
-from harness import ROOT, Bench, interleave, python_path  # noqa: E402
+from harness import ROOT, Bench, image_size, interleave, python_path  # noqa: E402
 
 
 def worker(args) -> None:
@@ -73,24 +74,19 @@ def apart(args, one: Path, many: Path) -> tuple[float, float]:
     return statistics.fmean(parallel) / statistics.fmean(single), largest
 
 
-def _size(text: str) -> tuple[int, int]:
-    h, w = text.lower().split("x")
-    return int(h), int(w)
-
-
 def main() -> None:
     bench = Bench(__file__, "torchrun's processes against one process with the same micro-batches", __doc__)
     ap = bench.parser()
     ap.add_argument("--nproc", type=int, default=2, help="processes under torchrun (default 2)")
     ap.add_argument("--device", default="auto", choices=["auto", "cuda", "cpu"])
-    ap.add_argument("--size", type=_size, default=(64, 64), help="training size (default 64x64)")
+    ap.add_argument("--size", type=image_size, default=(64, 64), help="training size (default 64x64)")
     ap.add_argument("--batch-size", type=int, default=16, help="global batch (default 16)")
     ap.add_argument("--steps", type=int, default=20, help="timed steps (default 20)")
     ap.add_argument("--warmup-steps", type=int, default=10, help="untimed steps before them (default 10)")
     ap.add_argument("--data", default="synthetic:400:100", help="data set (default synthetic:400:100)")
-    ap.add_argument("--worker", help=argparse_hidden())
-    ap.add_argument("--weights", help=argparse_hidden())
-    ap.add_argument("--micro-batches", type=int, default=1, help=argparse_hidden())
+    ap.add_argument("--worker", help=argparse.SUPPRESS)
+    ap.add_argument("--weights", help=argparse.SUPPRESS)
+    ap.add_argument("--micro-batches", type=int, default=1, help=argparse.SUPPRESS)
     args = bench.parse_args(ap)
     if args.worker:
         return worker(args)
@@ -118,11 +114,6 @@ def main() -> None:
             bench.add("loss_ratio", ratio)
             bench.add("params_max_difference", largest)
     bench.finish()
-
-
-def argparse_hidden() -> str:
-    import argparse
-    return argparse.SUPPRESS
 
 
 if __name__ == "__main__":

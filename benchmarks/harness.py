@@ -165,6 +165,12 @@ def git_state(root: Path = ROOT) -> tuple[str, bool]:
     return commit or "unknown", bool(changes.strip())
 
 
+def image_size(text: str) -> tuple[int, int]:
+    """An HxW option (``224x224``) as (height, width): the argparse ``type`` of every size option."""
+    h, w = (int(x) for x in text.lower().split("x"))
+    return h, w
+
+
 def python_path() -> str:
     """PYTHONPATH for a child process of a benchmark: the repository first, then what this one had
     (packages installed beside the project on another machine, say)."""

@@ -1,7 +1,8 @@
 """Where the finalists retrain: in this process, or in worker processes, one per device.
 
 A node with several GPUs retrains one finalist per GPU at once; one GPU retrains them one after
-another in this process; on a CPU, ``--workers N`` processes split the cores. Workers only train: each returns its finalist's metrics to this process, which alone
+another in this process; on a CPU, ``--workers N`` processes split the cores. Workers only train:
+each returns its finalist's metrics to this process, which alone
 writes to the study (so SQLite, which takes one writer, serves parallel finalists too).
 """
 

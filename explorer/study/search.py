@@ -150,7 +150,6 @@ class SearchOutcome:
     not_retried: list[int] = dataclasses.field(default_factory=list)    # interrupted past --max-retries
     config: SearchConfig | None = None     # as run: a --time-limit plan may have sized its steps
     plan: "Plan | None" = None
-    phases: dict[str, float] = dataclasses.field(default_factory=dict)   # phase -> wall seconds, in order
 
 
 class PhaseClock:
@@ -353,7 +352,7 @@ def search(config: SearchConfig, storage_url: str | None = None, workers: int = 
         record_study(outcome.study, runs=runs + [{"started": time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(started)),
                                                   "seconds": round(time.time() - started, 1),
                                                   "phases": clock.seconds}])
-    return dataclasses.replace(outcome, phases=clock.seconds)
+    return outcome
 
 
 def _search(context: StudyContext, url: str, storage_url: str | None, workers: int, n_trials: int | None,
@@ -386,7 +385,6 @@ def _search(context: StudyContext, url: str, storage_url: str | None, workers: i
     supernet = ensure_supernet(context.with_config(config), on_supernet, on_data, cutoff)   # the planned steps
     if supernet is not None:
         clock.lap("supernet")
-    if supernet is not None:
         record_study(study, supernet=str(supernet.resolve()))
         plan = _note_unfinished(supernet, plan)
     if plan is not None:
@@ -485,9 +483,9 @@ def _replan_finalists(study: optuna.Study, config: SearchConfig, plan: "Plan", s
     must_s = retrain_seconds(speeds, 1, 1.0 if "paper" in config.baselines else 0.0, config.finalist_steps)
     left = time_limit.remaining() - RESERVE_S
     if config.finalists and not done and must_s > left:
+        needed = "the best one and the paper design need" if "paper" in config.baselines else "the best one needs"
         plan = dataclasses.replace(plan, finalists=0, retrain_jobs=0, retrain_s=0.0, changes=plan.changes + (
-            f"no finalist retrained: the best one{' and the paper design' if 'paper' in config.baselines else ''} "
-            f"need{'' if 'paper' in config.baselines else 's'} about {must_s / 60:.1f} min at "
+            f"no finalist retrained: {needed} about {must_s / 60:.1f} min at "
             f"{config.finalist_steps} steps on this machine now, {max(left, 0) / 60:.1f} min are left: the winner "
             "is the search's best estimate, not retrained (give a longer --time-limit)",))
         config = dataclasses.replace(config, finalists=0)
