@@ -16,9 +16,13 @@ network of the default space (tx2, U(0, 33 ms)), each repetition one seed, the s
 Then each seed's winners and the paper design are retrained with one longer recipe (``--final-steps``,
 default 300: twice the finalists', at the training size, then the finalists' tuning steps at the
 deployment size), with that seed, and measured at the deployment size on the first 96 validation
-frames. Figures: each winner's anytime loss over the paper design's (``ratio_<strategy>``, below 1 is
-better), the strategies' wall times, how many candidates each estimated and retrained, and the steps
-the searches' supernets got.
+frames. So are the envelope's dedicated networks (``explorer envelope``'s choice, ``--envelope-networks``
+of them, from the ``default`` strategy's estimates): single-exit networks spread over the budget's range,
+whose oracle (each budget served by the most accurate one ready by it) is what an anytime network of the
+space can approach. Figures: each winner's anytime loss over the paper design's (``ratio_<strategy>``,
+below 1 is better) and over the envelope's (``envelope_ratio_<strategy>``, 1 is the oracle), the
+strategies' wall times, how many candidates each estimated and retrained, and the steps the searches'
+supernets got.
 
     OMP_NUM_THREADS=1 python benchmarks/bench_search_value.py [--reps 3] [--time-s 300] [--threads 1]
 
@@ -52,8 +56,9 @@ from explorer.cost import candidate_cost, get_device  # noqa: E402
 from explorer.data import open_dataset  # noqa: E402
 from explorer.data.synthetic import cache_dir  # noqa: E402
 from explorer.model import build_network  # noqa: E402
-from explorer.space import Candidate, SearchSpace, paper_candidate  # noqa: E402
-from explorer.study.config import SearchConfig  # noqa: E402
+from explorer.space import Candidate, paper_candidate  # noqa: E402
+from explorer.study.config import SearchConfig, study_context  # noqa: E402
+from explorer.study.envelope import choose_networks, envelope_steps  # noqa: E402
 from explorer.study.finalists import estimate_trials, finalist_trials, retrain_finalists  # noqa: E402
 from explorer.study.planning import RESERVE_S, TimeLimit  # noqa: E402
 from explorer.study.records import record_values, study_record, trial_record  # noqa: E402
@@ -101,8 +106,9 @@ def _candidate(trial: optuna.trial.FrozenTrial | None) -> Candidate:
     return Candidate.from_dict(trial_record(trial).candidate)
 
 
-def searched(config: SearchConfig, seconds: float, reports: Path) -> tuple[Candidate, dict]:
-    """``explorer search --time-limit`` with ``config``: (its winner, what the run did)."""
+def searched(config: SearchConfig, seconds: float, reports: Path, envelope_networks: int) -> tuple[Candidate, dict]:
+    """``explorer search --time-limit`` with ``config``: (its winner, what the run did, with the dedicated
+    networks ``explorer envelope`` would choose from its estimates)."""
     limit = TimeLimit(seconds, time.time(), frozenset({"supernet_steps", "finalists", "finalist_steps"}))
     outcome = search(config, timeout_s=SAMPLING_CAP_S, reports=reports, time_limit=limit)
     study, plan = outcome.study, outcome.plan
@@ -113,7 +119,8 @@ def searched(config: SearchConfig, seconds: float, reports: Path) -> tuple[Candi
     for change in plan.changes if plan else ():
         print(f"      {change}", flush=True)
     return _candidate(winner(study)), {"estimated": len(estimate_trials(study)), "retrained": len(retrained),
-                                       "supernet_steps": state.get("step", 0)}
+                                       "supernet_steps": state.get("step", 0),
+                                       "dedicated": choose_networks(study, study_context(study), envelope_networks)}
 
 
 def random_retrained(config: SearchConfig, seconds: float, reports: Path) -> tuple[Candidate, dict]:
@@ -147,7 +154,7 @@ def run_strategy(name: str, seed: int, args, work: Path, data_cache: Path) -> tu
         if name == "random_retrained":
             best, info = random_retrained(config, seconds, reports)
         else:
-            best, info = searched(config, seconds, reports)
+            best, info = searched(config, seconds, reports, args.envelope_networks)
         info["seconds"] = time.perf_counter() - t0
     gc.unfreeze()   # the search froze what it had loaded (explorer.study.search._optimize): let it go
     gc.collect()
@@ -170,9 +177,10 @@ def deployment_data(config: SearchConfig) -> DeploymentData:
                           open_dataset(config.data, "val", config.input_size, train_augment=False))
 
 
-def measured_loss(candidate: Candidate, seed: int, recipe: DeploymentRecipe, data: DeploymentData) -> float:
-    """``candidate`` trained with ``recipe`` and ``seed``: its anytime loss at the deployment size (tx2,
-    the study's budget), every path measured on the first VAL_FRAMES validation frames."""
+def measured(candidate: Candidate, seed: int, recipe: DeploymentRecipe,
+             data: DeploymentData) -> tuple[list[float], list[float]]:
+    """``candidate`` trained with ``recipe`` and ``seed``: (each path's cost on tx2, its RMSE at the
+    deployment size on the first VAL_FRAMES validation frames)."""
     config = base_config(seed, "final")
     torch.manual_seed(seed)
     net = build_network(candidate)
@@ -180,46 +188,69 @@ def measured_loss(candidate: Candidate, seed: int, recipe: DeploymentRecipe, dat
     result = train_for_deployment(net, data, recipe, torch.device("cpu"), val_limit=VAL_FRAMES)
     rmse = [float(x) for x in result.metrics[config.metric]]
     cost = candidate_cost(candidate, tuple(config.input_size)).path_costs(get_device(config.device), "time")
-    return anytime_loss(cost, rmse, config.budgets[0])
+    return list(cost), rmse
 
 
 def declare(bench: Bench, seconds: float, final_steps: int) -> None:
+    recipe = f"after {final_steps} steps + tuning at 224x224"
     for name in STRATEGIES:
-        bench.figure(f"ratio_{name}", f"{name}: winner / paper design, anytime loss after {final_steps} steps + "
-                     "tuning at 224x224", "", better="lower")
+        bench.figure(f"ratio_{name}", f"{name}: winner / paper design, anytime loss {recipe}", "", better="lower")
+    for name in (*STRATEGIES, "paper"):
+        bench.figure(f"envelope_ratio_{name}", f"{name}: anytime loss / the envelope's (dedicated networks), "
+                     f"{recipe}", "", better="lower")
     for name in STRATEGIES:
         bench.figure(f"seconds_{name}", f"{name}: wall time (T = {seconds:g} s)", "s")
         bench.figure(f"estimated_{name}", f"{name}: candidates estimated", "")
         bench.figure(f"retrained_{name}", f"{name}: candidates retrained", "")
         if name != "random_retrained":
             bench.figure(f"supernet_steps_{name}", f"{name}: supernet steps trained inside T", "")
-    bench.figure("paper_anytime", f"paper design: anytime loss after {final_steps} steps + tuning at 224x224", "m",
-                 better="lower")
+    bench.figure("paper_anytime", f"paper design: anytime loss {recipe}", "m", better="lower")
+    bench.figure("envelope_anytime", f"envelope of dedicated networks: anytime loss {recipe}", "m", better="lower")
+    bench.figure("envelope_networks", "dedicated networks on the envelope (serving some budget)", "")
+
+
+def final_losses(candidates: list[Candidate], seed: int, recipe: DeploymentRecipe,
+                 data: DeploymentData) -> dict[str, tuple[list[float], list[float]]]:
+    """Each distinct candidate trained with the longer recipe: its key -> (path costs, path RMSEs)."""
+    done: dict[str, tuple[list[float], list[float]]] = {}
+    for candidate in candidates:
+        if candidate.key not in done:
+            t0 = time.perf_counter()
+            done[candidate.key] = measured(candidate, seed, recipe, data)
+            print(f"  final: {candidate.key} RMSE by path {[round(x, 4) for x in done[candidate.key][1]]} "
+                  f"({time.perf_counter() - t0:.0f} s)", flush=True)
+    return done
 
 
 def one_seed(bench: Bench, seed: int, args, work: Path, data_cache: Path, data: DeploymentData) -> None:
-    """The three strategies for ``seed``, in the repetition's order; then their winners and the paper
-    design retrained with the longer recipe (a winner two strategies share is trained once)."""
-    winners = {}
+    """The three strategies for ``seed``, in the repetition's order; then their winners, the paper design
+    and the envelope's dedicated networks retrained with the longer recipe (a network two strategies
+    share is trained once)."""
+    winners, dedicated = {}, []
     for name in rotated(list(STRATEGIES), seed):
         winners[name], info = run_strategy(name, seed, args, work, data_cache)
-        bench.add(f"seconds_{name}", info["seconds"])
-        bench.add(f"estimated_{name}", info["estimated"])
-        bench.add(f"retrained_{name}", info["retrained"])
-        if "supernet_steps" in info:
-            bench.add(f"supernet_steps_{name}", info["supernet_steps"])
-    recipe = final_recipe(args.final_steps)
-    losses: dict[str, float] = {}
-    for candidate in [paper_candidate(), *winners.values()]:
-        if candidate.key not in losses:
-            t0 = time.perf_counter()
-            losses[candidate.key] = measured_loss(candidate, seed, recipe, data)
-            print(f"  final: {candidate.key} anytime loss {losses[candidate.key]:.4f} "
-                  f"({time.perf_counter() - t0:.0f} s)", flush=True)
-    paper = losses[paper_candidate().key]
-    bench.add("paper_anytime", paper)
+        for figure in ("seconds", "estimated", "retrained", "supernet_steps"):
+            if figure in info:
+                bench.add(f"{figure}_{name}", info[figure])
+        if name == "default":
+            dedicated = info["dedicated"]
+    print(f"  envelope: {len(dedicated)} dedicated networks from the default's estimates", flush=True)
+    paper = paper_candidate()
+    trained = final_losses([paper, *winners.values(), *dedicated], seed, final_recipe(args.final_steps), data)
+    budget = base_config(seed, "final").budgets[0]
+    loss = {key: anytime_loss(costs, rmse, budget) for key, (costs, rmse) in trained.items()}
+    scan = trained[paper.key][1][0]    # path 0, the interpolated scan: the same frames, the same for all
+    steps = envelope_steps(scan, [(trained[c.key][0][-1], trained[c.key][1][-1]) for c in dedicated])
+    envelope = anytime_loss(*steps, budget)
+    print(f"  envelope: anytime loss {envelope:.4f} from steps {[(round(c, 1), round(e, 4)) for c, e in zip(*steps)]}",
+          flush=True)
+    bench.add("paper_anytime", loss[paper.key])
+    bench.add("envelope_anytime", envelope)
+    bench.add("envelope_networks", len(steps[0]) - 1)
+    bench.add("envelope_ratio_paper", loss[paper.key] / envelope)
     for name in STRATEGIES:
-        bench.add(f"ratio_{name}", losses[winners[name].key] / paper)
+        bench.add(f"ratio_{name}", loss[winners[name].key] / loss[paper.key])
+        bench.add(f"envelope_ratio_{name}", loss[winners[name].key] / envelope)
 
 
 def main() -> None:
@@ -230,6 +261,8 @@ def main() -> None:
                     "candidate's retraining, before the tuning (default 150: the searches' finalists' at T = 300 s)")
     ap.add_argument("--final-steps", type=int, default=300, help="steps at the training size of the final "
                     "comparison's recipe, before the tuning (default 300: twice the finalists')")
+    ap.add_argument("--envelope-networks", type=int, default=4, help="dedicated networks of the envelope, as "
+                    "`explorer envelope --networks` (default 4)")
     ap.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
     args = bench.parse_args(ap)
     torch.set_num_threads(args.threads)
@@ -241,7 +274,8 @@ def main() -> None:
     declare(bench, args.time_s, args.final_steps)
     bench.note(f"cpu, torch threads {args.threads}; T = {args.time_s:g} s a strategy and seed, supernet and data "
                f"loading inside it (a fresh cache each run); no baselines retrained inside T; random candidates "
-               f"retrained {args.random_steps} steps + tuning; final recipe "
+               f"retrained {args.random_steps} steps + tuning; {args.envelope_networks} dedicated networks; "
+               f"final recipe "
                f"{args.final_steps} steps at {config.train_size[0]}x{config.train_size[1]} + {config.tune_steps} at "
                f"{config.input_size[0]}x{config.input_size[1]}, measured on {VAL_FRAMES} validation frames; "
                f"{config.device}, {config.budgets[0]}")

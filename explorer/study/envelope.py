@@ -129,6 +129,18 @@ def _single_exit_baseline(rec, recipe: dict) -> bool:
                 and rec.finalist.recipe == recipe)
 
 
+def envelope_steps(scan_error: float, points: list[tuple[float, float]]) -> tuple[list[float], list[float]]:
+    """The oracle's steps (costs, errors) from the scan on (cost 0, ``scan_error``), given each dedicated
+    network's (cost, error): a budget is served by the most accurate network ready by it, so a network
+    no better than a cheaper one (or than the scan) serves none and is left out."""
+    costs, errors = [0.0], [scan_error]
+    for cost, error in sorted(points):
+        if error < errors[-1]:
+            costs.append(cost)
+            errors.append(error)
+    return costs, errors
+
+
 @dataclasses.dataclass(frozen=True)
 class Envelope:
     """The oracle's steps (cost, error) from the scan on, its anytime loss, the winner's, and which
@@ -161,11 +173,7 @@ def envelope(study: optuna.Study) -> Envelope | None:
         return None
     points = sorted(((trial_path_costs(t, device, budget.kind)[-1], trial_losses(t, config.metric)[-1], t)
                      for t in members), key=lambda p: (p[0], p[1]))
-    costs, errors = [0.0], [trial_losses(best, config.metric)[0]]
-    for cost, error, _ in points:
-        if error < errors[-1]:             # a later network that is no better serves no budget
-            costs.append(cost)
-            errors.append(error)
+    costs, errors = envelope_steps(trial_losses(best, config.metric)[0], [(c, e) for c, e, _ in points])
     networks = [{"number": t.number, "candidate_key": trial_record(t).candidate_key,
                  "baseline": trial_record(t).baseline or "", "cost": cost, config.metric: error}
                 for cost, error, t in points]
