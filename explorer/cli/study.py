@@ -162,6 +162,7 @@ def _print_outcome(study, cfg, storage_url: str, reports: Path, write_report: bo
     from explorer.space import Candidate
     from explorer.study import trial_record
     from explorer.study.config import study_context
+    from explorer.study.envelope import envelope_summary
     states = [t.state for t in study.get_trials(deepcopy=False)]
     count = {s.name.lower(): states.count(s) for s in optuna.trial.TrialState if states.count(s)}
     console.print(f"study [bold]{cfg.study}[/bold]: " + ", ".join(f"{v} {k}" for k, v in count.items()))
@@ -196,6 +197,9 @@ def _print_outcome(study, cfg, storage_url: str, reports: Path, write_report: bo
             kind = "retrained " if retrained else ""
             console.print(f"ratio to the {kind}paper-design baseline ({paper.values[0]:.4f}): "
                           f"[bold]{best.values[0] / paper.values[0]:.3f}[/bold]")
+        about_envelope = envelope_summary(study)
+        if about_envelope:
+            console.print(about_envelope, markup=False, highlight=False)
         if retrained and estimate is not None and estimate.number != rec.finalist.estimate_trial:
             console.print(f"  (the search's best estimate was trial {estimate.number}; retraining ranked another first)")
         if unbeaten is not None:   # said plainly: the study's best model is then a baseline, not a candidate
@@ -245,6 +249,7 @@ def cmd_envelope(args) -> None:
     from explorer.console import console, print_frame, print_json, progress
     from explorer.study.config import study_config
     from explorer.study.envelope import envelope, train_envelope
+    from explorer.report import write_report
     from explorer.study.storage import load_study
     if args.networks < 1:
         raise UserError("--networks must be at least 1")
@@ -270,6 +275,8 @@ def cmd_envelope(args) -> None:
     if found.ratio is not None:
         line += f"; the winner {found.winner_loss:.4f}, [bold]{found.ratio:.3f}[/bold] x the envelope"
     console.print(line)
+    if args.report:   # the report draws the envelope under the winner's curve: bring it up to date
+        console.print(f"report: {write_report(study, out_dir=Path(args.reports) / config.study)}")
 
 
 def cmd_report(args) -> None:
@@ -296,6 +303,8 @@ def register(sub, add, reports: dict) -> None:
                    "already retrained are kept, a killed run resumes)")
     s.add_argument("--time-limit", type=_duration_s, default=None, help="start no network that would end after "
                    "this long (default: none)")
+    s.add_argument("--no-report", dest="report", action="store_false", help="leave the study's HTML report as it "
+                   "is (by default it is written again, with the envelope)")
     s.add_argument("--json", action="store_true")
     s.add_argument("--reports", **reports)
 

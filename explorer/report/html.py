@@ -213,11 +213,12 @@ def _add_figures(ctx: dict, study: optuna.Study, frame: pd.DataFrame, best, base
                  primary: DeviceProfile, dists: list, data: str | None) -> None:
     """Draws the figures into ``ctx["figures"]``; a figure that cannot be drawn is left out, with a
     note where the reader can do something about it."""
-    from explorer.study.envelope import envelope
+    from explorer.study.envelope import envelope, envelope_hint
     config = study_config(study)
     found = envelope(study) if best is not None and primary.name == config.device else None
     if found is not None:
         ctx["envelope"] = {"loss": found.loss, "ratio": found.ratio, "networks": len(found.networks)}
+    ctx["envelope_hint"] = envelope_hint(study)
     curve_rows = []
     if best is not None:
         curve_rows.append((_label(best, best), best, figures.COLOURS["best"]))

@@ -37,6 +37,9 @@ from explorer.study.records import record_values, trial_record
 from explorer.study.results import winner
 from explorer.study.storage import study_dir
 
+#: dedicated networks ``explorer envelope`` retrains unless told otherwise
+DEFAULT_NETWORKS = 4
+
 
 def dedicated(candidate: Candidate) -> Candidate:
     """``candidate`` with its last exit only: the network one would run for one known deadline."""
@@ -179,3 +182,31 @@ def envelope(study: optuna.Study) -> Envelope | None:
                 for cost, error, t in points]
     return Envelope(costs, errors, anytime_loss(costs, errors, budget),
                     best.values[0] if trial_record(best).is_retrained else None, networks)
+
+
+def envelope_hint(study: optuna.Study) -> str | None:
+    """How to compute the envelope, when the winner is retrained and no dedicated network of the space
+    is yet (the single-exit baselines alone may make one); None otherwise."""
+    best = winner(study)
+    recipe = study_config(study).finalist_recipe().to_dict()
+    if best is None or not trial_record(best).is_retrained or any(
+            trial_record(t).envelope.recipe == recipe for t in envelope_trials(study)):
+        return None
+    return (f"`explorer envelope --study {study_config(study).study}` retrains {DEFAULT_NETWORKS} single-exit "
+            f"networks of the space with the finalists' recipe (about as long as {DEFAULT_NETWORKS} finalists) "
+            "and says how close the winner comes to the best network for each deadline known in advance")
+
+
+def envelope_summary(study: optuna.Study) -> str | None:
+    """The summary's sentence on the envelope: its anytime loss and the winner's ratio to it, what it is
+    made of, and how to compute it where no dedicated network of the space is yet (None when there is
+    nothing to say: no retrained winner)."""
+    found, hint = envelope(study), envelope_hint(study)
+    parts = []
+    if found is not None and found.ratio is not None:
+        parts.append(f"the winner's anytime loss is {found.ratio:.3f} x the envelope of {len(found.networks)} "
+                     f"dedicated networks ({found.loss:.4f}: each deadline served by the best single-exit network "
+                     f"ready by it{', here the single-exit baselines only' if hint else ''})")
+    if hint:
+        parts.append(hint if parts else f"no envelope of dedicated networks yet: {hint}")
+    return "; ".join(parts) or None

@@ -20,3 +20,9 @@ def test_its_anytime_loss_is_the_oracles():
 
 def test_with_no_network_better_than_the_scan_the_scan_serves_every_budget():
     assert envelope_steps(0.4, [(10.0, 0.6)]) == ([0.0], [0.4])
+
+
+def test_the_commands_default_is_the_one_the_summary_names():
+    from explorer.cli import build_parser
+    from explorer.study.envelope import DEFAULT_NETWORKS
+    assert build_parser().parse_args(["envelope", "--study", "s"]).networks == DEFAULT_NETWORKS

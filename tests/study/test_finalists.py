@@ -339,10 +339,15 @@ def test_the_envelope_of_dedicated_networks(finished, run_cli):
     the deployment size, never count as estimates or finalists; the envelope serves each budget with the
     best of them ready by it, and the winner is compared with it."""
     from explorer.anytime import anytime_loss
-    from explorer.study.envelope import dedicated, envelope, envelope_trials
+    from explorer.report import write_report
+    from explorer.study.envelope import dedicated, envelope, envelope_summary, envelope_trials
     from explorer.study.finalists import estimate_trials
     out, reports = finished
     before_winner = winner(out.study).number
+    if not envelope_trials(out.study):    # before: the summary and the report say how to get it
+        assert "explorer envelope --study fin" in envelope_summary(out.study)
+        before = write_report(out.study, out_dir=reports / "before-envelope").read_text()
+        assert 'id="envelope-hint"' in before and "explorer envelope --study fin" in before
     code, text, err = run_cli("envelope", "--study", "fin", "--networks", "1", "--reports", reports)
     assert code == 0, err
     made = envelope_trials(out.study)
@@ -359,8 +364,9 @@ def test_the_envelope_of_dedicated_networks(finished, run_cli):
     assert found.loss == pytest.approx(anytime_loss(found.costs, found.errors, "time:uniform:33ms"))
     assert found.ratio == pytest.approx(winner(out.study).values[0] / found.loss)
     assert "x the envelope" in " ".join(text.split())
+    assert f"{found.ratio:.3f} x the envelope of" in envelope_summary(out.study)
+    html = (reports / "fin" / "report.html").read_text()          # the command brought the report up to date
+    assert 'id="envelope-ratio"' in html and f"{found.ratio:.3f}" in html and 'id="envelope-hint"' not in html
+    assert "explorer envelope" not in envelope_summary(out.study)
     code, _, _ = run_cli("envelope", "--study", "fin", "--networks", "1", "--reports", reports)   # cached
     assert code == 0 and len(envelope_trials(out.study)) == len(made)
-    from explorer.report import write_report
-    html = write_report(out.study, out_dir=reports / "envelope-report").read_text()
-    assert 'id="envelope-ratio"' in html and f"{found.ratio:.3f}" in html
