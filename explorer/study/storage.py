@@ -129,16 +129,39 @@ def open_storage(url: str | None, study: str, workers: int = 1, reports: Path = 
         interval, grace = heartbeat_settings()
         kwargs = {"heartbeat_interval": interval, "grace_period": grace, **rdb_retry_kwargs(max_retries, grace)}
     try:
-        import warnings
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
-            storage = optuna.storages.RDBStorage(url, engine_kwargs={"pool_pre_ping": True}, **kwargs)
+        storage = _rdb_storage(url, kwargs)
     except Exception as exc:  # sqlalchemy raises many types for unreachable or malformed URLs
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise UserError(f"storage {url}: unreachable or invalid ({first[:160]})") from None
     if create and url.startswith("sqlite:///") and not on_network_filesystem(Path(url[len("sqlite:///"):])):
         _write_ahead(storage)   # the search writes; readers leave the file's mode as they find it
     return storage
+
+
+#: attempts at opening a database whose tables other workers may be creating at the same moment
+TABLE_RACE_ATTEMPTS = 5
+
+
+def _rdb_storage(url: str, kwargs: dict) -> optuna.storages.RDBStorage:
+    """Optuna's RDBStorage for ``url``. Workers started together on an empty database all create its
+    tables at once; on PostgreSQL all but one fail (a duplicate table or type). The tables are then
+    there, so a worker that lost the race opens the database again, after a short random pause."""
+    import random
+    import time
+    import warnings
+
+    import sqlalchemy.exc
+    attempt = 1
+    while True:
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
+                return optuna.storages.RDBStorage(url, engine_kwargs={"pool_pre_ping": True}, **kwargs)
+        except (sqlalchemy.exc.IntegrityError, sqlalchemy.exc.ProgrammingError):
+            if attempt == TABLE_RACE_ATTEMPTS:
+                raise
+            time.sleep(random.uniform(0.1, 0.5) * attempt)
+            attempt += 1
 
 
 #: file systems shared between machines, where SQLite's write-ahead log (shared memory) does not work

@@ -10,6 +10,7 @@ import optuna
 import pytest
 from sqlalchemy import text
 
+from conftest import POSTGRES, needs_postgres
 from explorer.study import storage
 
 
@@ -110,3 +111,24 @@ def test_a_second_search_on_a_study_being_searched_is_refused_and_touches_nothin
         assert not (tmp_path / "cc" / "journal.log").exists() and not (tmp_path / "s" / "study.db").exists()
     code, _, err = run_cli(*args)
     assert code == 0, err
+
+
+@needs_postgres
+def test_workers_started_together_on_an_empty_postgres_database_all_open_it():
+    """They all create Optuna's tables at once; without a second try, all but one failed (3 of 4 here)."""
+    import uuid
+
+    import psycopg2
+    name = f"explorer_race_{uuid.uuid4().hex[:8]}"
+    admin = psycopg2.connect(POSTGRES.rsplit("/", 1)[0] + "/postgres")
+    admin.autocommit = True
+    admin.cursor().execute(f"CREATE DATABASE {name}")
+    try:
+        url = POSTGRES.rsplit("/", 1)[0] + "/" + name
+        code = f"from explorer.study.storage import open_storage; open_storage({url!r}, 's')"
+        workers = [subprocess.Popen([sys.executable, "-c", code], stderr=subprocess.PIPE, text=True) for _ in range(4)]
+        errors = [w.communicate(timeout=120)[1] for w in workers]
+        assert [w.returncode for w in workers] == [0] * 4, errors
+    finally:
+        admin.cursor().execute(f"DROP DATABASE {name} WITH (FORCE)")
+        admin.close()
