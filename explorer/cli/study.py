@@ -248,8 +248,8 @@ def cmd_envelope(args) -> None:
 
     from explorer.console import console, print_frame, print_json, progress
     from explorer.study.config import study_config
-    from explorer.study.envelope import envelope, train_envelope
     from explorer.report import write_report
+    from explorer.study.envelope import envelope, train_envelope
     from explorer.study.storage import load_study
     if args.networks < 1:
         raise UserError("--networks must be at least 1")
