@@ -217,7 +217,8 @@ def _add_figures(ctx: dict, study: optuna.Study, frame: pd.DataFrame, best, base
     config = study_config(study)
     found = envelope(study) if best is not None and primary.name == config.device else None
     if found is not None:
-        ctx["envelope"] = {"loss": found.loss, "ratio": found.ratio, "networks": len(found.networks)}
+        ctx["envelope"] = {"loss": found.loss, "ratio": found.ratio, "networks": len(found.networks),
+                           "below_one": found.below_one}
     ctx["envelope_hint"] = envelope_hint(study)
     curve_rows = []
     if best is not None:

@@ -154,10 +154,21 @@ class Envelope:
     loss: float
     winner_loss: float | None
     networks: list[dict]
+    unit: str = "ms"
 
     @property
     def ratio(self) -> float | None:
         return self.winner_loss / self.loss if self.winner_loss is not None and self.loss > 0 else None
+
+    @property
+    def below_one(self) -> str | None:
+        """Why the winner can beat the oracle, where it does: the dedicated networks all end in the
+        decoder, so early deadlines have only the scan."""
+        if self.ratio is None or self.ratio >= 1 or len(self.costs) < 2:
+            return None
+        return (f"below 1 where the winner's early exits answer before the cheapest dedicated network is ready "
+                f"({self.costs[1]:.1f} {self.unit}): every dedicated network ends in the decoder, and until then "
+                "the oracle has only the scan")
 
     def curve(self, upper: float) -> tuple[np.ndarray, np.ndarray]:
         return anytime_curve(self.costs, self.errors, upper)
@@ -181,7 +192,7 @@ def envelope(study: optuna.Study) -> Envelope | None:
                  "baseline": trial_record(t).baseline or "", "cost": cost, config.metric: error}
                 for cost, error, t in points]
     return Envelope(costs, errors, anytime_loss(costs, errors, budget),
-                    best.values[0] if trial_record(best).is_retrained else None, networks)
+                    best.values[0] if trial_record(best).is_retrained else None, networks, budget.unit)
 
 
 def envelope_hint(study: optuna.Study) -> str | None:
@@ -207,6 +218,8 @@ def envelope_summary(study: optuna.Study) -> str | None:
         parts.append(f"the winner's anytime loss is {found.ratio:.3f} x the envelope of {len(found.networks)} "
                      f"dedicated networks ({found.loss:.4f}: each deadline served by the best single-exit network "
                      f"ready by it{', here the single-exit baselines only' if hint else ''})")
+        if found.below_one:
+            parts.append(found.below_one)
     if hint:
         parts.append(hint if parts else f"no envelope of dedicated networks yet: {hint}")
     return "; ".join(parts) or None
