@@ -17,9 +17,10 @@ Then each seed's winners and the paper design are retrained with one longer reci
 default 300: twice the finalists', at the training size, then the finalists' tuning steps at the
 deployment size), with that seed, and measured at the deployment size on the first 96 validation
 frames. So are the envelope's dedicated networks (``explorer envelope``'s choice, ``--envelope-networks``
-of them, from the ``default`` strategy's estimates): single-exit networks spread over the budget's range,
-whose oracle (each budget served by the most accurate one ready by it) is what an anytime network of the
-space can approach. Figures: each winner's anytime loss over the paper design's (``ratio_<strategy>``,
+of them, from the ``default`` strategy's estimates): networks each trained for one path alone (a
+candidate's single-exit twin, or a candidate trained for an earlier path's loss only), spread over the
+budget's range, whose oracle (each budget served by the most accurate one ready by it) is what an
+anytime network of the space can approach. Figures: each winner's anytime loss over the paper design's (``ratio_<strategy>``,
 below 1 is better) and over the envelope's (``envelope_ratio_<strategy>``, 1 is the oracle), the
 strategies' wall times, how many candidates each estimated and retrained, and the steps the searches'
 supernets got.
@@ -209,23 +210,23 @@ def declare(bench: Bench, seconds: float, final_steps: int) -> None:
     bench.figure("envelope_networks", "dedicated networks on the envelope (serving some budget)", "")
 
 
-def final_losses(candidates: list[Candidate], seed: int, recipe: DeploymentRecipe,
+def final_losses(networks: list[tuple[str, Candidate, DeploymentRecipe]], seed: int,
                  data: DeploymentData) -> dict[str, tuple[list[float], list[float]]]:
-    """Each distinct candidate trained with the longer recipe: its key -> (path costs, path RMSEs)."""
+    """Each distinct network (key, candidate, recipe) trained: its key -> (path costs, path RMSEs)."""
     done: dict[str, tuple[list[float], list[float]]] = {}
-    for candidate in candidates:
-        if candidate.key not in done:
+    for key, candidate, recipe in networks:
+        if key not in done:
             t0 = time.perf_counter()
-            done[candidate.key] = measured(candidate, seed, recipe, data)
-            print(f"  final: {candidate.key} RMSE by path {[round(x, 4) for x in done[candidate.key][1]]} "
+            done[key] = measured(candidate, seed, recipe, data)
+            print(f"  final: {key} RMSE by path {[round(x, 4) for x in done[key][1]]} "
                   f"({time.perf_counter() - t0:.0f} s)", flush=True)
     return done
 
 
 def one_seed(bench: Bench, seed: int, args, work: Path, data_cache: Path, data: DeploymentData) -> None:
     """The three strategies for ``seed``, in the repetition's order; then their winners, the paper design
-    and the envelope's dedicated networks retrained with the longer recipe (a network two strategies
-    share is trained once)."""
+    and the envelope's dedicated networks (each trained for its path alone) retrained with the longer
+    recipe (a network two strategies share is trained once)."""
     winners, dedicated = {}, []
     for name in rotated(list(STRATEGIES), seed):
         winners[name], info = run_strategy(name, seed, args, work, data_cache)
@@ -235,12 +236,13 @@ def one_seed(bench: Bench, seed: int, args, work: Path, data_cache: Path, data: 
         if name == "default":
             dedicated = info["dedicated"]
     print(f"  envelope: {len(dedicated)} dedicated networks from the default's estimates", flush=True)
-    paper = paper_candidate()
-    trained = final_losses([paper, *winners.values(), *dedicated], seed, final_recipe(args.final_steps), data)
+    paper, recipe = paper_candidate(), final_recipe(args.final_steps)
+    trained = final_losses([(c.key, c, recipe) for c in (paper, *winners.values())]
+                           + [(n.key, n.candidate, n.recipe(recipe)) for n in dedicated], seed, data)
     budget = base_config(seed, "final").budgets[0]
-    loss = {key: anytime_loss(costs, rmse, budget) for key, (costs, rmse) in trained.items()}
+    loss = {c.key: anytime_loss(*trained[c.key], budget) for c in (paper, *winners.values())}
     scan = trained[paper.key][1][0]    # path 0, the interpolated scan: the same frames, the same for all
-    steps = envelope_steps(scan, [(trained[c.key][0][-1], trained[c.key][1][-1]) for c in dedicated])
+    steps = envelope_steps(scan, [(trained[n.key][0][n.path], trained[n.key][1][n.path]) for n in dedicated])
     envelope = anytime_loss(*steps, budget)
     print(f"  envelope: anytime loss {envelope:.4f} from steps {[(round(c, 1), round(e, 4)) for c, e in zip(*steps)]}",
           flush=True)

@@ -5,18 +5,20 @@ ready by then. The anytime loss of that oracle (each budget served by the most a
 network ready by it, the scan before the first) is what an anytime network of the same space and
 recipe can approach: sharing one backbone among exits costs something, and the envelope says how much.
 
-The dedicated networks are the single-exit twins of the search's candidates (the same network with its
-last exit only), chosen along the cost range from the estimate: the front of estimated last-path error
-against the twin's cost on the study's device, spread over the budget's range. They are retrained with
-the finalists' recipe at the deployment size (explorer.study.finalists) and stored as trials tagged
-``envelope``, so the work is cached and a killed run resumes; the study's single-exit baselines that
-were retrained with the same recipe join them at no cost.
+The dedicated networks come from every path of the search's candidates: for the last path, the
+single-exit twin (the same network with its last exit only); for an earlier one (the LiDAR exit, an
+encoder exit, an early decoder exit), the candidate trained with that path's loss alone, since the
+space's networks all end in the decoder and only those earlier paths can answer early deadlines.
+They are chosen along the cost range from the estimate (the front of estimated error against the
+path's cost on the study's device, spread over the budget's range), retrained with the finalists'
+recipe at the deployment size (explorer.study.finalists) and stored as trials tagged ``envelope``
+with the path they serve, so the work is cached and a killed run resumes; the study's single-exit
+baselines that were retrained with the same recipe join them at no cost.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import functools
 import math
 import time
 from pathlib import Path
@@ -28,14 +30,14 @@ import optuna
 from explorer.anytime import anytime_curve, anytime_loss
 from explorer.cost import model_cost
 from explorer.space import Candidate
-from explorer.study._finalist_pool import InProcess
 from explorer.study.config import StudyContext, study_config, study_context
 from explorer.study.finalists import FinalistJob, proxy_view, estimate_trials, finalist_trials, train_finalist
 from explorer.study.objective import Objective
 from explorer.study.planning import SAFETY
 from explorer.study.records import record_values, trial_record
-from explorer.study.results import winner
+from explorer.study.results import trial_losses, trial_path_costs, winner
 from explorer.study.storage import study_dir
+from explorer.training.deployment import DeploymentRecipe
 
 #: dedicated networks ``explorer envelope`` retrains unless told otherwise
 DEFAULT_NETWORKS = 4
@@ -46,35 +48,74 @@ def dedicated(candidate: Candidate) -> Candidate:
     return dataclasses.replace(candidate, exits=(max(candidate.exits),), encoder_exits=(), lidar_exit=False)
 
 
+@dataclasses.dataclass(frozen=True)
+class DedicatedNetwork:
+    """A network trained for one path alone: ``candidate`` trained with the loss of ``path`` only (its
+    other exits untrained, and never run for that deadline). For a candidate's last path it is the
+    single-exit twin (:func:`dedicated`); for an earlier one (the LiDAR exit, an encoder exit, an early
+    decoder exit) the candidate itself, since the space's networks all end in the decoder."""
+
+    candidate: Candidate
+    path: int
+
+    @property
+    def key(self) -> str:
+        return f"{self.candidate.key}/{self.path}"
+
+    def recipe(self, base: DeploymentRecipe) -> DeploymentRecipe:
+        """``base`` with the loss of this network's path alone (the same recipe for a single exit)."""
+        exits = self.candidate.num_paths - 1
+        if exits == 1:
+            return base
+        weights = tuple(1.0 if i == self.path - 1 else 0.0 for i in range(exits))
+        return dataclasses.replace(base, train=dataclasses.replace(base.train, exit_weights=weights))
+
+
+def dedicated_networks(candidate: Candidate) -> list[DedicatedNetwork]:
+    """One dedicated network for each path of ``candidate`` (path 0, the scan, needs none)."""
+    last = candidate.num_paths - 1
+    return [DedicatedNetwork(candidate, p) for p in range(1, last)] + [DedicatedNetwork(dedicated(candidate), 1)]
+
+
 def envelope_trials(study: optuna.Study) -> list[optuna.trial.FrozenTrial]:
     return [t for t in study.get_trials(deepcopy=False, states=(optuna.trial.TrialState.COMPLETE,))
             if trial_record(t).is_envelope]
 
 
-def choose_networks(study: optuna.Study, context: StudyContext, count: int) -> list[Candidate]:
-    """``count`` dedicated networks spread over the budget's range: the single-exit twins of the search's
-    candidates on the front of estimated last-path error against their last path's cost on the device,
-    the one nearest each of ``count`` evenly spaced costs up to the budget's upper end."""
+def dedicated_path(rec) -> int:
+    """The path a retrained network of the envelope serves with (the last one for a single exit)."""
+    path = rec.envelope.path if rec.envelope is not None else None
+    return path if path is not None else len(rec.path_metrics) - 1
+
+
+def choose_networks(study: optuna.Study, context: StudyContext, count: int) -> list[DedicatedNetwork]:
+    """``count`` dedicated networks spread over the budget's range: of every path of the search's
+    candidates, those on the front of estimated error against the path's cost on the device, the one
+    nearest each of ``count`` evenly spaced costs up to the budget's upper end. An early path's cost is
+    the path's in its anytime network (the earlier exit heads included, a slight overestimate)."""
     config, device, budget = context.config, context.device, context.budget
-    best: dict[str, tuple[float, float, Candidate]] = {}
+    best: dict[str, tuple[float, float, DedicatedNetwork]] = {}
     for t in estimate_trials(study):
         rec = trial_record(t)
         if rec.baseline or rec.candidate is None:
             continue
-        twin = dedicated(Candidate.from_dict(rec.candidate))
-        error = rec.losses_of(config.metric)[-1]
-        if twin.key not in best or error < best[twin.key][1]:
-            cost = model_cost(twin, config.input_size).path_costs(device, budget.kind)[-1]
-            best[twin.key] = (cost, error, twin)
+        errors, costs = rec.losses_of(config.metric), trial_path_costs(t, device, budget.kind)
+        for network in dedicated_networks(Candidate.from_dict(rec.candidate)):
+            last = network.candidate.num_paths == 2
+            error = errors[-1] if last else errors[network.path]
+            if network.key not in best or error < best[network.key][1]:
+                cost = (model_cost(network.candidate, config.input_size).path_costs(device, budget.kind)[-1]
+                        if last else costs[network.path])
+                best[network.key] = (cost, error, network)
     front, lowest = [], math.inf
-    for cost, error, twin in sorted(best.values(), key=lambda x: x[0]):
+    for cost, error, network in sorted(best.values(), key=lambda x: (x[0], x[1])):
         if error < lowest and cost <= budget.upper:
             lowest = error
-            front.append((cost, twin))
+            front.append((cost, network))
     if len(front) <= count:
-        return [twin for _, twin in front]
+        return [network for _, network in front]
     targets = np.linspace(front[0][0], front[-1][0], count)
-    chosen: list[Candidate] = []
+    chosen: list[DedicatedNetwork] = []
     for target in targets:
         nearest = min((pair for pair in front if pair[1] not in chosen), key=lambda p: abs(p[0] - target))
         chosen.append(nearest[1])
@@ -87,29 +128,29 @@ def train_envelope(study: optuna.Study, count: int, reports: Path, deadline: flo
     a time; with a ``deadline``, a network starts only if the longest so far says it ends before it)."""
     context = study_context(study)
     config = context.config
-    recipe = config.finalist_recipe()
-    done = {trial_record(t).candidate_key for t in envelope_trials(study)
-            if trial_record(t).envelope.recipe == recipe.to_dict()}
-    todo = [c for c in choose_networks(study, context, count) if c.key not in done]
+    base = config.finalist_recipe()
+    done = {f"{trial_record(t).candidate_key}/{dedicated_path(trial_record(t))}" for t in envelope_trials(study)
+            if trial_record(t).envelope.recipe == base.to_dict()}
+    todo = [n for n in choose_networks(study, context, count) if n.key not in done]
     if not todo:
         return envelope_trials(study)
     folder = study_dir(config.study, reports) / "envelope"
-    runner = InProcess(functools.partial(Objective, context.with_config(proxy_view(config)),
-                                         study_dir(config.study, reports)),
-                       functools.partial(train_finalist, recipe=recipe, folder=folder))
+    objective = Objective(context.with_config(proxy_view(config)), study_dir(config.study, reports))
     took: list[float] = []
-    for i, candidate in enumerate(todo):
+    for i, network in enumerate(todo):
         if deadline is not None and took and time.time() + SAFETY * max(took) > deadline:
             if progress:
                 progress(i, len(todo), f"no time for the {len(todo) - i} other network(s): give a longer --time-limit")
             break
         if progress:
-            progress(i, len(todo), f"training {candidate.key} ({candidate.describe()[:60]})")
+            progress(i, len(todo), f"training {network.candidate.key} for path {network.path}")
         started = time.time()
-        result = runner.submit(FinalistJob(candidate.to_dict())).result()
+        result = train_finalist(objective, FinalistJob(network.candidate.to_dict()), recipe=network.recipe(base),
+                                folder=folder / f"path{network.path}")
         took.append(time.time() - started)
         attrs = dict(result["user_attrs"])
-        attrs.update(record_values(envelope=attrs.pop("finalist")))   # never a finalist: it cannot be the winner
+        trained = attrs.pop("finalist")    # never a finalist: it cannot be the winner
+        attrs.update(record_values(envelope={**trained, "recipe": base.to_dict(), "path": network.path}))
         study.add_trial(optuna.trial.create_trial(values=result["values"], user_attrs=attrs,
                                                   state=optuna.trial.TrialState.COMPLETE))
         Path(result["checkpoint"]).unlink(missing_ok=True)
@@ -162,13 +203,13 @@ class Envelope:
 
     @property
     def below_one(self) -> str | None:
-        """Why the winner can beat the oracle, where it does: the dedicated networks all end in the
-        decoder, so early deadlines have only the scan."""
+        """Why the winner can beat the oracle, where it does: the oracle has only its few networks, and
+        between them (before the first, only the scan) the winner's exits may answer sooner."""
         if self.ratio is None or self.ratio >= 1 or len(self.costs) < 2:
             return None
-        return (f"below 1 where the winner's early exits answer before the cheapest dedicated network is ready "
-                f"({self.costs[1]:.1f} {self.unit}): every dedicated network ends in the decoder, and until then "
-                "the oracle has only the scan")
+        return (f"below 1 where the winner's exits answer before the envelope's next network is ready: its "
+                f"{len(self.costs) - 1} step(s) start at {self.costs[1]:.1f} {self.unit}, and before that only the "
+                "scan serves it; more dedicated networks (explorer envelope --networks) close the gaps")
 
     def curve(self, upper: float) -> tuple[np.ndarray, np.ndarray]:
         return anytime_curve(self.costs, self.errors, upper)
@@ -178,18 +219,19 @@ def envelope(study: optuna.Study) -> Envelope | None:
     """The envelope of the study's dedicated networks on its device and first budget (None before any
     is retrained). Each budget is served by the most accurate network ready by it; before the first,
     by the scan (path 0, as the winner measured it)."""
-    from explorer.study.results import trial_losses, trial_path_costs
     context = study_context(study)
     config, device, budget = context.config, context.device, context.budget
     members = envelope_members(study)
     best = winner(study)
     if not members or best is None:
         return None
-    points = sorted(((trial_path_costs(t, device, budget.kind)[-1], trial_losses(t, config.metric)[-1], t)
+    points = sorted(((trial_path_costs(t, device, budget.kind)[dedicated_path(trial_record(t))],
+                      trial_losses(t, config.metric)[dedicated_path(trial_record(t))], t)
                      for t in members), key=lambda p: (p[0], p[1]))
     costs, errors = envelope_steps(trial_losses(best, config.metric)[0], [(c, e) for c, e, _ in points])
     networks = [{"number": t.number, "candidate_key": trial_record(t).candidate_key,
-                 "baseline": trial_record(t).baseline or "", "cost": cost, config.metric: error}
+                 "path": dedicated_path(trial_record(t)), "baseline": trial_record(t).baseline or "",
+                 "cost": cost, config.metric: error}
                 for cost, error, t in points]
     return Envelope(costs, errors, anytime_loss(costs, errors, budget),
                     best.values[0] if trial_record(best).is_retrained else None, networks, budget.unit)

@@ -41,6 +41,7 @@ class Retraining(BaseModel):
     recipe: dict[str, Any]
     estimate_trial: Optional[int] = None
     estimated: Optional[float] = None
+    path: Optional[int] = None        # a dedicated network of the envelope: the one path it was trained for
 
 
 class TrialRecord(BaseModel):

@@ -1,5 +1,7 @@
 """The envelope's steps: each budget served by the most accurate dedicated network ready by it."""
 
+import dataclasses
+
 import pytest
 
 from explorer.anytime import anytime_loss
@@ -32,6 +34,33 @@ def test_a_winner_below_the_envelope_is_told_why():
     from explorer.study.envelope import Envelope
     below = Envelope([0.0, 7.1, 10.6], [0.53, 0.38, 0.33], loss=0.38, winner_loss=0.35, networks=[{}, {}])
     assert below.ratio == pytest.approx(0.35 / 0.38)
-    assert "(7.1 ms)" in below.below_one and "only the scan" in below.below_one
+    assert "start at 7.1 ms" in below.below_one and "only the scan" in below.below_one
     assert Envelope([0.0, 7.1], [0.53, 0.38], loss=0.38, winner_loss=0.40, networks=[{}]).below_one is None
     assert Envelope([0.0, 7.1], [0.53, 0.38], loss=0.38, winner_loss=None, networks=[{}]).below_one is None
+
+
+def test_each_path_of_a_candidate_has_its_dedicated_network_trained_for_it_alone():
+    from explorer.space import paper_candidate
+    from explorer.study.config import SearchConfig
+    from explorer.study.envelope import dedicated, dedicated_networks
+    candidate = paper_candidate()
+    networks = dedicated_networks(candidate)
+    assert [n.path for n in networks[:-1]] == list(range(1, candidate.num_paths - 1))
+    assert networks[-1].candidate == dedicated(candidate) and networks[-1].path == 1
+    assert len({n.key for n in networks}) == len(networks)
+    base = SearchConfig(study="s").finalist_recipe()
+    assert networks[-1].recipe(base) == base                        # a single exit: the finalists' recipe
+    early = networks[0].recipe(base)
+    assert early.train.exit_weights == (1.0,) + (0.0,) * (candidate.num_paths - 2)
+    assert early.tune_config().exit_weights == early.train.exit_weights   # the tuning too
+    assert dataclasses.replace(early.train, exit_weights=None) == base.train
+
+
+def test_a_path_with_no_weight_takes_no_gradient():
+    import torch
+
+    from explorer.training.train import multi_exit_loss
+    outputs = [torch.zeros(1, 1, 2, 2)] + [torch.zeros(1, 1, 2, 2, requires_grad=True) for _ in range(3)]
+    total, _ = multi_exit_loss(outputs, torch.ones(1, 1, 2, 2), (0.0, 1.0, 0.0))
+    total.backward()
+    assert [float(o.grad.abs().sum()) for o in outputs[1:]] == [0.0, 4.0 / 4, 0.0]
