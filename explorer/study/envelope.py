@@ -203,13 +203,15 @@ class Envelope:
 
     @property
     def below_one(self) -> str | None:
-        """Why the winner can beat the oracle, where it does: the oracle has only its few networks, and
-        between them (before the first, only the scan) the winner's exits may answer sooner."""
+        """Why the winner can beat the oracle, where it does: the oracle has only its few networks, so
+        before the first only the scan serves it, and between them (or after the last) the winner's
+        exits can be more accurate."""
         if self.ratio is None or self.ratio >= 1 or len(self.costs) < 2:
             return None
-        return (f"below 1 where the winner's exits answer before the envelope's next network is ready: its "
-                f"{len(self.costs) - 1} step(s) start at {self.costs[1]:.1f} {self.unit}, and before that only the "
-                "scan serves it; more dedicated networks (explorer envelope --networks) close the gaps")
+        ready = ", ".join(f"{c:.1f}" for c in self.costs[1:])
+        return (f"below 1 where the winner's exits are more accurate than the envelope's network for that "
+                f"deadline: its networks are ready at {ready} {self.unit}, only the scan before the first; more "
+                "dedicated networks (explorer envelope --networks) close the gaps")
 
     def curve(self, upper: float) -> tuple[np.ndarray, np.ndarray]:
         return anytime_curve(self.costs, self.errors, upper)

@@ -34,7 +34,7 @@ def test_a_winner_below_the_envelope_is_told_why():
     from explorer.study.envelope import Envelope
     below = Envelope([0.0, 7.1, 10.6], [0.53, 0.38, 0.33], loss=0.38, winner_loss=0.35, networks=[{}, {}])
     assert below.ratio == pytest.approx(0.35 / 0.38)
-    assert "start at 7.1 ms" in below.below_one and "only the scan" in below.below_one
+    assert "ready at 7.1, 10.6 ms" in below.below_one and "only the scan" in below.below_one
     assert Envelope([0.0, 7.1], [0.53, 0.38], loss=0.38, winner_loss=0.40, networks=[{}]).below_one is None
     assert Envelope([0.0, 7.1], [0.53, 0.38], loss=0.38, winner_loss=None, networks=[{}]).below_one is None
 
