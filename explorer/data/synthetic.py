@@ -271,8 +271,10 @@ class _pool:
     def __enter__(self):
         import multiprocessing as mp
         n = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-        # fork: the workers only run numpy, and fork needs no `if __name__ == "__main__"` guard
-        method = "fork" if "fork" in mp.get_all_start_methods() else "spawn"
+        # not fork: a process with threads (a search's progress bar, its core monitor) can fork a worker
+        # holding a lock no thread will release, and the pool then waits for it for ever. A fork server
+        # forks the workers from a clean process of its own.
+        method = "forkserver" if "forkserver" in mp.get_all_start_methods() else "spawn"
         self.pool = mp.get_context(method).Pool(n) if n > 1 else None
         return self.pool
 
