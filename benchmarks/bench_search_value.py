@@ -59,7 +59,7 @@ from explorer.data.synthetic import cache_dir  # noqa: E402
 from explorer.model import build_network  # noqa: E402
 from explorer.space import Candidate, paper_candidate  # noqa: E402
 from explorer.study.config import SearchConfig, study_context  # noqa: E402
-from explorer.study.envelope import choose_networks, envelope_steps  # noqa: E402
+from explorer.study.envelope import envelope_steps, estimated_networks, spread_over_costs  # noqa: E402
 from explorer.study.finalists import estimate_trials, finalist_trials, retrain_finalists  # noqa: E402
 from explorer.study.planning import RESERVE_S, TimeLimit  # noqa: E402
 from explorer.study.records import record_values, study_record, trial_record  # noqa: E402
@@ -119,9 +119,12 @@ def searched(config: SearchConfig, seconds: float, reports: Path, envelope_netwo
     print(f"    {plan.describe() if plan else 'no plan'}; supernet trained {state.get('step', 0)} steps", flush=True)
     for change in plan.changes if plan else ():
         print(f"      {change}", flush=True)
+    context = study_context(study)
+    points = estimated_networks(study, context)   # what explorer envelope chooses from
     return _candidate(winner(study)), {"estimated": len(estimate_trials(study)), "retrained": len(retrained),
-                                       "supernet_steps": state.get("step", 0),
-                                       "dedicated": choose_networks(study, study_context(study), envelope_networks)}
+                                       "supernet_steps": state.get("step", 0), "estimated_networks": points,
+                                       "dedicated": spread_over_costs(points, envelope_networks,
+                                                                      context.budget.upper)}
 
 
 def random_retrained(config: SearchConfig, seconds: float, reports: Path) -> tuple[Candidate, dict]:

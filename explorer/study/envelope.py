@@ -9,8 +9,8 @@ The dedicated networks come from every path of the search's candidates: for the 
 single-exit twin (the same network with its last exit only); for an earlier one (the LiDAR exit, an
 encoder exit, an early decoder exit), the candidate trained with that path's loss alone, since the
 space's networks all end in the decoder and only those earlier paths can answer early deadlines.
-They are chosen along the cost range from the estimate (the front of estimated error against the
-path's cost on the study's device, spread over the budget's range), retrained with the finalists'
+They are chosen along the cost range from the estimate (the most accurate by estimate in each of a
+few bins of the path's cost on the study's device, up to the budget's upper end), retrained with the finalists'
 recipe at the deployment size (explorer.study.finalists) and stored as trials tagged ``envelope``
 with the path they serve, so the work is cached and a killed run resumes; the study's single-exit
 baselines that were retrained with the same recipe join them at no cost.
@@ -22,7 +22,7 @@ import dataclasses
 import math
 import time
 from pathlib import Path
-from typing import Callable
+from typing import Callable, TypeVar
 
 import numpy as np
 import optuna
@@ -41,6 +41,8 @@ from explorer.training.deployment import DeploymentRecipe
 
 #: dedicated networks ``explorer envelope`` retrains unless told otherwise
 DEFAULT_NETWORKS = 4
+
+T = TypeVar("T")
 
 
 def dedicated(candidate: Candidate) -> Candidate:
@@ -88,11 +90,11 @@ def dedicated_path(rec) -> int:
     return path if path is not None else len(rec.path_metrics) - 1
 
 
-def choose_networks(study: optuna.Study, context: StudyContext, count: int) -> list[DedicatedNetwork]:
-    """``count`` dedicated networks spread over the budget's range: of every path of the search's
-    candidates, those on the front of estimated error against the path's cost on the device, the one
-    nearest each of ``count`` evenly spaced costs up to the budget's upper end. An early path's cost is
-    the path's in its anytime network (the earlier exit heads included, a slight overestimate)."""
+def estimated_networks(study: optuna.Study, context: StudyContext) -> list[tuple[float, float, DedicatedNetwork]]:
+    """Every dedicated network of the search's candidates that is ready within the budget's range, as
+    (its path's cost on the device, its estimated error, the network), cheapest first; a network several
+    trials share takes its best estimate. An early path's cost is the path's in its anytime network (the
+    earlier exit heads included, a slight overestimate)."""
     config, device, budget = context.config, context.device, context.budget
     best: dict[str, tuple[float, float, DedicatedNetwork]] = {}
     for t in estimate_trials(study):
@@ -107,19 +109,37 @@ def choose_networks(study: optuna.Study, context: StudyContext, count: int) -> l
                 cost = (model_cost(network.candidate, config.input_size).path_costs(device, budget.kind)[-1]
                         if last else costs[network.path])
                 best[network.key] = (cost, error, network)
-    front, lowest = [], math.inf
-    for cost, error, network in sorted(best.values(), key=lambda x: (x[0], x[1])):
-        if error < lowest and cost <= budget.upper:
-            lowest = error
-            front.append((cost, network))
-    if len(front) <= count:
-        return [network for _, network in front]
-    targets = np.linspace(front[0][0], front[-1][0], count)
-    chosen: list[DedicatedNetwork] = []
-    for target in targets:
-        nearest = min((pair for pair in front if pair[1] not in chosen), key=lambda p: abs(p[0] - target))
-        chosen.append(nearest[1])
-    return chosen
+    return sorted((p for p in best.values() if p[0] <= budget.upper), key=lambda p: (p[0], p[1]))
+
+
+def spread_over_costs(points: list[tuple[float, float, T]], count: int, upper: float) -> list[T]:
+    """``count`` of ``points`` (cost, estimated error, item) spread over the cost range: ``count`` evenly
+    spaced deadlines from the cheapest point's cost to ``upper``, and for each the most accurate point in
+    its bin (ready after the previous deadline and by this one), cheapest first. A bin with no point
+    leaves its place to the most accurate points not chosen.
+
+    Every bin has its network even where the estimate says a cheaper one is better: the estimate of a
+    briefly trained supernet can rank a whole cost range below a cheaper network that retrains worse,
+    and an envelope with nothing ready after its front's end would serve late deadlines with an early
+    network, an oracle easy to beat."""
+    if len(points) <= count:
+        return [item for _, _, item in points]
+    deadlines = np.linspace(points[0][0], upper, count)
+    chosen, after = [], -math.inf
+    for deadline in deadlines:
+        in_bin = [p for p in points if after < p[0] <= deadline]
+        if in_bin:
+            chosen.append(min(in_bin, key=lambda p: p[1]))
+        after = deadline
+    ids = {id(p) for p in chosen}
+    chosen += sorted((p for p in points if id(p) not in ids), key=lambda p: p[1])[:count - len(chosen)]
+    return [item for _, _, item in sorted(chosen, key=lambda p: (p[0], p[1]))]
+
+
+def choose_networks(study: optuna.Study, context: StudyContext, count: int) -> list[DedicatedNetwork]:
+    """``count`` dedicated networks of every path of the search's candidates, spread over the budget's
+    range by their estimate (:func:`spread_over_costs`)."""
+    return spread_over_costs(estimated_networks(study, context), count, context.budget.upper)
 
 
 def train_envelope(study: optuna.Study, count: int, reports: Path, deadline: float | None = None,

@@ -64,3 +64,21 @@ def test_a_path_with_no_weight_takes_no_gradient():
     total, _ = multi_exit_loss(outputs, torch.ones(1, 1, 2, 2), (0.0, 1.0, 0.0))
     total.backward()
     assert [float(o.grad.abs().sum()) for o in outputs[1:]] == [0.0, 4.0 / 4, 0.0]
+
+
+def test_the_networks_are_spread_over_the_budgets_range_even_where_the_estimate_prefers_a_cheaper_one():
+    """Deadlines 2, 12, 22 and 32 ms: the cheapest network, then the most accurate of each bin, though
+    the estimate puts the 8 ms network above every costlier one (a front would end there)."""
+    from explorer.study.envelope import spread_over_costs
+    points = [(2.0, 0.50, "lidar"), (5.0, 0.40, "e5"), (8.0, 0.30, "e8"), (11.0, 0.35, "e11"),
+              (14.0, 0.36, "e14"), (21.0, 0.33, "e21"), (25.0, 0.34, "e25"), (30.0, 0.32, "e30")]
+    assert spread_over_costs(points, 4, 32.0) == ["lidar", "e8", "e21", "e30"]
+
+
+def test_a_bin_with_no_network_leaves_its_place_to_the_most_accurate_others():
+    from explorer.study.envelope import spread_over_costs
+    points = [(2.0, 0.50, "a"), (3.0, 0.45, "b"), (4.0, 0.30, "c"), (30.0, 0.20, "d")]
+    assert spread_over_costs(points, 3, 32.0) == ["a", "c", "d"]     # deadlines 2, 17 and 32 ms
+    assert spread_over_costs(points, 4, 32.0) == ["a", "b", "c", "d"]
+    # nothing in (17, 32]: its place goes to c, the most accurate of the others
+    assert spread_over_costs(points[:3] + [(5.0, 0.25, "e")], 3, 32.0) == ["a", "c", "e"]

@@ -1,0 +1,126 @@
+"""How the envelope's dedicated networks are chosen from a search's estimates: the rule of ``explorer
+envelope`` (``bins``: evenly spaced deadlines from the cheapest network to the budget's upper end, the
+most accurate estimate in each bin) against the nearest point on the estimated front to each deadline
+(``front``: from the cheapest network to the front's end). Each repetition is one seed: a default search
+(``explorer search``'s pipeline with ``--time-limit T``, as in bench_search_value), then the networks
+each rule chooses from its estimates, the winner and the paper design retrained with one longer recipe
+(``--final-steps`` at the training size, then the finalists' tuning at the deployment size) and
+measured at the deployment size on the first 96 validation frames; a network both rules choose is
+trained once. The oracle is what an anytime network of the space can approach, so the rule whose
+envelope has the lower anytime loss describes that limit better; figures: each rule's envelope anytime
+loss, the winner's ratio to it and when its last network is ready.
+
+    OMP_NUM_THREADS=1 python benchmarks/bench_envelope.py [--reps 3] [--time-s 300] [--networks 4]
+"""
+
+from __future__ import annotations
+
+import math
+import shutil
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import optuna
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from bench_search_value import base_config, deployment_data, final_losses, final_recipe, run_strategy  # noqa: E402
+from harness import Bench  # noqa: E402
+
+from explorer.anytime import anytime_loss  # noqa: E402
+from explorer.data import open_dataset  # noqa: E402
+from explorer.data.synthetic import cache_dir  # noqa: E402
+from explorer.space import paper_candidate  # noqa: E402
+from explorer.study.envelope import envelope_steps  # noqa: E402
+
+RULES = ("bins", "front")
+
+
+def front_nearest(points: list[tuple], count: int) -> list:
+    """The rule ``bins`` replaced: of the points (cost, estimated error, network) on the front of
+    estimated error against cost, the one nearest each of ``count`` evenly spaced costs from the
+    cheapest to the front's end."""
+    front, lowest = [], math.inf
+    for cost, error, network in points:
+        if error < lowest:
+            lowest = error
+            front.append((cost, network))
+    if len(front) <= count:
+        return [network for _, network in front]
+    chosen: list = []
+    for target in np.linspace(front[0][0], front[-1][0], count):
+        chosen.append(min((p for p in front if p[1] not in chosen), key=lambda p: abs(p[0] - target))[1])
+    return chosen
+
+
+def declare(bench: Bench, final_steps: int) -> None:
+    recipe = f"after {final_steps} steps + tuning at 224x224"
+    for rule in RULES:
+        bench.figure(f"envelope_anytime_{rule}", f"{rule}: the envelope's anytime loss {recipe}", "m", better="lower")
+        bench.figure(f"envelope_ratio_{rule}", f"{rule}: the winner's anytime loss / the envelope's", "")
+        bench.figure(f"last_ready_{rule}", f"{rule}: when the envelope's last network is ready", "ms")
+        bench.figure(f"serving_{rule}", f"{rule}: networks serving some budget", "")
+    bench.figure("ratio_default", f"the winner / the paper design, anytime loss {recipe}", "", better="lower")
+    bench.figure("supernet_steps", "supernet steps trained inside T", "")
+
+
+def one_seed(bench: Bench, seed: int, args, work: Path, data_cache: Path, data) -> None:
+    best, info = run_strategy("default", seed, args, work, data_cache)
+    bench.add("supernet_steps", info["supernet_steps"])
+    chosen = {"bins": info["dedicated"], "front": front_nearest(info["estimated_networks"], args.networks)}
+    for rule in RULES:
+        print(f"  {rule}: {[(n.key, n.path) for n in chosen[rule]]}", flush=True)
+    paper, recipe = paper_candidate(), final_recipe(args.final_steps)
+    networks = [n for rule in RULES for n in chosen[rule]]
+    trained = final_losses([(c.key, c, recipe) for c in (paper, best)]
+                           + [(n.key, n.candidate, n.recipe(recipe)) for n in networks], seed, data)
+    budget = base_config(seed, "final").budgets[0]
+    winner_loss = anytime_loss(*trained[best.key], budget)
+    bench.add("ratio_default", winner_loss / anytime_loss(*trained[paper.key], budget))
+    scan = trained[paper.key][1][0]
+    for rule in RULES:
+        steps = envelope_steps(scan, [(trained[n.key][0][n.path], trained[n.key][1][n.path]) for n in chosen[rule]])
+        loss = anytime_loss(*steps, budget)
+        print(f"  {rule}: anytime loss {loss:.4f} from steps {[(round(c, 1), round(e, 4)) for c, e in zip(*steps)]}",
+              flush=True)
+        bench.add(f"envelope_anytime_{rule}", loss)
+        bench.add(f"envelope_ratio_{rule}", winner_loss / loss)
+        bench.add(f"last_ready_{rule}", steps[0][-1])
+        bench.add(f"serving_{rule}", len(steps[0]) - 1)
+
+
+def main() -> None:
+    bench = Bench(__file__, "the envelope's networks: the most accurate estimate per cost bin against the "
+                  "nearest on the estimated front", __doc__)
+    ap = bench.parser()
+    ap.add_argument("--time-s", type=float, default=300.0, help="wall time T of each search (default 300)")
+    ap.add_argument("--networks", type=int, default=4, help="dedicated networks each rule chooses (default 4)")
+    ap.add_argument("--final-steps", type=int, default=300, help="steps at the training size of the final "
+                    "recipe, before the tuning (default 300)")
+    ap.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
+    args = bench.parse_args(ap)
+    args.envelope_networks = args.networks    # what run_strategy passes on
+    torch.set_num_threads(args.threads)
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    config = base_config(0, "data")
+    data = deployment_data(config)   # generated here, before anything is timed
+    open_dataset(config.data, "val", config.train_size, train_augment=False)
+    declare(bench, args.final_steps)
+    bench.note(f"cpu, torch threads {args.threads}; a default search of T = {args.time_s:g} s a seed (no baselines); "
+               f"{args.networks} networks a rule; final recipe {args.final_steps} steps at "
+               f"{config.train_size[0]}x{config.train_size[1]} + {config.tune_steps} at "
+               f"{config.input_size[0]}x{config.input_size[1]}; {config.device}, {config.budgets[0]}")
+    work = Path(tempfile.mkdtemp(prefix="bench-envelope-"))
+    try:
+        for rep in bench.repetitions():
+            one_seed(bench, rep, args, work, cache_dir(), data)
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+    bench.finish()
+
+
+if __name__ == "__main__":
+    main()
