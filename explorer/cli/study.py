@@ -197,7 +197,7 @@ def _print_outcome(study, cfg, storage_url: str, reports: Path, write_report: bo
             kind = "retrained " if retrained else ""
             console.print(f"ratio to the {kind}paper-design baseline ({paper.values[0]:.4f}): "
                           f"[bold]{best.values[0] / paper.values[0]:.3f}[/bold]")
-        about_envelope = envelope_summary(study)
+        about_envelope = envelope_summary(study, storage_url, reports)
         if about_envelope:
             console.print(about_envelope, markup=False, highlight=False)
         if retrained and estimate is not None and estimate.number != rec.finalist.estimate_trial:
@@ -223,7 +223,7 @@ def _print_outcome(study, cfg, storage_url: str, reports: Path, write_report: bo
             from explorer.report import write_report as _write
         except ImportError:
             return
-        path = _write(study, out_dir=reports / cfg.study)
+        path = _write(study, out_dir=reports / cfg.study, storage_url=storage_url)
         console.print(f"report: {path}")
 
 
@@ -269,14 +269,15 @@ def cmd_envelope(args) -> None:
         print_json({"loss": found.loss, "winner_loss": found.winner_loss, "ratio": found.ratio,
                     "costs": found.costs, "errors": found.errors, "networks": found.networks})
         return
-    print_frame(pd.DataFrame(found.networks), f"dedicated networks (single exit), retrained and measured at "
-                f"{'x'.join(map(str, config.input_size))}, costed on {config.device}")
+    print_frame(pd.DataFrame(found.networks), "dedicated networks (each trained for one path), retrained and "
+                f"measured at {'x'.join(map(str, config.input_size))}, costed on {config.device}")
     line = f"envelope of dedicated networks: anytime loss {found.loss:.4f} for {config.budgets[0]} on {config.device}"
     if found.ratio is not None:
         line += f"; the winner {found.winner_loss:.4f}, [bold]{found.ratio:.3f}[/bold] x the envelope"
     console.print(line)
     if args.report:   # the report draws the envelope under the winner's curve: bring it up to date
-        console.print(f"report: {write_report(study, out_dir=Path(args.reports) / config.study)}")
+        path = write_report(study, out_dir=Path(args.reports) / config.study, storage_url=args.storage)
+        console.print(f"report: {path}")
 
 
 def cmd_report(args) -> None:
@@ -286,7 +287,7 @@ def cmd_report(args) -> None:
     study = load_study(args.study, args.storage, Path(args.reports))
     out = Path(args.out) if args.out else Path(args.reports) / args.study
     path = write_report(study, out_dir=out, devices=args.device, budgets=args.budget, data=args.data,
-                        curve=Path(args.curve) if args.curve else None)
+                        curve=Path(args.curve) if args.curve else None, storage_url=args.storage)
     console.print(f"report: {path}")
 
 
@@ -294,8 +295,8 @@ def register(sub, add, reports: dict) -> None:
     """Adds this group's commands to the ``explorer`` parser."""
     _register_search(add, reports)
 
-    s = add("envelope", cmd_envelope, "the envelope of dedicated single-exit networks: how close the winner comes "
-            "to the best network for each deadline known in advance")
+    s = add("envelope", cmd_envelope, "the envelope of dedicated networks (each trained for one path): how close "
+            "the winner comes to the best network for each deadline known in advance")
     s.add_argument("--study", required=True)
     s.add_argument("--storage")
     s.add_argument("--networks", type=int, default=4, help="dedicated networks spread over the budget's range, "

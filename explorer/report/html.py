@@ -20,6 +20,7 @@ from explorer.cost.devices import DeviceProfile, get_device
 from explorer.report import figures
 from explorer.space import Candidate
 from explorer.study.config import StudyContext, study_config, study_context
+from explorer.study.envelope import envelope, envelope_hint
 from explorer.study.finalists import finalist_trials
 from explorer.study.records import StudyRecord, study_record, trial_record
 from explorer.study.results import (
@@ -87,9 +88,11 @@ def _frame_html(frame: pd.DataFrame, table_id: str, fmt: dict | None = None) -> 
 
 
 def build_context(study: optuna.Study, devices: Sequence[str] | None = None,
-                  budgets: Sequence[str] | None = None, data: str | None = None) -> dict:
+                  budgets: Sequence[str] | None = None, data: str | None = None,
+                  storage_url: str | None = None) -> dict:
     """Everything the report's template shows of ``study``: on the study's device first, then
-    ``devices``; under the study's budgets, then ``budgets`` (default: the paper's Table 2 ones)."""
+    ``devices``; under the study's budgets, then ``budgets`` (default: the paper's Table 2 ones).
+    ``storage_url``: where the study is, for the commands the report suggests."""
     stored, context = study_record(study), study_context(study)
     cfg, config = stored.config or {}, context.config
     primary, devs = _devices(context, devices)
@@ -126,6 +129,7 @@ def build_context(study: optuna.Study, devices: Sequence[str] | None = None,
     ctx["table2"] = _table2(ranked + baselines, best, devs, dists, config.metric)
     ctx["references"] = _frame_html(reference_table(devs), "references")
     _add_figures(ctx, study, frame, best, baselines, primary, dists, data)
+    ctx["envelope_hint"] = envelope_hint(study, storage_url)
     if best is not None and not frame.empty:
         frame.loc[frame["number"] == best.number, "figures"] = "measured: the winner" if retrained else "estimate: the best"
     ctx["trials"] = (_frame_html(frame[[c for c in TRIAL_COLUMNS if c in frame.columns]], "trials")
@@ -213,13 +217,11 @@ def _add_figures(ctx: dict, study: optuna.Study, frame: pd.DataFrame, best, base
                  primary: DeviceProfile, dists: list, data: str | None) -> None:
     """Draws the figures into ``ctx["figures"]``; a figure that cannot be drawn is left out, with a
     note where the reader can do something about it."""
-    from explorer.study.envelope import envelope, envelope_hint
     config = study_config(study)
     found = envelope(study) if best is not None and primary.name == config.device else None
     if found is not None:
         ctx["envelope"] = {"loss": found.loss, "ratio": found.ratio, "networks": len(found.networks),
                            "below_one": found.below_one}
-    ctx["envelope_hint"] = envelope_hint(study)
     curve_rows = []
     if best is not None:
         curve_rows.append((_label(best, best), best, figures.COLOURS["best"]))
@@ -291,10 +293,11 @@ def _timeline_words(best, device: DeviceProfile, budget: str, worse: dict, kind:
 
 def write_report(study: optuna.Study, out_dir: str | Path, devices: Sequence[str] | None = None,
                  budgets: Sequence[str] | None = None, data: str | None = None,
-                 curve: Path | None = None) -> Path:
+                 curve: Path | None = None, storage_url: str | None = None) -> Path:
     """Writes ``out_dir/report.html`` (atomically) and returns its path. ``curve``: a measured
-    anytime curve (``explorer curve``) to show next to its prediction."""
-    ctx = build_context(study, devices, budgets, data)
+    anytime curve (``explorer curve``) to show next to its prediction; ``storage_url``: where the
+    study is, for the commands the report suggests."""
+    ctx = build_context(study, devices, budgets, data, storage_url)
     curve = curve or Path(out_dir) / "export" / "anytime_curve.json"
     if curve.is_file():
         png = figures.measured_curve(curve)

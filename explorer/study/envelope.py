@@ -36,7 +36,7 @@ from explorer.study.objective import Objective
 from explorer.study.planning import SAFETY
 from explorer.study.records import record_values, trial_record
 from explorer.study.results import trial_losses, trial_path_costs, winner
-from explorer.study.storage import study_dir
+from explorer.study.storage import REPORTS_DIR, local_url, study_dir
 from explorer.training.deployment import DeploymentRecipe
 
 #: dedicated networks ``explorer envelope`` retrains unless told otherwise
@@ -259,29 +259,46 @@ def envelope(study: optuna.Study) -> Envelope | None:
                     best.values[0] if trial_record(best).is_retrained else None, networks, budget.unit)
 
 
-def envelope_hint(study: optuna.Study) -> str | None:
+def envelope_command(study: str, storage_url: str | None = None, reports: Path | None = None) -> str:
+    """The ``explorer envelope`` command for ``study``: with ``--storage`` where the study is not in its
+    journal on this machine (a PostgreSQL database, a journal elsewhere; the password hidden), with
+    ``--reports`` where that is not the default folder."""
+    from sqlalchemy.engine import make_url   # Optuna's RDB storage depends on it
+    command = f"explorer envelope --study {study}"
+    if reports is not None and Path(reports) != REPORTS_DIR:
+        command += f" --reports {reports}"
+    if storage_url and storage_url != local_url(study, reports if reports is not None else REPORTS_DIR):
+        if "://" in storage_url:
+            storage_url = make_url(storage_url).render_as_string(hide_password=True)
+        command += f" --storage {storage_url}"
+    return command
+
+
+def envelope_hint(study: optuna.Study, storage_url: str | None = None, reports: Path | None = None) -> str | None:
     """How to compute the envelope, when the winner is retrained and no dedicated network of the space
-    is yet (the single-exit baselines alone may make one); None otherwise."""
+    is yet (the single-exit baselines alone may make one); None otherwise. ``storage_url`` and
+    ``reports``: where the study is, for the command (:func:`envelope_command`)."""
     best = winner(study)
     recipe = study_config(study).finalist_recipe().to_dict()
     if best is None or not trial_record(best).is_retrained or any(
             trial_record(t).envelope.recipe == recipe for t in envelope_trials(study)):
         return None
-    return (f"`explorer envelope --study {study_config(study).study}` retrains {DEFAULT_NETWORKS} single-exit "
-            f"networks of the space with the finalists' recipe (about as long as {DEFAULT_NETWORKS} finalists) "
-            "and says how close the winner comes to the best network for each deadline known in advance")
+    return (f"`{envelope_command(study_config(study).study, storage_url, reports)}` retrains {DEFAULT_NETWORKS} "
+            f"networks of the space, each trained for one path, with the finalists' recipe (about as long as "
+            f"{DEFAULT_NETWORKS} finalists) and says how close the winner comes to the best network for each "
+            "deadline known in advance")
 
 
-def envelope_summary(study: optuna.Study) -> str | None:
+def envelope_summary(study: optuna.Study, storage_url: str | None = None, reports: Path | None = None) -> str | None:
     """The summary's sentence on the envelope: its anytime loss and the winner's ratio to it, what it is
     made of, and how to compute it where no dedicated network of the space is yet (None when there is
-    nothing to say: no retrained winner)."""
-    found, hint = envelope(study), envelope_hint(study)
+    nothing to say: no retrained winner). ``storage_url``, ``reports``: as :func:`envelope_hint`."""
+    found, hint = envelope(study), envelope_hint(study, storage_url, reports)
     parts = []
     if found is not None and found.ratio is not None:
         parts.append(f"the winner's anytime loss is {found.ratio:.3f} x the envelope of {len(found.networks)} "
-                     f"dedicated networks ({found.loss:.4f}: each deadline served by the best single-exit network "
-                     f"ready by it{', here the single-exit baselines only' if hint else ''})")
+                     f"dedicated networks ({found.loss:.4f}: each deadline served by the best network trained for "
+                     f"it alone and ready by it{', here the single-exit baselines only' if hint else ''})")
         if found.below_one:
             parts.append(found.below_one)
     if hint:

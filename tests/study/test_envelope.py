@@ -82,3 +82,14 @@ def test_a_bin_with_no_network_leaves_its_place_to_the_most_accurate_others():
     assert spread_over_costs(points, 4, 32.0) == ["a", "b", "c", "d"]
     # nothing in (17, 32]: its place goes to c, the most accurate of the others
     assert spread_over_costs(points[:3] + [(5.0, 0.25, "e")], 3, 32.0) == ["a", "c", "e"]
+
+
+def test_the_envelope_command_names_the_storage_where_the_study_is_not_in_its_local_journal(tmp_path):
+    from explorer.study.envelope import envelope_command
+    from explorer.study.storage import local_url
+    assert envelope_command("s") == "explorer envelope --study s"
+    assert envelope_command("s", local_url("s")) == "explorer envelope --study s"
+    assert envelope_command("s", local_url("s", tmp_path), tmp_path) == f"explorer envelope --study s --reports {tmp_path}"
+    shared = envelope_command("s", "postgresql://me:secret@db.lab:5432/studies")
+    assert shared == "explorer envelope --study s --storage postgresql://me:***@db.lab:5432/studies"
+    assert envelope_command("s", "journal:/nfs/s.log").endswith("--storage journal:/nfs/s.log")

@@ -349,6 +349,10 @@ def test_the_envelope_of_dedicated_networks(finished, run_cli):
         assert "explorer envelope --study fin" in envelope_summary(out.study)
         before = write_report(out.study, out_dir=reports / "before-envelope").read_text()
         assert 'id="envelope-hint"' in before and "explorer envelope --study fin" in before
+        shared = "postgresql://me:secret@db.lab/studies"     # a study elsewhere: the command says where
+        assert "--storage postgresql://me:***@db.lab/studies" in envelope_summary(out.study, shared)
+        html = write_report(out.study, out_dir=reports / "shared", storage_url=shared).read_text()
+        assert "--storage postgresql://me:***@db.lab/studies" in html and "secret" not in html
     code, text, err = run_cli("envelope", "--study", "fin", "--networks", "1", "--reports", reports)
     assert code == 0, err
     made = envelope_trials(out.study)
