@@ -1,14 +1,17 @@
-"""How the envelope's dedicated networks are chosen from a search's estimates: the rule of ``explorer
-envelope`` (``bins``: evenly spaced deadlines from the cheapest network to the budget's upper end, the
-most accurate estimate in each bin) against the nearest point on the estimated front to each deadline
-(``front``: from the cheapest network to the front's end). Each repetition is one seed: a default search
-(``explorer search``'s pipeline with ``--time-limit T``, as in bench_search_value), then the networks
-each rule chooses from its estimates, the winner and the paper design retrained with one longer recipe
-(``--final-steps`` at the training size, then the finalists' tuning at the deployment size) and
-measured at the deployment size on the first 96 validation frames; a network both rules choose is
-trained once. The oracle is what an anytime network of the space can approach, so the rule whose
-envelope has the lower anytime loss describes that limit better; figures: each rule's envelope anytime
-loss, the winner's ratio to it and when its last network is ready.
+"""How the envelope's dedicated networks are chosen from a search's estimates, three rules for K
+networks: ``oracle``, those whose oracle has the lowest estimated anytime loss, chosen one at a time
+(``lowest_oracle``); ``bins``, K evenly spaced deadlines from the cheapest network to the budget's
+upper end and the most accurate estimate in each bin (``spread_over_costs``: late deadlines get a
+network even where the estimate prefers a cheaper one); ``front``, the point of the estimated front
+nearest each of K evenly spaced costs from the cheapest to the front's end. Each repetition is one
+seed: a default search (``explorer search``'s pipeline with ``--time-limit T``, as in
+bench_search_value), then the networks each rule chooses from its estimates, the winner and the paper
+design retrained with one longer recipe (``--final-steps`` at the training size, then the finalists'
+tuning at the deployment size) and measured at the deployment size on the first 96 validation frames;
+a network several rules choose is trained once. The oracle is what an anytime network of the space can
+approach, so the rule whose envelope has the lower anytime loss describes that limit better. Figures:
+each rule's envelope anytime loss, the winner's ratio to it, when its last network is ready and how
+many of its networks serve some budget.
 
     OMP_NUM_THREADS=1 python benchmarks/bench_envelope.py [--reps 3] [--time-s 300] [--networks 4]
 """
@@ -30,13 +33,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_search_value import base_config, deployment_data, final_losses, final_recipe, run_strategy  # noqa: E402
 from harness import Bench  # noqa: E402
 
-from explorer.anytime import anytime_loss  # noqa: E402
+from explorer.anytime import anytime_loss, parse_budget  # noqa: E402
 from explorer.data import open_dataset  # noqa: E402
 from explorer.data.synthetic import cache_dir  # noqa: E402
 from explorer.space import paper_candidate  # noqa: E402
-from explorer.study.envelope import envelope_steps  # noqa: E402
+from explorer.study.envelope import envelope_steps, lowest_oracle, spread_over_costs  # noqa: E402
 
-RULES = ("bins", "front")
+RULES = ("oracle", "bins", "front")
 
 
 def front_nearest(points: list[tuple], count: int) -> list:
@@ -70,14 +73,16 @@ def declare(bench: Bench, final_steps: int) -> None:
 def one_seed(bench: Bench, seed: int, args, work: Path, data_cache: Path, data) -> None:
     best, info = run_strategy("default", seed, args, work, data_cache)
     bench.add("supernet_steps", info["supernet_steps"])
-    chosen = {"bins": info["dedicated"], "front": front_nearest(info["estimated_networks"], args.networks)}
+    points, budget = info["estimated_networks"], base_config(seed, "final").budgets[0]
+    chosen = {"oracle": lowest_oracle(points, args.networks, info["scan_error"], budget),
+              "bins": spread_over_costs(points, args.networks, parse_budget(budget).upper),
+              "front": front_nearest(points, args.networks)}
     for rule in RULES:
         print(f"  {rule}: {[(n.key, n.path) for n in chosen[rule]]}", flush=True)
     paper, recipe = paper_candidate(), final_recipe(args.final_steps)
     networks = [n for rule in RULES for n in chosen[rule]]
     trained = final_losses([(c.key, c, recipe) for c in (paper, best)]
                            + [(n.key, n.candidate, n.recipe(recipe)) for n in networks], seed, data)
-    budget = base_config(seed, "final").budgets[0]
     winner_loss = anytime_loss(*trained[best.key], budget)
     bench.add("ratio_default", winner_loss / anytime_loss(*trained[paper.key], budget))
     scan = trained[paper.key][1][0]
@@ -93,8 +98,7 @@ def one_seed(bench: Bench, seed: int, args, work: Path, data_cache: Path, data) 
 
 
 def main() -> None:
-    bench = Bench(__file__, "the envelope's networks: the most accurate estimate per cost bin against the "
-                  "nearest on the estimated front", __doc__)
+    bench = Bench(__file__, "the envelope's networks: three ways to choose them from a search's estimates", __doc__)
     ap = bench.parser()
     ap.add_argument("--time-s", type=float, default=300.0, help="wall time T of each search (default 300)")
     ap.add_argument("--networks", type=int, default=4, help="dedicated networks each rule chooses (default 4)")

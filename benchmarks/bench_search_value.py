@@ -59,7 +59,7 @@ from explorer.data.synthetic import cache_dir  # noqa: E402
 from explorer.model import build_network  # noqa: E402
 from explorer.space import Candidate, paper_candidate  # noqa: E402
 from explorer.study.config import SearchConfig, study_context  # noqa: E402
-from explorer.study.envelope import envelope_steps, estimated_networks, spread_over_costs  # noqa: E402
+from explorer.study.envelope import envelope_steps, estimated_networks, estimated_scan_error, spread_over_costs  # noqa: E402
 from explorer.study.finalists import estimate_trials, finalist_trials, retrain_finalists  # noqa: E402
 from explorer.study.planning import RESERVE_S, TimeLimit  # noqa: E402
 from explorer.study.records import record_values, study_record, trial_record  # noqa: E402
@@ -123,6 +123,7 @@ def searched(config: SearchConfig, seconds: float, reports: Path, envelope_netwo
     points = estimated_networks(study, context)   # what explorer envelope chooses from
     return _candidate(winner(study)), {"estimated": len(estimate_trials(study)), "retrained": len(retrained),
                                        "supernet_steps": state.get("step", 0), "estimated_networks": points,
+                                       "scan_error": estimated_scan_error(study, context),
                                        "dedicated": spread_over_costs(points, envelope_networks,
                                                                       context.budget.upper)}
 

@@ -136,6 +136,44 @@ def spread_over_costs(points: list[tuple[float, float, T]], count: int, upper: f
     return [item for _, _, item in sorted(chosen, key=lambda p: (p[0], p[1]))]
 
 
+def lowest_oracle(points: list[tuple[float, float, T]], count: int, scan_error: float, budget) -> list[T]:
+    """``count`` of ``points`` (cost, estimated error, item) whose oracle has the lowest estimated anytime
+    loss under ``budget`` (each budget served by the most accurate chosen point ready by it, the scan's
+    ``scan_error`` before the first), chosen one at a time: each time the point that lowers it most.
+    Only points on the front of estimated error against cost can serve some budget, so the choice is
+    among them; cheapest first."""
+    front, lowest = [], scan_error
+    for point in sorted(points, key=lambda p: (p[0], p[1])):
+        if point[1] < lowest:
+            lowest = point[1]
+            front.append(point)
+
+    def oracle_loss(chosen: list) -> float:
+        return anytime_loss(*envelope_steps(scan_error, [(c, e) for c, e, _ in chosen]), budget)
+
+    chosen: list = []
+    current = oracle_loss(chosen)
+    while len(chosen) < count:
+        rest = [p for p in front if all(p is not q for q in chosen)]
+        if not rest:
+            break
+        best = min(rest, key=lambda p: oracle_loss(chosen + [p]))
+        if oracle_loss(chosen + [best]) >= current:
+            break
+        chosen.append(best)
+        current = oracle_loss(chosen)
+    return [item for _, _, item in sorted(chosen, key=lambda p: (p[0], p[1]))]
+
+
+def estimated_scan_error(study: optuna.Study, context: StudyContext) -> float | None:
+    """The scan's error (path 0: no network, the same for every candidate) as the search measured it."""
+    for t in estimate_trials(study):
+        errors = trial_record(t).losses_of(context.config.metric)
+        if errors:
+            return errors[0]
+    return None
+
+
 def choose_networks(study: optuna.Study, context: StudyContext, count: int) -> list[DedicatedNetwork]:
     """``count`` dedicated networks of every path of the search's candidates, spread over the budget's
     range by their estimate (:func:`spread_over_costs`)."""
