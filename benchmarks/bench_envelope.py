@@ -1,9 +1,9 @@
 """How the envelope's dedicated networks are chosen from a search's estimates, three rules for K
-networks: ``oracle``, those whose oracle has the lowest estimated anytime loss, chosen one at a time
-(``lowest_oracle``); ``bins``, K evenly spaced deadlines from the cheapest network to the budget's
-upper end and the most accurate estimate in each bin (``spread_over_costs``: late deadlines get a
-network even where the estimate prefers a cheaper one); ``front``, the point of the estimated front
-nearest each of K evenly spaced costs from the cheapest to the front's end. Each repetition is one
+networks: ``front``, ``explorer envelope``'s, the point of the estimated front nearest each of K evenly
+spaced costs from the cheapest to the front's end (``spread_along_front``); ``oracle``, those whose
+oracle has the lowest estimated anytime loss, chosen one at a time; ``bins``, K evenly spaced deadlines
+from the cheapest network to the budget's upper end and the most accurate estimate in each bin (late
+deadlines get a network even where the estimate prefers a cheaper one). Each repetition is one
 seed: a default search (``explorer search``'s pipeline with ``--time-limit T``, as in
 bench_search_value), then the networks each rule chooses from its estimates, the winner and the paper
 design retrained with one longer recipe (``--final-steps`` at the training size, then the finalists'
@@ -37,26 +37,47 @@ from explorer.anytime import anytime_loss, parse_budget  # noqa: E402
 from explorer.data import open_dataset  # noqa: E402
 from explorer.data.synthetic import cache_dir  # noqa: E402
 from explorer.space import paper_candidate  # noqa: E402
-from explorer.study.envelope import envelope_steps, lowest_oracle, spread_over_costs  # noqa: E402
+from explorer.study.envelope import envelope_steps, spread_along_front  # noqa: E402
 
-RULES = ("oracle", "bins", "front")
+RULES = ("oracle", "bins", "front")   # the record's order
 
 
-def front_nearest(points: list[tuple], count: int) -> list:
-    """The rule ``bins`` replaced: of the points (cost, estimated error, network) on the front of
-    estimated error against cost, the one nearest each of ``count`` evenly spaced costs from the
-    cheapest to the front's end."""
-    front, lowest = [], math.inf
-    for cost, error, network in points:
-        if error < lowest:
-            lowest = error
-            front.append((cost, network))
-    if len(front) <= count:
-        return [network for _, network in front]
+def lowest_oracle(points: list[tuple], count: int, scan_error: float, budget) -> list:
+    """``count`` of ``points`` (cost, estimated error, network) whose oracle has the lowest estimated
+    anytime loss under ``budget`` (the scan's ``scan_error`` before the first), chosen one at a time:
+    each time the point of the front that lowers it most."""
+    front, lowest = [], scan_error
+    for point in points:
+        if point[1] < lowest:
+            lowest = point[1]
+            front.append(point)
+
+    def oracle_loss(chosen: list) -> float:
+        return anytime_loss(*envelope_steps(scan_error, [(c, e) for c, e, _ in chosen]), budget)
+
     chosen: list = []
-    for target in np.linspace(front[0][0], front[-1][0], count):
-        chosen.append(min((p for p in front if p[1] not in chosen), key=lambda p: abs(p[0] - target))[1])
-    return chosen
+    while len(chosen) < count:
+        rest = [p for p in front if all(p is not q for q in chosen)]
+        if not rest or min(oracle_loss(chosen + [p]) for p in rest) >= oracle_loss(chosen):
+            break
+        chosen.append(min(rest, key=lambda p: oracle_loss(chosen + [p])))
+    return [network for _, _, network in sorted(chosen, key=lambda p: p[0])]
+
+
+def best_per_bin(points: list[tuple], count: int, upper: float) -> list:
+    """``count`` evenly spaced deadlines from the cheapest point's cost to ``upper``; for each, the point
+    with the lowest estimated error among those ready after the previous deadline and by this one (a bin
+    with none leaves its place to the most accurate others)."""
+    if len(points) <= count:
+        return [network for _, _, network in points]
+    chosen, after = [], -math.inf
+    for deadline in np.linspace(points[0][0], upper, count):
+        in_bin = [p for p in points if after < p[0] <= deadline]
+        if in_bin:
+            chosen.append(min(in_bin, key=lambda p: p[1]))
+        after = deadline
+    chosen += sorted((p for p in points if all(p is not q for q in chosen)), key=lambda p: p[1])[:count - len(chosen)]
+    return [network for _, _, network in sorted(chosen, key=lambda p: p[0])]
 
 
 def declare(bench: Bench, final_steps: int) -> None:
@@ -74,9 +95,9 @@ def one_seed(bench: Bench, seed: int, args, work: Path, data_cache: Path, data) 
     best, info = run_strategy("default", seed, args, work, data_cache)
     bench.add("supernet_steps", info["supernet_steps"])
     points, budget = info["estimated_networks"], base_config(seed, "final").budgets[0]
-    chosen = {"oracle": lowest_oracle(points, args.networks, info["scan_error"], budget),
-              "bins": spread_over_costs(points, args.networks, parse_budget(budget).upper),
-              "front": front_nearest(points, args.networks)}
+    chosen = {"front": spread_along_front(points, args.networks),
+              "oracle": lowest_oracle(points, args.networks, info["scan_error"], budget),
+              "bins": best_per_bin(points, args.networks, parse_budget(budget).upper)}
     for rule in RULES:
         print(f"  {rule}: {[(n.key, n.path) for n in chosen[rule]]}", flush=True)
     paper, recipe = paper_candidate(), final_recipe(args.final_steps)

@@ -59,7 +59,7 @@ from explorer.data.synthetic import cache_dir  # noqa: E402
 from explorer.model import build_network  # noqa: E402
 from explorer.space import Candidate, paper_candidate  # noqa: E402
 from explorer.study.config import SearchConfig, study_context  # noqa: E402
-from explorer.study.envelope import envelope_steps, estimated_networks, estimated_scan_error, spread_over_costs  # noqa: E402
+from explorer.study.envelope import envelope_steps, estimated_networks, spread_along_front  # noqa: E402
 from explorer.study.finalists import estimate_trials, finalist_trials, retrain_finalists  # noqa: E402
 from explorer.study.planning import RESERVE_S, TimeLimit  # noqa: E402
 from explorer.study.records import record_values, study_record, trial_record  # noqa: E402
@@ -107,6 +107,15 @@ def _candidate(trial: optuna.trial.FrozenTrial | None) -> Candidate:
     return Candidate.from_dict(trial_record(trial).candidate)
 
 
+def estimated_scan_error(study: optuna.Study, metric: str) -> float | None:
+    """The scan's error (path 0: no network, the same for every candidate) as the search measured it."""
+    for t in estimate_trials(study):
+        errors = trial_record(t).losses_of(metric)
+        if errors:
+            return errors[0]
+    return None
+
+
 def searched(config: SearchConfig, seconds: float, reports: Path, envelope_networks: int) -> tuple[Candidate, dict]:
     """``explorer search --time-limit`` with ``config``: (its winner, what the run did, with the dedicated
     networks ``explorer envelope`` would choose from its estimates)."""
@@ -123,9 +132,8 @@ def searched(config: SearchConfig, seconds: float, reports: Path, envelope_netwo
     points = estimated_networks(study, context)   # what explorer envelope chooses from
     return _candidate(winner(study)), {"estimated": len(estimate_trials(study)), "retrained": len(retrained),
                                        "supernet_steps": state.get("step", 0), "estimated_networks": points,
-                                       "scan_error": estimated_scan_error(study, context),
-                                       "dedicated": spread_over_costs(points, envelope_networks,
-                                                                      context.budget.upper)}
+                                       "scan_error": estimated_scan_error(study, config.metric),
+                                       "dedicated": spread_along_front(points, envelope_networks)}
 
 
 def random_retrained(config: SearchConfig, seconds: float, reports: Path) -> tuple[Candidate, dict]:

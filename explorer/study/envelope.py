@@ -9,8 +9,8 @@ The dedicated networks come from every path of the search's candidates: for the 
 single-exit twin (the same network with its last exit only); for an earlier one (the LiDAR exit, an
 encoder exit, an early decoder exit), the candidate trained with that path's loss alone, since the
 space's networks all end in the decoder and only those earlier paths can answer early deadlines.
-They are chosen along the cost range from the estimate (the most accurate by estimate in each of a
-few bins of the path's cost on the study's device, up to the budget's upper end), retrained with the finalists'
+They are chosen along the cost range from the estimate (the front of estimated error against the
+path's cost on the study's device, evenly spread along it), retrained with the finalists'
 recipe at the deployment size (explorer.study.finalists) and stored as trials tagged ``envelope``
 with the path they serve, so the work is cached and a killed run resumes; the study's single-exit
 baselines that were retrained with the same recipe join them at no cost.
@@ -112,72 +112,28 @@ def estimated_networks(study: optuna.Study, context: StudyContext) -> list[tuple
     return sorted((p for p in best.values() if p[0] <= budget.upper), key=lambda p: (p[0], p[1]))
 
 
-def spread_over_costs(points: list[tuple[float, float, T]], count: int, upper: float) -> list[T]:
-    """``count`` of ``points`` (cost, estimated error, item) spread over the cost range: ``count`` evenly
-    spaced deadlines from the cheapest point's cost to ``upper``, and for each the most accurate point in
-    its bin (ready after the previous deadline and by this one), cheapest first. A bin with no point
-    leaves its place to the most accurate points not chosen.
-
-    Every bin has its network even where the estimate says a cheaper one is better: the estimate of a
-    briefly trained supernet can rank a whole cost range below a cheaper network that retrains worse,
-    and an envelope with nothing ready after its front's end would serve late deadlines with an early
-    network, an oracle easy to beat."""
-    if len(points) <= count:
-        return [item for _, _, item in points]
-    deadlines = np.linspace(points[0][0], upper, count)
-    chosen, after = [], -math.inf
-    for deadline in deadlines:
-        in_bin = [p for p in points if after < p[0] <= deadline]
-        if in_bin:
-            chosen.append(min(in_bin, key=lambda p: p[1]))
-        after = deadline
-    ids = {id(p) for p in chosen}
-    chosen += sorted((p for p in points if id(p) not in ids), key=lambda p: p[1])[:count - len(chosen)]
-    return [item for _, _, item in sorted(chosen, key=lambda p: (p[0], p[1]))]
-
-
-def lowest_oracle(points: list[tuple[float, float, T]], count: int, scan_error: float, budget) -> list[T]:
-    """``count`` of ``points`` (cost, estimated error, item) whose oracle has the lowest estimated anytime
-    loss under ``budget`` (each budget served by the most accurate chosen point ready by it, the scan's
-    ``scan_error`` before the first), chosen one at a time: each time the point that lowers it most.
-    Only points on the front of estimated error against cost can serve some budget, so the choice is
-    among them; cheapest first."""
-    front, lowest = [], scan_error
-    for point in sorted(points, key=lambda p: (p[0], p[1])):
-        if point[1] < lowest:
-            lowest = point[1]
-            front.append(point)
-
-    def oracle_loss(chosen: list) -> float:
-        return anytime_loss(*envelope_steps(scan_error, [(c, e) for c, e, _ in chosen]), budget)
-
-    chosen: list = []
-    current = oracle_loss(chosen)
-    while len(chosen) < count:
-        rest = [p for p in front if all(p is not q for q in chosen)]
-        if not rest:
-            break
-        best = min(rest, key=lambda p: oracle_loss(chosen + [p]))
-        if oracle_loss(chosen + [best]) >= current:
-            break
-        chosen.append(best)
-        current = oracle_loss(chosen)
-    return [item for _, _, item in sorted(chosen, key=lambda p: (p[0], p[1]))]
-
-
-def estimated_scan_error(study: optuna.Study, context: StudyContext) -> float | None:
-    """The scan's error (path 0: no network, the same for every candidate) as the search measured it."""
-    for t in estimate_trials(study):
-        errors = trial_record(t).losses_of(context.config.metric)
-        if errors:
-            return errors[0]
-    return None
+def spread_along_front(points: list[tuple[float, float, T]], count: int) -> list[T]:
+    """``count`` of ``points`` (cost, estimated error, item) spread along the front of estimated error
+    against cost: the point of the front nearest each of ``count`` evenly spaced costs from the cheapest
+    to the front's end, cheapest first. Only a point on the front can serve some budget in an oracle
+    (a cheaper one at least as accurate would serve it instead)."""
+    front, lowest = [], math.inf
+    for cost, error, item in sorted(points, key=lambda p: (p[0], p[1])):
+        if error < lowest:
+            lowest = error
+            front.append((cost, item))
+    if len(front) <= count:
+        return [item for _, item in front]
+    chosen: list[tuple[float, T]] = []
+    for target in np.linspace(front[0][0], front[-1][0], count):
+        chosen.append(min((p for p in front if all(p is not q for q in chosen)), key=lambda p: abs(p[0] - target)))
+    return [item for _, item in sorted(chosen, key=lambda p: p[0])]
 
 
 def choose_networks(study: optuna.Study, context: StudyContext, count: int) -> list[DedicatedNetwork]:
     """``count`` dedicated networks of every path of the search's candidates, spread over the budget's
-    range by their estimate (:func:`spread_over_costs`)."""
-    return spread_over_costs(estimated_networks(study, context), count, context.budget.upper)
+    range by their estimate (:func:`spread_along_front`)."""
+    return spread_along_front(estimated_networks(study, context), count)
 
 
 def train_envelope(study: optuna.Study, count: int, reports: Path, deadline: float | None = None,

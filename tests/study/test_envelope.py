@@ -66,22 +66,24 @@ def test_a_path_with_no_weight_takes_no_gradient():
     assert [float(o.grad.abs().sum()) for o in outputs[1:]] == [0.0, 4.0 / 4, 0.0]
 
 
-def test_the_networks_are_spread_over_the_budgets_range_even_where_the_estimate_prefers_a_cheaper_one():
-    """Deadlines 2, 12, 22 and 32 ms: the cheapest network, then the most accurate of each bin, though
-    the estimate puts the 8 ms network above every costlier one (a front would end there)."""
-    from explorer.study.envelope import spread_over_costs
-    points = [(2.0, 0.50, "lidar"), (5.0, 0.40, "e5"), (8.0, 0.30, "e8"), (11.0, 0.35, "e11"),
-              (14.0, 0.36, "e14"), (21.0, 0.33, "e21"), (25.0, 0.34, "e25"), (30.0, 0.32, "e30")]
-    assert spread_over_costs(points, 4, 32.0) == ["lidar", "e8", "e21", "e30"]
+def test_the_networks_are_spread_along_the_estimated_front():
+    """The front (each point more accurate than every cheaper one) runs from 2 to 10 ms: the points
+    nearest 2, 4.67, 7.33 and 10 ms; a point off the front (11 ms, no better than the 10 ms one) or
+    no better than a cheaper one (5 ms) is never chosen."""
+    from explorer.study.envelope import spread_along_front
+    points = [(2.0, 0.50, "a"), (3.0, 0.45, "b"), (4.5, 0.42, "c"), (5.0, 0.43, "off"), (7.0, 0.38, "d"),
+              (8.0, 0.37, "e"), (10.0, 0.33, "f"), (11.0, 0.35, "worse")]
+    assert spread_along_front(points, 4) == ["a", "c", "d", "f"]
+    assert spread_along_front(list(reversed(points)), 4) == ["a", "c", "d", "f"]     # in any order
+    assert spread_along_front(points, 9) == ["a", "b", "c", "d", "e", "f"]          # the whole front
 
 
-def test_a_bin_with_no_network_leaves_its_place_to_the_most_accurate_others():
-    from explorer.study.envelope import spread_over_costs
-    points = [(2.0, 0.50, "a"), (3.0, 0.45, "b"), (4.0, 0.30, "c"), (30.0, 0.20, "d")]
-    assert spread_over_costs(points, 3, 32.0) == ["a", "c", "d"]     # deadlines 2, 17 and 32 ms
-    assert spread_over_costs(points, 4, 32.0) == ["a", "b", "c", "d"]
-    # nothing in (17, 32]: its place goes to c, the most accurate of the others
-    assert spread_over_costs(points[:3] + [(5.0, 0.25, "e")], 3, 32.0) == ["a", "c", "e"]
+def test_a_point_already_chosen_leaves_a_deadline_to_the_next_nearest():
+    """Costs 0.5, 33.7, 66.8 and 100 ms: 33.7 takes d, 66.8 takes e (nearer than c), so 100 takes the
+    nearest left, c."""
+    from explorer.study.envelope import spread_along_front
+    points = [(0.5, 0.50, "a"), (1.0, 0.49, "b"), (2.0, 0.48, "c"), (3.0, 0.47, "d"), (100.0, 0.30, "e")]
+    assert spread_along_front(points, 4) == ["a", "c", "d", "e"]
 
 
 def test_the_envelope_command_names_the_storage_where_the_study_is_not_in_its_local_journal(tmp_path):
@@ -93,21 +95,3 @@ def test_the_envelope_command_names_the_storage_where_the_study_is_not_in_its_lo
     shared = envelope_command("s", "postgresql://me:secret@db.lab:5432/studies")
     assert shared == "explorer envelope --study s --storage postgresql://me:***@db.lab:5432/studies"
     assert envelope_command("s", "journal:/nfs/s.log").endswith("--storage journal:/nfs/s.log")
-
-
-def test_the_networks_whose_oracle_has_the_lowest_estimated_anytime_loss_are_chosen_one_at_a_time():
-    """Under U(0, 33 ms), from a scan at 0.53: the 4.6 ms network lowers the loss more than the 2.3 ms
-    one (almost no better than the scan); a network off the front (14 ms) or no better than the scan
-    (1 ms) never serves a budget, so it is never chosen."""
-    from explorer.study.envelope import envelope_steps, lowest_oracle
-    points = [(1.0, 0.60, "worse"), (2.3, 0.52, "a"), (4.6, 0.45, "b"), (7.8, 0.40, "c"), (10.3, 0.36, "d"),
-              (14.0, 0.37, "e"), (25.0, 0.35, "f")]
-    chosen = lowest_oracle(points, 4, 0.53, "time:uniform:33ms")
-    assert chosen == ["b", "c", "d", "f"]
-    by_item = {item: (c, e) for c, e, item in points}
-
-    def loss(items):
-        return anytime_loss(*envelope_steps(0.53, [by_item[i] for i in items]), "time:uniform:33ms")
-    assert loss(chosen) < min(loss(["a", "c", "d", "f"]), loss(["b", "c", "d", "e"]), loss(["a", "b", "c", "d"]))
-    assert lowest_oracle(points, 9, 0.53, "time:uniform:33ms") == ["a", "b", "c", "d", "f"]   # the whole front
-    assert lowest_oracle(points, 2, 0.30, "time:uniform:33ms") == []                # none beats the scan
