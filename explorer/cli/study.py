@@ -27,7 +27,7 @@ def cmd_search(args) -> None:
         outcome = search(cfg, storage_url=args.storage, workers=args.workers, n_trials=args.trials,
                          timeout_s=timeout, reports=reports, on_trial=shown.trial, on_poll=shown.trial,
                          on_data=shown.data, on_supernet=shown.supernet, on_finalist=shown.finalist,
-                         time_limit=limit, on_plan=shown.planned)
+                         time_limit=limit, on_plan=shown.planned, on_envelope=shown.envelope)
     cfg = outcome.config or cfg
     if outcome.interrupted_failed:
         err_console.print(f"marked {outcome.interrupted_failed} interrupted trial(s) as failed")
@@ -96,6 +96,12 @@ class _SearchProgress:
         if "finalists" not in self.phases:
             self.phases["finalists"] = self.bar.add_task("finalists (retraining)", total=n, status="")
         self.bar.update(self.phases["finalists"], completed=i, status=what)
+
+    def envelope(self, i: int, n: int, what: str) -> None:
+        if "envelope" not in self.phases:
+            self.phases["envelope"] = self.bar.add_task("envelope (dedicated networks, in the time left)", total=n,
+                                                        status="")
+        self.bar.update(self.phases["envelope"], completed=i, status=what)
 
     def trial(self, study_obj, trial=None) -> None:
         import optuna

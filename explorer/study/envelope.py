@@ -136,12 +136,23 @@ def choose_networks(study: optuna.Study, context: StudyContext, count: int) -> l
     return spread_along_front(estimated_networks(study, context), count)
 
 
+def _winners_config(study: optuna.Study):
+    """The study's settings with the finalists' steps the winner was retrained with: a time limit can
+    shorten them after the study was created, and the envelope is trained and compared at the winner's."""
+    config, best = study_config(study), winner(study)
+    if best is not None and trial_record(best).is_retrained:
+        return dataclasses.replace(config, finalist_steps=int(trial_record(best).finalist.recipe["steps"]))
+    return config
+
+
 def train_envelope(study: optuna.Study, count: int, reports: Path, deadline: float | None = None,
-                   progress: Callable[[int, int, str], None] | None = None) -> list[optuna.trial.FrozenTrial]:
+                   progress: Callable[[int, int, str], None] | None = None,
+                   expected_s: float | None = None) -> list[optuna.trial.FrozenTrial]:
     """Retrains the chosen dedicated networks not yet retrained with the study's finalists' recipe (one at
-    a time; with a ``deadline``, a network starts only if the longest so far says it ends before it)."""
+    a time; with a ``deadline``, a network starts only if the longest so far says it ends before it, the
+    first only if ``expected_s`` does, where given)."""
     context = study_context(study)
-    config = context.config
+    config = _winners_config(study)
     base = config.finalist_recipe()
     done = {f"{trial_record(t).candidate_key}/{dedicated_path(trial_record(t))}" for t in envelope_trials(study)
             if trial_record(t).envelope.recipe == base.to_dict()}
@@ -152,7 +163,8 @@ def train_envelope(study: optuna.Study, count: int, reports: Path, deadline: flo
     objective = Objective(context.with_config(proxy_view(config)), study_dir(config.study, reports))
     took: list[float] = []
     for i, network in enumerate(todo):
-        if deadline is not None and took and time.time() + SAFETY * max(took) > deadline:
+        needs = SAFETY * max(took) if took else expected_s
+        if deadline is not None and needs is not None and time.time() + needs > deadline:
             if progress:
                 progress(i, len(todo), f"no time for the {len(todo) - i} other network(s): give a longer --time-limit")
             break
@@ -176,7 +188,7 @@ def train_envelope(study: optuna.Study, count: int, reports: Path, deadline: flo
 def envelope_members(study: optuna.Study) -> list[optuna.trial.FrozenTrial]:
     """The dedicated networks of the envelope: those retrained for it and the single-exit baselines
     retrained with the same recipe."""
-    recipe = study_config(study).finalist_recipe().to_dict()
+    recipe = _winners_config(study).finalist_recipe().to_dict()
     mine = [t for t in envelope_trials(study) if trial_record(t).envelope.recipe == recipe]
     single = [t for t in finalist_trials(study) if _single_exit_baseline(trial_record(t), recipe)]
     return mine + single
@@ -273,7 +285,7 @@ def envelope_hint(study: optuna.Study, storage_url: str | None = None, reports: 
     is yet (the single-exit baselines alone may make one); None otherwise. ``storage_url`` and
     ``reports``: where the study is, for the command (:func:`envelope_command`)."""
     best = winner(study)
-    recipe = study_config(study).finalist_recipe().to_dict()
+    recipe = _winners_config(study).finalist_recipe().to_dict()
     if best is None or not trial_record(best).is_retrained or any(
             trial_record(t).envelope.recipe == recipe for t in envelope_trials(study)):
         return None

@@ -13,7 +13,8 @@ and of the supernet, a few seconds), then sizes what may give, in this order:
 - sampling gets what is then left, up to its ``--timeout``.
   The maximum is the default recipe's 600: a 1,500-step supernet did not find better candidates
   (retrained ratio to the paper design 0.877 against 0.865, one study each), so a fast machine
-  finishes early rather than train longer.
+  does not train longer; the time the finalists leave goes to the envelope's dedicated networks
+  (``search._envelope_in_time_left``), each only if it ends before the limit.
 
 So when time is short, sampling shrinks first (to ``MIN_SAMPLING_S``), then the finalists' steps (to
 ``KEEP_STEPS`` of theirs), then the supernet (to its minimum), then the number of finalists (to one),

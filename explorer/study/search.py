@@ -41,6 +41,7 @@ from explorer.study.finalists import (
     finalist_trials,
     retrain_finalists,
 )
+from explorer.study.envelope import DEFAULT_NETWORKS, envelope_trials, train_envelope
 from explorer.study.objective import Objective, hinted_if_asked
 from explorer.study.planning import (
     MAX_SUPERNET_STEPS,
@@ -332,11 +333,13 @@ def search(config: SearchConfig, storage_url: str | None = None, workers: int = 
            on_supernet: Callable[[int, int, dict], None] | None = None,
            on_finalist: Callable[[int, int, str], None] | None = None,
            time_limit: "TimeLimit | None" = None,
-           on_plan: Callable[["Plan"], None] | None = None) -> SearchOutcome:
+           on_plan: Callable[["Plan"], None] | None = None,
+           on_envelope: Callable[[int, int, str], None] | None = None) -> SearchOutcome:
     """Runs (or resumes) the study until ``n_trials`` trials are done or ``timeout_s`` passes (the
     supernet's training and the finalists' retraining are not counted), then retrains the finalists.
     With ``time_limit`` the whole run is sized to it first (explorer.study.planning): ``timeout_s`` is then
-    the most sampling may take."""
+    the most sampling may take, and the time the finalists leave goes to the envelope's dedicated
+    networks (:func:`_envelope_in_time_left`)."""
     context = config.resolve()
     if workers < 1:
         raise UserError("--workers must be at least 1")
@@ -347,7 +350,7 @@ def search(config: SearchConfig, storage_url: str | None = None, workers: int = 
     clock = PhaseClock(started)
     with searching_alone(url, config.study):
         outcome = _search(context, url, storage_url, workers, n_trials, timeout_s, reports, on_trial, on_poll, on_data,
-                          on_supernet, on_finalist, time_limit, on_plan, clock)
+                          on_supernet, on_finalist, time_limit, on_plan, clock, on_envelope)
         runs = study_record(outcome.study).runs
         record_study(outcome.study, runs=runs + [{"started": time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(started)),
                                                   "seconds": round(time.time() - started, 1),
@@ -357,7 +360,7 @@ def search(config: SearchConfig, storage_url: str | None = None, workers: int = 
 
 def _search(context: StudyContext, url: str, storage_url: str | None, workers: int, n_trials: int | None,
             timeout_s: float | None, reports: Path, on_trial, on_poll, on_data, on_supernet, on_finalist,
-            time_limit: "TimeLimit | None", on_plan, clock: PhaseClock) -> SearchOutcome:
+            time_limit: "TimeLimit | None", on_plan, clock: PhaseClock, on_envelope=None) -> SearchOutcome:
     """:func:`search`'s run, under the study's search lock; ``clock`` is told where each phase ends."""
     config = context.config
     storage = open_storage(url, config.study, workers, reports, max_retries=config.max_retries)
@@ -412,7 +415,35 @@ def _search(context: StudyContext, url: str, storage_url: str | None, workers: i
         config, plan = _retrain_finalists(study, context.with_config(config), plan, time_limit, wanted, reports,
                                           on_finalist, on_plan, workers)
         clock.lap("finalists")
+        if plan is not None:
+            before, plan = plan, _envelope_in_time_left(study, config, plan, speeds, time_limit, reports, on_envelope,
+                                                        on_plan)
+            if plan is not before:
+                clock.lap("envelope")
     return SearchOutcome(study, url, time.time() - t0, failed, retried, not_retried, config, plan)
+
+
+def _envelope_in_time_left(study: optuna.Study, config: SearchConfig, plan: "Plan", speeds,
+                           time_limit: "TimeLimit", reports: Path,
+                           on_envelope: Callable[[int, int, str], None] | None,
+                           on_plan: Callable[["Plan"], None] | None) -> "Plan":
+    """Retrains the envelope's dedicated networks (``explorer envelope``'s, DEFAULT_NETWORKS of them) in
+    the time the finalists left, each only if it ends before the time limit (the first by the plan's
+    measure of one finalist, the others by the longest so far): a fast machine then gives the summary
+    the envelope of the space instead of stopping early; a slow one starts none."""
+    winner_retrained = any(not trial_record(t).baseline for t in finalist_trials(study))
+    if not winner_retrained:
+        return plan
+    before = len(envelope_trials(study))
+    train_envelope(study, DEFAULT_NETWORKS, reports, deadline=time_limit.started + time_limit.seconds - RESERVE_S,
+                   progress=on_envelope, expected_s=retrain_seconds(speeds, 1, 0.0, config.finalist_steps))
+    trained = len(envelope_trials(study)) - before
+    if trained:
+        plan = dataclasses.replace(plan, changes=plan.changes + (
+            f"{trained} dedicated network(s) of the envelope retrained in the time the finalists left "
+            "(explorer envelope adds more)",))
+        _publish_plan(study, plan, on_plan)
+    return plan
 
 
 def _note_unfinished(supernet: Path, plan: "Plan | None") -> "Plan | None":

@@ -3,7 +3,7 @@ import pytest
 import torch
 
 from conftest import TINY_DATA
-from explorer.study.finalists import choose_finalists, finalist_trials, retrain_finalists
+from explorer.study.finalists import choose_finalists, estimate_trials, finalist_trials, retrain_finalists
 from explorer.study.results import baseline_trial, best_trial, finalists_frame, is_retrained, winner
 from explorer.study.search import SearchConfig, search
 from explorer.space import Candidate
@@ -149,13 +149,34 @@ def test_a_time_limit_measures_the_machine_and_records_its_plan(tmp_path):
     assert len([t for t in finalist_trials(out.study) if not t.user_attrs.get("baseline")]) == 2
     # the run's wall time, phase by phase in the order they ran, adds up to the whole run
     run = out.study.user_attrs["runs"][-1]
-    assert list(run["phases"]) == ["data", "measuring", "supernet", "sampling", "finalists"]
+    assert list(run["phases"]) == ["data", "measuring", "supernet", "sampling", "finalists", "envelope"]
     assert sum(run["phases"].values()) == pytest.approx(run["seconds"], abs=0.5)
     assert run["phases"]["finalists"] > 0 and run["phases"]["measuring"] > 0
+    # the time the finalists left went to the envelope's dedicated networks, at the winner's recipe
+    from explorer.study.envelope import envelope, envelope_trials
+    made = envelope_trials(out.study)
+    assert 1 <= len(made) <= 4 and any(c.startswith(f"{len(made)} dedicated network(s) of the envelope")
+                                       for c in plan["changes"])
+    assert all(t.user_attrs["envelope"]["recipe"]["steps"] == 5 for t in made)
+    assert envelope(out.study).ratio is not None
     from explorer.report import write_report
     html = write_report(out.study, out_dir=tmp_path / "report").read_text()
     assert 'id="plan"' in html and "supernet 4 steps" in html and "2 finalist(s) retrained 5 steps" in html
     assert "measuring 0." in html and "finalists " in html   # the wall time row names the phases
+    assert 'id="envelope-ratio"' in html and 'id="envelope-hint"' not in html
+
+
+@pytest.mark.slow
+def test_no_dedicated_network_starts_that_would_end_after_the_deadline(finished):
+    """The first network's time is the caller's measure (``expected_s``), the others' the longest so far."""
+    import time
+
+    from explorer.study.envelope import envelope_trials, train_envelope
+    out, reports = finished
+    before, said = len(envelope_trials(out.study)), []
+    train_envelope(out.study, 2, reports, deadline=time.time() + 5, expected_s=60.0,
+                   progress=lambda i, n, what: said.append(what))
+    assert len(envelope_trials(out.study)) == before and any(what.startswith("no time for") for what in said)
 
 
 @pytest.mark.slow
@@ -280,7 +301,7 @@ def test_a_supernet_the_time_limit_stopped_still_serves_the_study(tmp_path, monk
                  n_trials=3, timeout_s=None, reports=tmp_path, time_limit=TimeLimit(600.0, free=frozenset()))
     changes = out.study.user_attrs["plan"]["changes"]
     assert any(c.startswith("supernet stopped at step") and "of 300" in c for c in changes)
-    estimates = [t for t in out.study.trials if t.state == optuna.trial.TrialState.COMPLETE and not is_retrained(t)]
+    estimates = estimate_trials(out.study)
     assert estimates and all(t.user_attrs["evaluator"]["evaluator"] == "supernet" for t in estimates)
     assert finalist_trials(out.study)
 
@@ -342,7 +363,6 @@ def test_the_envelope_of_dedicated_networks(finished, run_cli):
     from explorer.anytime import anytime_loss
     from explorer.report import write_report
     from explorer.study.envelope import dedicated, envelope, envelope_summary, envelope_trials
-    from explorer.study.finalists import estimate_trials
     out, reports = finished
     before_winner = winner(out.study).number
     if not envelope_trials(out.study):    # before: the summary and the report say how to get it
