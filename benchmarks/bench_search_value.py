@@ -4,7 +4,8 @@ network of the default space (tx2, U(0, 33 ms)), each repetition one seed, the s
 
 - ``default``: ``explorer search``'s pipeline through its Python API with ``--time-limit T``: the
   supernet trained inside T (a fresh cache folder each run, the generated data linked into it), Optuna's
-  TPE sampling its estimates, then the finalists retrained; ``make search``'s settings otherwise, but
+  TPE sampling its estimates, then the finalists retrained (and, in the time they leave, the envelope's
+  networks, which never change the winner); ``make search``'s settings otherwise, but
   no baselines (their retraining is not charged to any strategy: the paper design is retrained below).
 - ``random_sampling``: the same with ``--sampler random`` (uniform sampling, the same supernet recipe).
 - ``random_retrained``: candidates drawn at random from the space (``SearchSpace.random_candidates``),

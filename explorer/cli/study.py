@@ -355,7 +355,8 @@ def _register_search(add, reports: dict) -> None:
     s.add_argument("--time-limit", type=_duration_s, default=None, help="wall clock for the whole run: data, "
                    "supernet training, sampling, finalists (default 16m, none when --timeout is given; 0 = none). "
                    "The machine is measured first (seconds); sampling, the finalists' steps (to 2/3), the supernet's "
-                   "steps, then the finalists shrink to fit where not given, and the plan is printed")
+                   "steps, then the finalists shrink to fit where not given, and the plan is printed; the time "
+                   "the finalists leave goes to the envelope's dedicated networks (see explorer envelope)")
     s.add_argument("--timeout", type=_duration_s, default=None, help="stop sampling after this long (default 3m: "
                    "hundreds to over a thousand supernet estimates on a 2-core CPU, by its speed; 0 = none)")
     s.add_argument("--trials", type=int, default=None, help="stop after this many finished trials")
