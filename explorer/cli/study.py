@@ -126,7 +126,7 @@ class _SearchProgress:
         if not self.said["plan"]:
             err_console.print(plan.describe(), highlight=False)
         for change in plan.changes[self.said["changes"]:]:
-            err_console.print(f"  to fit: {change}", highlight=False)
+            err_console.print(f"  plan: {change}", highlight=False)
         self.said.update(plan=True, changes=len(plan.changes))
 
 
