@@ -19,23 +19,18 @@ many of its networks serve some budget.
 from __future__ import annotations
 
 import math
-import shutil
 import sys
-import tempfile
 from pathlib import Path
 
 import numpy as np
-import optuna
-import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from bench_search_value import base_config, deployment_data, final_losses, final_recipe, run_strategy  # noqa: E402
+from bench_search_value import (base_config, final_losses, final_recipe, final_recipe_note, prepare,  # noqa: E402
+                                run_seeds, run_strategy)
 from harness import Bench  # noqa: E402
 
 from explorer.anytime import anytime_loss, parse_budget  # noqa: E402
-from explorer.data import open_dataset  # noqa: E402
-from explorer.data.synthetic import cache_dir  # noqa: E402
 from explorer.space import paper_candidate  # noqa: E402
 from explorer.study.envelope import envelope_steps, spread_along_front  # noqa: E402
 
@@ -128,22 +123,12 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
     args = bench.parse_args(ap)
     args.envelope_networks = args.networks    # what run_strategy passes on
-    torch.set_num_threads(args.threads)
-    optuna.logging.set_verbosity(optuna.logging.WARNING)
-    config = base_config(0, "data")
-    data = deployment_data(config)   # generated here, before anything is timed
-    open_dataset(config.data, "val", config.train_size, train_augment=False)
+    config, data = prepare(args.threads)
     declare(bench, args.final_steps)
     bench.note(f"cpu, torch threads {args.threads}; a default search of T = {args.time_s:g} s a seed (no baselines); "
-               f"{args.networks} networks a rule; final recipe {args.final_steps} steps at "
-               f"{config.train_size[0]}x{config.train_size[1]} + {config.tune_steps} at "
-               f"{config.input_size[0]}x{config.input_size[1]}; {config.device}, {config.budgets[0]}")
-    work = Path(tempfile.mkdtemp(prefix="bench-envelope-"))
-    try:
-        for rep in bench.repetitions():
-            one_seed(bench, rep, args, work, cache_dir(), data)
-    finally:
-        shutil.rmtree(work, ignore_errors=True)
+               f"{args.networks} networks a rule; {final_recipe_note(config, args.final_steps)}; {config.device}, "
+               f"{config.budgets[0]}")
+    run_seeds(bench, one_seed, args, data, "bench-envelope-")
     bench.finish()
 
 

@@ -268,6 +268,34 @@ def one_seed(bench: Bench, seed: int, args, work: Path, data_cache: Path, data: 
         bench.add(f"envelope_ratio_{name}", loss[winners[name].key] / envelope)
 
 
+def prepare(threads: int) -> tuple[SearchConfig, DeploymentData]:
+    """PyTorch on ``threads`` threads, Optuna quiet, and the data generated before anything is timed (it
+    is every strategy's): (the default study's settings, its deployment data)."""
+    torch.set_num_threads(threads)
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    config = base_config(0, "data")
+    data = deployment_data(config)
+    open_dataset(config.data, "val", config.train_size, train_augment=False)
+    return config, data
+
+
+def final_recipe_note(config: SearchConfig, final_steps: int) -> str:
+    return (f"final recipe {final_steps} steps at {config.train_size[0]}x{config.train_size[1]} + "
+            f"{config.tune_steps} at {config.input_size[0]}x{config.input_size[1]}, measured on {VAL_FRAMES} "
+            "validation frames")
+
+
+def run_seeds(bench: Bench, one_seed, args, data: DeploymentData, prefix: str) -> None:
+    """``one_seed(bench, seed, args, work, data_cache, data)`` for each repetition, in a work folder of
+    its own that is removed after."""
+    work = Path(tempfile.mkdtemp(prefix=prefix))
+    try:
+        for rep in bench.repetitions():
+            one_seed(bench, rep, args, work, cache_dir(), data)
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+
+
 def main() -> None:
     bench = Bench(__file__, "the search's value: TPE, random sampling and random retraining at equal time", __doc__)
     ap = bench.parser()
@@ -280,26 +308,13 @@ def main() -> None:
                     "`explorer envelope --networks` (default 4)")
     ap.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
     args = bench.parse_args(ap)
-    torch.set_num_threads(args.threads)
-    optuna.logging.set_verbosity(optuna.logging.WARNING)
-    config = base_config(0, "data")
-    data_cache = cache_dir()
-    data = deployment_data(config)   # generated here, before anything is timed
-    open_dataset(config.data, "val", config.train_size, train_augment=False)
+    config, data = prepare(args.threads)
     declare(bench, args.time_s, args.final_steps)
     bench.note(f"cpu, torch threads {args.threads}; T = {args.time_s:g} s a strategy and seed, supernet and data "
                f"loading inside it (a fresh cache each run); no baselines retrained inside T; random candidates "
                f"retrained {args.random_steps} steps + tuning; {args.envelope_networks} dedicated networks; "
-               f"final recipe "
-               f"{args.final_steps} steps at {config.train_size[0]}x{config.train_size[1]} + {config.tune_steps} at "
-               f"{config.input_size[0]}x{config.input_size[1]}, measured on {VAL_FRAMES} validation frames; "
-               f"{config.device}, {config.budgets[0]}")
-    work = Path(tempfile.mkdtemp(prefix="bench-search-value-"))
-    try:
-        for rep in bench.repetitions():
-            one_seed(bench, rep, args, work, data_cache, data)
-    finally:
-        shutil.rmtree(work, ignore_errors=True)
+               f"{final_recipe_note(config, args.final_steps)}; {config.device}, {config.budgets[0]}")
+    run_seeds(bench, one_seed, args, data, "bench-search-value-")
     bench.finish()
 
 
