@@ -217,7 +217,7 @@ def supernet_deadline(plan: Plan, limit: "TimeLimit", speeds: Speeds, paper_base
     first); past it, the supernet stops where it is and the study goes on with it as trained so far."""
     want = sampling_s if sampling_s is not None else math.inf
     retrain = retrain_seconds(speeds, 1, 1.0 if paper_baseline else 0.0, MIN_FINALIST_STEPS) if plan.finalists else 0.0
-    return limit.started + limit.seconds - RESERVE_S - plan.trial_s - min(MIN_SAMPLING_S, want) - retrain
+    return limit.ends - RESERVE_S - plan.trial_s - min(MIN_SAMPLING_S, want) - retrain
 
 
 def replan_finalists(plan: Plan, remaining_s: float, speeds: Speeds, baselines: float, steps_free: bool,
@@ -338,5 +338,10 @@ class TimeLimit:
     started: float = dataclasses.field(default_factory=time.time)
     free: frozenset[str] = frozenset({"supernet_steps", "finalists", "finalist_steps"})
 
+    @property
+    def ends(self) -> float:
+        """When the run must be over (a time.time())."""
+        return self.started + self.seconds
+
     def remaining(self) -> float:
-        return self.started + self.seconds - time.time()
+        return self.ends - time.time()

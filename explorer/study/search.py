@@ -435,7 +435,7 @@ def _envelope_in_time_left(study: optuna.Study, config: SearchConfig, plan: "Pla
     if not winner_retrained:
         return plan
     before = len(envelope_trials(study))
-    train_envelope(study, DEFAULT_NETWORKS, reports, deadline=time_limit.started + time_limit.seconds - RESERVE_S,
+    train_envelope(study, DEFAULT_NETWORKS, reports, deadline=time_limit.ends - RESERVE_S,
                    progress=on_envelope, expected_s=retrain_seconds(speeds, 1, 0.0, config.finalist_steps))
     trained = len(envelope_trials(study)) - before
     if trained:
@@ -537,7 +537,7 @@ def _retrain_finalists(study: optuna.Study, context: StudyContext, plan: "Plan |
     extra, deadline = 0, None
     if plan is not None:   # the time limit holds even when the machine slowed after planning
         extra = max(wanted[0] - config.finalists, 0) if "finalists" in time_limit.free else 0
-        deadline = time_limit.started + time_limit.seconds - RESERVE_S
+        deadline = time_limit.ends - RESERVE_S
     retrain_finalists(study, context, reports, progress=on_finalist, extra=extra, deadline=deadline, workers=workers)
     recipe = config.finalist_recipe().to_dict()
     now = [trial_record(t) for t in finalist_trials(study) if trial_record(t).finalist.recipe == recipe]
