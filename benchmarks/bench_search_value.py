@@ -22,8 +22,9 @@ of them, from the ``default`` strategy's estimates): networks each trained for o
 candidate's single-exit twin, or a candidate trained for an earlier path's loss only), spread over the
 budget's range, whose oracle (each budget served by the most accurate one ready by it) is what an
 anytime network of the space can approach. Figures: each winner's anytime loss over the paper design's (``ratio_<strategy>``,
-below 1 is better) and over the envelope's (``envelope_ratio_<strategy>``, 1 is the oracle), the
-strategies' wall times, how many candidates each estimated and retrained, and the steps the searches'
+below 1 is better) and over the envelope's (``envelope_ratio_<strategy>``, 1 is the oracle), a bound
+over the paper design's (``floor_ratio``: the most accurate path of any network measured, as if it were
+ready when the cheapest is; no network of these does better), the strategies' wall times, how many candidates each estimated and retrained, and the steps the searches'
 supernets got.
 
     OMP_NUM_THREADS=1 python benchmarks/bench_search_value.py [--reps 3] [--time-s 300] [--threads 1]
@@ -221,6 +222,8 @@ def declare(bench: Bench, seconds: float, final_steps: int) -> None:
     bench.figure("paper_anytime", f"paper design: anytime loss {recipe}", "m", better="lower")
     bench.figure("envelope_anytime", f"envelope of dedicated networks: anytime loss {recipe}", "m", better="lower")
     bench.figure("envelope_networks", "dedicated networks on the envelope (serving some budget)", "")
+    bench.figure("floor_ratio", f"bound: the most accurate path measured, as if ready when the cheapest is, "
+                 f"/ paper design, anytime loss {recipe}", "", better="lower")
 
 
 def final_losses(networks: list[tuple[str, Candidate, DeploymentRecipe]], seed: int,
@@ -234,6 +237,16 @@ def final_losses(networks: list[tuple[str, Candidate, DeploymentRecipe]], seed: 
             print(f"  final: {key} RMSE by path {[round(x, 4) for x in done[key][1]]} "
                   f"({time.perf_counter() - t0:.0f} s)", flush=True)
     return done
+
+
+def floor_steps(trained: dict[str, tuple[list[float], list[float]]]) -> tuple[list[float], list[float]]:
+    """A bound on what any network of these could do: the lowest error of any path (past the scan, path
+    0) of any network ``trained``, as if it were ready when the cheapest such path is. An anytime network
+    whose paths are none more accurate than the best measured and none faster than the fastest does no
+    better: a lower anytime loss needs a path better than any measured."""
+    paths = [(c, e) for costs, errors in trained.values() for c, e in zip(costs[1:], errors[1:])]
+    scan = next(iter(trained.values()))[1][0]
+    return [0.0, min(c for c, _ in paths)], [scan, min(e for _, e in paths)]
 
 
 def one_seed(bench: Bench, seed: int, args, work: Path, data_cache: Path, data: DeploymentData) -> None:
@@ -263,6 +276,9 @@ def one_seed(bench: Bench, seed: int, args, work: Path, data_cache: Path, data: 
     bench.add("envelope_anytime", envelope)
     bench.add("envelope_networks", len(steps[0]) - 1)
     bench.add("envelope_ratio_paper", loss[paper.key] / envelope)
+    floor = floor_steps(trained)
+    print(f"  bound: the most accurate path {floor[1][1]:.4f} as if ready at {floor[0][1]:.1f} ms", flush=True)
+    bench.add("floor_ratio", anytime_loss(*floor, budget) / loss[paper.key])
     for name in STRATEGIES:
         bench.add(f"ratio_{name}", loss[winners[name].key] / loss[paper.key])
         bench.add(f"envelope_ratio_{name}", loss[winners[name].key] / envelope)
