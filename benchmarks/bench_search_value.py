@@ -11,8 +11,9 @@ network of the default space (tx2, U(0, 33 ms)), each repetition one seed, the s
 - ``random_retrained``: candidates drawn at random from the space (``SearchSpace.random_candidates``),
   no estimate, retrained one after another with the finalists' recipe (``retrain_finalists`` with the
   deadline a search's finalists get) until T is spent; the best measured one is the winner. Their
-  steps (``--random-steps``, default 150) are those the search's plan gives its finalists at T = 300 s
-  on a 2-core CPU (``make search``'s 300 shrink to 150 to fit).
+  steps (``--random-steps``, default 150) are those the search's plan gave its finalists at T = 300 s
+  on the slower of the 2-core CPUs measured (``make search``'s 300 shrink to 150 to fit; 200 on a
+  faster one).
 
 Then each seed's winners and the paper design are retrained with one longer recipe (``--final-steps``,
 default 300: twice the finalists', at the training size, then the finalists' tuning steps at the
