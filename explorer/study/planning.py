@@ -258,6 +258,18 @@ def replan_finalists(plan: Plan, remaining_s: float, speeds: Speeds, baselines: 
                                changes=tuple(changes))
 
 
+def not_retrained(skipped: int, plan: Plan, left_s: float) -> str:
+    """The plan's change for ``skipped`` finalists or baselines that the time limit stopped, when the
+    retraining had ``left_s`` seconds: the plan's own retraining needed more (settings the user fixed,
+    or minimums, that no plan fits), or the machine ran slower than the plan measured."""
+    if plan.retrain_s > left_s + 1:
+        return (f"{skipped} finalist(s) or baseline(s) not retrained: the retraining planned needed about "
+                f"{plan.retrain_s / 60:.1f} min and the time limit left {max(left_s, 0) / 60:.1f} "
+                "(give a longer --time-limit)")
+    return (f"{skipped} finalist(s) or baseline(s) not retrained: the machine ran slower than planned and the "
+            "time limit came first")
+
+
 # -- measuring ------------------------------------------------------------------------------------
 def _seconds_per_step(marks: dict[int, float]) -> float:
     """The median step after the first two (in a fresh process they run 2x slower: allocation, first

@@ -12,6 +12,7 @@ with a longer recipe (the finalists): the winner a user reads about is always a 
 
 import dataclasses
 import gc
+import math
 import os
 import time
 from dataclasses import dataclass
@@ -538,15 +539,14 @@ def _retrain_finalists(study: optuna.Study, context: StudyContext, plan: "Plan |
     if plan is not None:   # the time limit holds even when the machine slowed after planning
         extra = max(wanted[0] - config.finalists, 0) if "finalists" in time_limit.free else 0
         deadline = time_limit.ends - RESERVE_S
+    left_s = deadline - time.time() if deadline is not None else math.inf
     retrain_finalists(study, context, reports, progress=on_finalist, extra=extra, deadline=deadline, workers=workers)
     recipe = config.finalist_recipe().to_dict()
     now = [trial_record(t) for t in finalist_trials(study) if trial_record(t).finalist.recipe == recipe]
     retrained = sum(1 for rec in now if not rec.baseline)
     skipped = max(config.finalists - retrained, 0) + len(set(config.baselines) - {rec.baseline for rec in now})
     if plan is not None and skipped:
-        plan = dataclasses.replace(plan, changes=plan.changes + (
-            f"{skipped} finalist(s) or baseline(s) not retrained: the machine ran slower than planned and the "
-            "time limit came first",))
+        plan = dataclasses.replace(plan, changes=plan.changes + (planning.not_retrained(skipped, plan, left_s),))
         _publish_plan(study, plan, on_plan)
     if plan is not None and retrained > plan.finalists:
         plan = dataclasses.replace(plan, finalists=retrained, changes=plan.changes + (

@@ -207,3 +207,11 @@ def test_a_supernet_that_runs_long_stops_where_the_rest_needs_its_minimum():
     bare = dataclasses.replace(p, finalists=0)
     assert planning.supernet_deadline(bare, limit, SLOW, True, 30.0) == pytest.approx(
         1000.0 + 15 * 60 - planning.RESERVE_S - p.trial_s - 30.0)
+
+
+def test_finalists_the_time_limit_stopped_are_blamed_on_what_stopped_them():
+    p = plan(SLOW, supernet_free=False, finalists_free=False, finalist_steps_free=False)
+    fixed = planning.not_retrained(2, p, left_s=p.retrain_s / 3)     # the plan itself did not fit
+    assert "needed about" in fixed and "longer --time-limit" in fixed and "slower" not in fixed
+    slowed = planning.not_retrained(1, p, left_s=p.retrain_s + 60)   # it fitted, the machine slowed
+    assert "ran slower than planned" in slowed and slowed.startswith("1 finalist(s)")
