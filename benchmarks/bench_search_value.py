@@ -119,10 +119,12 @@ def estimated_scan_error(study: optuna.Study, metric: str) -> float | None:
     return None
 
 
-def searched(config: SearchConfig, seconds: float, reports: Path, envelope_networks: int) -> tuple[Candidate, dict]:
-    """``explorer search --time-limit`` with ``config``: (its winner, what the run did, with the dedicated
-    networks ``explorer envelope`` would choose from its estimates)."""
-    limit = TimeLimit(seconds, time.time(), frozenset({"supernet_steps", "finalists", "finalist_steps"}))
+def searched(config: SearchConfig, seconds: float, reports: Path, envelope_networks: int,
+             free: frozenset[str] = TimeLimit.free) -> tuple[Candidate, dict]:
+    """``explorer search --time-limit`` with ``config`` (``free``: the settings left to the plan, as a
+    user who sets none): (its winner, what the run did, with the dedicated networks ``explorer envelope``
+    would choose from its estimates)."""
+    limit = TimeLimit(seconds, time.time(), free)
     outcome = search(config, timeout_s=SAMPLING_CAP_S, reports=reports, time_limit=limit)
     study, plan = outcome.study, outcome.plan
     supernet = study_record(study).supernet
@@ -134,6 +136,7 @@ def searched(config: SearchConfig, seconds: float, reports: Path, envelope_netwo
     context = study_context(study)
     points = estimated_networks(study, context)   # what explorer envelope chooses from
     return _candidate(winner(study)), {"estimated": len(estimate_trials(study)), "retrained": len(retrained),
+                                       "finalist_steps": plan.finalist_steps if plan else config.finalist_steps,
                                        "supernet_steps": state.get("step", 0), "estimated_networks": points,
                                        "scan_error": estimated_scan_error(study, config.metric),
                                        "dedicated": spread_along_front(points, envelope_networks)}
@@ -156,12 +159,14 @@ def random_retrained(config: SearchConfig, seconds: float, reports: Path) -> tup
     return _candidate(best), {"estimated": 0, "retrained": len(done)}
 
 
-def run_strategy(name: str, seed: int, args, work: Path, data_cache: Path) -> tuple[Candidate, dict]:
+def run_strategy(name: str, seed: int, args, work: Path, data_cache: Path, changes: dict | None = None,
+                 free: frozenset[str] = TimeLimit.free) -> tuple[Candidate, dict]:
     """One strategy's run for ``seed`` in ``args.time_s`` seconds, in a cache and reports folder of its
-    own: (its winner, what it did, with its wall time)."""
+    own, with the settings ``changes`` of the study (``free``: those left to the plan): (its winner, what
+    it did, with its wall time)."""
     study, seconds = f"value-{name}-{seed}", args.time_s
     reports = work / "reports" / study
-    config = base_config(seed, study, sampler="random" if name == "random_sampling" else "tpe")
+    config = base_config(seed, study, sampler="random" if name == "random_sampling" else "tpe", **(changes or {}))
     if name == "random_retrained":
         config = dataclasses.replace(config, finalist_steps=args.random_steps)
     print(f"  {name} (seed {seed}):", flush=True)
@@ -170,7 +175,7 @@ def run_strategy(name: str, seed: int, args, work: Path, data_cache: Path) -> tu
         if name == "random_retrained":
             best, info = random_retrained(config, seconds, reports)
         else:
-            best, info = searched(config, seconds, reports, args.envelope_networks)
+            best, info = searched(config, seconds, reports, args.envelope_networks, free)
         info["seconds"] = time.perf_counter() - t0
     gc.unfreeze()   # the search froze what it had loaded (explorer.study.search._optimize): let it go
     gc.collect()
