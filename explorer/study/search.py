@@ -424,6 +424,14 @@ def _search(context: StudyContext, url: str, storage_url: str | None, workers: i
     return SearchOutcome(study, url, time.time() - t0, failed, retried, not_retried, config, plan)
 
 
+def _retrained_and_skipped(study: optuna.Study, config: SearchConfig) -> tuple[int, int]:
+    """(finalists retrained with the study's recipe, finalists and baselines asked for and not)."""
+    recipe = config.finalist_recipe().to_dict()
+    now = [trial_record(t) for t in finalist_trials(study) if trial_record(t).finalist.recipe == recipe]
+    retrained = sum(1 for rec in now if not rec.baseline)
+    return retrained, max(config.finalists - retrained, 0) + len(set(config.baselines) - {rec.baseline for rec in now})
+
+
 def _envelope_in_time_left(study: optuna.Study, config: SearchConfig, plan: "Plan", speeds,
                            time_limit: "TimeLimit", reports: Path,
                            on_envelope: Callable[[int, int, str], None] | None,
@@ -431,9 +439,10 @@ def _envelope_in_time_left(study: optuna.Study, config: SearchConfig, plan: "Pla
     """Retrains the envelope's dedicated networks (``explorer envelope``'s, DEFAULT_NETWORKS of them) in
     the time the finalists left, each only if it ends before the time limit (the first by the plan's
     measure of one finalist, the others by the longest so far): a fast machine then gives the summary
-    the envelope of the space instead of stopping early; a slow one starts none."""
+    the envelope of the space instead of stopping early; a slow one starts none. Finalists and baselines
+    come first: where the time limit stopped one of them, no time was left."""
     winner_retrained = any(not trial_record(t).baseline for t in finalist_trials(study))
-    if not winner_retrained:
+    if not winner_retrained or _retrained_and_skipped(study, config)[1]:
         return plan
     before = len(envelope_trials(study))
     train_envelope(study, DEFAULT_NETWORKS, reports, deadline=time_limit.ends - RESERVE_S,
@@ -541,10 +550,7 @@ def _retrain_finalists(study: optuna.Study, context: StudyContext, plan: "Plan |
         deadline = time_limit.ends - RESERVE_S
     left_s = deadline - time.time() if deadline is not None else math.inf
     retrain_finalists(study, context, reports, progress=on_finalist, extra=extra, deadline=deadline, workers=workers)
-    recipe = config.finalist_recipe().to_dict()
-    now = [trial_record(t) for t in finalist_trials(study) if trial_record(t).finalist.recipe == recipe]
-    retrained = sum(1 for rec in now if not rec.baseline)
-    skipped = max(config.finalists - retrained, 0) + len(set(config.baselines) - {rec.baseline for rec in now})
+    retrained, skipped = _retrained_and_skipped(study, config)
     if plan is not None and skipped:
         plan = dataclasses.replace(plan, changes=plan.changes + (planning.not_retrained(skipped, plan, left_s),))
         _publish_plan(study, plan, on_plan)

@@ -180,6 +180,31 @@ def test_no_dedicated_network_starts_that_would_end_after_the_deadline(finished)
 
 
 @pytest.mark.slow
+def test_the_envelope_gets_no_time_where_the_time_limit_stopped_a_finalist(finished, tmp_path):
+    """Finalists and baselines come first: a search whose time limit stopped one of them starts no
+    dedicated network of the envelope, however much time the plan's measure says is left."""
+    import dataclasses
+
+    from explorer.study.envelope import envelope_trials
+    from explorer.study.planning import Plan, Speeds, TimeLimit
+    from explorer.study.search import _envelope_in_time_left
+    out, _ = finished
+    study = optuna.create_study(study_name="copy", storage=optuna.storages.InMemoryStorage())
+    for key, value in out.study.user_attrs.items():
+        study.set_user_attr(key, value)
+    study.add_trials(out.study.get_trials(deepcopy=True))
+    plan = Plan(limit_s=3600, supernet_steps=0, supernet_s=0, sampling_s=0, finalists=out.config.finalists,
+                finalist_steps=out.config.finalist_steps, retrain_jobs=0, retrain_s=0)
+    speeds, limit = Speeds(retrain_step_s=0.01, retrain_eval_s=0.1, supernet_step_s=0), TimeLimit(3600)
+    before = len(envelope_trials(study))
+    one_more = dataclasses.replace(out.config, finalists=out.config.finalists + 1)   # one the limit stopped
+    assert _envelope_in_time_left(study, one_more, plan, speeds, limit, tmp_path, None, None) is plan
+    assert len(envelope_trials(study)) == before
+    as_asked = _envelope_in_time_left(study, out.config, plan, speeds, limit, tmp_path, None, None)
+    assert len(envelope_trials(study)) > before and "dedicated network(s) of the envelope" in as_asked.changes[-1]
+
+
+@pytest.mark.slow
 def test_a_time_limit_too_short_for_any_retraining_retrains_none_and_says_so(tmp_path):
     import dataclasses
     from explorer.study.planning import TimeLimit
