@@ -27,7 +27,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from bench_search_value import (base_config, final_losses, final_recipe, final_recipe_note, prepare,  # noqa: E402
-                                run_seeds, run_strategy)
+                                run_seeds, run_strategy, shared_arguments)
 from harness import Bench  # noqa: E402
 
 from explorer.anytime import anytime_loss, parse_budget  # noqa: E402
@@ -116,11 +116,8 @@ def one_seed(bench: Bench, seed: int, args, work: Path, data_cache: Path, data) 
 def main() -> None:
     bench = Bench(__file__, "the envelope's networks: three ways to choose them from a search's estimates", __doc__)
     ap = bench.parser()
-    ap.add_argument("--time-s", type=float, default=300.0, help="wall time T of each search (default 300)")
+    shared_arguments(ap, time_s=300.0)
     ap.add_argument("--networks", type=int, default=4, help="dedicated networks each rule chooses (default 4)")
-    ap.add_argument("--final-steps", type=int, default=300, help="steps at the training size of the final "
-                    "recipe, before the tuning (default 300)")
-    ap.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
     args = bench.parse_args(ap)
     args.envelope_networks = args.networks    # what run_strategy passes on
     config, data = prepare(args.threads)

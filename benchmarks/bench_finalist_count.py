@@ -33,7 +33,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from bench_search_value import (base_config, final_losses, final_recipe, final_recipe_note, prepare,  # noqa: E402
-                                run_seeds, run_strategy)
+                                run_seeds, run_strategy, shared_arguments)
 from harness import Bench, rotated  # noqa: E402
 
 from explorer.anytime import anytime_loss  # noqa: E402
@@ -81,13 +81,10 @@ def one_seed(bench: Bench, seed: int, args, work: Path, data_cache: Path, data) 
 def main() -> None:
     bench = Bench(__file__, "more finalists retrained briefly against the few a time limit plans", __doc__)
     ap = bench.parser()
-    ap.add_argument("--time-s", type=float, default=420.0, help="wall time T of each run (default 420)")
+    shared_arguments(ap, time_s=420.0)
     ap.add_argument("--finalists", type=int, default=5, help="the screened strategy's finalists (default 5)")
     ap.add_argument("--steps", type=int, default=150, help="the screened strategy's steps a finalist at the "
                     "training size, before the tuning (default 150)")
-    ap.add_argument("--final-steps", type=int, default=300, help="steps at the training size of the final "
-                    "comparison's recipe, before the tuning (default 300)")
-    ap.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
     args = bench.parse_args(ap)
     args.envelope_networks = 1    # what run_strategy passes on: the dedicated networks are not retrained here
     config, data = prepare(args.threads)

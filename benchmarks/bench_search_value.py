@@ -318,17 +318,23 @@ def run_seeds(bench: Bench, one_seed, args, data: DeploymentData, prefix: str) -
         shutil.rmtree(work, ignore_errors=True)
 
 
+def shared_arguments(ap, time_s: float) -> None:
+    """The options every bench built on this one takes: the wall time T of each run, the final
+    recipe's steps and PyTorch's threads."""
+    ap.add_argument("--time-s", type=float, default=time_s, help=f"wall time T of each run (default {time_s:g})")
+    ap.add_argument("--final-steps", type=int, default=300, help="steps at the training size of the final "
+                    "comparison's recipe, before the tuning (default 300: twice the finalists' at T = 300 s)")
+    ap.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
+
+
 def main() -> None:
     bench = Bench(__file__, "the search's value: TPE, random sampling and random retraining at equal time", __doc__)
     ap = bench.parser()
-    ap.add_argument("--time-s", type=float, default=300.0, help="wall time T of each strategy's run (default 300)")
+    shared_arguments(ap, time_s=300.0)
     ap.add_argument("--random-steps", type=int, default=150, help="steps at the training size of each random "
                     "candidate's retraining, before the tuning (default 150: the searches' finalists' at T = 300 s)")
-    ap.add_argument("--final-steps", type=int, default=300, help="steps at the training size of the final "
-                    "comparison's recipe, before the tuning (default 300: twice the finalists')")
     ap.add_argument("--envelope-networks", type=int, default=4, help="dedicated networks of the envelope, as "
                     "`explorer envelope --networks` (default 4)")
-    ap.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
     args = bench.parse_args(ap)
     config, data = prepare(args.threads)
     declare(bench, args.time_s, args.final_steps)
