@@ -212,14 +212,14 @@ def measured(candidate: Candidate, seed: int, recipe: DeploymentRecipe,
     return list(cost), rmse
 
 
-def declare(bench: Bench, seconds: float, final_steps: int) -> None:
+def declare(bench: Bench, seconds: float, final_steps: int, strategies: tuple[str, ...] = STRATEGIES) -> None:
     recipe = f"after {final_steps} steps + tuning at 224x224"
-    for name in STRATEGIES:
+    for name in strategies:
         bench.figure(f"ratio_{name}", f"{name}: winner / paper design, anytime loss {recipe}", "", better="lower")
-    for name in (*STRATEGIES, "paper"):
+    for name in (*strategies, "paper"):
         bench.figure(f"envelope_ratio_{name}", f"{name}: anytime loss / the envelope's (dedicated networks), "
                      f"{recipe}", "", better="lower")
-    for name in STRATEGIES:
+    for name in strategies:
         bench.figure(f"seconds_{name}", f"{name}: wall time (T = {seconds:g} s)", "s")
         bench.figure(f"estimated_{name}", f"{name}: candidates estimated", "")
         bench.figure(f"retrained_{name}", f"{name}: candidates retrained", "")
@@ -255,12 +255,13 @@ def floor_steps(trained: dict[str, tuple[list[float], list[float]]]) -> tuple[li
     return [0.0, min(c for c, _ in paths)], [scan, min(e for _, e in paths)]
 
 
-def one_seed(bench: Bench, seed: int, args, work: Path, data_cache: Path, data: DeploymentData) -> None:
-    """The three strategies for ``seed``, in the repetition's order; then their winners, the paper design
+def one_seed(bench: Bench, seed: int, args, work: Path, data_cache: Path, data: DeploymentData,
+             strategies: tuple[str, ...] = STRATEGIES) -> None:
+    """The ``strategies`` (``default`` among them) for ``seed``, in the repetition's order; then their winners, the paper design
     and the envelope's dedicated networks (each trained for its path alone) retrained with the longer
     recipe (a network two strategies share is trained once)."""
     winners, dedicated = {}, []
-    for name in rotated(list(STRATEGIES), seed):
+    for name in rotated(list(strategies), seed):
         winners[name], info = run_strategy(name, seed, args, work, data_cache)
         for figure in ("seconds", "estimated", "retrained", "supernet_steps"):
             if figure in info:
@@ -285,7 +286,7 @@ def one_seed(bench: Bench, seed: int, args, work: Path, data_cache: Path, data: 
     floor = floor_steps(trained)
     print(f"  bound: the most accurate path {floor[1][1]:.4f} as if ready at {floor[0][1]:.1f} ms", flush=True)
     bench.add("floor_ratio", anytime_loss(*floor, budget) / loss[paper.key])
-    for name in STRATEGIES:
+    for name in strategies:
         bench.add(f"ratio_{name}", loss[winners[name].key] / loss[paper.key])
         bench.add(f"envelope_ratio_{name}", loss[winners[name].key] / envelope)
 
@@ -318,12 +319,13 @@ def run_seeds(bench: Bench, one_seed, args, data: DeploymentData, prefix: str) -
         shutil.rmtree(work, ignore_errors=True)
 
 
-def shared_arguments(ap, time_s: float) -> None:
+def shared_arguments(ap, time_s: float, final_steps: int = 300) -> None:
     """The options every bench built on this one takes: the wall time T of each run, the final
-    recipe's steps and PyTorch's threads."""
+    recipe's steps (more than the plan gives the finalists at T) and PyTorch's threads."""
     ap.add_argument("--time-s", type=float, default=time_s, help=f"wall time T of each run (default {time_s:g})")
-    ap.add_argument("--final-steps", type=int, default=300, help="steps at the training size of the final "
-                    "comparison's recipe, before the tuning (default 300: twice the finalists' at T = 300 s)")
+    ap.add_argument("--final-steps", type=int, default=final_steps, help="steps at the training size of the "
+                    f"final comparison's recipe, before the tuning (default {final_steps}: more than the plan "
+                    f"gives the finalists at T = {time_s:g} s)")
     ap.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
 
 
