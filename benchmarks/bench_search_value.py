@@ -1,4 +1,4 @@
-"""Does the search earn its time? Three ways to spend the same wall time on this machine finding a
+"""Does the search earn its time? Four ways to spend the same wall time on this machine finding a
 network of the default space (tx2, U(0, 33 ms)), each repetition one seed, the strategies interleaved
 (their order rotates from seed to seed), each given ``--time-s`` T seconds with everything it needs:
 
@@ -14,6 +14,10 @@ network of the default space (tx2, U(0, 33 ms)), each repetition one seed, the s
   steps (``--random-steps``, default 150) are those the search's plan gave its finalists at T = 300 s
   on the slower of the 2-core CPUs measured (``make search``'s 300 shrink to 150 to fit; 200 on a
   faster one).
+- ``proxy``: the search with ``--evaluator proxy``: no supernet, TPE sampling candidates that are each
+  trained alone briefly (``--proxy-steps``' 150 at the training size, no tuning; the median pruner
+  stops the hopeless ones), then the same finalists. It is successive halving's first rung without
+  the estimate: many candidates briefly, the best few with the finalists' recipe.
 
 Then each seed's winners and the paper design are retrained with one longer recipe (``--final-steps``,
 default 300: twice the finalists', at the training size, then the finalists' tuning steps at the
@@ -71,7 +75,9 @@ from explorer.study.search import search  # noqa: E402
 from explorer.supernet import read_supernet  # noqa: E402
 from explorer.training.deployment import DeploymentData, DeploymentRecipe, train_for_deployment  # noqa: E402
 
-STRATEGIES = ("default", "random_sampling", "random_retrained")
+STRATEGIES = ("default", "random_sampling", "random_retrained", "proxy")
+#: the strategies that train no supernet
+NO_SUPERNET = ("random_retrained", "proxy")
 VAL_FRAMES = 96
 #: `explorer search`'s own cap on sampling (its --timeout default); a time limit shrinks it further
 SAMPLING_CAP_S = 180.0
@@ -166,7 +172,8 @@ def run_strategy(name: str, seed: int, args, work: Path, data_cache: Path, chang
     it did, with its wall time)."""
     study, seconds = f"value-{name}-{seed}", args.time_s
     reports = work / "reports" / study
-    config = base_config(seed, study, sampler="random" if name == "random_sampling" else "tpe", **(changes or {}))
+    config = base_config(seed, study, sampler="random" if name == "random_sampling" else "tpe",
+                         evaluator="proxy" if name == "proxy" else "auto", **(changes or {}))
     if name == "random_retrained":
         config = dataclasses.replace(config, finalist_steps=args.random_steps)
     print(f"  {name} (seed {seed}):", flush=True)
@@ -223,7 +230,7 @@ def declare(bench: Bench, seconds: float, final_steps: int, strategies: tuple[st
         bench.figure(f"seconds_{name}", f"{name}: wall time (T = {seconds:g} s)", "s")
         bench.figure(f"estimated_{name}", f"{name}: candidates estimated", "")
         bench.figure(f"retrained_{name}", f"{name}: candidates retrained", "")
-        if name != "random_retrained":
+        if name not in NO_SUPERNET:
             bench.figure(f"supernet_steps_{name}", f"{name}: supernet steps trained inside T", "")
     bench.figure("paper_anytime", f"paper design: anytime loss {recipe}", "m", better="lower")
     bench.figure("envelope_anytime", f"envelope of dedicated networks: anytime loss {recipe}", "m", better="lower")
@@ -264,7 +271,7 @@ def one_seed(bench: Bench, seed: int, args, work: Path, data_cache: Path, data: 
     for name in rotated(list(strategies), seed):
         winners[name], info = run_strategy(name, seed, args, work, data_cache)
         for figure in ("seconds", "estimated", "retrained", "supernet_steps"):
-            if figure in info:
+            if figure in info and not (figure == "supernet_steps" and name in NO_SUPERNET):
                 bench.add(f"{figure}_{name}", info[figure])
         if name == "default":
             dedicated = info["dedicated"]

@@ -81,7 +81,7 @@ class Plan:
     """What the run will do, and how long each part is expected to take."""
 
     limit_s: float
-    supernet_steps: int
+    supernet_steps: int          # 0 when the evaluator needs none
     supernet_s: float            # 0 when the supernet is cached
     sampling_s: float
     finalists: int
@@ -101,7 +101,8 @@ class Plan:
 
     def describe(self) -> str:
         supernet = (f"supernet {self.supernet_steps} steps (~{self.supernet_s / 60:.1f} min)" if self.supernet_s
-                    else f"supernet {self.supernet_steps} steps (cached)")
+                    else f"supernet {self.supernet_steps} steps (cached)" if self.supernet_steps
+                    else "no supernet (each candidate trained alone)")
         tune = f" + {self.tune}" if self.tune else ""
         retrain = (f"{self.finalists} finalist(s) and {self.retrain_jobs - self.finalists} baseline(s) retrained "
                    f"{self.finalist_steps} steps{tune} (~{self.retrain_s / 60:.1f} min)" if self.retrain_jobs else

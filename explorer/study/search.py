@@ -299,6 +299,8 @@ def plan_search(context: StudyContext, storage: optuna.storages.BaseStorage, lim
         chosen = plan(max(larger), False, True)
     config = dataclasses.replace(config, supernet_steps=chosen.supernet_steps, finalists=chosen.finalists,
                                  finalist_steps=chosen.finalist_steps)
+    if config.evaluator != "supernet":   # the proxy evaluator trains every candidate: no supernet at all
+        chosen = dataclasses.replace(chosen, supernet_steps=0)
     recipe = config.finalist_recipe()
     if recipe.tunes:
         chosen = dataclasses.replace(chosen, tune=f"{recipe.tune_steps} at {'x'.join(map(str, recipe.deploy_size))}")
@@ -555,7 +557,8 @@ def _retrain_finalists(study: optuna.Study, context: StudyContext, plan: "Plan |
         plan = dataclasses.replace(plan, changes=plan.changes + (planning.not_retrained(skipped, plan, left_s),))
         _publish_plan(study, plan, on_plan)
     if plan is not None and retrained > plan.finalists:
-        plan = dataclasses.replace(plan, finalists=retrained, changes=plan.changes + (
+        plan = dataclasses.replace(plan, finalists=retrained, retrain_jobs=plan.retrain_jobs + retrained - plan.finalists,
+                                   changes=plan.changes + (
             f"{retrained - plan.finalists} more finalist(s) retrained: the others took less than planned",))
         config = dataclasses.replace(config, finalists=retrained)
         _publish_plan(study, plan, on_plan)

@@ -421,3 +421,46 @@ def test_the_envelope_of_dedicated_networks(finished, run_cli):
     assert "explorer envelope" not in envelope_summary(out.study)
     code, _, _ = run_cli("envelope", "--study", "fin", "--networks", "1", "--reports", reports)   # cached
     assert code == 0 and len(envelope_trials(out.study)) == len(made)
+
+
+def test_finalists_retrained_beyond_the_plan_are_counted_as_finalists_not_baselines(monkeypatch, tmp_path):
+    """The finalists' time said one more fitted than planned: the plan counts it among the finalists,
+    and its baselines stay those the study has (not one fewer)."""
+    import dataclasses
+    import types
+    import explorer.study.search as search_module
+    from explorer.study.planning import Plan, TimeLimit
+    study = optuna.create_study(storage=optuna.storages.InMemoryStorage())
+    monkeypatch.setattr(search_module, "retrain_finalists", lambda *args, **kwargs: [])
+    monkeypatch.setattr(search_module, "_retrained_and_skipped", lambda study, config: (2, 0))
+    config = dataclasses.replace(CFG, finalists=1, finalist_steps=150, baselines=("paper",))
+    planned = Plan(limit_s=600.0, supernet_steps=4, supernet_s=0.0, sampling_s=60.0, finalists=1, finalist_steps=150,
+                   retrain_jobs=2, retrain_s=10.0)
+    limit = TimeLimit(600.0, free=frozenset({"finalists"}))
+    config, plan = search_module._retrain_finalists(study, types.SimpleNamespace(config=config), planned, limit,
+                                                    (3, 150), tmp_path, None, None)
+    assert (config.finalists, plan.finalists, plan.retrain_jobs) == (2, 2, 3)
+    assert "2 finalist(s) and 1 baseline(s) retrained" in plan.describe()
+    assert plan.changes[-1].startswith("1 more finalist(s) retrained")
+
+
+@pytest.mark.slow
+def test_a_time_limited_proxy_search_plans_no_supernet(tmp_path):
+    """With the proxy evaluator every candidate trains alone: the plan, its line and the report say
+    there is no supernet, and none is trained."""
+    import dataclasses
+    from explorer.report import write_report
+    from explorer.study.planning import Plan, TimeLimit
+    cfg = dataclasses.replace(CFG, study="proxy-plan", evaluator="proxy", train_steps=3, finalists=1, baselines=())
+    seen = []
+    out = search(cfg, n_trials=2, timeout_s=None, reports=tmp_path, on_plan=seen.append,
+                 time_limit=TimeLimit(600.0, free=frozenset({"finalists", "finalist_steps"})))
+    plan = out.study.user_attrs["plan"]
+    assert plan["supernet_steps"] == 0 and plan["supernet_s"] == 0
+    assert seen and all(p.supernet_steps == 0 for p in seen)
+    line = Plan(**{**plan, "changes": tuple(plan["changes"])}).describe()
+    assert "no supernet" in line and "supernet 4 steps" not in line
+    html = write_report(out.study, out_dir=tmp_path / "report").read_text()
+    assert 'id="plan"' in html and "no supernet" in html and "supernet 4 steps" not in html
+    assert "phases" in out.study.user_attrs["runs"][-1]
+    assert finalist_trials(out.study)
