@@ -337,7 +337,7 @@ def shared_arguments(ap, time_s: float, final_steps: int = 300) -> None:
 
 
 def main() -> None:
-    bench = Bench(__file__, "the search's value: TPE, random sampling and random retraining at equal time", __doc__)
+    bench = Bench(__file__, "the search's value: TPE, random sampling, random retraining and proxy training at equal time", __doc__)
     ap = bench.parser()
     shared_arguments(ap, time_s=300.0)
     ap.add_argument("--random-steps", type=int, default=150, help="steps at the training size of each random "
