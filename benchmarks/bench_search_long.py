@@ -24,13 +24,12 @@ this bench shares (``ratio_<strategy>``, ``envelope_ratio_<strategy>``, ``floor_
 
 from __future__ import annotations
 
-import functools
 import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from bench_search_value import declare, final_recipe_note, one_seed, prepare, run_seeds, shared_arguments  # noqa: E402
+from bench_search_value import run_comparison  # noqa: E402
 from harness import Bench  # noqa: E402
 
 STRATEGIES = ("default", "random_retrained")
@@ -38,21 +37,8 @@ STRATEGIES = ("default", "random_retrained")
 
 def main() -> None:
     bench = Bench(__file__, "the search against random retraining at make search's length", __doc__)
-    ap = bench.parser()
-    shared_arguments(ap, time_s=900.0, final_steps=600)
-    ap.add_argument("--random-steps", type=int, default=300, help="steps at the training size of each random "
-                    "candidate's retraining, before the tuning (default 300: the finalists' recipe)")
-    ap.add_argument("--envelope-networks", type=int, default=3, help="dedicated networks of the envelope, as "
-                    "`explorer envelope --networks` (default 3)")
-    args = bench.parse_args(ap)
-    config, data = prepare(args.threads)
-    declare(bench, args.time_s, args.final_steps, STRATEGIES)
-    bench.note(f"cpu, torch threads {args.threads}; T = {args.time_s:g} s a strategy and seed, supernet and data "
-               f"loading inside it (a fresh cache each run); no baselines retrained inside T; random candidates "
-               f"retrained {args.random_steps} steps + tuning; {args.envelope_networks} dedicated networks; "
-               f"{final_recipe_note(config, args.final_steps)}; {config.device}, {config.budgets[0]}")
-    run_seeds(bench, functools.partial(one_seed, strategies=STRATEGIES), args, data, "bench-search-long-")
-    bench.finish()
+    run_comparison(bench, STRATEGIES, time_s=900.0, final_steps=600, random_steps=300,
+                   random_steps_why="the finalists' recipe", envelope_networks=3)
 
 
 if __name__ == "__main__":

@@ -44,6 +44,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import functools
 import gc
 import os
 import shutil
@@ -336,23 +337,32 @@ def shared_arguments(ap, time_s: float, final_steps: int = 300) -> None:
     ap.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
 
 
-def main() -> None:
-    bench = Bench(__file__, "the search's value: TPE, random sampling, random retraining and proxy training at equal time", __doc__)
+def run_comparison(bench: Bench, strategies: tuple[str, ...], time_s: float, final_steps: int,
+                   random_steps: int, random_steps_why: str, envelope_networks: int) -> None:
+    """The whole run of a bench comparing ``strategies`` (this one's or a subset): its options and
+    their defaults, the data, each seed's strategies and final retrainings, the record."""
     ap = bench.parser()
-    shared_arguments(ap, time_s=300.0)
-    ap.add_argument("--random-steps", type=int, default=150, help="steps at the training size of each random "
-                    "candidate's retraining, before the tuning (default 150: the searches' finalists' at T = 300 s)")
-    ap.add_argument("--envelope-networks", type=int, default=4, help="dedicated networks of the envelope, as "
-                    "`explorer envelope --networks` (default 4)")
+    shared_arguments(ap, time_s=time_s, final_steps=final_steps)
+    ap.add_argument("--random-steps", type=int, default=random_steps, help="steps at the training size of each "
+                    f"random candidate's retraining, before the tuning (default {random_steps}: {random_steps_why})")
+    ap.add_argument("--envelope-networks", type=int, default=envelope_networks, help="dedicated networks of the "
+                    f"envelope, as `explorer envelope --networks` (default {envelope_networks})")
     args = bench.parse_args(ap)
     config, data = prepare(args.threads)
-    declare(bench, args.time_s, args.final_steps)
+    declare(bench, args.time_s, args.final_steps, strategies)
     bench.note(f"cpu, torch threads {args.threads}; T = {args.time_s:g} s a strategy and seed, supernet and data "
                f"loading inside it (a fresh cache each run); no baselines retrained inside T; random candidates "
                f"retrained {args.random_steps} steps + tuning; {args.envelope_networks} dedicated networks; "
                f"{final_recipe_note(config, args.final_steps)}; {config.device}, {config.budgets[0]}")
-    run_seeds(bench, one_seed, args, data, "bench-search-value-")
+    run_seeds(bench, functools.partial(one_seed, strategies=strategies), args, data, f"{bench.name}-")
     bench.finish()
+
+
+def main() -> None:
+    bench = Bench(__file__, "the search's value: TPE, random sampling, random retraining and proxy training at "
+                  "equal time", __doc__)
+    run_comparison(bench, STRATEGIES, time_s=300.0, final_steps=300, random_steps=150,
+                   random_steps_why="the searches' finalists' at T = 300 s", envelope_networks=4)
 
 
 if __name__ == "__main__":
