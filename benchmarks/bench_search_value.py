@@ -228,6 +228,10 @@ def declare(bench: Bench, seconds: float, final_steps: int, strategies: tuple[st
         bench.figure(f"envelope_ratio_{name}", f"{name}: anytime loss / the envelope's (dedicated networks), "
                      f"{recipe}", "", better="lower")
     for name in strategies:
+        if name != "default":
+            bench.figure(f"lead_{name}", f"ratio_{name} - ratio_default in the same seed (above 0: the default's "
+                         "winner was better)", "", better="higher")
+    for name in strategies:
         bench.figure(f"seconds_{name}", f"{name}: wall time (T = {seconds:g} s)", "s")
         bench.figure(f"estimated_{name}", f"{name}: candidates estimated", "")
         bench.figure(f"retrained_{name}", f"{name}: candidates retrained", "")
@@ -297,6 +301,9 @@ def one_seed(bench: Bench, seed: int, args, work: Path, data_cache: Path, data: 
     for name in strategies:
         bench.add(f"ratio_{name}", loss[winners[name].key] / loss[paper.key])
         bench.add(f"envelope_ratio_{name}", loss[winners[name].key] / envelope)
+    for name in strategies:   # paired: the seed's data, paper design and retraining noise cancel out
+        if name != "default":
+            bench.add(f"lead_{name}", (loss[winners[name].key] - loss[winners["default"].key]) / loss[paper.key])
 
 
 def prepare(threads: int) -> tuple[SearchConfig, DeploymentData]:
@@ -317,12 +324,12 @@ def final_recipe_note(config: SearchConfig, final_steps: int) -> str:
 
 
 def run_seeds(bench: Bench, one_seed, args, data: DeploymentData, prefix: str) -> None:
-    """``one_seed(bench, seed, args, work, data_cache, data)`` for each repetition, in a work folder of
-    its own that is removed after."""
+    """``one_seed(bench, seed, args, work, data_cache, data)`` for each repetition (seeds ``args.first_seed``
+    on), in a work folder of its own that is removed after."""
     work = Path(tempfile.mkdtemp(prefix=prefix))
     try:
         for rep in bench.repetitions():
-            one_seed(bench, rep, args, work, cache_dir(), data)
+            one_seed(bench, args.first_seed + rep, args, work, cache_dir(), data)
     finally:
         shutil.rmtree(work, ignore_errors=True)
 
@@ -335,6 +342,8 @@ def shared_arguments(ap, time_s: float, final_steps: int = 300) -> None:
                     f"final comparison's recipe, before the tuning (default {final_steps}: more than the plan "
                     f"gives the finalists at T = {time_s:g} s)")
     ap.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
+    ap.add_argument("--first-seed", type=int, default=0, help="the first repetition's seed, the next ones "
+                    "following it (default 0): another run's seeds add independent evidence to a record's")
 
 
 def run_comparison(bench: Bench, strategies: tuple[str, ...], time_s: float, final_steps: int,
@@ -353,6 +362,7 @@ def run_comparison(bench: Bench, strategies: tuple[str, ...], time_s: float, fin
     bench.note(f"cpu, torch threads {args.threads}; T = {args.time_s:g} s a strategy and seed, supernet and data "
                f"loading inside it (a fresh cache each run); no baselines retrained inside T; random candidates "
                f"retrained {args.random_steps} steps + tuning; {args.envelope_networks} dedicated networks; "
+               f"seeds {args.first_seed} to {args.first_seed + bench.reps - 1}; "
                f"{final_recipe_note(config, args.final_steps)}; {config.device}, {config.budgets[0]}")
     run_seeds(bench, functools.partial(one_seed, strategies=strategies), args, data, f"{bench.name}-")
     bench.finish()
