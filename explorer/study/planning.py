@@ -36,7 +36,7 @@ from dataclasses import dataclass
 from explorer.model import build_model, build_network
 from explorer.space import SearchSpace, paper_candidate
 from explorer.study.config import baseline_model
-from explorer.supernet import train_supernet
+from explorer.supernet.pace import seconds_per_step
 from explorer.training.train import train
 
 MIN_SAMPLING_S = 60.0
@@ -286,14 +286,12 @@ def measure_speeds(config, train_set, val_set, device, supernet: "SearchSpace | 
                    baselines: tuple[str, ...] = (), finalists: tuple = (), deployment=None) -> Speeds:
     """A few steps of the paper design with the study's recipe, of each baseline named in ``baselines``
     and each candidate in ``finalists`` with the same recipe and, when one must be trained, of the
-    ``supernet`` space's supernet with its recipe (on a throw-away file; None: none): the median seconds a step, warm-up left out. With
+    ``supernet`` space's supernet with its recipe (each of its phases, :mod:`explorer.supernet.pace`; None:
+    none): the median seconds a step, warm-up left out. With
     ``deployment`` (:class:`~explorer.training.deployment.DeploymentData`) and a recipe that tunes, the
     paper design's tuning phase too: a few steps at the deployment size and its measurement there."""
-    from pathlib import Path
-
     import torch
 
-    from explorer.files import scratch_dir
     marks: dict[int, float] = {}
     recipe = dataclasses.replace(config.finalist_config(), steps=steps)
     torch.manual_seed(0)
@@ -314,14 +312,7 @@ def measure_speeds(config, train_set, val_set, device, supernet: "SearchSpace | 
     tune_s = _tune_seconds(config, deployment, device) if deployment is not None else 0.0
     baseline_steps = tuple((name, step_of(baseline_model(name))) for name in baselines)
     finalist_steps = tuple(step_of(candidate) for candidate in finalists)
-    supernet_step = 0.0
-    if supernet:
-        marks = {}
-        with scratch_dir("planning") as tmp:
-            train_supernet(supernet, config.data,
-                           dataclasses.replace(config.supernet_recipe(), steps=steps), Path(tmp) / "probe.pt",
-                           device, progress=lambda s, n, r: marks.setdefault(s, time.perf_counter()))
-        supernet_step = _seconds_per_step(marks)
+    supernet_step = seconds_per_step(supernet, config.data, config.supernet_recipe(), device) if supernet else 0.0
     return Speeds(retrain_step, retrain_eval, supernet_step, baseline_steps, finalist_steps, tune_s)
 
 
