@@ -29,10 +29,13 @@ budget's range, whose oracle (each budget served by the most accurate one ready 
 anytime network of the space can approach. Figures: each winner's anytime loss over the paper design's (``ratio_<strategy>``,
 below 1 is better) and over the envelope's (``envelope_ratio_<strategy>``, 1 is the oracle), a bound
 over the paper design's (``floor_ratio``: the most accurate path of any network measured, as if it were
-ready when the cheapest is; no network of these does better), the strategies' wall times, how many candidates each estimated and retrained, and the steps the searches'
-supernets got.
+ready when the cheapest is; no network of these does better), each strategy's lead in the same seed
+(``lead_<strategy>``: its ratio minus the default's; the seed's data, paper design and retraining noise
+are common to both, so the lead varies less than the ratios do), the strategies' wall times, how many
+candidates each estimated and retrained, and the steps the searches' supernets got.
 
     OMP_NUM_THREADS=1 python benchmarks/bench_search_value.py [--reps 3] [--time-s 300] [--threads 1]
+        [--first-seed 0]
 
 The data is generated once in the usual cache before anything is timed (it is every strategy's).
 PyTorch trains on one thread by default: on two cores that other work keeps busy, two threads wait on
