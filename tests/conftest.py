@@ -28,8 +28,8 @@ def pytest_configure(config):
 def _no_waiting_for_a_calm_machine(monkeypatch):
     """Probes in tests time tiny graphs that jitter: they re-time what ran slow but do not wait
     (up to a minute) for the shared machine to calm down first."""
-    from explorer import probe as probe_script
-    monkeypatch.setattr(probe_script, "CALM_WAIT_S", 0.0)
+    from explorer.probe import timing
+    monkeypatch.setattr(timing, "CALM_WAIT_S", 0.0)
 
 
 @pytest.fixture

@@ -252,11 +252,11 @@ def calibrate(threads: int | None = None, repeats: int = 25, seed: int = 0, scal
               provider: str = DEFAULT_PROVIDER, energy: bool = True, sysfs_root: str = "/",
               log: Callable[[str], None] = lambda s: None, results_out: Path | None = None,
               bundle_out: Path | None = None, remeasure_passes: int = _probe.REMEASURE_PASSES,
-              calm_wait_s: float = _probe.CALM_WAIT_S) -> DeviceProfile:
+              calm_wait_s: float | None = None) -> DeviceProfile:
     """Bundle, probe and fit in one process (the numbers a separate probe run would give): layer
     sweep plus the stages of ``stage_candidates`` random default-space candidates (none of
     ``exclude``, candidate keys). ``results_out`` / ``bundle_out``: also keep the probe's results /
-    the bundle there. ``remeasure_passes``, ``calm_wait_s``: the probe's (``run_probe``).
+    the bundle there. ``remeasure_passes``, ``calm_wait_s``: the probe's (``run_probe``; None: its own default).
     ``progress(what, done, total)``: each phase of the work counted from 0 to its own total (None until
     it is known), called with 0 when it starts: ``EXPORTING``, the probe's (``TIMING_GRAPHS``, each
     pass of ``TIMING_AGAIN``, ``MEASURING_ENERGY``), and ``FITTING`` before each round of graphs far

@@ -21,7 +21,7 @@ from .identity import device_identity
 from .power import find_sensor, idle_power, inference_energy
 from .scratch import sigterm_unwinds
 from .sessions import _shared_pool, check_provider, default_threads, session, shared_pool_threads, thread_pool
-from .timing import (CALM_WAIT_S, REMEASURE_PASSES, SPEED_CHECK_EVERY, SPEED_DRIFT_WARN, _random_feeds, chain_runs,
+from .timing import (REMEASURE_PASSES, SPEED_CHECK_EVERY, SPEED_DRIFT_WARN, _random_feeds, chain_runs,
                      chain_sessions, fixed_graph_timer, set_aside, slow_windows, slowness, speed_drift, speed_layer,
                      speed_stage, time_call, time_chain, wait_until_calm)
 
@@ -52,12 +52,12 @@ def run_probe(bundle_dir: "str | Path", out: "str | Path", provider: str = DEFAU
               root: str = "/", vcgencmd: str = "vcgencmd", idle_s: float = 2.0, window_s: float = 1.0,
               progress: Callable[[int, int, str], None] | None = None,
               log: Callable[[str], None] = lambda s: None, remeasure_passes: int = REMEASURE_PASSES,
-              calm_wait_s: float = CALM_WAIT_S) -> dict:
+              calm_wait_s: float | None = None) -> dict:
     """Times every graph of the bundle (single layers, then each candidate's stages in order, each
     fed by the one before), then, where a power sensor is readable, the energy of whole inferences.
     Returns the results, also written (atomically, after every graph) to ``out``. Graphs timed while a
     speed check showed the machine slow are timed again in up to ``remeasure_passes`` more passes, each
-    after waiting up to ``calm_wait_s`` for the machine's usual speed. ``progress(done, total, what)``:
+    after waiting up to ``calm_wait_s`` (None: ``CALM_WAIT_S``) for the machine's usual speed. ``progress(done, total, what)``:
     each pass (``TIMING_GRAPHS``, then ``TIMING_AGAIN``) and the energy (``MEASURING_ENERGY``) counted
     from 0, called with 0 when it starts."""
     bundle_dir, out = Path(bundle_dir), Path(out)
@@ -163,7 +163,7 @@ class _Timing:
         for label in labels:
             self.timed_after[label] = len(self.speed["ms"]) - 1
 
-    def all_passes(self, remeasure_passes: int, calm_wait_s: float, log: Callable[[str], None]) -> None:
+    def all_passes(self, remeasure_passes: int, calm_wait_s: float | None, log: Callable[[str], None]) -> None:
         self.start_pass(TIMING_GRAPHS)
         for attempt in range(remeasure_passes + 1):
             self.since_check = SPEED_CHECK_EVERY   # each pass opens with a check

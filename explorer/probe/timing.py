@@ -154,10 +154,11 @@ def slowness(speed: dict) -> list[float]:
 
 
 def wait_until_calm(latest: float, time_again: Callable[[], float], usual: float,
-                    wait_s: float = CALM_WAIT_S) -> float:
+                    wait_s: float | None = None) -> float:
     """While the fixed graph's ``latest`` time is ``SLOW`` or more above ``usual``, waits a second and
-    times it again (``time_again``), for at most ``wait_s``; returns its last time."""
-    calm_by = time.monotonic() + wait_s
+    times it again (``time_again``), for at most ``wait_s`` (None: ``CALM_WAIT_S``, read when called);
+    returns its last time."""
+    calm_by = time.monotonic() + (CALM_WAIT_S if wait_s is None else wait_s)
     while latest > usual * (1 + SLOW) and time.monotonic() < calm_by:
         time.sleep(1.0)   # still slow: give the other load time to finish
         latest = time_again()

@@ -522,3 +522,21 @@ def test_graphs_made_here_carry_their_opsets_ir_version(monkeypatch):
     monkeypatch.setattr(sessions, "_POOL", {})
     sessions.block_size()
     assert [m.ir_version for m in seen] == [8]
+
+
+def test_the_wait_for_a_calm_machine_reads_its_limit_when_called(monkeypatch):
+    """The limit is read when the wait starts, not when the module was imported: the tests set it to
+    0 (conftest), a user's probe keeps its minute, and a run_probe or calibrate call without one uses it."""
+    from explorer.probe import timing
+    timed = []
+
+    def still_slow() -> float:
+        timed.append(1)
+        return 10.0
+
+    assert timing.wait_until_calm(10.0, still_slow, usual=1.0) == 10.0 and timed == []   # 0 s: no second timing
+    monkeypatch.setattr(timing.time, "sleep", lambda s: None)
+    clock = iter(range(100))   # a second passes at each look at the clock: the start, then once a timing
+    monkeypatch.setattr(timing.time, "monotonic", lambda: next(clock))
+    monkeypatch.setattr(timing, "CALM_WAIT_S", 3.0)
+    assert timing.wait_until_calm(10.0, still_slow, usual=1.0) == 10.0 and len(timed) == 2
