@@ -10,7 +10,6 @@ whole recipe took, this measurement 0.94-1.14 (benchmarks/bench_supernet_pace.py
 
 from __future__ import annotations
 
-import math
 import random
 import statistics
 import time
@@ -24,18 +23,16 @@ from explorer.errors import UserError
 from explorer.space import SearchSpace
 from explorer.supernet._graphs import StageGraphs
 from explorer.supernet.network import Supernet, largest_candidate, smallest_candidate
-from explorer.supernet.train import SupernetRecipe, _sandwich_step, _subnets
+from explorer.supernet.train import SupernetRecipe, _sandwich_step, _shrinking, _subnets
 from explorer.training.train import adamw
 
 
-def seconds_per_step(space: SearchSpace, data: str, recipe: SupernetRecipe,
-                     accelerator: torch.device | None = None, steps: int = 3, warmup: int = 2) -> float:
+def seconds_per_step(space: SearchSpace, data: str, recipe: SupernetRecipe, accelerator: torch.device,
+                     steps: int = 3, warmup: int = 2) -> float:
     """The mean seconds a step of ``recipe`` takes here over the whole recipe: ``steps`` steps of each of
     its phases (progressive shrinking, then every width) timed after ``warmup`` steps (a fresh process's
     first steps run 2x slower: allocation, first kernels), weighted by each phase's share of the steps.
     Nothing is written: the supernet trained here is thrown away."""
-    if accelerator is None:
-        accelerator = torch.device("cuda" if torch.cuda.is_available() else "cpu")
     torch.manual_seed(recipe.seed)
     net = Supernet(space).to(device=accelerator, memory_format=torch.channels_last)
     opt = adamw(net.parameters(), recipe.lr, recipe.weight_decay)
@@ -55,7 +52,7 @@ def seconds_per_step(space: SearchSpace, data: str, recipe: SupernetRecipe,
 
     for step in range(warmup):
         timed(step)
-    shrinking = min(math.ceil(recipe.shrink * recipe.steps), recipe.steps)   # the first phase's steps
+    shrinking = sum(_shrinking(recipe, step) for step in range(recipe.steps))   # the first phase's steps
     seconds = 0.0
     for first, end in ((0, shrinking), (shrinking, recipe.steps)):
         if end > first:
