@@ -91,6 +91,7 @@ class Plan:
     changes: tuple[str, ...] = ()
     trial_s: float = 0.0         # a trial started just before the sampling deadline may run this long
     tune: str = ""               # the retrainings' tuning at the deployment size, in words ("" = none)
+    fits: bool = True            # False when even the smallest settings need more than the time limit
 
     @property
     def expected_s(self) -> float:
@@ -183,7 +184,7 @@ def plan_run(remaining_s: float, limit_s: float, speeds: Speeds, *, sampling_s: 
                 retrain_jobs=finalists + baseline_count if (finalists or baseline_count) else 0,
                 retrain_s=retrain(finalists, finalist_steps), changes=tuple(changes), trial_s=trial_s)
     if plan.expected_s > remaining_s + 1:
-        plan = dataclasses.replace(plan, changes=plan.changes + (
+        plan = dataclasses.replace(plan, fits=False, changes=plan.changes + (
             f"this machine needs about {plan.expected_s / 60:.0f} min even so: give a longer --time-limit",))
     return plan
 

@@ -463,10 +463,10 @@ def _note_unfinished(supernet: Path, plan: "Plan | None") -> "Plan | None":
     state = read_supernet(supernet)
     if plan is None or state.get("complete"):
         return plan
+    why = "the machine ran slower than planned" if plan.fits else "the plan did not fit in the time limit"
     return dataclasses.replace(plan, changes=plan.changes + (
-        f"supernet stopped at step {state['step']} of {state['recipe']['steps']}: the machine ran slower than "
-        "planned, and the rest of the run needed the time (its estimates are rougher; the next study with "
-        "this recipe finishes it)",))
+        f"supernet stopped at step {state['step']} of {state['recipe']['steps']}: {why}, and the rest of the "
+        "run needed the time (its estimates are rougher; the next study with this recipe finishes it)",))
 
 
 def _publish_plan(study: optuna.Study, plan: "Plan", on_plan: Callable[["Plan"], None] | None) -> None:

@@ -23,7 +23,7 @@ def plan(speeds, remaining=14 * 60, sampling=180.0, cached=False, **kw):
 def test_a_fast_machine_keeps_every_setting_and_finishes_early():
     p = plan(FAST)
     assert (p.supernet_steps, p.sampling_s, p.finalists, p.finalist_steps) == (600, 180.0, 3, 300)
-    assert p.expected_s < 10 * 60 and p.changes == ()
+    assert p.expected_s < 10 * 60 and p.changes == () and p.fits
 
 
 def test_a_middling_machine_trains_a_shorter_supernet_on_the_step_grid():
@@ -57,7 +57,7 @@ def test_settings_the_user_gave_are_never_changed():
     p = plan(SLOW, supernet_free=False, finalists_free=False, finalist_steps_free=False)
     assert (p.supernet_steps, p.finalists, p.finalist_steps) == (600, 3, 300)
     assert p.sampling_s == planning.MIN_SAMPLING_S
-    assert any("longer --time-limit" in c for c in p.changes)
+    assert any("longer --time-limit" in c for c in p.changes) and not p.fits
 
 
 def test_a_cached_supernet_costs_nothing_and_leaves_its_steps():
@@ -215,3 +215,12 @@ def test_finalists_the_time_limit_stopped_are_blamed_on_what_stopped_them():
     assert "needed about" in fixed and "longer --time-limit" in fixed and "slower" not in fixed
     slowed = planning.not_retrained(1, p, left_s=p.retrain_s + 60)   # it fitted, the machine slowed
     assert "ran slower than planned" in slowed and slowed.startswith("1 finalist(s)")
+
+
+@pytest.mark.parametrize("fixed, blamed", [(True, "the plan did not fit"), (False, "ran slower than planned")])
+def test_a_stopped_supernet_is_blamed_on_what_stopped_it(monkeypatch, fixed, blamed):
+    import explorer.study.search as search_module
+    monkeypatch.setattr(search_module, "read_supernet", lambda path: {"step": 94, "recipe": {"steps": 300}})
+    p = plan(SLOW, supernet_free=not fixed, finalists_free=not fixed, finalist_steps_free=not fixed)
+    note = search_module._note_unfinished("supernet.pt", p).changes[-1]
+    assert note.startswith("supernet stopped at step 94 of 300") and blamed in note
