@@ -122,6 +122,6 @@ def test_figure_references_take_the_latest_records_value(tmp_path):
     _write(results, _record("bench_runtime", "20261125T060000Z", "aaa1111", 11.25), "20261125T060000Z")
     _write(results, _record("bench_runtime", "20261126T060000Z", "bbb2222", 9.75), "20261126T060000Z")
     found, _ = gen.latest_records(results)
-    assert gen.figure_text(found, "bench_runtime", "whole_graph_ms") == "9.75 ms (8.75-10.75, 3 reps)"
+    assert gen.figure_text(found, "bench_runtime", "whole_graph_ms") == "9.75 ms (8.75 to 10.75, 3 reps)"
     assert gen.figure_text(found, "bench_runtime", "no_such_figure") is None
     assert gen.figure_text(found, "bench_nothing", "whole_graph_ms") is None

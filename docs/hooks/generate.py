@@ -64,7 +64,8 @@ def figure_text(records: dict[str, tuple[Path, dict]], benchmark: str, name: str
     if fig is None:
         return None
     unit = "x" if fig["unit"] == "x" else f" {fig['unit']}" if fig["unit"] else ""
-    spread = f" ({_num(fig['min'])}-{_num(fig['max'])}, {len(fig['reps'])} reps)" if len(fig["reps"]) > 1 else ""
+    # "to", not a dash: a range of signed figures (a lead, a difference) reads "-0.1 to 0.05"
+    spread = f" ({_num(fig['min'])} to {_num(fig['max'])}, {len(fig['reps'])} reps)" if len(fig["reps"]) > 1 else ""
     return f"{_num(fig['median'])}{unit}{spread}"
 
 
