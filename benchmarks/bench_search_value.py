@@ -349,22 +349,29 @@ def shared_arguments(ap, time_s: float, final_steps: int = 300) -> None:
                     "following it (default 0): another run's seeds add independent evidence to a record's")
 
 
+def random_note(args) -> str:
+    steps = getattr(args, "random_steps", None)
+    return "" if steps is None else f"random candidates retrained {steps} steps + tuning; "
+
+
 def run_comparison(bench: Bench, strategies: tuple[str, ...], time_s: float, final_steps: int,
-                   random_steps: int, random_steps_why: str, envelope_networks: int) -> None:
+                   envelope_networks: int, random_steps: int = 0, random_steps_why: str = "") -> None:
     """The whole run of a bench comparing ``strategies`` (this one's or a subset): its options and
     their defaults, the data, each seed's strategies and final retrainings, the record."""
     ap = bench.parser()
     shared_arguments(ap, time_s=time_s, final_steps=final_steps)
-    ap.add_argument("--random-steps", type=int, default=random_steps, help="steps at the training size of each "
-                    f"random candidate's retraining, before the tuning (default {random_steps}: {random_steps_why})")
+    if "random_retrained" in strategies:
+        ap.add_argument("--random-steps", type=int, default=random_steps, help="steps at the training size of "
+                        f"each random candidate's retraining, before the tuning (default {random_steps}: "
+                        f"{random_steps_why})")
     ap.add_argument("--envelope-networks", type=int, default=envelope_networks, help="dedicated networks of the "
                     f"envelope, as `explorer envelope --networks` (default {envelope_networks})")
     args = bench.parse_args(ap)
     config, data = prepare(args.threads)
     declare(bench, args.time_s, args.final_steps, strategies)
     bench.note(f"cpu, torch threads {args.threads}; T = {args.time_s:g} s a strategy and seed, supernet and data "
-               f"loading inside it (a fresh cache each run); no baselines retrained inside T; random candidates "
-               f"retrained {args.random_steps} steps + tuning; {args.envelope_networks} dedicated networks; "
+               f"loading inside it (a fresh cache each run); no baselines retrained inside T; "
+               f"{random_note(args)}{args.envelope_networks} dedicated networks; "
                f"seeds {args.first_seed} to {args.first_seed + bench.reps - 1}; "
                f"{final_recipe_note(config, args.final_steps)}; {config.device}, {config.budgets[0]}")
     run_seeds(bench, functools.partial(one_seed, strategies=strategies), args, data, f"{bench.name}-")
