@@ -17,12 +17,17 @@ $(STAMP): pyproject.toml $(CONSTRAINTS)
 
 install: $(STAMP)
 
+# The tests run in one process per core (pytest-xdist; at most 4, which the slowest file bounds anyway),
+# each given whole files so that a module's fixtures are built once. TEST_WORKERS=0 runs them in this one.
+TEST_WORKERS ?= $(shell n=$$(nproc 2>/dev/null || sysctl -n hw.ncpu 2>/dev/null || echo 1); [ $$n -gt 4 ] && n=4; echo $$n)
+PYTEST := $(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile
+
 test: $(STAMP) browser
-	$(BIN)/python -m pytest -q
+	$(PYTEST)
 
 # the tests without the end-to-end ones (marked slow): a couple of minutes
 test-fast: $(STAMP)
-	$(BIN)/python -m pytest -q -m "not slow"
+	$(PYTEST) -m "not slow"
 
 # the documentation site, in build/site (the tests build it too, with --strict)
 docs: $(STAMP)

@@ -21,7 +21,9 @@ LOG_WIDTH = 200
 def _console(stderr: bool) -> Console:
     stream = sys.stderr if stderr else sys.stdout
     wide = None if stream.isatty() or os.environ.get("COLUMNS") else LOG_WIDTH
-    return Console(stderr=stderr, highlight=False, width=wide)
+    # soft_wrap: a printed line is never cut by rich (the terminal wraps it), so a path or a command in
+    # it can be copied whole; tables still fit the width
+    return Console(stderr=stderr, highlight=False, width=wide, soft_wrap=True)
 
 
 console = _console(stderr=False)

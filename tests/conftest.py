@@ -22,6 +22,14 @@ needs_postgres = pytest.mark.skipif(not _postgres_ok(), reason="PostgreSQL at 12
 
 def pytest_configure(config):
     os.environ.setdefault("ANYTIME_EXPLORER_CACHE", str(Path(config.rootpath) / ".cache" / "test-data"))
+    workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+    if workers > 1:
+        # one of several pytest-xdist workers: PyTorch (imported later) and the commands the tests start
+        # use this worker's share of the cores, not all of them each (threads waiting on each other's
+        # cores at every kernel are many times slower)
+        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+        share = max(1, cores // workers)
+        os.environ.setdefault("OMP_NUM_THREADS", str(share))
 
 
 @pytest.fixture(autouse=True)

@@ -208,18 +208,20 @@ def test_search_rescore_report_export_cli(run_cli, tmp_path):
     assert code == 2 and "not a completed trial" in err
 
 
-def test_notebook_copies_the_shipped_notebook_out_and_keeps_an_edited_copy(run_cli, tmp_path):
+def test_notebook_copies_the_shipped_notebook_out_and_keeps_an_edited_copy(run_cli, tmp_path, monkeypatch):
     import explorer
     from pathlib import Path
     from explorer.cli.notebook import NOTEBOOKS_DIR
+    from explorer.console import console
     # package data: what an installed wheel carries (pyproject's package-data), not the repository's
     assert NOTEBOOKS_DIR.parent == Path(explorer.__file__).resolve().parent
     shipped = (NOTEBOOKS_DIR / "analysis.ipynb").read_bytes()
     out = tmp_path / "analysis"
+    monkeypatch.setattr(console, "width", 40)     # a narrow terminal: the command to copy stays whole
     code, stdout, err = run_cli("notebook", "--out", out)
     assert code == 0, err
     assert (out / "analysis.ipynb").read_bytes() == shipped and json.loads(shipped)["cells"]
-    assert f"jupyter lab {out / 'analysis.ipynb'}" in " ".join(stdout.split())
+    assert f"  open it: jupyter lab {out / 'analysis.ipynb'}   (it reads" in stdout.splitlines()[1]
     code, stdout, _ = run_cli("notebook", "--out", out)   # the same again: nothing to refuse
     assert code == 0 and "unchanged" in stdout
     (out / "analysis.ipynb").write_text('{"cells": []}')   # the user's own edits
