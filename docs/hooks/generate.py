@@ -261,6 +261,10 @@ SUMMARY = (
     ("The paper design at 224x224 with the study's recipe (anytime loss, m)", "bench_resolution",
      "anytime_tuned", 1, ""),
     ("...trained at 64x64 only, run at 224x224", "bench_resolution", "anytime_small", 1, ""),
+    ("The search's winner at `make search`'s length over the paper design (anytime loss, both retrained "
+     "600 steps)", "bench_sampler_value", "ratio_default", 1, "x"),
+    ("...over the envelope of dedicated networks, retrained the same way", "bench_sampler_value",
+     "envelope_ratio_default", 1, "x"),
     ("Supernet training step: 2 CPU threads of the GPU machine over its GPU", "bench_gpu", "gpu_speedup_default", 1,
      "x"),
     ("A whole study at 224x224 on one GPU, `--time-limit 4m` (one study)", "bench_gpu_study", "study_s", 1 / 60,
