@@ -35,7 +35,7 @@ are common to both, so the lead varies less than the ratios do), the strategies'
 candidates each estimated and retrained, and the steps the searches' supernets got.
 
     OMP_NUM_THREADS=1 python benchmarks/bench_search_value.py [--reps 3] [--time-s 300] [--threads 1]
-        [--first-seed 0]
+        [--first-seed 0] [--jobs 1]
 
 The data is generated once in the usual cache before anything is timed (it is every strategy's).
 PyTorch trains on one thread by default: on two cores that other work keeps busy, two threads wait on
@@ -45,10 +45,12 @@ search), and the strategies' time would go to whoever ran in a quiet spell.
 
 from __future__ import annotations
 
+import concurrent.futures
 import contextlib
 import dataclasses
 import functools
 import gc
+import multiprocessing
 import os
 import shutil
 import sys
@@ -326,13 +328,48 @@ def final_recipe_note(config: SearchConfig, final_steps: int) -> str:
             "validation frames")
 
 
+class SeedValues:
+    """What one seed adds to the bench in a worker process: the figures' values in order."""
+
+    def __init__(self) -> None:
+        self.values: list[tuple[str, float]] = []
+
+    def add(self, name: str, value: float) -> float:
+        self.values.append((name, float(value)))
+        return float(value)
+
+
+_WORKER_DATA: dict[int, DeploymentData] = {}
+
+
+def _seed_in_worker(one_seed, seed: int, args, work: Path, data_cache: Path) -> list[tuple[str, float]]:
+    """``one_seed`` for ``seed`` in a worker process (its data opened once a process): the values it added."""
+    if args.threads not in _WORKER_DATA:
+        _WORKER_DATA[args.threads] = prepare(args.threads)[1]
+    values = SeedValues()
+    one_seed(values, seed, args, work, data_cache, _WORKER_DATA[args.threads])
+    return values.values
+
+
 def run_seeds(bench: Bench, one_seed, args, data: DeploymentData, prefix: str) -> None:
     """``one_seed(bench, seed, args, work, data_cache, data)`` for each repetition (seeds ``args.first_seed``
-    on), in a work folder of its own that is removed after."""
+    on), in a work folder of its own that is removed after. With ``--jobs`` N above 1, N seeds run at once,
+    each in a process of its own (every run then has another beside it, as on a busy machine); their
+    values join the record in the seeds' order."""
     work = Path(tempfile.mkdtemp(prefix=prefix))
+    jobs = getattr(args, "jobs", 1)
     try:
-        for rep in bench.repetitions():
-            one_seed(bench, args.first_seed + rep, args, work, cache_dir(), data)
+        if jobs <= 1:
+            for rep in bench.repetitions():
+                one_seed(bench, args.first_seed + rep, args, work, cache_dir(), data)
+            return
+        context = multiprocessing.get_context("spawn")
+        with concurrent.futures.ProcessPoolExecutor(jobs, mp_context=context) as pool:
+            futures = [pool.submit(_seed_in_worker, one_seed, args.first_seed + rep, args, work, cache_dir())
+                       for rep in range(bench.reps)]
+            for rep in bench.repetitions():
+                for name, value in futures[rep].result():
+                    bench.add(name, value)
     finally:
         shutil.rmtree(work, ignore_errors=True)
 
@@ -347,6 +384,8 @@ def shared_arguments(ap, time_s: float, final_steps: int = 300) -> None:
     ap.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
     ap.add_argument("--first-seed", type=int, default=0, help="the first repetition's seed, the next ones "
                     "following it (default 0): another run's seeds add independent evidence to a record's")
+    ap.add_argument("--jobs", type=int, default=1, help="seeds run at once, one process each (default 1; "
+                    "2 on two cores with --threads 1: each run then has one other beside it)")
 
 
 def random_note(args) -> str:
@@ -372,7 +411,7 @@ def run_comparison(bench: Bench, strategies: tuple[str, ...], time_s: float, fin
     bench.note(f"cpu, torch threads {args.threads}; T = {args.time_s:g} s a strategy and seed, supernet and data "
                f"loading inside it (a fresh cache each run); no baselines retrained inside T; "
                f"{random_note(args)}{args.envelope_networks} dedicated networks; "
-               f"seeds {args.first_seed} to {args.first_seed + bench.reps - 1}; "
+               f"seeds {args.first_seed} to {args.first_seed + bench.reps - 1}, {args.jobs} at once; "
                f"{final_recipe_note(config, args.final_steps)}; {config.device}, {config.budgets[0]}")
     run_seeds(bench, functools.partial(one_seed, strategies=strategies), args, data, f"{bench.name}-")
     bench.finish()
