@@ -339,15 +339,16 @@ class SeedValues:
         return float(value)
 
 
-_WORKER_DATA: dict[int, DeploymentData] = {}
+@functools.cache
+def _worker_data(threads: int) -> DeploymentData:
+    """A worker process's deployment data, opened once a process (PyTorch set to ``threads`` threads)."""
+    return prepare(threads)[1]
 
 
 def _seed_in_worker(one_seed, seed: int, args, work: Path, data_cache: Path) -> list[tuple[str, float]]:
-    """``one_seed`` for ``seed`` in a worker process (its data opened once a process): the values it added."""
-    if args.threads not in _WORKER_DATA:
-        _WORKER_DATA[args.threads] = prepare(args.threads)[1]
+    """``one_seed`` for ``seed`` in a worker process: the values it added."""
     values = SeedValues()
-    one_seed(values, seed, args, work, data_cache, _WORKER_DATA[args.threads])
+    one_seed(values, seed, args, work, data_cache, _worker_data(args.threads))
     return values.values
 
 
