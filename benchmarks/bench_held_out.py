@@ -1,0 +1,134 @@
+"""A finished study's winner against the paper design in held-out retraining, at several recipe
+lengths: does the winner's lead hold on frames the study never chose with, and does it grow when both
+networks are trained longer than a search on this machine can afford?
+
+Each repetition is one training seed (``--first-seed`` on, none of them the study's). In it the
+study's winner and the paper design are retrained from scratch with the study's finalists' recipe at
+each of ``--steps`` (steps at the training size, then the study's tuning steps at the deployment
+size), the lengths and the two networks in an order that rotates from seed to seed, and every path
+is measured at the deployment size on the validation frames the study did not use (``--val-from``
+on: a study measures its finalists on the first 96), then costed on the study's device for its
+budget. Figures per length N: the winner's anytime loss over the paper design's (``ratio_N``, below
+1 the winner is better), both anytime losses, and each network's last path's error.
+
+    python benchmarks/bench_held_out.py --study tx2-anytime_depth [--steps 300,1500] [--reps 3]
+
+Run it after ``make search`` (whose study it reads, from ``reports/``, untouched).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import sys
+import time
+from pathlib import Path
+
+import torch
+from torch.utils.data import Subset
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from harness import Bench, rotated  # noqa: E402
+
+from explorer.anytime import anytime_loss  # noqa: E402
+from explorer.cost import candidate_cost  # noqa: E402
+from explorer.data import open_dataset  # noqa: E402
+from explorer.model import build_network  # noqa: E402
+from explorer.space import Candidate, paper_candidate  # noqa: E402
+from explorer.study import trial_record  # noqa: E402
+from explorer.study.config import StudyContext, study_context  # noqa: E402
+from explorer.study.results import winner  # noqa: E402
+from explorer.study.storage import load_study  # noqa: E402
+from explorer.training.deployment import DeploymentData, DeploymentRecipe, train_for_deployment  # noqa: E402
+
+#: the validation frames a study measures its finalists on (``explorer search``'s first 96)
+STUDY_FRAMES = 96
+
+
+def held_out_data(context: StudyContext, seed: int, val_from: int) -> DeploymentData:
+    """The study's training frames (at its training and deployment sizes, augmented with ``seed``) and
+    its validation frames from ``val_from`` on, at the deployment size."""
+    config = context.config
+    val = open_dataset(config.data, "val", config.input_size, train_augment=False)
+    if val_from >= len(val):
+        raise SystemExit(f"--val-from {val_from}: the validation set has {len(val)} frames")
+    return DeploymentData(open_dataset(config.data, "train", config.train_size, seed=seed),
+                          open_dataset(config.data, "train", config.input_size, seed=seed),
+                          Subset(val, range(val_from, len(val))))
+
+
+def retrained(candidate: Candidate, recipe: DeploymentRecipe, seed: int, data: DeploymentData,
+              context: StudyContext) -> tuple[float, float]:
+    """``candidate`` trained from scratch with ``recipe`` and ``seed``: (its anytime loss for the study's
+    first budget on its device, its last path's error), both measured on ``data``'s validation frames."""
+    config, budget = context.config, context.budgets[0]
+    torch.manual_seed(seed)
+    net = build_network(candidate)
+    recipe = dataclasses.replace(recipe, train=dataclasses.replace(recipe.train, seed=seed))
+    result = train_for_deployment(net, data, recipe, torch.device("cpu"))
+    errors = [float(x) for x in result.metrics[config.metric]]
+    costs = candidate_cost(candidate, tuple(config.input_size)).path_costs(context.device, budget.kind)
+    return anytime_loss(costs, errors, budget), errors[-1]
+
+
+def declare(bench: Bench, steps: list[int], tune_steps: int, metric: str, unit: str) -> None:
+    for n in steps:
+        recipe = f"{n} steps + {tune_steps} at the deployment size"
+        bench.figure(f"ratio_{n}", f"winner / paper design, anytime loss, {recipe}", "", better="lower")
+        for name in ("winner", "paper"):
+            bench.figure(f"{name}_anytime_{n}", f"{name}: anytime loss, {recipe}", unit, better="lower")
+            bench.figure(f"{name}_last_{n}", f"{name}: last path's {metric}, {recipe}", unit, better="lower")
+
+
+def main() -> None:
+    bench = Bench(__file__, "a study's winner against the paper design in held-out retraining, by recipe "
+                  "length", __doc__)
+    ap = bench.parser()
+    ap.add_argument("--study", default="tx2-anytime_depth", help="the finished study (default tx2-anytime_depth)")
+    ap.add_argument("--reports", type=Path, default=Path("reports"), help="its reports folder (default reports)")
+    ap.add_argument("--steps", default="300,1500", help="recipe lengths at the training size, comma-separated "
+                    "(default 300,1500: the finalists' and five times it)")
+    ap.add_argument("--first-seed", type=int, default=100, help="the first repetition's training seed, the next "
+                    "ones following it (default 100)")
+    ap.add_argument("--val-from", type=int, default=STUDY_FRAMES, help="the first validation frame measured "
+                    f"(default {STUDY_FRAMES}: those after the ones the study measured)")
+    ap.add_argument("--threads", type=int, default=torch.get_num_threads(), help="torch threads")
+    args = bench.parse_args(ap)
+    steps = [int(s) for s in args.steps.split(",") if s.strip()]
+    torch.set_num_threads(args.threads)
+
+    study = load_study(args.study, None, args.reports)
+    context = study_context(study)
+    config = context.config
+    best = winner(study)
+    if best is None:
+        raise SystemExit(f"study {args.study!r} has no winner yet: let its search finish first")
+    networks = {"winner": Candidate.from_dict(trial_record(best).candidate), "paper": paper_candidate()}
+    unit = "m" if config.metric in ("rmse", "mae") else ""
+    declare(bench, steps, config.tune_steps, config.metric, unit)
+    n_val = len(open_dataset(config.data, "val", config.input_size, train_augment=False))
+    bench.note(f"study {args.study}: winner {networks['winner'].key} (trial {best.number}, anytime loss "
+               f"{best.values[0]:.4f} in the study); {config.device}, {config.budgets[0]}; recipe: the "
+               f"finalists' at {config.train_size[0]}x{config.train_size[1]}, then {config.tune_steps} steps at "
+               f"{config.input_size[0]}x{config.input_size[1]}; measured on validation frames {args.val_from} to "
+               f"{n_val - 1} of {config.data}; seeds {args.first_seed} on; cpu, torch threads {args.threads}")
+
+    for rep in bench.repetitions():
+        seed = args.first_seed + rep
+        data = held_out_data(context, seed, args.val_from)
+        for n in rotated(steps, rep):
+            recipe = dataclasses.replace(config, finalist_steps=n).finalist_recipe()
+            loss = {}
+            for name in rotated(list(networks), rep):
+                t0 = time.perf_counter()
+                loss[name], last = retrained(networks[name], recipe, seed, data, context)
+                bench.add(f"{name}_anytime_{n}", loss[name])
+                bench.add(f"{name}_last_{n}", last)
+                print(f"  seed {seed}, {n} steps: {name} anytime {loss[name]:.4f}, last path {last:.4f} "
+                      f"({time.perf_counter() - t0:.0f} s)", flush=True)
+            bench.add(f"ratio_{n}", loss["winner"] / loss["paper"])
+    bench.finish()
+
+
+if __name__ == "__main__":
+    main()
