@@ -1,0 +1,35 @@
+"""bench_held_out (benchmarks/bench_held_out.py) measures the study's winner and the paper design on the
+validation frames the study did not choose with."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+from bench_held_out import held_out_data  # noqa: E402
+
+from explorer.data import open_dataset  # noqa: E402
+from explorer.study.config import SearchConfig  # noqa: E402
+
+from conftest import TINY_DATA  # noqa: E402
+
+
+def test_only_the_frames_after_the_studys_are_measured():
+    context = SearchConfig(study="held-out", data=TINY_DATA, input_size=(64, 64), train_size=(32, 32)).resolve()
+    data = held_out_data(context, seed=3, val_from=10)
+    val = open_dataset(TINY_DATA, "val", (64, 64), train_augment=False)
+    assert len(data.deploy_val) == len(val) - 10
+    assert torch.equal(data.deploy_val[0]["depth"], val[10]["depth"])
+    assert torch.equal(data.deploy_val[len(val) - 11]["depth"], val[len(val) - 1]["depth"])
+    assert tuple(data.train[0]["image"].shape[-2:]) == (32, 32)
+    assert tuple(data.deploy_train[0]["image"].shape[-2:]) == (64, 64)
+
+
+def test_a_start_past_the_validation_set_is_refused():
+    context = SearchConfig(study="held-out", data=TINY_DATA, input_size=(64, 64), train_size=(32, 32)).resolve()
+    with pytest.raises(SystemExit, match="validation set has 16 frames"):
+        held_out_data(context, seed=0, val_from=16)
