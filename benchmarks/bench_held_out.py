@@ -4,14 +4,16 @@ networks are trained longer than a search on this machine can afford?
 
 Each repetition is one training seed (``--first-seed`` on, none of them the study's). In it the
 study's winner and the paper design are retrained from scratch with the study's finalists' recipe at
-each of ``--steps`` (steps at the training size, then the study's tuning steps at the deployment
-size), the lengths and the two networks in an order that rotates from seed to seed, and every path
+each of ``--steps`` (``N`` steps at the training size, then the study's tuning steps at the
+deployment size; ``N+T`` for T tuning steps instead), the recipes and the two networks in an order
+that rotates from seed to seed, and every path
 is measured at the deployment size on the validation frames the study did not use (``--val-from``
 on: a study measures its finalists on the first 96), then costed on the study's device for its
-budget. Figures per length N: the winner's anytime loss over the paper design's (``ratio_N``, below
-1 the winner is better), both anytime losses, and each network's last path's error.
+budget. Figures per recipe (suffix ``N``, or ``N_tuneT``): the winner's anytime loss over the paper
+design's (``ratio_N``, below 1 the winner is better), both anytime losses, and each network's last
+path's error.
 
-    python benchmarks/bench_held_out.py --study tx2-anytime_depth [--steps 300,1500] [--reps 3]
+    python benchmarks/bench_held_out.py --study tx2-anytime_depth [--steps 300,2000+130] [--reps 3]
 
 Run it after ``make search`` (whose study it reads, from ``reports/``, untouched).
 """
@@ -71,13 +73,30 @@ def retrained(candidate: Candidate, recipe: DeploymentRecipe, seed: int, data: D
     return anytime_loss(costs, errors, budget), errors[-1]
 
 
-def declare(bench: Bench, steps: list[int], tune_steps: int, metric: str, unit: str) -> None:
-    for n in steps:
-        recipe = f"{n} steps + {tune_steps} at the deployment size"
-        bench.figure(f"ratio_{n}", f"winner / paper design, anytime loss, {recipe}", "", better="lower")
+def parse_recipes(text: str, study_tune_steps: int) -> dict[str, tuple[int, int]]:
+    """``--steps``: "300,2000+130" -> {"300": (300, study's tuning), "2000_tune130": (2000, 130)}."""
+    recipes = {}
+    for item in filter(None, (part.strip() for part in text.split(","))):
+        steps, plus, tune = item.partition("+")
+        try:
+            n, t = int(steps), int(tune) if plus else study_tune_steps
+        except ValueError:
+            raise SystemExit(f"--steps: {item!r} is not N or N+T (whole numbers of steps)") from None
+        if n < 1 or t < 0:
+            raise SystemExit(f"--steps: {item!r} needs N >= 1 and T >= 0")
+        recipes[str(n) if t == study_tune_steps else f"{n}_tune{t}"] = (n, t)
+    if not recipes:
+        raise SystemExit("--steps: give at least one recipe length")
+    return recipes
+
+
+def declare(bench: Bench, recipes: dict[str, tuple[int, int]], metric: str, unit: str) -> None:
+    for suffix, (n, tune) in recipes.items():
+        recipe = f"{n} steps + {tune} at the deployment size"
+        bench.figure(f"ratio_{suffix}", f"winner / paper design, anytime loss, {recipe}", "", better="lower")
         for name in ("winner", "paper"):
-            bench.figure(f"{name}_anytime_{n}", f"{name}: anytime loss, {recipe}", unit, better="lower")
-            bench.figure(f"{name}_last_{n}", f"{name}: last path's {metric}, {recipe}", unit, better="lower")
+            bench.figure(f"{name}_anytime_{suffix}", f"{name}: anytime loss, {recipe}", unit, better="lower")
+            bench.figure(f"{name}_last_{suffix}", f"{name}: last path's {metric}, {recipe}", unit, better="lower")
 
 
 def main() -> None:
@@ -86,15 +105,15 @@ def main() -> None:
     ap = bench.parser()
     ap.add_argument("--study", default="tx2-anytime_depth", help="the finished study (default tx2-anytime_depth)")
     ap.add_argument("--reports", type=Path, default=Path("reports"), help="its reports folder (default reports)")
-    ap.add_argument("--steps", default="300,1500", help="recipe lengths at the training size, comma-separated "
-                    "(default 300,1500: the finalists' and five times it)")
+    ap.add_argument("--steps", default="300,2000+130", help="recipes, comma-separated: N steps at the training "
+                    "size then the study's tuning steps, or N+T for T tuning steps (default 300,2000+130: the "
+                    "finalists' recipe, and one about 7 times as long with the same share of tuning)")
     ap.add_argument("--first-seed", type=int, default=100, help="the first repetition's training seed, the next "
                     "ones following it (default 100)")
     ap.add_argument("--val-from", type=int, default=STUDY_FRAMES, help="the first validation frame measured "
                     f"(default {STUDY_FRAMES}: those after the ones the study measured)")
     ap.add_argument("--threads", type=int, default=torch.get_num_threads(), help="torch threads")
     args = bench.parse_args(ap)
-    steps = [int(s) for s in args.steps.split(",") if s.strip()]
     torch.set_num_threads(args.threads)
 
     study = load_study(args.study, None, args.reports)
@@ -105,28 +124,31 @@ def main() -> None:
         raise SystemExit(f"study {args.study!r} has no winner yet: let its search finish first")
     networks = {"winner": Candidate.from_dict(trial_record(best).candidate), "paper": paper_candidate()}
     unit = "m" if config.metric in ("rmse", "mae") else ""
-    declare(bench, steps, config.tune_steps, config.metric, unit)
+    recipes = parse_recipes(args.steps, config.tune_steps)
+    declare(bench, recipes, config.metric, unit)
     n_val = len(open_dataset(config.data, "val", config.input_size, train_augment=False))
     bench.note(f"study {args.study}: winner {networks['winner'].key} (trial {best.number}, anytime loss "
                f"{best.values[0]:.4f} in the study); {config.device}, {config.budgets[0]}; recipe: the "
                f"finalists' at {config.train_size[0]}x{config.train_size[1]}, then {config.tune_steps} steps at "
-               f"{config.input_size[0]}x{config.input_size[1]}; measured on validation frames {args.val_from} to "
-               f"{n_val - 1} of {config.data}; seeds {args.first_seed} on; cpu, torch threads {args.threads}")
+               f"{config.input_size[0]}x{config.input_size[1]} (N+T in --steps: T there); measured on validation "
+               f"frames {args.val_from} to {n_val - 1} of {config.data}; seeds {args.first_seed} on; cpu, "
+               f"torch threads {args.threads}")
 
     for rep in bench.repetitions():
         seed = args.first_seed + rep
         data = held_out_data(context, seed, args.val_from)
-        for n in rotated(steps, rep):
-            recipe = dataclasses.replace(config, finalist_steps=n).finalist_recipe()
+        for suffix in rotated(list(recipes), rep):
+            n, tune = recipes[suffix]
+            recipe = dataclasses.replace(config, finalist_steps=n, tune_steps=tune).finalist_recipe()
             loss = {}
             for name in rotated(list(networks), rep):
                 t0 = time.perf_counter()
                 loss[name], last = retrained(networks[name], recipe, seed, data, context)
-                bench.add(f"{name}_anytime_{n}", loss[name])
-                bench.add(f"{name}_last_{n}", last)
-                print(f"  seed {seed}, {n} steps: {name} anytime {loss[name]:.4f}, last path {last:.4f} "
+                bench.add(f"{name}_anytime_{suffix}", loss[name])
+                bench.add(f"{name}_last_{suffix}", last)
+                print(f"  seed {seed}, {n}+{tune} steps: {name} anytime {loss[name]:.4f}, last path {last:.4f} "
                       f"({time.perf_counter() - t0:.0f} s)", flush=True)
-            bench.add(f"ratio_{n}", loss["winner"] / loss["paper"])
+            bench.add(f"ratio_{suffix}", loss["winner"] / loss["paper"])
     bench.finish()
 
 

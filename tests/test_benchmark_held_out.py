@@ -10,7 +10,7 @@ import pytest
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-from bench_held_out import held_out_data  # noqa: E402
+from bench_held_out import held_out_data, parse_recipes  # noqa: E402
 
 from explorer.data import open_dataset  # noqa: E402
 from explorer.study.config import SearchConfig  # noqa: E402
@@ -33,3 +33,14 @@ def test_a_start_past_the_validation_set_is_refused():
     context = SearchConfig(study="held-out", data=TINY_DATA, input_size=(64, 64), train_size=(32, 32)).resolve()
     with pytest.raises(SystemExit, match="validation set has 16 frames"):
         held_out_data(context, seed=0, val_from=16)
+
+
+def test_recipes_take_the_studys_tuning_unless_given():
+    assert parse_recipes("300, 2000+130", 20) == {"300": (300, 20), "2000_tune130": (2000, 130)}
+    assert parse_recipes("300+20", 20) == {"300": (300, 20)}
+
+
+@pytest.mark.parametrize("text", ["", "300x", "300+", "0", "300+-1"])
+def test_a_recipe_that_is_not_n_or_n_plus_t_is_refused(text):
+    with pytest.raises(SystemExit, match="--steps"):
+        parse_recipes(text, 20)
