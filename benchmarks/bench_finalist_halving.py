@@ -197,7 +197,7 @@ def main() -> None:
     declare(bench, args)
     bench.note(f"cpu, torch threads {args.threads}; make search's supernet ({config.supernet_steps} steps) and "
                f"{args.sampling_s:g} s of sampling a seed; finalists' recipe {config.finalist_steps} steps at "
-               f"{config.train_size[0]}x{config.train_size[1]} + {config.tune_steps} at "
+               f"{config.train_size[0]}x{config.train_size[1]} + {config.tuning_steps} at "
                f"{config.input_size[0]}x{config.input_size[1]}; the rung at step {config.finalist_steps // 2}, "
                f"measured at the training size on {VAL_FRAMES} validation frames; pool {args.pool}, keep {args.keep}, "
                f"default finalists {args.finalists}; seeds {args.first_seed} to {args.first_seed + bench.reps - 1}; "

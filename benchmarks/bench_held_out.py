@@ -4,8 +4,8 @@ networks are trained longer than a search on this machine can afford?
 
 Each repetition is one training seed (``--first-seed`` on, none of them the study's). In it the
 study's winner and the paper design are retrained from scratch with the study's finalists' recipe at
-each of ``--steps`` (``N`` steps at the training size, then the study's tuning steps at the
-deployment size; ``N+T`` for T tuning steps instead), the recipes and the two networks in an order
+each of ``--steps`` (``N`` steps at the training size, then the tuning steps the study's settings
+give N at the deployment size; ``N+T`` for T tuning steps instead), the recipes and the two networks in an order
 that rotates from seed to seed, and every path
 is measured at the deployment size on the validation frames the study did not use (``--val-from``
 on: a study measures its finalists on the first 96), then costed on the study's device for its
@@ -38,7 +38,7 @@ from explorer.data import open_dataset  # noqa: E402
 from explorer.model import build_network  # noqa: E402
 from explorer.space import Candidate, paper_candidate  # noqa: E402
 from explorer.study import trial_record  # noqa: E402
-from explorer.study.config import StudyContext, study_context  # noqa: E402
+from explorer.study.config import SearchConfig, StudyContext, study_context  # noqa: E402
 from explorer.study.results import winner  # noqa: E402
 from explorer.study.storage import load_study  # noqa: E402
 from explorer.training.deployment import DeploymentData, DeploymentRecipe, train_for_deployment  # noqa: E402
@@ -73,18 +73,20 @@ def retrained(candidate: Candidate, recipe: DeploymentRecipe, seed: int, data: D
     return anytime_loss(costs, errors, budget), errors[-1]
 
 
-def parse_recipes(text: str, study_tune_steps: int) -> dict[str, tuple[int, int]]:
-    """``--steps``: "300,2000+130" -> {"300": (300, study's tuning), "2000_tune130": (2000, 130)}."""
+def parse_recipes(text: str, config: SearchConfig) -> dict[str, tuple[int, int]]:
+    """``--steps``: "300,2000+130" -> {"300": (300, the study's tuning for 300 steps), "2000_tune130":
+    (2000, 130)}."""
     recipes = {}
     for item in filter(None, (part.strip() for part in text.split(","))):
         steps, plus, tune = item.partition("+")
         try:
-            n, t = int(steps), int(tune) if plus else study_tune_steps
+            n = int(steps)
+            t = int(tune) if plus else dataclasses.replace(config, finalist_steps=max(n, 1)).tuning_steps
         except ValueError:
             raise SystemExit(f"--steps: {item!r} is not N or N+T (whole numbers of steps)") from None
         if n < 1 or t < 0:
             raise SystemExit(f"--steps: {item!r} needs N >= 1 and T >= 0")
-        recipes[str(n) if t == study_tune_steps else f"{n}_tune{t}"] = (n, t)
+        recipes[f"{n}_tune{t}" if plus else str(n)] = (n, t)
     if not recipes:
         raise SystemExit("--steps: give at least one recipe length")
     return recipes
@@ -124,12 +126,12 @@ def main() -> None:
         raise SystemExit(f"study {args.study!r} has no winner yet: let its search finish first")
     networks = {"winner": Candidate.from_dict(trial_record(best).candidate), "paper": paper_candidate()}
     unit = "m" if config.metric in ("rmse", "mae") else ""
-    recipes = parse_recipes(args.steps, config.tune_steps)
+    recipes = parse_recipes(args.steps, config)
     declare(bench, recipes, config.metric, unit)
     n_val = len(open_dataset(config.data, "val", config.input_size, train_augment=False))
     bench.note(f"study {args.study}: winner {networks['winner'].key} (trial {best.number}, anytime loss "
                f"{best.values[0]:.4f} in the study); {config.device}, {config.budgets[0]}; recipe: the "
-               f"finalists' at {config.train_size[0]}x{config.train_size[1]}, then {config.tune_steps} steps at "
+               f"finalists' at {config.train_size[0]}x{config.train_size[1]}, then the study's tuning steps at "
                f"{config.input_size[0]}x{config.input_size[1]} (N+T in --steps: T there); measured on validation "
                f"frames {args.val_from} to {n_val - 1} of {config.data}; seeds {args.first_seed} on; cpu, "
                f"torch threads {args.threads}")

@@ -324,7 +324,8 @@ def prepare(threads: int) -> tuple[SearchConfig, DeploymentData]:
 
 def final_recipe_note(config: SearchConfig, final_steps: int) -> str:
     return (f"final recipe {final_steps} steps at {config.train_size[0]}x{config.train_size[1]} + "
-            f"{config.tune_steps} at {config.input_size[0]}x{config.input_size[1]}, measured on {VAL_FRAMES} "
+            f"{final_recipe(final_steps).tune_steps} at {config.input_size[0]}x{config.input_size[1]}, "
+            f"measured on {VAL_FRAMES} "
             "validation frames")
 
 

@@ -36,11 +36,14 @@ def test_a_start_past_the_validation_set_is_refused():
 
 
 def test_recipes_take_the_studys_tuning_unless_given():
-    assert parse_recipes("300, 2000+130", 20) == {"300": (300, 20), "2000_tune130": (2000, 130)}
-    assert parse_recipes("300+20", 20) == {"300": (300, 20)}
+    fixed = SearchConfig(study="s", tune_steps=20)
+    assert parse_recipes("300, 2000+130", fixed) == {"300": (300, 20), "2000_tune130": (2000, 130)}
+    assert parse_recipes("2000", fixed) == {"2000": (2000, 20)}
+    assert parse_recipes("300+20", fixed) == {"300_tune20": (300, 20)}
+    assert parse_recipes("2000", SearchConfig(study="s")) == {"2000": (2000, 133)}   # the default share
 
 
 @pytest.mark.parametrize("text", ["", "300x", "300+", "0", "300+-1"])
 def test_a_recipe_that_is_not_n_or_n_plus_t_is_refused(text):
     with pytest.raises(SystemExit, match="--steps"):
-        parse_recipes(text, 20)
+        parse_recipes(text, SearchConfig(study="s"))

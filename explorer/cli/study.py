@@ -379,9 +379,10 @@ def _register_search(add, reports: dict) -> None:
                    "retrained stand-alone at the end, next to the baselines (default 3, fewer if --time-limit needs; 0 = none)")
     s.add_argument("--finalist-steps", type=int, default=None, help="steps of the finalists' longer recipe "
                    "(default 300, down to 150 if --time-limit needs), at --train-size")
-    s.add_argument("--tune-steps", type=int, default=20, help="steps the finalists and baselines then train at "
-                   "--input-size, where every path of theirs is measured (default 20; 0 = none: measured there as "
-                   "trained; none when the two sizes are equal)")
+    s.add_argument("--tune-steps", type=int, help="steps the finalists and baselines then train at "
+                   "--input-size, where every path of theirs is measured (default: a fifteenth of --finalist-steps, "
+                   "at least 20, so 20 for the default 300; 0 = none: measured there as trained; none when the two "
+                   "sizes are equal)")
     s.add_argument("--proxy-steps", type=int, default=150, help="training steps of each candidate the proxy "
                    "evaluator trains (default 150)")
     deprecated_alias(s, "--train-steps", "--proxy-steps")

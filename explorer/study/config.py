@@ -45,6 +45,10 @@ def baseline_model(name: str):
     raise UserError(f"unknown baseline '{name}': use {', '.join(BASELINES)} or a reference network "
                     f"({', '.join(REFERENCES)})")
 OBJECTIVES = ("anytime_loss", "params", "macs", "first_exit_ms")
+#: the finalists' tuning at the deployment size unless --tune-steps is given: this share of their steps
+#: at the training size (20 of the default 300), and never fewer than TUNE_MIN_STEPS
+TUNE_SHARE = 1 / 15
+TUNE_MIN_STEPS = 20
 #: how a study proposes candidates: TPE (NSGA-II with several objectives), or uniformly at random
 SAMPLERS = ("tpe", "random")
 
@@ -81,7 +85,7 @@ class SearchConfig:
     supernet_steps: int = 600
     finalists: int = 3                           # retrained stand-alone at the end (0 = none)
     finalist_steps: int = 300
-    tune_steps: int = 20                         # the finalists' steps at --input-size after --train-size
+    tune_steps: int | None = None                # the finalists' steps at --input-size (None: tuning_steps)
     max_retries: int = 2          # an interrupted trial (killed, Ctrl-C, lost worker) is tried again
     supervision: str = "supervised"              # supervised | self | mixed (see explorer.training.selfsup)
     poses: str = "net"                           # self-supervision's camera motion: net | given
@@ -126,10 +130,20 @@ class SearchConfig:
         return dataclasses.replace(self.train_config(), steps=self.finalist_steps, eval_every=0,
                                    seed=self.seed if seed is None else seed)
 
+    @property
+    def tuning_steps(self) -> int:
+        """The finalists' steps at the deployment size: ``tune_steps`` where given, else the default share
+        of ``finalist_steps`` (TUNE_SHARE, never below TUNE_MIN_STEPS). A longer recipe with the same few
+        tuning steps left both networks of bench_held_out worse than the short one did; with the same
+        share of tuning they were better."""
+        if self.tune_steps is not None:
+            return self.tune_steps
+        return max(TUNE_MIN_STEPS, round(self.finalist_steps * TUNE_SHARE))
+
     def finalist_recipe(self) -> DeploymentRecipe:
-        """The finalists' whole recipe: ``finalist_config`` at the training size, then ``tune_steps`` at
-        the deployment size, where every path is measured (explorer.training.deployment)."""
-        return DeploymentRecipe(self.finalist_config(), tuple(self.input_size), self.tune_steps)
+        """The finalists' whole recipe: ``finalist_config`` at the training size, then ``tuning_steps``
+        at the deployment size, where every path is measured (explorer.training.deployment)."""
+        return DeploymentRecipe(self.finalist_config(), tuple(self.input_size), self.tuning_steps)
 
     def supernet_recipe(self):
         return SupernetRecipe(steps=self.supernet_steps, batch_size=self.batch_size, input_size=self.train_size,
@@ -172,7 +186,7 @@ class SearchConfig:
                             "(or give --evaluator supernet)")
         if self.supernet_steps < 1 or self.finalist_steps < 1:
             raise UserError("--supernet-steps and --finalist-steps must be at least 1")
-        if self.tune_steps < 0:
+        if self.tune_steps is not None and self.tune_steps < 0:
             raise UserError("--tune-steps must be 0 (none) or more")
         if self.finalists < 0:
             raise UserError("--finalists must be 0 (none) or more")

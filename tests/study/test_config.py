@@ -32,3 +32,22 @@ def test_head_kinds_reach_the_supernet_recipe_and_a_study_made_before_them_reads
     old = {k: v for k, v in SearchConfig(study="s").to_dict().items() if k != "head_kinds"}
     assert SearchConfig.from_dict({**SearchConfig.defaults_of_older_studies(), **old}).head_kinds == "random"
     assert build_parser().parse_args(["search", "--head-kinds", "cover"]).head_kinds == "cover"
+
+
+def test_the_finalists_tuning_keeps_its_share_of_a_longer_recipe_unless_given():
+    assert SearchConfig(study="s").finalist_recipe().tune_steps == 20              # the default 300 steps
+    assert SearchConfig(study="s", finalist_steps=100).finalist_recipe().tune_steps == 20
+    assert SearchConfig(study="s", finalist_steps=2000).finalist_recipe().tune_steps == 133
+    assert SearchConfig(study="s", finalist_steps=2000, tune_steps=20).finalist_recipe().tune_steps == 20
+    assert not SearchConfig(study="s", finalist_steps=2000, tune_steps=0).finalist_recipe().tunes
+
+
+def test_a_study_stored_with_its_tuning_steps_keeps_them():
+    stored = SearchConfig(study="s", tune_steps=20).to_dict()
+    assert SearchConfig.from_dict({**stored, "finalist_steps": 2000}).finalist_recipe().tune_steps == 20
+    assert SearchConfig.from_dict(SearchConfig(study="s").to_dict()).tune_steps is None
+
+
+def test_search_leaves_the_tuning_steps_to_the_recipe_unless_given():
+    assert build_parser().parse_args(["search"]).tune_steps is None
+    assert build_parser().parse_args(["search", "--tune-steps", "5"]).tune_steps == 5
