@@ -4,11 +4,11 @@ networks are trained longer than a search on this machine can afford?
 
 Each repetition is one training seed (``--first-seed`` on, none of them the study's). In it the
 study's winner and the paper design are retrained from scratch with the study's finalists' recipe at
-each of ``--steps`` (``N`` steps at the training size, then the tuning steps the study's settings
-give N at the deployment size; ``N+T`` for T tuning steps instead), the recipes and the two networks in an order
-that rotates from seed to seed, and every path
-is measured at the deployment size on the validation frames the study did not use (``--val-from``
-on: a study measures its finalists on the first 96), then costed on the study's device for its
+each of ``--steps`` (``N`` steps at the training size, then the tuning steps the study's settings give
+N at the deployment size; ``N+T`` for T tuning steps instead), the recipes and the two networks in an
+order that rotates from seed to seed, and every path is measured at the deployment size on the
+validation frames the study did not use (``--val-from`` on: by default those after the ones the
+study measured its finalists on, its ``val_limit``), then costed on the study's device for its
 budget. Figures per recipe (suffix ``N``, or ``N_tuneT``): the winner's anytime loss over the paper
 design's (``ratio_N``, below 1 the winner is better), both anytime losses, and each network's last
 path's error.
@@ -42,10 +42,7 @@ from explorer.study.config import SearchConfig, StudyContext, study_context  # n
 from explorer.study.results import winner  # noqa: E402
 from explorer.study.storage import load_study  # noqa: E402
 from explorer.training.deployment import DeploymentData, DeploymentRecipe, train_for_deployment  # noqa: E402
-
-#: the validation frames a study measures its finalists on (``explorer search``'s first 96)
-STUDY_FRAMES = 96
-
+from explorer.training.train import evaluated_frames  # noqa: E402
 
 def held_out_data(context: StudyContext, seed: int, val_from: int) -> DeploymentData:
     """The study's training frames (at its training and deployment sizes, augmented with ``seed``) and
@@ -112,8 +109,8 @@ def main() -> None:
                     "finalists' recipe, and one about 7 times as long with the same share of tuning)")
     ap.add_argument("--first-seed", type=int, default=100, help="the first repetition's training seed, the next "
                     "ones following it (default 100)")
-    ap.add_argument("--val-from", type=int, default=STUDY_FRAMES, help="the first validation frame measured "
-                    f"(default {STUDY_FRAMES}: those after the ones the study measured)")
+    ap.add_argument("--val-from", type=int, help="the first validation frame measured (default: the first after "
+                    "those the study measured its finalists on)")
     ap.add_argument("--threads", type=int, default=torch.get_num_threads(), help="torch threads")
     args = bench.parse_args(ap)
     torch.set_num_threads(args.threads)
@@ -128,7 +125,10 @@ def main() -> None:
     unit = "m" if config.metric in ("rmse", "mae") else ""
     recipes = parse_recipes(args.steps, config)
     declare(bench, recipes, config.metric, unit)
-    n_val = len(open_dataset(config.data, "val", config.input_size, train_augment=False))
+    val = open_dataset(config.data, "val", config.input_size, train_augment=False)
+    n_val = len(val)
+    if args.val_from is None:
+        args.val_from = evaluated_frames(val, config.val_limit)
     bench.note(f"study {args.study}: winner {networks['winner'].key} (trial {best.number}, anytime loss "
                f"{best.values[0]:.4f} in the study); {config.device}, {config.budgets[0]}; recipe: the "
                f"finalists' at {config.train_size[0]}x{config.train_size[1]}, then the study's tuning steps at "
