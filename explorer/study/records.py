@@ -47,7 +47,8 @@ class Retraining(BaseModel):
 class TrialRecord(BaseModel):
     """Everything a trial stores. A sampled trial holds its candidate, costs and estimated metrics; a
     retrained one holds ``finalist`` (or ``envelope``) and ``measured`` too; a baseline is tagged by
-    ``baseline``; a trial that did not complete says why (``rejected``, ``pruned``, ``duplicate_of``)."""
+    ``baseline``; a trial that did not complete says why (``rejected``, ``pruned``, ``not_run``,
+    ``duplicate_of``)."""
 
     model_config = ConfigDict(frozen=True, extra="ignore")
 
@@ -71,6 +72,7 @@ class TrialRecord(BaseModel):
     weights_artifact: Optional[str] = None
     rejected: Optional[str] = None
     pruned: Optional[str] = None
+    not_run: Optional[str] = None           # asked past --trials (another worker's trial reached it): not counted
     duplicate_of: Optional[int] = None
     retry_of: Optional[int] = None
     finalist: Optional[Retraining] = None

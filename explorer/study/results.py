@@ -100,7 +100,7 @@ def scored_trials(study: optuna.Study) -> list[optuna.trial.FrozenTrial]:
 
 def _reason(t: optuna.trial.FrozenTrial, interrupted: dict[int, str], retries: dict) -> str:
     rec = trial_record(t)
-    reason = (rec.rejected or rec.pruned or interrupted.get(t.number)
+    reason = (rec.rejected or rec.pruned or rec.not_run or interrupted.get(t.number)
               or t.system_attrs.get("fail_reason", "")
               or (f"same candidate as trial {rec.duplicate_of}" if rec.duplicate_of is not None else ""))
     if t.number in interrupted:

@@ -32,7 +32,7 @@ from typing import Any, Callable, Iterator, Mapping, Sequence
 import optuna
 from optuna.trial import FrozenTrial, TrialState
 
-from explorer.study.records import VERSION_KEY, record_values, trial_record
+from explorer.study.records import VERSION_KEY, record, record_values, trial_record
 
 INTERRUPTED = "interrupted"
 KILLED = "interrupted (process killed)"      # fail_interrupted_trials writes this
@@ -143,35 +143,73 @@ class RetryStaleTrials:
         enqueue_retry(study, trial, self.max_retries)
 
 
+def _counts(trial: FrozenTrial) -> bool:
+    rec = trial_record(trial)
+    return rec.retraining is None and rec.not_run is None
+
+
 def counted_trials(study: optuna.Study) -> int:
     """Finished trials that count toward ``--trials``: an interrupted one does not (its retry does),
-    nor a finalist's or a dedicated network's retraining (they are not sampled trials)."""
+    nor a finalist's or a dedicated network's retraining (they are not sampled trials), nor one asked
+    past the limit and not run (``not_run``)."""
     done = study.get_trials(deepcopy=False, states=(TrialState.COMPLETE, TrialState.PRUNED, TrialState.FAIL))
-    done = [t for t in done if trial_record(t).retraining is None]
+    done = [t for t in done if _counts(t)]
     return len(done) - len(interrupted_trials(study, done))
+
+
+def _running_trials(study: optuna.Study, before: int | None = None) -> list[FrozenTrial]:
+    """The sampled trials running now (numbered below ``before`` if given)."""
+    return [t for t in study.get_trials(deepcopy=False, states=(TrialState.RUNNING,))
+            if _counts(t) and (before is None or t.number < before)]
 
 
 class StopAfterTrials:
     """Like ``optuna.study.MaxTrialsCallback``, counting what :func:`counted_trials` counts, and the
     trials other workers are running: a worker does not start a trial that theirs will make one too many
-    (``--workers 2 --trials 2`` runs two trials, not three)."""
+    (``--workers 2 --trials 2`` runs two trials, not three). Two workers finishing at once can both
+    start one more; :func:`guarded` stops the later of the two before it does any work."""
 
     def __init__(self, n_trials: int) -> None:
         self.n_trials = n_trials
 
     def __call__(self, study: optuna.Study, trial: FrozenTrial) -> None:
-        running = [t for t in study.get_trials(deepcopy=False, states=(TrialState.RUNNING,))
-                   if trial_record(t).retraining is None]
-        if counted_trials(study) + len(running) >= self.n_trials:
+        if counted_trials(study) + len(_running_trials(study)) >= self.n_trials:
             study.stop()
 
 
-def guarded(objective: Callable[[optuna.Trial], Any], max_retries: int) -> Callable[[optuna.Trial], Any]:
+def _past_the_limit(trial: optuna.Trial, n_trials: int) -> bool:
+    """True when the trials that count, with the running ones asked before ``trial``, already reach
+    ``n_trials``: trial numbers order the workers' asks, so of two trials asked at once only the later
+    one is past the limit, whichever worker looks first."""
+    study = trial.study
+    return counted_trials(study) + len(_running_trials(study, before=trial.number)) >= n_trials
+
+
+def _give_back(trial: optuna.Trial, n_trials: int) -> None:
+    """Marks ``trial`` as not run (:class:`StopAfterTrials` then stops the worker); an enqueued trial (a baseline, a retry) goes
+    back to the queue with its parameters and attributes, so that a longer search still runs it."""
+    study, storage, tid = trial.study, trial.study._storage, trial._trial_id
+    frozen = storage.get_trial(tid)
+    if "fixed_params" in frozen.system_attrs:
+        template = optuna.trial.create_trial(state=TrialState.WAITING, params=frozen.params,
+                                             distributions=frozen.distributions, user_attrs=frozen.user_attrs,
+                                             system_attrs=frozen.system_attrs)
+        storage.create_new_trial(study._study_id, template_trial=template)
+    record(trial, not_run=f"not run: the study's {n_trials} trials were reached by other workers' trials")
+
+
+def guarded(objective: Callable[[optuna.Trial], Any], max_retries: int,
+            n_trials: int | None = None) -> Callable[[optuna.Trial], Any]:
     """``objective`` for ``study.optimize``, recording what a retry needs and why a trial failed:
     the user attributes it was started with; ``fail_reason`` when it raises (its own fault: not
-    retried); on Ctrl-C, "interrupted (Ctrl-C)" and a retry enqueued at once."""
+    retried); on Ctrl-C, "interrupted (Ctrl-C)" and a retry enqueued at once. With ``n_trials``, a
+    trial asked past the limit (two workers asked at once) is pruned before any work, marked
+    ``not_run`` and not counted."""
     def run(trial: optuna.Trial):
         storage, tid = trial.study._storage, trial._trial_id
+        if n_trials is not None and _past_the_limit(trial, n_trials):
+            _give_back(trial, n_trials)
+            raise optuna.TrialPruned()
         storage.set_trial_system_attr(tid, INPUT_ATTRS, sorted(trial.user_attrs))
         try:
             return objective(trial)

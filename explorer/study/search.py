@@ -197,7 +197,7 @@ def _optimize(study: optuna.Study, objective: Objective, n_trials: int | None, d
     # grew to about 90 ms a trial, a quarter of a trial's time on two cores
     gc.freeze()
     cbs.append(lambda _study, _trial: gc.collect(1))
-    study.optimize(guarded(objective, objective.config.max_retries), timeout=timeout, callbacks=cbs,
+    study.optimize(guarded(objective, objective.config.max_retries, n_trials), timeout=timeout, callbacks=cbs,
                    catch=(Exception,), gc_after_trial=False)
 
 

@@ -161,6 +161,39 @@ def test_ctrl_c_is_an_interruption_an_error_is_not():
     assert len(study.trials) == 2 and counted_trials(study) == 1          # ... and failing is a result
 
 
+def test_of_two_trials_asked_at_once_past_the_limit_the_later_is_not_run():
+    """Two workers finish together, both see room for one more trial and both ask one: whichever looks
+    first, the earlier-numbered trial runs and the later one is given back without any work."""
+    study = optuna.create_study()
+    study.enqueue_trial({"x": 0.5}, user_attrs={"baseline": "paper"})
+    study.optimize(lambda t: t.suggest_float("x", 0, 1), n_trials=1)     # one of two trials done
+    ran = []
+
+    def objective(trial):
+        ran.append(trial.number)
+        return trial.suggest_float("x", 0, 1)
+
+    early, late = study.ask(), study.ask()                                   # the two workers' asks
+    study.enqueue_trial({"x": 0.75}, user_attrs={"baseline": "paper"})
+    queued = study.ask()                                                     # a third worker pops a baseline
+    run = guarded(objective, max_retries=2, n_trials=2)
+    for trial in (late, queued, early):                                      # the later asks look first
+        try:
+            study.tell(trial, run(trial))
+        except optuna.TrialPruned:
+            study.tell(trial, state=optuna.trial.TrialState.PRUNED)
+    assert ran == [early.number] and counted_trials(study) == 2
+    states = {t.number: t.state for t in study.trials}
+    assert states[late.number] == states[queued.number] == optuna.trial.TrialState.PRUNED
+    assert "not run" in study.trials[late.number].user_attrs["not_run"]
+    assert "not run" in trials_frame(study).set_index("number").loc[late.number, "reason"]
+    again = [t for t in study.trials if t.state == optuna.trial.TrialState.WAITING]
+    assert [(t.system_attrs["fixed_params"], t.user_attrs["baseline"]) for t in again] == [({"x": 0.75}, "paper")]
+    study.optimize(objective, n_trials=1)                                    # a longer search runs it
+    assert ran[-1] == again[0].number and study.trials[again[0].number].params == {"x": 0.75}
+    assert counted_trials(study) == 3
+
+
 def test_retries_stop_after_max_retries():
     study = optuna.create_study()
     dist = {"x": optuna.distributions.FloatDistribution(0, 1)}
