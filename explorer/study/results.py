@@ -326,7 +326,7 @@ def missing_baselines(study: optuna.Study) -> list[dict]:
         elif state == optuna.trial.TrialState.FAIL:
             why = f"failed in trial {t.number}: {t.system_attrs.get('fail_reason') or 'no reason recorded'}"
         elif state == optuna.trial.TrialState.PRUNED:
-            why = f"pruned in trial {t.number}: {rec.pruned or rec.rejected or 'no reason recorded'}"
+            why = f"pruned in trial {t.number}: {rec.pruned or rec.not_run or rec.rejected or 'no reason recorded'}"
         else:
             why = f"trial {t.number} finished without per-path metrics"
         out.append({"name": name, "label": label, "why": why})

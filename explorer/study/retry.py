@@ -186,8 +186,9 @@ def _past_the_limit(trial: optuna.Trial, n_trials: int) -> bool:
 
 
 def _give_back(trial: optuna.Trial, n_trials: int) -> None:
-    """Marks ``trial`` as not run (:class:`StopAfterTrials` then stops the worker); an enqueued trial (a baseline, a retry) goes
-    back to the queue with its parameters and attributes, so that a longer search still runs it."""
+    """Marks ``trial`` as not run (:class:`StopAfterTrials` then stops the worker); an enqueued trial
+    (a baseline, a retry) goes back to the queue with its parameters and attributes, so that a longer
+    search still runs it."""
     study, storage, tid = trial.study, trial.study._storage, trial._trial_id
     frozen = storage.get_trial(tid)
     if "fixed_params" in frozen.system_attrs:
