@@ -94,6 +94,11 @@ def enqueue_retry(study: optuna.Study, trial: FrozenTrial, max_retries: int) -> 
     system_attrs: dict[str, Any] = {"failed_trial": history[0], "retry_history": history}
     if "fixed_params" in trial.system_attrs:
         system_attrs["fixed_params"] = trial.system_attrs["fixed_params"]
+    return _enqueue_copy(study, trial, user_attrs, system_attrs)
+
+
+def _enqueue_copy(study: optuna.Study, trial: FrozenTrial, user_attrs: dict, system_attrs: dict) -> int:
+    """Enqueues a trial with ``trial``'s parameters and the given attributes; returns its number."""
     template = optuna.trial.create_trial(state=TrialState.WAITING, params=trial.params,
                                          distributions=trial.distributions, user_attrs=user_attrs,
                                          system_attrs=system_attrs)
@@ -189,13 +194,9 @@ def _give_back(trial: optuna.Trial, n_trials: int) -> None:
     """Marks ``trial`` as not run (:class:`StopAfterTrials` then stops the worker); an enqueued trial
     (a baseline, a retry) goes back to the queue with its parameters and attributes, so that a longer
     search still runs it."""
-    study, storage, tid = trial.study, trial.study._storage, trial._trial_id
-    frozen = storage.get_trial(tid)
+    frozen = trial.study._storage.get_trial(trial._trial_id)
     if "fixed_params" in frozen.system_attrs:
-        template = optuna.trial.create_trial(state=TrialState.WAITING, params=frozen.params,
-                                             distributions=frozen.distributions, user_attrs=frozen.user_attrs,
-                                             system_attrs=frozen.system_attrs)
-        storage.create_new_trial(study._study_id, template_trial=template)
+        _enqueue_copy(trial.study, frozen, frozen.user_attrs, frozen.system_attrs)
     record(trial, not_run=f"not run: the study's {n_trials} trials were reached by other workers' trials")
 
 
