@@ -139,9 +139,9 @@ def main() -> None:
     bench.note(f"study {args.study}: winner {networks['winner'].key} (trial {best.number}, anytime loss "
                f"{best.values[0]:.4f} in the study, the best of {config.finalists} finalists retrained "
                f"{config.finalist_steps}+{config.tuning_steps} steps); {config.device}, {config.budgets[0]}; "
-               f"recipe: the finalists' at {config.train_size[0]}x{config.train_size[1]}, then the study's tuning steps at "
-               f"{config.input_size[0]}x{config.input_size[1]} (N+T in --steps: T there); measured on validation "
-               f"frames {args.val_from} to {n_val - 1} of {config.data}; seeds {args.first_seed} on; cpu, "
+               f"recipe: the finalists' at {config.train_size[0]}x{config.train_size[1]}, then the study's tuning "
+               f"steps at {config.input_size[0]}x{config.input_size[1]} (N+T in --steps: T there); measured on "
+               f"validation frames {args.val_from} to {n_val - 1} of {config.data}; seeds {args.first_seed} on; cpu, "
                f"torch threads {args.threads}")
 
     for rep in bench.repetitions():
