@@ -12,8 +12,8 @@ study measured its finalists on, its ``val_limit``), then costed on the study's 
 budget. Figures per recipe (suffix ``N``, or ``N_tuneT``): the winner's anytime loss over the paper
 design's (``ratio_N``, below 1 the winner is better), both anytime losses, each network's last
 path's error, and a bound (``floor_ratio_N``): the anytime loss, over the paper design's, of a network
-whose most accurate path were as accurate as the best path of either network and ready when their
-cheapest path is. A network of the space does better only with a path more accurate than any measured
+whose every path past the scan were as accurate as the best path of either network and ready when
+their cheapest path is. A network of the space does better only with a path more accurate than any measured
 here: a target below the bound asks for more accurate networks (a longer recipe, a richer space), not a
 better choice among these.
 
