@@ -111,7 +111,8 @@ def with_seed(cfg: TrainConfig, seed: int) -> TrainConfig:
 def add_candidate_options(ap, steps: int = 600) -> None:
     """--candidate / --study / --reports / --steps, as benchmarks that train the paper design beside one
     other candidate take them (their repetitions, --reps, are training seeds)."""
-    ap.add_argument("--candidate", help="a candidate YAML (explorer show --yaml)")
+    ap.add_argument("--candidate", help="a candidate YAML (as the report gives each network, or as "
+                    "`explorer train` takes)")
     ap.add_argument("--study", help="take the study's winner as the candidate")
     ap.add_argument("--reports", default="reports")
     ap.add_argument("--steps", type=int, default=steps)

@@ -10,14 +10,23 @@ order that rotates from seed to seed, and every path is measured at the deployme
 validation frames the study did not use (``--val-from`` on: by default those after the ones the
 study measured its finalists on, its ``val_limit``), then costed on the study's device for its
 budget. Figures per recipe (suffix ``N``, or ``N_tuneT``): the winner's anytime loss over the paper
-design's (``ratio_N``, below 1 the winner is better), both anytime losses, each network's last
-path's error, and a bound (``floor_ratio_N``): the anytime loss, over the paper design's, of a network
-whose every path past the scan were as accurate as the best path of either network and ready when
-their cheapest path is. A network of the space does better only with a path more accurate than any measured
-here: a target below the bound asks for more accurate networks (a longer recipe, a richer space), not a
-better choice among these.
+design's (``ratio_N``, below 1 the winner is better), every network's anytime loss and last path's
+error, and a bound (``floor_ratio_N``): the anytime loss, over the paper design's, of a network
+whose every path past the scan were as accurate as the best path of any network measured and ready
+when their cheapest path is. A network of the space does better only with a path more accurate than
+any measured here: a target below the bound asks for more accurate networks (a longer recipe, a
+richer space), not a better choice among these.
+
+``--networks`` names what is retrained (default ``winner,paper``): ``winner`` (the study's),
+``paper`` (the paper design), ``largest`` (the largest network of the study's space, every exit it
+allows), or a candidate YAML (as the report gives each network, or ``explorer train`` takes), named
+after its file; ``:FIELD=VALUE`` after one changes a field of it, to ask what a network just outside
+the space would do (``winner:encoder_blocks=11``: the winner with two more encoder blocks). A
+network beside the winner and the paper design adds ``ratio_<name>_N``, its anytime loss over the
+paper design's (``<name>``: the spec, punctuation as underscores).
 
     python benchmarks/bench_held_out.py --study tx2-anytime_depth [--steps 300,2000+130] [--reps 3]
+        [--networks winner,paper,winner:encoder_blocks=11]
 
 Run it after ``make search`` (whose study it reads, from ``reports/``, untouched).
 """
@@ -25,11 +34,13 @@ Run it after ``make search`` (whose study it reads, from ``reports/``, untouched
 from __future__ import annotations
 
 import dataclasses
+import re
 import sys
 import time
 from pathlib import Path
 
 import torch
+import yaml
 from torch.utils.data import Subset
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -40,12 +51,14 @@ from harness import Bench, rotated  # noqa: E402
 from explorer.anytime import anytime_loss  # noqa: E402
 from explorer.cost import candidate_cost  # noqa: E402
 from explorer.data import open_dataset  # noqa: E402
+from explorer.errors import UserError  # noqa: E402
 from explorer.model import build_network  # noqa: E402
 from explorer.space import Candidate, paper_candidate  # noqa: E402
 from explorer.study import trial_record  # noqa: E402
 from explorer.study.config import SearchConfig, StudyContext, study_context  # noqa: E402
 from explorer.study.results import winner  # noqa: E402
 from explorer.study.storage import load_study  # noqa: E402
+from explorer.supernet import largest_candidate  # noqa: E402
 from explorer.training.deployment import DeploymentData, DeploymentRecipe, train_for_deployment  # noqa: E402
 from explorer.training.train import evaluated_frames  # noqa: E402
 
@@ -94,13 +107,64 @@ def parse_recipes(text: str, config: SearchConfig) -> dict[str, tuple[int, int]]
     return recipes
 
 
-def declare(bench: Bench, recipes: dict[str, tuple[int, int]], metric: str, unit: str) -> None:
+def resolve_networks(text: str, study, context: StudyContext) -> dict[str, Candidate]:
+    """``--networks``: specs ``BASE[:FIELD=VALUE...]`` -> {figure name: candidate}. BASE is ``winner``,
+    ``paper``, ``largest`` or a candidate YAML file; each FIELD=VALUE changes one field of it (a YAML
+    value: ``encoder_blocks=11``, ``decoder_widths=[1024,256,64,32]``)."""
+    specs = [part.strip() for part in re.split(r",(?![^\[]*\])", text) if part.strip()]   # not in [...]
+    if not any(spec.split(":")[0] == "paper" for spec in specs):
+        raise SystemExit("--networks: include paper (every ratio is to the paper design)")
+    networks = {}
+    for spec in specs:
+        base, *changes = spec.split(":")
+        candidate = _base_network(base, study, context)
+        name = Path(base).stem if base.endswith((".yaml", ".yml")) else base
+        fields = candidate.to_dict()
+        for change in changes:
+            field, equals, value = change.partition("=")
+            if not equals or not field:
+                raise SystemExit(f"--networks: {change!r} in {spec!r} is not FIELD=VALUE")
+            try:
+                fields[field.strip()] = yaml.safe_load(value)
+            except yaml.YAMLError:
+                raise SystemExit(f"--networks: {value!r} in {spec!r} is not a YAML value") from None
+            name += "_" + "_".join(filter(None, re.split(r"[^0-9A-Za-z]+", change)))
+        try:
+            networks[name] = Candidate.from_dict(fields, source=f"--networks {spec}")
+        except UserError as exc:
+            raise SystemExit(str(exc)) from None
+    return networks
+
+
+def _base_network(base: str, study, context: StudyContext) -> Candidate:
+    if base == "winner":
+        best = winner(study)
+        if best is None:
+            raise SystemExit("the study has no winner yet: let its search finish first")
+        return Candidate.from_dict(trial_record(best).candidate)
+    if base == "paper":
+        return paper_candidate()
+    if base == "largest":
+        return largest_candidate(context.space)
+    if base.endswith((".yaml", ".yml")) and Path(base).is_file():
+        return Candidate.from_yaml(base)
+    raise SystemExit(f"--networks: {base!r} is not winner, paper, largest or a candidate YAML file")
+
+
+def declare(bench: Bench, recipes: dict[str, tuple[int, int]], networks: dict[str, Candidate], metric: str,
+            unit: str) -> None:
     for suffix, (n, tune) in recipes.items():
         recipe = f"{n} steps + {tune} at the deployment size"
-        bench.figure(f"ratio_{suffix}", f"winner / paper design, anytime loss, {recipe}", "", better="lower")
-        bench.figure(f"floor_ratio_{suffix}", f"bound: the most accurate path of either network, as if ready when "
+        for name in networks:
+            if name == "winner":
+                bench.figure(f"ratio_{suffix}", f"winner / paper design, anytime loss, {recipe}", "",
+                             better="lower")
+            elif name != "paper":
+                bench.figure(f"ratio_{name}_{suffix}", f"{name} ({networks[name].key}) / paper design, anytime "
+                             f"loss, {recipe}", "", better="lower")
+        bench.figure(f"floor_ratio_{suffix}", f"bound: the most accurate path of any network, as if ready when "
                      f"the cheapest is, / paper design, {recipe}", "", better="lower")
-        for name in ("winner", "paper"):
+        for name in networks:
             bench.figure(f"{name}_anytime_{suffix}", f"{name}: anytime loss, {recipe}", unit, better="lower")
             bench.figure(f"{name}_last_{suffix}", f"{name}: last path's {metric}, {recipe}", unit, better="lower")
 
@@ -118,6 +182,9 @@ def main() -> None:
                     "ones following it (default 100)")
     ap.add_argument("--val-from", type=int, help="the first validation frame measured (default: the first after "
                     "those the study measured its finalists on)")
+    ap.add_argument("--networks", default="winner,paper", help="what to retrain, comma-separated: winner, paper, "
+                    "largest (the largest network of the study's space) or candidate YAML files (default "
+                    "winner,paper)")
     ap.add_argument("--threads", type=int, default=torch.get_num_threads(), help="torch threads")
     args = bench.parse_args(ap)
     torch.set_num_threads(args.threads)
@@ -125,20 +192,21 @@ def main() -> None:
     study = load_study(args.study, None, args.reports)
     context = study_context(study)
     config = context.config
-    best = winner(study)
-    if best is None:
-        raise SystemExit(f"study {args.study!r} has no winner yet: let its search finish first")
-    networks = {"winner": Candidate.from_dict(trial_record(best).candidate), "paper": paper_candidate()}
+    networks = resolve_networks(args.networks, study, context)
     unit = "m" if config.metric in ("rmse", "mae") else ""
     recipes = parse_recipes(args.steps, config)
-    declare(bench, recipes, config.metric, unit)
+    declare(bench, recipes, networks, config.metric, unit)
     val = open_dataset(config.data, "val", config.input_size, train_augment=False)
     n_val = len(val)
     if args.val_from is None:
         args.val_from = evaluated_frames(val, config.val_limit)
-    bench.note(f"study {args.study}: winner {networks['winner'].key} (trial {best.number}, anytime loss "
-               f"{best.values[0]:.4f} in the study, the best of {config.finalists} finalists retrained "
-               f"{config.finalist_steps}+{config.tuning_steps} steps); {config.device}, {config.budgets[0]}; "
+    best = winner(study)
+    chosen = (f"winner {networks['winner'].key} (trial {best.number}, anytime loss {best.values[0]:.4f} in the "
+              f"study, the best of {config.finalists} finalists retrained {config.finalist_steps}+"
+              f"{config.tuning_steps} steps)" if "winner" in networks else "")
+    others = ", ".join(f"{name} {c.key}" for name, c in networks.items() if name not in ("winner", "paper"))
+    bench.note(f"study {args.study}: {'; '.join(filter(None, (chosen, others)))}; {config.device}, "
+               f"{config.budgets[0]}; "
                f"recipe: the finalists' at {config.train_size[0]}x{config.train_size[1]}, then the study's tuning "
                f"steps at {config.input_size[0]}x{config.input_size[1]} (N+T in --steps: T there); measured on "
                f"validation frames {args.val_from} to {n_val - 1} of {config.data}; seeds {args.first_seed} on; cpu, "
@@ -160,7 +228,10 @@ def main() -> None:
                 print(f"  seed {seed}, {n}+{tune} steps: {name} anytime {loss[name]:.4f}, last path {last:.4f} "
                       f"({time.perf_counter() - t0:.0f} s); by path {[round(e, 4) for e in trained[name][1]]} at "
                       f"{[round(c, 1) for c in trained[name][0]]}", flush=True)
-            bench.add(f"ratio_{suffix}", loss["winner"] / loss["paper"])
+            for name in networks:
+                if name != "paper":
+                    figure = f"ratio_{suffix}" if name == "winner" else f"ratio_{name}_{suffix}"
+                    bench.add(figure, loss[name] / loss["paper"])
             floor = floor_steps(trained)
             bench.add(f"floor_ratio_{suffix}", anytime_loss(*floor, context.budgets[0]) / loss["paper"])
             print(f"  bound: the most accurate path {floor[1][1]:.4f} as if ready at {floor[0][1]:.1f}", flush=True)

@@ -3,6 +3,7 @@ validation frames the study did not choose with."""
 
 from __future__ import annotations
 
+import dataclasses
 import sys
 from pathlib import Path
 
@@ -10,9 +11,10 @@ import pytest
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-from bench_held_out import held_out_data, parse_recipes  # noqa: E402
+from bench_held_out import held_out_data, parse_recipes, resolve_networks  # noqa: E402
 
 from explorer.data import open_dataset  # noqa: E402
+from explorer.space import Candidate, paper_candidate  # noqa: E402
 from explorer.study.config import SearchConfig  # noqa: E402
 
 from conftest import TINY_DATA  # noqa: E402
@@ -47,3 +49,36 @@ def test_recipes_take_the_studys_tuning_unless_given():
 def test_a_recipe_that_is_not_n_or_n_plus_t_is_refused(text):
     with pytest.raises(SystemExit, match="--steps"):
         parse_recipes(text, SearchConfig(study="s"))
+
+
+def test_networks_beside_the_paper_design_are_the_spaces_largest_or_a_yaml(tmp_path):
+    context = SearchConfig(study="s", space="tiny").resolve()
+    mine = Candidate(encoder_blocks=6, width_mult=0.5, decoder_widths=(256, 64, 32, 16), exits=(4,))
+    (tmp_path / "mine.yaml").write_text(mine.to_yaml())
+    networks = resolve_networks(f"paper, largest,{tmp_path / 'mine.yaml'}", None, context)
+    assert list(networks) == ["paper", "largest", "mine"]
+    assert networks["paper"] == paper_candidate() and networks["mine"] == mine
+    largest = networks["largest"]
+    assert context.space.contains(largest)
+    assert largest.encoder_blocks == max(context.space.encoder_blocks)
+    assert largest.width_mult == max(context.space.width_mult)
+
+
+def test_a_field_changed_after_a_base_makes_a_network_just_outside_the_space():
+    context = SearchConfig(study="s", space="anytime_depth").resolve()
+    networks = resolve_networks("paper,paper:encoder_blocks=11:decoder_widths=[1024, 64, 32, 16]", None, context)
+    assert list(networks) == ["paper", "paper_encoder_blocks_11_decoder_widths_1024_64_32_16"]
+    deeper = networks["paper_encoder_blocks_11_decoder_widths_1024_64_32_16"]
+    assert deeper == dataclasses.replace(paper_candidate(), encoder_blocks=11, decoder_widths=(1024, 64, 32, 16))
+    assert not context.space.contains(deeper)
+
+
+@pytest.mark.parametrize("text, message", [("winner,largest", "include paper"), ("paper,biggest", "'biggest'"),
+                                           ("paper,missing.yaml", "'missing.yaml'"),
+                                           ("paper,paper:encoder_blocks", "not FIELD=VALUE"),
+                                           ("paper,paper:encoder_blocks=13", "needs 5 decoder stages"),
+                                           ("paper,paper:colour=red", "unknown candidate field"),
+                                           ("paper,paper:decoder_widths=[1,", "not a YAML value")])
+def test_networks_that_cannot_be_resolved_are_refused(text, message):
+    with pytest.raises(SystemExit, match=message):
+        resolve_networks(text, None, SearchConfig(study="s", space="tiny").resolve())
