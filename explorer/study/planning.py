@@ -92,6 +92,7 @@ class Plan:
     trial_s: float = 0.0         # a trial started just before the sampling deadline may run this long
     tune: str = ""               # the retrainings' tuning at the deployment size, in words ("" = none)
     fits: bool = True            # False when even the smallest settings need more than the time limit
+    not_retrained: int = 0       # finalists and baselines asked for that the time limit left untrained
 
     @property
     def expected_s(self) -> float:

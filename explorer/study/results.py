@@ -297,6 +297,9 @@ def missing_baselines(study: optuna.Study) -> list[dict]:
     interrupted = interrupted_trials(study, trials)
     stored = study_record(study)
     with_baselines = bool(study_config(study).baselines) if stored.config else True
+    why_untrained = ("not retrained: the time limit came first (run the search again with a longer "
+                     "--time-limit: it resumes and retrains it)" if (stored.plan or {}).get("not_retrained")
+                     else "not retrained yet (--finalists 0, or the study has not ended)")
     out = []
     for name in study_baselines(study):
         label = baseline_label(name)
@@ -306,8 +309,8 @@ def missing_baselines(study: optuna.Study) -> list[dict]:
         if not tagged:
             skipped = stored.baselines_not_estimated.get(name)
             why = ("not run: the study was created with --no-baselines" if not with_baselines
-                   else f"not estimated: {skipped}; not retrained yet (--finalists 0, or the study has "
-                   "not ended)" if skipped else "not run: it is not in this study")
+                   else f"not estimated: {skipped}; {why_untrained}" if skipped
+                   else "not run: it is not in this study")
             out.append({"name": name, "label": label, "why": why})
             continue
         t = tagged[-1]  # the latest attempt

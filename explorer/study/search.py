@@ -554,7 +554,8 @@ def _retrain_finalists(study: optuna.Study, context: StudyContext, plan: "Plan |
     retrain_finalists(study, context, reports, progress=on_finalist, extra=extra, deadline=deadline, workers=workers)
     retrained, skipped = _retrained_and_skipped(study, config)
     if plan is not None and skipped:
-        plan = dataclasses.replace(plan, changes=plan.changes + (planning.not_retrained(skipped, plan, left_s),))
+        plan = dataclasses.replace(plan, not_retrained=skipped,
+                                   changes=plan.changes + (planning.not_retrained(skipped, plan, left_s),))
         _publish_plan(study, plan, on_plan)
     if plan is not None and retrained > plan.finalists:
         plan = dataclasses.replace(plan, finalists=retrained, retrain_jobs=plan.retrain_jobs + retrained - plan.finalists,

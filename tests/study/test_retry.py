@@ -252,6 +252,19 @@ def test_missing_baselines_say_why(tmp_path, capsys):
     assert {m["why"] for m in missing_baselines(none)} == {"not run: the study was created with --no-baselines"}
 
 
+def test_a_baseline_the_time_limit_left_untrained_says_so():
+    from explorer.study.records import record_study
+    study = _study_with([], device="tx2", budgets=["time:uniform:33ms"])
+    record_study(study, baselines_not_estimated={"fastdepth": "outside the space 'anytime_depth'"})
+    assert {m["name"]: m["why"] for m in missing_baselines(study)}["fastdepth"] == (
+        "not estimated: outside the space 'anytime_depth'; not retrained yet (--finalists 0, or the study has not "
+        "ended)")
+    record_study(study, plan={"finalists": 3, "not_retrained": 1})
+    why = {m["name"]: m["why"] for m in missing_baselines(study)}["fastdepth"]
+    assert why == ("not estimated: outside the space 'anytime_depth'; not retrained: the time limit came first (run "
+                   "the search again with a longer --time-limit: it resumes and retrains it)")
+
+
 def test_objectives_are_named():
     assert objective_names(SearchConfig(study="x")) == ["anytime_loss[time:uniform:33ms]"]
     assert objective_names(SearchConfig(study="x", budgets=("energy:uniform:0.5J",),
