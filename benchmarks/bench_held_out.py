@@ -112,7 +112,7 @@ def resolve_networks(text: str, study, context: StudyContext) -> dict[str, Candi
     ``paper``, ``largest`` or a candidate YAML file; each FIELD=VALUE changes one field of it (a YAML
     value: ``encoder_blocks=11``, ``decoder_widths=[1024,256,64,32]``)."""
     specs = [part.strip() for part in re.split(r",(?![^\[]*\])", text) if part.strip()]   # not in [...]
-    if not any(spec.split(":")[0] == "paper" for spec in specs):
+    if "paper" not in specs:
         raise SystemExit("--networks: include paper (every ratio is to the paper design)")
     networks = {}
     for spec in specs:
@@ -183,7 +183,8 @@ def main() -> None:
     ap.add_argument("--val-from", type=int, help="the first validation frame measured (default: the first after "
                     "those the study measured its finalists on)")
     ap.add_argument("--networks", default="winner,paper", help="what to retrain, comma-separated: winner, paper, "
-                    "largest (the largest network of the study's space) or candidate YAML files (default "
+                    "largest (the largest network of the study's space) or candidate YAML files, each with "
+                    ":FIELD=VALUE changes if any (winner:encoder_blocks=11); paper among them (default "
                     "winner,paper)")
     ap.add_argument("--threads", type=int, default=torch.get_num_threads(), help="torch threads")
     args = bench.parse_args(ap)

@@ -73,7 +73,9 @@ def test_a_field_changed_after_a_base_makes_a_network_just_outside_the_space():
     assert not context.space.contains(deeper)
 
 
-@pytest.mark.parametrize("text, message", [("winner,largest", "include paper"), ("paper,biggest", "'biggest'"),
+@pytest.mark.parametrize("text, message", [("winner,largest", "include paper"),
+                                           ("winner,paper:encoder_blocks=7", "include paper"),
+                                           ("paper,biggest", "'biggest'"),
                                            ("paper,missing.yaml", "'missing.yaml'"),
                                            ("paper,paper:encoder_blocks", "not FIELD=VALUE"),
                                            ("paper,paper:encoder_blocks=13", "needs 5 decoder stages"),
