@@ -21,12 +21,15 @@ richer space), not a better choice among these.
 ``paper`` (the paper design), ``largest`` (the largest network of the study's space, every exit it
 allows), or a candidate YAML (as the report gives each network, or ``explorer train`` takes), named
 after its file; ``:FIELD=VALUE`` after one changes a field of it, to ask what a network just outside
-the space would do (``winner:encoder_blocks=11``: the winner with two more encoder blocks). A
-network beside the winner and the paper design adds ``ratio_<name>_N``, its anytime loss over the
-paper design's (``<name>``: the spec, punctuation as underscores).
+the space would do (``winner:encoder_blocks=11``: the winner with two more encoder blocks), and
+``:weights=anytime`` trains it with each exit's loss weighted by its share of the study's anytime loss
+(``explorer train --exit-weights anytime``) instead of equal weights. A network beside the winner and
+the paper design adds ``ratio_<name>_N``, its anytime loss over the paper design's trained with the
+same weights when that is measured too (``paper:weights=anytime``), else the plain one's (``<name>``:
+the spec, punctuation as underscores).
 
     python benchmarks/bench_held_out.py --study tx2-anytime_depth [--steps 300,2000+130] [--reps 3]
-        [--networks winner,paper,winner:encoder_blocks=11]
+        [--networks winner,paper,winner:encoder_blocks=11,winner:weights=anytime,paper:weights=anytime]
 
 Run it after ``make search`` (whose study it reads, from ``reports/``, untouched).
 """
@@ -48,7 +51,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_search_value import floor_steps  # noqa: E402
 from harness import Bench, rotated  # noqa: E402
 
-from explorer.anytime import anytime_loss  # noqa: E402
+from explorer.anytime import anytime_loss, exit_loss_weights  # noqa: E402
 from explorer.cost import candidate_cost  # noqa: E402
 from explorer.data import open_dataset  # noqa: E402
 from explorer.errors import UserError  # noqa: E402
@@ -74,17 +77,31 @@ def held_out_data(context: StudyContext, seed: int, val_from: int) -> Deployment
                           Subset(val, range(val_from, len(val))))
 
 
-def retrained(candidate: Candidate, recipe: DeploymentRecipe, seed: int, data: DeploymentData,
+#: how each exit's training loss is weighted (``:weights=``): equal, or by its share of the anytime loss
+WEIGHTINGS = ("equal", "anytime")
+
+
+@dataclasses.dataclass(frozen=True)
+class Network:
+    """What ``--networks`` names: a candidate and how its exits' losses are weighted in training."""
+
+    candidate: Candidate
+    weights: str = "equal"
+
+
+def retrained(network: Network | Candidate, recipe: DeploymentRecipe, seed: int, data: DeploymentData,
               context: StudyContext) -> tuple[list[float], list[float]]:
-    """``candidate`` trained from scratch with ``recipe`` and ``seed``: (its paths' costs on the study's
+    """``network`` trained from scratch with ``recipe`` and ``seed``: (its paths' costs on the study's
     device for its first budget's kind, their errors measured on ``data``'s validation frames)."""
+    network = network if isinstance(network, Network) else Network(network)
     config, budget = context.config, context.budgets[0]
+    costs = candidate_cost(network.candidate, tuple(config.input_size)).path_costs(context.device, budget.kind)
+    weights = exit_loss_weights(costs, budget) if network.weights == "anytime" else None
     torch.manual_seed(seed)
-    net = build_network(candidate)
-    recipe = dataclasses.replace(recipe, train=dataclasses.replace(recipe.train, seed=seed))
+    net = build_network(network.candidate)
+    recipe = dataclasses.replace(recipe, train=dataclasses.replace(recipe.train, seed=seed, exit_weights=weights))
     result = train_for_deployment(net, data, recipe, torch.device("cpu"))
     errors = [float(x) for x in result.metrics[config.metric]]
-    costs = candidate_cost(candidate, tuple(config.input_size)).path_costs(context.device, budget.kind)
     return [float(c) for c in costs], errors
 
 
@@ -107,10 +124,11 @@ def parse_recipes(text: str, config: SearchConfig) -> dict[str, tuple[int, int]]
     return recipes
 
 
-def resolve_networks(text: str, study, context: StudyContext) -> dict[str, Candidate]:
-    """``--networks``: specs ``BASE[:FIELD=VALUE...]`` -> {figure name: candidate}. BASE is ``winner``,
+def resolve_networks(text: str, study, context: StudyContext) -> dict[str, Network]:
+    """``--networks``: specs ``BASE[:FIELD=VALUE...]`` -> {figure name: network}. BASE is ``winner``,
     ``paper``, ``largest`` or a candidate YAML file; each FIELD=VALUE changes one field of it (a YAML
-    value: ``encoder_blocks=11``, ``decoder_widths=[1024,256,64,32]``)."""
+    value: ``encoder_blocks=11``, ``decoder_widths=[1024,256,64,32]``), or its training's exit weights
+    (``weights=anytime``)."""
     specs = [part.strip() for part in re.split(r",(?![^\[]*\])", text) if part.strip()]   # not in [...]
     if "paper" not in specs:
         raise SystemExit("--networks: include paper (every ratio is to the paper design)")
@@ -119,21 +137,36 @@ def resolve_networks(text: str, study, context: StudyContext) -> dict[str, Candi
         base, *changes = spec.split(":")
         candidate = _base_network(base, study, context)
         name = Path(base).stem if base.endswith((".yaml", ".yml")) else base
-        fields = candidate.to_dict()
+        fields, weights = candidate.to_dict(), "equal"
         for change in changes:
             field, equals, value = change.partition("=")
             if not equals or not field:
                 raise SystemExit(f"--networks: {change!r} in {spec!r} is not FIELD=VALUE")
-            try:
-                fields[field.strip()] = yaml.safe_load(value)
-            except yaml.YAMLError:
-                raise SystemExit(f"--networks: {value!r} in {spec!r} is not a YAML value") from None
+            if field.strip() == "weights":
+                if value.strip() not in WEIGHTINGS:
+                    raise SystemExit(f"--networks: weights={value} in {spec!r}: use one of {', '.join(WEIGHTINGS)}")
+                weights = value.strip()
+            else:
+                try:
+                    fields[field.strip()] = yaml.safe_load(value)
+                except yaml.YAMLError:
+                    raise SystemExit(f"--networks: {value!r} in {spec!r} is not a YAML value") from None
             name += "_" + "_".join(filter(None, re.split(r"[^0-9A-Za-z]+", change)))
         try:
-            networks[name] = Candidate.from_dict(fields, source=f"--networks {spec}")
+            networks[name] = Network(Candidate.from_dict(fields, source=f"--networks {spec}"), weights)
         except UserError as exc:
             raise SystemExit(str(exc)) from None
     return networks
+
+
+def reference_of(name: str, networks: dict[str, Network]) -> str:
+    """The paper design a network's ratio is taken over: the one trained with the same exit weights when it
+    is measured (and the network is not a paper design itself), else the plain one."""
+    network, paper = networks[name], paper_candidate()
+    if network.candidate == paper:
+        return "paper"
+    return next((other for other, n in networks.items() if n.candidate == paper and n.weights == network.weights),
+                "paper")
 
 
 def _base_network(base: str, study, context: StudyContext) -> Candidate:
@@ -151,17 +184,17 @@ def _base_network(base: str, study, context: StudyContext) -> Candidate:
     raise SystemExit(f"--networks: {base!r} is not winner, paper, largest or a candidate YAML file")
 
 
-def declare(bench: Bench, recipes: dict[str, tuple[int, int]], networks: dict[str, Candidate], metric: str,
+def declare(bench: Bench, recipes: dict[str, tuple[int, int]], networks: dict[str, Network], metric: str,
             unit: str) -> None:
     for suffix, (n, tune) in recipes.items():
         recipe = f"{n} steps + {tune} at the deployment size"
         for name in networks:
             if name == "winner":
-                bench.figure(f"ratio_{suffix}", f"winner / paper design, anytime loss, {recipe}", "",
+                bench.figure(f"ratio_{suffix}", f"winner / {reference_of(name, networks)}, anytime loss, {recipe}", "",
                              better="lower")
             elif name != "paper":
-                bench.figure(f"ratio_{name}_{suffix}", f"{name} ({networks[name].key}) / paper design, anytime "
-                             f"loss, {recipe}", "", better="lower")
+                bench.figure(f"ratio_{name}_{suffix}", f"{name} ({networks[name].candidate.key}) / "
+                             f"{reference_of(name, networks)}, anytime loss, {recipe}", "", better="lower")
         bench.figure(f"floor_ratio_{suffix}", f"bound: the most accurate path of any network, as if ready when "
                      f"the cheapest is, / paper design, {recipe}", "", better="lower")
         for name in networks:
@@ -184,8 +217,8 @@ def main() -> None:
                     "those the study measured its finalists on)")
     ap.add_argument("--networks", default="winner,paper", help="what to retrain, comma-separated: winner, paper, "
                     "largest (the largest network of the study's space) or candidate YAML files, each with "
-                    ":FIELD=VALUE changes if any (winner:encoder_blocks=11); paper among them (default "
-                    "winner,paper)")
+                    ":FIELD=VALUE changes if any (winner:encoder_blocks=11), :weights=anytime to weight its exits' "
+                    "training losses by their share of the anytime loss; paper among them (default winner,paper)")
     ap.add_argument("--threads", type=int, default=torch.get_num_threads(), help="torch threads")
     args = bench.parse_args(ap)
     torch.set_num_threads(args.threads)
@@ -202,10 +235,10 @@ def main() -> None:
     if args.val_from is None:
         args.val_from = evaluated_frames(val, config.val_limit)
     best = winner(study)
-    chosen = (f"winner {networks['winner'].key} (trial {best.number}, anytime loss {best.values[0]:.4f} in the "
-              f"study, the best of {config.finalists} finalists retrained {config.finalist_steps}+"
+    chosen = (f"winner {networks['winner'].candidate.key} (trial {best.number}, anytime loss {best.values[0]:.4f} "
+              f"in the study, the best of {config.finalists} finalists retrained {config.finalist_steps}+"
               f"{config.tuning_steps} steps)" if "winner" in networks else "")
-    others = ", ".join(f"{name} {c.key}" for name, c in networks.items() if name not in ("winner", "paper"))
+    others = ", ".join(f"{name} {n.candidate.key}" for name, n in networks.items() if name not in ("winner", "paper"))
     bench.note(f"study {args.study}: {'; '.join(filter(None, (chosen, others)))}; {config.device}, "
                f"{config.budgets[0]}; "
                f"recipe: the finalists' at {config.train_size[0]}x{config.train_size[1]}, then the study's tuning "
@@ -232,7 +265,7 @@ def main() -> None:
             for name in networks:
                 if name != "paper":
                     figure = f"ratio_{suffix}" if name == "winner" else f"ratio_{name}_{suffix}"
-                    bench.add(figure, loss[name] / loss["paper"])
+                    bench.add(figure, loss[name] / loss[reference_of(name, networks)])
             floor = floor_steps(trained)
             bench.add(f"floor_ratio_{suffix}", anytime_loss(*floor, context.budgets[0]) / loss["paper"])
             print(f"  bound: the most accurate path {floor[1][1]:.4f} as if ready at {floor[0][1]:.1f}", flush=True)

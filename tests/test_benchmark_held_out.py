@@ -11,7 +11,8 @@ import pytest
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-from bench_held_out import held_out_data, parse_recipes, resolve_networks  # noqa: E402
+from bench_held_out import (Network, held_out_data, parse_recipes, reference_of, resolve_networks,  # noqa: E402
+                            retrained)
 
 from explorer.data import open_dataset  # noqa: E402
 from explorer.space import Candidate, paper_candidate  # noqa: E402
@@ -57,8 +58,9 @@ def test_networks_beside_the_paper_design_are_the_spaces_largest_or_a_yaml(tmp_p
     (tmp_path / "mine.yaml").write_text(mine.to_yaml())
     networks = resolve_networks(f"paper, largest,{tmp_path / 'mine.yaml'}", None, context)
     assert list(networks) == ["paper", "largest", "mine"]
-    assert networks["paper"] == paper_candidate() and networks["mine"] == mine
-    largest = networks["largest"]
+    assert networks["paper"].candidate == paper_candidate() and networks["mine"].candidate == mine
+    assert {n.weights for n in networks.values()} == {"equal"}
+    largest = networks["largest"].candidate
     assert context.space.contains(largest)
     assert largest.encoder_blocks == max(context.space.encoder_blocks)
     assert largest.width_mult == max(context.space.width_mult)
@@ -68,9 +70,23 @@ def test_a_field_changed_after_a_base_makes_a_network_just_outside_the_space():
     context = SearchConfig(study="s", space="anytime_depth").resolve()
     networks = resolve_networks("paper,paper:encoder_blocks=11:decoder_widths=[1024, 64, 32, 16]", None, context)
     assert list(networks) == ["paper", "paper_encoder_blocks_11_decoder_widths_1024_64_32_16"]
-    deeper = networks["paper_encoder_blocks_11_decoder_widths_1024_64_32_16"]
+    deeper = networks["paper_encoder_blocks_11_decoder_widths_1024_64_32_16"].candidate
     assert deeper == dataclasses.replace(paper_candidate(), encoder_blocks=11, decoder_widths=(1024, 64, 32, 16))
     assert not context.space.contains(deeper)
+
+
+def test_weights_anytime_trains_a_network_with_anytime_exit_weights_and_pairs_it_with_its_paper_design():
+    context = SearchConfig(study="s", space="anytime_depth").resolve()
+    networks = resolve_networks("paper,paper:weights=anytime,largest:weights=anytime,largest", None, context)
+    assert list(networks) == ["paper", "paper_weights_anytime", "largest_weights_anytime", "largest"]
+    assert networks["paper_weights_anytime"] == Network(paper_candidate(), "anytime")
+    assert networks["largest_weights_anytime"].candidate == networks["largest"].candidate
+    # a network is compared with the paper design trained the same way; the paper design's variant with the plain one
+    assert reference_of("largest_weights_anytime", networks) == "paper_weights_anytime"
+    assert reference_of("largest", networks) == "paper"
+    assert reference_of("paper_weights_anytime", networks) == "paper"
+    alone = resolve_networks("paper,largest:weights=anytime", None, context)
+    assert reference_of("largest_weights_anytime", alone) == "paper"
 
 
 @pytest.mark.parametrize("text, message", [("winner,largest", "include paper"),
@@ -78,9 +94,32 @@ def test_a_field_changed_after_a_base_makes_a_network_just_outside_the_space():
                                            ("paper,biggest", "'biggest'"),
                                            ("paper,missing.yaml", "'missing.yaml'"),
                                            ("paper,paper:encoder_blocks", "not FIELD=VALUE"),
+                                           ("paper,paper:weights=budget", "use one of equal, anytime"),
                                            ("paper,paper:encoder_blocks=13", "needs 5 decoder stages"),
                                            ("paper,paper:colour=red", "unknown candidate field"),
                                            ("paper,paper:decoder_widths=[1,", "not a YAML value")])
 def test_networks_that_cannot_be_resolved_are_refused(text, message):
     with pytest.raises(SystemExit, match=message):
         resolve_networks(text, None, SearchConfig(study="s", space="tiny").resolve())
+
+
+def test_a_network_with_anytime_weights_is_trained_with_its_exits_anytime_shares(monkeypatch):
+    import bench_held_out
+    from explorer.anytime import exit_loss_weights
+    from explorer.cost import candidate_cost
+
+    context = SearchConfig(study="s", data=TINY_DATA, input_size=(64, 64), train_size=(32, 32)).resolve()
+    seen = []
+
+    def fake_training(net, data, recipe, accelerator):
+        seen.append(recipe.train)
+        return type("Result", (), {"metrics": {"rmse": [1.0] * net.candidate.num_paths}})()
+
+    monkeypatch.setattr(bench_held_out, "train_for_deployment", fake_training)
+    recipe = dataclasses.replace(context.config, finalist_steps=10).finalist_recipe()
+    for weights in ("equal", "anytime"):
+        retrained(Network(paper_candidate(), weights), recipe, 7, None, context)
+    costs = candidate_cost(paper_candidate(), (64, 64)).path_costs(context.device, "time")
+    assert seen[0].exit_weights is None and seen[0].seed == 7
+    assert seen[1].exit_weights == exit_loss_weights(costs, context.budgets[0])
+    assert seen[1].exit_weights[-1] > 1 / len(seen[1].exit_weights)   # the last path serves most of the budget
