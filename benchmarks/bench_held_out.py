@@ -89,11 +89,10 @@ class Network:
     weights: str = "equal"
 
 
-def retrained(network: Network | Candidate, recipe: DeploymentRecipe, seed: int, data: DeploymentData,
+def retrained(network: Network, recipe: DeploymentRecipe, seed: int, data: DeploymentData,
               context: StudyContext) -> tuple[list[float], list[float]]:
     """``network`` trained from scratch with ``recipe`` and ``seed``: (its paths' costs on the study's
     device for its first budget's kind, their errors measured on ``data``'s validation frames)."""
-    network = network if isinstance(network, Network) else Network(network)
     config, budget = context.config, context.budgets[0]
     costs = candidate_cost(network.candidate, tuple(config.input_size)).path_costs(context.device, budget.kind)
     weights = exit_loss_weights(costs, budget) if network.weights == "anytime" else None
