@@ -10,7 +10,7 @@ import warnings
 from typing import Sequence
 
 from explorer.cli import deploy, devices, inspect, notebook, study, training
-from explorer.cli._common import _Parser, check_numbers, explain
+from explorer.cli._common import _Parser, check_numbers, explain, resolve_data
 from explorer.cli.study import _print_outcome  # noqa: F401  (the closing summary, for tests and notebooks)
 from explorer.errors import UserError
 from explorer.files import sigterm_unwinds
@@ -51,6 +51,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         with sigterm_unwinds():
             check_numbers(args)
+            resolve_data(args)
             args.fn(args)
     except UserError as exc:
         sys.stderr.write(f"explorer: error: {exc}\n")

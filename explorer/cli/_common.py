@@ -194,7 +194,12 @@ FLAG_HELP = {
                  "study's reports/<study>/study.db where it has one; postgresql://... for several machines)",
     "--space": "search space: a shipped name (anytime_depth, paper, tiny) or a YAML file",
     "--data": "data set: synthetic (generated here, cached), synthetic:TRAIN:VAL, nyu:PATH (h5 folder or CSV), "
-              "kitti:PATH; sequences: synthetic-seq[:TRAIN:VAL], kitti-seq:DRIVE, frames:FOLDER",
+              "kitti:PATH, rosbag:BAG; sequences: synthetic-seq[:TRAIN:VAL], kitti-seq:DRIVE, frames:FOLDER, "
+              "rosbag-seq:BAG; options after commas, e.g. rosbag:run.bag,scan=/scan,tolerance=0.05 or "
+              "nyu:pairs.csv,val=val.csv (see the data guide)",
+    "--lidar": "lidar.yaml: your 2D LiDAR and its mount (fov, resolution, range_min, range_max, noise, dropout; "
+               "height, tilt, roll, ... or T_cam_lidar). Scans are simulated with it where the data has none, "
+               "and it is the mount of real scans that come without one (default: the paper's ideal centre row)",
     "--device": "device profile: a built-in name (see explorer devices) or a YAML file from explorer calibrate",
     "--budget": "budget distribution, e.g. time:uniform:33ms or energy:uniform:0.5J",
     "--metric": "the per-path error the anytime loss averages: rmse (m), mae (m) or rel",
@@ -252,3 +257,31 @@ def smallest_status(record: dict) -> str:
     """A supernet step's smallest-subnet loss for progress, or that no subnet is the smallest yet
     (progressive shrinking trains full widths first)."""
     return "full widths" if record["smallest"] is None else f"smallest {record['smallest']:.3f}"
+
+
+def resolve_data(args: argparse.Namespace) -> None:
+    """``--data`` checked and written canonically, with ``--lidar``'s model in it: once, at the edge, so
+    that a study, a supernet's cache and a checkpoint are named by what the data is."""
+    if not hasattr(args, "data"):   # a command without data (explorer run's --lidar is the scan's own)
+        return
+    lidar = getattr(args, "lidar", None)
+    data = args.data
+    if not isinstance(data, str) and lidar is None:
+        return
+    from explorer.data import parse_data_spec, with_lidar
+    if lidar is not None:
+        if not isinstance(data, str):
+            raise UserError("--lidar describes the scans of --data: give --data too")
+        import yaml
+
+        from explorer.files import read_text
+        try:
+            model = yaml.safe_load(read_text(Path(lidar), "LiDAR file"))
+        except yaml.YAMLError as exc:
+            raise UserError(f"{lidar}: not valid YAML ({str(exc).splitlines()[0]})") from None
+        if not isinstance(model, dict):
+            raise UserError(f"{lidar}: expected a mapping of LiDAR keys (fov, resolution, height, tilt, ...)")
+        args.data = with_lidar(data, model)
+    else:
+        args.data = str(parse_data_spec(data))
+

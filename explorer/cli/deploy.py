@@ -99,12 +99,18 @@ def cmd_run(args) -> None:
     from explorer.console import console, print_json
     from explorer.deploy.runtime import run_files
     res = run_files(Path(args.model), Path(args.image), Path(args.scan), args.deadline,
-                    Path(args.out) if args.out else None, args.threads, args.provider)
+                    Path(args.out) if args.out else None, args.threads, args.provider,
+                    lidar=Path(args.lidar_yaml) if args.lidar_yaml else None,
+                    intrinsics=Path(args.intrinsics) if args.intrinsics else None)
     if args.json:
         print_json(res)
         return
     console.print(f"returned path {res['path']} (ready at {res['ready_ms']:.2f} ms, deadline {args.deadline:g} ms); "
                   f"{res['completed_paths']} path(s) completed" + (f"; wrote {args.out}" if args.out else ""))
+    if "scan_rows" in res:
+        low, high = res["scan_rows"]
+        console.print(f"scan: {res['scan_columns']} column(s) with a return, on input rows {low}-{high} (median "
+                      f"{res['projected_row']}; the model's scan row {res['scan_row']})", markup=False, highlight=False)
 
 
 def cmd_curve(args) -> None:
@@ -174,7 +180,15 @@ def register(sub, add, reports: dict) -> None:
     s = add("run", cmd_run, "run an exported model under a deadline and return the best depth map")
     s.add_argument("model", help="folder written by explorer export")
     s.add_argument("--image", required=True)
-    s.add_argument("--scan", required=True, help=".csv or .npy: one depth (m) per image column, 0 = none")
+    s.add_argument("--scan", required=True, help=".csv or .npy: one depth (m) per image column, 0 = none; with "
+                   "--lidar: one range (m) per beam of the LiDAR, inf/nan/0 = no return")
+    # dest: not ``lidar``, which names the training commands' --lidar (the scans of --data: resolve_data)
+    s.add_argument("--lidar", dest="lidar_yaml", metavar="LIDAR.YAML",
+                   help="the LiDAR and its mount (fov, resolution, range_min, range_max, height, tilt, ... or "
+                   "T_cam_lidar): --scan is then its ranges, projected into the image, and --image may be any "
+                   "size (resized to the model's, bilinear); needs --intrinsics")
+    s.add_argument("--intrinsics", metavar="FILE", help="with --lidar: the camera matrix of --image at its own "
+                   "size, as fx fy cx cy or the 9 entries of K (pixels)")
     s.add_argument("--deadline", type=_ms, required=True, help="e.g. 8ms")
     s.add_argument("--out", help="depth map file to write: .png (16-bit, millimetres) or .npy (metres) "
                    "(default: none written)")

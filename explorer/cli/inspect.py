@@ -153,13 +153,18 @@ def cmd_data_inspect(args) -> None:
     from explorer.metrics import MetricAverager, depth_metrics
     from explorer.model import interpolate_scan
     with progress(transient=True) as bar:
-        task = bar.add_task("generating synthetic scenes", total=None, status="")
+        task = bar.add_task("preparing the data (generated or decoded once, then cached)", total=None, status="")
         ds = open_dataset(args.data, args.split, args.input_size, train_augment=False,
                           progress=lambda i, n: bar.update(task, completed=i, total=n))
+        try:
+            other = open_dataset(args.data, "train" if args.split == "val" else "val", args.input_size,
+                                 train_augment=False)
+        except UserError as exc:   # e.g. a folder of Ma et al.'s val/ alone: this split is still worth a look
+            other = str(exc)
     n = len(ds) if not args.frames else min(args.frames, len(ds))
     if n == 0:
         raise UserError(f"data {args.data}: the {args.split} split is empty")
-    avg, dmin, dmax, valid, scan_valid = MetricAverager(), np.inf, 0.0, [], []
+    avg, dmin, dmax, valid, scan_valid, rows = MetricAverager(), np.inf, 0.0, [], [], []
     for i in range(n):
         item = ds[i]
         d = item["depth"]
@@ -168,23 +173,91 @@ def cmd_data_inspect(args) -> None:
             dmin, dmax = min(dmin, float(pos.min())), max(dmax, float(pos.max()))
         valid.append(float((d > 0).float().mean()))
         scan_valid.append(float((item["scan"] > 0).float().mean()))
+        rows.append(item["scan_rows"].numpy())
         p0 = interpolate_scan(item["scan"][None], d.shape[1])[0]
         avg.add(depth_metrics(p0, d))
+    rows = np.concatenate(rows)
     res = {"data": str(ds.name), "split": args.split, "frames": len(ds), "inspected": n,
            "input_size": list(args.input_size), "image_shape": list(item["image"].shape),
            "depth_range_m": [dmin, dmax], "valid_depth_fraction": float(np.mean(valid)),
            "scan_return_fraction": float(np.mean(scan_valid)), "scan_row": item["scan_row"],
-           "path0": avg.result()}
+           "scan_rows_range": [int(rows.min()), int(rows.max())], "path0": avg.result(),
+           "splits": _splits(ds, other, args.split), "source": _source_facts(ds)}
+    if args.out:
+        _draw_scan(ds[0], Path(args.out))
+        res["png"] = str(args.out)
     if args.json:
         print_json(res)
         return
-    console.print(f"[bold]{res['data']}[/bold] {args.split}: {len(ds)} frames (inspected {n}) at "
+    _print_inspection(console, res, args)
+
+
+def _splits(ds, other, split: str) -> dict:
+    """Both splits' sizes and ends by frame name, and whether they share a frame (they must not);
+    ``other``: the other split, or why it could not be opened."""
+    other_split = "train" if split == "val" else "val"
+    names = {split: ds.frame_names(), other_split: [] if isinstance(other, str) else other.frame_names()}
+    out = {s: {"frames": len(v), "first": v[0] if v else None, "last": v[-1] if v else None}
+           for s, v in names.items()}
+    if isinstance(other, str):
+        out[other_split]["unavailable"] = other
+    out["shared_frames"] = len(set(names["train"]) & set(names["val"]))
+    return out
+
+
+def _source_facts(ds) -> dict:
+    """What a recording's reader counted while pairing its streams (ROS bags), else nothing."""
+    source = getattr(ds, "frames", None) or getattr(ds, "source", None)
+    counts = getattr(source, "counts", None)
+    return {"counts": dict(counts)} if counts else {}
+
+
+def _print_inspection(console, res: dict, args) -> None:
+    sp = res["splits"]
+    console.print(f"[bold]{res['data']}[/bold] {args.split}: {res['frames']} frames (inspected {res['inspected']}) at "
                   f"{args.input_size[0]}x{args.input_size[1]}")
-    console.print(f"  depth {dmin:.2f}-{dmax:.2f} m, {res['valid_depth_fraction']:.1%} of pixels valid; "
-                  f"scan row {res['scan_row']}, {res['scan_return_fraction']:.1%} of columns with a return")
+    for name in ("train", "val"):
+        s = sp[name]
+        console.print(f"  {name}: " + (f"unavailable ({s['unavailable']})" if "unavailable" in s else
+                                         f"{s['frames']} frames, {s['first']} .. {s['last']}"), markup=False)
+    shared = sp["shared_frames"]
+    console.print("  no frame is in both splits" if not shared else
+                  f"  [red]{shared} frame(s) are in both splits[/red]")
+    if res["source"].get("counts"):
+        console.print("  pairing: " + ", ".join(f"{k} {v}" for k, v in res["source"]["counts"].items()))
+    lo, hi = res["scan_rows_range"]
+    where = f"row {lo}" if lo == hi else f"rows {lo}-{hi} (median {res['scan_row']})"
+    console.print(f"  depth {res['depth_range_m'][0]:.2f}-{res['depth_range_m'][1]:.2f} m, "
+                  f"{res['valid_depth_fraction']:.1%} of pixels valid; scan on {where}, "
+                  f"{res['scan_return_fraction']:.1%} of columns with a return")
     p0 = res["path0"]
     console.print(f"  path 0 (scan, nearest): RMSE {p0['rmse']:.3f} m, REL {p0['rel']:.3f}, "
                   f"delta1 {p0['delta1']:.3f}")
+    if res.get("png"):
+        console.print(f"  the first frame with its scan drawn over it: {res['png']}")
+
+
+def _draw_scan(item: dict, out: Path) -> None:
+    """The frame with each column's return drawn at its row, coloured by depth (near red, far blue)."""
+    import numpy as np
+    from PIL import Image
+
+    from explorer.files import write_atomically
+    if out.suffix.lower() != ".png":
+        raise UserError(f"--out {out}: the drawing is a PNG; give a name ending in .png")
+    rgb = (item["image"].permute(1, 2, 0).numpy() * 255).astype(np.uint8).copy()
+    scan, rows = item["scan"].numpy(), item["scan_rows"].numpy()
+    h, w = rgb.shape[:2]
+    cols = np.nonzero(scan > 0)[0]
+    if len(cols):
+        t = (scan[cols] - scan[cols].min()) / max(float(np.ptp(scan[cols])), 1e-6)
+        colour = np.stack([255 * (1 - t), 64 * np.ones_like(t), 255 * t], axis=1).astype(np.uint8)
+        for dy in (-1, 0, 1):
+            rgb[np.clip(rows[cols] + dy, 0, h - 1), cols] = colour
+    import io
+    buf = io.BytesIO()
+    Image.fromarray(rgb).save(buf, format="PNG")
+    write_atomically(out, buf.getvalue())
 
 
 def register(sub, add, reports: dict) -> None:
@@ -232,13 +305,14 @@ def register(sub, add, reports: dict) -> None:
     sp = add("data", None, "inspect a data set")
     dsub = sp.add_subparsers(dest="sub", required=True, parser_class=_Parser, metavar="SUBCOMMAND")
     s = dsub.add_parser("inspect", help="frames, shapes, depth range and path 0's metrics")
-    s.add_argument("--data", default="synthetic", help="synthetic | nyu:PATH | kitti:PATH | synthetic-seq | "
-                   "kitti-seq:DRIVE | frames:FOLDER")
+    s.add_argument("--data", default="synthetic")
+    s.add_argument("--lidar")
     s.add_argument("--split", default="val", choices=["train", "val"])
     s.add_argument("--input-size", type=_size, default=(224, 224), help="resolution HxW the frames are resized "
                    "to (default 224x224)")
     deprecated_alias(s, "--input", "--input-size")
     s.add_argument("--frames", type=int, default=None, help="inspect at most this many frames (default: all)")
     deprecated_alias(s, "--limit", "--frames")
+    s.add_argument("--out", help="PNG file: the first frame with its scan drawn over it (default: none)")
     s.add_argument("--json", action="store_true")
     s.set_defaults(fn=cmd_data_inspect)

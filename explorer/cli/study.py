@@ -347,6 +347,7 @@ def _register_search(add, reports: dict) -> None:
     s.add_argument("--budget", action="append", help="repeatable; the first is the objective "
                    "(default time:uniform:33ms)")
     s.add_argument("--data", default="synthetic")
+    s.add_argument("--lidar")
     s.add_argument("--study", help="study name (default DEVICE-SPACE); the same name resumes")
     s.add_argument("--storage", help="Optuna storage URL (default: the journal file "
                    "reports/<study>/journal.log; postgresql://... for several machines)")

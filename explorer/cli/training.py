@@ -172,6 +172,7 @@ def register(sub, add, reports: dict) -> None:
     s = add("train", cmd_train, "train a candidate (all exits) and save a checkpoint")
     s.add_argument("candidate", help="candidate YAML or one-point space (e.g. paper)")
     s.add_argument("--data", default="synthetic")
+    s.add_argument("--lidar")
     s.add_argument("--recipe", default="proxy", choices=["proxy", "paper"])
     s.add_argument("--steps", type=int)
     s.add_argument("--batch-size", type=int)
@@ -199,6 +200,7 @@ def register(sub, add, reports: dict) -> None:
     s = add("evaluate", cmd_evaluate, "per-path metrics of a checkpoint on a data set")
     s.add_argument("checkpoint")
     s.add_argument("--data", default="synthetic")
+    s.add_argument("--lidar")
     s.add_argument("--split", default="val", choices=["train", "val"])
     s.add_argument("--input-size", type=_size, help="evaluation resolution HxW (default: the training size)")
     deprecated_alias(s, "--input", "--input-size")
@@ -217,6 +219,7 @@ def _register_supernet(sp) -> None:
                         "(torchrun --nproc_per_node N -m explorer supernet train ...).")
     s.add_argument("--space", default="anytime_depth")
     s.add_argument("--data", default="synthetic")
+    s.add_argument("--lidar")
     s.add_argument("--recipe", default="default", choices=["default", "gpu"],
                    help="default: 64x64, batches of 16, float32 (what a search trains on a CPU); gpu: 224x224, "
                    "batches of 64, bf16 autocast (keeps a GPU busy). --steps, --train-size, --batch-size, --lr "

@@ -9,16 +9,22 @@ from pathlib import Path
 
 import numpy as np
 
+from explorer.scan import ScanPoints
+from explorer.data.splits import SPLITS, VAL_SHARE, split_range
 from explorer.errors import UserError
 from explorer.files import open_image, read_image, read_text  # noqa: F401  (the readers' image access)
 
 
 @dataclass
 class RawFrame:
+    """``scan_image``: a real scan's returns as a sparse depth image (KITTI's ring); ``scan_points``:
+    a real scan projected into the frame (:class:`explorer.scan.ScanPoints`, source pixels)."""
+
     rgb: np.ndarray
     depth: np.ndarray
     scan_image: np.ndarray | None = None
     name: str = ""
+    scan_points: "ScanPoints | None" = None
 
 
 def _check_frame(rgb: np.ndarray, depth: np.ndarray, name: str) -> None:
@@ -35,13 +41,23 @@ def _check_frame(rgb: np.ndarray, depth: np.ndarray, name: str) -> None:
 # -- NYU Depth v2 ----------------------------------------------------------------------------------
 class NYUH5:
     """Ma et al.'s layout: ``ROOT/{train,val}/<scene>/NNNNN.h5`` with ``rgb`` (3, 480, 640) uint8 and
-    ``depth`` (480, 640) float metres. ROOT may also be one split's folder."""
+    ``depth`` (480, 640) float metres. ROOT may also be a folder without splits: its last ``share`` of
+    files (sorted, so by scene) validates, the rest trains."""
 
-    def __init__(self, root: Path, split: str) -> None:
-        base = root / split if (root / split).is_dir() else root
-        self.files = sorted(base.rglob("*.h5"))
-        if not self.files:
+    def __init__(self, root: Path, split: str, share: float = VAL_SHARE) -> None:
+        has = [s for s in SPLITS if (root / s).is_dir()]
+        if has and split not in has:
+            raise UserError(f"{root}: has {has[0]}/ but no {split}/ (give both splits, or a folder without "
+                            "either: its last tenth validates)")
+        base = root / split if has else root
+        files = sorted(base.rglob("*.h5"))
+        if not files:
             raise UserError(f"{base}: no .h5 files found (expected {{train,val}}/<scene>/NNNNN.h5)")
+        self.files = files if has else [files[i] for i in split_range(len(files), split, str(root), share)]
+        self.root = root
+
+    def frame_names(self) -> list[str]:
+        return [str(f.relative_to(self.root)) for f in self.files]
 
     def __len__(self) -> int:
         return len(self.files)
@@ -66,10 +82,28 @@ class NYUH5:
 
 
 class PairCSV:
-    """A CSV of (image, depth) PNG pairs, paths relative to the CSV; depth 16-bit millimetres."""
+    """A CSV of (image, depth) PNG pairs, paths relative to the CSV; depth 16-bit millimetres. With
+    ``split``, the listing's last ``share`` validates and the rest trains; without, the CSV is one
+    split whole (its own validation CSV is given), and ``other``, the other split's CSV, must share
+    no image with it."""
 
-    def __init__(self, path: Path) -> None:
-        self.root = path.parent
+    def __init__(self, path: Path, split: str | None = None, share: float = VAL_SHARE,
+                 other: Path | None = None) -> None:
+        self.pairs = self._read(path)
+        if split is not None:
+            self.pairs = [self.pairs[i] for i in split_range(len(self.pairs), split, str(path), share)]
+        if other is not None:
+            shared = {p.resolve() for p, _ in self.pairs} & {p.resolve() for p, _ in self._read(other)}
+            if shared:
+                raise UserError(f"{path} and {other} both list {sorted(shared)[0].name} (and {len(shared) - 1} more): "
+                                "a validation frame must never train")
+
+    def frame_names(self) -> list[str]:
+        return [str(img.resolve()) for img, _ in self.pairs]
+
+    @staticmethod
+    def _read(path: Path) -> list[tuple[Path, Path]]:
+        root = path.parent
         try:
             with path.open(newline="") as fh:
                 rows = [r for r in csv.reader(fh) if r]
@@ -82,7 +116,7 @@ class PairCSV:
         bad = [i + 2 for i, r in enumerate(rows) if len(r) < 2]
         if bad:
             raise UserError(f"{path}: line {bad[0]} does not have two columns (image, depth)")
-        self.pairs = [(self.root / r[0].strip(), self.root / r[1].strip()) for r in rows]
+        return [(root / r[0].strip(), root / r[1].strip()) for r in rows]
 
     def __len__(self) -> int:
         return len(self.pairs)
@@ -154,16 +188,21 @@ def ring_mask(points: np.ndarray, elevation_deg: float, tolerance_deg: float = 0
 class KittiRaw:
     """``ROOT/image_2/*.png``, ``ROOT/velodyne/*.bin`` (float32 x, y, z, reflectance) and
     ``ROOT/calib/*.txt``: ground truth is the projected point cloud; the 2D LiDAR is the ring nearest
-    ``elevation_deg`` (0 = level with the sensor)."""
+    ``elevation_deg`` (0 = level with the sensor). Frames in name order: the last ``share`` validates,
+    one frame left out before it."""
 
-    def __init__(self, root: Path, elevation_deg: float = 0.0) -> None:
+    def __init__(self, root: Path, split: str = "train", share: float = VAL_SHARE, elevation_deg: float = 0.0) -> None:
         self.root, self.elevation = root, elevation_deg
         for sub in ("image_2", "velodyne", "calib"):
             if not (root / sub).is_dir():
                 raise UserError(f"{root}: missing folder {sub}/ (expected image_2/, velodyne/, calib/)")
-        self.names = sorted(p.stem for p in (root / "image_2").glob("*.png"))
-        if not self.names:
+        names = sorted(p.stem for p in (root / "image_2").glob("*.png"))
+        if not names:
             raise UserError(f"{root / 'image_2'}: no .png frames")
+        self.names = [names[i] for i in split_range(len(names), split, str(root), share, gap=1)]
+
+    def frame_names(self) -> list[str]:
+        return list(self.names)
 
     def __len__(self) -> int:
         return len(self.names)

@@ -31,7 +31,7 @@ def resident_bytes(dataset) -> int | None:
     cannot be held so: augmented beyond a flip, or a scan drawn with noise or dropout per item."""
     if not isinstance(dataset, DepthDataset) or dataset.kind not in FLIP_ONLY_KINDS:
         return None
-    if dataset.scan.noise or dataset.scan.dropout:
+    if dataset.scan.noise or dataset.scan.dropout or dataset.lidar is not None:
         return None
     h, w = dataset.input_size
     return len(dataset) * (h * w * (3 + 4) + w * 4)
@@ -54,11 +54,12 @@ class ResidentSet:
         rgb = np.empty((n, h, w, 3), np.uint8)
         depth = np.empty((n, h, w), np.float32)
         scans, rows = np.zeros((n, w), np.float32), np.full(n, dataset.scan.row_for(h), np.int64)
+        column_rows = np.repeat(rows[:, None], w, axis=1)
         measured = False
         for i in range(n):
-            rgb[i], depth[i], scan, row = dataset.unflipped(i)
+            rgb[i], depth[i], scan, row, per_column = dataset.unflipped(i)
             if scan is not None:
-                scans[i], rows[i], measured = scan, row, True
+                scans[i], rows[i], column_rows[i], measured = scan, row, per_column, True
             if progress:
                 progress(i + 1, n)
         half = depth.astype(np.float16)
@@ -68,6 +69,7 @@ class ResidentSet:
         self.depths = torch.from_numpy(half if exact else depth).to(device)
         self.scans = torch.from_numpy(scans).to(device) if measured else None
         self.rows = torch.from_numpy(rows)               # on the host: the network takes the row as an int
+        self.column_rows = torch.from_numpy(column_rows).to(device)
         self.keep = torch.from_numpy(_scan_mask(dataset.scan.points, w)).to(device)
 
     def __len__(self) -> int:
@@ -82,6 +84,8 @@ class ResidentSet:
         depth = self.depths[index].float()
         depth = torch.where(flip[:, None, None], depth.flip(2), depth)
         rows = self.rows[host_index]
+        column_rows = self.column_rows[index]
+        column_rows = torch.where(flip[:, None], column_rows.flip(1), column_rows)
         if self.scans is not None:
             scan = self.scans[index]
             scan = torch.where(flip[:, None], scan.flip(1), scan)
@@ -91,7 +95,7 @@ class ResidentSet:
             scan = torch.where((scan > self.dataset.scan.max_range) | (scan < 0), torch.zeros_like(scan), scan)
         # (B, H, W, 3) permuted is (B, 3, H, W) in channels-last order, the layout the network trains in
         return {"image": rgb.permute(0, 3, 1, 2).float() / 255.0, "depth": depth[:, None],
-                "scan": scan, "scan_row": rows}
+                "scan": scan, "scan_rows": column_rows, "scan_row": rows}
 
 
 def _scan_mask(points: int | None, w: int) -> np.ndarray:

@@ -13,18 +13,25 @@ from pathlib import Path
 import numpy as np
 
 from explorer.data.readers import open_image, read_image, ring_mask, sparse_depth
+from explorer.scan import LidarModel, project_scan, read_lidar_yaml, read_ranges
 from explorer.data.sequences import SequenceSample
+from explorer.data.splits import VAL_SHARE, split_range
 from explorer.errors import UserError
 from explorer.files import read_text
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 
 
-def _split_targets(count: int, split: str) -> range:
-    """Targets are frames 1..count-2 (each needs both neighbours); val is the last tenth."""
-    targets = range(1, count - 1)
-    n_val = max(len(targets) // 10, 1)
-    return targets[-n_val:] if split == "val" else targets[:-n_val] or targets
+def _split_targets(count: int, split: str, where: Path, share: float = VAL_SHARE) -> range:
+    """Targets are frames 1..count-2 (each needs both neighbours); val is the last ``share`` of them,
+    two targets left out before it so that no frame of a validation sample is in a training one."""
+    return split_range(max(count - 2, 0), split, str(where), share, gap=2, start=1,
+                       what="target frame(s) (frames with both neighbours)")
+
+
+def _sample_names(names: list[str], targets: range) -> list[str]:
+    """Every frame the samples of ``targets`` read: each target and its two neighbours."""
+    return sorted({names[t + d] for t in targets for d in (-1, 0, 1)})
 
 
 def _check_consecutive(paths: list[Path], where: Path) -> None:
@@ -107,14 +114,16 @@ def read_poses(path: Path, frames: int) -> list[np.ndarray]:
 # -- a plain folder -------------------------------------------------------------------------------
 class FrameFolder:
     """``FOLDER/*.png|jpg`` consecutive frames (sorted by name) and ``FOLDER/intrinsics.txt``.
-    Optional: ``FOLDER/depth/<name>.png`` 16-bit millimetres (evaluation, and the simulated scan's
-    row) and ``FOLDER/poses.txt`` (one line per frame: the 12 numbers of a 3x4 camera-to-world
-    matrix, KITTI odometry's format)."""
+    Optional: ``FOLDER/depth/<name>.png`` 16-bit millimetres (evaluation, and the simulated scan),
+    ``FOLDER/poses.txt`` (one line per frame: the 12 numbers of a 3x4 camera-to-world matrix, KITTI
+    odometry's format), and a real LiDAR's scans: ``FOLDER/scans/<name>.csv|.npy`` (one range per
+    beam, metres; inf, nan or 0 = no return) with ``FOLDER/lidar.yaml`` (the LiDAR and its mount,
+    :func:`explorer.scan.read_lidar_yaml`; or the data spec's LiDAR options)."""
 
     kind = "frames"
     max_depth = 10.0
 
-    def __init__(self, root: Path, split: str) -> None:
+    def __init__(self, root: Path, split: str, share: float = VAL_SHARE, lidar: LidarModel | None = None) -> None:
         self.root = root
         if not root.is_dir():
             raise UserError(f"{root}: not a folder (frames:FOLDER needs a folder of consecutive images and "
@@ -126,7 +135,35 @@ class FrameFolder:
         _check_consecutive(self.paths, root)
         self.shape = _check_sizes(self.paths)
         self.poses = self._read_poses(root / "poses.txt")
-        self.targets = _split_targets(len(self.paths), split)
+        self.targets = _split_targets(len(self.paths), split, root, share)
+        self.lidar = self._scan_model(lidar)
+        if self.lidar is not None:
+            self.max_depth = self.lidar.range_max
+
+    def _scan_model(self, given: LidarModel | None) -> LidarModel | None:
+        """The LiDAR of ``scans/`` (lidar.yaml, else the spec's options), None without scans/."""
+        scans, yaml_file = self.root / "scans", self.root / "lidar.yaml"
+        if not scans.is_dir():
+            return None
+        if yaml_file.is_file() and given is not None:
+            raise UserError(f"{self.root}: lidar.yaml and the data spec's LiDAR options both describe the LiDAR; "
+                            "keep one")
+        if not yaml_file.is_file() and given is None:
+            raise UserError(f"{self.root}: scans/ needs the LiDAR that made them: write lidar.yaml (fov, resolution, "
+                            "range_min, range_max and the mount: height, tilt, ... or T_cam_lidar)")
+        model = read_lidar_yaml(yaml_file) if yaml_file.is_file() else given
+        missing = [p.stem for p in self.paths[1:-1] if not self._scan_file(p.stem)]
+        if missing:
+            raise UserError(f"{scans}: no scan for frame {missing[0]} (scans/{missing[0]}.csv or .npy; every frame "
+                            "that is a target needs one)")
+        return model
+
+    def _scan_file(self, stem: str) -> Path | None:
+        return next((f for f in (self.root / "scans" / f"{stem}.csv", self.root / "scans" / f"{stem}.npy")
+                     if f.is_file()), None)
+
+    def frame_names(self) -> list[str]:
+        return _sample_names([p.name for p in self.paths], self.targets)
 
     def _read_poses(self, path: Path) -> list[np.ndarray] | None:
         return read_poses(path, len(self.paths)) if path.is_file() else None
@@ -144,7 +181,15 @@ class FrameFolder:
             if depth.shape != self.shape:
                 raise UserError(f"{depth_path}: {depth.shape} differs from the frames' {self.shape}")
         poses = [self.poses[t + d] for d in (-1, 0, 1)] if self.poses else None
-        return SequenceSample(frames, depth, self.K, poses, None, self.paths[t].stem)
+        points = None
+        if self.lidar is not None:
+            f = self._scan_file(self.paths[t].stem)
+            scan = self.lidar.scan(read_ranges(f, self.lidar.beams))
+            points = project_scan(scan, self.lidar.transform, self.K, self.shape)
+            if len(points.z) == 0:
+                raise UserError(f"{f}: no return of this scan lands in the image: check the mount in lidar.yaml "
+                                "(height, tilt, ... or T_cam_lidar) and the field of view")
+        return SequenceSample(frames, depth, self.K, poses, None, self.paths[t].stem, points)
 
 
 # -- a KITTI raw drive ----------------------------------------------------------------------------
@@ -194,7 +239,7 @@ class KittiDrive:
     kind = "kitti"
     max_depth = 80.0
 
-    def __init__(self, root: Path, split: str, elevation_deg: float = 0.0) -> None:
+    def __init__(self, root: Path, split: str, elevation_deg: float = 0.0, share: float = VAL_SHARE) -> None:
         self.root, self.elevation = root, elevation_deg
         images = root / "image_02" / "data"
         if not images.is_dir():
@@ -222,7 +267,10 @@ class KittiDrive:
         offset[0, 3] = p2[0, 3] / p2[0, 0]
         self.cam_from_velo = offset @ rect @ _rigid(_read_kv(velo_file), velo_file)
         self.poses = self._oxts_poses()
-        self.targets = _split_targets(len(self.paths), split)
+        self.targets = _split_targets(len(self.paths), split, root, share)
+
+    def frame_names(self) -> list[str]:
+        return _sample_names([p.name for p in self.paths], self.targets)
 
     def _calib(self, name: str) -> Path:
         for folder in (self.root, self.root.parent):

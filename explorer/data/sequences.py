@@ -25,7 +25,9 @@ import torch
 from torch.utils.data import Dataset
 
 from explorer.data import transforms as T
-from explorer.data.lidar import ScanConfig, scan_from_image, simulate_scan
+from explorer.data._scans import frame_scan
+from explorer.data.lidar import ScanConfig
+from explorer.scan import LidarModel, ScanPoints
 from explorer.data.synthetic import (
     MAX_DEPTH,
     Room,
@@ -55,6 +57,7 @@ class SequenceSample:
     poses: list[np.ndarray] | None = None
     scan_image: np.ndarray | None = None
     name: str = ""
+    scan_points: ScanPoints | None = None   # a real scan projected into frame t (source pixels)
 
 
 class SequenceSource(Protocol):
@@ -178,6 +181,7 @@ class SyntheticSequences:
 
     def __init__(self, path: Path, split: str) -> None:
         import h5py
+        self.split = split
         with h5py.File(path, "r") as f:
             g = f[split]
             self.count = int(g.attrs["targets"])
@@ -188,6 +192,11 @@ class SyntheticSequences:
 
     def __len__(self) -> int:
         return self.count
+
+    def frame_names(self) -> list[str]:
+        """Each split renders rooms of its own: a frame is named by its split, room and place in it."""
+        clips = -(-self.count // TARGETS_PER_CLIP)
+        return [f"{self.split}/{c:05d}-{t}" for c in range(clips) for t in range(CLIP)]
 
     def __getitem__(self, i: int) -> SequenceSample:
         clip, t = divmod(i, TARGETS_PER_CLIP)
@@ -231,13 +240,19 @@ class SequenceDataset(Dataset):
     sequence = True
 
     def __init__(self, source: SequenceSource, input_size: tuple[int, int], scan: ScanConfig = ScanConfig(),
-                 seed: int = 0, name: str = "") -> None:
+                 seed: int = 0, name: str = "", lidar: LidarModel | None = None) -> None:
+        """``lidar``: the LiDAR model that simulates the scan where the source has no real one."""
         self.source, self.input_size, self.scan, self.seed, self.name = source, tuple(input_size), scan, seed, name
+        self.lidar = lidar
         self.max_depth = float(source.max_depth)
         self.epoch = 0
 
     def __len__(self) -> int:
         return len(self.source)
+
+    def frame_names(self) -> list[str]:
+        """Every frame the samples of this split read (targets and their neighbours)."""
+        return list(self.source.frame_names())
 
     def _fit(self, a: np.ndarray, box: tuple[int, int, int, int], sparse: bool) -> np.ndarray:
         top, left, h, w = box
@@ -249,14 +264,13 @@ class SequenceDataset(Dataset):
         box = _crop_box(self.source.kind, s.depth.shape)
         frames = [self._fit(f, box, sparse=False) for f in s.frames]
         depth = self._fit(s.depth, box, sparse=True).astype(np.float32)
-        if s.scan_image is not None:
-            scan, row = scan_from_image(np.ascontiguousarray(self._fit(s.scan_image, box, sparse=True)))
-        else:
-            rng = np.random.default_rng([self.seed, self.epoch, i]) if (self.scan.noise or self.scan.dropout) else None
-            scan, row = simulate_scan(depth, self.scan, rng)
+        K = scale_intrinsics(s.K, box, self.input_size)
+        scan_image = self._fit(s.scan_image, box, sparse=True) if s.scan_image is not None else None
+        points = s.scan_points.transformed(box, self.input_size) if s.scan_points is not None else None
+        scan, rows, row = frame_scan(depth, points=points, scan_image=scan_image, lidar=self.lidar, K=K,
+                                     config=self.scan, rng=np.random.default_rng([self.seed, self.epoch, i]))
         if self.source.kind == "kitti":
             depth = depth * self._fit(_garg_mask(s.depth.shape), box, sparse=True)
-        K = scale_intrinsics(s.K, box, self.input_size)
         if s.poses is not None:
             inv = [np.linalg.inv(p) for p in (s.poses[0], s.poses[2])]
             pose, known = np.stack([q @ s.poses[1] for q in inv]), True
@@ -264,8 +278,8 @@ class SequenceDataset(Dataset):
             pose, known = np.stack([np.eye(4), np.eye(4)]), False
         image = lambda a: torch.tensor(np.ascontiguousarray(a)).permute(2, 0, 1).float() / 255.0  # noqa: E731
         return {"image": image(frames[1]), "depth": torch.tensor(depth)[None],
-                "scan": torch.tensor(scan, dtype=torch.float32), "scan_row": row,
-                "sources": torch.stack([image(frames[0]), image(frames[2])]),
+                "scan": torch.tensor(scan, dtype=torch.float32),
+                "scan_rows": torch.from_numpy(rows), "scan_row": row, "sources": torch.stack([image(frames[0]), image(frames[2])]),
                 "K": torch.tensor(K, dtype=torch.float32), "pose": torch.tensor(pose, dtype=torch.float32),
                 "pose_known": known}
 

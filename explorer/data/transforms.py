@@ -47,6 +47,15 @@ def nyu_val(rgb: np.ndarray, depth: np.ndarray, size: tuple[int, int]) -> tuple[
     return resize_rgb(rgb, size), resize_nearest(depth, size)
 
 
+def nyu_box(shape: tuple[int, int]) -> tuple[float, float, float, float]:
+    """(top, left, height, width) of the source frame that :func:`nyu_val` resizes to the input size."""
+    h, w = shape
+    f = NYU_RESIZE_HEIGHT / h
+    mid_w = int(w * f)
+    top, left = int(round((NYU_RESIZE_HEIGHT - NYU_CROP[0]) / 2.0)), int(round((mid_w - NYU_CROP[1]) / 2.0))
+    return top / f, left / f, NYU_CROP[0] / f, NYU_CROP[1] / f
+
+
 def nyu_train(rgb: np.ndarray, depth: np.ndarray, size: tuple[int, int],
               rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
     """FastDepth's augmentation: scale s in [1, 1.5] (depth / s), rotation within 5 degrees,

@@ -7,6 +7,7 @@ from __future__ import annotations
 import io
 import math
 import os
+import sys
 import threading
 import time
 import weakref
@@ -22,6 +23,7 @@ from explorer.deploy.sessions import check_provider
 from explorer.errors import UserError
 from explorer.files import read_image as read_image_file
 from explorer.files import read_text, scratch_dir, write_atomically
+from explorer.scan import LidarModel, column_scan, project_scan, read_lidar_yaml, read_ranges, rigid_transform
 
 #: ``AnytimeRunner(arenas=...)``
 ARENAS = ("both", "shared", "own")
@@ -34,6 +36,18 @@ class AnytimeResult:
     ready_ms: float                   # when that path was ready, from the start of the run
     completed: list[tuple[int, float]] = field(default_factory=list)  # (path, ready ms)
     halted: bool = False
+
+
+@dataclass
+class ProjectedScan:
+    """A LiDAR's ranges in the model's input (:func:`project_ranges`): ``scan`` (W,) metres per column,
+    0 = none (what :meth:`AnytimeRunner.run` takes); ``rows`` (W,) the input row of each column's
+    return, interpolated between columns that have one; ``row`` their median; ``columns`` how many
+    columns have a return."""
+    scan: np.ndarray
+    rows: np.ndarray
+    row: int
+    columns: int
 
 
 class _Watchdog:
@@ -109,6 +123,8 @@ class AnytimeRunner:
         self.manifest = read_manifest(self.dir)
         self.input_size = tuple(self.manifest["input_size"])
         self.scan_row = int(self.manifest["scan_row"])
+        self.last_scan: ProjectedScan | None = None   # the last scan_from_ranges's projection
+        self._row_warned = False
         self.sessions: list[tuple[dict, object, list[str], list[str]]] = []
         self.handed_off: dict[str, str] = {}   # tensor passed between stages -> its form ("blocked", ...)
         self._graphs: list[tuple[bytes, bool]] = []   # each session's graph, and whether onnxruntime optimises it
@@ -206,6 +222,23 @@ class AnytimeRunner:
         if not np.isfinite(s).all() or (s < 0).any():
             raise UserError("scan must hold finite depths >= 0 (0 = no return)")
         return np.ascontiguousarray(img[None], dtype=np.float32), s[None]   # no copy when it is already so
+
+    def scan_from_ranges(self, ranges, lidar: LidarModel, K: np.ndarray,
+                         image_size: tuple[int, int]) -> np.ndarray:
+        """The per-column scan (W,) at the model's input size that :meth:`run` takes, from a LiDAR's
+        ``ranges`` (one per beam of ``lidar``, metres; inf, nan or 0 = no return) projected through
+        ``K``, the camera matrix of the image at its own size ``image_size`` (H, W), scaled to the
+        input size as the image is resized (:func:`fit_image`). The projection, with each column's row
+        and their median, is kept in ``last_scan``. If that median lies more than one feature row
+        (input height / 16) from the row the network was trained with its scan on, says so once
+        (stderr)."""
+        projected = project_ranges(ranges, lidar, K, image_size, self.input_size)
+        self.last_scan = projected
+        warning = off_row_warning(projected.row, self.scan_row, self.input_size[0])
+        if warning and not self._row_warned:
+            self._row_warned = True
+            print(warning, file=sys.stderr, flush=True)
+        return projected.scan
 
     def halt(self) -> None:
         """Stops the current run as soon as possible; it returns the best map completed so far."""
@@ -370,19 +403,139 @@ def write_depth(depth: np.ndarray, out: Path) -> None:
 
 
 def run_files(model_dir: Path, image: Path, scan: Path, deadline_ms: float, out: Path | None,
-              threads: int | None = None, provider: str = "CPUExecutionProvider") -> dict:
+              threads: int | None = None, provider: str = "CPUExecutionProvider",
+              lidar: Path | None = None, intrinsics: Path | None = None) -> dict:
+    """``explorer run``. With ``lidar`` (a ``lidar.yaml``) and ``intrinsics`` (K of ``image`` as it is),
+    ``scan`` holds one range per beam, projected into the image (:meth:`AnytimeRunner.scan_from_ranges`),
+    and the image may be any size (resized to the model's); without them, one depth per column."""
     check_provider(provider)   # every mistake is said before any file is read
+    if lidar is not None and intrinsics is None:
+        raise UserError("--lidar needs --intrinsics FILE: the camera matrix of --image (fx fy cx cy, or the "
+                        "9 entries of K) to project the scan with")
+    if intrinsics is not None and lidar is None:
+        raise UserError("--intrinsics is read only with --lidar lidar.yaml (a scan of ranges by angle); "
+                        "a per-column --scan needs neither")
     if out is not None:
         check_depth_out(out)
-    image_pixels, scan_depths = read_image(image), read_scan(scan)
+    ranges = None
+    if lidar is None:
+        image_pixels, scan_depths = read_image(image), read_scan(scan)
+    else:
+        model, K = read_lidar_yaml(Path(lidar)), read_intrinsics(Path(intrinsics))
+        if not scan.is_file():
+            raise UserError(f"{scan}: no such scan file")
+        ranges = read_ranges(scan, model.beams)
+        image_pixels = read_image(image)
     # one run: nothing to choose between sets by
     runner = AnytimeRunner(model_dir, threads, provider=provider, arenas="shared")
+    extra = {}
+    if ranges is not None:
+        scan_depths = runner.scan_from_ranges(ranges, model, K, image_pixels.shape[:2])
+        image_pixels = fit_image(image_pixels, runner.input_size)
+        p = runner.last_scan
+        have = p.rows[p.scan > 0]
+        extra = {"scan_row": runner.scan_row, "scan_rows": [int(have.min()), int(have.max())],
+                 "projected_row": p.row, "scan_columns": p.columns}
     result = runner.run(image_pixels, scan_depths, deadline_ms)
     if out is not None:
         write_depth(result.depth, out)
     return {"path": result.path, "ready_ms": result.ready_ms, "deadline_ms": deadline_ms,
             "completed_paths": len(result.completed), "timeline": result.completed,
-            "out": str(out) if out else None, "provider": provider}
+            "out": str(out) if out else None, "provider": provider, **extra}
+
+
+def check_camera_matrix(K, where: str) -> np.ndarray:
+    """``K`` as a 3x3 float64 camera matrix (finite, positive focal lengths, last row 0 0 1), or one
+    UserError line."""
+    try:
+        m = np.asarray(K, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise UserError(f"{where}: the camera matrix K must be numbers") from None
+    if m.shape != (3, 3):
+        raise UserError(f"{where}: the camera matrix K must be 3x3, got shape {m.shape}")
+    if not np.isfinite(m).all():
+        raise UserError(f"{where}: intrinsics must be finite numbers (found nan or inf)")
+    if m[0, 0] <= 0 or m[1, 1] <= 0:
+        raise UserError(f"{where}: focal lengths fx={m[0, 0]:g}, fy={m[1, 1]:g} must be positive (in pixels)")
+    if not np.allclose(m[2], [0, 0, 1]) or m[1, 0] != 0:
+        raise UserError(f"{where}: not a camera matrix: its last row must be 0 0 1 and K[1][0] zero")
+    return m
+
+
+def read_intrinsics(path: str | Path) -> np.ndarray:
+    """K from ``fx fy cx cy`` (4 numbers) or its 9 entries, in pixels of the image it belongs to
+    (``explorer.data``'s reader, without importing torch)."""
+    path = Path(path)
+    if not path.is_file():
+        raise UserError(f"{path}: no such intrinsics file (write fx fy cx cy, or the 3x3 matrix K)")
+    try:
+        values = [float(x) for x in read_text(path, "intrinsics file").replace(",", " ").split()]
+    except ValueError:
+        raise UserError(f"{path}: intrinsics must be numbers (fx fy cx cy, or the 9 entries of K)") from None
+    if len(values) == 4:
+        fx, fy, cx, cy = values
+        values = [fx, 0, cx, 0, fy, cy, 0, 0, 1]
+    elif len(values) != 9:
+        raise UserError(f"{path}: {len(values)} numbers; give fx fy cx cy, or the 9 entries of K")
+    return check_camera_matrix(np.array(values, dtype=np.float64).reshape(3, 3), str(path))
+
+
+def scale_intrinsics(K: np.ndarray, image_size: tuple[int, int], size: tuple[int, int]) -> np.ndarray:
+    """K of an image of ``image_size`` (H, W) resized to ``size``, in pixel-index coordinates (pixel j's
+    centre at j): u' = (u + 0.5) sx - 0.5, so fx' = fx sx and cx' = (cx + 0.5) sx - 0.5; y alike."""
+    sy, sx = size[0] / image_size[0], size[1] / image_size[1]
+    out = np.array(K, dtype=np.float64)
+    out[0] *= sx
+    out[1] *= sy
+    out[0, 2] += 0.5 * sx - 0.5
+    out[1, 2] += 0.5 * sy - 0.5
+    return out
+
+
+def fit_image(image: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """``image`` (H, W, 3) uint8 RGB resized to ``size`` (H, W), bilinear (Pillow), as
+    :meth:`AnytimeRunner.scan_from_ranges` scales K; the image itself when it has that size."""
+    from PIL import Image
+    pixels = np.asarray(image)
+    if pixels.shape[:2] == tuple(size):
+        return pixels
+    if pixels.ndim != 3 or pixels.shape[2] != 3 or pixels.dtype != np.uint8:
+        raise UserError(f"image has shape {pixels.shape} ({pixels.dtype}): fit_image takes (H, W, 3) uint8 RGB")
+    return np.asarray(Image.fromarray(pixels).resize((size[1], size[0]), Image.Resampling.BILINEAR))
+
+
+def project_ranges(ranges, lidar: LidarModel, K: np.ndarray, image_size: tuple[int, int],
+                   size: tuple[int, int]) -> ProjectedScan:
+    """``ranges`` (one per beam of ``lidar``, metres; inf, nan, 0 or out of its range = no return)
+    projected through ``K`` of an image of ``image_size`` (H, W), scaled to ``size`` (the model's
+    input), nearest return per column."""
+    try:
+        r = np.asarray(ranges, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError):
+        raise UserError("ranges must be numbers (metres; inf, nan or 0 = no return)") from None
+    if r.size != lidar.beams:
+        raise UserError(f"{r.size} ranges, the LiDAR's model has {lidar.beams} beams (angle_min .. angle_max by "
+                        "angle_increment); give one range per beam")
+    if len(image_size) != 2 or min(image_size) < 1:
+        raise UserError(f"image_size {tuple(image_size)}: give the image's (height, width) in pixels")
+    laser = lidar.scan(np.where(r > 0, r, np.inf))
+    laser.check("LiDAR model")
+    K_input = scale_intrinsics(check_camera_matrix(K, "intrinsics"), tuple(image_size), tuple(size))
+    points = project_scan(laser, rigid_transform(lidar.transform, "LiDAR model"), K_input, tuple(size))
+    if len(points.z) == 0:
+        raise UserError("no return of this scan lands in the image: check the mount in lidar.yaml and the intrinsics")
+    scan, rows, row = column_scan(points, tuple(size))
+    return ProjectedScan(scan, rows, row, int((scan > 0).sum()))
+
+
+def off_row_warning(row: int, scan_row: int, height: int) -> str | None:
+    """What to say when a scan lands on ``row`` (median) more than one feature row (height / 16, at
+    stride 16) from the model's ``scan_row``; None when it is near enough."""
+    if abs(row - scan_row) <= height / 16:
+        return None
+    return (f"warning: this LiDAR's scan lands on row {row} of the {height}-row input (median of its returns), "
+            f"but the network was trained with its scan on row {scan_row} (the graphs read the scan's features "
+            "there): its depths will be off; retrain with this LiDAR's mount (--lidar)")
 
 
 def measured_anytime(runner: AnytimeRunner, frames: list[dict], deadlines_ms: np.ndarray,

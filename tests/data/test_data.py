@@ -86,11 +86,12 @@ def test_metrics_by_hand():
 
 
 def test_nyu_csv_real_frames(shared_data):
-    ds = open_dataset(f"nyu:{shared_data / 'nyu-mini' / 'nyu2_mini_test.csv'}", "val", (224, 224))
-    assert len(ds) == 10
+    spec = f"nyu:{shared_data / 'nyu-mini' / 'nyu2_mini_test.csv'}"
+    train, val = (open_dataset(spec, s, (224, 224), train_augment=False) for s in ("train", "val"))
+    assert (len(train), len(val)) == (9, 1)   # the listing's last tenth validates
+    assert not set(train.frame_names()) & set(val.frame_names())
     avg = MetricAverager()
-    for i in range(len(ds)):
-        it = ds[i]
+    for it in [ds[i] for ds in (train, val) for i in range(len(ds))]:
         assert it["depth"].max() < 10.5 and it["depth"].min() > 0.5
         avg.add(depth_metrics(interpolate_scan(it["scan"][None], 224)[0], it["depth"]))
     assert 0.6 < avg.result()["rmse"] < 1.6  # the paper: 0.987 on the full validation set

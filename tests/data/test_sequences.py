@@ -5,6 +5,7 @@ from PIL import Image
 
 from explorer.data import open_dataset, parse_data_spec
 from explorer.data.sequences import TARGETS_PER_CLIP, scale_intrinsics
+from explorer.errors import UserError
 
 SEQ = "synthetic-seq:6:3"
 
@@ -69,14 +70,16 @@ def test_intrinsics_follow_crop_and_resize():
 def test_frame_folder(tmp_path):
     root = _folder(tmp_path / "f", n=12)
     train, val = open_dataset(f"frames:{root}", "train", (32, 48)), open_dataset(f"frames:{root}", "val", (32, 48))
-    assert len(train) == 9 and len(val) == 1
+    # 10 targets: the last validates, the two before it are left out (their neighbours are validation frames)
+    assert len(train) == 7 and len(val) == 1
+    assert not set(train.frame_names()) & set(val.frame_names())
     item = train[0]
     assert item["sources"].shape == (2, 3, 32, 48) and not item["pose_known"]
     assert float(item["K"][0, 0]) == pytest.approx(50 * 48 / 60)
 
 
 def test_kitti_drive_with_oxts_poses(tmp_path):
-    drive = _drive(tmp_path)
+    drive = _drive(tmp_path, n=6)
     ds = open_dataset(f"kitti-seq:{drive}", "train", (32, 96))
     item = ds[0]
     assert item["pose_known"] and ds.max_depth == 80.0
@@ -120,3 +123,28 @@ def test_malformed_sequences_are_one_line_exit_2(tmp_path, run_cli, damage, mess
                            "--out", tmp_path / "x.pt")
     assert code == 2 and message in err, err
     assert len(err.strip().splitlines()) == 1 and "Traceback" not in err
+
+
+def test_frame_folder_with_a_real_lidars_scans(tmp_path):
+    from explorer.scan import lidar_model, simulate_ranges
+    root = _folder(tmp_path / "f", n=14)
+    (root / "lidar.yaml").write_text("fov: 100\nresolution: 0.5\nrange_max: 8\nheight: 0.04\ntilt: 3\n")
+    model = lidar_model({"fov": 100, "resolution": 0.5, "range_max": 8, "height": 0.04, "tilt": 3}, "test")
+    K = np.array([[50.0, 0, 30], [0, 50.0, 20], [0, 0, 1]])
+    depth = np.full((40, 60), 2.5, np.float32)
+    for p in sorted(root.glob("frame_*.png")):
+        (root / "depth").mkdir(exist_ok=True)
+        Image.fromarray((depth * 1000).astype(np.uint16)).save(root / "depth" / f"{p.stem}.png")
+        (root / "scans").mkdir(exist_ok=True)
+        np.save(root / "scans" / f"{p.stem}.npy", simulate_ranges(depth, K, model).ranges)
+    item = open_dataset(f"frames:{root}", "train", (40, 60))[0]
+    hit = item["scan"] > 0
+    assert hit.float().mean() > 0.9 and torch.allclose(item["scan"][hit], torch.tensor(2.5), atol=0.02)
+    # 3 degrees down, 4 cm up, on a wall 2.5 m away: 50 * (tan 3 deg - 0.04 / 2.5) = 1.8 rows below the centre
+    assert abs(float(item["scan_rows"][hit].float().mean()) - (20 + 1.82)) < 0.6   # cy = 20
+    (root / "scans" / "frame_0005.npy").unlink()
+    with pytest.raises(UserError, match="no scan for frame frame_0005"):
+        open_dataset(f"frames:{root}", "train", (40, 60))
+    (root / "lidar.yaml").unlink()
+    with pytest.raises(UserError, match="write lidar.yaml"):
+        open_dataset(f"frames:{root}", "train", (40, 60))
