@@ -62,6 +62,9 @@ def cmd_train(args) -> None:
         result = train(net, train_set, val_set, cfg, accelerator, checkpoint=out,
                        progress=lambda s, n, r: bar.update(task, completed=s, status=f"loss {r['loss']:.3f}"))
     console.print(f"saved {out} ({result.steps} steps, {result.images_per_second:.1f} images/s)")
+    if result.metrics is not None and result.metrics.drop(columns="path", errors="ignore").isna().all().all():
+        console.print(f"no validation metrics: the validation frames of {args.data} have no depth to measure on")
+        return
     print_frame(result.metrics, "validation, per path" + ("" if cfg.metric else " (median-scaled: no scan term)"))
 
 

@@ -42,7 +42,7 @@ from explorer.data.synthetic import SyntheticConfig, ensure_synthetic, intrinsic
 from explorer.errors import UserError
 
 __all__ = ["MAX_GENERATED", "SEQUENCE_KINDS", "SPEC_HELP", "DataSpec", "DepthDataset", "ScanConfig",
-           "SyntheticConfig", "open_dataset", "parse_data_spec", "scan_from_image", "simulate_scan", "with_lidar"]
+           "SyntheticConfig", "open_dataset", "parse_data_spec", "require_depth", "scan_from_image", "simulate_scan", "with_lidar"]
 
 #: kinds whose training augmentation is a horizontal flip alone (FastDepth's NYU recipe also scales,
 #: rotates and jitters colours): their frames can be prepared once and flipped per batch
@@ -184,6 +184,17 @@ def open_dataset(spec: str | DataSpec, split: str, input_size: tuple[int, int] =
     if scan.max_range == ScanConfig().max_range and ds.kind == "kitti":
         scan = ScanConfig(row=scan.row, points=scan.points, max_range=80.0, dropout=scan.dropout, noise=scan.noise)
     return DepthDataset(frames, ds.kind, input_size, augment, scan, seed, str(ds), lidar, K)
+
+
+def require_depth(dataset, spec: str, frames: int = 4) -> None:
+    """A :class:`UserError` unless the first ``frames`` of ``dataset`` hold some depth: every path's
+    error is measured against it (a recording without depth trains self-supervised, but nothing
+    measures how good the result is)."""
+    if any(bool((dataset[i]["depth"] > 0).any()) for i in range(min(frames, len(dataset)))):
+        return
+    raise UserError(f"data '{spec}': its validation frames have no depth to measure each path's error on; record "
+                    "a depth topic (rosbag: depth=TOPIC) or give depth/ (frames:); explorer train --supervision self "
+                    "trains on it without measuring")
 
 
 def _frames(ds: DataSpec, split: str, progress) -> tuple[object, np.ndarray | None]:
