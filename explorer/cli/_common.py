@@ -220,7 +220,7 @@ FLAG_HELP = {
                 "of 96 frames at 224x224)",
     "--top": "rows to print",
     "--csv": "also write the whole table to this CSV file",
-    "--image": "RGB image (PNG or JPEG), resized to the model's input size",
+    "--image": "RGB image (PNG or JPEG) at the model's input size (any size with --lidar, resized to it)",
     "--deadlines": "deadlines spread evenly over U(0, 1.25 x the last path's predicted time)",
     "--no-pruning": "train every proxy candidate to the end (no Optuna pruning of the worst quarter)",
     "checkpoint": "checkpoint file written by explorer train",
