@@ -41,7 +41,7 @@ from explorer.data.splits import VAL_SHARE, parse_share
 from explorer.data.synthetic import SyntheticConfig, ensure_synthetic, intrinsics
 from explorer.errors import UserError
 
-__all__ = ["MAX_GENERATED", "SEQUENCE_KINDS", "SPEC_HELP", "DataSpec", "DepthDataset", "ScanConfig",
+__all__ = ["MAX_GENERATED", "MAYBE_WITHOUT_DEPTH", "SEQUENCE_KINDS", "SPEC_HELP", "DataSpec", "DepthDataset", "ScanConfig",
            "SyntheticConfig", "open_dataset", "parse_data_spec", "require_depth", "scan_from_image", "simulate_scan", "with_lidar"]
 
 #: kinds whose training augmentation is a horizontal flip alone (FastDepth's NYU recipe also scales,
@@ -184,6 +184,10 @@ def open_dataset(spec: str | DataSpec, split: str, input_size: tuple[int, int] =
     if scan.max_range == ScanConfig().max_range and ds.kind == "kitti":
         scan = ScanConfig(row=scan.row, points=scan.points, max_range=80.0, dropout=scan.dropout, noise=scan.noise)
     return DepthDataset(frames, ds.kind, input_size, augment, scan, seed, str(ds), lidar, K)
+
+
+#: kinds whose frames may come without depth (a recording or a folder of frames): every other kind has it
+MAYBE_WITHOUT_DEPTH = ("rosbag-seq", "frames")
 
 
 def require_depth(dataset, spec: str, frames: int = 4) -> None:

@@ -23,7 +23,7 @@ import optuna
 
 from explorer import __version__
 from explorer.cost import candidate_cost, model_cost
-from explorer.data import open_dataset, require_depth
+from explorer.data import MAYBE_WITHOUT_DEPTH, open_dataset, parse_data_spec, require_depth
 from explorer.errors import UserError
 from explorer.space import Candidate, SearchSpace, paper_candidate
 from explorer.study import planning
@@ -346,9 +346,9 @@ def search(config: SearchConfig, storage_url: str | None = None, workers: int = 
     context = config.resolve()
     if workers < 1:
         raise UserError("--workers must be at least 1")
-    # every path is measured against depth: data without any is refused before the study exists
-    require_depth(open_dataset(config.data, "val", config.train_size, train_augment=False, progress=on_data),
-                  config.data)
+    if parse_data_spec(config.data).kind in MAYBE_WITHOUT_DEPTH:
+        # every path is measured against depth: a recording without any is refused before the study exists
+        require_depth(open_dataset(config.data, "val", config.train_size, train_augment=False), config.data)
     if config.supernet:   # checked before the study's storage exists: a refused search creates nothing
         ensure_supernet(context)  # a foreign or corrupt file is one line before anything is measured
     url = storage_url or local_url(config.study, reports)
