@@ -19,17 +19,18 @@ from explorer.deploy.sessions import session
 from explorer.errors import UserError
 from explorer.files import replacing_folder, scratch_dir
 from explorer.model import AnytimeDepthNet
-from explorer.model.onnx import OPSET, example_inputs, export_segments
+from explorer.model.onnx import OPSET, SCAN_ROWS, example_inputs, export_segments
 from explorer.training.train import network_from_checkpoint
 
 TOLERANCE = 1e-4
 
 
-def verify(graphs, net: AnytimeDepthNet, input_size: tuple[int, int], scan_row: int) -> float:
+def verify(graphs, net: AnytimeDepthNet, input_size: tuple[int, int], scan_row: int,
+           rows_input: bool = False) -> float:
     """Max |onnxruntime - torch| over every path's depth map on a random input."""
-    env = example_inputs(input_size)
+    env = example_inputs(input_size, rows_input=rows_input)
     with torch.no_grad():
-        ref = [d.numpy() for d in net.eval()(env["image"], env["scan"], scan_row)]
+        ref = [d.numpy() for d in net.eval()(env["image"], env["scan"], env.get(SCAN_ROWS, scan_row))]
     feeds = {k: v.numpy() for k, v in env.items()}
     outs: dict[str, np.ndarray] = {}
     for _, model in graphs:
@@ -89,8 +90,12 @@ def export_network(net: AnytimeDepthNet, out_dir: Path, input_size: tuple[int, i
     is measured on its frames at ``input_size`` and the manifest's ``path_metrics`` are those figures,
     never ``path_metrics`` given for another size; ``tuned_size`` is the size the weights were trained
     (or tuned) at, recorded beside it."""
+    rows_input = measurement is not None and slanted_scans(measurement.data, input_size)
+    if rows_input and quantization is not None:
+        raise UserError(f"int8 export of a network whose scans lie on slanted lines ({measurement.data}) is not "
+                        "supported yet; export it in fp32 (without --quantize)")
     with replacing_folder(out_dir, MANIFEST) as scratch:
-        manifest = _export_fp32(net, scratch, input_size, scan_row, path_metrics, devices, source)
+        manifest = _export_fp32(net, scratch, input_size, scan_row, path_metrics, devices, source, rows_input)
         if tuned_size is not None:
             manifest["tuned_size"] = list(tuned_size)
         if measurement is not None:
@@ -114,15 +119,28 @@ def export_network(net: AnytimeDepthNet, out_dir: Path, input_size: tuple[int, i
     return manifest
 
 
+def slanted_scans(data: str, input_size: tuple[int, int], frames: int = 8) -> bool:
+    """Whether the scans of ``data``'s first validation frames leave one row (a tilted, rolled or offset
+    LiDAR): the network then takes each column's row, and so do its graphs."""
+    from explorer.data import open_dataset
+    ds = open_dataset(data, "val", tuple(input_size), train_augment=False)
+    for i in range(min(frames, len(ds))):
+        rows = ds[i]["scan_rows"]
+        if bool((rows != rows[0]).any()):
+            return True
+    return False
+
+
 def _export_fp32(net: AnytimeDepthNet, out_dir: Path, input_size: tuple[int, int], scan_row: int | None,
-                 path_metrics: list[dict] | None, devices: Sequence[str], source: dict | None) -> dict:
+                 path_metrics: list[dict] | None, devices: Sequence[str], source: dict | None,
+                 rows_input: bool = False) -> dict:
     h, w = input_size
     if h % net.stride or w % net.stride:
         raise UserError(f"input {h}x{w} does not divide by the encoder stride {net.stride}")
     scan_row = h // 2 if scan_row is None else scan_row
     net = net.eval()
-    graphs = export_segments(net, input_size, scan_row)
-    diff = verify(graphs, net, input_size, scan_row)
+    graphs = export_segments(net, input_size, scan_row, rows_input)
+    diff = verify(graphs, net, input_size, scan_row, rows_input)
     if diff > TOLERANCE:
         raise RuntimeError(f"ONNX export differs from PyTorch by {diff:.2e} (> {TOLERANCE:g}): not written")
     stages = []
@@ -143,6 +161,7 @@ def _export_fp32(net: AnytimeDepthNet, out_dir: Path, input_size: tuple[int, int
         "candidate": net.candidate.to_dict(), "candidate_key": net.candidate.key,
         "architecture": net.candidate.describe(), "input_size": [h, w], "scan_row": scan_row,
         "image": "RGB in [0, 1], (1, 3, H, W) float32", "scan": "(1, W) float32 metres, 0 = no return",
+        "scan_rows_input": rows_input,
         "stages": stages, "paths": net.candidate.num_paths,
         "path_metrics": path_metrics or [], "expected_cost": expected,
         "params": [p for p, _ in cost.path_params_macs()], "macs": [m for _, m in cost.path_params_macs()],

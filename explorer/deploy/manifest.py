@@ -60,6 +60,7 @@ class Manifest(BaseModel):
     format: str = Field(pattern=r"^anytime-explorer/1$")
     input_size: tuple[Side, Side]
     scan_row: Annotated[int, Field(ge=0)]
+    scan_rows_input: bool = False   # the graphs take each column's scan row (``scan_rows``, (1, W) int64)
     paths: Annotated[int, Field(ge=1)]
     stages: list[Stage] = Field(min_length=1)
     candidate: dict[str, Any]

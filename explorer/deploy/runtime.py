@@ -123,6 +123,8 @@ class AnytimeRunner:
         self.manifest = read_manifest(self.dir)
         self.input_size = tuple(self.manifest["input_size"])
         self.scan_row = int(self.manifest["scan_row"])
+        # graphs exported for a slanted scan line take each column's row (``scan_rows``) beside the scan
+        self.rows_input = bool(self.manifest.get("scan_rows_input", False))
         self.last_scan: ProjectedScan | None = None   # the last scan_from_ranges's projection
         self._row_warned = False
         self.sessions: list[tuple[dict, object, list[str], list[str]]] = []
@@ -141,7 +143,7 @@ class AnytimeRunner:
                     raise UserError(f"{f}: not a loadable ONNX graph ({str(exc).splitlines()[0][:100]})") from None
                 self.sessions.append(_named(st, sess))
                 self._graphs.append((graph, True))
-            _check_chain(self.sessions, self.manifest["paths"], self.dir)
+            _check_chain(self.sessions, self.manifest["paths"], self.dir, self.rows_input)
             if handoff:
                 self.handed_off = self._hand_off(optimized, threads)
         # the same graphs again, each session with a memory arena of its own (``explorer.deploy._arena_choice``)
@@ -196,15 +198,27 @@ class AnytimeRunner:
         self._graphs = [(m.SerializeToString(), False) for m in models]
         return handed
 
-    def _depths(self, sessions: list, img: np.ndarray, scan: np.ndarray) -> list[np.ndarray]:
-        env = {"image": img, "scan": scan}
+    def _depths(self, sessions: list, img: np.ndarray, scan: np.ndarray, rows=None) -> list[np.ndarray]:
+        env = {"image": img, "scan": scan, **self.row_feed(rows)}
         for _, sess, ins, outs_names in sessions:
             env.update(zip(outs_names, sess.run(outs_names, {n: env[n] for n in ins})))
         return [env[f"depth_{p}"][0, 0] for p in range(self.manifest["paths"])]
 
-    def depths(self, image: np.ndarray, scan: np.ndarray) -> list[np.ndarray]:
+    def depths(self, image: np.ndarray, scan: np.ndarray, rows=None) -> list[np.ndarray]:
         """Every path's depth map (no deadline), in order."""
-        return self._depths(self.sessions, *self.check(image, scan))
+        return self._depths(self.sessions, *self.check(image, scan), rows)
+
+    def row_feed(self, rows=None) -> dict[str, np.ndarray]:
+        """What the graphs take of the scan's rows: nothing, or where they take each column's
+        (``scan_rows_input``), ``rows`` (one per image column; default the manifest's row for all)."""
+        if not self.rows_input:
+            return {}
+        h, w = self.input_size
+        r = np.full(w, self.scan_row, np.int64) if rows is None else np.asarray(rows).reshape(-1)
+        if r.shape != (w,) or not np.isfinite(r).all() or (r < 0).any() or (r >= h).any():
+            raise UserError(f"scan rows: one image row (0 to {h - 1}) per column ({w}) is needed, got "
+                            f"{np.asarray(rows).size} value(s)")
+        return {"scan_rows": r.astype(np.int64)[None]}
 
     def check(self, image: np.ndarray, scan: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         h, w = self.input_size
@@ -234,7 +248,7 @@ class AnytimeRunner:
         (stderr)."""
         projected = project_ranges(ranges, lidar, K, image_size, self.input_size)
         self.last_scan = projected
-        warning = off_row_warning(projected.row, self.scan_row, self.input_size[0])
+        warning = None if self.rows_input else off_row_warning(projected.row, self.scan_row, self.input_size[0])
         if warning and not self._row_warned:
             self._row_warned = True
             print(warning, file=sys.stderr, flush=True)
@@ -248,13 +262,14 @@ class AnytimeRunner:
                 self._options.terminate = True
 
     def run(self, image: np.ndarray, scan: np.ndarray, deadline_ms: float | None = None,
-            on_path: "Callable[[int, float], None] | None" = None) -> AnytimeResult:
+            on_path: "Callable[[int, float], None] | None" = None, rows=None) -> AnytimeResult:
         """Runs the stages in order; returns the last path ready within ``deadline_ms`` (None: all).
-        ``on_path(path, ready_ms)`` is called as each path becomes ready."""
+        ``on_path(path, ready_ms)`` is called as each path becomes ready. ``rows``: each column's scan
+        row, for graphs that take them (``row_feed``; :meth:`scan_from_ranges` gives them)."""
         import onnxruntime as ort
         img, s = self.check(image, scan)
         self._halt.clear()
-        env = {"image": img, "scan": s}
+        env = {"image": img, "scan": s, **self.row_feed(rows)}
         t0 = time.perf_counter()
         if deadline_ms is not None:
             self._watchdog.arm(t0 + max(deadline_ms, 0.0) / 1000.0)
@@ -322,10 +337,11 @@ class AnytimeRunner:
         return AnytimeResult(depth[0, 0], path, ready, completed, halted)
 
 
-def _check_chain(sessions: list, paths: int, folder: Path) -> None:
-    """Every graph reads only the image, the scan and what graphs before it output, and every path's
-    depth map is output by one of them: else the graphs are not the ones the manifest describes."""
-    have = {"image", "scan"}
+def _check_chain(sessions: list, paths: int, folder: Path, rows_input: bool = False) -> None:
+    """Every graph reads only the image, the scan (and its rows, where the manifest says the graphs take
+    them) and what graphs before it output, and every path's depth map is output by one of them: else
+    the graphs are not the ones the manifest describes."""
+    have = {"image", "scan", *(("scan_rows",) if rows_input else ())}
     for stage, _, ins, outs in sessions:
         missing = [n for n in ins if n not in have]
         if missing:
@@ -436,7 +452,8 @@ def run_files(model_dir: Path, image: Path, scan: Path, deadline_ms: float, out:
         have = p.rows[p.scan > 0]
         extra = {"scan_row": runner.scan_row, "scan_rows": [int(have.min()), int(have.max())],
                  "projected_row": p.row, "scan_columns": p.columns}
-    result = runner.run(image_pixels, scan_depths, deadline_ms)
+    result = runner.run(image_pixels, scan_depths, deadline_ms,
+                        rows=runner.last_scan.rows if ranges is not None else None)
     if out is not None:
         write_depth(result.depth, out)
     return {"path": result.path, "ready_ms": result.ready_ms, "deadline_ms": deadline_ms,
@@ -548,7 +565,7 @@ def measured_anytime(runner: AnytimeRunner, frames: list[dict], deadlines_ms: np
     for d in deadlines_ms:
         losses, ps = [], []
         for f in frames:
-            res = runner.run(f["image"].numpy(), f["scan"].numpy(), float(d))
+            res = runner.run(f["image"].numpy(), f["scan"].numpy(), float(d), rows=_rows(f))
             losses.append(depth_metrics(res.depth, f["depth"][0].numpy())[metric])
             ps.append(res.path)
         per_deadline.append(float(np.mean(losses)))
@@ -562,6 +579,12 @@ def path_metrics(runner: AnytimeRunner, frames: list[dict]) -> list[dict[str, fl
     from explorer.metrics import MetricAverager, depth_metrics
     averagers = [MetricAverager() for _ in range(runner.manifest["paths"])]
     for f in frames:
-        for p, depth in enumerate(runner.depths(f["image"].numpy(), f["scan"].numpy())):
+        for p, depth in enumerate(runner.depths(f["image"].numpy(), f["scan"].numpy(), _rows(f))):
             averagers[p].add(depth_metrics(depth, f["depth"][0].numpy()))
     return [{"path": p, **a.result()} for p, a in enumerate(averagers)]
+
+
+def _rows(frame: dict) -> "np.ndarray | None":
+    """A data set item's scan row per column, where it has them."""
+    rows = frame.get("scan_rows")
+    return None if rows is None else np.asarray(rows)

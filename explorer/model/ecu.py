@@ -23,6 +23,13 @@ class ECUConfig:
         return ECU(self)
 
 
+def feature_rows(scan_row: "int | torch.Tensor", stride: int) -> "int | torch.Tensor":
+    """The feature row of an image row, or per feature column the row of its centre image column."""
+    if not isinstance(scan_row, torch.Tensor):
+        return scan_row // stride
+    return torch.div(scan_row[:, stride // 2::stride], stride, rounding_mode="floor")
+
+
 class ECU(nn.Module):
     def __init__(self, config: ECUConfig) -> None:
         super().__init__()
@@ -39,8 +46,10 @@ class ECU(nn.Module):
         self.add = BroadcastAdd()
         self.band = config.band
 
-    def forward(self, feature: torch.Tensor, lidar: torch.Tensor, scan_row: int) -> torch.Tensor:
-        band = self.crop(feature, scan_row // self.stride)
+    def forward(self, feature: torch.Tensor, lidar: torch.Tensor, scan_row: "int | torch.Tensor") -> torch.Tensor:
+        """``scan_row``: the image row of the scan, or each image column's (an integer tensor (N, W)),
+        whose band is then cropped around each feature column's own row."""
+        band = self.crop(feature, feature_rows(scan_row, self.stride))
         if band.shape[2] < self.band:  # feature shorter than the band: pad rows to the kernel
             band = nn.functional.pad(band, (0, 0, 0, self.band - band.shape[2]))
         summary = self.summarize(band).squeeze(2)

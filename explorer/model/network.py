@@ -119,14 +119,17 @@ def stage_specs(candidate: Candidate, paper_graph: bool = False) -> list[StageSp
     return specs
 
 
+#: the scan's image row, or each image column's (an integer tensor (N, W)) where the line is slanted
+ScanRow = "int | torch.Tensor"
 #: runs a stage in its module's place: (spec, module, tensor inputs, scan row) -> outputs
-StageCall = Callable[[StageSpec, nn.Module, list[torch.Tensor], int], Sequence[torch.Tensor]]
+StageCall = Callable[[StageSpec, nn.Module, list[torch.Tensor], ScanRow], Sequence[torch.Tensor]]
 
 
 class AnytimeDepthNet(nn.Module):
     """``forward(image, scan, scan_row=None)`` returns the depth maps of paths 0..K, each
     (N, 1, H, W) metres. ``image`` is (N, 3, H, W) RGB in [0, 1], H and W divisible by the stride;
-    ``scan`` is (N, W) metres (0 = no return) lying on image row ``scan_row`` (default H // 2)."""
+    ``scan`` is (N, W) metres (0 = no return) lying on image row ``scan_row`` (default H // 2), or on
+    each column's own row (``scan_row`` an integer tensor (N, W): a tilted or offset LiDAR's line)."""
 
     def __init__(self, candidate: Candidate, paper_graph: bool = False,
                  stages: Mapping[str, nn.Module] | None = None) -> None:
@@ -152,7 +155,7 @@ class AnytimeDepthNet(nn.Module):
         if scan.shape != (image.shape[0], w):
             raise ValueError(f"scan must be (N, W) = ({image.shape[0]}, {w}), got {tuple(scan.shape)}")
 
-    def run_stage(self, spec: StageSpec, env: dict[str, torch.Tensor], scan_row: int,
+    def run_stage(self, spec: StageSpec, env: dict[str, torch.Tensor], scan_row: ScanRow,
                   call_stage: StageCall | None = None) -> None:
         args = [env[name] for name in spec.inputs]
         if call_stage is not None:
@@ -162,12 +165,19 @@ class AnytimeDepthNet(nn.Module):
             outs = out if isinstance(out, tuple) else (out,)
         env.update(zip(spec.outputs, outs))
 
-    def forward(self, image: torch.Tensor, scan: torch.Tensor, scan_row: int | None = None,
+    def forward(self, image: torch.Tensor, scan: torch.Tensor, scan_row: ScanRow | None = None,
                 call_stage: StageCall | None = None) -> list[torch.Tensor]:
         """``call_stage(spec, module, tensor inputs, scan_row)``, where given, runs each stage in the
         module's place and returns its outputs as a sequence (a supernet's CUDA graphs do)."""
         self.check_input(image, scan)
-        scan_row = image.shape[2] // 2 if scan_row is None else int(scan_row)
+        if scan_row is None:
+            scan_row = image.shape[2] // 2
+        elif isinstance(scan_row, torch.Tensor) and scan_row.dim() == 2:
+            if scan_row.shape != scan.shape:
+                raise ValueError(f"per-column scan rows must be (N, W) = {tuple(scan.shape)}, got "
+                                 f"{tuple(scan_row.shape)}")
+        else:
+            scan_row = int(scan_row)
         env: dict[str, torch.Tensor] = {"image": image, "scan": scan}
         depths = [interpolate_scan(scan, image.shape[2])]
         for spec in self.specs:

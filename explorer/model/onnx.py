@@ -49,11 +49,20 @@ def _export(module: nn.Module, args: tuple, input_names: list[str], output_names
     return buf.getvalue()
 
 
-def example_inputs(input_size: tuple[int, int], batch: int = 1) -> dict[str, torch.Tensor]:
+#: the input that carries each image column's scan row, in graphs exported with ``rows_input``
+SCAN_ROWS = "scan_rows"
+
+
+def example_inputs(input_size: tuple[int, int], batch: int = 1, rows_input: bool = False) -> dict[str, torch.Tensor]:
+    """Random inputs at ``input_size``; with ``rows_input`` also ``scan_rows``, a line slanted across
+    the middle third of the image (int64 (N, W))."""
     h, w = input_size
     g = torch.Generator().manual_seed(0)
-    return {"image": torch.rand(batch, 3, h, w, generator=g),
-            "scan": torch.rand(batch, w, generator=g) * 5 + 0.5}
+    env = {"image": torch.rand(batch, 3, h, w, generator=g), "scan": torch.rand(batch, w, generator=g) * 5 + 0.5}
+    if rows_input:
+        line = torch.linspace(h / 3, 2 * h / 3, w).round().to(torch.int64).clamp(0, h - 1)
+        env[SCAN_ROWS] = line.expand(batch, w).contiguous()
+    return env
 
 
 class _Segment(nn.Module):
@@ -66,8 +75,9 @@ class _Segment(nn.Module):
 
     def forward(self, *tensors: torch.Tensor):
         env = dict(zip(self.inputs, tensors))
+        row = env.get(SCAN_ROWS, self.scan_row)   # each column's row, where the graph takes them
         for spec in self.specs:
-            self.net.run_stage(spec, env, self.scan_row)
+            self.net.run_stage(spec, env, row)
         return tuple(env[n] for n in self.outputs)
 
 
@@ -86,13 +96,16 @@ def segments(specs: list[StageSpec]) -> list[list[StageSpec]]:
 
 
 def _export_groups(net: AnytimeDepthNet, input_size: tuple[int, int], scan_row: int | None,
-                   groups: list[list[StageSpec]], keep_all_outputs: bool) -> list[tuple[dict, bytes]]:
+                   groups: list[list[StageSpec]], keep_all_outputs: bool,
+                   rows_input: bool = False) -> list[tuple[dict, bytes]]:
     """Path 0's graph, then one graph per group of consecutive stages. A graph outputs what later
-    groups read and its depth maps (or everything its stages write, with ``keep_all_outputs``)."""
+    groups read and its depth maps (or everything its stages write, with ``keep_all_outputs``). With
+    ``rows_input`` the groups that crop the scan's band take each column's row (``scan_rows``)."""
     net = net.eval()
     h, _ = input_size
     scan_row = h // 2 if scan_row is None else scan_row
-    env = example_inputs(input_size)
+    env = example_inputs(input_size, rows_input=rows_input)
+    row = env.get(SCAN_ROWS, scan_row)
     out = [({"name": "path0", "stages": [], "inputs": ["scan"], "outputs": ["depth_0"], "path": 0},
             _export(_Path0(h), (env["scan"],), ["scan"], ["depth_0"]))]
     with torch.no_grad():
@@ -100,11 +113,13 @@ def _export_groups(net: AnytimeDepthNet, input_size: tuple[int, int], scan_row: 
             produced = [o for sp in group for o in sp.outputs]
             needed_later = {i for later in groups[gi + 1:] for sp in later for i in sp.inputs}
             inputs = list(dict.fromkeys(i for sp in group for i in sp.inputs if i not in produced))
+            if rows_input and any(sp.uses_scan_row for sp in group):
+                inputs.append(SCAN_ROWS)
             outputs = [o for o in produced if keep_all_outputs or o in needed_later or o.startswith("depth_")]
             graph = _export(_Segment(net, group, inputs, outputs, scan_row), tuple(env[n] for n in inputs),
                             inputs, outputs)
             for sp in group:
-                net.run_stage(sp, env, scan_row)
+                net.run_stage(sp, env, row)
             out.append(({"name": "+".join(sp.name for sp in group), "stages": [sp.name for sp in group],
                          "inputs": inputs, "outputs": outputs, "path": group[-1].path}, graph))
     return out
@@ -118,11 +133,13 @@ def export_stages(net: AnytimeDepthNet, input_size: tuple[int, int], scan_row: i
     return [(None, graphs[0][1])] + [(sp, g) for sp, (_, g) in zip(net.specs, graphs[1:])]
 
 
-def export_segments(net: AnytimeDepthNet, input_size: tuple[int, int], scan_row: int | None = None
-                    ) -> list[tuple[dict, bytes]]:
+def export_segments(net: AnytimeDepthNet, input_size: tuple[int, int], scan_row: int | None = None,
+                    rows_input: bool = False) -> list[tuple[dict, bytes]]:
     """[(description, graph), ...] for deployment: path 0, then one graph per group of stages ending
-    with an exit. A description has name, stages, inputs, outputs and the path it completes."""
-    return _export_groups(net, input_size, scan_row, segments(net.specs), keep_all_outputs=False)
+    with an exit. A description has name, stages, inputs, outputs and the path it completes. With
+    ``rows_input`` the scan's row per column is an input (``scan_rows``), for a slanted scan line."""
+    return _export_groups(net, input_size, scan_row, segments(net.specs), keep_all_outputs=False,
+                          rows_input=rows_input)
 
 
 def export_whole(net: AnytimeDepthNet, input_size: tuple[int, int], scan_row: int | None = None) -> bytes:

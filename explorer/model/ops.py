@@ -132,17 +132,23 @@ class RowGrid(nn.Module):
 
 
 class BandCrop(nn.Module):
-    """Rows ``[row - band//2, row + band//2]`` of a feature, clamped to the feature."""
+    """Rows ``[row - band//2, row + band//2]`` of a feature, clamped to the feature. ``row`` is one
+    row (an int), or one per feature column (an integer tensor (N, W) of the feature): a slanted scan
+    line's band, gathered column by column (the same values as the slice where all rows are one)."""
 
     def __init__(self, band: int) -> None:
         super().__init__()
         self.band = band
 
-    def forward(self, x: torch.Tensor, row: int) -> torch.Tensor:
+    def forward(self, x: torch.Tensor, row: "int | torch.Tensor") -> torch.Tensor:
         h = x.shape[2]
         band = min(self.band, h)
-        top = min(max(row - band // 2, 0), h - band)
-        return x[:, :, top:top + band]
+        if not isinstance(row, torch.Tensor):
+            top = min(max(row - band // 2, 0), h - band)
+            return x[:, :, top:top + band]
+        top = (row.to(x.device, torch.int64) - band // 2).clamp(0, h - band)           # (N, W)
+        index = top[:, None, None, :] + torch.arange(band, device=x.device)[None, None, :, None]
+        return x.gather(2, index.expand(x.shape[0], x.shape[1], band, x.shape[3]))
 
 
 def conv_bn_relu(cin: int, cout: int, kernel: int, stride: int = 1, groups: int = 1) -> nn.Sequential:

@@ -331,7 +331,8 @@ class ReferenceDepthNet(nn.Module):
         self.stride = ref.stride
         self.network = ref.build()
 
-    def forward(self, image: torch.Tensor, scan: torch.Tensor, scan_row: int | None = None) -> list[torch.Tensor]:
+    def forward(self, image: torch.Tensor, scan: torch.Tensor, scan_row: "int | torch.Tensor | None" = None
+                ) -> list[torch.Tensor]:
         n, _, h, w = image.shape
         if h % self.stride or w % self.stride or min(h, w) < self.candidate.min_side:
             raise UserError(f"{self.candidate.name} needs sides divisible by {self.stride} and at least "
@@ -339,7 +340,11 @@ class ReferenceDepthNet(nn.Module):
         x = image
         if self.in_channels == 4:
             sparse = image.new_zeros(n, 1, h, w)
-            sparse[:, 0, h // 2 if scan_row is None else int(scan_row), :] = scan.to(image.dtype)
+            if isinstance(scan_row, torch.Tensor) and scan_row.dim() == 2:   # each column on its own row
+                rows = scan_row.to(image.device, torch.int64).clamp(0, h - 1)
+                sparse.scatter_(2, rows[:, None, None, :], scan.to(image.dtype)[:, None, None, :])
+            else:
+                sparse[:, 0, h // 2 if scan_row is None else int(scan_row), :] = scan.to(image.dtype)
             x = torch.cat([image, sparse], dim=1)
         out = self.network(x)
         if isinstance(out, tuple):

@@ -198,6 +198,8 @@ class Supernet(nn.Module):
                        scan_row: int) -> list[torch.Tensor]:
         """Stage ``spec`` (its weightless ``module``) on ``args``, replayed from its graph in ``graphs``."""
         row = (scan_row,) if spec.uses_scan_row else ()
+        if any(isinstance(r, torch.Tensor) for r in row):   # rows per column change with every batch: no graph
+            return [module(*args, *row)]
         key = (spec.name, spec.config, row, module.training)
         if key not in self._graph_stages:
             self._graph_stages[key] = self._stage_function(spec, module, row)

@@ -98,12 +98,17 @@ def smoothness(depth: torch.Tensor, image: torch.Tensor) -> torch.Tensor:
     return (dx * torch.exp(-ix)).mean() + (dy * torch.exp(-iy)).mean()
 
 
-def scan_l1(depth: torch.Tensor, scan: torch.Tensor, row: int) -> torch.Tensor:
-    """Mean |depth - scan| over the scan row's valid returns (scan > 0), metres."""
+def scan_l1(depth: torch.Tensor, scan: torch.Tensor, row: "int | torch.Tensor") -> torch.Tensor:
+    """Mean |depth - scan| over the scan's valid returns (scan > 0), metres, each return on ``row`` or
+    on its column's own row (an integer tensor (N, W))."""
     valid = scan > 0
     if not bool(valid.any()):
         return depth.sum() * 0.0
-    return ((depth[:, 0, row, :] - scan).abs() * valid).sum() / valid.sum()
+    if isinstance(row, torch.Tensor):
+        on_line = depth[:, 0].gather(1, row.to(depth.device, torch.int64)[:, None, :]).squeeze(1)
+    else:
+        on_line = depth[:, 0, row, :]
+    return ((on_line - scan).abs() * valid).sum() / valid.sum()
 
 
 class SelfSupervisedLoss(nn.Module):
@@ -126,7 +131,7 @@ class SelfSupervisedLoss(nn.Module):
             return [batch["pose"][:, k] for k in range(2)]
         return [self.pose_net(batch["image"], batch["sources"][:, k]) for k in range(2)]
 
-    def forward(self, outputs: list[torch.Tensor], batch: dict, row: int,
+    def forward(self, outputs: list[torch.Tensor], batch: dict, row: "int | torch.Tensor",
                 weights: tuple[float, ...] | None = None) -> tuple[torch.Tensor, list[float]]:
         """Weighted mean over the exits (``outputs[1:]``; path 0 has no parameters) and each exit's
         loss. ``batch`` holds image, sources, K, pose, pose_known and scan on the loss's device, and

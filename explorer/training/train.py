@@ -157,9 +157,15 @@ def image_batch(batch: dict, accelerator: torch.device | None) -> torch.Tensor:
     return batch["image"].to(accelerator).contiguous(memory_format=torch.channels_last)
 
 
-def batch_row(batch: dict) -> int:
-    rows = batch["scan_row"]
-    return int(torch.as_tensor(rows).float().median().item())
+def batch_row(batch: dict) -> "int | torch.Tensor":
+    """The row the batch's scans lie on: one int where every column of every frame is on one row (the
+    paper's level mount), else each frame's row per column, (N, W) (a tilted or offset LiDAR's line)."""
+    rows = batch.get("scan_rows")
+    if rows is not None:
+        rows = torch.as_tensor(rows)
+        if rows.dim() == 2 and bool((rows != rows.reshape(-1)[0]).any()):
+            return rows
+    return int(torch.as_tensor(batch["scan_row"]).float().median().item())
 
 
 def evaluate(net: AnytimeDepthNet, dataset, batch_size: int = 8, accelerator: torch.device | None = None,

@@ -159,3 +159,42 @@ def test_the_runtime_imports_no_torch():
     code = "import sys, explorer.deploy.runtime; print('torch' in sys.modules, 'explorer.data' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.split() == ["False", "False"]
+
+
+@pytest.fixture(scope="module")
+def slanted_model(tmp_path_factory):
+    """A model measured on frames whose scans are rolled across the image: its graphs take the rows."""
+    from explorer.deploy.export import Measurement
+    out = tmp_path_factory.mktemp("slanted")
+    torch.manual_seed(0)
+    net = build_network(list(SearchSpace.from_yaml("tiny").enumerate())[-1])
+    export_network(net, out, SIZE, devices=(), measurement=Measurement("synthetic:48:16,roll=10", 4))
+    return out, net
+
+
+def test_a_network_measured_on_slanted_scans_takes_each_columns_row(slanted_model, tmp_path, capsys):
+    from explorer.data import open_dataset
+    out, net = slanted_model
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert manifest["scan_rows_input"] and any("scan_rows" in s["inputs"] for s in manifest["stages"])
+    item = open_dataset("synthetic:48:16,roll=10", "val", SIZE, train_augment=False)[0]
+    assert len(set(item["scan_rows"].tolist())) > 1
+    runner = AnytimeRunner(out)
+    got = runner.depths(item["image"].numpy(), item["scan"].numpy(), item["scan_rows"].numpy())
+    with torch.no_grad():
+        want = net.eval()(item["image"][None], item["scan"][None], item["scan_rows"][None])
+    assert all(np.allclose(g, w[0, 0].numpy(), atol=1e-4) for g, w in zip(got, want))
+    lidar, _ = _files(tmp_path, "roll: 10\ntilt: 10\n")
+    capsys.readouterr()
+    runner.scan_from_ranges(_wall_ranges(lidar), lidar, K_IMAGE, IMAGE)
+    assert capsys.readouterr().err == ""          # the graphs read the scan on its own rows: nothing to warn of
+    with pytest.raises(UserError, match="one image row"):
+        runner.depths(item["image"].numpy(), item["scan"].numpy(), np.zeros(3))
+
+
+def test_int8_of_a_network_on_slanted_scans_is_refused_in_one_line(tmp_path):
+    from explorer.deploy.export import Measurement, Quantization
+    with pytest.raises(UserError, match="not supported yet"):
+        export_network(build_network(list(SearchSpace.from_yaml("tiny").enumerate())[-1]), tmp_path / "q", SIZE,
+                       devices=(), measurement=Measurement("synthetic:48:16,roll=10", 4), quantization=Quantization())
+    assert not (tmp_path / "q").exists()

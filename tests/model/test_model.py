@@ -147,3 +147,31 @@ def test_bilinear_up_sampling_as_matrix_products_matches_interpolate(shape, fact
     x = torch.randn(shape)
     want = F.interpolate(x, scale_factor=float(factor), mode="bilinear", align_corners=False)
     torch.testing.assert_close(Resize(factor, "bilinear")(x), want, rtol=1e-5, atol=1e-5)
+
+
+def test_the_ecu_band_follows_a_slanted_scan_line_column_by_column():
+    from explorer.model.ops import BandCrop
+    feature = torch.arange(8.0)[None, None, :, None].expand(2, 3, 8, 5).contiguous()   # value = its row
+    rows = torch.tensor([[0, 2, 4, 6, 7], [3, 3, 3, 3, 3]])
+    band = BandCrop(3)(feature, rows)
+    # each column's three rows around its own row, clamped to the feature
+    assert band[0, 0, :, 0].tolist() == [0, 1, 2] and band[0, 0, :, 2].tolist() == [3, 4, 5]
+    assert band[0, 0, :, 4].tolist() == [5, 6, 7]
+    assert torch.equal(band[1], BandCrop(3)(feature, 3)[1])      # one row for all columns: the slice
+
+
+def test_the_network_takes_one_row_or_one_per_column():
+    net = build_network(paper_candidate()).eval()
+    with torch.no_grad():
+        for p in net.stages["ecu"].compensation.parameters():   # a compensation that depends on the band
+            torch.nn.init.normal_(p, std=0.5)
+        image, scan = torch.rand(2, 3, 64, 64), torch.rand(2, 64) * 4 + 0.5
+        corrected = []   # what the ECU adds to the image feature
+        net.stages["ecu"].register_forward_hook(lambda m, args, out: corrected.append(out - args[0]))
+        level = net(image, scan, 32)
+        same = net(image, scan, torch.full((2, 64), 32))
+        net(image, scan, torch.linspace(8, 56, 64).round().long().expand(2, 64))
+    assert all(torch.equal(a, b) for a, b in zip(level, same))
+    assert torch.equal(corrected[0], corrected[1]) and not torch.allclose(corrected[0], corrected[2])
+    with pytest.raises(ValueError, match="per-column scan rows"):
+        net(image, scan, torch.full((2, 32), 32))

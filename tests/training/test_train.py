@@ -96,3 +96,12 @@ def test_micro_batches_compute_the_whole_batch_update(sets):
     assert all(torch.allclose(a[k], b[k], atol=1e-6) for k in a)
     assert any(not torch.equal(a[k], start.state_dict()[k]) for k in a)   # it trained
     assert "micro_batches" not in TrainConfig().to_dict()   # recipes stored before keep their keys
+
+
+def test_a_batch_on_one_row_gives_that_row_and_a_slanted_one_each_columns_row():
+    from explorer.training.train import batch_row
+    level = {"scan_row": torch.tensor([16, 16]), "scan_rows": torch.full((2, 8), 16)}
+    assert batch_row(level) == 16
+    slanted = {"scan_row": torch.tensor([16, 17]), "scan_rows": torch.arange(16, 24).expand(2, 8)}
+    assert torch.equal(batch_row(slanted), slanted["scan_rows"])
+    assert batch_row({"scan_row": [12, 14, 20]}) == 14     # a batch of items without per-column rows
