@@ -46,7 +46,7 @@ def _frames(root, n=14):
     return root
 
 
-def _sources(tmp):
+def _sources(tmp, shared):
     yield TINY_DATA
     yield "synthetic-seq:9:6"
     yield f"nyu:{_pairs(tmp / 'pairs')}"
@@ -56,11 +56,14 @@ def _sources(tmp):
     bag = write_bag(tmp / "run.bag", scene(n=24, h=24, w=32), "ros1")
     yield f"rosbag:{bag}"
     yield f"rosbag-seq:{bag}"
+    if shared.is_dir():   # real KITTI frames (raw layout): three, split in name order with one left out
+        yield f"kitti:{shared / 'kitti-mini'}"
 
 
 def test_no_source_serves_a_frame_to_both_splits(tmp_path, monkeypatch):
+    from conftest import SHARED
     monkeypatch.setenv("ANYTIME_EXPLORER_CACHE", str(tmp_path / "cache"))
-    for spec in _sources(tmp_path):
+    for spec in _sources(tmp_path, SHARED):
         train, val = (open_dataset(spec, s, (24, 32)) for s in ("train", "val"))
         names = train.frame_names(), val.frame_names()
         assert len(train) and len(val), spec
