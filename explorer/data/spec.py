@@ -158,9 +158,9 @@ def with_lidar(spec: "str | DataSpec", model_options: dict) -> str:
     if isinstance(options.get("mount"), dict):
         options.update(options.pop("mount"))
     lidar_model(options, "--lidar")
-    clash = sorted(set(ds.option_dict) & (set(options) | set(LIDAR_KEYS)))
-    if any(k in LIDAR_KEYS for k in ds.option_dict):
-        raise UserError(f"data '{spec}' gives the LiDAR key {clash[0]!r} and --lidar gives a LiDAR too; use one")
+    given = sorted(k for k in ds.option_dict if k in LIDAR_KEYS or k in RADIAN_KEYS or k == "T_cam_lidar")
+    if given:
+        raise UserError(f"data '{spec}' gives the LiDAR key {given[0]!r} and --lidar gives a LiDAR too; use one")
     extra = []
     for key, value in options.items():
         if key == "T_cam_lidar":

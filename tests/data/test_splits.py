@@ -119,3 +119,12 @@ def test_a_spec_is_written_canonically_and_lidar_yaml_joins_it():
     assert np.allclose(parse_data_spec(merged).lidar.transform, T)
     with pytest.raises(UserError, match="not a rigid transform"):
         with_lidar("synthetic", {"T_cam_lidar": np.diag([2.0, 1, 1, 1]).tolist()})
+
+
+def test_lidar_yaml_and_a_spec_that_gives_a_lidar_too_are_one_line(tmp_path, run_cli):
+    (tmp_path / "lidar.yaml").write_text("fov: 90\ntilt: 1\n")
+    code, _, err = run_cli("data", "inspect", "--data", "synthetic:48:16,tilt=2", "--lidar", tmp_path / "lidar.yaml")
+    assert code == 2 and "gives the LiDAR key 'tilt'" in err and len(err.strip().splitlines()) == 1
+    (tmp_path / "bad.yaml").write_text("fov: wide\n")
+    code, _, err = run_cli("data", "inspect", "--data", "synthetic:48:16", "--lidar", tmp_path / "bad.yaml")
+    assert code == 2 and "fov must be a number" in err
