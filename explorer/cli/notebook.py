@@ -41,8 +41,9 @@ def cmd_notebook(args) -> None:
     from explorer.console import console
     for path, written in copy_notebooks(Path(args.out), args.force):
         console.print(f"{'wrote' if written else 'already there, unchanged:'} {path}", markup=False, highlight=False)
-        console.print(f"  open it: jupyter lab {path}   (it reads the study named in its first cell, from a "
-                      "reports/ folder beside or above it)", markup=False, highlight=False)
+        console.print(f"  open it in Jupyter (`pip install jupyterlab`, then `jupyter lab {path}`) or VS Code; it "
+                      "reads the study named in its first cell, from a reports/ folder beside or above it",
+                      markup=False, highlight=False)
 
 
 def register(sub, add, reports: dict) -> None:

@@ -38,6 +38,7 @@ def test_report_holds_the_tables(study_with_everything):
     assert "L_T@33ms" in html and "L_E@0.5J" in html
     assert html.count("data:image/png;base64,") >= 4
     assert "http://" not in html and "https://" not in html  # opens offline
+    assert '<meta name="viewport" content="width=device-width' in html   # a phone lays it out at its own width
     assert "FAIL" in html and "PRUNED" in html
     # the finalists: every retrained one beside its estimate, and the winner is a retrained one
     assert 'id="finalists-table"' in html and "(retrained)" in html
