@@ -58,11 +58,6 @@ def batch_depth_metrics(pred: torch.Tensor, target: torch.Tensor) -> list[dict[s
     return [{m: (columns[m][i] if ok else float("nan")) for m in METRICS} for i, ok in enumerate((n > 0).tolist())]
 
 
-def batch_metrics(pred: torch.Tensor, target: torch.Tensor) -> list[dict[str, float]]:
-    """Per-image metrics of a batch (N, 1, H, W)."""
-    return [depth_metrics(pred[i], target[i]) for i in range(pred.shape[0])]
-
-
 class MetricAverager:
     """Averages per-image metrics (the convention of FastDepth's evaluation)."""
 

@@ -9,9 +9,9 @@ where both sides are (``hand_off_quantized``).
 onnxruntime's CPU provider runs convolutions on channels blocked by its vector width (NCHWc) and
 converts at a graph's edges. A tensor that one stage outputs and the next one reads (the decoder's
 running feature map) leaves the first graph in plain NCHW and is converted into the blocked layout
-again by the second, although the first had converted it already for its own exit head. On the paper
-design at 224x224 those three extra conversions were half of the staged runtime's overhead over one
-whole graph (+5.9% -> +2.8%, benchmarks/bench_runtime.py).
+again by the second, although the first had converted it already for its own exit head. Those extra
+conversions are a large part of the staged runtime's overhead over one whole graph
+(benchmarks/bench_runtime.py measures both).
 
 ``hand_off_blocked`` rewrites the stage graphs after onnxruntime has optimised them on this machine: the
 producing graph also outputs its blocked copy (``NAME.nchwc``) and the reading graph takes that in place

@@ -45,10 +45,10 @@ MAX_SUPERNET_STEPS = 600
 STEP_GRID = 100
 MIN_FINALIST_STEPS = 150
 RESERVE_S = 20.0        # the report, the last costings, the process's exit
-SAFETY = 1.1            # measured step times are a few steps of a noisy machine (1.2 left a fresh
-                        # `make search` 60 s unused, the finalists planned 30% above what they took)
+SAFETY = 1.1            # measured step times are a few steps of a noisy machine: a margin on them, and
+                        # no more (a larger one leaves the time limit's end unused)
 FINALIST_SIZE = 1.3     # finalists not measured yet train this much slower than the paper design
-                        # (1.04-1.25x, medians of 3, bench_baseline_training; measured when sampling ends)
+                        # (benchmarks/bench_baseline_training.py; measured when sampling ends)
 KEEP_STEPS = 2 / 3      # when re-planned short, the finalists' steps shrink this far before their number does
 
 
@@ -275,7 +275,7 @@ def not_retrained(skipped: int, plan: Plan, left_s: float) -> str:
 
 # -- measuring ------------------------------------------------------------------------------------
 def _seconds_per_step(marks: dict[int, float]) -> float:
-    """The median step after the first two (in a fresh process they run 2x slower: allocation, first
+    """The median step after the first two (in a fresh process they run slower: allocation, first
     kernels), from the times at which each step ended."""
     import statistics
     steps = sorted(marks)

@@ -15,19 +15,12 @@ system attributes, as ``optuna.storages.RetryHeartbeatStaleTrialCallback`` write
 ``retried_trial_number`` and ``retry_history`` read ours). A trial whose objective raised (a NaN loss,
 an error in training) records ``fail_reason`` and is never retried: that is a result. Interrupted
 trials do not count toward ``--trials``; their retries do.
-
-:func:`tracked_work` and :func:`needs_run` give the same rule to units of work that are not trials
-(recorded as study attributes): an interrupted one is redone on resume, a finished or failed one never.
 """
 
 from __future__ import annotations
 
-import contextlib
-import os
-import socket
-import time
 import warnings
-from typing import Any, Callable, Iterator, Mapping, Sequence
+from typing import Any, Callable, Sequence
 
 import optuna
 from optuna.trial import FrozenTrial, TrialState
@@ -66,12 +59,6 @@ def interrupted_trials(study: optuna.Study, trials: Sequence[FrozenTrial] | None
         if t.number in marks:
             out[t.number] = marks[t.number]
     return out
-
-
-def was_interrupted(study: optuna.Study, trial: FrozenTrial) -> bool:
-    """True for a trial stopped from outside (killed, Ctrl-C, lost heartbeat), False for one that
-    finished, is still going, or failed by its own fault."""
-    return trial.number in interrupted_trials(study, [trial])
 
 
 def retries_by_origin(trials: Sequence[FrozenTrial]) -> dict[int, FrozenTrial]:
@@ -244,59 +231,6 @@ def set_objective_names(study: optuna.Study, names: list[str]) -> None:
         warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
         if study.metric_names != names:
             study.set_metric_names(names)
-
-
-# -- units of work that are not trials (e.g. a finalist's retraining) ----------------------------
-@contextlib.contextmanager
-def tracked_work(set_attr: Callable[[str, Any], None], key: str, previous: Mapping | None = None,
-                 **info) -> Iterator[dict]:
-    """Records a unit of work under ``key`` with ``set_attr`` (e.g. ``study.set_user_attr``): state
-    "running" (host, pid, attempt) before the body, then "done" with what the body put in the yielded
-    dict, "failed" with the reason when it raises, or "interrupted" on Ctrl-C. A process killed
-    mid-way leaves "running" behind, which :func:`needs_run` reads as interrupted. ``previous``: the
-    record of an earlier attempt (its attempts are counted on)."""
-    attempt = int((previous or {}).get("attempts", 0)) + 1
-    rec = {**info, "state": "running", "attempts": attempt, "host": socket.gethostname(),
-           "pid": os.getpid(), "started": time.strftime("%Y-%m-%d %H:%M:%S")}
-    set_attr(key, rec)
-    result: dict = {}
-    try:
-        yield result
-    except KeyboardInterrupt:
-        set_attr(key, {**rec, "state": "interrupted", "reason": CTRL_C})
-        raise
-    except Exception as exc:
-        set_attr(key, {**rec, "state": "failed", "reason": error_text(exc)})
-        raise
-    set_attr(key, {**rec, **result, "state": "done", "finished": time.strftime("%Y-%m-%d %H:%M:%S")})
-
-
-def needs_run(record: Mapping | None, *, others_may_run: bool = False, max_retries: int | None = None) -> bool:
-    """Whether the unit of work recorded by :func:`tracked_work` must be (re)done now: never started,
-    or interrupted (Ctrl-C, or "running" left behind by a process that is gone), at most
-    ``max_retries`` times after the first attempt. Finished ("done") and failed (its own fault) work
-    is never redone. ``others_may_run`` False (a resume on local storage): a "running" record's
-    process is gone; True (shared storage): only when it ran on this host and its pid is dead."""
-    if not record:
-        return True
-    state = record.get("state")
-    if state in ("done", "failed"):
-        return False
-    if max_retries is not None and int(record.get("attempts", 1)) > max_retries:
-        return False
-    if state == "running" and others_may_run:
-        return record.get("host") == socket.gethostname() and not _pid_alive(record.get("pid"))
-    return True
-
-
-def _pid_alive(pid) -> bool:
-    try:
-        os.kill(int(pid), 0)
-    except (TypeError, ValueError, ProcessLookupError):
-        return False
-    except PermissionError:
-        return True
-    return True
 
 
 def fail_interrupted_trials(study: optuna.Study) -> int:

@@ -194,7 +194,7 @@ def _optimize(study: optuna.Study, objective: Objective, n_trials: int | None, d
     # everything loaded so far (torch, data, the evaluator's batches) lives as long as the worker:
     # frozen, no collection walks it. After a trial only the young generations are collected (what the
     # trial made): a full collection also walks the evaluator's stage memo and every stored trial, and
-    # grew to about 90 ms a trial, a quarter of a trial's time on two cores
+    # grows with the study
     gc.freeze()
     cbs.append(lambda _study, _trial: gc.collect(1))
     study.optimize(guarded(objective, objective.config.max_retries, n_trials), timeout=timeout, callbacks=cbs,
@@ -272,7 +272,7 @@ def plan_search(context: StudyContext, storage: optuna.storages.BaseStorage, lim
     train_set = hinted_if_asked(config, open_dataset(config.data, "train", config.train_size, seed=config.seed,
                                                  progress=on_data), on_data)
     val_set = open_dataset(config.data, "val", config.train_size, train_augment=False)
-    os.sync()  # data just generated is still being written back: measured then, steps read 1.6-2x slow
+    os.sync()  # data just generated is still being written back: steps measured meanwhile read slow
     if clock is not None:
         clock.lap("data")
     trains_supernet = config.evaluator == "supernet" and not config.supernet

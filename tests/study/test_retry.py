@@ -16,7 +16,7 @@ import pytest
 from explorer.study.records import RECORD_VERSION, VERSION_KEY
 from explorer.study.results import missing_baselines, trials_frame
 from explorer.study.retry import (CTRL_C, RetryStaleTrials, counted_trials, enqueue_retry, guarded,
-                            interrupted_trials, needs_run, tracked_work)
+                            interrupted_trials)
 from explorer.study.search import SearchConfig, objective_names, search
 from explorer.study.storage import load_study
 from conftest import POSTGRES, TINY_DATA, journal_trials, needs_postgres
@@ -270,30 +270,6 @@ def test_objectives_are_named():
     assert objective_names(SearchConfig(study="x", budgets=("energy:uniform:0.5J",),
                                         objectives=("anytime_loss", "params", "first_exit_ms"))) == \
         ["anytime_loss[energy:uniform:0.5J]", "params", "first_exit_ms"]
-
-
-def test_tracked_work_redoes_interrupted_work_only():
-    store: dict = {}
-    assert needs_run(store.get("finalist:3"))                           # never started
-    with tracked_work(store.__setitem__, "finalist:3", steps=100) as result:
-        result["rmse"] = 0.5
-    assert store["finalist:3"]["state"] == "done" and store["finalist:3"]["rmse"] == 0.5
-    assert not needs_run(store["finalist:3"])                           # finished: never redone
-    with pytest.raises(FloatingPointError):
-        with tracked_work(store.__setitem__, "finalist:4"):
-            raise FloatingPointError("nan")
-    assert store["finalist:4"]["state"] == "failed" and not needs_run(store["finalist:4"])
-    with pytest.raises(KeyboardInterrupt):
-        with tracked_work(store.__setitem__, "finalist:5"):
-            raise KeyboardInterrupt
-    assert needs_run(store["finalist:5"])                               # Ctrl-C: redone
-    killed = {"state": "running", "attempts": 1, "host": "elsewhere", "pid": 1}   # left by kill -9
-    assert needs_run(killed)                                            # resume on local storage
-    assert not needs_run(killed, others_may_run=True)                   # may be alive on another host
-    assert not needs_run({**killed, "attempts": 3}, max_retries=2)
-    with tracked_work(store.__setitem__, "finalist:5", previous=store["finalist:5"]):
-        pass
-    assert store["finalist:5"]["attempts"] == 2
 
 
 @pytest.mark.slow
