@@ -199,15 +199,22 @@ def _leftovers(target: Path) -> Iterator[tuple[Path, str, int]]:
 SCRATCH = re.compile(r".*\.tmp(\d+)")
 
 
-def remove_dead_scratch(folder: str | Path) -> list[Path]:
+def remove_dead_scratch(folder: str | Path, only_for: str | Path | None = None) -> list[Path]:
     """Removes the scratch files and folders (``NAME.tmpPID``) that processes no longer alive left in
-    ``folder`` (a generation killed by SIGTERM or kill -9); returns what it removed."""
+    ``folder`` (a generation killed by SIGTERM or kill -9); returns what it removed. ``only_for``: a
+    file whose writers' scratch alone is removed (``FILE.tmpPID``, ``.FILE.XXXX.tmpPID``), for a folder
+    that is the user's (a checkpoint's): files of their own that look like scratch are never touched.
+    Without it the whole folder is the project's own (a cache)."""
     removed = []
     folder = Path(folder)
     if not folder.is_dir():
         return removed
+    pattern = SCRATCH
+    if only_for is not None:
+        name = re.escape(Path(only_for).name)
+        pattern = re.compile(rf"(?:{name}|\.{name}\.[^/]*)\.tmp(\d+)")
     for p in folder.iterdir():
-        m = SCRATCH.fullmatch(p.name)
+        m = pattern.fullmatch(p.name)
         if m and not process_alive(int(m.group(1))):
             if p.is_dir():
                 shutil.rmtree(p, ignore_errors=True)

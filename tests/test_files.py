@@ -212,3 +212,29 @@ def test_a_16_bit_grey_frame_is_scaled_not_clipped_to_white(tmp_path):
     assert rgb.shape == (8, 64, 3) and rgb.dtype == np.uint8
     assert rgb[0, 0, 0] == 0 and rgb[0, -1, 0] == 255 and (rgb[0, 1:, 0] >= rgb[0, :-1, 0]).all()
     assert (rgb == 255).mean() < 0.05                                  # not clipped to white
+
+
+def test_a_checkpoints_cleanup_touches_only_its_own_scratch(tmp_path):
+    from explorer.files import remove_dead_scratch
+    dead = _dead_pid()
+    mine = [f"ck.pt.tmp{dead}", f".ck.pt.ab12.tmp{dead}"]
+    theirs = [f"results.tmp{dead}", f"run.tmp{dead + 1}", f"ck.tmp{dead}", f"other.pt.tmp{dead}"]
+    for name in mine + theirs:
+        (tmp_path / name).write_bytes(b"x")
+    (tmp_path / f"exp.tmp{dead}").mkdir()
+    removed = remove_dead_scratch(tmp_path, only_for=tmp_path / "ck.pt")
+    assert sorted(p.name for p in removed) == sorted(mine)
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(theirs + [f"exp.tmp{dead}"])
+
+
+def test_train_out_keeps_the_users_files_beside_the_checkpoint(tmp_path, run_cli):
+    dead = _dead_pid()
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / f"results.tmp{dead}").write_text("mine")
+    (out / f"run.tmp{dead}").mkdir()
+    code, _, err = run_cli("train", "paper", "--data", "synthetic:48:16", "--steps", "1", "--batch-size", "2",
+                           "--train-size", "32x32", "--out", out / "ck.pt")
+    assert code == 0, err
+    assert (out / f"results.tmp{dead}").read_text() == "mine" and (out / f"run.tmp{dead}").is_dir()
+    assert (out / "ck.pt").is_file()

@@ -142,7 +142,7 @@ def save(path: Path, net: Supernet, recipe: SupernetRecipe, data: str, step: int
              "state_dict": net.state_dict(), "optimizer": optimizer.state_dict() if optimizer else None,
              "history": history, "seconds": seconds}
     state["digest"] = tensors_digest(state["state_dict"], state["optimizer"])
-    remove_dead_scratch(path.parent)   # what a save killed midway left (a supernet is tens of MB)
+    remove_dead_scratch(path.parent, only_for=path)   # what a save killed midway left (tens of MB)
     tmp = path.with_name(f"{path.name}.tmp{os.getpid()}")
     torch.save(state, tmp)
     tmp.replace(path)  # a kill never leaves a half-written file

@@ -253,7 +253,7 @@ def save_checkpoint(path: Path, net: AnytimeDepthNet, cfg: TrainConfig, step: in
     path.parent.mkdir(parents=True, exist_ok=True)
     state = {"candidate": net.candidate.to_dict(), "state_dict": net.state_dict(), "train_config": cfg.to_dict(),
              "step": step, "optimizer": optimizer.state_dict() if optimizer else None, **(extra or {})}
-    remove_dead_scratch(path.parent)   # what a save killed midway left
+    remove_dead_scratch(path.parent, only_for=path)   # what a save of this checkpoint killed midway left
     tmp = path.with_name(f"{path.name}.tmp{os.getpid()}")
     torch.save(state, tmp)
     tmp.replace(path)  # never leave a half-written checkpoint
