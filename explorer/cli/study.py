@@ -223,7 +223,8 @@ def _print_outcome(study, cfg, storage_url: str, reports: Path, write_report: bo
                 else f"baseline {m['label']} missing:"
             console.print(f"{lead} {m['why']}", markup=False, highlight=False)
     console.print(f"wall time: {wall_time(study)}", markup=False, highlight=False)
-    console.print(f"study: {storage_url}")
+    from explorer.study.storage import redacted
+    console.print(f"study: {redacted(storage_url)}", markup=False, highlight=False)
     if write_report:
         try:
             from explorer.report import write_report as _write

@@ -132,7 +132,10 @@ def open_storage(url: str | None, study: str, workers: int = 1, reports: Path = 
         storage = _rdb_storage(url, kwargs)
     except Exception as exc:  # sqlalchemy raises many types for unreachable or malformed URLs
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        raise UserError(f"storage {url}: unreachable or invalid ({first[:160]})") from None
+        secret = _password(url)
+        if secret:
+            first = first.replace(secret, "***")
+        raise UserError(f"storage {redacted(url)}: unreachable or invalid ({first[:160]})") from None
     if create and url.startswith("sqlite:///") and not on_network_filesystem(Path(url[len("sqlite:///"):])):
         _write_ahead(storage)   # the search writes; readers leave the file's mode as they find it
     return storage
@@ -274,3 +277,16 @@ def load_study(study: str, url: str | None = None, reports: Path = REPORTS_DIR) 
     except KeyError:
         names = [s.study_name for s in optuna.get_all_study_summaries(storage)]
         raise UserError(f"no study named '{study}' in that storage (it has: {names or 'none'})") from None
+
+
+_PASSWORD = re.compile(r"^([a-z0-9+.-]+://[^:/@]*:)([^@/]*)@", re.IGNORECASE)
+
+
+def _password(url: str) -> str:
+    m = _PASSWORD.match(url)
+    return m.group(2) if m else ""
+
+
+def redacted(url: str) -> str:
+    """``url`` with its password, if any, written as ``***``: what may be printed or logged."""
+    return _PASSWORD.sub(lambda m: f"{m.group(1)}***@" if m.group(2) else m.group(0), url, count=1)

@@ -132,3 +132,12 @@ def test_workers_started_together_on_an_empty_postgres_database_all_open_it():
     finally:
         admin.cursor().execute(f"DROP DATABASE {name} WITH (FORCE)")
         admin.close()
+
+
+def test_an_unreachable_storage_is_named_without_its_password(run_cli, tmp_path):
+    code, out, err = run_cli("search", "--study", "leak", "--reports", tmp_path, "--trials", "1",
+                             "--storage", "postgresql://root:S3cretPw@127.0.0.1:5999/x")
+    assert code == 2 and len(err.strip().splitlines()) == 1 and "unreachable" in err
+    assert "S3cretPw" not in err + out and "root:***@127.0.0.1:5999" in err
+    assert storage.redacted("postgresql://u@h/x") == "postgresql://u@h/x"
+    assert storage.redacted("journal:reports/x/journal.log") == "journal:reports/x/journal.log"
