@@ -16,12 +16,14 @@ into the depth map, with its noise and dropouts, then projected the same way.
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from explorer.errors import UserError
+from explorer.files import read_text, read_yaml
 
 #: the rotation from the LiDAR frame (x forward, y left, z up) to the optical frame (x right, y down,
 #: z forward) of a camera looking the same way
@@ -66,7 +68,7 @@ class ScanPoints:
 
     def transformed(self, box: tuple[int, int, int, int], size: tuple[int, int], flip: bool = False) -> "ScanPoints":
         """The points after cropping ``box`` (top, left, height, width) and resizing it to ``size``, then
-        mirroring left-right if ``flip``: as :func:`explorer.data.sequences.scale_intrinsics` moves K."""
+        mirroring left-right if ``flip``: as :func:`scale_intrinsics` moves K."""
         top, left, h, w = box
         sy, sx = size[0] / h, size[1] / w
         u = (self.u - left + 0.5) * sx - 0.5
@@ -231,10 +233,57 @@ def simulate_scan_points(depth: np.ndarray, K: np.ndarray, model: LidarModel,
     return project_scan(simulate_ranges(depth, K, model, rng), model.transform, K, depth.shape)
 
 
+def check_camera_matrix(K, where: str) -> np.ndarray:
+    """``K`` as a 3x3 float64 camera matrix (finite, positive focal lengths, last row 0 0 1), or one
+    UserError line."""
+    try:
+        m = np.asarray(K, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise UserError(f"{where}: the camera matrix K must be numbers") from None
+    if m.shape != (3, 3):
+        raise UserError(f"{where}: the camera matrix K must be 3x3, got shape {m.shape}")
+    if not np.isfinite(m).all():
+        raise UserError(f"{where}: intrinsics must be finite numbers (found nan or inf)")
+    if m[0, 0] <= 0 or m[1, 1] <= 0:
+        raise UserError(f"{where}: focal lengths fx={m[0, 0]:g}, fy={m[1, 1]:g} must be positive (in pixels)")
+    if not np.allclose(m[2], [0, 0, 1]) or m[1, 0] != 0:
+        raise UserError(f"{where}: not a camera matrix: its last row must be 0 0 1 and K[1][0] zero")
+    return m
+
+
+def read_intrinsics(path: str | Path) -> np.ndarray:
+    """K from ``fx fy cx cy`` (4 numbers) or its 9 entries, in pixels of the image it belongs to,
+    checked to be a camera matrix before any tensor sees it."""
+    path = Path(path)
+    if not path.is_file():
+        raise UserError(f"{path}: no such intrinsics file (write fx fy cx cy, or the 3x3 matrix K)")
+    try:
+        values = [float(x) for x in read_text(path, "intrinsics file").replace(",", " ").split()]
+    except ValueError:
+        raise UserError(f"{path}: intrinsics must be numbers (fx fy cx cy, or the 9 entries of K)") from None
+    if len(values) == 4:
+        fx, fy, cx, cy = values
+        values = [fx, 0, cx, 0, fy, cy, 0, 0, 1]
+    elif len(values) != 9:
+        raise UserError(f"{path}: {len(values)} numbers; give fx fy cx cy, or the 9 entries of K")
+    return check_camera_matrix(np.array(values, dtype=np.float64).reshape(3, 3), str(path))
+
+
+def scale_intrinsics(K: np.ndarray, box: tuple[float, float, float, float], size: tuple[int, int]) -> np.ndarray:
+    """Intrinsics after cropping ``box`` (top, left, h, w) and resizing it to ``size``, in
+    pixel-index coordinates (a pixel's centre at its index)."""
+    top, left, h, w = box
+    sy, sx = size[0] / h, size[1] / w
+    out = np.array(K, dtype=np.float64).copy()
+    out[0, 0], out[1, 1] = K[0, 0] * sx, K[1, 1] * sy
+    out[0, 2] = (K[0, 2] - left + 0.5) * sx - 0.5
+    out[1, 2] = (K[1, 2] - top + 0.5) * sy - 0.5
+    return out
+
+
 def read_ranges(path: Path, beams: int | None = None) -> np.ndarray:
     """A scan's ranges from ``.csv`` (one row, or one value a line) or ``.npy``; ``beams``: the count
     the LiDAR's model gives, checked."""
-    from explorer.files import read_text
     try:
         if path.suffix.lower() == ".npy":
             ranges = np.load(path, allow_pickle=False).astype(np.float64).ravel()
@@ -263,7 +312,7 @@ LIDAR_KEYS = {
     "tilt": "degrees the scan plane is pitched down", "roll": "degrees rolled clockwise", "yaw": "degrees turned right",
 }
 RADIAN_KEYS = ("angle_min", "angle_max", "angle_increment")
-_MOUNT_KEYS = ("height", "forward", "lateral", "tilt", "roll", "yaw")
+MOUNT_KEYS = ("height", "forward", "lateral", "tilt", "roll", "yaw")
 
 
 def _number(value, key: str, where: str) -> float:
@@ -295,17 +344,17 @@ def lidar_model(options: dict, where: str, base: LidarModel = LidarModel()) -> L
     if not angle_min < angle_max or not 0 < step <= angle_max - angle_min:
         raise UserError(f"{where}: the beams must run from angle_min to a larger angle_max by a positive step "
                         "no larger than the field of view (fov > 0, resolution > 0)")
-    if "T_cam_lidar" in opts and any(k in values for k in _MOUNT_KEYS):
+    if "T_cam_lidar" in opts and any(k in values for k in MOUNT_KEYS):
         raise UserError(f"{where}: give the mount either as T_cam_lidar or as height/tilt/..., not both")
     if "T_cam_lidar" in opts:
         matrix = opts["T_cam_lidar"]
-        if isinstance(matrix, str):   # a data spec's option: the 12 (or 16) numbers joined by ':'
-            numbers = [_number(x, "T_cam_lidar", where) for x in matrix.split(":")]
+        if isinstance(matrix, str):   # a data spec's option: the 12 (or 16) numbers joined by ':' (or ',', spaces)
+            numbers = [_number(x, "T_cam_lidar", where) for x in re.split(r"[:,\s]+", matrix.strip()) if x]
             if len(numbers) not in (12, 16):
                 raise UserError(f"{where}: T_cam_lidar takes 12 numbers (its top 3x4) joined by ':'")
             matrix = np.array(numbers).reshape(-1, 4)
         transform = rigid_transform(matrix, where)
-    elif any(k in values for k in _MOUNT_KEYS):
+    elif any(k in values for k in MOUNT_KEYS):
         transform = mount_transform(values.get("height", 0.0), values.get("forward", 0.0), values.get("lateral", 0.0),
                                     values.get("tilt", 0.0), values.get("roll", 0.0), values.get("yaw", 0.0))
     else:
@@ -322,15 +371,14 @@ def lidar_model(options: dict, where: str, base: LidarModel = LidarModel()) -> L
     return model
 
 
-def read_lidar_yaml(path: Path) -> LidarModel:
-    """A ``lidar.yaml``: the keys of :data:`LIDAR_KEYS` (or radians and ``T_cam_lidar``)."""
-    import yaml
-
-    from explorer.files import read_text
-    try:
-        data = yaml.safe_load(read_text(Path(path), "LiDAR file"))
-    except yaml.YAMLError as exc:
-        raise UserError(f"{path}: not valid YAML ({str(exc).splitlines()[0]})") from None
+def read_lidar_options(path: Path) -> dict:
+    """A ``lidar.yaml``'s mapping of LiDAR keys, unchecked (:func:`lidar_model` checks them)."""
+    data = read_yaml(Path(path), "LiDAR file")
     if not isinstance(data, dict):
         raise UserError(f"{path}: expected a mapping of LiDAR keys ({', '.join(LIDAR_KEYS)})")
-    return lidar_model(data, str(path))
+    return data
+
+
+def read_lidar_yaml(path: Path) -> LidarModel:
+    """A ``lidar.yaml``: the keys of :data:`LIDAR_KEYS` (or radians and ``T_cam_lidar``)."""
+    return lidar_model(read_lidar_options(path), str(path))

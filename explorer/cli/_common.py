@@ -272,16 +272,8 @@ def resolve_data(args: argparse.Namespace) -> None:
     if lidar is not None:
         if not isinstance(data, str):
             raise UserError("--lidar describes the scans of --data: give --data too")
-        import yaml
-
-        from explorer.files import read_text
-        try:
-            model = yaml.safe_load(read_text(Path(lidar), "LiDAR file"))
-        except yaml.YAMLError as exc:
-            raise UserError(f"{lidar}: not valid YAML ({str(exc).splitlines()[0]})") from None
-        if not isinstance(model, dict):
-            raise UserError(f"{lidar}: expected a mapping of LiDAR keys (fov, resolution, height, tilt, ...)")
-        args.data = with_lidar(data, model)
+        from explorer.scan import read_lidar_options
+        args.data = with_lidar(data, read_lidar_options(Path(lidar)))
     else:
         args.data = str(parse_data_spec(data))
 

@@ -27,8 +27,8 @@ from explorer.data import transforms as T
 from explorer.data._scans import frame_scan
 from explorer.data.lidar import ScanConfig, scan_from_image, simulate_scan
 from explorer.data.readers import NYUH5, KittiH5, KittiRaw, PairCSV, RawFrame
-from explorer.scan import LidarModel
-from explorer.data.sequence_readers import FrameFolder, KittiDrive, read_intrinsics
+from explorer.scan import LidarModel, read_intrinsics
+from explorer.data.sequence_readers import FrameFolder, KittiDrive
 from explorer.data.spec import (
     MAX_GENERATED,
     SEQUENCE_KINDS,

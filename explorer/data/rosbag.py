@@ -57,7 +57,9 @@ from explorer.data._ros_messages import (
     _transform,
 )
 from explorer.data.readers import RawFrame
-from explorer.scan import LIDAR_KEYS, LaserScan, lidar_model, project_scan, rigid_transform
+from explorer.data.spec import BAG_KEYS as SPEC_BAG_KEYS
+from explorer.scan import LIDAR_KEYS, RADIAN_KEYS, LaserScan, lidar_model, project_scan, rigid_transform
+from explorer.scan import MOUNT_KEYS as LIDAR_MOUNT_KEYS
 from explorer.data.sequences import SequenceSample
 from explorer.data.splits import VAL_SHARE, parse_share, split_range
 from explorer.data.synthetic import cache_dir
@@ -70,9 +72,8 @@ except ImportError:   # pragma: no cover
     AnyReader = AnyReaderError = None
 
 TOPIC_KEYS = ("image", "scan", "depth", "camera_info")
-BAG_KEYS = (*TOPIC_KEYS, "tolerance", "val")
-MOUNT_KEYS = ("height", "forward", "lateral", "tilt", "roll", "yaw", "T_cam_lidar")
-RADIAN_KEYS = ("angle_min", "angle_max", "angle_increment")
+BAG_KEYS = (*SPEC_BAG_KEYS, "val")
+MOUNT_KEYS = (*LIDAR_MOUNT_KEYS, "T_cam_lidar")
 CACHE_VERSION = 1
 
 
@@ -100,17 +101,6 @@ def options_path(path: Path) -> Path:
     """The YAML beside a bag: its suffix replaced (a folder: its name plus ``.yaml``)."""
     path = Path(path)
     return path.parent / f"{path.name}.yaml" if path.is_dir() else path.with_suffix(".yaml")
-
-
-def _matrix(value, where: str):
-    """A T_cam_lidar given as text (12 or 16 numbers split by ``:``, ``,`` or spaces) as rows."""
-    if not isinstance(value, str):
-        return value
-    try:
-        nums = [float(x) for x in re.split(r"[:,\s]+", value.strip()) if x]
-    except ValueError:
-        raise UserError(f"{where}: T_cam_lidar must be 12 or 16 numbers, got {value!r}") from None
-    return np.reshape(nums, (-1, 4)).tolist() if len(nums) in (12, 16) else nums
 
 
 def bag_options(path: Path, options: dict[str, str]) -> BagOptions:
@@ -152,8 +142,6 @@ def _checked(merged: dict, lidar: dict, where: str) -> BagOptions:
     val = parse_share(str(merged["val"]), where) if "val" in merged else VAL_SHARE
     mount = None
     if lidar:
-        if "T_cam_lidar" in lidar:
-            lidar["T_cam_lidar"] = _matrix(lidar["T_cam_lidar"], where)
         model = lidar_model(lidar, where)
         mount = tuple(float(x) for x in model.transform.ravel()) if set(lidar) & set(MOUNT_KEYS) else None
     return BagOptions(**{k: v and v.strip() for k, v in topics.items()}, tolerance=tolerance, val=val,

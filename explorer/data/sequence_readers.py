@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from explorer.data.readers import open_image, read_image, ring_mask, sparse_depth
-from explorer.scan import LidarModel, project_scan, read_lidar_yaml, read_ranges
+from explorer.scan import LidarModel, project_scan, read_intrinsics, read_lidar_yaml, read_ranges  # noqa: F401
 from explorer.data.sequences import SequenceSample
 from explorer.data.splits import VAL_SHARE, split_range
 from explorer.errors import UserError
@@ -65,31 +65,6 @@ def _rgb(path: Path) -> np.ndarray:
     return read_image(path, "RGB")
 
 
-def read_intrinsics(path: Path) -> np.ndarray:
-    """A 3x3 matrix (9 numbers) or ``fx fy cx cy`` (4 numbers), in pixels of the frames; checked to
-    be a camera matrix (finite, positive focal lengths, last row 0 0 1) before any tensor sees it."""
-    if not path.is_file():
-        raise UserError(f"{path.parent}: missing intrinsics.txt (write fx fy cx cy, or the 3x3 matrix K)")
-    try:
-        values = [float(x) for x in read_text(path, "intrinsics file").replace(",", " ").split()]
-    except ValueError:
-        raise UserError(f"{path}: intrinsics must be numbers (fx fy cx cy, or the 9 entries of K)") from None
-    if len(values) == 4:
-        fx, fy, cx, cy = values
-        K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]], dtype=np.float64)
-    elif len(values) == 9:
-        K = np.array(values, dtype=np.float64).reshape(3, 3)
-    else:
-        raise UserError(f"{path}: {len(values)} numbers; give fx fy cx cy, or the 9 entries of K")
-    if not np.isfinite(K).all():
-        raise UserError(f"{path}: intrinsics must be finite numbers (found nan or inf)")
-    if K[0, 0] <= 0 or K[1, 1] <= 0:
-        raise UserError(f"{path}: focal lengths fx={K[0, 0]:g}, fy={K[1, 1]:g} must be positive (in pixels)")
-    if not np.allclose(K[2], [0, 0, 1]) or K[1, 0] != 0:
-        raise UserError(f"{path}: not a camera matrix: its last row must be 0 0 1 and K[1][0] zero")
-    return K
-
-
 def read_poses(path: Path, frames: int) -> list[np.ndarray]:
     """One camera-to-world pose per frame: 12 numbers a line (a 3x4 matrix, KITTI odometry's format),
     each finite with an invertible rotation part."""
@@ -131,6 +106,8 @@ class FrameFolder:
         self.paths = sorted(p for p in root.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
         if len(self.paths) < 3:
             raise UserError(f"{root}: {len(self.paths)} frame(s); a sequence needs at least 3 consecutive images")
+        if not (root / "intrinsics.txt").is_file():
+            raise UserError(f"{root}: missing intrinsics.txt (write fx fy cx cy, or the 3x3 matrix K)")
         self.K = read_intrinsics(root / "intrinsics.txt")
         _check_consecutive(self.paths, root)
         self.shape = _check_sizes(self.paths)

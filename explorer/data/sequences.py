@@ -27,7 +27,7 @@ from torch.utils.data import Dataset
 from explorer.data import transforms as T
 from explorer.data._scans import frame_scan
 from explorer.data.lidar import ScanConfig
-from explorer.scan import LidarModel, ScanPoints
+from explorer.scan import LidarModel, ScanPoints, scale_intrinsics  # noqa: F401  (scale_intrinsics: part of this module's face)
 from explorer.data.synthetic import (
     MAX_DEPTH,
     Room,
@@ -218,18 +218,6 @@ def _crop_box(kind: str, shape: tuple[int, int]) -> tuple[int, int, int, int]:
         ch, cw = min(T.KITTI_CROP[0], h), min(T.KITTI_CROP[1], w)
         return h - ch, int(round((w - cw) / 2.0)), ch, cw
     return 0, 0, h, w
-
-
-def scale_intrinsics(K: np.ndarray, box: tuple[int, int, int, int], size: tuple[int, int]) -> np.ndarray:
-    """Intrinsics after cropping ``box`` (top, left, h, w) and resizing it to ``size``, in
-    pixel-index coordinates (a pixel's centre at its index)."""
-    top, left, h, w = box
-    sy, sx = size[0] / h, size[1] / w
-    out = np.array(K, dtype=np.float64).copy()
-    out[0, 0], out[1, 1] = K[0, 0] * sx, K[1, 1] * sy
-    out[0, 2] = (K[0, 2] - left + 0.5) * sx - 0.5
-    out[1, 2] = (K[1, 2] - top + 0.5) * sy - 0.5
-    return out
 
 
 class SequenceDataset(Dataset):

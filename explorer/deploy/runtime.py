@@ -23,7 +23,17 @@ from explorer.deploy.sessions import check_provider
 from explorer.errors import UserError
 from explorer.files import read_image as read_image_file
 from explorer.files import read_text, scratch_dir, write_atomically
-from explorer.scan import LidarModel, column_scan, project_scan, read_lidar_yaml, read_ranges, rigid_transform
+from explorer.scan import (  # noqa: F401  (read_intrinsics: the runtime's face for robot code)
+    LidarModel,
+    check_camera_matrix,
+    column_scan,
+    project_scan,
+    read_intrinsics,
+    read_lidar_yaml,
+    read_ranges,
+    rigid_transform,
+)
+from explorer.scan import scale_intrinsics as scale_box_intrinsics
 
 #: ``AnytimeRunner(arenas=...)``
 ARENAS = ("both", "shared", "own")
@@ -460,52 +470,9 @@ def run_files(model_dir: Path, image: Path, scan: Path, deadline_ms: float, out:
             "out": str(out) if out else None, "provider": provider, **extra}
 
 
-def check_camera_matrix(K, where: str) -> np.ndarray:
-    """``K`` as a 3x3 float64 camera matrix (finite, positive focal lengths, last row 0 0 1), or one
-    UserError line."""
-    try:
-        m = np.asarray(K, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise UserError(f"{where}: the camera matrix K must be numbers") from None
-    if m.shape != (3, 3):
-        raise UserError(f"{where}: the camera matrix K must be 3x3, got shape {m.shape}")
-    if not np.isfinite(m).all():
-        raise UserError(f"{where}: intrinsics must be finite numbers (found nan or inf)")
-    if m[0, 0] <= 0 or m[1, 1] <= 0:
-        raise UserError(f"{where}: focal lengths fx={m[0, 0]:g}, fy={m[1, 1]:g} must be positive (in pixels)")
-    if not np.allclose(m[2], [0, 0, 1]) or m[1, 0] != 0:
-        raise UserError(f"{where}: not a camera matrix: its last row must be 0 0 1 and K[1][0] zero")
-    return m
-
-
-def read_intrinsics(path: str | Path) -> np.ndarray:
-    """K from ``fx fy cx cy`` (4 numbers) or its 9 entries, in pixels of the image it belongs to
-    (``explorer.data``'s reader, without importing torch)."""
-    path = Path(path)
-    if not path.is_file():
-        raise UserError(f"{path}: no such intrinsics file (write fx fy cx cy, or the 3x3 matrix K)")
-    try:
-        values = [float(x) for x in read_text(path, "intrinsics file").replace(",", " ").split()]
-    except ValueError:
-        raise UserError(f"{path}: intrinsics must be numbers (fx fy cx cy, or the 9 entries of K)") from None
-    if len(values) == 4:
-        fx, fy, cx, cy = values
-        values = [fx, 0, cx, 0, fy, cy, 0, 0, 1]
-    elif len(values) != 9:
-        raise UserError(f"{path}: {len(values)} numbers; give fx fy cx cy, or the 9 entries of K")
-    return check_camera_matrix(np.array(values, dtype=np.float64).reshape(3, 3), str(path))
-
-
 def scale_intrinsics(K: np.ndarray, image_size: tuple[int, int], size: tuple[int, int]) -> np.ndarray:
-    """K of an image of ``image_size`` (H, W) resized to ``size``, in pixel-index coordinates (pixel j's
-    centre at j): u' = (u + 0.5) sx - 0.5, so fx' = fx sx and cx' = (cx + 0.5) sx - 0.5; y alike."""
-    sy, sx = size[0] / image_size[0], size[1] / image_size[1]
-    out = np.array(K, dtype=np.float64)
-    out[0] *= sx
-    out[1] *= sy
-    out[0, 2] += 0.5 * sx - 0.5
-    out[1, 2] += 0.5 * sy - 0.5
-    return out
+    """K of an image of ``image_size`` (H, W) resized whole to ``size`` (:func:`explorer.scan.scale_intrinsics`)."""
+    return scale_box_intrinsics(K, (0, 0, *image_size), size)
 
 
 def fit_image(image: np.ndarray, size: tuple[int, int]) -> np.ndarray:
