@@ -6,7 +6,11 @@ candidate is evaluated in tens of milliseconds (on a GPU). Every line is still
 written and flushed under the journal's lock at once, so another process reads it at once and a
 killed process loses nothing; what waits for the next trial state change is only the disk's copy,
 which matters if the machine itself goes down (then the running trial's last lines may be lost, and
-Optuna's reader skips a torn last line)."""
+Optuna's reader skips a torn last line).
+
+A last line that is whole but lacks its newline (a file edited by hand, copied by a tool that drops it)
+is read and kept: only a line that is not a whole operation is torn. A damaged line before the last
+is found by :func:`first_damage`, for a one-line refusal that names it."""
 
 from __future__ import annotations
 
@@ -43,13 +47,78 @@ class TrialSyncedJournal(JournalFileBackend):
         finally:
             self._file_lock.release()
 
+    def read_logs(self, log_number_from: int):
+        """Optuna's reader, plus a last line that is a whole operation without its newline (Optuna's
+        skips it until the next write completes it)."""
+        count = 0
+        for log in super().read_logs(log_number_from):
+            count += 1
+            yield log
+        offset = self._log_number_offset.get(log_number_from + count)
+        if offset is None:
+            return
+        with open(self._path, "rb") as f:
+            f.seek(offset)
+            tail = f.read()
+        entry = whole_entry(tail) if tail and b"\n" not in tail else None
+        if entry is not None:
+            yield entry
+
+
+def whole_entry(line: bytes) -> dict | None:
+    """``line`` as a journal operation (a JSON object with an op_code), or None where it is not one."""
+    try:
+        entry = json.loads(line)
+    except (ValueError, UnicodeDecodeError):
+        return None
+    return entry if isinstance(entry, dict) and "op_code" in entry else None
+
+
+#: operations that carry one attribute each (Optuna's replay asserts it): set study user/system attr,
+#: set trial user/system attr, by op_code
+_ONE_ATTRIBUTE = {2: "user_attr", 3: "system_attr", 8: "user_attr", 9: "system_attr"}
+#: the largest op_code Optuna writes (``JournalOperation``)
+_LAST_OP = 10
+
+
+def _line_damage(line: bytes) -> str | None:
+    """What is wrong with one whole journal line, or None where it reads as an operation."""
+    try:
+        entry = json.loads(line)
+    except (ValueError, UnicodeDecodeError):
+        return "not JSON"
+    if not isinstance(entry, dict):
+        return "not a JSON object"
+    op = entry.get("op_code")
+    if not isinstance(op, int) or isinstance(op, bool) or not 0 <= op <= _LAST_OP:
+        return "no valid op_code" if op is None else f"unknown op_code {op!r}"
+    key = _ONE_ATTRIBUTE.get(op)
+    if key is not None and (not isinstance(entry.get(key), dict) or len(entry[key]) != 1):
+        return f"op_code {op} must set exactly one attribute ({key})"
+    return None
+
+
+def first_damage(path: str) -> tuple[int, str] | None:
+    """(line number from 1, what is wrong) of the first damaged line of the journal at ``path``, or None.
+    A last line without its newline that is not whole is a torn write, repaired at the next write: not
+    damage."""
+    with open(path, "rb") as f:
+        for number, line in enumerate(f, start=1):
+            if not line.endswith(b"\n") and whole_entry(line) is None:
+                return None
+            reason = _line_damage(line)
+            if reason is not None:
+                return number, reason
+    return None
+
 
 def _cut_torn_tail(path: str) -> None:
     """Removes a last line without its newline, the trace of a writer that died mid-write (a machine
     that went down): appended to, it would fuse with the next line into one that no reader can parse,
     and the study could not be opened again. Called under the journal's lock, where every writer writes
     whole lines, so such a tail is never a write in progress. The cut bytes are kept beside the journal
-    (``.torn``); they are part of one operation of the trial that was running, which is tried again."""
+    (``.torn``); they are part of one operation of the trial that was running, which is tried again.
+    A tail that is a whole operation only lacks its newline: it gets one and is kept."""
     try:
         with open(path, "rb+") as f:
             size = f.seek(0, os.SEEK_END)
@@ -70,6 +139,12 @@ def _cut_torn_tail(path: str) -> None:
                 keep = start
             f.seek(keep)
             torn = f.read()
+            if whole_entry(torn) is not None:
+                f.seek(0, os.SEEK_END)
+                f.write(b"\n")
+                f.flush()
+                os.fsync(f.fileno())
+                return
             with open(f"{path}.torn", "ab") as aside:
                 aside.write(torn + b"\n")
             f.truncate(keep)

@@ -115,7 +115,7 @@ def open_storage(url: str | None, study: str, workers: int = 1, reports: Path = 
                             "or give --storage)")
         _check_journal(path)
         _make_parent(path, "study journal")
-        return optuna.storages.JournalStorage(TrialSyncedJournal(str(path)))
+        return _replayed_journal(path, study)
     if url.startswith("sqlite:///"):
         path = Path(url[len("sqlite:///"):])
         if not create and not path.exists():
@@ -139,6 +139,20 @@ def open_storage(url: str | None, study: str, workers: int = 1, reports: Path = 
     if create and url.startswith("sqlite:///") and not on_network_filesystem(Path(url[len("sqlite:///"):])):
         _write_ahead(storage)   # the search writes; readers leave the file's mode as they find it
     return storage
+
+
+def _replayed_journal(path: Path, study: str) -> optuna.storages.JournalStorage:
+    """The journal at ``path`` read into memory; a damaged line (edited by hand, a disk error) is one
+    line naming it, and the file is left as it is."""
+    from explorer.study._journal import TrialSyncedJournal, first_damage
+    try:
+        return optuna.storages.JournalStorage(TrialSyncedJournal(str(path)))
+    except (ValueError, KeyError, TypeError, AssertionError, AttributeError, IndexError) as exc:
+        damage = first_damage(str(path))
+        what = (f"line {damage[0]} is damaged ({damage[1]})" if damage
+                else f"cannot be replayed ({type(exc).__name__}: {str(exc)[:120]})")
+        raise UserError(f"study '{study}': journal {path}: {what}; nothing was changed: restore the file from a "
+                        "backup, or move that line out of it (keep a copy) to read the rest") from None
 
 
 #: attempts at opening a database whose tables other workers may be creating at the same moment
