@@ -5,13 +5,15 @@ from __future__ import annotations
 import json
 import os
 import sys
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import pandas as pd
 from rich.console import Console
 from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TaskID, TextColumn, TimeElapsedColumn,
                            TimeRemainingColumn)
 from rich.table import Table
+
+if TYPE_CHECKING:   # pandas is imported by the commands that print tables: the runtime install has none
+    import pandas as pd
 
 #: off a terminal (a log, a pipe) rich would cut tables at 80 columns: lines this wide instead, unless
 #: COLUMNS says otherwise
@@ -77,6 +79,7 @@ def _fmt(v: Any) -> str:
 
 
 def print_frame(frame: pd.DataFrame, title: str | None = None) -> None:
+    import pandas as pd
     table = Table(title=title, show_lines=False)
     for col in frame.columns:   # a cell that does not fit wraps, never ends in an ellipsis
         table.add_column(str(col), justify="right" if pd.api.types.is_numeric_dtype(frame[col]) else "left",

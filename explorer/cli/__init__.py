@@ -59,7 +59,26 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         sys.stderr.write("explorer: interrupted; finished trials and checkpoints are kept\n")
         return 130
+    except ModuleNotFoundError as exc:
+        if not runtime_install():
+            raise
+        missing = exc.name or "torch"
+        missing = missing if missing.startswith("explorer.") else missing.split(".")[0]
+        sys.stderr.write(f"explorer: error: explorer {args.command} is not in the runtime install ({RUNTIME}, which "
+                         f"runs exported models with explorer run and has no {missing}); `pip install "
+                         "anytime-explorer` has every command\n")
+        return 2
     return 0
+
+
+#: the distribution that holds the runtime alone (runtime/pyproject.toml): explorer run, no torch
+RUNTIME = "anytime-explorer-runtime"
+
+
+def runtime_install() -> bool:
+    """Whether this is the runtime install: the package without its search, training and study code."""
+    import importlib.util
+    return importlib.util.find_spec("explorer.study") is None
 
 
 if __name__ == "__main__":
