@@ -50,8 +50,9 @@ search: $(STAMP)
 	echo "$(BIN)/explorer search --device tx2 $$limit $(SEARCH_ARGS)"; \
 	$(BIN)/explorer search --device tx2 $$limit $(SEARCH_ARGS)
 
+# the suites that fit a CPU in reasonable time; each says what it skips (GPU runs, whole commands)
 benchmarks: $(STAMP)
-	for b in benchmarks/bench_*.py; do $(BIN)/python $$b || exit 1; done
+	for s in runtime training search commands gpu; do $(BIN)/python -m benchmarks.$$s --cpu || exit 1; done
 
 clean:
 	rm -rf $(VENV) .cache .pytest_cache build

@@ -1,22 +1,33 @@
-"""The one harness every benchmark uses: repetitions, interleaving, printing and the JSON record.
+"""The one harness every benchmark and experiment uses: suites, repetitions, interleaving, printing
+and the JSON record.
 
-A benchmark declares what it measures, then runs its repetitions and hands the harness one value
-per figure per repetition::
+A suite is a module of benchmarks (``benchmarks/runtime.py``, ...), each a function that parses its own
+options, declares what it measures, runs its repetitions and hands the harness one value per figure
+per repetition::
 
-    bench = Bench(__file__, "one-line title", __doc__)   # the docstring's first paragraph: the description
-    ap = bench.parser()                                   # --reps, --no-record, --results already there
-    args = bench.parse_args(ap)
-    bench.figure("whole_ms", "whole graph latency", "ms", better="lower")
-    for rep in bench.repetitions():                       # prints each repetition's figures after it
-        ms = time_interleaved({"whole": run_whole, "staged": run_staged}, rep)
-        bench.add("whole_ms", ms["whole"])
-    bench.finish()                                        # medians (min-max), then the record
+    def bench_path0(argv=None):
+        '''What it measures: the docstring's first paragraph is the record's description.'''
+        bench = Bench("bench_path0", "one-line title", bench_path0.__doc__)   # the record's name
+        ap = bench.parser()                                   # --reps, --no-record, --results already there
+        args = bench.parse_args(ap, argv)
+        bench.figure("whole_ms", "whole graph latency", "ms", better="lower")
+        for rep in bench.repetitions():                       # prints each repetition's figures after it
+            ms = time_interleaved({"whole": run_whole, "staged": run_staged}, rep)
+            bench.add("whole_ms", ms["whole"])
+        bench.finish()                                        # medians (min-max), then the record
+
+    CASES = (Case(bench_path0), Case(bench_gpu, cpu=False, skip="needs a GPU"))
+    if __name__ == "__main__":
+        run_suite(CASES)                                      # --list, --only NAME, --cpu
+
+A benchmark whose figures vary along a parameter (an image size, a thread count) takes its values from
+a grid (``grid``, the asv ``params`` shape) and names each figure with the combination's ``suffix``.
 
 Variants being compared run inside every repetition, in an order that rotates from round to round
 (``rotated``): a machine whose speed drifts, or whose caches hold what ran last, then touches every
 variant alike instead of charging one variant with a slow spell or with its predecessor's leftovers.
 
-The record goes to ``benchmarks/results/<benchmark>/<UTC YYYYmmddTHHMMSSZ>-<short commit>.json``
+The record goes to ``benchmarks/results/<record name>/<UTC YYYYmmddTHHMMSSZ>-<short commit>.json``
 (schema 1, see ``record``), written atomically; the docs' benchmark page is generated from the latest
 record of each benchmark.
 """
@@ -25,6 +36,7 @@ from __future__ import annotations
 
 import argparse
 import datetime
+import itertools
 import json
 import math
 import os
@@ -38,7 +50,7 @@ import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Iterator, Sequence, TypeVar
+from typing import Callable, Iterator, Mapping, Sequence, TypeVar
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results"
@@ -93,6 +105,18 @@ def summary(values: Sequence[float]) -> tuple[float, float, float]:
     if not values:
         raise ValueError("no values")
     return float(statistics.median(values)), float(min(values)), float(max(values))
+
+
+def grid(**axes: Sequence) -> list[dict]:
+    """Every combination of the axes' values, the first axis slowest (asv's ``params``):
+    ``grid(size=["224x224", "192x640"], threads=[1, 2])`` gives four dicts."""
+    names = list(axes)
+    return [dict(zip(names, values)) for values in itertools.product(*(axes[n] for n in names))]
+
+
+def suffix(params: Mapping) -> str:
+    """The suffix of a figure measured at ``params``: its values joined by ``_`` (``224x224_2``)."""
+    return "_".join(str(v) for v in params.values())
 
 
 # -- the machine and the code ---------------------------------------------------------------------
@@ -178,14 +202,15 @@ def python_path() -> str:
 
 
 def command_line(argv: Sequence[str] | None = None) -> str:
-    """The command as a user types it from the repository root: ``python benchmarks/x.py --reps 5``."""
+    """The command as a user types it from the repository root: ``python -m benchmarks.runtime --only
+    path0 --reps 5``."""
     argv = list(sys.argv if argv is None else argv)
     script = Path(argv[0]).resolve() if argv else Path("?")
     try:
-        script_name = script.relative_to(ROOT).as_posix()
+        module = script.relative_to(ROOT).with_suffix("").as_posix().replace("/", ".")
     except ValueError:
-        script_name = str(script)
-    return shlex.join(["python", script_name, *argv[1:]])
+        return shlex.join(["python", str(script), *argv[1:]])
+    return shlex.join(["python", "-m", module, *argv[1:]])
 
 
 def write_record(record: dict, results: Path = RESULTS) -> Path:
@@ -238,8 +263,8 @@ def description_of(doc: str | None) -> str:
 class Bench:
     """One benchmark run: its declared figures, their values per repetition, and its record."""
 
-    def __init__(self, file: str, title: str, doc: str | None, reps: int = DEFAULT_REPS) -> None:
-        self.name = Path(file).stem
+    def __init__(self, name: str, title: str, doc: str | None, reps: int = DEFAULT_REPS) -> None:
+        self.name = Path(name).stem       # the record's name (a script's path gives its stem)
         self.title = title
         self.description = description_of(doc)
         self.doc = doc or ""
@@ -252,7 +277,7 @@ class Bench:
 
     def parser(self, **kwargs) -> argparse.ArgumentParser:
         """An ArgumentParser with the harness's options: --reps, --no-record, --results."""
-        ap = argparse.ArgumentParser(description=self.title, epilog=self.doc,
+        ap = argparse.ArgumentParser(prog=self.name, description=self.title, epilog=self.doc,
                                      formatter_class=argparse.RawDescriptionHelpFormatter, **kwargs)
         ap.add_argument("--reps", type=int, default=self.default_reps,
                         help=f"interleaved repetitions (default {self.default_reps})")
@@ -334,3 +359,65 @@ class Bench:
         path = write_record(self.record(argv), self.args.results if self.args is not None else RESULTS)
         print(f"record: {path}", flush=True)
         return path
+
+
+# -- the suite ------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Case:
+    """One benchmark of a suite: its function (named after its record), and whether ``make benchmarks``
+    runs it (``cpu``: it fits a CPU in minutes) or what keeps it out (``skip``)."""
+
+    run: Callable[[Sequence[str] | None], object]
+    cpu: bool = True
+    skip: str = ""
+
+    @property
+    def name(self) -> str:
+        return self.run.__name__
+
+
+def _selected(cases: Sequence[Case], only: Sequence[str], cpu: bool, ap: argparse.ArgumentParser) -> list[Case]:
+    by_name = {c.name: c for c in cases}
+    for name in only:
+        if name not in by_name and f"bench_{name}" not in by_name:
+            ap.error(f"no benchmark {name!r} in this suite: {', '.join(by_name)}")
+    chosen = [c for c in cases if not only or c.name in only or c.name.removeprefix("bench_") in only]
+    if cpu:
+        for c in chosen:
+            if not c.cpu:
+                print(f"skipped {c.name}: {c.skip}", flush=True)
+        chosen = [c for c in chosen if c.cpu]
+    return chosen
+
+
+def run_suite(cases: Sequence[Case], argv: Sequence[str] | None = None, module: str | None = None) -> None:
+    """A suite's command line: ``--list`` its benchmarks, ``--only NAME`` (repeatable; default all) runs
+    some, ``--cpu`` leaves out those that do not fit a CPU (saying why); every other option goes to
+    the benchmarks run. One benchmark runs in this process; several run one after another, each in a
+    process of its own (its threads, pools and imports its own)."""
+    ap = argparse.ArgumentParser(prog=f"python -m {module or _caller_module()}", add_help=False,
+                                 description="Runs benchmarks of this suite; NAME --help: its options.")
+    ap.add_argument("--list", action="store_true", help="list the benchmarks and what make benchmarks skips")
+    ap.add_argument("--only", action="append", default=[], metavar="NAME", help="run NAME (repeatable)")
+    ap.add_argument("--cpu", action="store_true", help="leave out what does not fit a CPU in minutes")
+    args, rest = ap.parse_known_args(argv)
+    if args.list or (not args.only and len(cases) > 1 and rest in (["-h"], ["--help"])):
+        ap.print_help()
+        for c in cases:
+            print(f"  {c.name}{'' if c.cpu else f'  (make benchmarks skips it: {c.skip})'}")
+        return
+    chosen = _selected(cases, args.only, args.cpu, ap)
+    if len(chosen) == 1:
+        chosen[0].run(rest)
+        return
+    for c in chosen:
+        cmd = [sys.executable, "-m", module or _caller_module(), "--only", c.name, *rest]
+        print(f"\n== {c.name}: {shlex.join(cmd[1:])}", flush=True)
+        if subprocess.run(cmd, cwd=ROOT).returncode != 0:
+            raise SystemExit(f"{c.name} failed")
+
+
+def _caller_module() -> str:
+    main = sys.modules.get("__main__")
+    spec = getattr(main, "__spec__", None)
+    return spec.name if spec is not None and spec.name else Path(sys.argv[0]).stem

@@ -1,4 +1,4 @@
-"""benchmarks/bench_gpu_study.py and bench_torchrun.py: what they read off a study and two supernets."""
+"""The gpu suite's bench_gpu_study: what it reads off a study."""
 
 import subprocess
 import sys
@@ -8,19 +8,18 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "benchmarks"))
 
 
-@pytest.mark.parametrize("script, option", [("bench_gpu_study.py", "--time-limit"), ("bench_torchrun.py", "--nproc")])
-def test_they_say_what_they_measure(script, option):
-    proc = subprocess.run([sys.executable, str(ROOT / "benchmarks" / script), "--help"], capture_output=True,
+@pytest.mark.parametrize("name, option", [("gpu_study", "--time-limit")])
+def test_they_say_what_they_measure(name, option):
+    proc = subprocess.run([sys.executable, "-m", "benchmarks.gpu", "--only", name, "--help"], capture_output=True,
                           text=True, timeout=120, cwd=ROOT)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert option in proc.stdout and "--worker" not in proc.stdout
 
 
 def test_phases_are_placed_on_the_clock_the_study_recorded():
-    from bench_gpu_study import phase_spans
+    from benchmarks.gpu import phase_spans
     started = time.mktime(time.strptime("2026-11-28 10:00:00", "%Y-%m-%d %H:%M:%S"))
     run = {"started": "2026-11-28 10:00:00", "seconds": 100.0,
            "phases": {"data": 10.0, "measuring": 5.0, "supernet": 35.0, "sampling": 30.0, "finalists": 20.0}}
@@ -32,7 +31,7 @@ def test_phases_are_placed_on_the_clock_the_study_recorded():
 
 
 def test_the_export_gap_is_the_worst_path():
-    from bench_gpu_study import export_gap
+    from benchmarks.gpu import export_gap
     manifest = {"path_metrics": [{"rmse": 0.50}, {"rmse": 0.40}],
                 "source": {"study_path_metrics": [{"rmse": 0.50}, {"rmse": 0.43}]}}
     assert export_gap(manifest) == pytest.approx(0.03)

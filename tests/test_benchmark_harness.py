@@ -1,5 +1,6 @@
 """The benchmark harness (benchmarks/harness.py): interleaving, statistics, the JSON record and its
-atomic write; and every benchmark script answers --help."""
+atomic write, the parameter grid and the suites' command line; and every benchmark of every suite and
+every experiment answers --help."""
 
 from __future__ import annotations
 
@@ -12,9 +13,13 @@ from pathlib import Path
 
 import pytest
 
-BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
-sys.path.insert(0, str(BENCHMARKS))
-import harness  # noqa: E402
+from benchmarks import harness
+
+ROOT = Path(__file__).resolve().parents[1]
+#: every module of cases: the benchmark suites and the experiments
+SUITES = ("benchmarks.runtime", "benchmarks.training", "benchmarks.search", "benchmarks.commands", "benchmarks.gpu",
+          "experiments.fidelity", "experiments.search_value", "experiments.held_out", "experiments.resolution",
+          "experiments.scan_model")
 
 RECORD_KEYS = {"schema", "benchmark", "title", "description", "command", "commit", "dirty", "date", "machine",
                "figures", "notes"}
@@ -100,7 +105,7 @@ def test_record_is_written_with_every_schema_key(tmp_path, capsys):
         bench.add("t_ms", [3.0, 1.0, 2.0][rep])
         bench.add("tau", 0.5)
     bench.note("a note")
-    path = bench.finish(["benchmarks/bench_toy.py", "--reps", "3"])
+    path = bench.finish(["benchmarks/runtime.py", "--only", "toy", "--reps", "3"])
     out = capsys.readouterr().out
     assert "rep 1/3" in out and "rep 3/3" in out and "toy time: 2 ms (1 to 3" in out
     assert path.parent == tmp_path / "bench_toy"
@@ -108,7 +113,7 @@ def test_record_is_written_with_every_schema_key(tmp_path, capsys):
     assert set(rec) == RECORD_KEYS and set(rec["machine"]) == MACHINE_KEYS
     assert rec["schema"] == 1 and rec["benchmark"] == "bench_toy" and rec["title"] == "a toy"
     assert rec["description"] == "What it measures."
-    assert rec["command"] == "python benchmarks/bench_toy.py --reps 3"
+    assert rec["command"] == "python -m benchmarks.runtime --only toy --reps 3"
     assert isinstance(rec["dirty"], bool) and rec["notes"] == "a note"
     stamp = path.name.split("-")[0]
     assert path.name == f"{stamp}-{rec['commit']}.json" and len(stamp) == 16 and stamp.endswith("Z")
@@ -164,60 +169,75 @@ def test_default_reps_at_least_three_and_option_parsed(tmp_path):
     assert list(harness.Bench("b.py", "t", None).repetitions(2)) == [0, 1]
 
 
-# Runs each script given as an argument as `python SCRIPT --help` would (runpy, as __main__), in one
-# process: the heavy imports (torch, onnxruntime) are paid once per process instead of once per script.
+def test_the_grid_is_every_combination_and_names_each_figure():
+    combos = harness.grid(size=["224x224", "192x640"], threads=[1, 2])
+    assert combos == [{"size": "224x224", "threads": 1}, {"size": "224x224", "threads": 2},
+                      {"size": "192x640", "threads": 1}, {"size": "192x640", "threads": 2}]
+    assert harness.suffix(combos[1]) == "224x224_2"
+
+
+def _suite(calls: list) -> tuple:
+    def bench_one(argv=None):
+        calls.append(("one", list(argv)))
+
+    def bench_big(argv=None):
+        calls.append(("big", list(argv)))
+    return (harness.Case(bench_one), harness.Case(bench_big, cpu=False, skip="needs a GPU"))
+
+
+def test_a_suite_runs_only_what_it_is_asked_and_says_what_it_skips(capsys):
+    calls: list = []
+    harness.run_suite(_suite(calls), ["--only", "one", "--reps", "5"], module="toy")
+    assert calls == [("one", ["--reps", "5"])]          # the other options go to the benchmark
+    calls.clear()
+    harness.run_suite(_suite(calls), ["--cpu", "--only", "bench_big", "--only", "one"], module="toy")
+    assert calls == [("one", [])] and "skipped bench_big: needs a GPU" in capsys.readouterr().out
+    harness.run_suite(_suite(calls), ["--list"], module="toy")
+    assert "bench_big  (make benchmarks skips it: needs a GPU)" in capsys.readouterr().out
+    with pytest.raises(SystemExit):
+        harness.run_suite(_suite(calls), ["--only", "nothing"], module="toy")
+
+
+# Runs each case of each module given as an argument with --help, in one process: the heavy imports
+# (torch, onnxruntime) are paid once per process instead of once per benchmark.
 _HELP_RUNNER = """
-import contextlib, io, json, runpy, sys
-sys.path.insert(0, sys.argv[1])
-for script in sys.argv[2:]:
-    out = io.StringIO()
-    sys.argv = [script, "--help"]
-    try:
-        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(out):
-            runpy.run_path(script, run_name="__main__")
-        code = 0
-    except SystemExit as exc:
-        code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
-    except BaseException as exc:
-        code, _ = 1, out.write(repr(exc))
-    print(json.dumps({"script": script, "code": code, "output": out.getvalue()}), flush=True)
+import contextlib, importlib, io, json, sys
+for module in sys.argv[1:]:
+    for case in importlib.import_module(module).CASES:
+        out = io.StringIO()
+        try:
+            with contextlib.redirect_stdout(out), contextlib.redirect_stderr(out):
+                case.run(["--help"])
+            code = 0
+        except SystemExit as exc:
+            code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
+        except BaseException as exc:
+            code, _ = 1, out.write(repr(exc))
+        print(json.dumps({"script": f"{module} {case.name}", "code": code, "output": out.getvalue()}), flush=True)
 """
 
 
-def _help_of(scripts: list[Path]) -> list[dict]:
-    proc = subprocess.run([sys.executable, "-c", _HELP_RUNNER, str(BENCHMARKS), *map(str, scripts)],
-                          capture_output=True, text=True, timeout=300, cwd=BENCHMARKS.parent)
+def _help_of(modules: list[str]) -> list[dict]:
+    proc = subprocess.run([sys.executable, "-c", _HELP_RUNNER, *modules], capture_output=True, text=True,
+                          timeout=300, cwd=ROOT)
     rows = [json.loads(line) for line in proc.stdout.splitlines() if line.startswith("{")]
-    assert len(rows) == len(scripts), proc.stdout[-2000:] + proc.stderr[-2000:]
+    assert rows and proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
     return rows
 
 
 def test_every_benchmark_answers_help():
-    scripts = sorted(BENCHMARKS.glob("bench_*.py"))
-    assert len(scripts) >= 20
-    with ThreadPoolExecutor(max_workers=2) as pool:   # two processes, half the scripts each
-        rows = [r for part in pool.map(_help_of, [scripts[0::2], scripts[1::2]]) for r in part]
-    failed = [(Path(r["script"]).name, r["code"], r["output"][-500:]) for r in rows if r["code"] != 0]
+    modules = [m for m in SUITES if "." in m]
+    with ThreadPoolExecutor(max_workers=2) as pool:   # two processes, half the modules each
+        rows = [r for part in pool.map(_help_of, [modules[0::2], modules[1::2]]) for r in part]
+    assert len(rows) >= 20
+    failed = [(r["script"], r["code"], r["output"][-500:]) for r in rows if r["code"] != 0]
     assert not failed, failed
     for r in rows:
         assert "--reps" in r["output"] and "--no-record" in r["output"] and "--results" in r["output"], r["script"]
 
 
 def test_a_benchmark_answers_help_from_the_command_line():
-    proc = subprocess.run([sys.executable, str(BENCHMARKS / "bench_path0.py"), "--help"], capture_output=True,
-                          text=True, timeout=120, cwd=BENCHMARKS.parent)
+    proc = subprocess.run([sys.executable, "-m", "benchmarks.runtime", "--only", "path0", "--help"],
+                          capture_output=True, text=True, timeout=120, cwd=ROOT)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert "--reps" in proc.stdout and "Path 0" in proc.stdout
-
-
-@pytest.mark.slow
-def test_the_profiler_says_where_a_step_and_a_search_spend_their_time(tmp_path):
-    from conftest import TINY_DATA
-    proc = subprocess.run([sys.executable, str(BENCHMARKS / "profile_gpu.py"), "--device", "cpu", "--steps", "2",
-                           "--warmup-steps", "1", "--search-seconds", "2", "--recipes", "default", "--data", TINY_DATA,
-                           "--out", str(tmp_path)], capture_output=True, text=True, timeout=600, cwd=BENCHMARKS.parent)
-    assert proc.returncode == 0, proc.stderr[-2000:]
-    step = (tmp_path / "step_default.txt").read_text()
-    assert "wall per step" in step and "aten::convolution_backward" in step   # the operators, by host time
-    search = (tmp_path / "search.txt").read_text()
-    assert "trials in 2 s" in search and "explorer/study/search.py" in search   # the search's functions

@@ -1,24 +1,21 @@
-"""bench_held_out (benchmarks/bench_held_out.py) measures the study's winner and the paper design on the
+"""bench_held_out (experiments/held_out.py) measures the study's winner and the paper design on the
 validation frames the study did not choose with."""
 
 from __future__ import annotations
 
 import dataclasses
-import sys
-from pathlib import Path
 
 import pytest
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-from bench_held_out import (Network, held_out_data, parse_recipes, reference_of, resolve_networks,  # noqa: E402
+from experiments.held_out import (Network, held_out_data, parse_recipes, reference_of, resolve_networks,
                             retrained)
 
-from explorer.data import open_dataset  # noqa: E402
-from explorer.space import Candidate, paper_candidate  # noqa: E402
-from explorer.study.config import SearchConfig  # noqa: E402
+from explorer.data import open_dataset
+from explorer.space import Candidate, paper_candidate
+from explorer.study.config import SearchConfig
 
-from conftest import TINY_DATA  # noqa: E402
+from conftest import TINY_DATA
 
 
 def test_only_the_frames_after_the_studys_are_measured():
@@ -104,7 +101,7 @@ def test_networks_that_cannot_be_resolved_are_refused(text, message):
 
 
 def test_a_network_with_anytime_weights_is_trained_with_its_exits_anytime_shares(monkeypatch):
-    import bench_held_out
+    import experiments.held_out as bench_held_out
     from explorer.anytime import exit_loss_weights
     from explorer.cost import candidate_cost
 

@@ -1,18 +1,15 @@
-"""Where bench_fidelity --per-exit says the ranking is lost (benchmarks/_per_exit.py): an estimate wrong at
+"""Where bench_fidelity --per-exit says the ranking is lost (experiments/lib/per_exit.py): an estimate wrong at
 one kind of path alone ranks exactly once that path is replaced, and the per-path figures find that path."""
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-import _per_exit  # noqa: E402
-import _predictor  # noqa: E402
+from experiments.lib import per_exit as _per_exit
+from experiments.lib import predictor as _predictor
 
-from explorer.space import SearchSpace  # noqa: E402
+from explorer.space import SearchSpace
 
 
 def _scrambled_at_last_exit(count=16, seed=4):

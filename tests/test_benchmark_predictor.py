@@ -1,18 +1,15 @@
-"""The accuracy predictor bench_fidelity --predictor measures (benchmarks/_predictor.py): its features
+"""The accuracy predictor bench_fidelity --predictor measures (experiments/lib/predictor.py): its features
 follow the candidate's paths, a correction the data hold is learned, and every estimate is held out."""
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
 
 import numpy as np
 from scipy.stats import kendalltau
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-import _predictor  # noqa: E402
+from experiments.lib import predictor as _predictor
 
-from explorer.space import SearchSpace  # noqa: E402
+from explorer.space import SearchSpace
 
 NO_CORRECTION = np.zeros(_predictor.FEATURE_COUNT)
 

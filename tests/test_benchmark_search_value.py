@@ -1,17 +1,14 @@
-"""The bound bench_search_value records beside its ratios (benchmarks/bench_search_value.py): no
+"""The bound bench_search_value records beside its ratios (experiments/lib/comparison.py): no
 anytime network made of the paths it measured does better."""
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-from bench_search_value import floor_steps  # noqa: E402
+from experiments.lib.comparison import floor_steps
 
-from explorer.anytime import anytime_loss  # noqa: E402
+from explorer.anytime import anytime_loss
 
 BUDGET = "time:uniform:33ms"
 

@@ -212,8 +212,7 @@ def with_int8(profile: DeviceProfile, measured: list[tuple[Workload, float]],
     what the int8 graphs barely show at its fp32 value; per-inference and per-stage costs are the fp32
     ones. Fitted from scratch on the quantized single-layer graphs and the int8 stage graphs, the int8
     rates came out different by orders of magnitude from one calibration of a machine to the next, and
-    held-out int8 stage graphs were predicted worse than when fitted so
-    (``benchmarks/bench_devices.py --refit`` compares the fits on the same measurements): a
+    held-out int8 stage graphs were predicted worse than when fitted so: a
     single-layer graph quantized alone pays the quantize, layout changes and dequantize that a
     whole-quantized graph pays once at its edges, and says little about the graph. Results
     without int8 stage graphs get the from-scratch fit on the single-layer ones, with the fp32

@@ -130,7 +130,7 @@ class ObservationBatch:
     """Observations' workloads as arrays, priced by a profile all at once: ``predict_ms`` as
     ``DeviceProfile.layer_ms`` computes it, one observation per entry. A fit prices every observation
     for each of its thousands of residual evaluations; one Python call per workload made the host fit
-    a large share of a quick calibration (benchmarks/bench_fit.py compares the two pricings)."""
+    a large share of a quick calibration (bench_fit compares the two pricings)."""
 
     def __init__(self, observations: Sequence[Observation]) -> None:
         rows = [(i, w) for i, o in enumerate(observations) for w in o.workloads]

@@ -4,7 +4,7 @@ Stage sessions that allocate from one shared memory arena reuse each other's buf
 writes where the last one just wrote. Whether that pays depends on the machine's state, and on a
 machine shared with other loads that state changes from outside every few seconds: with the cores
 free the staged chain runs faster with the shared arena, with them contended it can run faster with
-an arena per session (``benchmarks/bench_arena_choice.py`` times both sets in each state). Neither set
+an arena per session. Neither set
 is best in both states, so the runner keeps both and measures them as it runs: a run uses the shared
 arena's set unless the other took ``MARGIN`` less time lately (the median of each stage's last
 ``WINDOW`` timings), and the other set for ``EXPLORE_RUNS`` runs in a row, ``EXPLORE_EVERY`` runs after
@@ -14,7 +14,7 @@ one set stays faster pays little for looking (exploring at a fixed pace would ke
 set a fixed share of the time). Only a run that follows a run of the same set counts: the first run
 after a switch finds the other set's buffers in the caches. So chosen, the runner keeps up with the
 better set in each state, where taking whichever set looked faster ran the worse one much of the time
-(``benchmarks/bench_arena_choice.py`` checks the runner as shipped against each set held).
+(the runner as shipped against each set held).
 """
 
 from __future__ import annotations

@@ -8,14 +8,13 @@ onnxruntime's quantizer handles (convolutions of every kind, resizes, additions,
 that its tensors stay uint8 from one layer to the next and it quantizes and dequantizes only at its
 edges; only the LiDAR encoder stays fp32 (``FLOAT_STAGES``). Quantizing only the wide convolutions,
 with float depthwise layers between them, paid for nothing: the encoder stage then ran hardly faster
-than in fp32, where quantized whole it runs much faster (benchmarks/bench_runtime.py measures int8
-against fp32). The decoder stays channels-last, as onnxruntime runs quantized
+than in fp32, where quantized whole it runs much faster. The decoder stays channels-last, as onnxruntime runs quantized
 convolutions: its nearest up-sampling becomes a uint8 copy done so (``upsamples_channels_last``; a
 Resize left to onnxruntime is kept channels-first, ``resizes_kept_nchw``, its channels-last uint8
 kernel being far slower) and its skip additions add so (``explorer.probe.channels_last_skip_adds``).
 Whole quantization does not pay everywhere: on some CPUs the full-resolution decoders 3-4 run no
 faster in int8 alone (onnxruntime's uint8 depthwise kernels can be slower than its blocked fp32 ones;
-benchmarks/bench_int8_layers.py times each kind of layer in both precisions).
+bench_int8_layers times each kind of layer in both precisions).
 So an export keeps a stage int8 only
 where int8 saves the staged runtime at least ``1 - INT8_KEEP_RATIO`` of that stage's fp32 time on the
 exporting machine, with int8 neighbours handing each other uint8 tensors (``compare_speed``;

@@ -62,7 +62,7 @@ class ProjectedScan:
 
 class _Watchdog:
     """One thread per runner that halts its run at the deadline. A timer thread started for every run
-    costs a share of a run that benchmarks/bench_runtime.py measures; this thread is started once, and woken only when a run's deadline comes before the
+    costs a share of every run; this thread is started once, and woken only when a run's deadline comes before the
     end of the wait it is in: runs with one deadline each, one after another, wake it about once per
     deadline instead of once per run (each wake takes the interpreter's lock from the thread that is
     about to start a stage)."""

@@ -87,7 +87,7 @@ def interpolate_scan(scan: torch.Tensor, height: int) -> torch.Tensor:
     """
     n, w = scan.shape
     # In O(W), with fixed shapes (a W x W matrix of distances searched by argmin grows with W squared;
-    # benchmarks/bench_path0.py compares the two): the nearest return on the left and on the right, and
+    # bench_path0 compares the two): the nearest return on the left and on the right, and
     # the closer of the two (the left one on a tie, as argmin's first minimum).
     valid = scan > 0
     cols = torch.arange(w, device=scan.device).expand(n, w)

@@ -31,7 +31,7 @@ class Resize(nn.Module):
     Bilinear is computed as two matrix products, rows then columns, with the interpolation weights of
     ``F.interpolate(..., align_corners=False)`` (``bilinear_matrix``): the same values to float
     rounding, and onnxruntime runs the products faster than its Resize kernel (each of the paper design's
-    exits to 224x224), and so does PyTorch (benchmarks/bench_exit_heads.py times both ways).
+    exits to 224x224), and so does PyTorch.
     ``products=False``: bilinear by interpolation (a Resize operator once exported), as the paper's graph."""
 
     def __init__(self, factor: int, mode: str = "nearest", products: bool = True) -> None:
@@ -84,8 +84,7 @@ def one_channel_unblocked(x: torch.Tensor) -> torch.Tensor:
     """``x`` (N, 1, H, W) as it is: views in torch, a Squeeze / Unsqueeze pair in the exported graph.
     onnxruntime's blocked layout (NCHWc) does not cross that pair, so the bilinear resize after an
     exit's last convolution runs on its one channel instead of a block of 8 or 16 channels, 15 of
-    them padding: an exit head (1x1 convolution then resize) ran 1.5-2.2x as fast so
-    (``benchmarks/bench_exit_heads.py``)."""
+    them padding: an exit head (1x1 convolution then resize) runs faster so."""
     return x.squeeze(1).unsqueeze(1)
 
 

@@ -10,8 +10,7 @@ onnxruntime's CPU provider runs convolutions on channels blocked by its vector w
 converts at a graph's edges. A tensor that one stage outputs and the next one reads (the decoder's
 running feature map) leaves the first graph in plain NCHW and is converted into the blocked layout
 again by the second, although the first had converted it already for its own exit head. Those extra
-conversions are a large part of the staged runtime's overhead over one whole graph
-(benchmarks/bench_runtime.py measures both).
+conversions are a large part of the staged runtime's overhead over one whole graph.
 
 ``hand_off_blocked`` rewrites the stage graphs after onnxruntime has optimised them on this machine: the
 producing graph also outputs its blocked copy (``NAME.nchwc``) and the reading graph takes that in place
@@ -90,7 +89,7 @@ def blocked_skip_adds(model, block: int) -> int:
     element-wise, so none of the three conversions is needed (a skip that is a graph input, in a stage
     graph, is converted once, and the runtime then hands it over blocked). The paper design's whole
     graph at 224x224 runs faster so, on machines with AVX-512 and with AVX2 alike
-    (benchmarks/bench_blocked_skip.py); the results are identical."""
+    (bench_blocked_skip); the results are identical."""
     graph = _Graph(model.graph)
     done = 0
     for add in [n for n in model.graph.node if n.op_type == "Add" and n.domain == "" and len(n.input) == 2]:
@@ -454,7 +453,7 @@ def hand_off_channels_last(models: list, inputs: list[list[str]], outputs: list[
     other uint8 tensors, which the producer transposed channels-first to output them and the reader
     transposes back. The runtime hands them over so between int8 graphs (``explorer.probe.rewrites``); timed
     with both transposes, the host profile predicted the paper design's int8 paths slower than the
-    runtime runs them (benchmarks/bench_runtime.py). Returns the names now handed channels-last."""
+    runtime runs them. Returns the names now handed channels-last."""
     producer = {name: i for i, outs in enumerate(outputs) for name in outs}
     handed = []
     for j, model in enumerate(models):

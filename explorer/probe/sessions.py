@@ -56,8 +56,7 @@ def _shared_pool(threads: int) -> bool:
     first session. Stages run one after another, so one pool serves them all, and its threads spin
     between operators. Pools of their own either sleep between operators (waking them takes longer
     in some sessions than in others: bimodal timings) or, spinning, fight each other for the cores
-    (several times slower with a dozen stage sessions alive; benchmarks/bench_thread_pools.py
-    compares the pools)."""
+    (much slower with a dozen stage sessions alive)."""
     if "threads" not in _POOL:
         _POOL["threads"] = None
         if os.environ.get(POOL_ENV, "shared") != "session":
@@ -79,8 +78,7 @@ def _shared_arena(ort) -> bool:
     machine the paper design's stage sessions run faster with one shared arena than with arenas of
     their own: buffers are reused from stage to stage instead of each stage keeping its own apart. On
     a machine slowed by other loads it can go the other way, so the runtime keeps both and picks per
-    run (``explorer.deploy._arena_choice``; benchmarks/bench_arena_choice.py and
-    benchmarks/bench_runtime.py measure the two)."""
+    run (``explorer.deploy._arena_choice``)."""
     try:
         info = ort.OrtMemoryInfo("Cpu", ort.OrtAllocatorType.ORT_ARENA_ALLOCATOR, 0, ort.OrtMemType.DEFAULT)
         ort.create_and_register_allocator(info, ort.OrtArenaCfg(0, -1, -1, -1))

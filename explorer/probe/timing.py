@@ -31,7 +31,7 @@ def chain_sessions(models: Sequence["bytes | Path"], threads: "int | None" = Non
     next transposes channels-last again, channels-last (``hand_off_channels_last``). What the probe and
     the held-out timings time a candidate's stage graphs with: timed alone, each stage paid the layout
     conversions at its edges that the runtime does not, and the host profile predicted the paper
-    design's paths too slow (benchmarks/bench_runtime.py compares predicted and measured paths)."""
+    design's paths too slow."""
     if provider != DEFAULT_PROVIDER or _onnx() is None:
         return [session(m, threads, provider) for m in models]
     with scratch_dir("chain") as tmp:
@@ -68,8 +68,7 @@ def time_chain(fns: Sequence[Callable[[], object]], warmup: int = WARMUP, repeat
     model's stage graphs as the runtime runs them, one after another, each reading what the one before
     it wrote. Timed each on its own, over and over, the paper design's 12 stage graphs take less in
     all than in sequence (the small ones, exit heads and the fusion unit, much less), and a profile
-    fitted to such timings predicts the runtime's paths too fast (benchmarks/bench_runtime.py
-    compares predicted and measured paths)."""
+    fitted to such timings predicts the runtime's paths too fast."""
     timed = list(timed) if timed is not None else [True] * len(fns)
     for _ in range(warmup):
         if new_round is not None:

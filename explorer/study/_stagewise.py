@@ -6,9 +6,8 @@ weights come from its supernet slot and config, and its inputs from the stages b
 recalibrated statistics, its outputs on both frame sets and (for an exit) its path metrics depend
 only on a key: (stage name, config, keys of its inputs). Run stage by stage over all batches instead
 of batch by batch over all stages, a candidate reuses every stage it shares with one evaluated
-before: in a search the sampler keeps proposing variations of the best candidates, so about a third
-of the stages are already known (524 of 1,767 when a 200-trial default study's distinct candidates
-were replayed in order: `benchmarks/bench_supernet.py --replay`).
+before: in a search the sampler keeps proposing variations of the best candidates, so many of the
+stages are already known.
 
 The image encoder is shared by width (:class:`SharedEncoder`): its features at every block count
 any candidate reads, so encoder segments split differently by encoder exits still share their work.

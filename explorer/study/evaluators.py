@@ -34,7 +34,7 @@ EVALUATORS = ("supernet", "proxy")
 #: the stage memo's outputs at most (:class:`explorer.study._stagewise.StageMemo`). A decoder stage's
 #: outputs on the calibration and validation frames take 40-80 MB: replaying a default search's 178
 #: candidates, 2 GiB of them spared about 15% of the stage computations that 512 MiB made, and held a
-#: search at 5 GB while sampling (``benchmarks/bench_search_memory.py`` measures a search's peak)
+#: search at 5 GB while sampling (``bench_search_memory`` measures a search's peak)
 MEMO_BYTES = 512 * 2 ** 20
 
 

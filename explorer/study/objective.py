@@ -41,7 +41,7 @@ class FinishedTwins:
     """The first complete trial that evaluated each candidate (not a baseline or a finalist's
     retraining): what a trial reuses when the sampler proposes a candidate again. The index is kept up
     to date with the new complete trials only (a finished trial no longer changes), so a look-up costs
-    the same at trial 100 and at trial 10,000 (benchmarks/bench_long_study.py)."""
+    the same at trial 100 and at trial 10,000 (bench_long_study)."""
 
     def __init__(self) -> None:
         self._first: dict[str, optuna.trial.FrozenTrial] = {}

@@ -48,7 +48,7 @@ RESERVE_S = 20.0        # the report, the last costings, the process's exit
 SAFETY = 1.1            # measured step times are a few steps of a noisy machine: a margin on them, and
                         # no more (a larger one leaves the time limit's end unused)
 FINALIST_SIZE = 1.3     # finalists not measured yet train this much slower than the paper design
-                        # (benchmarks/bench_baseline_training.py; measured when sampling ends)
+                        # (measured when sampling ends)
 KEEP_STEPS = 2 / 3      # when re-planned short, the finalists' steps shrink this far before their number does
 
 
@@ -142,8 +142,8 @@ def plan_run(remaining_s: float, limit_s: float, speeds: Speeds, *, sampling_s: 
         return retrain_seconds(speeds, n, baselines, steps)
 
     if supernet_free and not supernet_cached and speeds.supernet_step_s > 0 and finalist_steps_free:
-        # the supernet's steps decide how well every candidate is ranked (Kendall tau 0.57-0.66 at 400
-        # steps against 0.74-0.75 at 600, bench_teacher_depths), the finalists' steps only which of a few
+        # the supernet's steps decide how well every candidate is ranked (bench_fidelity measures the
+        # ranking), the finalists' steps only which of a few
         # near-equal ones wins: they give way first, to KEEP_STEPS, so that the supernet keeps its steps
         room = budget - sampling_min - supernet_cost(supernet_steps)
         steps = _steps_that_fit(lambda k: retrain(finalists, k), finalist_steps, room,

@@ -73,7 +73,7 @@ from explorer.training.train import resolve_accelerator
 
 def make_sampler(config: SearchConfig, worker: int = 0) -> optuna.samplers.BaseSampler:
     seed = config.seed + 1000 * worker
-    if config.sampler == "random":   # the yardstick the guided samplers must beat (benchmarks/bench_search_value.py)
+    if config.sampler == "random":   # the yardstick the guided samplers must beat (bench_search_value)
         return optuna.samplers.RandomSampler(seed=seed)
     if len(config.objectives) > 1:
         return optuna.samplers.NSGAIISampler(seed=seed)
@@ -242,8 +242,7 @@ def baseline_load(config: SearchConfig, speeds=None) -> float:
     """The baselines' retraining in paper designs' worth, for the time plan: each its measured training
     step over the paper design's (``speeds``), or without a measurement one for a candidate and for a
     reference network its MACs at the training size over the paper design's (which over-counts the
-    ResNets: about 1.5x measured against 3.34x by MACs for S2D-ResNet-18,
-    benchmarks/bench_baseline_training.py)."""
+    ResNets)."""
     paper = candidate_cost(paper_candidate(), config.train_size).path_params_macs()[-1][1]
     load = 0.0
     for name in config.baselines:

@@ -2,7 +2,7 @@
 
 At the default recipe (64x64, batches of 16) a GPU finishes each of a step's thousands of small
 kernels sooner than Python and PyTorch's dispatcher can launch the next one: the step's time is the
-host's, and the GPU idles (benchmarks/bench_gpu.py). A CUDA graph launches a whole stage's forward
+host's, and the GPU idles (bench_gpu). A CUDA graph launches a whole stage's forward
 (or backward) pass at once. A subnet is a random combination of stages, but few distinct stage
 configurations make up all of them (a stage name, its config, its input shapes): each is captured the
 first time it runs and replayed whenever a subnet has it again.

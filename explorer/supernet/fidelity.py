@@ -1,5 +1,5 @@
 """How well a supernet of a given (space, data, recipe) ranks its space, as measured: the fidelity
-benchmark (benchmarks/bench_fidelity.py) scores supernets of a recipe against candidates trained
+experiment (bench_fidelity, ``experiments/fidelity.py``) scores supernets of a recipe against candidates trained
 alone and stores its figures here, in ``fidelity.json`` (package data, so an installed copy has
 them). A search's summary and report quote the entry for the study's own space and recipe, or say
 that none exists."""

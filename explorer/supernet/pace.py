@@ -5,8 +5,8 @@ width (the first ``recipe.shrink`` of the steps), a step trains three full-width
 one of them is the smallest and another a random width. So both phases are timed, a few steps each
 after a warm-up, and weighted as the recipe runs them. A short run of the recipe timed mostly its
 second half, and its median step took in the last step's empty interval (progress reports a step once
-the next one has run): over three 300-step recipes on a 2-core CPU it read 0.67-1.01 of the step the
-whole recipe took, this measurement 0.94-1.14 (benchmarks/bench_supernet_pace.py)."""
+the next one has run), well short of the step the whole recipe took; ``bench_supernet_pace`` (the
+training suite) compares both measurements with the whole recipe."""
 
 from __future__ import annotations
 

@@ -5,7 +5,7 @@ Each step trains the largest subnet (its encoder depth turning over the space's 
 ``teacher_depths="cycle"``), the smallest and a few random ones on the labels: every subnet keeps
 every exit, so every head is trained at every step. With ``distill`` > 0 the others also learn the
 largest subnet's last exit (in-place distillation); by default they do not, because the supernet
-then ranked stand-alone results better (benchmarks/bench_fidelity.py, 2 seeds each). Gradients of
+then ranked stand-alone results better (bench_fidelity, 2 seeds each). Gradients of
 all subnets are summed before one optimizer step.
 
 Progressive shrinking (``shrink``, as in Once-for-All): for the first half of the steps every subnet
@@ -13,7 +13,7 @@ keeps the full widths (encoder depths, exits, LiDAR paths and heads still vary),
 subnet's place goes to a random one; then every width trains. Without it the supernet ranked wide
 networks too low and narrow ones too high: the channels only wide subnets use trained on a fraction
 of the steps, while the smallest trained every step. With it, it ranked stand-alone results better
-(benchmarks/bench_fidelity.py, 2 seeds each).
+(bench_fidelity, 2 seeds each).
 
 On a GPU each stage of a subnet is replayed from a CUDA graph (``recipe.cuda_graphs``,
 ``explorer.supernet._graphs``): the default recipe's kernels are too small for anything but their

@@ -4,7 +4,7 @@ PyTorch runs a kernel on all its threads and waits for the last one at the end. 
 other processes keep cores busy (a robot's other nodes, a second job on a shared box), a thread the
 scheduler has set aside holds the others up at every kernel, and a training step beside one or two
 CPU-bound processes takes about twice as long on every core as on the free ones
-(``benchmarks/bench_threads.py``). So a training command starts with as many threads as there are
+(``bench_threads``). So a training command starts with as many threads as there are
 cores nobody else is using, measured over half a second, at least one and at most PyTorch's default. ``OMP_NUM_THREADS``
 (or ``MKL_NUM_THREADS``) set by the user, or by ``torchrun``, is left alone.
 """

@@ -5,7 +5,7 @@ A network trained at 64x64 and run at 224x224 sees objects three times larger in
 learned, and its BatchNorm statistics no longer match its activations: its exits lose most of what
 they gained over the scan. A few steps of training at the deployment size repair that, as FixRes
 ("Fixing the train-test resolution discrepancy", Touvron et al., 2019) found for classification.
-``benchmarks/bench_resolution.py`` compares this with training only small, training at the
+``bench_resolution`` compares this with training only small, training at the
 deployment size from the start and progressive resizing, at equal time (its record holds the figures).
 """
 

@@ -3,7 +3,7 @@ ICCV 2019), with multi-view photometric optimisation and the scan in place of st
 
 Why: on the synthetic sequences at training resolution, the photometric loss's own minimum is far
 from the true depth at MonoDepth2's smoothness weight, and a network trained a few hundred steps on
-it does not even reach path 0 (``benchmarks/bench_selfsup_objective.py``, ``bench_selfsup.py``).
+it does not even reach path 0.
 Optimising one free depth per pixel on the same loss, from path 0, with the data's poses and a
 stronger smoothness, lands much closer to the truth. That map is a hint: each exit is pulled toward
 it (``log(1 + |depth - hint|)``) at the pixels where the hint explains the neighbouring frames better

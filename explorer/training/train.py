@@ -153,7 +153,7 @@ def check_data_for(cfg: TrainConfig, dataset) -> None:
 
 def image_batch(batch: dict, accelerator: torch.device | None) -> torch.Tensor:
     """The batch's images on ``accelerator`` in channels-last order: convolutions (oneDNN on CPUs, cuDNN
-    on GPUs) run faster so, with the same values (benchmarks/bench_layout.py measures both)."""
+    on GPUs) run faster so, with the same values (bench_layout measures both)."""
     return batch["image"].to(accelerator).contiguous(memory_format=torch.channels_last)
 
 
@@ -431,7 +431,7 @@ def _self_supervision(cfg: TrainConfig, train_set, accelerator: torch.device):
 def adamw(params, lr: float, weight_decay: float) -> torch.optim.AdamW:
     """AdamW, fused where PyTorch has a fused kernel for the parameters' device (CPU, CUDA): one pass
     over all tensors instead of several small operations per tensor, which on a GPU are as many kernel
-    launches (benchmarks/bench_optimizer.py)."""
+    launches (bench_optimizer)."""
     params = list(params)
     fused = all(p.device.type in ("cpu", "cuda") and p.is_floating_point() for p in params)
     return torch.optim.AdamW(params, lr=lr, weight_decay=weight_decay, fused=fused or None)
