@@ -2,8 +2,8 @@
 
 - ``cli.md``: one section per command and subcommand of ``explorer``, read off the argparse parser
   that the command line itself uses (``explorer.cli.build_parser``).
-- ``benchmarks.md``: the latest record of each benchmark under ``benchmarks/results/``, which the
-  benchmark scripts write (schema 1, below). The records shown are also copied into the site, so
+- ``benchmarks.md``: the latest record of each benchmark and experiment under ``benchmarks/results/``,
+  which the suites (``benchmarks/``) and the experiments (``experiments/``) write (schema 1, below). The records shown are also copied into the site, so
   the page can link to them.
 
 Each page holds a placeholder comment that the hook replaces; the functions that build the Markdown
@@ -237,8 +237,8 @@ def benchmarks_markdown(records: dict[str, tuple[Path, dict]], root: Path, probl
     """One section per benchmark (sorted by name): title, description, its figures, and where and how
     they were measured."""
     if not records:
-        text = ("No benchmark records yet. Run a benchmark, for example `python benchmarks/bench_runtime.py`: it "
-                "writes its record to `benchmarks/results/<benchmark>/<UTC time>-<commit>.json`, and the next "
+        text = ("No benchmark records yet. Run a benchmark, for example `python -m benchmarks.runtime --only path0`: "
+                "it writes its record to `benchmarks/results/<benchmark>/<UTC time>-<commit>.json`, and the next "
                 "build of this site shows the latest record of each benchmark here.\n")
     else:
         text = _summary(records) + "\n".join(_benchmark_section(name, path, rec, root)
@@ -303,7 +303,7 @@ def _benchmark_section(name: str, path: Path, rec: dict, root: Path) -> str:
     machine = f"{m['cpu_model']}, {m['cores']} cores" + (f", peak {_num(peak)} GMAC/s fp32" if peak else "") + \
         (f"; GPU {m['gpu']}" if m.get("gpu") else "")
     commit = f"`{rec['commit']}`" + (" (with uncommitted changes)" if rec["dirty"] else "")
-    # the benchmark's name is the heading's anchor: the design guide links to benchmarks.md#NAME
+    # the benchmark's name is the heading's anchor: the guides and the evidence page link to benchmarks.md#NAME
     lines = [f"## {rec['title']} {{#{name}}}\n", f"`{name}`: {rec['description']}\n"]
     if rec["figures"]:
         lines.append("| figure | median | min – max | reps | unit |")
