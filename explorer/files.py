@@ -51,8 +51,28 @@ def _expanded_nodes(node: yaml.Node, seen: dict[int, int]) -> int:
     return seen[key]
 
 
+#: the deepest nesting of lists and mappings a YAML file may have: PyYAML builds nested nodes by
+#: recursion, and a few thousand '[' exhaust Python's stack (the package's files nest a few levels)
+MAX_YAML_DEPTH = 100
+
+
+def _check_depth(text: str) -> None:
+    """Refuses ``text`` nesting deeper than ``MAX_YAML_DEPTH``, from the parser's events (a loop, not a
+    recursion)."""
+    depth = 0
+    for event in yaml.parse(text, Loader=yaml.SafeLoader):
+        if isinstance(event, (yaml.SequenceStartEvent, yaml.MappingStartEvent)):
+            depth += 1
+            if depth > MAX_YAML_DEPTH:
+                raise yaml.YAMLError(f"lists and mappings nest more than {MAX_YAML_DEPTH} deep: flatten it")
+        elif isinstance(event, (yaml.SequenceEndEvent, yaml.MappingEndEvent)):
+            depth -= 1
+
+
 def _load_yaml(text: str):
-    """PyYAML's safe loader, refusing a document whose aliases expand past ``MAX_YAML_NODES``."""
+    """PyYAML's safe loader, refusing a document whose aliases expand past ``MAX_YAML_NODES`` or that
+    nests deeper than ``MAX_YAML_DEPTH``."""
+    _check_depth(text)
     loader = yaml.SafeLoader(text)
     try:
         node = loader.get_single_node()
@@ -146,6 +166,8 @@ def read_json(path: str | Path, what: str = "JSON file") -> Any:
         return json.loads(text, parse_constant=no_constants)
     except (json.JSONDecodeError, ValueError) as exc:
         raise UserError(f"{p}: not valid JSON ({exc})") from None
+    except RecursionError:
+        raise UserError(f"{p}: not valid JSON (nested too deep)") from None
 
 
 @contextmanager

@@ -58,6 +58,19 @@ def test_an_alias_bomb_is_refused_at_once(tmp_path):
     assert time.monotonic() - start < 1.0
 
 
+@pytest.mark.parametrize("text", ["x: " + "[" * 5000 + "]" * 5000, "{a: " * 3000 + "1" + "}" * 3000,
+                                  "- " * 2000 + "1"])
+def test_deep_nesting_is_one_line_not_a_recursion_error(tmp_path, text):
+    path = tmp_path / "deep.yaml"
+    path.write_text(text)
+    with pytest.raises(UserError, match="nest more than 100 deep") as caught:
+        read_yaml(path)
+    assert "\n" not in str(caught.value)
+    (tmp_path / "deep.json").write_text("[" * 100_000 + "]" * 100_000)
+    with pytest.raises(UserError, match="nested too deep"):
+        read_json(tmp_path / "deep.json")
+
+
 def test_binary_folders_missing_and_huge_files_are_named(tmp_path):
     (tmp_path / "bin").write_bytes(bytes(range(256)) * 4)
     with pytest.raises(UserError, match="binary"):

@@ -16,6 +16,21 @@ class _Parser(argparse.ArgumentParser):
         sys.stderr.write(f"{self.prog}: error: {message} (see {self.prog} --help)\n")
         sys.exit(2)
 
+    def _get_value(self, action, arg_string):
+        """A number is written in ASCII: Python's int() and float() also read other scripts' digits
+        ('٣' as 3), which no other tool reading the same command line or study would."""
+        numeric = action.type in (int, float) or getattr(action.type, "ascii_digits", False)
+        if numeric and isinstance(arg_string, str) and not arg_string.isascii():
+            name = max(action.option_strings, key=len) if action.option_strings else action.dest
+            raise argparse.ArgumentError(None, f"{name} {arg_string!r}: write numbers with the digits 0-9")
+        return super()._get_value(action, arg_string)
+
+
+def ascii_digits(parse):
+    """Marks an argparse type as a number's: :class:`_Parser` refuses non-ASCII text for it."""
+    parse.ascii_digits = True
+    return parse
+
 
 class _DeprecatedAlias(argparse.Action):
     """An old spelling of an option: stores into the new option's ``dest`` and says, in one line on
@@ -52,6 +67,12 @@ AT_LEAST = {  # dest: (minimum, inclusive)
     "proxy_steps": (1, True), "random_subnets": (0, True), "repeats": (1, True), "steps": (1, True),
     "stop_after_steps": (1, True), "supernet_steps": (1, True), "threads": (1, True), "time_limit": (0, True),
     "timeout": (0, True), "top": (1, True), "trial": (0, True), "trials": (1, True), "workers": (1, True),
+    "seed": (0, True),
+}
+#: The largest value some options take, and why
+AT_MOST = {  # dest: (maximum, reason)
+    "batch_size": (65536, "frames in one training step"),
+    "seed": (2**32 - 1, "the seeds NumPy and Optuna's samplers take"),
 }
 
 
@@ -67,6 +88,10 @@ def check_numbers(args: argparse.Namespace) -> None:
         if value < low or (value == low and not inclusive):
             bound = f"at least {low}" if inclusive else f"more than {low}"
             raise UserError(f"{flag} {value:g}: must be {bound}")
+    for dest, (high, reason) in AT_MOST.items():
+        value = getattr(args, dest, None)
+        if value is not None and not isinstance(value, bool) and value > high:
+            raise UserError(f"--{dest.replace('_', '-')} {value}: give at most {high} ({reason})")
 
 
 def train_on_free_cores() -> None:
@@ -109,6 +134,7 @@ def _check_provider(provider: str) -> None:
     check_provider(provider)
 
 
+@ascii_digits
 def _size(text: str) -> tuple[int, int]:
     try:
         h, w = (int(x) for x in text.lower().split("x"))
@@ -132,6 +158,7 @@ MAX_WORKERS = 64
 
 def _bounded_int(low: int, high: int, what: str):
     """An argparse type: a whole number from ``low`` to ``high`` (``what`` names the limit's reason)."""
+    @ascii_digits
     def parse(text: str) -> int:
         try:
             value = int(text)
@@ -143,6 +170,7 @@ def _bounded_int(low: int, high: int, what: str):
     return parse
 
 
+@ascii_digits
 def _count(text: str) -> float:
     """2.5M, 300k, 1500000."""
     t = text.strip().lower()
@@ -153,6 +181,7 @@ def _count(text: str) -> float:
         raise argparse.ArgumentTypeError(f"'{text}' is not a count (e.g. 2.5M)") from None
 
 
+@ascii_digits
 def _ms(text: str) -> float:
     from explorer.anytime import parse_quantity
     try:
@@ -161,6 +190,7 @@ def _ms(text: str) -> float:
         raise argparse.ArgumentTypeError(str(exc)) from None
 
 
+@ascii_digits
 def _duration_s(text: str) -> float:
     t = text.strip().lower()
     units = {"s": 1, "m": 60, "h": 3600}

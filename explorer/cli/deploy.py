@@ -6,9 +6,10 @@ import argparse
 from pathlib import Path
 
 from explorer.errors import UserError
-from explorer.cli._common import MAX_THREADS, _add_provider, _bounded_int, _ms, _size, deprecated_alias
+from explorer.cli._common import MAX_THREADS, _add_provider, _bounded_int, _ms, _size, ascii_digits, deprecated_alias
 
 
+@ascii_digits
 def _percent(text: str) -> float:
     try:
         value = float(text.strip().rstrip("%"))

@@ -20,6 +20,7 @@ can be passed wherever a device name is accepted (``--device ./mybox.yaml``).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Iterable, Sequence
@@ -214,7 +215,7 @@ class DeviceProfile:
             kinds=kinds,
             inference_overhead_ms=_nonneg(data.get("inference_overhead_ms", 0.0), f"{source}: inference_overhead_ms"),
             stage_overhead_ms=_nonneg(data.get("stage_overhead_ms", 0.0), f"{source}: stage_overhead_ms"),
-            body_exponent=_positive(data.get("body_exponent", 1.0), f"{source}: body_exponent"),
+            body_exponent=_body_exponent(data.get("body_exponent", 1.0), f"{source}: body_exponent"),
             energy_fixed_j=_nonneg(energy.get("fixed_j", 0.0), f"{source}: energy.fixed_j"),
             active_power_w=_nonneg(energy.get("active_power_w", 0.0), f"{source}: energy.active_power_w"),
             provenance=data.get("provenance") or {}, source=source)
@@ -240,9 +241,22 @@ def _round(x: float) -> float:
 
 
 def _number(v: Any, where: str) -> float:
-    if isinstance(v, bool) or not isinstance(v, (int, float)):
-        raise UserError(f"{where} must be a number, got {v!r}")
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+        raise UserError(f"{where} must be a finite number, got {v!r}")
     return float(v)
+
+
+#: the body exponents a profile may hold: explorer calibrate fits 0.95 to 1.2; far outside, a layer's
+#: time would be its body's square or root (or its millionth power)
+BODY_EXPONENT_RANGE = (0.5, 2.0)
+
+
+def _body_exponent(v: Any, where: str) -> float:
+    x = _number(v, where)
+    low, high = BODY_EXPONENT_RANGE
+    if not low <= x <= high:
+        raise UserError(f"{where} must lie in [{low}, {high}] (explorer calibrate fits 0.95 to 1.2), got {x}")
+    return x
 
 
 def _positive(v: Any, where: str) -> float:

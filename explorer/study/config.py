@@ -267,7 +267,32 @@ def study_config(study) -> SearchConfig:
     stored = study_record(study).config
     if not stored:
         return SearchConfig(study=study.study_name)
-    return SearchConfig.from_dict({"study": study.study_name, **SearchConfig.defaults_of_older_studies(), **stored})
+    return _checked_config({"study": study.study_name, **SearchConfig.defaults_of_older_studies(), **stored})
+
+
+def _checked_config(stored: dict) -> SearchConfig:
+    """``stored`` settings as a SearchConfig, each of its type (``input_size: "big"`` is no size) and
+    every number finite; a damaged one is one line."""
+    import math
+
+    import pydantic
+    d = {k: v for k, v in stored.items() if k in {f.name for f in dataclasses.fields(SearchConfig)}}
+    if isinstance(d.get("baselines"), bool):   # studies made before --baselines stored on or off
+        d["baselines"] = list(DEFAULT_BASELINES) if d["baselines"] else []
+    try:
+        config = pydantic.TypeAdapter(SearchConfig).validate_python(d)
+    except pydantic.ValidationError as exc:
+        err = exc.errors()[0]
+        where = ".".join(str(p) for p in err.get("loc", ()))
+        raise UserError(f"study '{d['study']}''s stored settings are damaged ({where}: {err.get('msg')}): "
+                        "restore the study's storage") from None
+    for f in dataclasses.fields(config):
+        value = getattr(config, f.name)
+        sizes = f.name in ("input_size", "train_size") and min(value) < 1
+        if sizes or (isinstance(value, float) and not math.isfinite(value)):
+            raise UserError(f"study '{d['study']}''s stored settings are damaged ({f.name}: {value}): "
+                            "restore the study's storage")
+    return config
 
 
 def json_safe(x):

@@ -9,6 +9,7 @@ validate what was stored and turn a damaged or newer record into one line (UserE
 
 from __future__ import annotations
 
+import math
 import weakref
 from typing import Any, Optional
 
@@ -152,19 +153,44 @@ def trial_record(trial: optuna.trial.FrozenTrial | optuna.Trial) -> TrialRecord:
     if cached is not None and cached[0] is trial and cached[1] == stamp:
         return cached[2]
     version = attrs.get(VERSION_KEY, RECORD_VERSION)
-    if not isinstance(version, int) or version > RECORD_VERSION:
+    if isinstance(version, int) and not isinstance(version, bool) and version > RECORD_VERSION:
         raise UserError(f"trial {trial.number} was stored by a newer anytime-explorer (record version {version}): "
                         "upgrade anytime-explorer to read this study")
     try:
+        if not isinstance(version, int) or isinstance(version, bool) or version < 1:
+            raise ValueError(f"{VERSION_KEY}: {version!r} is no version")
         out = TrialRecord.model_validate(attrs)
+        if getattr(trial, "state", None) == optuna.trial.TrialState.COMPLETE:
+            _check_figures(out)
     except ValidationError as exc:
         raise UserError(f"trial {trial.number}'s stored record is damaged ({_first_error(exc)}): "
+                        "run the trial again or restore the study's storage") from None
+    except ValueError as exc:
+        raise UserError(f"trial {trial.number}'s stored record is damaged ({exc}): "
                         "run the trial again or restore the study's storage") from None
     if isinstance(trial, optuna.trial.FrozenTrial) and trial.state.is_finished():
         if len(_cache) > 100_000:
             _cache.clear()
         _cache[id(trial)] = (trial, stamp, out)
     return out
+
+
+def _check_figures(rec: TrialRecord) -> None:
+    """A completed trial's figures are not negative nor infinite (errors, times, energies, losses): a
+    value stored by an edit would rank a network nowhere, or first. A path's metric may be NaN or null
+    (not measured: no depth in self-supervised frames); the study's own metric is checked where it is
+    read (:func:`explorer.study.results.trial_losses`). ValueError names the first that is wrong."""
+    for i, metrics in enumerate(rec.path_metrics or []):
+        for key, value in metrics.items():
+            number = isinstance(value, (int, float)) and not isinstance(value, bool)
+            if number and not math.isnan(value) and not 0 <= value < math.inf:
+                raise ValueError(f"path {i}'s {key} is {value}")
+    named = {"latency_ms": rec.latency_ms or [], "energy_j": rec.energy_j or [],
+             "losses": list((rec.losses or {}).values())}
+    for key, values in named.items():
+        bad = [v for v in values if not 0 <= v < math.inf]
+        if bad:
+            raise ValueError(f"{key} holds {bad[0]}")
 
 
 def record_values(**fields: Any) -> dict[str, Any]:

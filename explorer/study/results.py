@@ -81,7 +81,17 @@ def trial_path_costs(trial: optuna.trial.FrozenTrial, device: DeviceProfile, kin
 
 
 def trial_losses(trial: optuna.trial.FrozenTrial, metric: str = "rmse") -> list[float]:
-    return trial_record(trial).losses_of(metric)
+    """Each path's ``metric``; a NaN among measured paths (an edit), an infinite or a negative error is one
+    line."""
+    try:
+        losses = trial_record(trial).losses_of(metric)
+    except (KeyError, TypeError, ValueError):
+        losses = [-1.0]
+    measured = [x for x in losses if not math.isnan(x)]
+    if not all(0 <= x < math.inf for x in measured) or (measured and len(measured) < len(losses)):
+        raise UserError(f"trial {trial.number}'s stored record is damaged (its per-path {metric or 'error'} is "
+                        f"not a list of finite errors: {losses}): run the trial again or restore the study's storage")
+    return losses
 
 
 def trial_anytime_loss(trial: optuna.trial.FrozenTrial, device: DeviceProfile, budget, metric: str = "rmse") -> float:

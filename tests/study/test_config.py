@@ -1,5 +1,7 @@
 """The search's settings: what reaches the supernet's recipe, and what a study is identified by."""
 
+import pytest
+
 from explorer.cli import build_parser
 from explorer.space import SearchSpace
 from explorer.study.config import SearchConfig
@@ -51,3 +53,35 @@ def test_a_study_stored_with_its_tuning_steps_keeps_them():
 def test_search_leaves_the_tuning_steps_to_the_recipe_unless_given():
     assert build_parser().parse_args(["search"]).tune_steps is None
     assert build_parser().parse_args(["search", "--tune-steps", "5"]).tune_steps == 5
+
+
+@pytest.mark.parametrize("stored, says", [
+    ({"input_size": "big"}, r"damaged \(input_size: "),
+    ({"input_size": [224, 224, 3]}, r"damaged \(input_size: "),
+    ({"input_size": [0, 224]}, r"damaged \(input_size: \(0, 224\)"),
+    ({"lr": float("nan")}, r"damaged \(lr: "),
+    ({"seed": "x"}, r"damaged \(seed: "),
+])
+def test_a_study_whose_stored_settings_have_the_wrong_type_is_one_line(stored, says):
+    import optuna
+
+    from explorer.errors import UserError
+    from explorer.study.config import SearchConfig, study_config
+    from explorer.study.records import record_study
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    study = optuna.create_study(study_name="s")
+    record_study(study, config={**SearchConfig(study="s").to_dict(), **stored})
+    with pytest.raises(UserError, match=says) as caught:
+        study_config(study)
+    assert "\n" not in str(caught.value)
+
+
+def test_a_study_stored_before_baselines_were_named_still_reads():
+    import optuna
+
+    from explorer.study.config import DEFAULT_BASELINES, SearchConfig, study_config
+    from explorer.study.records import record_study
+    study = optuna.create_study(study_name="s")
+    record_study(study, config={**SearchConfig(study="s").to_dict(), "baselines": True, "input_size": [96, 128]})
+    config = study_config(study)
+    assert config.baselines == DEFAULT_BASELINES and config.input_size == (96, 128)

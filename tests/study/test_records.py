@@ -1,5 +1,7 @@
 """A study's stored records: written through one schema, validated when read back."""
 
+import math
+
 import optuna
 import pytest
 from pydantic import ValidationError
@@ -53,6 +55,11 @@ def test_a_retraining_reads_as_measured_and_an_envelope_is_neither_estimate_nor_
     ({"params": "lots"}, r"damaged \(params"),
     ({"finalist": {"estimate_trial": 3}}, r"damaged \(finalist\.recipe"),
     ({VERSION_KEY: RECORD_VERSION + 1}, "newer anytime-explorer"),
+    ({VERSION_KEY: -1}, r"damaged \(record_version: -1"),
+    ({VERSION_KEY: "1"}, r"damaged \(record_version"),
+    ({"latency_ms": [0.0, float("nan")]}, r"damaged \(latency_ms holds nan"),
+    ({"path_metrics": [{"rmse": float("inf")}]}, r"damaged \(path 0's rmse is inf"),
+    ({"path_metrics": [{"rmse": -0.5}]}, r"damaged \(path 0's rmse is -0.5"),
 ])
 def test_a_damaged_or_newer_record_is_one_line(attrs, says):
     study = _study()
@@ -85,3 +92,16 @@ def test_the_record_version_is_written_once_however_often_a_trial_records():
         record(trial, losses={"uniform:0:10": 1.0})
         assert keys.count(VERSION_KEY) == expected and trial.user_attrs[VERSION_KEY] == RECORD_VERSION
         study.tell(trial, 1.0)
+
+
+def test_a_completed_trial_with_a_nan_error_is_refused_where_its_metric_is_read():
+    from explorer.study.results import trial_losses
+    study = _study()
+    nan = {"path_metrics": [{"rmse": 0.9, "photometric": 0.1}, {"rmse": float("nan"), "photometric": 0.2}]}
+    study.add_trial(optuna.trial.create_trial(values=[1.0], user_attrs=nan))
+    trial = study.trials[0]
+    assert trial_losses(trial, "photometric") == [0.1, 0.2]    # NaN: a path not measured in that metric
+    with pytest.raises(UserError, match=r"trial 0's stored record is damaged \(its per-path rmse"):
+        trial_losses(trial, "rmse")
+    study.add_trial(optuna.trial.create_trial(values=[1.0], user_attrs={"path_metrics": [{"rmse": float("nan")}] * 2}))
+    assert all(math.isnan(x) for x in trial_losses(study.trials[1], "rmse"))   # no path measured: not an edit
