@@ -65,8 +65,9 @@ def step_curves(rows, device: DeviceProfile, budget: str, envelope=None) -> str:
     if envelope is not None:
         xs, ys = envelope.curve(dist.upper)
         ax.fill_between(xs, ys, step="post", color="#cbd5e1", alpha=0.5, lw=0)
-        ax.step(xs, ys, where="post", color="#64748b", lw=1.2, ls="--",
-                label=f"envelope of {len(envelope.networks)} dedicated networks: L = {envelope.loss:.3f}")
+        n = len(envelope.networks)   # drawn over the curves (dashed): a baseline's line does not hide it
+        ax.step(xs, ys, where="post", color=ENVELOPE_COLOUR, lw=1.2, ls="--", zorder=5,
+                label=f"envelope of {n} dedicated network{'s' if n != 1 else ''}: L = {envelope.loss:.3f}")
     for label, trial, line_colour in rows:
         if trial_precision(trial) not in device.precisions:
             continue   # an int8 design on a profile without int8 rates: no curve to draw
@@ -83,32 +84,90 @@ def step_curves(rows, device: DeviceProfile, budget: str, envelope=None) -> str:
     return png(fig)
 
 
-def pareto(frame: pd.DataFrame, xcol: str, xlabel: str) -> str:
-    """The search's estimates of anytime loss against ``xcol`` and their front; beside them, told apart
-    in the legend, what was measured on retrained networks (finalists, baselines) and the baselines'
-    estimates, each labelled once."""
-    fig, ax = plt.subplots(figsize=(5.2, 3.6))
+#: how the report's table of all trials tags a network ``explorer envelope`` retrained (explorer.report.html)
+ENVELOPE_TAG = "envelope network"
+ENVELOPE_COLOUR = "#64748b"
+
+
+def _kinds(frame: pd.DataFrame) -> dict[str, pd.DataFrame]:
+    """The completed trials of ``frame`` by what they are: the search's candidates (estimates), the
+    finalists (measured), the baselines, and the envelope's dedicated networks (each trained for one
+    path alone: its anytime loss is no candidate's, and no front is made of it)."""
     done = frame[(frame["state"] == "COMPLETE") & frame["value"].notna()]
-    measured = done["figures"].astype(str).str.startswith("measured")
-    cand = done[(done["baseline"] == "") & ~measured]
-    ax.scatter(cand[xcol], cand["value"], s=18, alpha=0.7, label="trials (estimates)", color="#999999")
-    pts = cand.sort_values(xcol)
-    front, best = [], np.inf
-    for _, r in pts.iterrows():
-        if r["value"] < best:
-            best = r["value"]
-            front.append((r[xcol], r["value"]))
-    if front:
-        fx, fy = zip(*front)
-        ax.step(fx, fy, where="post", color="#d62728", lw=1.5, label="front of the estimates")
-    finalists = done[(done["baseline"] == "") & measured]
+    tag = done["figures"].astype(str)
+    envelope = tag.str.startswith(ENVELOPE_TAG)
+    plain = (done["baseline"] == "") & ~envelope
+    measured = tag.str.startswith("measured")
+    return {"estimates": done[plain & ~measured], "finalists": done[plain & measured],
+            "baselines": done[(done["baseline"] != "") & ~envelope], "envelope": done[envelope]}
+
+
+def _draw_apart(ax, kinds: dict[str, pd.DataFrame], xcol: str) -> list[str]:
+    """Finalists, baselines (measured or estimated, each its own mark) and envelope networks on ``ax``,
+    each series its own mark and legend entry; envelope networks above everything else are drawn at the
+    top edge so that they do not squash the candidates. Returns what the legend says, with counts."""
+    said = []
+    finalists = kinds["finalists"]
     if not finalists.empty:
         ax.scatter(finalists[xcol], finalists["value"], marker="D", s=36, color="#111111", zorder=4,
                    label="finalists (measured)")
-    for _, r in done[done["baseline"] != ""].iterrows():
+        said.append(f"{len(finalists)} finalists (measured)")
+    for _, r in kinds["baselines"].iterrows():
         kind = "measured" if str(r["figures"]).startswith("measured") else "estimate"
-        ax.scatter([r[xcol]], [r["value"]], marker="*" if kind == "measured" else "x", s=120 if kind == "measured" else 50,
-                   color=colour(r["baseline"]), label=f"{baseline_label(r['baseline'])} ({kind})", zorder=3)
+        ax.scatter([r[xcol]], [r["value"]], marker="*" if kind == "measured" else "x",
+                   s=120 if kind == "measured" else 50, color=colour(r["baseline"]),
+                   label=f"{baseline_label(r['baseline'])} ({kind})", zorder=3)
+        said.append(f"{baseline_label(r['baseline'])} ({kind})")
+    env = kinds["envelope"]
+    if env.empty:
+        return said
+    others = pd.concat([k["value"] for name, k in kinds.items() if name != "envelope"])
+    top = np.inf
+    if not others.empty:
+        low, high = min(float(others.min()), float(env["value"].min())), float(others.max())
+        pad = 0.08 * (high - low) or 0.05 * abs(high) or 0.05
+        top = high + pad
+        if (env["value"] > top).any():
+            ax.set_ylim(low - pad, top)
+    label = "envelope networks (measured, one path each)"
+    inside, above = env[env["value"] <= top], env[env["value"] > top]
+    ax.scatter(inside[xcol], inside["value"], marker="v", s=44, facecolors="none", edgecolors=ENVELOPE_COLOUR,
+               linewidths=1.5, zorder=3, label=label)
+    said.append(f"{len(env)} {label}")
+    if not above.empty:
+        ax.scatter(above[xcol], [top] * len(above), marker="^", s=44, color=ENVELOPE_COLOUR, zorder=3,
+                   clip_on=False, label="envelope networks above the axis, at its top")
+        said[-1] += f", {len(above)} of them above the axis and drawn at its top"
+    return said
+
+
+def _legend(ax) -> None:
+    """The legend below the axes, where it hides no point."""
+    handles, labels = ax.get_legend_handles_labels()
+    unique = dict(zip(labels, handles))
+    ax.legend(unique.values(), unique.keys(), fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.2), ncol=2)
+
+
+def pareto(frame: pd.DataFrame, xcol: str, xlabel: str) -> tuple[str, str]:
+    """The search's estimates of anytime loss against ``xcol`` and their front (of the candidates'
+    estimates only); apart from them, each on its own mark, what was measured on retrained networks
+    (finalists, baselines), the baselines' estimates and the envelope's networks. Returns the PNG and
+    what it shows, for its alt text."""
+    fig, ax = plt.subplots(figsize=(5.2, 3.6))
+    kinds = _kinds(frame)
+    cand = kinds["estimates"]
+    ax.scatter(cand[xcol], cand["value"], s=18, alpha=0.7, label="trials (estimates)", color="#999999")
+    front, best = [], np.inf
+    for _, r in cand.sort_values(xcol).iterrows():
+        if r["value"] < best:
+            best = r["value"]
+            front.append((r[xcol], r["value"]))
+    said = [f"{len(cand)} trials (estimates)"]
+    if front:
+        fx, fy = zip(*front)
+        ax.step(fx, fy, where="post", color="#d62728", lw=1.5, label="front of the estimates")
+        said.append(f"the front of the estimates ({len(front)} points)")
+    said += _draw_apart(ax, kinds, xcol)
     ax.set_xscale("log")
     # a space spans less than a decade of MACs: ticks at 1, 2 and 5 of each decade, in engineering units
     ax.xaxis.set_major_locator(matplotlib.ticker.LogLocator(subs=(1.0, 2.0, 5.0)))
@@ -117,10 +176,30 @@ def pareto(frame: pd.DataFrame, xcol: str, xlabel: str) -> str:
     ax.set_xlabel(xlabel)
     ax.set_ylabel("anytime loss")
     ax.grid(alpha=0.3)
-    handles, labels = ax.get_legend_handles_labels()
-    unique = dict(zip(labels, handles))
-    ax.legend(unique.values(), unique.keys(), fontsize=7)
-    return png(fig)
+    _legend(ax)
+    return png(fig), f"Anytime loss against {xlabel}: " + "; ".join(said)
+
+
+def history(frame: pd.DataFrame) -> tuple[str, str]:
+    """Every completed trial's anytime loss by trial number: the search's estimates and the best of them
+    so far; apart, each on its own mark, finalists, baselines and envelope networks (which come after
+    the search and are no candidates). Returns the PNG and what it shows, for its alt text."""
+    fig, ax = plt.subplots(figsize=(6.4, 3.6))
+    kinds = _kinds(frame)
+    cand = kinds["estimates"].sort_values("number")
+    ax.scatter(cand["number"], cand["value"], s=18, alpha=0.7, color="#999999", label="trials (estimates)")
+    said = [f"{len(cand)} trials (estimates)"]
+    if not cand.empty:
+        ax.step(cand["number"], cand["value"].cummin(), where="post", color="#d62728", lw=1.5,
+                label="best estimate so far")
+        said.append("the best estimate so far")
+    said += _draw_apart(ax, kinds, "number")
+    ax.set_xlabel("trial")
+    ax.set_ylabel("anytime loss")
+    ax.set_title("optimisation history")
+    ax.grid(alpha=0.3)
+    _legend(ax)
+    return png(fig), "Anytime loss by trial: " + "; ".join(said)
 
 
 def optuna_plot(fn, study) -> str | None:

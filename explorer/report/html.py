@@ -20,7 +20,7 @@ from explorer.cost.devices import DeviceProfile, get_device
 from explorer.report import figures
 from explorer.space import Candidate
 from explorer.study.config import StudyContext, study_config, study_context
-from explorer.study.envelope import envelope, envelope_hint
+from explorer.study.envelope import dedicated_path, envelope, envelope_hint, envelope_trials
 from explorer.study.finalists import finalist_trials
 from explorer.study.records import StudyRecord, study_record, trial_record
 from explorer.study.results import (
@@ -98,7 +98,9 @@ def build_context(study: optuna.Study, devices: Sequence[str] | None = None,
     primary, devs = _devices(context, devices)
     budget_list = list(dict.fromkeys(list(cfg.get("budgets", [])) + list(budgets or TABLE2_BUDGETS)))
     dists = [parse_budget(b) for b in budget_list]
-    frame = trials_frame(study)
+    frame = _tag_envelope(trials_frame(study), study)
+    envelope_networks = (frame["figures"].astype(str).str.startswith(figures.ENVELOPE_TAG).sum()
+                         if not frame.empty else 0)
     best = winner(study)
     retrained = best is not None and is_retrained(best)
     scored = scored_trials(study)
@@ -110,7 +112,8 @@ def build_context(study: optuna.Study, devices: Sequence[str] | None = None,
                  "states": frame["state"].value_counts().to_dict() if not frame.empty else {},
                  "versions": _versions(), "generated": time.strftime("%Y-%m-%d %H:%M:%S"), "figures": {},
                  "notes": _notes(stored, devs, scored), "evaluator": cfg.get("evaluator", "proxy"),
-                 "finalist_steps": cfg.get("finalist_steps"), "plan": stored.plan}
+                 "finalist_steps": cfg.get("finalist_steps"), "plan": stored.plan,
+                 "envelope_networks": int(envelope_networks)}
     ctx.update(_finalists(study, ctx["finalist_steps"]))
     ctx["wall_time"] = wall_time(study)
     ctx["devices"] = [{"name": d.name, "description": d.description, "calibrated": d.calibrated,
@@ -135,6 +138,16 @@ def build_context(study: optuna.Study, devices: Sequence[str] | None = None,
     ctx["trials"] = (_frame_html(frame[[c for c in TRIAL_COLUMNS if c in frame.columns]], "trials")
                      if not frame.empty else "")
     return ctx
+
+
+def _tag_envelope(frame: pd.DataFrame, study: optuna.Study) -> pd.DataFrame:
+    """``frame`` with the networks ``explorer envelope`` retrained tagged as such in its ``figures``
+    column (not as finalists: each is trained for one path alone and can never be the winner), which
+    the figures draw apart (explorer.report.figures)."""
+    for t in envelope_trials(study):
+        tag = f"{figures.ENVELOPE_TAG} for path {dedicated_path(trial_record(t))} (measured)"
+        frame.loc[frame["number"] == t.number, "figures"] = tag
+    return frame
 
 
 def _devices(context: StudyContext, devices: Sequence[str] | None) -> tuple[DeviceProfile, list]:
@@ -234,15 +247,17 @@ def _add_figures(ctx: dict, study: optuna.Study, frame: pd.DataFrame, best, base
         energy = next((d.spec for d in dists if d.kind == "energy"), None)
         if energy and primary.active_power_w > 0:
             ctx["figures"]["curve_energy"] = figures.step_curves(curve_rows, primary, energy)
+    ctx["alt"] = {}
     if not frame.empty and (frame["state"] == "COMPLETE").any() and not ctx["multi_objective"]:
-        ctx["figures"]["pareto_params"] = figures.pareto(frame, "params", "parameters (last path)")
-        ctx["figures"]["pareto_macs"] = figures.pareto(frame, "macs", "MACs (last path)")
+        for name, xcol, xlabel in (("pareto_params", "params", "parameters (last path)"),
+                                   ("pareto_macs", "macs", "MACs (last path)"), ("history", None, None)):
+            drawn = figures.history(frame) if xcol is None else figures.pareto(frame, xcol, xlabel)
+            ctx["figures"][name], ctx["alt"][name] = drawn
     if not ctx["multi_objective"]:
         from optuna.visualization import matplotlib as ovm
-        for name, fn in (("history", ovm.plot_optimization_history), ("importances", ovm.plot_param_importances)):
-            png = figures.optuna_plot(fn, study)
-            if png:
-                ctx["figures"][name] = png
+        png = figures.optuna_plot(ovm.plot_param_importances, study)
+        if png:
+            ctx["figures"]["importances"] = png
     if best is not None:
         _winner_figures(ctx, study, best, primary, time_budget, data)
 

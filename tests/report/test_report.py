@@ -183,3 +183,60 @@ def test_report_fits_the_screen_and_every_image_loads(study_with_everything, tmp
     scroll_width, viewport, images, broken = map(int, probe_values.split(","))
     assert viewport == width and scroll_width <= viewport, probe_values
     assert images >= 3 and broken == 0, probe_values
+
+
+@pytest.fixture(scope="module")
+def study_with_envelope(study_with_everything, tmp_path_factory):
+    """A copy of the study after ``explorer envelope`` retrained two dedicated networks."""
+    from explorer.study.envelope import envelope_trials, train_envelope
+    study, _ = study_with_everything
+    reports = tmp_path_factory.mktemp("env")
+    storage = optuna.storages.InMemoryStorage()
+    optuna.copy_study(from_study_name=study.study_name, from_storage=study._storage, to_storage=storage)
+    copy = optuna.load_study(study_name=study.study_name, storage=storage)
+    train_envelope(copy, 2, reports)
+    assert len(envelope_trials(copy)) == 2
+    return copy, reports
+
+
+@pytest.mark.slow
+def test_after_explorer_envelope_its_networks_are_named_as_such(study_with_envelope):
+    import re
+
+    from explorer.study.envelope import dedicated_path, envelope_trials
+    from explorer.study.finalists import finalist_trials
+    from explorer.study.records import trial_record
+    study, reports = study_with_envelope
+    html = write_report(study, reports / "rep").read_text()
+    # the table of all trials tags each one with the path it was trained for
+    for t in envelope_trials(study):
+        row = re.search(rf"<tr>\s*<td>{t.number}</td>.*?</tr>", html, re.S).group(0)
+        assert f"envelope network for path {dedicated_path(trial_record(t))} (measured)" in row
+    # the front and the history draw them as a series of their own, not among the finalists
+    finalists = [t for t in finalist_trials(study) if not trial_record(t).baseline]
+    for figure in ("Anytime loss against parameters", "Anytime loss against MACs", "Anytime loss by trial"):
+        alt = re.search(rf'alt="({figure}[^"]*)"', html).group(1)
+        assert "2 envelope networks (measured, one path each)" in alt, alt
+        assert f"{len(finalists)} finalists (measured)" in alt, alt
+    assert 'id="envelope-apart"' in html and "The 2 envelope networks of" in html
+
+
+def test_envelope_networks_neither_join_the_front_nor_squash_it():
+    import pandas as pd
+
+    from explorer.report import figures
+    rows = [dict(number=i, state="COMPLETE", value=v, baseline="", figures="estimate", params=p, macs=p)
+            for i, (v, p) in enumerate([(0.45, 1e6), (0.42, 2e6), (0.40, 3e6), (0.44, 2.5e6)])]
+    rows.append(dict(number=4, state="COMPLETE", value=0.41, baseline="", figures="measured", params=2e6, macs=2e6))
+    plain = pd.DataFrame(rows)
+    envelope = pd.DataFrame(rows + [
+        dict(number=5, state="COMPLETE", value=v, baseline="", figures=f"{figures.ENVELOPE_TAG} for path {k} (measured)",
+             params=p, macs=p) for k, (v, p) in enumerate([(0.95, 5e5), (0.61, 9e5), (0.39, 3.5e6)], start=1)])
+    _, without = figures.pareto(plain, "params", "parameters")
+    _, with_them = figures.pareto(envelope, "params", "parameters")
+    assert "the front of the estimates (3 points)" in without and "the front of the estimates (3 points)" in with_them
+    assert "1 finalists (measured)" in with_them
+    # the two far above the candidates are drawn at the axis' top, the third where it is
+    assert "3 envelope networks (measured, one path each), 2 of them above the axis" in with_them
+    _, history = figures.history(envelope)
+    assert "4 trials (estimates)" in history and "3 envelope networks" in history
