@@ -235,7 +235,8 @@ def _print_outcome(study, cfg, storage_url: str, reports: Path, write_report: bo
 
 
 def cmd_rescore(args) -> None:
-    from explorer.console import print_frame, print_json
+    from explorer.cli._rescore import print_rescored
+    from explorer.console import print_json
     from explorer.study.results import rescore
     from explorer.study.storage import load_study
     study = load_study(args.study, args.storage, Path(args.reports))
@@ -246,8 +247,8 @@ def cmd_rescore(args) -> None:
         write_output(args.csv, frame.to_csv(index=False))
     if args.json:
         print_json(frame.to_dict("records"))
-    else:
-        print_frame(frame.head(args.top), f"{args.study} re-scored for {args.device} (sorted by {args.budget[0]})")
+    else:   # measured and estimated apart, and which to trust
+        print_rescored(study, frame, args)
 
 
 def cmd_envelope(args) -> None:

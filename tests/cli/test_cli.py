@@ -191,6 +191,10 @@ def test_search_rescore_report_export_cli(run_cli, tmp_path):
     code, out, _ = run_cli("rescore", "--study", "cli", "--device", "rpi4", "--budget", "energy:uniform:0.5J",
                            "--json", *common)
     assert code == 0 and len(json.loads(out)) >= 3
+    # in words: what was measured and what the search estimated are two tables, and which to trust is said
+    code, out, _ = run_cli("rescore", "--study", "cli", "--device", "rpi4", "--budget", "time:uniform:100ms", *common)
+    assert code == 0 and out.index("measured (") < out.index("estimates of the search (")
+    assert "Pick from the measured table" in out and "--study cli --trial" in out
     code, _, err = run_cli("export", "--study", "cli", "--out", tmp_path / "m", "--input-size", "64x64", *common)
     assert code == 0, err
     manifest = json.loads((tmp_path / "m" / "manifest.json").read_text())
