@@ -7,6 +7,8 @@ import numpy as np
 import torch
 
 METRICS = ("rmse", "mae", "rel", "delta1", "delta2", "delta3")
+#: the score of a path where the frames have no depth: see explorer.training.selfsup.photometric_score
+PHOTOMETRIC = "photometric"
 
 
 def depth_metrics(pred: torch.Tensor | np.ndarray, target: torch.Tensor | np.ndarray) -> dict[str, float]:
@@ -59,18 +61,22 @@ def batch_depth_metrics(pred: torch.Tensor, target: torch.Tensor) -> list[dict[s
 
 
 class MetricAverager:
-    """Averages per-image metrics (the convention of FastDepth's evaluation)."""
+    """Averages per-image metrics (the convention of FastDepth's evaluation), each over the images
+    that have it: an image without depth has no RMSE but may have a photometric score
+    (:data:`PHOTOMETRIC`)."""
 
     def __init__(self) -> None:
-        self.sums = {m: 0.0 for m in METRICS}
-        self.count = 0
+        self.sums: dict[str, float] = {}
+        self.counts: dict[str, int] = {}
 
     def add(self, metrics: dict[str, float]) -> None:
-        if any(np.isnan(v) for v in metrics.values()):
-            return
-        for m in METRICS:
-            self.sums[m] += metrics[m]
-        self.count += 1
+        for m, v in metrics.items():
+            if not np.isnan(v):
+                self.sums[m] = self.sums.get(m, 0.0) + v
+                self.counts[m] = self.counts.get(m, 0) + 1
 
     def result(self) -> dict[str, float]:
-        return {m: (self.sums[m] / self.count if self.count else float("nan")) for m in METRICS}
+        """Every depth metric (NaN where no image had depth), then any other metric added."""
+        names = list(METRICS) + [m for m in self.sums if m not in METRICS]
+        return {m: (self.sums[m] / self.counts[m] if self.counts.get(m) else float("nan")) for m in names}
+

@@ -58,7 +58,19 @@ class Scene:
     model: object
 
 
-def scene(n: int = 14, h: int = 48, w: int = 64) -> Scene:
+def room_ranges(model, forward: float) -> np.ndarray:
+    """What the LiDAR sees of the whole room in its plane, beyond the camera's view too (as a real
+    one does): the side walls and the far wall, along each beam (its 2-degree tilt lengthens each
+    range by 1 / cos 2 deg)."""
+    a = model.angle_min + model.angle_increment * np.arange(model.beams)
+    with np.errstate(divide="ignore"):
+        horizontal = np.minimum((4.0 - forward) / np.cos(a), np.where(np.sin(a) != 0, 1.5 / np.abs(np.sin(a)), np.inf))
+    return (horizontal / np.cos(np.radians(MOUNT["tilt"]))).astype(np.float32)
+
+
+def scene(n: int = 14, h: int = 48, w: int = 64, whole_room: bool = False) -> Scene:
+    """``whole_room``: the LiDAR sees the room beyond the camera's view (else only what the depth
+    images hold, which near the far wall is that wall alone)."""
     K = intrinsics(h, w)
     model = lidar_model(MOUNT, "test")
     rgb, depth, ranges = [], [], []
@@ -67,7 +79,7 @@ def scene(n: int = 14, h: int = 48, w: int = 64) -> Scene:
         d = room_depth(K, h, w, fwd)
         depth.append(d)
         rgb.append(room_rgb(K, d, fwd))
-        ranges.append(simulate_ranges(d, K, model).ranges.astype(np.float32))
+        ranges.append(room_ranges(model, fwd) if whole_room else simulate_ranges(d, K, model).ranges.astype(np.float32))
     return Scene(K, model.transform, rgb, depth, ranges, model)
 
 

@@ -12,7 +12,7 @@ import numpy as np
 from explorer.anytime import anytime_loss
 from explorer.calibration.calibrate import calibrate
 from explorer.cost import candidate_cost, get_device
-from explorer.data import open_dataset
+from explorer.data import open_dataset, require_scores
 from explorer.deploy.runtime import AnytimeRunner, measured_anytime, path_metrics
 from explorer.files import write_json
 from explorer.space import Candidate
@@ -35,6 +35,7 @@ def curve_check(model_dir: Path, data: str, device: str | None = None, frames: i
     cand = Candidate.from_dict(runner.manifest["candidate"])
     ds = open_dataset(data, "val", runner.input_size, train_augment=False)
     items = [ds[i] for i in range(min(frames, len(ds)))]
+    require_scores(items, data, "rmse")   # the curve is the RMSE of what each deadline returns
     losses = [m["rmse"] for m in path_metrics(runner, items)]
     profile = get_device(device) if device else calibrate(**{"scale": 0.5, **(calibration or {})}, provider=provider,
                                                           progress=calibration_progress)

@@ -43,6 +43,8 @@ def cmd_export(args) -> None:
         raise UserError("--force and --int8-stages are read by --quantize int8 only")
     elif args.quantize is None and args.study:
         quant = AS_SEARCHED
+    curve = Path(args.out) / "anytime_curve.json"   # measured on the graphs the export replaces
+    had_curve = curve.is_file()
     # what the export is doing shows on one status line that a refusal clears: its error is then the
     # one line on stderr
     with progress(transient=True) as bar:
@@ -58,6 +60,9 @@ def cmd_export(args) -> None:
     _print_measured(manifest)
     console.print(f"exported {len(manifest['stages'])} stage graphs to {args.out} (max |onnx - torch| "
                   f"{manifest['verification']['max_abs_diff']:.2e}{' before quantization' if manifest.get('quantization') else ''})")
+    if had_curve and not curve.exists():
+        console.print(f"removed {curve}: it measured the graphs this export replaced; `explorer curve {args.out}` "
+                      "measures these", markup=False, highlight=False)
     if manifest.get("quantization"):
         import pandas as pd
         q = manifest["quantization"]
@@ -71,6 +76,9 @@ def cmd_export(args) -> None:
         console.print(f"int8 stage graphs: {len(int8)} of {len(manifest['stages'])}"
                       + (f" ({', '.join(int8)})" if int8 else " (none ran at least 5% faster in int8 here: the "
                          "export is fp32; --int8-stages all forces int8)"))
+        if manifest.get("expected_cost_note"):
+            console.print(f"the manifest's expected costs per device are {manifest['expected_cost_note']}",
+                          markup=False, highlight=False)
         if q.get("kept_fp32_for_accuracy"):
             console.print(f"kept fp32 because int8 took a path past --max-degradation: "
                           f"{', '.join(q['kept_fp32_for_accuracy'])}")
@@ -79,15 +87,21 @@ def cmd_export(args) -> None:
 def _print_measured(manifest: dict) -> None:
     """The export's own figures, where they come from, and a line when it is deployed at a size its
     weights were not trained or tuned at."""
+    import math
+
     import pandas as pd
     from explorer.console import console, print_frame
     measured = manifest.get("measured")
     if not measured:
         return
     size = "x".join(map(str, manifest["input_size"]))
-    frame = pd.DataFrame({"path": range(len(manifest["path_metrics"])),
-                          "rmse (m)": [m["rmse"] for m in manifest["path_metrics"]],
-                          "delta1": [m["delta1"] for m in manifest["path_metrics"]]})
+    columns = {"rmse": "rmse (m)", "delta1": "delta1", "photometric": "photometric"}
+    metrics = manifest["path_metrics"]
+    frame = pd.DataFrame({"path": range(len(metrics))})
+    for key, title in columns.items():   # what the frames could measure: depth, the camera's motion, or both
+        values = [m.get(key) for m in metrics]
+        if any(v is not None and math.isfinite(v) for v in values):
+            frame[title] = values
     print_frame(frame, f"measured on the exported graphs at {size}, {measured['frames']} validation frames of "
                 f"{measured['data']}")
     tuned = manifest.get("tuned_size")

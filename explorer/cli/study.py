@@ -43,7 +43,7 @@ def _search_config(args):
     study = args.study or f"{Path(str(args.device)).stem}-{space_name}"
     cfg = SearchConfig(
         study=study, space=args.space, device=args.device, budgets=tuple(args.budget or ["time:uniform:33ms"]),
-        data=args.data, objectives=tuple(args.objectives.split(",")), metric=args.metric,
+        data=args.data, objectives=tuple(args.objectives.split(",")), metric=_metric(args),
         input_size=args.input_size, train_size=args.train_size, train_steps=args.proxy_steps,
         batch_size=args.batch_size, amp=args.amp, head_kinds=args.head_kinds, seed=args.seed,
         max_params=args.max_params,
@@ -57,6 +57,19 @@ def _search_config(args):
         supervision=args.supervision, poses=args.poses, hints=args.depth_hints)
     cfg.validate()
     return cfg
+
+
+def _metric(args) -> str:
+    """The study's ``--metric``: as given, else the data's default (said where it is not RMSE)."""
+    if args.metric:
+        return args.metric
+    from explorer.data import default_metric
+    metric = default_metric(args.data)
+    if metric == "photometric":
+        from explorer.console import err_console
+        err_console.print(f"{args.data}: no depth in its validation frames: each path is scored by its photometric "
+                          "error, warping the neighbouring frames with the motion the LiDAR measures (--metric)")
+    return metric
 
 
 def _time_limits(args, started: float):
@@ -364,7 +377,10 @@ def _register_search(add, reports: dict) -> None:
                    "hundreds to over a thousand supernet estimates on a 2-core CPU, by its speed; 0 = none)")
     s.add_argument("--trials", type=int, default=None, help="stop after this many finished trials")
     s.add_argument("--objectives", default="anytime_loss", help="e.g. anytime_loss,params (NSGA-II)")
-    s.add_argument("--metric", default="rmse", choices=["rmse", "mae", "rel"])
+    s.add_argument("--metric", default=None, choices=["rmse", "mae", "rel", "photometric"],
+                   help="how each path is scored: rmse (default where the validation frames have depth), mae, rel, "
+                   "or photometric (the default on a recording without depth: the error of warping the neighbouring "
+                   "frames with the camera's motion as the LiDAR measures it)")
     s.add_argument("--max-params", type=_count, help="reject candidates above this, e.g. 2.5M")
     s.add_argument("--max-first-exit", type=_ms, help="reject candidates whose first exit is later, e.g. 10ms")
     s.add_argument("--evaluator", default="auto", choices=["auto", "supernet", "proxy"],

@@ -41,8 +41,9 @@ from explorer.data.splits import VAL_SHARE, parse_share
 from explorer.data.synthetic import SyntheticConfig, ensure_synthetic, intrinsics
 from explorer.errors import UserError
 
-__all__ = ["MAX_GENERATED", "MAYBE_WITHOUT_DEPTH", "SEQUENCE_KINDS", "SPEC_HELP", "DataSpec", "DepthDataset", "ScanConfig",
-           "SyntheticConfig", "open_dataset", "parse_data_spec", "require_depth", "scan_from_image", "simulate_scan", "with_lidar"]
+__all__ = ["DEPTH_METRICS", "MAX_GENERATED", "MAYBE_WITHOUT_DEPTH", "SCORES", "SEQUENCE_KINDS", "SPEC_HELP", "DataSpec",
+           "DepthDataset", "ScanConfig", "SyntheticConfig", "default_metric", "has_depth", "open_dataset",
+           "parse_data_spec", "require_scores", "scan_from_image", "simulate_scan", "with_lidar"]
 
 #: kinds whose training augmentation is a horizontal flip alone (FastDepth's NYU recipe also scales,
 #: rotates and jitters colours): their frames can be prepared once and flipped per batch
@@ -188,17 +189,44 @@ def open_dataset(spec: str | DataSpec, split: str, input_size: tuple[int, int] =
 
 #: kinds whose frames may come without depth (a recording or a folder of frames): every other kind has it
 MAYBE_WITHOUT_DEPTH = ("rosbag-seq", "frames")
+#: how each path is scored on data with depth, and where there is none (camera motion known)
+DEPTH_METRICS = ("rmse", "mae", "rel")
+SCORES = DEPTH_METRICS + ("photometric",)
 
 
-def require_depth(dataset, spec: str, frames: int = 4) -> None:
-    """A :class:`UserError` unless the first ``frames`` of ``dataset`` hold some depth: every path's
-    error is measured against it (a recording without depth trains self-supervised, but nothing
-    measures how good the result is)."""
-    if any(bool((dataset[i]["depth"] > 0).any()) for i in range(min(frames, len(dataset)))):
-        return
-    raise UserError(f"data '{spec}': its validation frames have no depth to measure each path's error on; record "
-                    "a depth topic (rosbag: depth=TOPIC) or give depth/ (frames:); explorer train --supervision self "
-                    "trains on it without measuring")
+def has_depth(dataset, frames: int = 4) -> bool:
+    """Whether the first ``frames`` of ``dataset`` hold some depth."""
+    return any(bool((dataset[i]["depth"] > 0).any()) for i in range(min(frames, len(dataset))))
+
+
+def default_metric(spec: str | DataSpec) -> str:
+    """How a study on ``spec`` scores its paths unless told: RMSE against depth, or, on a recording or
+    folder whose validation frames have none, the photometric error of warping the neighbouring frames
+    with the camera's motion (:func:`explorer.training.selfsup.photometric_score`)."""
+    ds = parse_data_spec(spec)
+    if ds.kind in MAYBE_WITHOUT_DEPTH and not has_depth(open_dataset(ds, "val", (32, 32), train_augment=False)):
+        return "photometric"
+    return "rmse"
+
+
+def require_scores(dataset, spec: str, metric: str, frames: int = 4, instead: str = "") -> None:
+    """A :class:`UserError` unless the validation frames of ``dataset`` can score every path by
+    ``metric``: depth for a depth metric; neighbouring frames and the camera's motion between them
+    (given by the data, or measured by the LiDAR) for ``photometric``. ``instead``: what else the
+    command can do without depth, said in the error."""
+    if metric in DEPTH_METRICS:
+        if has_depth(dataset, frames):
+            return
+        raise UserError(f"data '{spec}': its validation frames have no depth to measure each path's {metric} on; "
+                        f"{instead}record a depth topic (rosbag: depth=TOPIC) or give depth/ (frames:)")
+    if getattr(dataset, "sequence", False):
+        if any(bool(dataset[i]["pose_known"]) for i in range(len(dataset))):
+            return
+        raise UserError(f"data '{spec}': --metric photometric needs the camera's motion between validation "
+                        "frames, and none could be measured: its LiDAR scans do not match from frame to frame "
+                        "(give poses.txt with frames:, or record depth and use --metric rmse)")
+    raise UserError(f"data '{spec}': --metric photometric scores paths by warping neighbouring frames: give "
+                    "a sequence (rosbag-seq:, frames:, synthetic-seq, kitti-seq:) or use --metric rmse")
 
 
 def _frames(ds: DataSpec, split: str, progress) -> tuple[object, np.ndarray | None]:

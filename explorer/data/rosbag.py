@@ -56,6 +56,7 @@ from explorer.data._ros_messages import (
     _tf_chain,
     _transform,
 )
+from explorer.data.odometry import camera_motion
 from explorer.data.readers import RawFrame
 from explorer.data.spec import BAG_KEYS as SPEC_BAG_KEYS
 from explorer.scan import LIDAR_KEYS, RADIAN_KEYS, LaserScan, lidar_model, project_scan, rigid_transform
@@ -458,10 +459,12 @@ class _BagSource:
     def _depth(self, i: int, shape: tuple[int, int]) -> np.ndarray:
         return self._read("depth", i) if self.has_depth else np.zeros(shape, np.float32)
 
-    def _scan_points(self, i: int, shape: tuple[int, int]):
+    def _scan(self, i: int) -> LaserScan:
         amin, inc, rmin, rmax = (float(x) for x in self.params[i])
-        scan = LaserScan(amin, inc, rmin, rmax, self.ranges[self.offsets[i]:self.offsets[i + 1]], self.stamps[i] / 1e9)
-        return project_scan(scan, self.T_cam_lidar, self.K, shape)
+        return LaserScan(amin, inc, rmin, rmax, self.ranges[self.offsets[i]:self.offsets[i + 1]], self.stamps[i] / 1e9)
+
+    def _scan_points(self, i: int, shape: tuple[int, int]):
+        return project_scan(self._scan(i), self.T_cam_lidar, self.K, shape)
 
     def __len__(self) -> int:
         return len(self.items)
@@ -492,7 +495,10 @@ class BagFrames(_BagSource):
 class BagSequence(_BagSource):
     """Self-supervised samples of a bag: each paired frame but the first and last, with its
     neighbours in time. Two targets left out between the splits, so that no frame of a validation
-    sample is in a training one. ``max_depth``: the LiDAR's range_max."""
+    sample is in a training one. ``max_depth``: the LiDAR's range_max.
+
+    Validation samples carry the camera's motion to each neighbour as the LiDAR measures it
+    (:mod:`explorer.data.odometry`): what scores each path where the bag has no depth."""
 
     kind = "frames"
 
@@ -502,12 +508,22 @@ class BagSequence(_BagSource):
             raise UserError(f"{path}: {len(self.stamps)} paired frame(s); a sequence needs at least 3")
         self.items = split_range(len(self.stamps) - 2, split, str(path), share=self.options.val, gap=2, start=1)
         self.max_depth = float(self.params[:, 3].max())
+        self.poses = [self._poses(j) for j in self.items] if split == "val" else None
+
+    def _poses(self, j: int) -> list[np.ndarray] | None:
+        """Camera-to-world of frames j-1, j, j+1, frame j's camera being the world; None where the scans
+        do not pin either motion down."""
+        motions = [camera_motion(self._scan(k), self._scan(j), self.T_cam_lidar) for k in (j - 1, j + 1)]
+        if any(m is None for m in motions):
+            return None
+        return [motions[0], np.eye(4), motions[1]]
 
     def __getitem__(self, i: int) -> SequenceSample:
         j = self.items[i]
         frames = [self._read("rgb", k) for k in (j - 1, j, j + 1)]
         shape = frames[1].shape[:2]
-        return SequenceSample(frames, self._depth(j, shape), self.K.copy(), None, None, self.names[j],
+        poses = self.poses[i] if self.poses is not None else None
+        return SequenceSample(frames, self._depth(j, shape), self.K.copy(), poses, None, self.names[j],
                               self._scan_points(j, shape))
 
     def frame_names(self) -> list[str]:

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from explorer.data.odometry import camera_motion
 from explorer.data.readers import open_image, read_image, ring_mask, sparse_depth
 from explorer.scan import LidarModel, project_scan, read_intrinsics, read_lidar_yaml, read_ranges  # noqa: F401
 from explorer.data.sequences import SequenceSample
@@ -93,7 +94,8 @@ class FrameFolder:
     ``FOLDER/poses.txt`` (one line per frame: the 12 numbers of a 3x4 camera-to-world matrix, KITTI
     odometry's format), and a real LiDAR's scans: ``FOLDER/scans/<name>.csv|.npy`` (one range per
     beam, metres; inf, nan or 0 = no return) with ``FOLDER/lidar.yaml`` (the LiDAR and its mount,
-    :func:`explorer.scan.read_lidar_yaml`; or the data spec's LiDAR options)."""
+    :func:`explorer.scan.read_lidar_yaml`; or the data spec's LiDAR options). Without poses.txt, the
+    validation samples take the camera's motion from the scans (:mod:`explorer.data.odometry`)."""
 
     kind = "frames"
     max_depth = 10.0
@@ -116,6 +118,19 @@ class FrameFolder:
         self.lidar = self._scan_model(lidar)
         if self.lidar is not None:
             self.max_depth = self.lidar.range_max
+        # validation without poses.txt: the camera's motion as the scans measure it (explorer.data.odometry)
+        self.scan_poses = ({t: self._scan_poses(t) for t in self.targets}
+                           if split == "val" and self.poses is None and self.lidar is not None else {})
+
+    def _scan_poses(self, t: int) -> list[np.ndarray] | None:
+        """Camera-to-world of frames t-1, t, t+1 with frame t's camera as the world, from scan matching;
+        None where a neighbour has no scan or the scans do not pin the motion down."""
+        files = [self._scan_file(self.paths[k].stem) for k in (t - 1, t, t + 1)]
+        if any(f is None for f in files):
+            return None
+        scans = [self.lidar.scan(read_ranges(f, self.lidar.beams)) for f in files]
+        motions = [camera_motion(scans[k], scans[1], self.lidar.transform) for k in (0, 2)]
+        return None if any(m is None for m in motions) else [motions[0], np.eye(4), motions[1]]
 
     def _scan_model(self, given: LidarModel | None) -> LidarModel | None:
         """The LiDAR of ``scans/`` (lidar.yaml, else the spec's options), None without scans/."""
@@ -157,7 +172,7 @@ class FrameFolder:
             depth = read_image(depth_path).astype(np.float32) / 1000.0
             if depth.shape != self.shape:
                 raise UserError(f"{depth_path}: {depth.shape} differs from the frames' {self.shape}")
-        poses = [self.poses[t + d] for d in (-1, 0, 1)] if self.poses else None
+        poses = [self.poses[t + d] for d in (-1, 0, 1)] if self.poses else self.scan_poses.get(t)
         points = None
         if self.lidar is not None:
             f = self._scan_file(self.paths[t].stem)

@@ -4,6 +4,8 @@ an exit, path 0 on its own), plus a manifest. Verified against PyTorch at export
 
 from __future__ import annotations
 
+import math
+
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Sequence
@@ -72,7 +74,8 @@ def measure_export(model_dir: Path, measurement: Measurement, input_size: tuple[
     if not frames:
         raise UserError(f"--data {measurement.data}: its validation split has no frames to measure the export on")
     metrics = path_metrics(AnytimeRunner(model_dir, warmup=False, arenas="shared"), frames)
-    return {"path_metrics": [{k: v for k, v in m.items() if k != "path"} for m in metrics],
+    # a metric the frames cannot give (RMSE without depth, the photometric error without motion) is left out
+    return {"path_metrics": [{k: v for k, v in m.items() if k != "path" and not math.isnan(v)} for m in metrics],
             "measured": {"data": measurement.data, "split": "val", "frames": len(frames),
                          "input_size": list(input_size), "by": "onnxruntime, the exported graphs"}}
 
@@ -113,6 +116,10 @@ def export_network(net: AnytimeDepthNet, out_dir: Path, input_size: tuple[int, i
                                             q.force, progress, q.stages))
             manifest["path_metrics_trained"] = manifest["path_metrics"]
             manifest["path_metrics"] = manifest["path_metrics_int8"]
+            if manifest["expected_cost_precision"] != "int8":   # the profiles priced the fp32 network
+                manifest["expected_cost_note"] = (
+                    "fp32 estimates: the device profiles price this network's layers as fp32, not the int8 graphs "
+                    "exported (`explorer curve` measures these on a machine)")
         for stage in manifest["stages"]:
             stage["sha256"] = file_sha256(scratch / stage["file"])
         write_manifest(scratch, manifest)
@@ -163,7 +170,7 @@ def _export_fp32(net: AnytimeDepthNet, out_dir: Path, input_size: tuple[int, int
         "image": "RGB in [0, 1], (1, 3, H, W) float32", "scan": "(1, W) float32 metres, 0 = no return",
         "scan_rows_input": rows_input,
         "stages": stages, "paths": net.candidate.num_paths,
-        "path_metrics": path_metrics or [], "expected_cost": expected,
+        "path_metrics": path_metrics or [], "expected_cost": expected, "expected_cost_precision": cost.precision,
         "params": [p for p, _ in cost.path_params_macs()], "macs": [m for _, m in cost.path_params_macs()],
         "verification": {"max_abs_diff": diff, "tolerance": TOLERANCE}, "source": source or {},
         "precision": "fp32",

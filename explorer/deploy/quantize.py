@@ -37,7 +37,7 @@ from typing import Callable
 import numpy as np
 
 from explorer.cost.precision import INT8_KEEP_RATIO
-from explorer.data import open_dataset
+from explorer.data import open_dataset, require_scores
 from explorer.deploy import runtime
 from explorer.deploy.int8_graphs import quantize_graph, share_edge_scales
 from explorer.deploy.runtime import MANIFEST, AnytimeRunner, _is_scan_path
@@ -132,6 +132,7 @@ def quantize_export(model_dir: Path, data: str, calibration_frames: int = 32, ev
     frames = _frames(data, size, calibration_frames, "train")
     calib = stage_inputs(model_dir, frames)
     evaluation = _frames(data, size, eval_frames, "val")
+    require_scores(evaluation, data, "rmse")   # int8 is kept where each path's RMSE holds
     say(f"measuring the fp32 paths on {len(evaluation)} validation frames")
     before = path_metrics(model_dir, evaluation)
     made = _quantize_stages(model_dir, manifest, calib, stages, say)

@@ -542,12 +542,24 @@ def measured_anytime(runner: AnytimeRunner, frames: list[dict], deadlines_ms: np
 
 def path_metrics(runner: AnytimeRunner, frames: list[dict]) -> list[dict[str, float]]:
     """Per-path metrics (FastDepth's conventions) of an exported model on ``frames`` (data set items)."""
-    from explorer.metrics import MetricAverager, depth_metrics
+    from explorer.metrics import PHOTOMETRIC, MetricAverager, depth_metrics
     averagers = [MetricAverager() for _ in range(runner.manifest["paths"])]
     for f in frames:
         for p, depth in enumerate(runner.depths(f["image"].numpy(), f["scan"].numpy(), _rows(f))):
             averagers[p].add(depth_metrics(depth, f["depth"][0].numpy()))
+            if bool(f.get("pose_known", False)):   # a sequence's frame with the camera's motion
+                averagers[p].add({PHOTOMETRIC: _photometric(depth, f)})
     return [{"path": p, **a.result()} for p, a in enumerate(averagers)]
+
+
+def _photometric(depth: np.ndarray, frame: dict) -> float:
+    """:func:`explorer.training.selfsup.photometric_score` of one exported path's map (export measures with
+    torch at hand; the runtime itself never needs it)."""
+    import torch
+    from explorer.training.selfsup import photometric_score
+    batch = {k: torch.as_tensor(frame[k])[None] for k in ("image", "sources", "K", "pose")}
+    return float(photometric_score(torch.as_tensor(depth, dtype=torch.float32).reshape(1, 1, *depth.shape[-2:]),
+                                   batch)[0])
 
 
 def _rows(frame: dict) -> "np.ndarray | None":

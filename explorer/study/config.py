@@ -12,7 +12,7 @@ import yaml
 from explorer.anytime import BudgetDistribution, parse_budget
 from explorer.cost import get_device
 from explorer.cost.devices import DeviceProfile, check_budget_priced
-from explorer.data import parse_data_spec
+from explorer.data import SCORES, parse_data_spec
 from explorer.errors import UserError
 from explorer.model.reference import REFERENCES, ReferenceModel
 from explorer.space import (
@@ -169,8 +169,8 @@ class SearchConfig:
         bad = [o for o in self.objectives if o not in OBJECTIVES]
         if bad or not self.objectives or self.objectives[0] != "anytime_loss":
             raise UserError(f"--objectives must start with anytime_loss and use only {list(OBJECTIVES)}")
-        if self.metric not in ("rmse", "mae", "rel"):
-            raise UserError(f"--metric {self.metric}: use rmse, mae or rel")
+        if self.metric not in SCORES:
+            raise UserError(f"--metric {self.metric}: use one of {', '.join(SCORES)}")
         for name, size in (("--input-size", self.input_size), ("--train-size", self.train_size)):
             if len(size) != 2:
                 raise UserError(f"{name} {size}: give HxW, e.g. 224x224")

@@ -116,8 +116,18 @@ class TrialRecord(BaseModel):
     def precision(self) -> str:
         return (self.candidate or {}).get("precision", "fp32")
 
-    def losses_of(self, metric: str = "rmse") -> list[float]:
-        return [float(m[metric]) for m in self.path_metrics or []]
+    def losses_of(self, metric: str | None = None) -> list[float]:
+        """Each path's ``metric``; by default its :attr:`error_metric`."""
+        metric = metric or self.error_metric
+        return [float(m[metric]) if m.get(metric) is not None else math.nan for m in self.path_metrics or []]
+
+    @property
+    def error_metric(self) -> str:
+        """What its figures show as each path's error: RMSE where its frames had depth, else the
+        photometric error (a study on a recording without depth)."""
+        metrics = self.path_metrics or []
+        has_rmse = any(m.get("rmse") is not None and math.isfinite(m["rmse"]) for m in metrics)
+        return "rmse" if has_rmse or not any(m.get("photometric") is not None for m in metrics) else "photometric"
 
 
 class StudyRecord(BaseModel):

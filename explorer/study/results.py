@@ -80,9 +80,9 @@ def trial_path_costs(trial: optuna.trial.FrozenTrial, device: DeviceProfile, kin
     return [float(device.energy_j(t)) for t in ms]
 
 
-def trial_losses(trial: optuna.trial.FrozenTrial, metric: str = "rmse") -> list[float]:
-    """Each path's ``metric``; a NaN among measured paths (an edit), an infinite or a negative error is one
-    line."""
+def trial_losses(trial: optuna.trial.FrozenTrial, metric: str | None = None) -> list[float]:
+    """Each path's ``metric`` (default: RMSE, or the photometric error where the frames had no depth);
+    a NaN among measured paths (an edit), an infinite or a negative error is one line."""
     try:
         losses = trial_record(trial).losses_of(metric)
     except (KeyError, TypeError, ValueError):
@@ -94,7 +94,8 @@ def trial_losses(trial: optuna.trial.FrozenTrial, metric: str = "rmse") -> list[
     return losses
 
 
-def trial_anytime_loss(trial: optuna.trial.FrozenTrial, device: DeviceProfile, budget, metric: str = "rmse") -> float:
+def trial_anytime_loss(trial: optuna.trial.FrozenTrial, device: DeviceProfile, budget,
+                       metric: str | None = None) -> float:
     dist = parse_budget(budget)
     if trial_precision(trial) not in device.precisions:
         return math.nan
@@ -347,7 +348,8 @@ def missing_baselines(study: optuna.Study) -> list[dict]:
 
 
 def path_table(trial: optuna.trial.FrozenTrial, devices: Sequence[DeviceProfile] = ()) -> pd.DataFrame:
-    """Table 1 of the paper for one trial: per path, cost per device, RMSE, REL, delta1, params, MACs."""
+    """Table 1 of the paper for one trial: per path, cost per device, RMSE, REL, delta1 (where the frames
+    had depth), the photometric error (where they had the camera's motion), params, MACs."""
     rec = trial_record(trial)
     metrics = rec.path_metrics
     frame = pd.DataFrame({"path": range(len(metrics))})
@@ -355,8 +357,10 @@ def path_table(trial: optuna.trial.FrozenTrial, devices: Sequence[DeviceProfile]
         frame[f"{dev.name} ms"] = trial_path_costs(trial, dev, "time")
         if dev.active_power_w > 0:
             frame[f"{dev.name} J"] = trial_path_costs(trial, dev, "energy")
-    for m in ("rmse", "rel", "delta1"):
-        frame[m] = [pm[m] for pm in metrics]
+    for m in ("rmse", "rel", "delta1", "photometric"):
+        values = [pm.get(m, np.nan) for pm in metrics]
+        if any(v is not None and np.isfinite(v) for v in values):
+            frame[m] = values
     frame["params"] = rec.params
     frame["macs"] = rec.macs
     return frame

@@ -23,7 +23,7 @@ import optuna
 
 from explorer import __version__
 from explorer.cost import candidate_cost, model_cost
-from explorer.data import MAYBE_WITHOUT_DEPTH, open_dataset, parse_data_spec, require_depth
+from explorer.data import DEPTH_METRICS, MAYBE_WITHOUT_DEPTH, open_dataset, parse_data_spec, require_scores
 from explorer.errors import UserError
 from explorer.space import Candidate, SearchSpace, paper_candidate
 from explorer.study import planning
@@ -64,7 +64,14 @@ from explorer.study.retry import (
 )
 from explorer.study.records import record_study, record_values, study_record, trial_record
 from explorer.study.sampling import RecentTrialsTPE
-from explorer.study.storage import REPORTS_DIR, local_url, open_storage, searching_alone, study_dir
+from explorer.study.storage import (
+    REPORTS_DIR,
+    local_url,
+    open_storage,
+    refused_leaves_nothing,
+    searching_alone,
+    study_dir,
+)
 from explorer.supernet import default_path, load_supernet, read_supernet, train_supernet
 from explorer.training.deployment import DeploymentData
 from explorer.training.memory import release_host_memory
@@ -345,15 +352,16 @@ def search(config: SearchConfig, storage_url: str | None = None, workers: int = 
     context = config.resolve()
     if workers < 1:
         raise UserError("--workers must be at least 1")
-    if parse_data_spec(config.data).kind in MAYBE_WITHOUT_DEPTH:
-        # every path is measured against depth: a recording without any is refused before the study exists
-        require_depth(open_dataset(config.data, "val", config.train_size, train_augment=False), config.data)
+    if parse_data_spec(config.data).kind in MAYBE_WITHOUT_DEPTH or config.metric not in DEPTH_METRICS:
+        # data that cannot score a path by the study's metric is refused before the study exists
+        require_scores(open_dataset(config.data, "val", config.train_size, train_augment=False), config.data,
+                       config.metric, instead="score the paths by --metric photometric (a recording with its LiDAR), or ")
     if config.supernet:   # checked before the study's storage exists: a refused search creates nothing
         ensure_supernet(context)  # a foreign or corrupt file is one line before anything is measured
     url = storage_url or local_url(config.study, reports)
     started = time_limit.started if time_limit is not None else time.time()
     clock = PhaseClock(started)
-    with searching_alone(url, config.study):
+    with refused_leaves_nothing(url, config.study), searching_alone(url, config.study):
         outcome = _search(context, url, storage_url, workers, n_trials, timeout_s, reports, on_trial, on_poll, on_data,
                           on_supernet, on_finalist, time_limit, on_plan, clock, on_envelope)
         runs = study_record(outcome.study).runs

@@ -88,6 +88,21 @@ def reprojection_loss(target: torch.Tensor, sources: list[torch.Tensor], warped:
     return torch.where(mask, best, still), mask
 
 
+def photometric_score(depth: torch.Tensor, batch: dict) -> torch.Tensor:
+    """Per frame (N,): how well ``depth`` (N, 1, H, W), warped with the batch's given poses, explains the
+    target from its neighbours: the mean over pixels of MonoDepth2's per-pixel minimum reprojection
+    error, each pixel's error capped by that of the unwarped neighbours (auto-masking, without the
+    training's random tie-break). It scores depth maps where no depth was recorded; lower is better,
+    and a depth off in scale warps to the wrong place, so the scale counts too."""
+    target, K = batch["image"], batch["K"]
+    sources = [batch["sources"][:, k] for k in range(2)]
+    poses = [batch["pose"][:, k] for k in range(2)]
+    depth = depth.clamp(min=MIN_DEPTH)
+    best = min_reprojection(target, [warp(s, depth, K, p) for s, p in zip(sources, poses)])
+    still = torch.cat([photometric_error(s, target) for s in sources], dim=1).min(dim=1, keepdim=True).values
+    return torch.minimum(best, still).mean(dim=(1, 2, 3))
+
+
 def smoothness(depth: torch.Tensor, image: torch.Tensor) -> torch.Tensor:
     """Edge-aware smoothness of the mean-normalised disparity (gradients weighted by exp(-|dI|))."""
     disp = 1.0 / depth

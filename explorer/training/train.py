@@ -18,11 +18,11 @@ from explorer.data import parse_data_spec
 from explorer.data.resident import training_batches
 from explorer.errors import UserError
 from explorer.files import remove_dead_scratch
-from explorer.metrics import MetricAverager, batch_depth_metrics, depth_metrics
+from explorer.metrics import PHOTOMETRIC, MetricAverager, batch_depth_metrics, depth_metrics
 from explorer.model import AnytimeDepthNet, build_network
 from explorer.space import Candidate
 from explorer.training.depth_hints import HintedDataset, with_hints
-from explorer.training.selfsup import POSE_SOURCES, SUPERVISIONS, SelfSupervisedLoss
+from explorer.training.selfsup import POSE_SOURCES, SUPERVISIONS, SelfSupervisedLoss, photometric_score
 
 
 @dataclass(frozen=True)
@@ -179,7 +179,9 @@ def evaluate(net: AnytimeDepthNet, dataset, batch_size: int = 8, accelerator: to
     beyond the data's cap (10 m synthetic, 80 m KITTI) ignored (the Garg crop is already in KITTI
     sequences' ground truth). ``median_scaling`` (for a depth known only up to scale) multiplies
     each network path by median(ground truth) / median(prediction) per image; path 0, the scan
-    itself, is metric and is never scaled."""
+    itself, is metric and is never scaled. Where a sequence's frames have known poses (given, or
+    measured by the LiDAR), each path also gets its :func:`photometric_score` (unscaled), the only
+    score of frames without depth."""
     if isinstance(dataset, list):
         batches = dataset
     else:
@@ -195,7 +197,10 @@ def evaluate(net: AnytimeDepthNet, dataset, batch_size: int = 8, accelerator: to
             target = batch["depth"]
             if cap is not None:
                 target = torch.where(target <= cap, target, torch.zeros_like(target))
+            scored = _posed(batch)
             for p, out in enumerate(outs):
+                if scored is not None:
+                    _add_photometric(averagers[p], out, batch, scored, accelerator)
                 out = out.float().cpu()
                 if cap is None and not (p > 0 and median_scaling):
                     for m in batch_depth_metrics(out, target):
@@ -213,6 +218,23 @@ def evaluate(net: AnytimeDepthNet, dataset, batch_size: int = 8, accelerator: to
                 break
     rows = [{"path": p, **a.result()} for p, a in enumerate(averagers)]
     return pd.DataFrame(rows)
+
+
+def _posed(batch: dict) -> torch.Tensor | None:
+    """Which frames of a sequence batch have known poses (a bool per frame), or None where it has none."""
+    if "sources" not in batch or "pose_known" not in batch:
+        return None
+    known = torch.as_tensor(batch["pose_known"]).reshape(-1).bool()
+    return known if bool(known.any()) else None
+
+
+def _add_photometric(averager: MetricAverager, depth: torch.Tensor, batch: dict, known: torch.Tensor,
+                     accelerator: torch.device) -> None:
+    """Adds each posed frame's :func:`photometric_score` of ``depth`` to ``averager`` (NaN for the others)."""
+    on = {k: batch[k].to(accelerator) for k in ("image", "sources", "K", "pose")}
+    scores = photometric_score(depth.float(), on).cpu()
+    for score, ok in zip(scores.tolist(), known.tolist()):
+        averager.add({PHOTOMETRIC: score if ok else float("nan")})
 
 
 def evaluated_frames(dataset, limit: int | None, batch_size: int = 8) -> int:

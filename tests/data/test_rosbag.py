@@ -118,7 +118,8 @@ def test_splits_never_share_a_frame_and_val_comes_last(bags):
     assert max(s_train.frame_names()) < min(s_val.frame_names())
     sample = s_val[0]
     assert sample.name == s_val.frame_names()[1] and len(sample.frames) == 3
-    assert sample.depth.shape == (48, 64) and sample.poses is None and len(sample.scan_points.z) > 30
+    assert sample.depth.shape == (48, 64) and len(sample.scan_points.z) > 30
+    assert sample.poses is not None and s_train[0].poses is None   # validation's motion: the LiDAR's
     assert BagSequence.kind == "frames" and s_train.max_depth == MOUNT["range_max"]
     share = BagFrames(path, {"val": "0.3"}, "val")
     assert len(share) == 4
@@ -202,3 +203,24 @@ def test_no_transform_then_the_mount_beside_the_bag(sc, tmp_path, cache):
     frames = BagFrames(path, {}, "train")
     np.testing.assert_allclose(frames.T_cam_lidar, sc.T_cam_lidar, atol=1e-9)
     assert len(frames[0].scan_points.z) > 30
+
+
+def test_validation_samples_carry_the_motion_the_lidar_measures_and_it_scores_depth(bags):
+    """The camera drives 5 cm a frame toward the far wall: the scans say so, and with that motion the
+    recorded depth explains the neighbouring frames better than the same depth off in scale."""
+    import torch
+    from explorer.data import open_dataset
+    from explorer.training.selfsup import photometric_score
+    val = open_dataset(f"rosbag-seq:{bags['mcap']}", "val", (48, 64))
+    train = BagSequence(bags["mcap"], {}, "train")
+    assert train.poses is None   # training learns its poses; only validation is scored with these
+    batch = {k: torch.stack([torch.as_tensor(val[i][k]) for i in range(len(val))])
+             for k in ("image", "sources", "K", "pose", "depth")}
+    assert all(bool(val[i]["pose_known"]) for i in range(len(val)))
+    # target to previous frame: a point 5 cm further away; to the next one: 5 cm nearer
+    assert np.allclose(batch["pose"][:, 0, 2, 3], 0.05, atol=0.005)
+    assert np.allclose(batch["pose"][:, 1, 2, 3], -0.05, atol=0.005)
+    depth = batch["depth"]
+    true = photometric_score(depth, batch)
+    for wrong in (depth * 0.5, depth * 2.0, torch.full_like(depth, float(depth.mean()))):
+        assert bool((photometric_score(wrong, batch) > true).all())

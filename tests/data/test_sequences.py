@@ -148,3 +148,23 @@ def test_frame_folder_with_a_real_lidars_scans(tmp_path):
     (root / "lidar.yaml").unlink()
     with pytest.raises(UserError, match="write lidar.yaml"):
         open_dataset(f"frames:{root}", "train", (40, 60))
+
+
+def test_a_frame_folder_without_poses_takes_its_validation_motion_from_the_scans(tmp_path):
+    """A camera driving 5 cm a frame toward a wall, with its LiDAR's scans and no poses.txt, no depth:
+    the validation samples carry the motion the scans measure; training learns its own."""
+    from _bags import MOUNT, scene
+    sc = scene(n=24, h=48, w=64, whole_room=True)
+    root = tmp_path / "f"
+    (root / "scans").mkdir(parents=True)
+    for i, (rgb, ranges) in enumerate(zip(sc.rgb, sc.ranges)):
+        Image.fromarray(rgb).save(root / f"frame_{i:04d}.png")
+        np.save(root / "scans" / f"frame_{i:04d}.npy", ranges)
+    (root / "lidar.yaml").write_text("".join(f"{k}: {v}\n" for k, v in MOUNT.items()))
+    K = sc.K
+    (root / "intrinsics.txt").write_text(f"{K[0, 0]} {K[1, 1]} {K[0, 2]} {K[1, 2]}\n")
+    val = open_dataset(f"frames:{root}", "val", (48, 64))
+    items = [val[i] for i in range(len(val))]
+    assert items and all(bool(it["pose_known"]) for it in items)
+    assert all(abs(float(it["pose"][1, 2, 3]) + 0.05) < 0.005 for it in items)   # the next frame: 5 cm nearer
+    assert not any(bool(open_dataset(f"frames:{root}", "train", (48, 64))[i]["pose_known"]) for i in range(3))

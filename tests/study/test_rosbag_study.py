@@ -62,11 +62,39 @@ def test_a_self_supervised_study_on_a_bag_trains_on_its_frames_and_is_measured_o
     assert "winner" in out or "best searched candidate" in out
 
 
-def test_a_study_on_a_bag_without_depth_is_refused_before_it_exists(tmp_path, run_cli, recording):
+def test_a_study_on_a_bag_without_depth_scores_its_paths_by_the_motion_its_lidar_measures(tmp_path, run_cli):
+    """No depth topic: each path's error is photometric, on validation frames posed by scan matching;
+    the winner exports with those figures measured on its graphs and runs on the bag's scans."""
+    import optuna
+    from explorer.study.records import trial_record
+    recording = scene(n=36, h=48, w=64, whole_room=True)   # a LiDAR that sees the side walls near the far one
+    bag = write_bag(tmp_path / "run.bag", recording, "ros1", depth=None)
+    code, out, err = run_cli("search", "--study", "nodepth", "--reports", tmp_path, "--data", f"rosbag-seq:{bag}",
+                             "--supervision", "self", "--no-baselines", *TINY)
+    assert code == 0, err
+    assert "photometric" in err and "photometric" in out
+    study = optuna.load_study(study_name="nodepth", storage=optuna.storages.JournalStorage(
+        optuna.storages.journal.JournalFileBackend(str(tmp_path / "nodepth" / "journal.log"))))
+    scored = [trial_record(t) for t in study.trials if trial_record(t).path_metrics]
+    assert scored and all(np.isfinite(r.losses_of("photometric")).all() for r in scored)
+    assert all(r.error_metric == "photometric" for r in scored)
+    code, _, err = run_cli("export", "--study", "nodepth", "--reports", tmp_path, "--out", tmp_path / "m")
+    assert code == 0, err
+    manifest = json.loads((tmp_path / "m" / "manifest.json").read_text())
+    assert all(set(m) == {"photometric"} and m["photometric"] > 0 for m in manifest["path_metrics"])
+    _robot_inputs(tmp_path, recording)
+    code, out, err = run_cli("run", tmp_path / "m", "--image", tmp_path / "frame.png", "--scan", tmp_path / "ranges.csv",
+                             "--lidar", tmp_path / "lidar.yaml", "--intrinsics", tmp_path / "intrinsics.txt",
+                             "--deadline", "10s", "--out", tmp_path / "depth.npy")
+    assert code == 0, err
+
+
+def test_a_depth_metric_on_a_bag_without_depth_is_refused_before_the_study_exists(tmp_path, run_cli, recording):
     bag = write_bag(tmp_path / "run.bag", recording, "ros1", depth=None)
     code, _, err = run_cli("search", "--study", "nodepth", "--reports", tmp_path, "--data", f"rosbag-seq:{bag}",
-                           "--supervision", "self", *TINY)
-    assert code == 2 and "no depth to measure" in err and len(err.strip().splitlines()) == 1
+                           "--supervision", "self", "--metric", "rmse", *TINY)
+    assert code == 2 and "no depth to measure" in err and "--metric photometric" in err
+    assert len(err.strip().splitlines()) == 1
     assert not (tmp_path / "nodepth").exists()
     code, _, err = run_cli("search", "--study", "nodepth", "--reports", tmp_path, "--data", f"rosbag:{bag}", *TINY)
     assert code == 2 and "no depth topic" in err

@@ -100,7 +100,7 @@ def test_the_default_search_quotes_a_measured_fidelity(default_space):
     from explorer.study.config import SearchConfig
     config = SearchConfig(study="default")
     entry = measured_fidelity(default_space, config.data, config.supernet_recipe())
-    assert entry is not None, "the default recipe changed: measure it (benchmarks/bench_fidelity.py --store)"
+    assert entry is not None, "the default recipe changed: measure it (python -m experiments.fidelity --only fidelity --store)"
     assert len(entry["tau"]) >= 2 and entry["candidates"] >= 24
     assert "Kendall tau" in describe_fidelity(entry)
 

@@ -1,7 +1,7 @@
 """The supernet's stage graphs (``explorer.supernet._graphs``), checked on the CPU by emulation: a
 replay runs the stage again on the same static buffers, so the bookkeeping (static inputs and outputs,
 gradient accumulators, the parameters a step touched, the BatchNorm statistics a capture's warm-up
-moved) is what a CUDA graph would see. The real graphs are measured by benchmarks/bench_gpu.py."""
+moved) is what a CUDA graph would see. The real graphs are measured by python -m benchmarks.gpu --only bench_gpu."""
 
 import random
 
