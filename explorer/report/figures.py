@@ -57,6 +57,12 @@ def png(fig) -> str:
     return base64.b64encode(buf.getvalue()).decode()
 
 
+def error_name(trial: optuna.trial.FrozenTrial) -> str:
+    """What a trial's figures give as each path's error: "RMSE (m)", or "photometric error" for a
+    study on frames without depth."""
+    return "RMSE (m)" if trial_record(trial).error_metric == "rmse" else "photometric error"
+
+
 def step_curves(rows, device: DeviceProfile, budget: str, envelope=None) -> str:
     """Each (label, trial, colour) row's anytime curve on ``device`` under ``budget``, over the
     ``envelope`` of dedicated networks (explorer.study.envelope.Envelope) where given."""
@@ -77,7 +83,7 @@ def step_curves(rows, device: DeviceProfile, budget: str, envelope=None) -> str:
         ax.step(xs, ys, where="post", label=f"{label}: L = {loss:.3f}", color=line_colour, lw=2)
     ax.set_xlim(0, dist.upper)
     ax.set_xlabel(f"budget ({dist.unit}) on {device.name}")
-    ax.set_ylabel("RMSE of the returned depth map (m)")
+    ax.set_ylabel(f"{error_name(rows[0][1]) if rows else 'RMSE (m)'} of the returned depth map")
     ax.set_title(f"anytime curves, {dist.spec} (area / B_max = anytime loss)")
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
@@ -245,10 +251,11 @@ def path_timeline(trial: optuna.trial.FrozenTrial, device: DeviceProfile, budget
         ax.set_xlabel(f"ms until the path's output is ready\n(estimated on {device.name})", fontsize=11)
         rmse = ax.twinx()
         rmse.set_ylim(ax.get_ylim())
-        rmse.set_yticks(range(len(errors)), [f"{e:.3g} m" for e in errors], fontsize=11)
+        unit = " m" if trial_record(trial).error_metric == "rmse" else ""
+        rmse.set_yticks(range(len(errors)), [f"{e:.3g}{unit}" for e in errors], fontsize=11)
         for i, label in enumerate(rmse.get_yticklabels()):
             label.set_color("#b91c1c" if i in worse else "#111111")
-        rmse.set_ylabel(f"RMSE, {figures_kind(trial)}", fontsize=11)
+        rmse.set_ylabel(f"{error_name(trial)}, {figures_kind(trial)}", fontsize=11)
         return png(fig), worse
 
 
@@ -303,7 +310,8 @@ def depth_maps(study: optuna.Study, trial: optuna.trial.FrozenTrial, data: str |
         return None, "the data set has no validation frames"
     with torch.no_grad():
         outs = [net(item["image"][None], item["scan"][None], item["scan_row"]) for item in items]
-    legend = (f"ms: estimated on {device.name}\n" if device is not None else "") + f"m: RMSE, {figures_kind(trial)}"
+    legend = ((f"ms: estimated on {device.name}\n" if device is not None else "")
+              + f"{'m: RMSE' if trial_record(trial).error_metric == 'rmse' else 'photometric error'}, {figures_kind(trial)}")
     return png(_map_grid(items, outs, _path_titles(trial, net.candidate.num_paths, device), legend)), ""
 
 
@@ -318,14 +326,16 @@ def _path_titles(trial: optuna.trial.FrozenTrial, paths: int, device: DeviceProf
         if p < len(costs) and not math.isnan(costs[p]):
             lines.append(f"{costs[p]:.3g} ms")
         if p < len(errors):
-            lines.append(f"{errors[p]:.3g} m")
+            lines.append(f"{errors[p]:.3g}{' m' if trial_record(trial).error_metric == 'rmse' else ''}")
         titles.append("\n".join(lines))
     return titles
 
 
 def _map_grid(items: list, outs: list, titles: list[str], legend: str):
     """A row per frame (image, ground truth, then every path), one depth scale for all with its colour bar."""
-    vmax = max(float(item["depth"].max()) for item in items)
+    # one scale for all: the recorded depth's, or the paths' own where the frames have none
+    recorded = max(float(item["depth"].max()) for item in items)
+    vmax = recorded or max(float(o.max()) for out in outs for o in out)
     cols = len(titles) + 2
     height, width = items[0]["depth"].shape[-2:]
     # the page scales a figure down to the screen: at 1.5 in a column, 16 pt titles stay legible at 390 px
@@ -338,7 +348,7 @@ def _map_grid(items: list, outs: list, titles: list[str], legend: str):
             shown = axes[i, 1].imshow(item["depth"][0].numpy(), cmap="viridis", vmin=0, vmax=vmax)
             for p, o in enumerate(out):
                 axes[i, p + 2].imshow(o[0, 0].numpy(), cmap="viridis", vmin=0, vmax=vmax)
-        for j, title in enumerate(["image", "ground\ntruth"] + titles):
+        for j, title in enumerate(["image", "ground\ntruth" if recorded else "no depth\nrecorded"] + titles):
             axes[0, j].set_title(title, fontsize=16)
         for ax in axes.flat:
             ax.axis("off")

@@ -78,6 +78,9 @@ def test_a_study_on_a_bag_without_depth_scores_its_paths_by_the_motion_its_lidar
     scored = [trial_record(t) for t in study.trials if trial_record(t).path_metrics]
     assert scored and all(np.isfinite(r.losses_of("photometric")).all() for r in scored)
     assert all(r.error_metric == "photometric" for r in scored)
+    code, _, err = run_cli("report", "--study", "nodepth", "--reports", tmp_path)
+    assert code == 0, err
+    assert "(photometric)" in (tmp_path / "nodepth" / "report.html").read_text()
     code, _, err = run_cli("export", "--study", "nodepth", "--reports", tmp_path, "--out", tmp_path / "m")
     assert code == 0, err
     manifest = json.loads((tmp_path / "m" / "manifest.json").read_text())
