@@ -311,7 +311,7 @@ def _retime_outliers(results: dict, folder: Path, out: Path, provider: str, thre
         # those graphs once more each: the round itself is their second timing
         results = _probe.run_probe(folder, out, provider, threads, repeats, False, sysfs_root,
                                    progress=lambda i, n, what: report(_probe.TIMING_AGAIN, i, n), log=log,
-                                   remeasure_passes=0)
+                                   remeasure_passes=0, again=True)
         settled |= {label for label, ms in before.items() if _timing(results, label) > SETTLED * ms}
     return results
 

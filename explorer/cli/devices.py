@@ -11,6 +11,7 @@ from explorer.cli._common import MAX_THREADS, _add_provider, _bounded_int, _chec
 def cmd_devices(args) -> None:
     from explorer.console import console, print_json
     from explorer.cost.devices import available_devices, get_device
+    from explorer.cost.fit_errors import fit_errors, percent
     if args.name:
         p = get_device(args.name)
         if args.json:
@@ -21,8 +22,8 @@ def cmd_devices(args) -> None:
     rows = []
     for name in available_devices():
         p = get_device(name)
-        fits = p.provenance.get("fit") or []
-        err = fits[0].get("median_abs_error") if fits and "median_abs_error" in fits[0] else None
+        fits = fit_errors(p)   # relative errors, read from the checks where a fit stored absolute ones
+        err = fits[0]["median"] if fits else None
         rows.append({"name": name, "calibrated": p.calibrated, "latency": p.latency_basis,
                      "energy": p.energy_basis, "precisions": ",".join(p.precisions), "description": p.description,
                      "fit_median_error": err})
@@ -31,7 +32,7 @@ def cmd_devices(args) -> None:
         return
     console.print(f"  {'name':12s} {'latency':9s} {'energy':9s} {'precision':10s} description")
     for r in rows:
-        err = f"  (fit error {r['fit_median_error']:.1%})" if r["fit_median_error"] is not None else ""
+        err = f"  (fit median error {percent(r['fit_median_error'])})" if r["fit_median_error"] is not None else ""
         console.print(f"  {r['name']:12s} {r['latency']:9s} {r['energy']:9s} {r['precisions']:10s} {r['description']}{err}")
     console.print("  (measured: on the device; published: fitted to published figures; estimate: scaled from "
                   "another profile; none: not modelled)")

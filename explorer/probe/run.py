@@ -52,7 +52,7 @@ def run_probe(bundle_dir: "str | Path", out: "str | Path", provider: str = DEFAU
               root: str = "/", vcgencmd: str = "vcgencmd", idle_s: float = 2.0, window_s: float = 1.0,
               progress: Callable[[int, int, str], None] | None = None,
               log: Callable[[str], None] = lambda s: None, remeasure_passes: int = REMEASURE_PASSES,
-              calm_wait_s: float | None = None) -> dict:
+              calm_wait_s: float | None = None, again: bool = False) -> dict:
     """Times every graph of the bundle (single layers, then each candidate's stages in order, each
     fed by the one before), then, where a power sensor is readable, the energy of whole inferences.
     Returns the results, also written (atomically, after every graph) to ``out``. Graphs timed while a
@@ -70,11 +70,14 @@ def run_probe(bundle_dir: "str | Path", out: "str | Path", provider: str = DEFAU
     repeats = repeats or int(manifest["repeats"])
     cond = {"provider": provider, "threads": threads, "thread_pool": thread_pool(),
             "repeats": repeats, "warmup": WARMUP, "statistic": "median", "stage_graphs": "timed in sequence"}
-    res = _open_results(out, manifest, cond, provider, threads, root, log)
+    # again: the caller's own results timed once more in part (explorer calibrate's slow graphs), where
+    # resuming them and the speed's note were said by the first run
+    res = _open_results(out, manifest, cond, provider, threads, root, (lambda s: None) if again else log)
     timing = _Timing(res, manifest, bundle_dir, out, threads, provider, repeats, progress)
     timing.all_passes(remeasure_passes, calm_wait_s, log)
     write_atomically(out, res)
-    _warn_of_drift(res, log)
+    if not again:
+        _warn_of_drift(res, log)
     if energy:
         _probe_energy(res, manifest, bundle_dir, out, provider, threads, root, vcgencmd, idle_s, window_s,
                       progress, log)

@@ -17,6 +17,7 @@ from explorer import __version__
 from explorer.anytime import parse_budget
 from explorer.cost import reference_table
 from explorer.cost.devices import DeviceProfile, get_device
+from explorer.cost.fit_errors import fit_errors, fit_words
 from explorer.report import figures
 from explorer.space import Candidate
 from explorer.study.config import StudyContext, study_config, study_context
@@ -116,8 +117,11 @@ def build_context(study: optuna.Study, devices: Sequence[str] | None = None,
                  "envelope_networks": int(envelope_networks)}
     ctx.update(_finalists(study, ctx["finalist_steps"]))
     ctx["wall_time"] = wall_time(study)
-    ctx["devices"] = [{"name": d.name, "description": d.description, "calibrated": d.calibrated,
-                       "fit": d.provenance.get("fit", []), "sources": d.provenance.get("sources", []),
+    # how each profile's costs were obtained, in the words of `explorer devices` (measured, published,
+    # estimate), and its fit errors in one unit
+    ctx["devices"] = [{"name": d.name, "description": d.description, "latency": d.latency_basis,
+                       "energy": d.energy_basis, "fit": [fit_words(f) for f in fit_errors(d)],
+                       "sources": d.provenance.get("sources", []),
                        "conditions": d.provenance.get("conditions")} for d in devs]
     ctx["budgets"] = [d.spec for d in dists]
     ctx["multi_objective"] = len(study.directions) > 1

@@ -200,6 +200,11 @@ def test_search_rescore_report_export_cli(run_cli, tmp_path):
     manifest = json.loads((tmp_path / "m" / "manifest.json").read_text())
     assert manifest["source"]["study"] == "cli" and manifest["path_metrics"]
     assert manifest["measured"]["input_size"] == [64, 64] and "trained at" not in out
+    # exported again over a measured curve: the curve, of the graphs replaced, goes and the export says so
+    (tmp_path / "m" / "anytime_curve.json").write_text("{}")
+    code, out, err = run_cli("export", "--study", "cli", "--out", tmp_path / "m", "--input-size", "64x64", *common)
+    assert code == 0 and not (tmp_path / "m" / "anytime_curve.json").exists(), err
+    assert f"removed {tmp_path / 'm' / 'anytime_curve.json'}" in " ".join(out.split())
     code, out, err = run_cli("export", "--study", "cli", "--out", tmp_path / "m32", "--input-size", "32x32", *common)
     assert code == 0, err
     assert "exported at 32x32, but its weights were trained at 64x64" in " ".join(out.split())

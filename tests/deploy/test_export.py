@@ -130,6 +130,8 @@ def test_int8_export_records_every_path_before_and_after(int8_export):
     from explorer.deploy.quantize import _frames, path_metrics
     out, m = int8_export
     assert m["precision"] == "int8" and json.loads((out / "manifest.json").read_text()) == m
+    # the profiles priced the network searched in fp32: its manifest says its costs are fp32 estimates
+    assert m["expected_cost_precision"] == "fp32" and m["expected_cost_note"].startswith("fp32 estimates")
     # --int8-stages all: every stage graph but path 0's (the scan: nothing to quantize)
     assert [s["precision"] for s in m["stages"]] == ["fp32"] + ["int8"] * (len(m["stages"]) - 1)
     assert all(s["file"].endswith(".int8.onnx") and (out / s["file"]).is_file() for s in m["stages"][1:])

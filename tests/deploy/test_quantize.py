@@ -105,6 +105,7 @@ def test_a_search_measures_int8_candidates_after_quantization(tmp_path, run_cli)
     # the stage graphs the search priced int8, and no timing here
     assert [s["name"] for s in manifest["stages"] if s["precision"] == "int8"] == trial.user_attrs["int8_graphs"]
     assert not any("ms_here" in s for s in manifest["stages"])
+    assert manifest["expected_cost_precision"] == "int8" and "expected_cost_note" not in manifest   # priced int8
     # its anytime curve is predicted at int8 where the profile can, else at fp32 and said so
     for dev, priced in ((device, "int8"), ("tx2", "fp32")):
         code, text, err = run_cli("curve", tmp_path / "m8", "--data", TINY_DATA, "--device", dev, "--frames", "2",

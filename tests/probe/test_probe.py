@@ -224,6 +224,11 @@ def test_graphs_timed_while_the_machine_ran_slow_are_timed_again(bundle_dir, tmp
     assert res["speed"]["remeasured"] == 2 * every and len(timed) == total + 2 * every
     assert probe.speed_drift(res) == pytest.approx(2.0)
     assert any("timing those again" in line for line in logged) and any("changed by 200%" in line for line in logged)
+    # explorer calibrate times its slow graphs once more: no second note of the speed, no scratch path resumed
+    more = []
+    probe.run_probe(bundle_dir, tmp_path / "r.json", repeats=2, energy=False, log=more.append, remeasure_passes=0,
+                    again=True)
+    assert not any("changed by" in line or "resuming" in line or str(tmp_path) in line for line in more), more
     assert probe.slow_windows([1.0, 1.0, 1.05, 1.2, 1.0]) == [2, 3]
     # a machine slowed for most of the run: its usual speed is still the undisturbed one
     assert probe.usual_speed([1.0, 1.02, 1.4, 1.4, 1.4, 1.4, 1.41, 1.0, 1.45, 1.4]) == pytest.approx(1.0)

@@ -40,6 +40,9 @@ def test_report_holds_the_tables(study_with_everything):
     assert "http://" not in html and "https://" not in html  # opens offline
     assert '<meta name="viewport" content="width=device-width' in html   # a phone lays it out at its own width
     assert "FAIL" in html and "PRUNED" in html
+    # how each device's costs were obtained in the words of `explorer devices`, fit errors in one unit
+    assert "latency published, energy published" in html and "<td>calibrated</td>" not in html
+    assert "Table 2 Rpi4 row: median error" in html and "71 measured GPU kernels: median error 15.1%, largest 65.6%" in html
     # the finalists: every retrained one beside its estimate, and the winner is a retrained one
     assert 'id="finalists-table"' in html and "(retrained)" in html
     assert "has no search estimate" in html     # the baselines outside the tiny space say why
