@@ -23,6 +23,16 @@ from optuna.storages.journal import JournalFileBackend, JournalFileSymlinkLock
 #: Optuna's journal operation code of a trial state change (``JournalOperation.SET_TRIAL_STATE_VALUES``)
 #: and of a new study: the lines after which the file is synced
 _SYNC_AFTER = {0, 6}
+#: what this process appended to each journal (by its real path): (start, end, whether a trial ran in it)
+_APPENDS: dict[str, list[tuple[int, int, bool]]] = {}
+#: Optuna's TrialState.WAITING: an enqueued trial, which has not run
+_WAITING = 4
+
+
+def _runs_a_trial(log: dict[str, Any]) -> bool:
+    """Whether a journal operation starts, ends or changes a trial's run (not an enqueued trial)."""
+    op = log.get("op_code")
+    return op == 6 or (op == 4 and log.get("state") != _WAITING)
 
 
 class TrialSyncedJournal(JournalFileBackend):
@@ -40,10 +50,13 @@ class TrialSyncedJournal(JournalFileBackend):
         try:
             _cut_torn_tail(self._path)
             with open(self._path, "ab") as f:
+                start = f.seek(0, os.SEEK_END)
                 f.write(text.encode("utf-8"))
                 f.flush()
                 if sync:
                     os.fsync(f.fileno())
+                ran = any(_runs_a_trial(log) for log in logs)
+                _APPENDS.setdefault(os.path.realpath(self._path), []).append((start, f.tell(), ran))
         finally:
             self._file_lock.release()
 
@@ -63,6 +76,30 @@ class TrialSyncedJournal(JournalFileBackend):
         entry = whole_entry(tail) if tail and b"\n" not in tail else None
         if entry is not None:
             yield entry
+
+
+def undo_own_appends(path: str, size: int) -> bool:
+    """Cuts the journal at ``path`` back to ``size`` bytes where everything after is what this process
+    appended since and no trial ran in it (a search refused after its study was created writes nothing).
+    False, and the file left as it is, where another process wrote after ``size`` or a trial ran."""
+    lock = JournalFileSymlinkLock(path)
+    lock.acquire()
+    try:
+        pos = size
+        for start, end, ran in sorted(r for r in _APPENDS.get(os.path.realpath(path), []) if r[0] >= size):
+            if start != pos or ran:
+                return False
+            pos = end
+        with open(path, "rb+") as f:
+            if f.seek(0, os.SEEK_END) != pos:
+                return False
+            if pos > size:
+                f.truncate(size)
+                f.flush()
+                os.fsync(f.fileno())
+        return True
+    finally:
+        lock.release()
 
 
 def whole_entry(line: bytes) -> dict | None:

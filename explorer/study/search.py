@@ -36,6 +36,7 @@ from explorer.study.config import (  # noqa: F401
     baseline_model,
     json_safe,
     objective_names,
+    study_context,
 )
 from explorer.study.finalists import (
     choose_finalists,
@@ -145,6 +146,7 @@ def create_or_resume(context: StudyContext, storage: optuna.storages.BaseStorage
                     f"study '{config.study}' was created with {k}={getattr(prev, k)!r}, not "
                     f"{getattr(config, k)!r}: resume with the same settings, pick another --study, or "
                     "use `explorer rescore` for another device or budget")
+        study_context(study)   # its stored settings, space and device profile read: a damaged one before any trial
         set_objective_names(study, objective_names(config))  # studies made before objectives had names
     return study
 

@@ -245,38 +245,112 @@ def _with_driver(url: str) -> str:
     return url
 
 
+def _local_file(url: str) -> Path | None:
+    """The file of a journal or SQLite study URL; None for a database server."""
+    for prefix in ("journal:", "sqlite:///"):
+        if url.startswith(prefix):
+            return Path(url[len(prefix):])
+    return None
+
+
 @contextlib.contextmanager
 def searching_alone(url: str, study: str):
     """Holds the study's search lock on this machine while a search runs, for a journal or SQLite
     study: a second search started on the same study (another terminal) is refused in one line instead
     of failing the first one's running trial. Workers of one search (``--workers``) run under their
-    parent's lock; PostgreSQL studies are shared by design (several machines) and take none."""
-    if url.startswith("journal:"):
-        file = Path(url[len("journal:"):])
-    elif url.startswith("sqlite:///"):
-        file = Path(url[len("sqlite:///"):])
-    else:
+    parent's lock; PostgreSQL studies are shared by design (several machines) and take none. The lock
+    file is removed when the search ends, however it ends (but kill -9)."""
+    file = _local_file(url)
+    if file is None:
         yield
         return
-    import fcntl
     _make_parent(file, "study")
     lock_path = file.with_name(f".{file.name}.search-lock")
-    with open(lock_path, "a+") as lock:
+    lock = _take_lock(lock_path, study)
+    try:
+        lock.seek(0)
+        lock.truncate()
+        lock.write(f"process {os.getpid()}")
+        lock.flush()
+        yield
+    finally:
+        with contextlib.suppress(OSError):
+            lock_path.unlink()    # still held: a search that opened it meanwhile finds it gone and retries
+        lock.close()              # and with it the lock
+
+
+def _take_lock(lock_path: Path, study: str):
+    """``lock_path`` opened and locked; a held lock is one line. A file unlinked by the search that held
+    it, between our open and our lock, is opened again."""
+    import fcntl
+    while True:
+        try:
+            lock = open(lock_path, "a+")
+        except OSError as exc:
+            raise UserError(f"{lock_path}: cannot write the study's lock file ({exc.strerror}): "
+                            "give a --storage or --reports folder you can write") from None
         try:
             fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
             lock.seek(0)
             holder = lock.read().strip() or "another process"
+            lock.close()
             raise UserError(f"study '{study}' is being searched by {holder} on this machine: wait for it to end, "
                             "or stop it and resume (one search with --workers N samples in parallel)") from None
-        lock.seek(0)
-        lock.truncate()
-        lock.write(f"process {os.getpid()}")
-        lock.flush()
         try:
-            yield
-        finally:
-            fcntl.flock(lock, fcntl.LOCK_UN)
+            same = os.stat(lock_path).st_ino == os.fstat(lock.fileno()).st_ino
+        except FileNotFoundError:
+            same = False
+        if same:
+            return lock
+        lock.close()
+
+
+@contextlib.contextmanager
+def refused_leaves_nothing(url: str, study: str):
+    """A search refused (a UserError) before any of its trials ran leaves its storage as it found it: a
+    journal is cut back to its size before (where only this process wrote to it since), a journal or
+    database it created is removed, with the folders it made for it where they are empty."""
+    file = _local_file(url)
+    if file is None:
+        yield
+        return
+    existed, journal = file.exists(), url.startswith("journal:")
+    size = file.stat().st_size if existed and journal and file.is_file() else 0
+    made = [folder for folder in file.parents if not folder.exists()]   # the folders a search would make
+    try:
+        yield
+    except UserError:
+        if file.is_file():
+            _undo(file, journal, existed, size, url, study)
+        for folder in made:   # innermost first, each only if empty
+            with contextlib.suppress(OSError):
+                folder.rmdir()
+        raise
+
+
+def _undo(file: Path, journal: bool, existed: bool, size: int, url: str, study: str) -> None:
+    from explorer.study._journal import undo_own_appends
+    undone = undo_own_appends(str(file), size) if journal else not existed and not _has_run(url, study)
+    if undone and not existed:
+        for leftover in (file, Path(f"{file}-wal"), Path(f"{file}-shm"), Path(f"{file}.torn")):
+            leftover.unlink(missing_ok=True)
+
+
+def _has_run(url: str, study: str) -> bool:
+    """Whether ``study`` at ``url`` holds a trial that ran (or runs), or cannot be read (then kept)."""
+    try:
+        storage = open_storage(url, study, create=False)
+        names = [s.study_name for s in optuna.get_all_study_summaries(storage)]
+        if names and names != [study]:
+            return True
+        if not names:
+            return False
+        ran = optuna.load_study(study_name=study, storage=storage).get_trials(
+            deepcopy=False, states=[s for s in optuna.trial.TrialState if s != optuna.trial.TrialState.WAITING])
+        return bool(ran)
+    except Exception:   # unreadable: keep it
+        return True
 
 
 def find_storage(study: str, url: str | None, reports: Path = REPORTS_DIR) -> optuna.storages.BaseStorage:

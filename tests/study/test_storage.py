@@ -141,3 +141,61 @@ def test_an_unreachable_storage_is_named_without_its_password(run_cli, tmp_path)
     assert "S3cretPw" not in err + out and "root:***@127.0.0.1:5999" in err
     assert storage.redacted("postgresql://u@h/x") == "postgresql://u@h/x"
     assert storage.redacted("journal:reports/x/journal.log") == "journal:reports/x/journal.log"
+
+
+def _fast_search(tmp_path, *extra):
+    from conftest import TINY_DATA
+    return ["search", "--study", "cc", "--space", "tiny", "--data", TINY_DATA, "--train-size", "32x32",
+            "--input-size", "32x32", "--evaluator", "proxy", "--proxy-steps", "2", "--batch-size", "8",
+            "--no-baselines", "--finalists", "0", "--trials", "1", "--timeout", "0", "--no-report",
+            "--reports", tmp_path, *extra]
+
+
+def _files(root: Path) -> list[str]:
+    return sorted(str(p.relative_to(root)) for p in root.rglob("*"))
+
+
+@pytest.mark.parametrize("kind", ["default", "journal", "sqlite"])
+def test_a_search_refused_after_its_storage_opened_leaves_no_study_and_no_lock(tmp_path, run_cli, kind, monkeypatch):
+    """A refusal that comes once the study would exist (here: no CUDA device) writes no create-study line:
+    the journal, the database, the lock and the folders made for them are gone again."""
+    import torch
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    storage_flag = {"default": [], "journal": ["--storage", f"journal:{tmp_path / 'x' / 'j.log'}"],
+                    "sqlite": ["--storage", _sqlite(tmp_path)]}[kind]
+    code, _, err = run_cli(*_fast_search(tmp_path, "--accelerator", "cuda", *storage_flag))
+    assert code == 2 and "cuda" in err and len(err.strip().splitlines()) == 1, err
+    assert _files(tmp_path) == []
+
+
+def test_a_refused_search_on_an_existing_journal_appends_nothing_and_leaves_no_lock(tmp_path, run_cli, monkeypatch):
+    import torch
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    journal = tmp_path / "other.log"
+    optuna.create_study(study_name="other", storage=optuna.storages.JournalStorage(
+        optuna.storages.journal.JournalFileBackend(str(journal))))
+    before = journal.read_bytes()
+    code, _, err = run_cli(*_fast_search(tmp_path, "--accelerator", "cuda", "--storage", f"journal:{journal}"))
+    assert code == 2, err
+    assert _files(tmp_path) == ["other.log"] and journal.read_bytes() == before
+
+
+def test_a_search_leaves_no_lock_file_behind(tmp_path, run_cli):
+    code, _, err = run_cli(*_fast_search(tmp_path))
+    assert code == 0, err
+    assert not [p for p in tmp_path.rglob("*search-lock*")]
+
+
+def test_a_damaged_stored_device_profile_is_refused_before_any_trial_runs(tmp_path, run_cli):
+    from explorer.cli import build_parser
+    from explorer.cli._common import resolve_data
+    from explorer.cli.study import _search_config
+    from explorer.study.search import create_or_resume
+    args = build_parser().parse_args([str(a) for a in _fast_search(tmp_path)])
+    resolve_data(args)
+    study = create_or_resume(_search_config(args).resolve(), storage.open_storage(None, "cc", reports=tmp_path))
+    study.set_user_attr("device_profile", {**study.user_attrs["device_profile"], "body_exponent": 1e6})
+    code, _, err = run_cli(*_fast_search(tmp_path))
+    assert code == 2 and "body_exponent must lie in" in err and len(err.strip().splitlines()) == 1, err
+    reread = storage.load_study("cc", reports=tmp_path)
+    assert reread.trials == [] and not [p for p in tmp_path.rglob("*search-lock*")]
