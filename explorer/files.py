@@ -198,6 +198,23 @@ def current_umask() -> int:
     return umask
 
 
+def check_writable_folder(folder: str | Path, what: str, fix: str) -> Path:
+    """``folder`` made if absent and a file written there and removed again, before any work: a file in
+    its place, a read-only folder or file system (even for root, whom permission bits do not stop), or
+    /proc is one line naming ``what`` would be written and how to ``fix`` it."""
+    folder = Path(folder)
+    if folder.exists() and not folder.is_dir():
+        raise UserError(f"{folder}: is a file, not a folder for the {what}: {fix}")
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        fd, probe = tempfile.mkstemp(prefix=".explorer-write-check.", dir=folder)
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as exc:
+        raise UserError(f"{folder}: cannot write the {what} there ({exc.strerror}): {fix}") from None
+    return folder
+
+
 def write_atomically(path: str | Path, data: "str | bytes") -> Path:
     """Writes ``data`` to ``path`` through :func:`writing_atomically`."""
     with writing_atomically(path, "wb") as f:

@@ -305,8 +305,10 @@ def cmd_report(args) -> None:
     from explorer.console import console
     from explorer.report import write_report
     from explorer.study.storage import load_study
+    from explorer.files import check_writable_folder
     study = load_study(args.study, args.storage, Path(args.reports))
     out = Path(args.out) if args.out else Path(args.reports) / args.study
+    check_writable_folder(out, "report", "give --out a folder you can write")
     path = write_report(study, out_dir=out, devices=args.device, budgets=args.budget, data=args.data,
                         curve=Path(args.curve) if args.curve else None, storage_url=args.storage)
     console.print(f"report: {path}")

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import io
 import math
-import os
 import sys
 import threading
 import time
@@ -22,7 +21,7 @@ from explorer.deploy.manifest import MANIFEST, read_manifest  # noqa: F401  (MAN
 from explorer.deploy.sessions import check_provider
 from explorer.errors import UserError
 from explorer.files import read_image as read_image_file
-from explorer.files import read_text, scratch_dir, write_atomically
+from explorer.files import check_writable_folder, read_text, scratch_dir, write_atomically
 from explorer.scan import (  # noqa: F401  (read_intrinsics: the runtime's face for robot code)
     LidarModel,
     check_camera_matrix,
@@ -407,12 +406,7 @@ def check_depth_out(out: Path) -> Path:
         raise UserError(f"{out}: write the depth map as .png (16-bit millimetres) or .npy (float32 metres)")
     if out.is_dir():
         raise UserError(f"{out}: is a folder; give a file name ending in .png or .npy")
-    try:
-        out.parent.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise UserError(f"{out.parent}: cannot create the folder ({exc.strerror})") from None
-    if not os.access(out.parent, os.W_OK):
-        raise UserError(f"{out.parent}: not writable; give --out a path you can write")
+    check_writable_folder(out.parent, "depth map", "give --out a path you can write")
     return out
 
 

@@ -37,7 +37,35 @@ def load_manifest(bundle_dir: Path) -> dict:
     if manifest.get("format") != BUNDLE_FORMAT or manifest.get("version") != VERSION:
         raise ProbeError(f"{path}: bundle format {manifest.get('format')} v{manifest.get('version')}, this probe "
                          f"reads {BUNDLE_FORMAT} v{VERSION}: use the probe.pyz that came in the bundle")
+    for name in _files_named(manifest):
+        _check_inside(Path(bundle_dir), name, path)
     return manifest
+
+
+def _files_named(entry) -> list:
+    """Every ``file`` value anywhere in a bundle manifest (layers, stages, checks, candidates' graphs)."""
+    found, todo = [], [entry]
+    while todo:
+        item = todo.pop()
+        if isinstance(item, dict):
+            found += [v for k, v in item.items() if k == "file"]
+            todo += [v for k, v in item.items() if k != "file"]
+        elif isinstance(item, list):
+            todo += item
+    return found
+
+
+def _check_inside(bundle_dir: Path, name, manifest_path: Path) -> None:
+    """A graph the manifest names is a relative path inside the bundle: one that climbs out (``../``),
+    is absolute or is no text would make the probe open a file outside it."""
+    root = bundle_dir.resolve()
+    inside = isinstance(name, str) and name and not Path(name).is_absolute()
+    if inside:
+        target = (root / name).resolve()
+        inside = target == root or root in target.parents
+    if not inside:
+        raise ProbeError(f"{manifest_path}: graph file {name!r} lies outside the bundle (edited or hostile "
+                         "manifest): unpack the bundle that explorer calibrate wrote again")
 
 
 def read_results(path: Path) -> dict:

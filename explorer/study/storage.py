@@ -108,7 +108,6 @@ def open_storage(url: str | None, study: str, workers: int = 1, reports: Path = 
         raise UserError(f"SQLite ({url}) cannot take several workers safely: use --workers 1 with it, a "
                         "--storage journal:PATH on this machine, or --storage postgresql://... for several machines")
     if url.startswith("journal:"):
-        from explorer.study._journal import TrialSyncedJournal
         path = Path(url[len("journal:"):])
         if not create and not path.exists():
             raise UserError(f"no study journal at {path} (run `explorer search --study {study}` first, "
@@ -264,7 +263,8 @@ def searching_alone(url: str, study: str):
     if file is None:
         yield
         return
-    _make_parent(file, "study")
+    from explorer.files import check_writable_folder
+    check_writable_folder(file.parent, "study's journal and lock", "give --reports or --storage a folder you can write")
     lock_path = file.with_name(f".{file.name}.search-lock")
     lock = _take_lock(lock_path, study)
     try:
