@@ -1,10 +1,11 @@
 """The package's shape: layers (import-linter contracts in pyproject.toml), no import cycles, no
-private names imported across packages, a probe that needs nothing but numpy and onnxruntime, and
-modules and functions small enough to read."""
+private names imported across packages, a probe that needs nothing but numpy and onnxruntime,
+modules and functions small enough to read, and code that ruff's checks pass."""
 
 from __future__ import annotations
 
 import ast
+import shutil
 import subprocess
 import sys
 import sysconfig
@@ -16,6 +17,7 @@ ROOT = Path(__file__).resolve().parents[1]
 PACKAGE = ROOT / "explorer"
 MAX_MODULE_LINES = 600
 MAX_FUNCTION_LINES = 80
+LINTED = ("explorer", "benchmarks", "experiments", "tests")   # what ruff checks ([tool.ruff] in pyproject.toml)
 
 
 def _modules() -> dict[str, Path]:
@@ -46,6 +48,29 @@ def _imports(name: str, path: Path) -> list[tuple[str, list[str], int]]:
 def test_layer_contracts_hold():
     pytest.importorskip("importlinter")
     run = subprocess.run([str(Path(sys.executable).with_name("lint-imports")), "--no-cache"], cwd=ROOT,
+                         capture_output=True, text=True)
+    assert run.returncode == 0, run.stdout[-4000:] + run.stderr[-2000:]
+
+
+def _ruff() -> str | None:
+    """This environment's ruff (the wheel puts it beside the interpreter), else one on PATH."""
+    beside = Path(sys.executable).with_name("ruff")
+    if beside.exists():
+        return str(beside)
+    try:
+        from ruff.__main__ import find_ruff_bin
+        return str(find_ruff_bin())
+    except (ImportError, FileNotFoundError):
+        return shutil.which("ruff")
+
+
+def test_ruff_finds_nothing():
+    """ruff's checks ([tool.ruff.lint] in pyproject.toml: unused imports and variables, undefined names,
+    statements, syntax) pass on the package, the benchmarks, the experiments and the tests."""
+    ruff = _ruff()
+    if ruff is None:
+        pytest.skip("ruff is not installed (the test extra has it: pip install -e '.[test]')")
+    run = subprocess.run([ruff, "check", "--no-cache", "--output-format", "concise", *LINTED], cwd=ROOT,
                          capture_output=True, text=True)
     assert run.returncode == 0, run.stdout[-4000:] + run.stderr[-2000:]
 

@@ -38,45 +38,45 @@ def sweep_layers(seed: int, counts: dict[str, int]) -> list[SweepLayer]:
     def spatial(c: int, side: int) -> tuple[int, int, int]:
         return (c, side, side * rng.choice((1, 1, 1, 4 // 3 + 0, 2)))
 
-    while len([l for l in out if l.kind == "pointwise"]) < counts["pointwise"]:
+    while len([layer for layer in out if layer.kind == "pointwise"]) < counts["pointwise"]:
         cin, cout, side = rng.choice(CHANNELS), rng.choice(CHANNELS), rng.choice(SIDES)
         if cin * cout * side * side <= MAX_MACS:
             out.append(SweepLayer("pointwise", spatial(cin, side), cout))
-    while len([l for l in out if l.kind == "pointwise_1ch"]) < counts["pointwise_1ch"]:
+    while len([layer for layer in out if layer.kind == "pointwise_1ch"]) < counts["pointwise_1ch"]:
         # exit heads' last layer: few to many channels, up to full resolution
         cin, side = rng.choice(CHANNELS[:10]), rng.choice(SIDES)
         out.append(SweepLayer("pointwise_1ch", spatial(cin, side), 1))
-    while len([l for l in out if l.kind == "depthwise"]) < counts["depthwise"]:
+    while len([layer for layer in out if layer.kind == "depthwise"]) < counts["depthwise"]:
         c, side = rng.choice(CHANNELS), rng.choice(SIDES[:-1])
         k, s = rng.choice(((3, 1), (3, 2), (5, 1)))
         out.append(SweepLayer("depthwise", spatial(c, side), c, k, s))
-    while len([l for l in out if l.kind == "conv"]) < counts["conv"]:
+    while len([layer for layer in out if layer.kind == "conv"]) < counts["conv"]:
         out.append(SweepLayer("conv", (3, rng.choice((64, 128, 224)), rng.choice((64, 128, 224))),
                               rng.choice((8, 16, 24, 32)), 3, 2))
-    while len([l for l in out if l.kind == "conv1d"]) < counts["conv1d"]:
+    while len([layer for layer in out if layer.kind == "conv1d"]) < counts["conv1d"]:
         cin, cout = rng.choice((2,) + CHANNELS), rng.choice(CHANNELS)
         w = rng.choice((14, 28, 56, 112, 224, 448))
         k, s = rng.choice(((3, 2), (3, 1), (1, 1)))
         out.append(SweepLayer("conv1d", (cin, w), cout, k, s))
-    while len([l for l in out if l.kind == "resize"]) < counts["resize"]:
+    while len([layer for layer in out if layer.kind == "resize"]) < counts["resize"]:
         linear = rng.random() < 0.4  # exit heads: 1 channel, bilinear, up to x16
         c = 1 if linear else rng.choice(CHANNELS)
         side = rng.choice(SIDES[:-1])
         f = rng.choice((2, 4, 8, 16)) if linear else 2
         if side * f <= 224 and c * side * side <= 2_000_000:
             out.append(SweepLayer("resize", spatial(c, side), c, 0, f, "linear" if linear else "nearest"))
-    while len([l for l in out if l.kind == "bilinear"]) < counts["bilinear"]:
+    while len([layer for layer in out if layer.kind == "bilinear"]) < counts["bilinear"]:
         # exit heads' up-sampling to full resolution: one channel, from 1/2 to 1/32 of it, as two products
         side, f = rng.choice(SIDES[:-1]), rng.choice((2, 4, 8, 16, 32))
         shape = spatial(1, side)
         if side * f <= 224 and shape[2] * f <= 640:
             out.append(SweepLayer("bilinear", shape, 1, 0, f))
-    while len([l for l in out if l.kind == "add"]) < counts["add"]:
+    while len([layer for layer in out if layer.kind == "add"]) < counts["add"]:
         c, side = rng.choice(CHANNELS[:10]), rng.choice(SIDES[:-1])
         out.append(SweepLayer("add", spatial(c, side), c))
-    while len([l for l in out if l.kind == "concat"]) < counts["concat"]:
+    while len([layer for layer in out if layer.kind == "concat"]) < counts["concat"]:
         out.append(SweepLayer("concat", (rng.choice(CHANNELS), rng.choice((14, 28, 56))), 0, extra=rng.choice((16, 32, 64, 128))))
-    while len([l for l in out if l.kind == "slice"]) < counts["slice"]:
+    while len([layer for layer in out if layer.kind == "slice"]) < counts["slice"]:
         c, side = rng.choice(CHANNELS), rng.choice((14, 28))
         out.append(SweepLayer("slice", (c, side, side), c, extra=rng.choice((1, 3, 5))))
     return out

@@ -104,8 +104,8 @@ def cmd_anytime(args) -> None:
     pairs = []
     for text in args.path:
         try:
-            c, l = text.split(":")
-            pairs.append((float(c), float(l)))
+            cost, loss = text.split(":")
+            pairs.append((float(cost), float(loss)))
         except ValueError:
             raise UserError(f"--path {text!r} is not COST:LOSS (e.g. 6.4:0.465)") from None
     pairs.sort()
@@ -119,8 +119,8 @@ def cmd_anytime(args) -> None:
                     "weights": list(weights)})
         return
     console.print(f"anytime loss for {dist.spec}: [bold]{value:.4f}[/bold]")
-    for c, l, w in zip(costs, losses, weights):
-        console.print(f"  path at {c:g} {dist.unit}: loss {l:g}, P(output) = {w:.4f}")
+    for cost, loss, w in zip(costs, losses, weights):
+        console.print(f"  path at {cost:g} {dist.unit}: loss {loss:g}, P(output) = {w:.4f}")
 
 
 def cmd_enumerate(args) -> None:

@@ -174,7 +174,7 @@ class SelfSupervisedLoss(nn.Module):
         if len(w) != len(losses):
             raise UserError(f"exit_weights has {len(w)} values but the network has {len(losses)} exits")
         total = sum(wi * li for wi, li in zip(w, losses)) / sum(w)
-        return total, [float(l.detach()) for l in losses]
+        return total, [float(li.detach()) for li in losses]
 
 
 def hint_loss(depth: torch.Tensor, hint: torch.Tensor, depth_error: torch.Tensor,

@@ -115,7 +115,7 @@ def multi_exit_loss(outputs: list[torch.Tensor], target: torch.Tensor,
     if len(w) != len(losses):
         raise UserError(f"exit_weights has {len(w)} values but the network has {len(losses)} exits")
     total = sum(wi * li for wi, li in zip(w, losses)) / sum(w)
-    return total, [float(l.detach()) for l in losses]
+    return total, [float(li.detach()) for li in losses]
 
 
 def _training_loss(cfg: TrainConfig, selfsup, outs: list[torch.Tensor], batch: dict, accelerator: torch.device
@@ -392,7 +392,7 @@ def train(net: AnytimeDepthNet, train_set, val_set, cfg: TrainConfig = PROXY,
             scaler.update()
             step += 1
             seen += frames
-            record = {"step": step, "loss": float(loss.detach()), **{f"exit_{i + 1}": l for i, l in enumerate(per_exit)}}
+            record = {"step": step, "loss": float(loss.detach()), **{f"exit_{i + 1}": li for i, li in enumerate(per_exit)}}
             history.append(record)
             if progress:
                 progress(step, cfg.steps, record)

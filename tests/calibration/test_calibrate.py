@@ -144,7 +144,7 @@ def test_one_channel_pointwise_layers_have_their_own_kind(tmp_path):
     layers += [SweepLayer("conv1d", (16, 224), 16, 3, 1), SweepLayer("resize", (16, 28, 28), 16, 0, 2),
                SweepLayer("add", (16, 28, 28), 16), SweepLayer("concat", (16, 28), 0, extra=16),
                SweepLayer("slice", (16, 28, 28), 16, extra=3)]
-    measured = [(wl, truth.layer_ms(wl) + truth.stage_overhead_ms) for wl in (layer_graph(l)[2] for l in layers)]
+    measured = [(wl, truth.layer_ms(wl) + truth.stage_overhead_ms) for wl in (layer_graph(layer)[2] for layer in layers)]
     fitted = fit_host(measured)
     for wl, ms in measured:
         if wl.kind.startswith("pointwise"):
@@ -184,7 +184,7 @@ def test_the_exits_bilinear_products_have_their_own_kind(tmp_path):
     layers += [SweepLayer("pointwise_1ch", (16, 56, 56), 1), SweepLayer("conv1d", (16, 224), 16, 3, 1),
                SweepLayer("resize", (16, 28, 28), 16, 0, 2), SweepLayer("add", (16, 28, 28), 16),
                SweepLayer("concat", (16, 28), 0, extra=16), SweepLayer("slice", (16, 28, 28), 16, extra=3)]
-    measured = [(wl, truth.layer_ms(wl) + truth.stage_overhead_ms) for wl in (layer_graph(l)[2] for l in layers)]
+    measured = [(wl, truth.layer_ms(wl) + truth.stage_overhead_ms) for wl in (layer_graph(layer)[2] for layer in layers)]
     fitted = fit_host(measured)
     for wl, ms in measured:
         if wl.kind == "bilinear":
@@ -218,7 +218,7 @@ def test_host_fit_finds_the_body_exponent_from_stage_graphs_at_several_sizes():
     layers += [SweepLayer("pointwise_1ch", (16, 56, 56), 1), SweepLayer("conv1d", (16, 224), 16, 3, 1),
                SweepLayer("resize", (16, 28, 28), 16, 0, 2), SweepLayer("add", (16, 28, 28), 16),
                SweepLayer("concat", (16, 28), 0, extra=16), SweepLayer("slice", (16, 28, 28), 16, extra=3)]
-    measured = [(wl, truth.layer_ms(wl) + truth.stage_overhead_ms) for wl in (layer_graph(l)[2] for l in layers)]
+    measured = [(wl, truth.layer_ms(wl) + truth.stage_overhead_ms) for wl in (layer_graph(layer)[2] for layer in layers)]
     stage_obs = []
     for i, cand in enumerate(SearchSpace.from_yaml("anytime_depth").random_candidates(6, 3)):
         for size in ((224, 224), (224, 320), (192, 640)):

@@ -41,14 +41,14 @@ def test_measured_and_estimated_are_two_tables_that_fit_80_columns(monkeypatch, 
     print_rescored(None, _frame(), args)
     out = capsys.readouterr().out
     lines = out.splitlines()
-    measured = next(i for i, l in enumerate(lines) if "measured (2): retrained alone, measured at 224x224" in l)
-    estimates = next(i for i, l in enumerate(lines) if "estimates of the search (3): supernet at 64x64" in l)
-    row = lambda key: next(i for i, l in enumerate(lines) if key in l)  # noqa: E731
+    measured = next(i for i, line in enumerate(lines) if "measured (2): retrained alone, measured at 224x224" in line)
+    estimates = next(i for i, line in enumerate(lines) if "estimates of the search (3): supernet at 64x64" in line)
+    row = lambda key: next(i for i, line in enumerate(lines) if key in line)  # noqa: E731
     assert measured < row("3f9a1c02be") < row("paper ") < estimates < row("c0ffee1234") < row("paper-nee")
     assert "Pick from the measured table" in lines[-1] or "Pick from the measured table" in out
-    table = [l for l in lines if l[:1] in "┃│┏┡└━┗┌"]
-    assert table and max(len(l) for l in table) <= 80
+    table = [line for line in lines if line[:1] in "┃│┏┡└━┗┌"]
+    assert table and max(len(line) for line in table) <= 80
     # every cell whole: keys, names and headers are on one line each
     for token in ("3f9a1c02be", "c0ffee1234", "paper-nee", "L_T@100ms", "L_E@0.5J", "first ms", "1489000"):
-        assert any(token in l for l in table), token
+        assert any(token in line for line in table), token
     assert not re.search(r"L_T@1\s*│", out)

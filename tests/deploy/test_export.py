@@ -1,5 +1,6 @@
 import json
 import threading
+from collections.abc import Callable
 
 import numpy as np
 import pytest

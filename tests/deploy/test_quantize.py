@@ -404,7 +404,6 @@ def test_a_quantized_decoder_up_samples_and_adds_its_skip_channels_last(tmp_path
     and leave it, and computes exactly what onnxruntime's channels-first Resize and addition computed."""
     import numpy as np
     import onnx
-    from explorer.deploy import quantize
     from explorer import probe as probe_script
     from explorer.calibration.measure import session
     dst, feed, ref = _quantized_decoder(tmp_path, skip_channels)
@@ -412,7 +411,6 @@ def test_a_quantized_decoder_up_samples_and_adds_its_skip_channels_last(tmp_path
     session(dst.read_bytes(), save_optimized=tmp_path / "opt.onnx")
     graph = onnx.load(str(tmp_path / "opt.onnx")).graph
     made_by = {o: n for n in graph.node for o in n.output}
-    inputs = {i.name for i in graph.input}
     perm = lambda n: list(onnx.helper.get_attribute_value(n.attribute[0]))  # noqa: E731
     transposes = sorted((perm(n), made_by[n.input[0]].op_type) for n in graph.node if n.op_type == "Transpose")
     # x and the skip channels-last once quantized, the sum channels-first to leave: nothing in between

@@ -126,11 +126,11 @@ def test_int8_stages_hand_over_uint8_where_both_sides_quantize_alike():
 def test_a_past_deadline_answers_with_the_scan_and_one_watchdog_serves_every_run(paper_export):
     runner = AnytimeRunner(paper_export)
     img, scan = _inputs()
-    full = min(_timed(lambda: runner.run(img, scan)) for _ in range(3))
+    full = min(_timed(lambda: runner.run(img, scan)) for _ in range(3))  # noqa: F821 (runner is deleted only below)
     # the deadline has passed when the first stage starts: no stage runs to its end
     res = runner.run(img, scan, deadline_ms=0.0)
     assert res.path == 0 and res.halted
-    cut = min(_timed(lambda: runner.run(img, scan, deadline_ms=0.0)) for _ in range(3))
+    cut = min(_timed(lambda: runner.run(img, scan, deadline_ms=0.0)) for _ in range(3))  # noqa: F821 (as above)
     assert cut < full
     np.testing.assert_allclose(res.depth, runner.depths(img, scan)[0])
     watchdog = runner._watchdog._thread

@@ -153,7 +153,7 @@ def test_report_in_headless_chromium(study_with_everything, tmp_path):
             "--window-size=1280,3000", f"--screenshot={shot}", path.resolve().as_uri()]
     proc = subprocess.run(args, capture_output=True, text=True, timeout=120)
     assert shot.is_file() and shot.stat().st_size > 50_000, proc.stderr[-2000:]
-    console = [l for l in proc.stderr.splitlines() if "CONSOLE" in l or "Uncaught" in l]
+    console = [line for line in proc.stderr.splitlines() if "CONSOLE" in line or "Uncaught" in line]
     assert not console, console
 
 

@@ -62,7 +62,7 @@ def test_finalists_spread_over_image_encoders():
     add(0.31, 7, 1.0, "c")
     add(0.32, 6, 1.0, "d")
     add(0.33, 6, 0.5, "e")
-    keys = lambda n: [t.user_attrs["candidate_key"] for t in choose_finalists(study, n)]
+    keys = lambda n: [t.user_attrs["candidate_key"] for t in choose_finalists(study, n)]  # noqa: E731
     assert keys(1) == ["a"]
     assert keys(3) == ["a", "c", "d"]               # one per encoder before a second of any
     assert keys(5) == ["a", "c", "d", "e", "b"]     # then the next best, whatever the encoder
