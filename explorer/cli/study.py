@@ -271,14 +271,15 @@ def cmd_envelope(args) -> None:
     from explorer.study.config import study_config
     from explorer.report import write_report
     from explorer.study.envelope import envelope, train_envelope
-    from explorer.study.storage import load_study
+    from explorer.study.storage import load_study, local_url, searching_alone
     if args.networks < 1:
         raise UserError("--networks must be at least 1")
     study = load_study(args.study, args.storage, Path(args.reports))
     config = study_config(study)
     deadline = time.time() + args.time_limit if args.time_limit else None
     train_on_free_cores()
-    with progress(transient=True) as bar:
+    url = args.storage or local_url(args.study, Path(args.reports))
+    with searching_alone(url, args.study), progress(transient=True) as bar:   # one search or envelope at a time
         task = bar.add_task("dedicated networks", total=None, status="")
         train_envelope(study, args.networks, Path(args.reports), deadline,
                        progress=lambda i, n, what: bar.update(task, completed=i, total=n, status=what))

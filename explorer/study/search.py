@@ -394,7 +394,7 @@ def _search(context: StudyContext, url: str, storage_url: str | None, workers: i
     # No worker of this run has started yet; on local storage nobody else can be running: its RUNNING
     # trials were interrupted (kill -9), and are tried again. RDB storage does this by heartbeat.
     failed, retried, not_retried = 0, {}, []
-    if storage_url is None or storage_url.startswith("sqlite"):
+    if storage_url is None or storage_url.startswith(("sqlite", "journal:")):
         failed, retried, not_retried = resume_interrupted(study, config.max_retries)
     if config.keep_weights:
         record_study(study, artifacts_dir=str((study_dir(config.study, reports) / "artifacts").resolve()))

@@ -263,6 +263,7 @@ def searching_alone(url: str, study: str):
     if file is None:
         yield
         return
+    file = file.resolve()   # one lock per study file, whatever path (symlink, relative) names it
     from explorer.files import check_writable_folder
     check_writable_folder(file.parent, "study's journal and lock", "give --reports or --storage a folder you can write")
     lock_path = file.with_name(f".{file.name}.search-lock")

@@ -199,3 +199,41 @@ def test_a_damaged_stored_device_profile_is_refused_before_any_trial_runs(tmp_pa
     assert code == 2 and "body_exponent must lie in" in err and len(err.strip().splitlines()) == 1, err
     reread = storage.load_study("cc", reports=tmp_path)
     assert reread.trials == [] and not [p for p in tmp_path.rglob("*search-lock*")]
+
+
+def test_the_search_lock_is_taken_on_the_real_file_whatever_path_names_it(tmp_path, run_cli):
+    journal = tmp_path / "real" / "journal.log"
+    journal.parent.mkdir()
+    optuna.create_study(study_name="cc", storage=optuna.storages.JournalStorage(
+        optuna.storages.journal.JournalFileBackend(str(journal))))
+    (tmp_path / "link.log").symlink_to(journal)
+    before = journal.read_bytes()
+    with storage.searching_alone(f"journal:{journal}", "cc"):
+        code, _, err = run_cli(*_fast_search(tmp_path, "--storage", f"journal:{tmp_path / 'link.log'}"))
+    assert code == 2 and "is being searched by process" in err, err
+    assert journal.read_bytes() == before
+
+
+def test_explorer_envelope_takes_the_study_lock_as_search_does(tmp_path, run_cli):
+    journal = tmp_path / "j.log"
+    optuna.create_study(study_name="cc", storage=optuna.storages.JournalStorage(
+        optuna.storages.journal.JournalFileBackend(str(journal))))
+    before = journal.read_bytes()
+    with storage.searching_alone(f"journal:{journal}", "cc"):   # a search, or another envelope, running
+        code, _, err = run_cli("envelope", "--study", "cc", "--storage", f"journal:{journal}", "--reports", tmp_path)
+    assert code == 2 and "is being searched by process" in err and len(err.strip().splitlines()) == 1, err
+    assert journal.read_bytes() == before
+
+
+def test_a_trial_killed_on_an_explicit_journal_is_retried_on_resume(tmp_path, run_cli):
+    journal = tmp_path / "explicit" / "j.log"
+    code, _, err = run_cli(*_fast_search(tmp_path, "--storage", f"journal:{journal}"))
+    assert code == 0, err
+    study = storage.load_study("cc", f"journal:{journal}")
+    killed = study.ask()                      # a trial whose process was killed -9: RUNNING for ever
+    killed.set_user_attr("candidate_key", "x")
+    code, _, err = run_cli(*_fast_search(tmp_path, "--storage", f"journal:{journal}", "--trials", "2"))
+    assert code == 0, err
+    states = {t.number: t.state for t in storage.load_study("cc", f"journal:{journal}").trials}
+    assert states[killed.number] == optuna.trial.TrialState.FAIL
+    assert optuna.trial.TrialState.RUNNING not in states.values()
