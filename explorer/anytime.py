@@ -284,14 +284,23 @@ def exit_loss_weights(costs: Sequence[float], budget: str | BudgetDistribution, 
     return tuple(float(w) for w in (1.0 - floor) * share + floor / k)
 
 
+def returned_losses(losses: Sequence[float]) -> np.ndarray:
+    """The loss of what a halt after each path returns: the most accurate path ready by then (the
+    runtime never hands back a path less accurate than one it already has), so the running minimum."""
+    return np.minimum.accumulate(np.asarray(losses, dtype=float))
+
+
 def anytime_loss(costs: Sequence[float], losses: Sequence[float], budget: str | BudgetDistribution) -> float:
     """Expected loss when inference halts at a budget drawn from ``budget``.
 
-    ``costs`` and ``losses`` list every path, path 0 included (cost 0). Halts before the first
-    path (possible when path 0 is left out, or a trace has budgets below c_0) return the first
-    path's loss: nothing better exists.
+    ``costs`` and ``losses`` list every path, path 0 included (cost 0). A halt returns the most
+    accurate path ready by then (:func:`returned_losses`): the last one ready wherever each path
+    improves on those before it, as the paper's Eq. 1 has it. Halts before the first path (possible
+    when path 0 is left out, or a trace has budgets below c_0) return the first path's loss:
+    nothing better exists.
     """
     c, l = _check(costs, losses)
+    l = returned_losses(l)
     dist = parse_budget(budget)
     edges = np.append(dist.cdf(c), 1.0)
     edges[0] = 0.0
@@ -303,6 +312,7 @@ def anytime_curve(costs: Sequence[float], losses: Sequence[float],
     """The step curve budget -> loss, as (budgets, losses) ready for ``plt.step(where='post')``;
     the area under it up to B_max, divided by B_max, is the uniform anytime loss."""
     c, l = _check(costs, losses)
+    l = returned_losses(l)
     upper = float(upper if upper is not None else c[-1] * 1.1 or 1.0)
     keep = c < upper
     xs = np.append(c[keep], upper)

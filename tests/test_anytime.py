@@ -4,6 +4,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from explorer.anytime import (TruncatedNormal, Uniform, anytime_curve, anytime_loss, check_losses, exit_loss_weights,
+                              returned_losses,
                               parse_budget)
 from explorer.errors import UserError
 
@@ -108,3 +109,15 @@ def test_a_trace_of_zeros_or_infinities_is_refused(tmp_path):
 def test_losses_a_user_gives_must_be_finite_and_non_negative(losses):
     with pytest.raises(UserError, match="losses"):
         check_losses(losses)
+
+
+def test_a_halt_returns_the_most_accurate_path_ready_never_a_worse_later_one():
+    # path 2 is less accurate than path 1: a halt after it still returns path 1's map
+    costs, losses = [0.0, 10.0, 20.0, 30.0], [0.9, 0.5, 0.6, 0.4]
+    assert list(returned_losses(losses)) == [0.9, 0.5, 0.5, 0.4]
+    uniform = anytime_loss(costs, losses, "time:uniform:40ms")
+    assert uniform == pytest.approx((10 * 0.9 + 10 * 0.5 + 10 * 0.5 + 10 * 0.4) / 40)
+    # where every path improves, nothing changes (the paper's Eq. 1)
+    assert anytime_loss(costs, [0.9, 0.6, 0.5, 0.4], "time:uniform:40ms") == pytest.approx(0.6)
+    xs, ys = anytime_curve(costs, losses, 40.0)
+    assert list(ys) == [0.9, 0.5, 0.5, 0.4, 0.4]

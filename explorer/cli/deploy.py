@@ -122,6 +122,10 @@ def cmd_run(args) -> None:
         return
     console.print(f"returned path {res['path']} (ready at {res['ready_ms']:.2f} ms, deadline {args.deadline:g} ms); "
                   f"{res['completed_paths']} path(s) completed" + (f"; wrote {args.out}" if args.out else ""))
+    later = [p for p, _ in res["timeline"] if p > res["path"]]
+    if later:
+        console.print(f"path(s) {', '.join(map(str, later))} ready too but less accurate than path {res['path']} as "
+                      "the export measured them: not returned", markup=False, highlight=False)
     if "scan_rows" in res:
         low, high = res["scan_rows"]
         console.print(f"scan: {res['scan_columns']} column(s) with a return, on input rows {low}-{high} (median "

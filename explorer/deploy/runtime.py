@@ -133,6 +133,7 @@ class AnytimeRunner:
         self.scan_row = int(self.manifest["scan_row"])
         # graphs exported for a slanted scan line take each column's row (``scan_rows``) beside the scan
         self.rows_input = bool(self.manifest.get("scan_rows_input", False))
+        self.path_errors = measured_errors(self.manifest)
         self.last_scan: ProjectedScan | None = None   # the last scan_from_ranges's projection
         self._row_warned = False
         self.sessions: list[tuple[dict, object, list[str], list[str]]] = []
@@ -262,6 +263,13 @@ class AnytimeRunner:
             print(warning, file=sys.stderr, flush=True)
         return projected.scan
 
+    def improves(self, path: int, than: int) -> bool:
+        """Whether ``path``'s measured error is lower than path ``than``'s (a later path is taken where
+        the export measured nothing)."""
+        if self.path_errors is None:
+            return True
+        return self.path_errors[path] < self.path_errors[than]
+
     def halt(self) -> None:
         """Stops the current run as soon as possible; it returns the best map completed so far."""
         self._halt.set()
@@ -271,7 +279,9 @@ class AnytimeRunner:
 
     def run(self, image: np.ndarray, scan: np.ndarray, deadline_ms: float | None = None,
             on_path: "Callable[[int, float], None] | None" = None, rows=None) -> AnytimeResult:
-        """Runs the stages in order; returns the last path ready within ``deadline_ms`` (None: all).
+        """Runs the stages in order; returns the most accurate path ready within ``deadline_ms`` (None:
+        all), by the errors the export measured (:meth:`improves`): never one less accurate than a
+        path it already has.
         ``on_path(path, ready_ms)`` is called as each path becomes ready. ``rows``: each column's scan
         row, for graphs that take them (``row_feed``; :meth:`scan_from_ranges` gives them)."""
         import onnxruntime as ort
@@ -326,7 +336,8 @@ class AnytimeRunner:
                         ready = 0.0  # the scan itself: available at once (its cost is ~0)
                     within = deadline_ms is None or ready <= deadline_ms or path == 0
                     if within:
-                        best = (path, env[f"depth_{path}"], ready)
+                        if best is None or self.improves(path, best[0]):
+                            best = (path, env[f"depth_{path}"], ready)
                         completed.append((path, ready))
                         if on_path is not None:
                             on_path(path, ready)
@@ -513,6 +524,17 @@ def off_row_warning(row: int, scan_row: int, height: int) -> str | None:
     return (f"warning: this LiDAR's scan lands on row {row} of the {height}-row input (median of its returns), "
             f"but the network was trained with its scan on row {scan_row} (the graphs read the scan's features "
             "there): its depths will be off; retrain with this LiDAR's mount (--lidar)")
+
+
+def measured_errors(manifest: dict) -> list[float] | None:
+    """Each path's error as the export measured it on the exported graphs (RMSE, or the photometric
+    error where the frames had no depth); None where it measured none."""
+    metrics = manifest.get("path_metrics") or []
+    for key in ("rmse", "photometric"):
+        values = [m.get(key) for m in metrics]
+        if values and all(isinstance(v, (int, float)) and math.isfinite(v) for v in values):
+            return [float(v) for v in values]
+    return None
 
 
 def measured_anytime(runner: AnytimeRunner, frames: list[dict], deadlines_ms: np.ndarray,

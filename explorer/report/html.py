@@ -299,8 +299,9 @@ def _timeline_words(best, device: DeviceProfile, budget: str, worse: dict, kind:
     mark = (f"B_max = {dist.upper:g} ms of {dist.spec}: a path ready after it is never returned under that budget"
             if dist.name == "uniform" else f"where {dist.spec} has almost all its mass ({dist.upper:g} ms)")
     badly = "; ".join(f"path {i} is worse than path {j}" for i, j in worse.items())
-    order = (f"In red, hatched: {badly}; a budget that reaches such a path returns a worse map than one that "
-             "stopped before it." if worse else "Every path is better than the ones before it.")
+    order = (f"In red, hatched: {badly}; the runtime never returns such a path (it keeps the better map it "
+             "already has), so its time is spent for nothing." if worse else
+             "Every path is better than the ones before it.")
     alt = (f"Trial {best.number}'s paths on a time axis: a bar per path up to when its output is ready on "
            f"{device.name} (estimated), its RMSE ({kind}) on the right, the budget's end at {dist.upper:g} ms "
            "marked" + (f"; {badly}" if worse else ""))

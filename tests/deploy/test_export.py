@@ -66,6 +66,28 @@ def test_deadlines_and_halt(exported):
     assert res.halted and res.path == 1
 
 
+def test_a_path_less_accurate_than_one_already_ready_is_never_returned(exported, tmp_path, run_cli):
+    import json
+    import shutil
+    out, _ = exported
+    shutil.copytree(out, tmp_path / "m")
+    manifest = json.loads((tmp_path / "m" / "manifest.json").read_text())
+    # as measured: the last path less accurate than the one before it
+    errors = [0.9, 0.5, 0.4, 0.45][:CAND.num_paths]
+    manifest["path_metrics"] = [{"rmse": e} for e in errors]
+    (tmp_path / "m" / "manifest.json").write_text(json.dumps(manifest))
+    runner = AnytimeRunner(tmp_path / "m")
+    res = runner.run(np.zeros((3, 32, 48), np.float32), np.ones(48, np.float32), deadline_ms=10_000)
+    assert [p for p, _ in res.completed] == list(range(CAND.num_paths)) and res.path == CAND.num_paths - 2
+    np.save(tmp_path / "scan.npy", np.ones(48, np.float32))
+    from PIL import Image
+    Image.fromarray(np.zeros((32, 48, 3), np.uint8)).save(tmp_path / "frame.png")
+    code, text, err = run_cli("run", tmp_path / "m", "--image", tmp_path / "frame.png", "--scan",
+                              tmp_path / "scan.npy", "--deadline", "10s")
+    assert code == 0, err
+    assert f"returned path {CAND.num_paths - 2}" in text and "less accurate than path" in " ".join(text.split())
+
+
 def test_export_from_checkpoint(tmp_path):
     net = build_network(CAND)
     save_checkpoint(tmp_path / "c.pt", net, TrainConfig(input_size=(32, 32)), 1)
@@ -157,7 +179,11 @@ def test_int8_runs_under_deadlines(int8_export, run_cli):
     runner = AnytimeRunner(out)
     img, scan = np.zeros((3, 32, 48), np.float32), np.ones(48, np.float32)
     assert runner.run(img, scan, deadline_ms=0).path == 0
-    assert runner.run(img, scan, deadline_ms=10_000).path == CAND.num_paths - 1
+    full = runner.run(img, scan, deadline_ms=10_000)
+    errors = [m["rmse"] for m in runner.manifest["path_metrics"]]
+    # every path ran; the one returned is the most accurate of them as the export measured it
+    assert [p for p, _ in full.completed] == list(range(CAND.num_paths))
+    assert full.path == int(np.argmin(errors))
     code, text, err = run_cli("curve", out, "--data", TINY_DATA, "--device", "tx2-cpu", "--frames", "2",
                               "--deadlines", "3")
     assert code == 0, err
@@ -279,7 +305,8 @@ def test_int8_keeps_a_stage_fp32_where_int8_is_not_faster_here(exported, tmp_pat
     assert sorted(f.name for f in (tmp_path / "m").glob("*.onnx")) == sorted(s["file"] for s in m["stages"])
     assert m["quantization"]["quantized_graphs"] == [m["stages"][1]["file"].replace(".int8", "")]
     runner = AnytimeRunner(tmp_path / "m")   # fp32 and int8 stage graphs run together
-    assert runner.run(np.zeros((3, 32, 48), np.float32), np.ones(48, np.float32)).path == CAND.num_paths - 1
+    res = runner.run(np.zeros((3, 32, 48), np.float32), np.ones(48, np.float32))
+    assert [p for p, _ in res.completed] == list(range(CAND.num_paths))
 
 
 def test_int8_cli_options(run_cli, tmp_path):

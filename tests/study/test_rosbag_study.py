@@ -50,7 +50,10 @@ def test_a_supervised_study_on_a_bag_exports_a_winner_that_runs_on_the_bags_scan
     assert code == 0, err
     result = json.loads(out)
     depth = np.load(tmp_path / "depth.npy")
-    assert result["path"] == result["completed_paths"] - 1 and depth.shape == (64, 64) and np.isfinite(depth).all()
+    errors = [m["rmse"] for m in json.loads((tmp_path / "m" / "manifest.json").read_text())["path_metrics"]]
+    # every path ran; the one returned is the most accurate of them on the bag's validation frames
+    assert result["completed_paths"] == len(errors) and result["path"] == int(np.argmin(errors))
+    assert depth.shape == (64, 64) and np.isfinite(depth).all()
 
 
 def test_a_self_supervised_study_on_a_bag_trains_on_its_frames_and_is_measured_on_its_depth(tmp_path, run_cli,
