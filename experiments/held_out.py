@@ -23,7 +23,10 @@ allows), or a candidate YAML (as the report gives each network, or ``explorer tr
 after its file; ``:FIELD=VALUE`` after one changes a field of it, to ask what a network just outside
 the space would do (``winner:encoder_blocks=11``: the winner with two more encoder blocks), and
 ``:weights=anytime`` trains it with each exit's loss weighted by its share of the study's anytime loss
-(``explorer train --exit-weights anytime``) instead of equal weights. A network beside the winner and
+(``explorer train --exit-weights anytime``) instead of equal weights, and ``:distill=W`` trains it with
+self-distillation of weight W (``explorer train --self-distill W``). Each network also gets its
+early-to-last ratio (``<name>_early_to_last_N``): the mean error of its paths ready before 9 ms on the
+TX2 over its last path's. A network beside the winner and
 the paper design adds ``ratio_<name>_N``, its anytime loss over the paper design's trained with the
 same weights when that is measured too (``paper:weights=anytime``), else the plain one's (``<name>``:
 the spec, punctuation as underscores).
@@ -47,7 +50,7 @@ import yaml
 from torch.utils.data import Subset
 
 from explorer.anytime import anytime_loss, exit_loss_weights
-from explorer.cost import candidate_cost
+from explorer.cost import candidate_cost, get_device
 from explorer.data import open_dataset
 from explorer.errors import UserError
 from explorer.model import build_network
@@ -81,10 +84,16 @@ WEIGHTINGS = ("equal", "anytime")
 
 @dataclasses.dataclass(frozen=True)
 class Network:
-    """What ``--networks`` names: a candidate and how its exits' losses are weighted in training."""
+    """What ``--networks`` names: a candidate, how its exits' losses are weighted in training, and the
+    weight of self-distillation (``explorer train --self-distill``)."""
 
     candidate: Candidate
     weights: str = "equal"
+    distill: float = 0.0
+
+    @property
+    def training(self) -> tuple[str, float]:
+        return self.weights, self.distill
 
 
 def retrained(network: Network, recipe: DeploymentRecipe, seed: int, data: DeploymentData,
@@ -96,10 +105,23 @@ def retrained(network: Network, recipe: DeploymentRecipe, seed: int, data: Deplo
     weights = exit_loss_weights(costs, budget) if network.weights == "anytime" else None
     torch.manual_seed(seed)
     net = build_network(network.candidate)
-    recipe = dataclasses.replace(recipe, train=dataclasses.replace(recipe.train, seed=seed, exit_weights=weights))
+    recipe = dataclasses.replace(recipe, train=dataclasses.replace(recipe.train, seed=seed, exit_weights=weights,
+                                                                   self_distill=network.distill))
     result = train_for_deployment(net, data, recipe, torch.device("cpu"))
     errors = [float(x) for x in result.metrics[config.metric]]
     return [float(c) for c in costs], errors
+
+
+#: a path ready before this on the TX2 is an early one (the early-to-last ratio)
+EARLY_MS = 9.0
+
+
+def early_to_last(network: Network, errors: list[float], config: SearchConfig) -> float:
+    """The mean error of ``network``'s paths (past the scan) ready before EARLY_MS on the TX2, over its last
+    path's (NaN where none is ready that early)."""
+    ms = candidate_cost(network.candidate, tuple(config.input_size)).path_costs(get_device("tx2"), "time")
+    early = [e for c, e in zip(ms[1:], errors[1:]) if c < EARLY_MS]
+    return sum(early) / len(early) / errors[-1] if early else float("nan")
 
 
 def parse_recipes(text: str, config: SearchConfig) -> dict[str, tuple[int, int]]:
@@ -134,12 +156,17 @@ def resolve_networks(text: str, study, context: StudyContext) -> dict[str, Netwo
         base, *changes = spec.split(":")
         candidate = _base_network(base, study, context)
         name = Path(base).stem if base.endswith((".yaml", ".yml")) else base
-        fields, weights = candidate.to_dict(), "equal"
+        fields, weights, distill = candidate.to_dict(), "equal", 0.0
         for change in changes:
             field, equals, value = change.partition("=")
             if not equals or not field:
                 raise SystemExit(f"--networks: {change!r} in {spec!r} is not FIELD=VALUE")
-            if field.strip() == "weights":
+            if field.strip() == "distill":
+                try:
+                    distill = float(value)
+                except ValueError:
+                    raise SystemExit(f"--networks: distill={value} in {spec!r} is not a number") from None
+            elif field.strip() == "weights":
                 if value.strip() not in WEIGHTINGS:
                     raise SystemExit(f"--networks: weights={value} in {spec!r}: use one of {', '.join(WEIGHTINGS)}")
                 weights = value.strip()
@@ -150,7 +177,7 @@ def resolve_networks(text: str, study, context: StudyContext) -> dict[str, Netwo
                     raise SystemExit(f"--networks: {value!r} in {spec!r} is not a YAML value") from None
             name += "_" + "_".join(filter(None, re.split(r"[^0-9A-Za-z]+", change)))
         try:
-            networks[name] = Network(Candidate.from_dict(fields, source=f"--networks {spec}"), weights)
+            networks[name] = Network(Candidate.from_dict(fields, source=f"--networks {spec}"), weights, distill)
         except UserError as exc:
             raise SystemExit(str(exc)) from None
     return networks
@@ -162,7 +189,7 @@ def reference_of(name: str, networks: dict[str, Network]) -> str:
     network, paper = networks[name], paper_candidate()
     if network.candidate == paper:
         return "paper"
-    return next((other for other, n in networks.items() if n.candidate == paper and n.weights == network.weights),
+    return next((other for other, n in networks.items() if n.candidate == paper and n.training == network.training),
                 "paper")
 
 
@@ -197,6 +224,8 @@ def declare(bench: Bench, recipes: dict[str, tuple[int, int]], networks: dict[st
         for name in networks:
             bench.figure(f"{name}_anytime_{suffix}", f"{name}: anytime loss, {recipe}", unit, better="lower")
             bench.figure(f"{name}_last_{suffix}", f"{name}: last path's {metric}, {recipe}", unit, better="lower")
+            bench.figure(f"{name}_early_to_last_{suffix}", f"{name}: mean {metric} of its paths ready before "
+                         f"{EARLY_MS:g} ms on tx2 over its last path's, {recipe}", "x", better="lower")
 
 
 def bench_held_out(argv: Sequence[str] | None = None) -> None:
@@ -216,7 +245,8 @@ def bench_held_out(argv: Sequence[str] | None = None) -> None:
     ap.add_argument("--networks", default="winner,paper", help="what to retrain, comma-separated: winner, paper, "
                     "largest (the largest network of the study's space) or candidate YAML files, each with "
                     ":FIELD=VALUE changes if any (winner:encoder_blocks=11), :weights=anytime to weight its exits' "
-                    "training losses by their share of the anytime loss; paper among them (default winner,paper)")
+                    "training losses by their share of the anytime loss, :distill=W for self-distillation of weight W; paper "
+                    "among them (default winner,paper)")
     ap.add_argument("--threads", type=int, default=torch.get_num_threads(), help="torch threads")
     args = bench.parse_args(ap, argv)
     torch.set_num_threads(args.threads)
@@ -257,6 +287,7 @@ def bench_held_out(argv: Sequence[str] | None = None) -> None:
                 loss[name], last = anytime_loss(*trained[name], context.budgets[0]), trained[name][1][-1]
                 bench.add(f"{name}_anytime_{suffix}", loss[name])
                 bench.add(f"{name}_last_{suffix}", last)
+                bench.add(f"{name}_early_to_last_{suffix}", early_to_last(networks[name], trained[name][1], config))
                 print(f"  seed {seed}, {n}+{tune} steps: {name} anytime {loss[name]:.4f}, last path {last:.4f} "
                       f"({time.perf_counter() - t0:.0f} s); by path {[round(e, 4) for e in trained[name][1]]} at "
                       f"{[round(c, 1) for c in trained[name][0]]}", flush=True)

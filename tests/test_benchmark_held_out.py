@@ -120,3 +120,35 @@ def test_a_network_with_anytime_weights_is_trained_with_its_exits_anytime_shares
     assert seen[0].exit_weights is None and seen[0].seed == 7
     assert seen[1].exit_weights == exit_loss_weights(costs, context.budgets[0])
     assert seen[1].exit_weights[-1] > 1 / len(seen[1].exit_weights)   # the last path serves most of the budget
+
+
+def test_distill_trains_a_network_with_self_distillation_and_pairs_it_with_its_paper_design(monkeypatch):
+    import experiments.held_out as bench_held_out
+    context = SearchConfig(study="s", data=TINY_DATA, input_size=(64, 64), train_size=(32, 32)).resolve()
+    networks = resolve_networks("paper,paper:distill=0.5,largest:distill=0.5", None, context)
+    assert networks["paper_distill_0_5"] == Network(paper_candidate(), "equal", 0.5)
+    assert reference_of("largest_distill_0_5", networks) == "paper_distill_0_5"
+    with pytest.raises(SystemExit, match="not a number"):
+        resolve_networks("paper,paper:distill=much", None, context)
+    seen = []
+
+    def fake_training(net, data, recipe, accelerator):
+        seen.append(recipe.train)
+        return type("Result", (), {"metrics": {"rmse": [1.0] * net.candidate.num_paths}})()
+
+    monkeypatch.setattr(bench_held_out, "train_for_deployment", fake_training)
+    recipe = dataclasses.replace(context.config, finalist_steps=10).finalist_recipe()
+    retrained(networks["paper_distill_0_5"], recipe, 7, None, context)
+    assert seen[0].self_distill == 0.5
+
+
+def test_the_early_to_last_ratio_takes_the_paths_ready_before_9ms_on_the_tx2():
+    from experiments.held_out import early_to_last
+    from explorer.cost import candidate_cost, get_device
+    config = SearchConfig(study="s")
+    paper = paper_candidate()
+    ms = candidate_cost(paper, (224, 224)).path_costs(get_device("tx2"), "time")
+    errors = [1.0] + [0.5 + 0.1 * k for k in range(len(ms) - 2)] + [0.25]
+    early = [e for c, e in zip(ms[1:], errors[1:]) if c < 9.0]
+    assert early   # the paper design's first path is ready at 6.4 ms on the TX2
+    assert early_to_last(Network(paper), errors, config) == pytest.approx(sum(early) / len(early) / 0.25)

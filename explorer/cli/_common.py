@@ -208,6 +208,9 @@ def _add_supervision(s: argparse.ArgumentParser) -> None:
     s.add_argument("--poses", default="net", choices=["net", "given"],
                    help="self-supervision's camera motion: a pose network trained jointly (default), or "
                    "the data's own poses (synthetic-seq, KITTI oxts, a folder's poses.txt)")
+    s.add_argument("--self-distill", type=float, default=0.0, metavar="W",
+                   help="weight of self-distillation: every exit before the last also learns the last exit's "
+                   "map (detached), so the early paths learn from the network's own best answer (default 0: off)")
     s.add_argument("--depth-hints", action="store_true",
                    help="self-supervision with depth hints (needs --poses given): each training frame's "
                    "depth is first optimised on the photometric loss from the scan, then pulls every exit "

@@ -54,7 +54,7 @@ def _search_config(args):
         finalists=3 if args.finalists is None else args.finalists,
         finalist_steps=300 if args.finalist_steps is None else args.finalist_steps, tune_steps=args.tune_steps,
         max_retries=args.max_retries,
-        supervision=args.supervision, poses=args.poses, hints=args.depth_hints)
+        supervision=args.supervision, poses=args.poses, hints=args.depth_hints, self_distill=args.self_distill)
     cfg.validate()
     return cfg
 

@@ -29,7 +29,7 @@ def cmd_train(args) -> None:
                                  ("input_size", args.train_size), ("lr", args.lr), ("seed", args.seed))
                if v is not None}
     cfg = dataclasses.replace(cfg, **changes, supervision=args.supervision, poses=args.poses,
-                              scan_loss=not args.no_scan_loss, hints=args.depth_hints,
+                              scan_loss=not args.no_scan_loss, hints=args.depth_hints, self_distill=args.self_distill,
                               exit_weights=_exit_weights(args.exit_weights, candidate, args.device, args.budget))
     cfg.validate()
     check_size(cfg.input_size, candidate.stride, "--train-size")

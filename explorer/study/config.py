@@ -93,6 +93,7 @@ class SearchConfig:
     amp: bool = False                            # the supernet's forward passes under bf16 autocast (GPUs)
     head_kinds: str = "rotate"                   # which supernet subnet trains which exit-head kind
     sampler: str = "tpe"                         # tpe (NSGA-II with several objectives) | random (uniform)
+    self_distill: float = 0.0                    # every network's early exits also learn its last exit's map
 
     def __post_init__(self) -> None:
         if self.evaluator == "auto":  # the supernet is trained with dense labels; self-supervision trains alone
@@ -122,7 +123,7 @@ class SearchConfig:
         return dataclasses.replace(PROXY, steps=self.train_steps, batch_size=self.batch_size,
                                    input_size=self.train_size, lr=self.lr, lr_end=self.lr / 10,
                                    seed=self.seed, supervision=self.supervision, poses=self.poses,
-                                   hints=self.hints,
+                                   hints=self.hints, self_distill=self.self_distill,
                                    eval_every=max(2 * self.train_steps // 3, 1) if self.pruning else 0)
 
     def finalist_config(self, seed: int | None = None) -> TrainConfig:
@@ -216,13 +217,13 @@ class SearchConfig:
     # settings that change what a trial's value means: a resumed study must keep them
     IDENTITY = ("space", "device", "budgets", "data", "objectives", "metric", "input_size", "train_size",
                 "train_steps", "batch_size", "lr", "evaluator", "supernet_steps", "supervision", "poses", "hints", "amp",
-                "head_kinds")
+                "head_kinds", "self_distill")
 
     @classmethod
     def defaults_of_older_studies(cls) -> dict:
         """Settings a study made before they existed was run with."""
         return {"evaluator": "proxy", "finalists": 0, "supervision": "supervised", "poses": "net", "hints": False,
-                "amp": False, "head_kinds": "random"}
+                "amp": False, "head_kinds": "random", "self_distill": 0.0}
 
 
 @dataclass(frozen=True)

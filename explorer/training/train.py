@@ -20,6 +20,7 @@ from explorer.errors import UserError
 from explorer.files import remove_dead_scratch
 from explorer.metrics import PHOTOMETRIC, MetricAverager, batch_depth_metrics, depth_metrics
 from explorer.model import AnytimeDepthNet, build_network
+from explorer.processes import StopAtStep
 from explorer.space import Candidate
 from explorer.training.depth_hints import HintedDataset, with_hints
 from explorer.training.selfsup import POSE_SOURCES, SUPERVISIONS, SelfSupervisedLoss, photometric_score
@@ -53,6 +54,7 @@ class TrainConfig:
     scan_loss: bool = True
     hints: bool = False               # depth hints for self-supervision (explorer.training.depth_hints)
     micro_batches: int = 1            # a step's batch in this many parts, one after another (BatchNorm per part)
+    self_distill: float = 0.0         # weight of the last exit's detached map in every earlier exit's loss
 
     @property
     def metric(self) -> bool:
@@ -64,6 +66,8 @@ class TrainConfig:
             raise UserError(f"supervision '{self.supervision}': use one of {', '.join(SUPERVISIONS)}")
         if self.poses not in POSE_SOURCES:
             raise UserError(f"poses '{self.poses}': use one of {', '.join(POSE_SOURCES)}")
+        if not 0.0 <= self.self_distill <= 10.0:
+            raise UserError(f"--self-distill {self.self_distill:g}: give a weight between 0 (off) and 10")
         if self.hints and (self.supervision == "supervised" or self.poses != "given"):
             raise UserError("--depth-hints needs --supervision self or mixed with --poses given: hints are "
                             "optimised with the data's camera motion")
@@ -72,8 +76,9 @@ class TrainConfig:
         d = dataclasses.asdict(self)
         d["input_size"] = list(self.input_size)
         d["exit_weights"] = list(self.exit_weights) if self.exit_weights else None
-        if d["micro_batches"] == 1:   # recipes stored before the field keep their keys
-            del d["micro_batches"]
+        for key, default in (("micro_batches", 1), ("self_distill", 0.0)):
+            if d[key] == default:   # recipes stored before the field keep their keys
+                del d[key]
         return d
 
     @classmethod
@@ -118,9 +123,28 @@ def multi_exit_loss(outputs: list[torch.Tensor], target: torch.Tensor,
     return total, [float(li.detach()) for li in losses]
 
 
+def self_distillation(outputs: list[torch.Tensor]) -> torch.Tensor:
+    """Mean L1, over every pixel, of each exit before the last against the last exit's map, detached:
+    the early exits learn from the network's own best answer (dense, where labels may be sparse or
+    absent), and the last exit is not pulled toward them."""
+    exits = outputs[1:]
+    if len(exits) < 2:
+        return exits[-1].sum() * 0.0
+    teacher = exits[-1].detach()
+    return torch.stack([(o - teacher).abs().mean() for o in exits[:-1]]).mean()
+
+
 def _training_loss(cfg: TrainConfig, selfsup, outs: list[torch.Tensor], batch: dict, accelerator: torch.device
                    ) -> tuple[torch.Tensor, list[float]]:
     outs = [o.float() for o in outs]
+    loss, per_exit = _task_loss(cfg, selfsup, outs, batch, accelerator)
+    if cfg.self_distill > 0:
+        loss = loss + cfg.self_distill * self_distillation(outs)
+    return loss, per_exit
+
+
+def _task_loss(cfg: TrainConfig, selfsup, outs: list[torch.Tensor], batch: dict, accelerator: torch.device
+               ) -> tuple[torch.Tensor, list[float]]:
     if selfsup is None:
         return multi_exit_loss(outs, batch["depth"].to(accelerator), cfg.exit_weights)
     keys = ("image", "sources", "K", "pose", "pose_known", "scan", "hint")
@@ -377,31 +401,36 @@ def train(net: AnytimeDepthNet, train_set, val_set, cfg: TrainConfig = PROXY,
     extra = {"selfsup": selfsup.state_dict()} if selfsup is not None else None
     step, seen, t0 = start, 0, time.perf_counter()
     epoch = 0
-    while step < cfg.steps:
-        if hasattr(train_set, "epoch"):
-            train_set.epoch = epoch
-        for batch in loader:
-            if step >= cfg.steps:
-                break
-            net.train()
-            for g in opt.param_groups:
-                g["lr"] = lr_at(cfg, step)
-            opt.zero_grad(set_to_none=True)
-            loss, per_exit, frames = _backward(net, cfg, selfsup, batch, accelerator, scaler, step)
-            scaler.step(opt)
-            scaler.update()
-            step += 1
-            seen += frames
-            record = {"step": step, "loss": float(loss.detach()), **{f"exit_{i + 1}": li for i, li in enumerate(per_exit)}}
-            history.append(record)
-            if progress:
-                progress(step, cfg.steps, record)
-            if checkpoint is not None and step % checkpoint_every == 0:
-                save_checkpoint(checkpoint, net, cfg, step, opt, extra)
-            if report and cfg.eval_every and step % cfg.eval_every == 0 and step < cfg.steps:
-                report(step, evaluate(net, val_set, accelerator=accelerator, limit=val_limit,
-                                      median_scaling=not cfg.metric))
-        epoch += 1
+    # Ctrl-C or SIGTERM ends training at the end of a step, with the weights reached saved (resumed from)
+    stop = StopAtStep(None if checkpoint is None else lambda at: save_checkpoint(checkpoint, net, cfg, at, opt, extra),
+                      checkpoint, start, cfg.steps)
+    with stop:
+        while step < cfg.steps:
+            if hasattr(train_set, "epoch"):
+                train_set.epoch = epoch
+            for batch in loader:
+                if step >= cfg.steps:
+                    break
+                net.train()
+                for g in opt.param_groups:
+                    g["lr"] = lr_at(cfg, step)
+                opt.zero_grad(set_to_none=True)
+                loss, per_exit, frames = _backward(net, cfg, selfsup, batch, accelerator, scaler, step)
+                scaler.step(opt)
+                scaler.update()
+                step += 1
+                seen += frames
+                record = {"step": step, "loss": float(loss.detach()), **{f"exit_{i + 1}": li for i, li in enumerate(per_exit)}}
+                history.append(record)
+                if progress:
+                    progress(step, cfg.steps, record)
+                if checkpoint is not None and step % checkpoint_every == 0:
+                    save_checkpoint(checkpoint, net, cfg, step, opt, extra)
+                if report and cfg.eval_every and step % cfg.eval_every == 0 and step < cfg.steps:
+                    report(step, evaluate(net, val_set, accelerator=accelerator, limit=val_limit,
+                                          median_scaling=not cfg.metric))
+                stop.check(step)   # a Ctrl-C during the step: its weights saved, then stopped
+            epoch += 1
     seconds = time.perf_counter() - t0
     metrics = evaluate(net, val_set, accelerator=accelerator, limit=val_limit, median_scaling=not cfg.metric)
     if checkpoint is not None:

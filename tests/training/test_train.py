@@ -105,3 +105,32 @@ def test_a_batch_on_one_row_gives_that_row_and_a_slanted_one_each_columns_row():
     slanted = {"scan_row": torch.tensor([16, 17]), "scan_rows": torch.arange(16, 24).expand(2, 8)}
     assert torch.equal(batch_row(slanted), slanted["scan_rows"])
     assert batch_row({"scan_row": [12, 14, 20]}) == 14     # a batch of items without per-column rows
+
+
+def test_self_distillation_pulls_the_early_exits_toward_the_last_and_leaves_the_last_alone():
+    from explorer.training.train import self_distillation
+    last = torch.full((2, 1, 4, 4), 3.0, requires_grad=True)
+    early = torch.full((2, 1, 4, 4), 2.0, requires_grad=True)
+    path0 = torch.zeros(2, 1, 4, 4)
+    loss = self_distillation([path0, early, last])
+    assert loss.item() == pytest.approx(1.0)
+    loss.backward()
+    assert last.grad is None and float(early.grad.sum()) < 0   # the early exit moves up toward the last
+    assert float(self_distillation([path0, last.detach(), last.detach()])) == 0.0
+    assert float(self_distillation([path0, last])) == 0.0          # one exit: nothing to learn from
+
+
+def test_a_recipe_with_self_distillation_trains_and_keeps_its_weight():
+    from explorer.study.config import SearchConfig
+    with pytest.raises(UserError, match="--self-distill"):
+        TrainConfig(self_distill=-1.0).validate()
+    assert "self_distill" not in TrainConfig().to_dict()   # recipes stored before the field keep their keys
+    cfg = TrainConfig(steps=2, batch_size=4, input_size=(32, 32), self_distill=0.5)
+    assert TrainConfig.from_dict(cfg.to_dict()) == cfg
+    net = build_network(next(SearchSpace.from_yaml("tiny").enumerate()))
+    result = train(net, open_dataset(TINY_DATA, "train", (32, 32)), open_dataset(TINY_DATA, "val", (32, 32)), cfg,
+                   val_limit=4)
+    assert result.steps == 2 and torch.isfinite(torch.tensor(list(result.metrics["rmse"]))).all()
+    # a study trains every network it compares with the same weight: proxy, finalists and baselines
+    study = SearchConfig(study="s", self_distill=0.5)
+    assert study.train_config().self_distill == study.finalist_config().self_distill == 0.5
