@@ -40,88 +40,23 @@ Run it after ``make search`` (whose study it reads, from ``reports/``, untouched
 from __future__ import annotations
 
 import dataclasses
-import re
 import time
 from pathlib import Path
 from typing import Sequence
 
 import torch
-import yaml
-from torch.utils.data import Subset
 
-from explorer.anytime import anytime_loss, exit_loss_weights
-from explorer.cost import candidate_cost, get_device
+from explorer.anytime import anytime_loss
 from explorer.data import open_dataset
-from explorer.errors import UserError
-from explorer.model import build_network
-from explorer.space import Candidate, paper_candidate
-from explorer.study import trial_record
-from explorer.study.config import SearchConfig, StudyContext, study_context
+from explorer.study.config import SearchConfig, study_context
 from explorer.study.results import winner
 from explorer.study.storage import load_study
-from explorer.supernet import largest_candidate
-from explorer.training.deployment import DeploymentData, DeploymentRecipe, train_for_deployment
 from explorer.training.train import evaluated_frames
 
 from benchmarks.harness import Bench, Case, rotated, run_suite
 from experiments.lib.comparison import floor_steps
-
-def held_out_data(context: StudyContext, seed: int, val_from: int) -> DeploymentData:
-    """The study's training frames (at its training and deployment sizes, augmented with ``seed``) and
-    its validation frames from ``val_from`` on, at the deployment size."""
-    config = context.config
-    val = open_dataset(config.data, "val", config.input_size, train_augment=False)
-    if val_from >= len(val):
-        raise SystemExit(f"--val-from {val_from}: the validation set has {len(val)} frames")
-    return DeploymentData(open_dataset(config.data, "train", config.train_size, seed=seed),
-                          open_dataset(config.data, "train", config.input_size, seed=seed),
-                          Subset(val, range(val_from, len(val))))
-
-
-#: how each exit's training loss is weighted (``:weights=``): equal, or by its share of the anytime loss
-WEIGHTINGS = ("equal", "anytime")
-
-
-@dataclasses.dataclass(frozen=True)
-class Network:
-    """What ``--networks`` names: a candidate, how its exits' losses are weighted in training, and the
-    weight of self-distillation (``explorer train --self-distill``)."""
-
-    candidate: Candidate
-    weights: str = "equal"
-    distill: float = 0.0
-
-    @property
-    def training(self) -> tuple[str, float]:
-        return self.weights, self.distill
-
-
-def retrained(network: Network, recipe: DeploymentRecipe, seed: int, data: DeploymentData,
-              context: StudyContext) -> tuple[list[float], list[float]]:
-    """``network`` trained from scratch with ``recipe`` and ``seed``: (its paths' costs on the study's
-    device for its first budget's kind, their errors measured on ``data``'s validation frames)."""
-    config, budget = context.config, context.budgets[0]
-    costs = candidate_cost(network.candidate, tuple(config.input_size)).path_costs(context.device, budget.kind)
-    weights = exit_loss_weights(costs, budget) if network.weights == "anytime" else None
-    torch.manual_seed(seed)
-    net = build_network(network.candidate)
-    recipe = dataclasses.replace(recipe, train=dataclasses.replace(recipe.train, seed=seed, exit_weights=weights,
-                                                                   self_distill=network.distill))
-    result = train_for_deployment(net, data, recipe, torch.device("cpu"))
-    errors = [float(x) for x in result.metrics[config.metric]]
-    return [float(c) for c in costs], errors
-
-
-#: a path ready before this on the TX2 is an early one (the early-to-last ratio)
-EARLY_MS = 9.0
-
-
-def early_to_last(network: Network, errors: list[float], config: SearchConfig) -> float:
-    """The mean error of ``network``'s paths (past the scan) ready before EARLY_MS on the TX2, over its last
-    path's (NaN where none is ready that early)."""
-    ms = candidate_cost(network.candidate, tuple(config.input_size)).path_costs(get_device("tx2"), "time")
-    early = [e for c, e in zip(ms[1:], errors[1:]) if c < EARLY_MS]
-    return sum(early) / len(early) / errors[-1] if early else float("nan")
+from experiments.lib.retraining import (EARLY_MS, Network, early_to_last, held_out_data, reference_of,
+                                        resolve_networks, retrained)
 
 
 def parse_recipes(text: str, config: SearchConfig) -> dict[str, tuple[int, int]]:
@@ -141,71 +76,6 @@ def parse_recipes(text: str, config: SearchConfig) -> dict[str, tuple[int, int]]
     if not recipes:
         raise SystemExit("--steps: give at least one recipe length")
     return recipes
-
-
-def resolve_networks(text: str, study, context: StudyContext) -> dict[str, Network]:
-    """``--networks``: specs ``BASE[:FIELD=VALUE...]`` -> {figure name: network}. BASE is ``winner``,
-    ``paper``, ``largest`` or a candidate YAML file; each FIELD=VALUE changes one field of it (a YAML
-    value: ``encoder_blocks=11``, ``decoder_widths=[1024,256,64,32]``), or its training's exit weights
-    (``weights=anytime``)."""
-    specs = [part.strip() for part in re.split(r",(?![^\[]*\])", text) if part.strip()]   # not in [...]
-    if "paper" not in specs:
-        raise SystemExit("--networks: include paper (every ratio is to the paper design)")
-    networks = {}
-    for spec in specs:
-        base, *changes = spec.split(":")
-        candidate = _base_network(base, study, context)
-        name = Path(base).stem if base.endswith((".yaml", ".yml")) else base
-        fields, weights, distill = candidate.to_dict(), "equal", 0.0
-        for change in changes:
-            field, equals, value = change.partition("=")
-            if not equals or not field:
-                raise SystemExit(f"--networks: {change!r} in {spec!r} is not FIELD=VALUE")
-            if field.strip() == "distill":
-                try:
-                    distill = float(value)
-                except ValueError:
-                    raise SystemExit(f"--networks: distill={value} in {spec!r} is not a number") from None
-            elif field.strip() == "weights":
-                if value.strip() not in WEIGHTINGS:
-                    raise SystemExit(f"--networks: weights={value} in {spec!r}: use one of {', '.join(WEIGHTINGS)}")
-                weights = value.strip()
-            else:
-                try:
-                    fields[field.strip()] = yaml.safe_load(value)
-                except yaml.YAMLError:
-                    raise SystemExit(f"--networks: {value!r} in {spec!r} is not a YAML value") from None
-            name += "_" + "_".join(filter(None, re.split(r"[^0-9A-Za-z]+", change)))
-        try:
-            networks[name] = Network(Candidate.from_dict(fields, source=f"--networks {spec}"), weights, distill)
-        except UserError as exc:
-            raise SystemExit(str(exc)) from None
-    return networks
-
-
-def reference_of(name: str, networks: dict[str, Network]) -> str:
-    """The paper design a network's ratio is taken over: the one trained with the same exit weights when it
-    is measured (and the network is not a paper design itself), else the plain one."""
-    network, paper = networks[name], paper_candidate()
-    if network.candidate == paper:
-        return "paper"
-    return next((other for other, n in networks.items() if n.candidate == paper and n.training == network.training),
-                "paper")
-
-
-def _base_network(base: str, study, context: StudyContext) -> Candidate:
-    if base == "winner":
-        best = winner(study)
-        if best is None:
-            raise SystemExit("the study has no winner yet: let its search finish first")
-        return Candidate.from_dict(trial_record(best).candidate)
-    if base == "paper":
-        return paper_candidate()
-    if base == "largest":
-        return largest_candidate(context.space)
-    if base.endswith((".yaml", ".yml")) and Path(base).is_file():
-        return Candidate.from_yaml(base)
-    raise SystemExit(f"--networks: {base!r} is not winner, paper, largest or a candidate YAML file")
 
 
 def declare(bench: Bench, recipes: dict[str, tuple[int, int]], networks: dict[str, Network], metric: str,

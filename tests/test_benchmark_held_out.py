@@ -8,8 +8,8 @@ import dataclasses
 import pytest
 import torch
 
-from experiments.held_out import (Network, held_out_data, parse_recipes, reference_of, resolve_networks,
-                            retrained)
+from experiments.held_out import parse_recipes
+from experiments.lib.retraining import Network, held_out_data, reference_of, resolve_networks, retrained
 
 from explorer.data import open_dataset
 from explorer.space import Candidate, paper_candidate
@@ -101,7 +101,7 @@ def test_networks_that_cannot_be_resolved_are_refused(text, message):
 
 
 def test_a_network_with_anytime_weights_is_trained_with_its_exits_anytime_shares(monkeypatch):
-    import experiments.held_out as bench_held_out
+    import experiments.lib.retraining as bench_held_out
     from explorer.anytime import exit_loss_weights
     from explorer.cost import candidate_cost
 
@@ -123,7 +123,7 @@ def test_a_network_with_anytime_weights_is_trained_with_its_exits_anytime_shares
 
 
 def test_distill_trains_a_network_with_self_distillation_and_pairs_it_with_its_paper_design(monkeypatch):
-    import experiments.held_out as bench_held_out
+    import experiments.lib.retraining as bench_held_out
     context = SearchConfig(study="s", data=TINY_DATA, input_size=(64, 64), train_size=(32, 32)).resolve()
     networks = resolve_networks("paper,paper:distill=0.5,largest:distill=0.5", None, context)
     assert networks["paper_distill_0_5"] == Network(paper_candidate(), "equal", 0.5)
@@ -143,7 +143,7 @@ def test_distill_trains_a_network_with_self_distillation_and_pairs_it_with_its_p
 
 
 def test_the_early_to_last_ratio_takes_the_paths_ready_before_9ms_on_the_tx2():
-    from experiments.held_out import early_to_last
+    from experiments.lib.retraining import early_to_last
     from explorer.cost import candidate_cost, get_device
     config = SearchConfig(study="s")
     paper = paper_candidate()

@@ -1,0 +1,91 @@
+"""Do the early-path levers pay? The paper design retrained from scratch with the finalists' recipe of a
+default study (``make search``'s settings: the synthetic scenes, N steps at 64x64 then the tuning
+steps at 224x224, where every path is measured on validation frames), plain and with each lever,
+costed on the TX2 for its 33 ms uniform budget.
+
+Levers: self-distillation of weight W (``--distill``, ``explorer train --self-distill W``), and the
+runtime's rule that a halt returns the most accurate path ready (never a path less accurate than one
+already returned): every anytime loss here counts it; ``<name>_eq1_N`` is the same network's loss as
+the paper's Eq. 1 counts it (the last path ready, whatever its error), so the two side by side say
+what the rule is worth. Figures per network: anytime loss, its ratio to the plain design's, and its
+early-to-last ratio (the mean error of its paths ready before 9 ms on the TX2 over its last path's).
+
+    python -m experiments.early_paths [--steps 300] [--distill 0.5,1] [--reps 3]
+
+Each repetition is one training seed; the networks train in an order that rotates.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Sequence
+
+import numpy as np
+
+from explorer.anytime import anytime_loss, interval_probabilities
+from explorer.study.config import SearchConfig
+from explorer.training.train import evaluated_frames
+from explorer.data import open_dataset
+
+from benchmarks.harness import Bench, Case, rotated, run_suite
+from experiments.lib.retraining import EARLY_MS, early_to_last, held_out_data, resolve_networks, retrained
+
+
+def declare(bench: Bench, names: list[str], steps: int) -> None:
+    for name in names:
+        bench.figure(f"{name}_anytime_{steps}", f"{name}: anytime loss (tx2, 33 ms uniform), {steps} steps", "m",
+                     "lower")
+        bench.figure(f"{name}_eq1_{steps}", f"{name}: anytime loss counting the last path ready (Eq. 1), "
+                     f"{steps} steps", "m", "lower")
+        bench.figure(f"{name}_early_to_last_{steps}", f"{name}: mean RMSE of its paths ready before {EARLY_MS:g} ms "
+                     f"on tx2 over its last path's, {steps} steps", "x", "lower")
+        if name != "paper":
+            bench.figure(f"ratio_{name}_{steps}", f"{name} / paper, anytime loss, {steps} steps", "", "lower")
+
+
+def bench_early_paths(argv: Sequence[str] | None = None) -> None:
+    """The experiment (the module's docstring says what it asks)."""
+    bench = Bench("bench_early_paths", "Early paths: self-distillation and never-worse on the paper design",
+                  __doc__)
+    ap = bench.parser()
+    ap.add_argument("--steps", type=int, default=300, help="steps at the training size (default 300, the "
+                    "finalists'); then the default study's tuning steps at 224x224")
+    ap.add_argument("--distill", default="0.5,1", help="self-distillation weights to try, comma-separated")
+    ap.add_argument("--first-seed", type=int, default=100, help="the first repetition's seed (default 100)")
+    args = bench.parse_args(ap, argv)
+    weights = [w.strip() for w in args.distill.split(",") if w.strip()]
+    context = SearchConfig(study="early-paths", finalist_steps=args.steps).resolve()
+    config = context.config
+    networks = resolve_networks(",".join(["paper"] + [f"paper:distill={w}" for w in weights]), None, context)
+    declare(bench, list(networks), args.steps)
+    val_from = evaluated_frames(open_dataset(config.data, "val", config.input_size, train_augment=False),
+                                config.val_limit)
+    recipe = config.finalist_recipe()
+    bench.note(f"paper design, {args.steps} steps at {config.train_size[0]}x{config.train_size[1]} then "
+               f"{config.tuning_steps} at {config.input_size[0]}x{config.input_size[1]}, measured there on the "
+               f"validation frames from {val_from} of {config.data}; tx2, {config.budgets[0]}; seeds "
+               f"{args.first_seed} on")
+    for rep in bench.repetitions():
+        seed = args.first_seed + rep
+        data = held_out_data(context, seed, val_from)
+        loss = {}
+        for name in rotated(list(networks), rep):
+            t0 = time.perf_counter()
+            costs, errors = retrained(networks[name], recipe, seed, data, context)
+            loss[name] = anytime_loss(costs, errors, context.budgets[0])
+            eq1 = float(np.dot(errors, interval_probabilities(costs, context.budgets[0])))
+            bench.add(f"{name}_anytime_{args.steps}", loss[name])
+            bench.add(f"{name}_eq1_{args.steps}", eq1)
+            bench.add(f"{name}_early_to_last_{args.steps}", early_to_last(networks[name], errors, config))
+            print(f"  seed {seed}: {name} anytime {loss[name]:.4f} (Eq. 1: {eq1:.4f}), by path "
+                  f"{[round(e, 4) for e in errors]} ({time.perf_counter() - t0:.0f} s)", flush=True)
+        for name in networks:
+            if name != "paper":
+                bench.add(f"ratio_{name}_{args.steps}", loss[name] / loss["paper"])
+    bench.finish()
+
+
+CASES = (Case(bench_early_paths),)
+
+if __name__ == "__main__":
+    run_suite(CASES)
