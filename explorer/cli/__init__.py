@@ -5,7 +5,9 @@ folders, are cleaned up on the way out."""
 from __future__ import annotations
 
 import argparse
+import signal
 import sys
+import threading
 import warnings
 from typing import Sequence
 
@@ -56,8 +58,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     except UserError as exc:
         sys.stderr.write(f"explorer: error: {exc}\n")
         return 2
-    except KeyboardInterrupt:
-        sys.stderr.write("explorer: interrupted; finished trials and checkpoints are kept\n")
+    except KeyboardInterrupt as exc:
+        if threading.current_thread() is threading.main_thread():
+            signal.signal(signal.SIGINT, signal.SIG_IGN)   # a second Ctrl-C cannot cut this line short
+        sys.stderr.write(f"explorer: interrupted; {_kept(exc)}\n")
         return 130
     except ModuleNotFoundError as exc:
         if not runtime_install():
@@ -69,6 +73,16 @@ def main(argv: Sequence[str] | None = None) -> int:
                          "anytime-explorer` has every command\n")
         return 2
     return 0
+
+
+def _kept(exc: BaseException | None) -> str:
+    """What an interrupted command kept, as the command said it (a search, a training run), or as a
+    second Ctrl-C's interrupt carries it from the first one's."""
+    while exc is not None:
+        if isinstance(exc, KeyboardInterrupt) and exc.args:
+            return str(exc.args[0])
+        exc = exc.__context__
+    return "finished trials and checkpoints are kept"
 
 
 #: the distribution that holds the runtime alone (runtime/pyproject.toml): explorer run, no torch

@@ -9,11 +9,13 @@ writes to the study (so SQLite, which takes one writer, serves parallel finalist
 from __future__ import annotations
 
 import os
+import signal
 from concurrent.futures import Future, ProcessPoolExecutor
 from typing import Callable
 
 import torch
 
+from explorer.processes import die_with_parent
 from explorer.training.train import resolve_accelerator
 
 
@@ -56,7 +58,10 @@ _WORKER: dict = {}
 
 
 def _start_worker(devices, make_objective: Callable[[], object], threads: int) -> None:
-    """A worker's start: its device (taken from the shared queue), its share of the cores, its data."""
+    """A worker's start: its device (taken from the shared queue), its share of the cores, its data. It
+    dies with its parent (kill -9 too) and leaves Ctrl-C to it (the parent ends the pool)."""
+    die_with_parent()
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     device = devices.get()
     if device.startswith("cuda"):
         torch.cuda.set_device(torch.device(device))
@@ -89,7 +94,10 @@ class WorkerPool:
     def __enter__(self) -> "WorkerPool":
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, kind, *exc) -> None:
+        if kind is not None and not issubclass(kind, Exception):   # Ctrl-C, SIGTERM: the jobs running are dropped
+            for process in list((self.executor._processes or {}).values()):
+                process.terminate()
         self.executor.shutdown(wait=True, cancel_futures=True)
 
     def submit(self, job) -> Future:

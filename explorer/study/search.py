@@ -25,6 +25,7 @@ from explorer import __version__
 from explorer.cost import candidate_cost, model_cost
 from explorer.data import DEPTH_METRICS, MAYBE_WITHOUT_DEPTH, open_dataset, parse_data_spec, require_scores
 from explorer.errors import UserError
+from explorer.processes import die_with_parent, held_between_trials, interrupted_once
 from explorer.space import Candidate, SearchSpace, paper_candidate
 from explorer.study import planning
 from explorer.study.config import (  # noqa: F401
@@ -63,6 +64,7 @@ from explorer.study.retry import (
     resume_interrupted,
     set_objective_names,
 )
+from explorer.study._stopping import check_workers, ctrl_c_says_what_is_kept, end_workers, quiet_ctrl_c
 from explorer.study.records import record_study, record_values, study_record, trial_record
 from explorer.study.sampling import RecentTrialsTPE
 from explorer.study.storage import (
@@ -177,7 +179,19 @@ class PhaseClock:
 
 def run_worker(config_dict: dict, storage_url: str | None, n_trials: int | None, deadline: float | None,
                worker: int, reports: str, threads: int) -> None:
-    """One worker process of a multi-process search (spawned)."""
+    """One worker process of a multi-process search (spawned): it dies with its parent (kill -9 too), and
+    a Ctrl-C records its trial as interrupted (tried again) and ends it quietly."""
+    die_with_parent()
+    optuna.logging.set_verbosity(optuna.logging.WARNING)   # the parent speaks for the search
+    try:
+        with interrupted_once():
+            _work(config_dict, storage_url, n_trials, deadline, worker, reports, threads)
+    except KeyboardInterrupt:
+        raise SystemExit(130) from None
+
+
+def _work(config_dict: dict, storage_url: str | None, n_trials: int | None, deadline: float | None,
+          worker: int, reports: str, threads: int) -> None:
     import torch
     torch.set_num_threads(max(threads, 1))
     context = SearchConfig.from_dict(config_dict).resolve()   # this process's edge
@@ -206,8 +220,12 @@ def _optimize(study: optuna.Study, objective: Objective, n_trials: int | None, d
     # grows with the study
     gc.freeze()
     cbs.append(lambda _study, _trial: gc.collect(1))
-    study.optimize(guarded(objective, objective.config.max_retries, n_trials), timeout=timeout, callbacks=cbs,
-                   catch=(Exception,), gc_after_trial=False)
+    # a Ctrl-C stops the search between trials or at a training step's end, never in a storage write; a trial it
+    # stops is not logged by Optuna (the search says it in one line)
+    with quiet_ctrl_c(), held_between_trials() as asked:
+        cbs.append(lambda study_, _trial: study_.stop() if asked() else None)
+        study.optimize(guarded(objective, objective.config.max_retries, n_trials), timeout=timeout, callbacks=cbs,
+                       catch=(Exception,), gc_after_trial=False)
 
 
 def ensure_supernet(context: StudyContext, progress: Callable[[int, int, dict], None] | None = None,
@@ -352,8 +370,7 @@ def search(config: SearchConfig, storage_url: str | None = None, workers: int = 
     the most sampling may take, and the time the finalists leave goes to the envelope's dedicated
     networks (:func:`_envelope_in_time_left`)."""
     context = config.resolve()
-    if workers < 1:
-        raise UserError("--workers must be at least 1")
+    check_workers(workers)   # no more processes than the machine can run (cores, memory), in one line
     if parse_data_spec(config.data).kind in MAYBE_WITHOUT_DEPTH or config.metric not in DEPTH_METRICS:
         # data that cannot score a path by the study's metric is refused before the study exists
         require_scores(open_dataset(config.data, "val", config.train_size, train_augment=False), config.data,
@@ -363,7 +380,8 @@ def search(config: SearchConfig, storage_url: str | None = None, workers: int = 
     url = storage_url or local_url(config.study, reports)
     started = time_limit.started if time_limit is not None else time.time()
     clock = PhaseClock(started)
-    with refused_leaves_nothing(url, config.study), searching_alone(url, config.study):
+    with refused_leaves_nothing(url, config.study), searching_alone(url, config.study), \
+            ctrl_c_says_what_is_kept(url, config.study):
         outcome = _search(context, url, storage_url, workers, n_trials, timeout_s, reports, on_trial, on_poll, on_data,
                           on_supernet, on_finalist, time_limit, on_plan, clock, on_envelope)
         runs = study_record(outcome.study).runs
@@ -504,16 +522,15 @@ def _run_workers(study: optuna.Study, config: SearchConfig, url: str, workers: i
              for i in range(workers)]
     for p in procs:
         p.start()
+    finished = False
     try:
         while any(p.is_alive() for p in procs):
             time.sleep(2.0)
             if on_poll:
                 on_poll(study)
+        finished = True
     finally:
-        for p in procs:
-            p.join(timeout=5)
-            if p.is_alive():
-                p.terminate()
+        end_workers(procs, interrupted=not finished)   # a Ctrl-C here: each records its trial, then stops
 
 
 def _replan_finalists(study: optuna.Study, config: SearchConfig, plan: "Plan", speeds, time_limit: "TimeLimit",

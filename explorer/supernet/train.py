@@ -44,6 +44,7 @@ from explorer.data.resident import training_batches
 from explorer.data.synthetic import cache_dir
 from explorer.errors import UserError
 from explorer.files import remove_dead_scratch
+from explorer.processes import StopAtStep
 from explorer.space import Candidate, SearchSpace, check_size
 from explorer.supernet._graphs import StageGraphs
 from explorer.supernet.network import (
@@ -381,31 +382,36 @@ def train_supernet(space: SearchSpace, data: str, recipe: SupernetRecipe = Super
     ledger = _Ledger(history, progress if rank == 0 else None, recipe.steps, accelerator)
     graphs = StageGraphs() if recipe.cuda_graphs and accelerator.type == "cuda" else None
     skip = step % len(loader)  # resume mid-epoch on the batches that were not seen
-    while step < stop:
-        train_set.epoch = epoch
-        gen.manual_seed(recipe.seed + epoch)
-        for i, batch in enumerate(loader):
-            if i < skip:
-                continue
-            if deadline is not None and time.time() >= deadline:
-                stop = step
-            if step >= stop:
-                break
-            rng = random.Random(recipe.seed * 1_000_003 + step)  # the same subnets on every process
-            subnets = _subnets(largest, smallest, space, recipe, step, rng)
-            for g in opt.param_groups:
-                g["lr"] = lr_at(lr_cfg, step)
-            shrinking = _shrinking(recipe, step)
-            step += 1
-            ledger.add(step, _sandwich_step(net, opt, batch, subnets, recipe, accelerator, rank, world, graphs),
-                       shrinking)
-            now = time.perf_counter()
-            if (step % checkpoint_every == 0 or now - saved >= checkpoint_seconds) and step < stop and rank == 0:
-                ledger.settle()
-                save(out, net, recipe, data, step, opt, history, seconds + now - t0)
-                saved = time.perf_counter()
-        skip = 0
-        epoch += 1
+    # Ctrl-C or SIGTERM ends training at the end of a step, with the supernet reached saved (resumed from)
+    held = StopAtStep(_saving(out, net, recipe, data, opt, ledger, history, seconds, t0), out, step, recipe.steps,
+                      what="supernet's weights", active=world == 1)   # several processes stop together: not held
+    with held:
+        while step < stop:
+            train_set.epoch = epoch
+            gen.manual_seed(recipe.seed + epoch)
+            for i, batch in enumerate(loader):
+                if i < skip:
+                    continue
+                if deadline is not None and time.time() >= deadline:
+                    stop = step
+                if step >= stop:
+                    break
+                rng = random.Random(recipe.seed * 1_000_003 + step)  # the same subnets on every process
+                subnets = _subnets(largest, smallest, space, recipe, step, rng)
+                for g in opt.param_groups:
+                    g["lr"] = lr_at(lr_cfg, step)
+                shrinking = _shrinking(recipe, step)
+                step += 1
+                ledger.add(step, _sandwich_step(net, opt, batch, subnets, recipe, accelerator, rank, world, graphs),
+                           shrinking)
+                now = time.perf_counter()
+                if (step % checkpoint_every == 0 or now - saved >= checkpoint_seconds) and step < stop and rank == 0:
+                    ledger.settle()
+                    save(out, net, recipe, data, step, opt, history, seconds + now - t0)
+                    saved = time.perf_counter()
+                held.check(step)   # a Ctrl-C during the step: the supernet saved, then stopped
+            skip = 0
+            epoch += 1
     ledger.settle()
     if rank == 0:
         save(out, net, recipe, data, step, opt, history, seconds + time.perf_counter() - t0)
@@ -413,6 +419,15 @@ def train_supernet(space: SearchSpace, data: str, recipe: SupernetRecipe = Super
         import torch.distributed as dist
         dist.barrier()
     return out
+
+
+def _saving(out: Path, net: Supernet, recipe: SupernetRecipe, data: str, opt: torch.optim.Optimizer, ledger: "_Ledger",
+            history: list[dict], seconds: float, t0: float) -> Callable[[int], None]:
+    """The save of the supernet at a step, for a stop in mid-run (:class:`~explorer.processes.StopAtStep`)."""
+    def save_at(step: int) -> None:
+        ledger.settle()
+        save(out, net, recipe, data, step, opt, history, seconds + time.perf_counter() - t0)
+    return save_at
 
 
 def _check_same_start(step: int, out: Path) -> None:
