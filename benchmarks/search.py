@@ -30,7 +30,7 @@ from explorer.cost.workloads import stage_cost
 from explorer.space import SearchSpace, paper_candidate
 from explorer.study import trial_record
 from explorer.study.config import SearchConfig
-from explorer.study.enumerate import candidate_rows, enumerate_space, space_grid, write_enumeration
+from explorer.cost.enumerate import candidate_rows, enumerate_space, space_grid, write_enumeration
 from explorer.study.objective import FinishedTwins
 from explorer.study.sampling import RecentTrialsTPE
 from explorer.study.search import make_sampler

@@ -125,7 +125,7 @@ def cmd_anytime(args) -> None:
 
 def cmd_enumerate(args) -> None:
     from explorer.console import console, print_frame, progress
-    from explorer.study.enumerate import front_columns, write_enumeration
+    from explorer.cost.enumerate import front_columns, write_enumeration
     from explorer.space import SearchSpace, check_size
     space = SearchSpace.from_yaml(args.space)
     check_size(args.input_size, space.max_stride, "--input-size")

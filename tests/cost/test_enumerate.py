@@ -11,11 +11,11 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from explorer.cost import enumerate as enum
+from explorer.cost.enumerate import (candidate_rows, enumerate_space, front_columns, pareto_front, space_grid,
+                                     write_enumeration)
 from explorer.errors import UserError
 from explorer.space import SearchSpace
-from explorer.study import enumerate as enum
-from explorer.study.enumerate import (candidate_rows, enumerate_space, front_columns, pareto_front, space_grid,
-                                      write_enumeration)
 
 #: every kind of choice the default space has, few of each: encoder exits, stage order, the LiDAR-only
 #: exit, residual exits, two head depths, a required exit, two precisions

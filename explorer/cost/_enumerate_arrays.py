@@ -1,4 +1,4 @@
-"""A whole space's costs as array arithmetic (``explorer.study.enumerate``'s engine).
+"""A whole space's costs as array arithmetic (``explorer.cost.enumerate``'s engine).
 
 The space is the product of the axes ``SearchSpace.enumerate`` walks, in its order, so candidate ``r``
 is row ``r`` of a grid and its choices are the mixed-radix digits of ``r``. A candidate's stages split

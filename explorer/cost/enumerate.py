@@ -3,7 +3,7 @@ cost side of the anytime loss, without building a torch module per candidate.
 
 :func:`candidate_rows` costs candidates one by one (stage costs cached by stage config): the
 reference. :func:`enumerate_space` and :func:`write_enumeration` give the same table for a whole space
-with array arithmetic (``explorer.study._enumerate_arrays``: each distinct stage configuration is
+with array arithmetic (``explorer.cost._enumerate_arrays``: each distinct stage configuration is
 costed once, and a candidate's costs are sums of its stages' in execution order), stream it to CSV
 (and Parquet where pyarrow is installed) chunk by chunk, and find the Pareto front of the costs over
 every candidate.
@@ -22,12 +22,12 @@ import numpy as np
 import pandas as pd
 
 from explorer.anytime import BudgetDistribution, interval_probabilities, parse_budget
+from explorer.cost._enumerate_arrays import COLUMNS, SpaceGrid, stage_totals
 from explorer.cost.devices import DeviceProfile, check_budget_priced, get_device
 from explorer.errors import UserError
 from explorer.files import writing_atomically
 from explorer.model.network import stage_specs
 from explorer.space import Candidate, SearchSpace
-from explorer.study._enumerate_arrays import COLUMNS, SpaceGrid, stage_totals
 
 #: candidates costed, written and reported at a time: memory stays bounded whatever the space's size
 CHUNK_ROWS = 100_000
