@@ -468,6 +468,7 @@ def test_calibration_times_again_the_graphs_far_above_its_fit(tmp_path, monkeypa
     second time is not timed a third."""
     from explorer.calibration import calibrate as cal
     real_probe, real_set_aside, calls, inflated, stubborn, set_aside = probe.run_probe, probe.set_aside, [], {}, {}, []
+    normal = {}
 
     def probe_with_a_slowed_spell(folder, out, *args, **kwargs):
         res = real_probe(folder, out, *args, **kwargs)
@@ -475,9 +476,15 @@ def test_calibration_times_again_the_graphs_far_above_its_fit(tmp_path, monkeypa
         if len(calls) == 1:   # one stage graph of the first run took 20x its time, another always does
             key = next(iter(res["stages"]))
             first, second = list(res["stages"][key])[:2]
+            normal[f"{key}/{first}"] = res["stages"][key][first]
             res["stages"][key][first] *= 20
             inflated[f"{key}/{first}"] = res["stages"][key][first]
             stubborn[f"{key}/{second}"] = res["stages"][key][second] * 20
+        else:   # timed again: its first time, whatever this machine's load does to the real one
+            for label, ms in normal.items():
+                key, _, stage = label.partition("/")
+                if stage in res["stages"].get(key, {}):
+                    res["stages"][key][stage] = ms
         for label, ms in stubborn.items():
             key, _, stage = label.partition("/")
             res["stages"][key][stage] = ms
