@@ -12,6 +12,7 @@ import numpy as np
 from explorer.anytime import anytime_loss
 from explorer.calibration.calibrate import calibrate
 from explorer.cost import candidate_cost, get_device
+from explorer.cost.devices import DeviceProfile
 from explorer.data import open_dataset, require_scores
 from explorer.deploy.runtime import AnytimeRunner, measured_anytime, path_metrics
 from explorer.files import write_json
@@ -21,13 +22,14 @@ from explorer.space import Candidate
 def curve_check(model_dir: Path, data: str, device: str | None = None, frames: int = 16,
                 deadlines: int = 40, progress: Callable[[int, int], None] | None = None,
                 provider: str = "CPUExecutionProvider", calibration: dict | None = None,
-                calibration_progress: Callable[[str, int, int | None], None] | None = None) -> dict:
+                calibration_progress: Callable[[str, int, int | None], None] | None = None,
+                keep: Callable[[DeviceProfile], None] | None = None) -> dict:
     """The anytime curve measured on this machine next to the one a host profile predicts.
 
     Per-path losses come from the exported graphs on ``frames`` validation frames; the prediction
     prices the paths with ``device`` (a profile from ``explorer calibrate``; calibrated now, with
-    ``provider``, if None, with ``calibration``'s options to :func:`calibrate`); the graphs run on
-    ``provider``;
+    ``provider``, if None, with ``calibration``'s options to :func:`calibrate`, and handed to ``keep``
+    before any deadline runs); the graphs run on ``provider``;
     the measurement runs every frame under ``deadlines`` deadlines spread evenly over (0, B_max),
     B_max = 1.25 x the predicted last path. Written to ``model_dir/anytime_curve.json``.
     """
@@ -37,8 +39,12 @@ def curve_check(model_dir: Path, data: str, device: str | None = None, frames: i
     items = [ds[i] for i in range(min(frames, len(ds)))]
     require_scores(items, data, "rmse")   # the curve is the RMSE of what each deadline returns
     losses = [m["rmse"] for m in path_metrics(runner, items)]
-    profile = get_device(device) if device else calibrate(**{"scale": 0.5, **(calibration or {})}, provider=provider,
-                                                          progress=calibration_progress)
+    if device:
+        profile = get_device(device)
+    else:
+        profile = calibrate(**{"scale": 0.5, **(calibration or {})}, provider=provider, progress=calibration_progress)
+        if keep:
+            keep(profile)
     precision = runner.manifest.get("precision", "fp32")
     priced = precision if precision in profile.precisions else "fp32"   # else the fp32 prediction, said so
     costs = candidate_cost(dataclasses.replace(cand, precision=priced), runner.input_size).path_latency_ms(profile)

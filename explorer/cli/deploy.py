@@ -132,24 +132,61 @@ def cmd_run(args) -> None:
                       f"{res['projected_row']}; the model's scan row {res['scan_row']})", markup=False, highlight=False)
 
 
+def _curve_profile(args) -> tuple[str | None, dict | None]:
+    """``explorer curve``'s profile of this machine: --device; else the one an earlier curve kept for this
+    machine (unless --recalibrate); else none yet, and the options to calibrate it with (the profile is
+    then kept)."""
+    from explorer.calibration.kept import find_kept
+    from explorer.cli.devices import QUICK_PROBE
+    from explorer.console import err_console
+    if args.device:
+        if args.recalibrate:
+            raise UserError("--recalibrate measures this machine again: give it without --device")
+        return args.device, None
+    found = None if args.recalibrate else find_kept(args.provider, args.quick)
+    if found:
+        err_console.print(f"no --device: this machine's profile, kept by an earlier `explorer curve`: {found} "
+                          "(--recalibrate measures it again)", markup=False, highlight=False)
+        return str(found), None
+    err_console.print("no --device: this machine is calibrated first, "
+                      + ("quickly (a third of the sweep)" if args.quick else
+                         "which takes several minutes (--quick: a third of the sweep)")
+                      + ", and the profile kept for the next `explorer curve` here; `explorer calibrate --out "
+                      "mybox.yaml` once, then --device mybox.yaml, skips it", markup=False, highlight=False)
+    return None, {"scale": 0.35, **QUICK_PROBE} if args.quick else {"scale": 0.5}
+
+
+def _keeper(args, kept: list):
+    """Keeps a profile just calibrated for the next ``explorer curve``; a place that cannot be written
+    loses it, with a line, and the curve goes on."""
+    from explorer.calibration.kept import keep_profile
+    from explorer.console import err_console
+
+    def keep(profile) -> None:
+        try:
+            kept.append(keep_profile(profile, args.provider, args.quick))
+        except OSError as exc:
+            err_console.print(f"could not keep this machine's profile ({exc.strerror or exc}): the next "
+                              "`explorer curve` calibrates again", markup=False, highlight=False)
+    return keep
+
+
 def cmd_curve(args) -> None:
     from explorer.calibration.curve import curve_check
-    from explorer.cli.devices import QUICK_PROBE
     from explorer.console import Phases, console, err_console, print_json, progress
-    calibration = None
-    if not args.device:
-        calibration = {"scale": 0.35, **QUICK_PROBE} if args.quick else {"scale": 0.5}
-        err_console.print("no --device: this machine is calibrated first, "
-                          + ("quickly (a third of the sweep)" if args.quick else
-                             "which takes several minutes (--quick: a third of the sweep)")
-                          + "; `explorer calibrate --out mybox.yaml` once, then --device mybox.yaml, skips it",
-                          markup=False, highlight=False)
+    kept: list[Path] = []
+    device, calibration = _curve_profile(args)
     with progress(transient=True) as bar:
         task = bar.add_task("deadlines", total=args.deadlines, status="")
-        res = curve_check(Path(args.model), args.data, args.device, args.frames, args.deadlines,
+        res = curve_check(Path(args.model), args.data, device, args.frames, args.deadlines,
                           progress=lambda i, n: bar.update(task, completed=i), provider=args.provider,
                           calibration=calibration,
-                          calibration_progress=Phases(bar, "calibrating this machine: ") if calibration else None)
+                          calibration_progress=Phases(bar, "calibrating this machine: ") if calibration else None,
+                          keep=_keeper(args, kept) if calibration else None)
+    if kept:
+        err_console.print(f"kept this machine's profile at {kept[0]}: the next `explorer curve` here reuses it, and "
+                          f"--device {kept[0]} prices with it (explorer rescore, search)", markup=False,
+                          highlight=False)
     if args.json:
         print_json(res)
         return
@@ -218,9 +255,12 @@ def register(sub, add, reports: dict) -> None:
     s = add("curve", cmd_curve, "measure an exported model's anytime curve here and compare with the prediction")
     s.add_argument("model", help="folder written by explorer export")
     s.add_argument("--data", default="synthetic", help="frames to measure on (validation split)")
-    s.add_argument("--device", help="host profile from explorer calibrate (default: calibrate this machine now, "
-                   "several minutes)")
-    s.add_argument("--quick", action="store_true", help="without --device: calibrate quickly (a third of the sweep)")
+    s.add_argument("--device", help="host profile from explorer calibrate (default: the profile of this machine "
+                   "an earlier explorer curve kept, else calibrate this machine now, several minutes, and keep it)")
+    s.add_argument("--quick", action="store_true", help="without --device: calibrate quickly (a third of the "
+                   "sweep); a kept full calibration serves too")
+    s.add_argument("--recalibrate", action="store_true", help="calibrate this machine again even where a profile "
+                   "of it is kept (and keep the new one)")
     s.add_argument("--frames", type=_bounded_int(1, 10_000, "validation frames"), default=16, help="validation frames, each run at every deadline "
                    "(default 16)")
     s.add_argument("--deadlines", type=_bounded_int(2, 10_000, "deadlines, each run on every frame"), default=40)

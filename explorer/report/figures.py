@@ -110,8 +110,9 @@ def _kinds(frame: pd.DataFrame) -> dict[str, pd.DataFrame]:
 
 def _draw_apart(ax, kinds: dict[str, pd.DataFrame], xcol: str) -> list[str]:
     """Finalists, baselines (measured or estimated, each its own mark) and envelope networks on ``ax``,
-    each series its own mark and legend entry; envelope networks above everything else are drawn at the
-    top edge so that they do not squash the candidates. Returns what the legend says, with counts."""
+    each series its own mark and legend entry, filled where measured and open where estimated
+    (``MARKS``); envelope networks above everything else are drawn at the top edge so that they do not
+    squash the candidates. Returns what the legend says, with counts."""
     said = []
     finalists = kinds["finalists"]
     if not finalists.empty:
@@ -120,8 +121,10 @@ def _draw_apart(ax, kinds: dict[str, pd.DataFrame], xcol: str) -> list[str]:
         said.append(f"{len(finalists)} finalists (measured)")
     for _, r in kinds["baselines"].iterrows():
         kind = "measured" if str(r["figures"]).startswith("measured") else "estimate"
-        ax.scatter([r[xcol]], [r["value"]], marker="*" if kind == "measured" else "x",
-                   s=120 if kind == "measured" else 50, color=colour(r["baseline"]),
+        ink = colour(r["baseline"])   # an estimate: the outline of a thick cross
+        ax.scatter([r[xcol]], [r["value"]], marker="*" if kind == "measured" else "X",
+                   s=120 if kind == "measured" else 60, edgecolors=ink, linewidths=1.2,
+                   facecolors=ink if kind == "measured" else "none",
                    label=f"{baseline_label(r['baseline'])} ({kind})", zorder=3)
         said.append(f"{baseline_label(r['baseline'])} ({kind})")
     env = kinds["envelope"]
@@ -137,14 +140,22 @@ def _draw_apart(ax, kinds: dict[str, pd.DataFrame], xcol: str) -> list[str]:
             ax.set_ylim(low - pad, top)
     label = "envelope networks (measured, one path each)"
     inside, above = env[env["value"] <= top], env[env["value"] > top]
-    ax.scatter(inside[xcol], inside["value"], marker="v", s=44, facecolors="none", edgecolors=ENVELOPE_COLOUR,
-               linewidths=1.5, zorder=3, label=label)
+    ax.scatter(inside[xcol], inside["value"], marker="v", s=44, color=ENVELOPE_COLOUR, zorder=3, label=label)
     said.append(f"{len(env)} {label}")
     if not above.empty:
         ax.scatter(above[xcol], [top] * len(above), marker="^", s=44, color=ENVELOPE_COLOUR, zorder=3,
                    clip_on=False, label="envelope networks above the axis, at its top")
         said[-1] += f", {len(above)} of them above the axis and drawn at its top"
     return said
+
+
+#: how the front and the history tell estimates from measurements besides their legend (their captions say it too)
+MARKS = "filled marks: measured on retrained networks; open marks (rings, crosses): the search's estimates"
+
+
+def _estimates(ax, x, y) -> None:
+    """The search's estimates: open grey rings."""
+    ax.scatter(x, y, s=20, facecolors="none", edgecolors="#8a8a8a", linewidths=0.9, label="trials (estimates)")
 
 
 def _legend(ax) -> None:
@@ -162,7 +173,7 @@ def pareto(frame: pd.DataFrame, xcol: str, xlabel: str) -> tuple[str, str]:
     fig, ax = plt.subplots(figsize=(5.2, 3.6))
     kinds = _kinds(frame)
     cand = kinds["estimates"]
-    ax.scatter(cand[xcol], cand["value"], s=18, alpha=0.7, label="trials (estimates)", color="#999999")
+    _estimates(ax, cand[xcol], cand["value"])
     front, best = [], np.inf
     for _, r in cand.sort_values(xcol).iterrows():
         if r["value"] < best:
@@ -183,7 +194,7 @@ def pareto(frame: pd.DataFrame, xcol: str, xlabel: str) -> tuple[str, str]:
     ax.set_ylabel("anytime loss")
     ax.grid(alpha=0.3)
     _legend(ax)
-    return png(fig), f"Anytime loss against {xlabel}: " + "; ".join(said)
+    return png(fig), f"Anytime loss against {xlabel}: " + "; ".join(said) + f" ({MARKS})"
 
 
 def history(frame: pd.DataFrame) -> tuple[str, str]:
@@ -193,7 +204,7 @@ def history(frame: pd.DataFrame) -> tuple[str, str]:
     fig, ax = plt.subplots(figsize=(6.4, 3.6))
     kinds = _kinds(frame)
     cand = kinds["estimates"].sort_values("number")
-    ax.scatter(cand["number"], cand["value"], s=18, alpha=0.7, color="#999999", label="trials (estimates)")
+    _estimates(ax, cand["number"], cand["value"])
     said = [f"{len(cand)} trials (estimates)"]
     if not cand.empty:
         ax.step(cand["number"], cand["value"].cummin(), where="post", color="#d62728", lw=1.5,
@@ -205,7 +216,7 @@ def history(frame: pd.DataFrame) -> tuple[str, str]:
     ax.set_title("optimisation history")
     ax.grid(alpha=0.3)
     _legend(ax)
-    return png(fig), "Anytime loss by trial: " + "; ".join(said)
+    return png(fig), "Anytime loss by trial: " + "; ".join(said) + f" ({MARKS})"
 
 
 def optuna_plot(fn, study) -> str | None:

@@ -191,19 +191,99 @@ def test_int8_runs_under_deadlines(int8_export, run_cli):
     assert "on 2 validation frames of" in " ".join(text.split())
 
 
-def test_curve_without_a_profile_says_it_calibrates_first(exported, run_cli, monkeypatch):
+def _calibrating_here(monkeypatch, tmp_path, asked: list) -> None:
+    """``explorer curve``'s calibration stood in for by tx2-cpu's figures under this machine's identity
+    (each call's options appended to ``asked``), and a cache folder of the test's own."""
+    import dataclasses
+
+    from explorer.calibration import curve, kept
+    from explorer.cost import get_device
+    monkeypatch.setenv("ANYTIME_EXPLORER_CACHE", str(tmp_path / "cache"))
+
+    def calibrate(**kw):
+        asked.append(kw)
+        here = kept.this_machine(kw["provider"])
+        profile = get_device("tx2-cpu")
+        conditions = {field: here[key] for key, field in kept.IN_CONDITIONS.items()}
+        return dataclasses.replace(profile, name="host", provenance={**profile.provenance, "conditions": conditions})
+    monkeypatch.setattr(curve, "calibrate", calibrate)
+
+
+def test_curve_without_a_profile_says_it_calibrates_first(exported, run_cli, monkeypatch, tmp_path):
     """No --device: the machine is calibrated before any deadline runs, which the user is told at once,
     with the ways to skip it; --quick asks for the short calibration."""
     from conftest import TINY_DATA
-    from explorer.calibration import curve
-    from explorer.cost import get_device
     asked = []
-    monkeypatch.setattr(curve, "calibrate", lambda **kw: asked.append(kw) or get_device("tx2-cpu"))
+    _calibrating_here(monkeypatch, tmp_path, asked)
     out, _ = exported
     code, _, err = run_cli("curve", out, "--data", TINY_DATA, "--frames", "1", "--deadlines", "2", "--quick")
     assert code == 0, err
     assert "calibrated first" in err and "--device mybox.yaml" in err
     assert asked and asked[0]["scale"] == 0.35
+
+
+def test_curve_keeps_its_calibration_for_the_next_call_on_this_machine(exported, run_cli, monkeypatch, tmp_path):
+    """The profile a curve calibrates is kept (the path said) and the next curve on this machine uses it
+    without calibrating; --recalibrate measures again; a quick one does not serve a full calibration,
+    a full one serves --quick; another machine's identity finds none; --device skips it all."""
+    import json
+
+    from conftest import TINY_DATA
+    from explorer.calibration import kept
+    from explorer.cost import get_device
+    asked = []
+    _calibrating_here(monkeypatch, tmp_path, asked)
+    out, _ = exported
+    curve = ("curve", out, "--data", TINY_DATA, "--frames", "1", "--deadlines", "2")
+    code, _, err = run_cli(*curve, "--quick")
+    assert code == 0 and len(asked) == 1, err
+    quick = kept.kept_path(kept.this_machine("CPUExecutionProvider"), quick=True)
+    assert quick.is_file() and str(tmp_path / "cache") in str(quick)
+    assert f"kept this machine's profile at {quick}" in " ".join(err.split())
+    assert get_device(quick).name == "host"   # a profile file --device reads
+    code, text, err = run_cli(*curve, "--quick", "--json")
+    assert code == 0 and len(asked) == 1, err                       # reused: not calibrated again
+    assert str(quick) in " ".join(err.split()) and "calibrated first" not in err
+    assert json.loads(text)["device"] == "host"
+    code, _, err = run_cli(*curve, "--quick", "--recalibrate")
+    assert code == 0 and len(asked) == 2, err
+    code, _, err = run_cli(*curve)                                  # a full calibration: the quick one won't do
+    assert code == 0 and len(asked) == 3 and asked[-1]["scale"] == 0.5, err
+    full = kept.kept_path(kept.this_machine("CPUExecutionProvider"), quick=False)
+    assert full.is_file()
+    code, _, err = run_cli(*curve, "--quick")                       # ... and the full one serves --quick
+    assert code == 0 and len(asked) == 3 and str(full) in " ".join(err.split()), err
+    code, _, err = run_cli(*curve, "--device", "tx2-cpu")
+    assert code == 0 and len(asked) == 3 and "kept" not in err, err
+    code, _, err = run_cli(*curve, "--device", "tx2-cpu", "--recalibrate")
+    assert code == 2 and len(err.strip().splitlines()) == 1 and "--recalibrate" in err, err
+    # another machine (another processor): its own file, none there yet, so it calibrates
+    identity = kept.device_identity
+    monkeypatch.setattr(kept, "device_identity", lambda *a: {**identity(*a), "cpu": "another processor"})
+    code, _, err = run_cli(*curve, "--quick")
+    assert code == 0 and len(asked) == 4 and "calibrated first" in err, err
+
+
+def test_a_kept_profile_of_another_machine_or_damaged_serves_nothing(monkeypatch, tmp_path):
+    """A kept file at this machine's place that records another processor, or that cannot be read,
+    is not used (the calibration then made replaces it)."""
+    import dataclasses
+
+    from explorer.calibration import kept
+    from explorer.cost import get_device
+    monkeypatch.setenv("ANYTIME_EXPLORER_CACHE", str(tmp_path))
+    here = kept.this_machine("CPUExecutionProvider")
+    profile = get_device("tx2-cpu")
+    conditions = {field: here[key] for key, field in kept.IN_CONDITIONS.items()}
+    path = kept.keep_profile(dataclasses.replace(profile, provenance={**profile.provenance, "conditions": conditions}),
+                             "CPUExecutionProvider", quick=False)
+    assert kept.find_kept("CPUExecutionProvider", quick=False) == path
+    assert kept.find_kept("CPUExecutionProvider", quick=True) == path
+    kept.keep_profile(dataclasses.replace(profile, provenance={**profile.provenance, "conditions": {
+        **conditions, "processor": "another processor"}}), "CPUExecutionProvider", quick=False)
+    assert kept.find_kept("CPUExecutionProvider", quick=False) is None
+    path.write_text("name: [unclosed")
+    assert kept.find_kept("CPUExecutionProvider", quick=True) is None
 
 
 def test_int8_stages_hand_each_other_uint8(int8_export):

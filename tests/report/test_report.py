@@ -48,6 +48,9 @@ def test_report_holds_the_tables(study_with_everything):
     assert "has no search estimate" in html     # the baselines outside the tiny space say why
     # how far the estimate can be trusted: no fidelity was measured for the tiny space, and it says so
     assert 'id="fidelity"' in html and "ranking of the space is unmeasured" in html
+    # estimates and measurements on the front and in the history: filled or open marks, and the captions say so
+    assert 'id="front-marks"' in html and "<b>open</b> marks (rings, crosses) are the search's <b>estimates</b>" in html
+    assert 'id="history-figure"' in html
 
 
 def test_finalists_agreement_is_named_for_what_it_is(study_with_everything):
@@ -188,6 +191,47 @@ def test_report_fits_the_screen_and_every_image_loads(study_with_everything, tmp
     assert images >= 3 and broken == 0, probe_values
 
 
+#: what the phone test reads from the page: its layout widths, the narrow-screen stylesheet's padding,
+#: Table 2's box and cue, and every scrolling box's right edge
+_LAYOUT = """JSON.stringify((() => {
+  const d = document.documentElement, box = document.getElementById('table2-box'),
+        cue = document.getElementById('table2-cue'), seen = cue.getBoundingClientRect();
+  return {inner: innerWidth, page: d.scrollWidth, body: document.body.scrollWidth, client: d.clientWidth,
+          pad: getComputedStyle(document.querySelector('main')).paddingLeft,
+          box: [box.scrollWidth, box.clientWidth, getComputedStyle(box).overflowX],
+          cue: [!cue.hidden && seen.height > 0 && seen.width > 0, seen.left, seen.right,
+                seen.bottom <= box.getBoundingClientRect().top],
+          rights: [...document.querySelectorAll('.scroll')].map(b => b.getBoundingClientRect().right)};
+})())"""
+
+
+@pytest.mark.parametrize("width, mobile", [(390, True), (1280, False)])
+def test_report_on_a_phone_under_mobile_emulation(study_with_everything, tmp_path, width, mobile):
+    """Chromium emulating a phone 390 px wide (where a page without the viewport meta tag is laid out at
+    980 px) and a laptop: the narrow-screen stylesheet applies on the phone only, the page is no wider
+    than the screen, wide tables scroll inside their own box, and Table 2's cue line (above its box)
+    shows exactly when that box scrolls sideways: always on the phone."""
+    import json
+
+    from _chromium import chromium, evaluate_emulated
+    if not chromium():
+        pytest.skip("Debian's chromium is not installed (make test installs it when it can)")
+    study, reports = study_with_everything
+    page = write_report(study, reports / "rep")
+    seen = json.loads(evaluate_emulated(page, _LAYOUT, tmp_path / "profile", width, 844, mobile))
+    # the layout is the screen's width (less a laptop's vertical scroll bar; a phone's overlays the page)
+    assert seen["inner"] == width and (seen["client"] == width if mobile else width - 20 <= seen["client"]), seen
+    fits = seen["client"]
+    assert seen["page"] <= fits and seen["body"] <= fits, seen                    # no sideways scroll of the page
+    assert seen["pad"] == ("8px" if width < 700 else "32px"), seen                # the narrow-screen stylesheet
+    assert all(right <= fits for right in seen["rights"]), seen                   # every wide table's box fits
+    scrolls_sideways = seen["box"][0] > seen["box"][1] + 1
+    assert seen["box"][2] == "auto" and seen["cue"][0] == scrolls_sideways, seen
+    if mobile:
+        shown, left, right, above = seen["cue"]
+        assert scrolls_sideways and shown and 0 <= left and right <= fits and above, seen
+
+
 @pytest.fixture(scope="module")
 def study_with_envelope(study_with_everything, tmp_path_factory):
     """A copy of the study after ``explorer envelope`` retrained two dedicated networks."""
@@ -243,3 +287,33 @@ def test_envelope_networks_neither_join_the_front_nor_squash_it():
     assert "3 envelope networks (measured, one path each), 2 of them above the axis" in with_them
     _, history = figures.history(envelope)
     assert "4 trials (estimates)" in history and "3 envelope networks" in history
+
+
+def test_estimates_are_open_marks_and_measurements_filled(monkeypatch):
+    """On the front and in the history, what was measured (finalists, measured baselines, envelope networks)
+    is drawn filled and the search's estimates (candidates, estimated baselines) open, and the alt text
+    says so: not told apart by the legend alone."""
+    import pandas as pd
+    from matplotlib.colors import to_rgba_array
+
+    from explorer.report import figures
+    drawn = []
+    monkeypatch.setattr(figures, "png", lambda fig: drawn.append(fig) or "")
+    rows = [dict(number=i, state="COMPLETE", value=v, baseline="", figures="estimate", params=p, macs=p)
+            for i, (v, p) in enumerate([(0.45, 1e6), (0.42, 2e6), (0.40, 3e6)])]
+    rows += [dict(number=3, state="COMPLETE", value=0.41, baseline="", figures="measured", params=2e6, macs=2e6),
+             dict(number=4, state="COMPLETE", value=0.43, baseline="paper", figures="measured", params=2e6, macs=2e6),
+             dict(number=5, state="COMPLETE", value=0.44, baseline="fastdepth", figures="estimate", params=1e6,
+                  macs=1e6),
+             dict(number=6, state="COMPLETE", value=0.42, baseline="", params=1.5e6, macs=1.5e6,
+                  figures=f"{figures.ENVELOPE_TAG} for path 1 (measured)")]
+    frame = pd.DataFrame(rows)
+    alts = [figures.pareto(frame, "params", "parameters")[1], figures.history(frame)[1]]
+    for fig, alt in zip(drawn, alts):
+        assert figures.MARKS in alt and "open marks" in alt
+        marks = {c.get_label(): c for c in fig.axes[0].collections if not c.get_label().startswith("_")}
+        assert {"trials (estimates)", "finalists (measured)", "paper design (measured)"} <= set(marks), marks
+        for label, mark in marks.items():
+            faces = to_rgba_array(mark.get_facecolor()) if len(mark.get_facecolor()) else []
+            filled = len(faces) > 0 and all(face[3] > 0 for face in faces)
+            assert filled == ("measured" in label), label
