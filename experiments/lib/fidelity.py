@@ -157,7 +157,7 @@ def rank_figures(estimates: list[float], labels: list[float]) -> dict[str, float
 def supernet_evaluator(file: Path, space: SearchSpace, config: SearchConfig | None = None, **kw):
     """The search's supernet evaluator over ``file`` (its validation frames, BatchNorm recalibration)."""
     from explorer.data import open_dataset
-    from explorer.study.evaluators import SupernetEvaluator
+    from explorer.supernet.evaluators import SupernetEvaluator
     config = config or SearchConfig(study="fidelity")
     calib = open_dataset(config.data, "train", config.train_size, train_augment=False)
     val = open_dataset(config.data, "val", config.train_size, train_augment=False)

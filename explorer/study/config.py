@@ -23,9 +23,9 @@ from explorer.space import (
     paper_candidate,
     paper_nee_candidate,
 )
-from explorer.study.evaluators import EVALUATORS
 from explorer.study.records import study_record
 from explorer.supernet import SupernetRecipe
+from explorer.supernet.evaluators import EVALUATORS
 from explorer.training.deployment import DeploymentRecipe
 from explorer.training.train import PROXY, TrainConfig
 

@@ -19,11 +19,11 @@ from explorer.deploy.export import quantization_effect
 from explorer.files import scratch_dir
 from explorer.space import Candidate
 from explorer.study.config import SearchConfig, StudyContext, baseline_model, json_safe
-from explorer.study.evaluators import ProxyEvaluator, SupernetEvaluator
 from explorer.study.records import record, trial_record
 from explorer.study.results import compact_workloads
 from explorer.study.sampling import unseen
 from explorer.supernet import default_path
+from explorer.supernet.evaluators import ProxyEvaluator, SupernetEvaluator
 from explorer.training.depth_hints import with_hints
 from explorer.training.deployment import DeploymentData
 from explorer.training.train import Pruned, resolve_accelerator

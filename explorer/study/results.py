@@ -18,11 +18,11 @@ from explorer.errors import UserError
 from explorer.model.reference import REFERENCES
 from explorer.space import Candidate
 from explorer.study.config import DEFAULT_BASELINES, study_config, study_context
-from explorer.study.evaluators import _batches, recalibrate_batchnorm
 from explorer.study.records import study_record, trial_record
 from explorer.study.retry import interrupted_trials, retries_by_origin
 from explorer.study.storage import load_study
 from explorer.supernet import load_supernet
+from explorer.supernet.evaluators import loaded_batches, recalibrate_batchnorm
 from explorer.training.train import network_from_checkpoint
 
 BASELINE_LABELS = {"paper": "paper design", "paper-nee": "paper design, no early exit",
@@ -417,7 +417,7 @@ def _supernet_network(study: optuna.Study, trial: optuna.trial.FrozenTrial):
     cfg = study_config(study)
     calibration = open_dataset(cfg.data, "train", cfg.train_size, train_augment=False)
     sub = net.extract(Candidate.from_dict(rec.candidate))
-    recalibrate_batchnorm(sub, _batches(calibration, 64, 32))
+    recalibrate_batchnorm(sub, loaded_batches(calibration, 64, 32))
     return sub
 
 

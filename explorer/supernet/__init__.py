@@ -1,5 +1,6 @@
 """A weight-sharing supernet over a search space: trained once per (space, data, recipe), then every
-candidate of the space is a slice of it (the design guide, docs/design.md: "Evaluators")."""
+candidate of the space is a slice of it (the design guide, docs/design.md: "Evaluators"). :mod:`.evaluators`
+estimates a candidate's accuracy during a search: its slice of the supernet, or a short training of its own."""
 
 from explorer.supernet._slicing import super_name
 from explorer.supernet.fidelity import describe_fidelity, measured_fidelity, store_fidelity

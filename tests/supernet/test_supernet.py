@@ -14,11 +14,11 @@ import torch
 from conftest import TINY_DATA
 from explorer.data import open_dataset
 from explorer.errors import UserError
-from explorer.study._stagewise import StageMemo, _StageResult
-from explorer.study.evaluators import SupernetEvaluator, recalibrate_batchnorm
 from explorer.space import SearchSpace
 from explorer.supernet import (Supernet, SupernetRecipe, largest_candidate, load_supernet, random_training_subnet,
                                train_supernet)
+from explorer.supernet._stagewise import StageMemo, _StageResult
+from explorer.supernet.evaluators import SupernetEvaluator, recalibrate_batchnorm
 from explorer.training.train import multi_exit_loss
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -2,7 +2,7 @@
 
 import torch
 
-from explorer.study.evaluators import frames_per_batch
+from explorer.supernet.evaluators import frames_per_batch
 
 
 def test_a_gpu_takes_each_frame_set_as_one_batch_and_a_cpu_batches_of_32():

@@ -181,7 +181,7 @@ def _run_stage(module: torch.nn.Module, spec: StageSpec, calibration: list[dict]
 def evaluate_stagewise(specs: list[StageSpec], stage_module: Callable[[StageSpec], torch.nn.Module],
                        encoder: SharedEncoder, cal_frames: Frames, val_frames: Frames, memo: StageMemo) -> pd.DataFrame:
     """The per-path metrics on the validation frames of the network of stages ``specs``, its statistics
-    recalibrated, exactly as :func:`explorer.study.evaluators.recalibrate_batchnorm` then
+    recalibrated, exactly as :func:`explorer.supernet.evaluators.recalibrate_batchnorm` then
     :func:`explorer.training.train.evaluate` would give them, reusing what ``memo`` and ``encoder``
     hold. ``stage_module(spec)`` makes a stage's module with its weights, for the stages ``memo``
     lacks: the others are never built."""

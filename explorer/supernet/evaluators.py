@@ -19,7 +19,7 @@ import torch
 
 from explorer.model import AnytimeDepthNet, build_network
 from explorer.space import Candidate
-from explorer.study._stagewise import (
+from explorer.supernet._stagewise import (
     Frames,
     SharedEncoder,
     StageMemo,
@@ -27,11 +27,11 @@ from explorer.study._stagewise import (
     feature_blocks,
     recalibrating,
 )
-from explorer.supernet import load_supernet
+from explorer.supernet.train import load as load_supernet
 from explorer.training.train import TrainConfig, batch_row, evaluate, image_batch, train
 
 EVALUATORS = ("supernet", "proxy")
-#: the stage memo's outputs at most (:class:`explorer.study._stagewise.StageMemo`). A decoder stage's
+#: the stage memo's outputs at most (:class:`explorer.supernet._stagewise.StageMemo`). A decoder stage's
 #: outputs on the calibration and validation frames take 40-80 MB: replaying a default search's 178
 #: candidates, 2 GiB of them spared about 15% of the stage computations that 512 MiB made, and held a
 #: search at 5 GB while sampling (``bench_search_memory`` measures a search's peak)
@@ -77,7 +77,7 @@ def recalibrate_batchnorm(net: torch.nn.Module, batches: list[dict]) -> None:
             net(image_batch(b, device), b["scan"].to(device), batch_row(b))
 
 
-def _batches(dataset, count: int, batch_size: int) -> list[dict]:
+def loaded_batches(dataset, count: int, batch_size: int) -> list[dict]:
     """The first ``count`` items of ``dataset`` as in-memory batches (loaded once, reused)."""
     from torch.utils.data import DataLoader
     items = [dataset[i] for i in range(min(count, len(dataset)))]
@@ -94,7 +94,7 @@ class SupernetEvaluator:
     """A candidate's slice of a trained supernet, BatchNorm recalibrated, evaluated.
 
     ``stagewise`` (the default) evaluates stage by stage and keeps each stage's results for the
-    candidates that share it (:mod:`explorer.study._stagewise`: the image encoder per width, decoder
+    candidates that share it (:mod:`explorer.supernet._stagewise`: the image encoder per width, decoder
     stages and exit heads by what they read, up to ``memo_bytes`` of kept outputs); the result is
     the same as recalibrating and evaluating each candidate whole (``stagewise=False``).
     ``require_complete=False`` takes a supernet short of its steps (a search's time limit stopped it).
@@ -112,8 +112,8 @@ class SupernetEvaluator:
         self.device = device
         if batch_size is None:
             batch_size = frames_per_batch(device, calibration_images, val_limit or len(val_set))
-        self.calibration = _batches(train_set, calibration_images, batch_size)
-        self.validation = _batches(val_set, val_limit or len(val_set), batch_size)
+        self.calibration = loaded_batches(train_set, calibration_images, batch_size)
+        self.validation = loaded_batches(val_set, val_limit or len(val_set), batch_size)
         self.stagewise = stagewise
         if stagewise:
             self._frames = Frames.of(self.calibration, device), Frames.of(self.validation, device)
