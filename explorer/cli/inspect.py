@@ -164,9 +164,10 @@ def cmd_data_inspect(args) -> None:
     n = len(ds) if not args.frames else min(args.frames, len(ds))
     if n == 0:
         raise UserError(f"data {args.data}: the {args.split} split is empty")
-    avg, dmin, dmax, valid, scan_valid, rows = MetricAverager(), np.inf, 0.0, [], [], []
+    avg, dmin, dmax, valid, scan_valid, rows, posed = MetricAverager(), np.inf, 0.0, [], [], [], 0
     for i in range(n):
         item = ds[i]
+        posed += bool(item.get("pose_known", False))
         d = item["depth"]
         pos = d[d > 0]
         if pos.numel():
@@ -182,6 +183,7 @@ def cmd_data_inspect(args) -> None:
            "depth_range_m": [dmin, dmax], "valid_depth_fraction": float(np.mean(valid)),
            "scan_return_fraction": float(np.mean(scan_valid)), "scan_row": item["scan_row"],
            "scan_rows_range": [int(rows.min()), int(rows.max())], "path0": avg.result(),
+           "posed_frames": posed if getattr(ds, "sequence", False) else None,
            "splits": _splits(ds, other, args.split), "source": _source_facts(ds)}
     if args.out:
         _draw_scan(ds[0], Path(args.out))
@@ -227,12 +229,18 @@ def _print_inspection(console, res: dict, args) -> None:
         console.print("  pairing: " + ", ".join(f"{k} {v}" for k, v in res["source"]["counts"].items()))
     lo, hi = res["scan_rows_range"]
     where = f"row {lo}" if lo == hi else f"rows {lo}-{hi} (median {res['scan_row']})"
-    console.print(f"  depth {res['depth_range_m'][0]:.2f}-{res['depth_range_m'][1]:.2f} m, "
-                  f"{res['valid_depth_fraction']:.1%} of pixels valid; scan on {where}, "
-                  f"{res['scan_return_fraction']:.1%} of columns with a return")
+    depth = (f"depth {res['depth_range_m'][0]:.2f}-{res['depth_range_m'][1]:.2f} m, "
+             f"{res['valid_depth_fraction']:.1%} of pixels valid" if res["valid_depth_fraction"] > 0 else "no depth")
+    console.print(f"  {depth}; scan on {where}, {res['scan_return_fraction']:.1%} of columns with a return")
     p0 = res["path0"]
-    console.print(f"  path 0 (scan, nearest): RMSE {p0['rmse']:.3f} m, REL {p0['rel']:.3f}, "
-                  f"delta1 {p0['delta1']:.3f}")
+    if res["valid_depth_fraction"] > 0:
+        console.print(f"  path 0 (scan, nearest): RMSE {p0['rmse']:.3f} m, REL {p0['rel']:.3f}, "
+                      f"delta1 {p0['delta1']:.3f}")
+    else:
+        console.print("  no depth: a study scores each path by its photometric error (--metric photometric)")
+    if res["posed_frames"] is not None:
+        console.print(f"  camera motion known for {res['posed_frames']} of {res['inspected']} inspected frames (given, "
+                      "or measured by the LiDAR on validation frames; a frame without it is not scored photometrically)")
     if res.get("png"):
         console.print(f"  the first frame with its scan drawn over it: {res['png']}")
 

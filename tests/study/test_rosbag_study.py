@@ -72,6 +72,9 @@ def test_a_study_on_a_bag_without_depth_scores_its_paths_by_the_motion_its_lidar
     from explorer.study.records import trial_record
     recording = scene(n=36, h=48, w=64, whole_room=True)   # a LiDAR that sees the side walls near the far one
     bag = write_bag(tmp_path / "run.bag", recording, "ros1", depth=None)
+    code, out, err = run_cli("data", "inspect", "--data", f"rosbag-seq:{bag}", "--input-size", "48x64", "--json")
+    facts = json.loads(out)
+    assert code == 0 and facts["valid_depth_fraction"] == 0 and facts["posed_frames"] == facts["inspected"] > 0
     code, out, err = run_cli("search", "--study", "nodepth", "--reports", tmp_path, "--data", f"rosbag-seq:{bag}",
                              "--supervision", "self", "--no-baselines", *TINY)
     assert code == 0, err
