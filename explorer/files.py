@@ -178,8 +178,7 @@ def writing_atomically(path: str | Path, mode: str = "wb") -> Iterator[Any]:
     under the usual umask): ``mkstemp`` makes its scratch private, and an export or a profile is often
     read by another user or a service."""
     p = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=f".tmp{os.getpid()}", dir=p.parent)
-    os.fchmod(fd, 0o666 & ~current_umask())
+    fd, tmp = _scratch_beside(p)
     try:
         with os.fdopen(fd, mode) as f:
             yield f
@@ -189,6 +188,35 @@ def writing_atomically(path: str | Path, mode: str = "wb") -> Iterator[Any]:
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+
+
+@contextmanager
+def replacing_file(path: str | Path) -> Iterator[Path]:
+    """:func:`writing_atomically` for a writer that opens the file itself by name (an HDF5 file): yields
+    the scratch's path (``.NAME.XXXX.tmpPID``, made empty, to be opened for writing and closed within the
+    block), flushed to disk and renamed onto ``path`` when the block ends, removed when it raises (an
+    error or Ctrl-C): readers, and a process killed midway, never see half a file."""
+    p = Path(path)
+    fd, tmp = _scratch_beside(p)
+    os.close(fd)
+    try:
+        yield Path(tmp)
+        fd = os.open(tmp, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+        os.replace(tmp, p)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def _scratch_beside(p: Path) -> tuple[int, str]:
+    """A new scratch file beside ``p`` (its descriptor and name), with the mode a plain ``open`` gives."""
+    fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=f".tmp{os.getpid()}", dir=p.parent)
+    os.fchmod(fd, 0o666 & ~current_umask())
+    return fd, tmp
 
 
 def current_umask() -> int:

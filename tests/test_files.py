@@ -95,6 +95,26 @@ def test_write_atomically_replaces_whole_and_leaves_no_scratch(tmp_path):
     assert json.loads(write_json(target, [1, 2]).read_text()) == [1, 2]
 
 
+@pytest.mark.parametrize("stop", [RuntimeError, KeyboardInterrupt])
+def test_a_file_written_by_name_replaces_whole_or_leaves_the_old_one(tmp_path, stop):
+    """``replacing_file``, for writers that open the file by name (HDF5): the target changes only when
+    the block ends; an error or Ctrl-C midway leaves the old file and no scratch."""
+    from explorer.files import current_umask, replacing_file
+    target = tmp_path / "cache.h5"
+    target.write_bytes(b"old")
+    with pytest.raises(stop):
+        with replacing_file(target) as scratch:
+            assert scratch.parent == tmp_path and scratch.is_file() and scratch != target
+            scratch.write_bytes(b"half")
+            raise stop()
+    assert target.read_bytes() == b"old" and os.listdir(tmp_path) == ["cache.h5"]
+    with replacing_file(target) as scratch:
+        scratch.write_bytes(b"new")
+        assert target.read_bytes() == b"old"   # not yet
+    assert target.read_bytes() == b"new" and os.listdir(tmp_path) == ["cache.h5"]
+    assert target.stat().st_mode & 0o777 == 0o666 & ~current_umask()
+
+
 @pytest.mark.slow
 def test_a_writer_killed_midway_leaves_the_old_file(tmp_path):
     """A child writes a large file over and over; killed at random moments, the target always holds

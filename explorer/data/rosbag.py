@@ -31,7 +31,6 @@ import json
 import math
 import os
 import re
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -65,7 +64,7 @@ from explorer.data.sequences import SequenceSample
 from explorer.data.splits import VAL_SHARE, parse_share, split_range
 from explorer.data.synthetic import cache_dir
 from explorer.errors import UserError
-from explorer.files import read_yaml, remove_dead_scratch
+from explorer.files import read_yaml, remove_dead_scratch, replacing_file
 
 try:   # imported here so that tests can stand in for it
     from rosbags.highlevel import AnyReader, AnyReaderError
@@ -394,15 +393,9 @@ def build_cache(path: Path, opts: BagOptions) -> Path:
         plan = _plan(_survey(reader, topics, where), topics, opts, where)
         target.parent.mkdir(parents=True, exist_ok=True)
         remove_dead_scratch(target.parent)
-        fd, tmp = tempfile.mkstemp(prefix=f"{target.stem}.", suffix=f".tmp{os.getpid()}", dir=target.parent)
-        os.close(fd)
-        try:
-            with h5py.File(tmp, "w") as h5:
-                _decode_into(reader, topics, plan, h5, where)
-                _write_meta(h5, plan, topics)
-            os.replace(tmp, target)
-        finally:
-            Path(tmp).unlink(missing_ok=True)
+        with replacing_file(target) as tmp, h5py.File(tmp, "w") as h5:
+            _decode_into(reader, topics, plan, h5, where)
+            _write_meta(h5, plan, topics)
     except AnyReaderError as exc:
         raise UserError(f"{path}: a message does not decode ({_first_line(exc)})") from None
     finally:

@@ -15,7 +15,6 @@ transform from the target camera to each source camera (identity when unknown) a
 from __future__ import annotations
 
 import hashlib
-import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Protocol
@@ -38,7 +37,7 @@ from explorer.data.synthetic import (
     render_room,
     sample_room,
 )
-from explorer.files import remove_dead_scratch
+from explorer.files import remove_dead_scratch, replacing_file
 
 #: Frames rendered per synthetic room; the middle ones are targets (each needs both neighbours).
 CLIP = 5
@@ -137,33 +136,27 @@ def generate_sequences(config: SyntheticSequenceConfig, path: Path,
     import h5py
     path.parent.mkdir(parents=True, exist_ok=True)
     remove_dead_scratch(path.parent)   # what a generation killed earlier (SIGTERM, kill -9) left
-    tmp = path.with_suffix(f".tmp{os.getpid()}")
     clips = {s: -(-n // TARGETS_PER_CLIP) for s, n in (("train", config.train), ("val", config.val))}
     total, done = (clips["train"] + clips["val"]) * CLIP, 0
     h, w = config.height, config.width
-    try:
-        with h5py.File(tmp, "w") as f:
-            f.attrs["config"] = repr(config)
-            f.attrs["K"] = intrinsics(h, w)
-            for split, offset in (("train", 0), ("val", 10_000_000)):
-                g = f.create_group(split)
-                g.attrs["targets"] = getattr(config, split)
-                n = clips[split]
-                rgb = g.create_dataset("rgb", (n, CLIP, h, w, 3), np.uint8, chunks=(1, CLIP, h, w, 3), compression="lzf")
-                dep = g.create_dataset("depth", (n, CLIP, h, w), np.float16, chunks=(1, CLIP, h, w), compression="lzf")
-                pos = g.create_dataset("pose", (n, CLIP, 4, 4), np.float64)
-                jobs = [(config.seed, offset + i, h, w) for i in range(n)]
-                with _pool() as pool:
-                    clips_iter = pool.imap(_render_clip, jobs, chunksize=2) if pool else map(_render_clip, jobs)
-                    for i, (im, dp, ps) in enumerate(clips_iter):
-                        rgb[i], dep[i], pos[i] = im, dp, ps
-                        done += CLIP
-                        if progress:
-                            progress(done, total)
-    except BaseException:   # an error or Ctrl-C: no scratch left behind
-        tmp.unlink(missing_ok=True)
-        raise
-    os.replace(tmp, path)
+    with replacing_file(path) as tmp, h5py.File(tmp, "w") as f:   # an error or Ctrl-C: no scratch left
+        f.attrs["config"] = repr(config)
+        f.attrs["K"] = intrinsics(h, w)
+        for split, offset in (("train", 0), ("val", 10_000_000)):
+            g = f.create_group(split)
+            g.attrs["targets"] = getattr(config, split)
+            n = clips[split]
+            rgb = g.create_dataset("rgb", (n, CLIP, h, w, 3), np.uint8, chunks=(1, CLIP, h, w, 3), compression="lzf")
+            dep = g.create_dataset("depth", (n, CLIP, h, w), np.float16, chunks=(1, CLIP, h, w), compression="lzf")
+            pos = g.create_dataset("pose", (n, CLIP, 4, 4), np.float64)
+            jobs = [(config.seed, offset + i, h, w) for i in range(n)]
+            with _pool() as pool:
+                clips_iter = pool.imap(_render_clip, jobs, chunksize=2) if pool else map(_render_clip, jobs)
+                for i, (im, dp, ps) in enumerate(clips_iter):
+                    rgb[i], dep[i], pos[i] = im, dp, ps
+                    done += CLIP
+                    if progress:
+                        progress(done, total)
     return path
 
 

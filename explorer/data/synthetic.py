@@ -17,7 +17,7 @@ from typing import Callable
 
 import numpy as np
 
-from explorer.files import remove_dead_scratch
+from explorer.files import remove_dead_scratch, replacing_file
 
 MIN_DEPTH, MAX_DEPTH = 0.5, 10.0
 HFOV_DEG = 60.0  # NYU's Kinect: ~58-63 degrees
@@ -290,29 +290,23 @@ def generate(config: SyntheticConfig, path: Path,
     import h5py
     path.parent.mkdir(parents=True, exist_ok=True)
     remove_dead_scratch(path.parent)   # what a generation killed earlier (SIGTERM, kill -9) left
-    tmp = path.with_suffix(f".tmp{os.getpid()}")
     total, done = config.train + config.val, 0
-    try:
-        with h5py.File(tmp, "w") as f:
-            f.attrs["config"] = repr(config)
-            for split, count, offset in (("train", config.train, 0), ("val", config.val, 10_000_000)):
-                g = f.create_group(split)
-                rgb = g.create_dataset("rgb", (count, config.height, config.width, 3), np.uint8,
-                                       chunks=(1, config.height, config.width, 3), compression="lzf")
-                dep = g.create_dataset("depth", (count, config.height, config.width), np.float16,
-                                       chunks=(1, config.height, config.width), compression="lzf")
-                jobs = [(config.seed, offset + i, config.height, config.width) for i in range(count)]
-                with _pool() as pool:
-                    frames = pool.imap(_render_job, jobs, chunksize=8) if pool else map(_render_job, jobs)
-                    for i, (im, dp) in enumerate(frames):
-                        rgb[i], dep[i] = im, dp
-                        done += 1
-                        if progress:
-                            progress(done, total)
-    except BaseException:   # an error or Ctrl-C: no scratch left behind
-        tmp.unlink(missing_ok=True)
-        raise
-    os.replace(tmp, path)
+    with replacing_file(path) as tmp, h5py.File(tmp, "w") as f:   # an error or Ctrl-C: no scratch left
+        f.attrs["config"] = repr(config)
+        for split, count, offset in (("train", config.train, 0), ("val", config.val, 10_000_000)):
+            g = f.create_group(split)
+            rgb = g.create_dataset("rgb", (count, config.height, config.width, 3), np.uint8,
+                                   chunks=(1, config.height, config.width, 3), compression="lzf")
+            dep = g.create_dataset("depth", (count, config.height, config.width), np.float16,
+                                   chunks=(1, config.height, config.width), compression="lzf")
+            jobs = [(config.seed, offset + i, config.height, config.width) for i in range(count)]
+            with _pool() as pool:
+                frames = pool.imap(_render_job, jobs, chunksize=8) if pool else map(_render_job, jobs)
+                for i, (im, dp) in enumerate(frames):
+                    rgb[i], dep[i] = im, dp
+                    done += 1
+                    if progress:
+                        progress(done, total)
     return path
 
 
