@@ -42,3 +42,23 @@ def test_a_search_in_a_folder_that_cannot_be_written_is_one_line(run_cli):
     code, _, err = run_cli("search", "--space", "tiny", "--trials", "1", "--storage", "journal:/proc/j.log")
     assert code == 2 and "give --reports or --storage a folder you can write" in err, err
     assert len(err.strip().splitlines()) == 1
+
+
+def _no_work(*args, **kwargs):
+    raise AssertionError("the command went on to its work")
+
+
+@pytest.mark.parametrize("command", [["train", "paper", "--steps", "1", "--out", "/proc/x/ck.pt"],
+                                     ["supernet", "train", "--space", "tiny", "--steps", "1",
+                                      "--out", "/proc/x/sn.pt"]])
+def test_training_onto_a_folder_that_cannot_be_written_is_one_line_before_any_training(run_cli, monkeypatch,
+                                                                                       command):
+    import explorer.data
+    import explorer.supernet
+    import explorer.training.train
+    monkeypatch.setattr(explorer.data, "open_dataset", _no_work)
+    monkeypatch.setattr(explorer.training.train, "train", _no_work)
+    monkeypatch.setattr(explorer.supernet, "train_supernet", _no_work)
+    code, _, err = run_cli(*command)
+    assert code == 2 and "/proc/x: cannot write the" in err and "give --out" in err, err
+    assert len(err.strip().splitlines()) == 1
