@@ -144,14 +144,19 @@ def read_image(path: Path, mode: str | None = None) -> np.ndarray:
 def read_yaml(path: str | Path, what: str = "YAML file") -> Any:
     """A user's YAML file, parsed safely (no Python objects, no alias bombs)."""
     p = Path(path)
-    text = read_text(p, what)
+    return parse_yaml(read_text(p, what), str(p))
+
+
+def parse_yaml(text: str, source: str) -> Any:
+    """YAML ``text`` (a file's, or one a study stored) parsed as :func:`read_yaml` parses a file; what is
+    not valid YAML is one UserError line naming ``source``."""
     try:
         return _load_yaml(text)
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f" (line {mark.line + 1})" if mark else ""
         problem = getattr(exc, "problem", None) or (str(exc).splitlines() or [type(exc).__name__])[0]
-        raise UserError(f"{p}: not valid YAML{where}: {problem}") from None
+        raise UserError(f"{source}: not valid YAML{where}: {problem}") from None
 
 
 def read_json(path: str | Path, what: str = "JSON file") -> Any:

@@ -250,9 +250,11 @@ def _print_outcome(study, cfg, storage_url: str, reports: Path, write_report: bo
 def cmd_rescore(args) -> None:
     from explorer.cli._rescore import print_rescored
     from explorer.console import print_json
+    from explorer.study.config import study_context
     from explorer.study.results import rescore
     from explorer.study.storage import load_study
     study = load_study(args.study, args.storage, Path(args.reports))
+    study_context(study)   # its stored settings, space and profile: a damaged one is one line
     frame = rescore(study, args.device, args.budget, args.metric)
     if frame.empty:
         raise UserError(f"study '{args.study}' has no completed trial to re-score yet")
@@ -268,14 +270,14 @@ def cmd_envelope(args) -> None:
     import pandas as pd
 
     from explorer.console import console, print_frame, print_json, progress
-    from explorer.study.config import study_config
+    from explorer.study.config import study_context
     from explorer.report import write_report
     from explorer.study.envelope import envelope, train_envelope
     from explorer.study.storage import load_study, local_url, searching_alone
     if args.networks < 1:
         raise UserError("--networks must be at least 1")
     study = load_study(args.study, args.storage, Path(args.reports))
-    config = study_config(study)
+    config = study_context(study).config   # a damaged stored space or profile is one line before any work
     deadline = time.time() + args.time_limit if args.time_limit else None
     train_on_free_cores()
     url = args.storage or local_url(args.study, Path(args.reports))
@@ -307,7 +309,9 @@ def cmd_report(args) -> None:
     from explorer.report import write_report
     from explorer.study.storage import load_study
     from explorer.files import check_writable_folder
+    from explorer.study.config import study_context
     study = load_study(args.study, args.storage, Path(args.reports))
+    study_context(study)   # its stored settings, space and profile: a damaged one is one line, nothing written
     out = Path(args.out) if args.out else Path(args.reports) / args.study
     check_writable_folder(out, "report", "give --out a folder you can write")
     path = write_report(study, out_dir=out, devices=args.device, budgets=args.budget, data=args.data,

@@ -7,13 +7,12 @@ import json
 from dataclasses import dataclass
 from typing import Callable
 
-import yaml
-
 from explorer.anytime import BudgetDistribution, parse_budget
 from explorer.cost import get_device
 from explorer.cost.devices import DeviceProfile, check_budget_priced
 from explorer.data import SCORES, parse_data_spec
 from explorer.errors import UserError
+from explorer.files import parse_yaml
 from explorer.model.reference import REFERENCES, ReferenceModel
 from explorer.space import (
     Candidate,
@@ -253,11 +252,34 @@ def study_context(study) -> StudyContext:
     stored them: an edited space file or a recalibrated profile does not change a finished study), and
     its budgets."""
     config, stored = study_config(study), study_record(study)
-    space = (SearchSpace.from_dict(yaml.safe_load(stored.space_yaml), source=config.space) if stored.space_yaml
+    space = (_stored_space(study.study_name, stored.space_yaml, config.space) if stored.space_yaml
              else SearchSpace.from_yaml(config.space))
     device = (DeviceProfile.from_dict(stored.device_profile, "study") if stored.device_profile
               else get_device(config.device))
     return StudyContext(config, space, device, tuple(parse_budget(b) for b in config.budgets))
+
+
+def stored_config(storage, name: str) -> dict | None:
+    """The settings the study ``name`` stored in ``storage`` (None where there is no such study yet), read
+    after its whole context (settings, space, device profile): a resumed study's damaged one is one line
+    before any work (the data generated, the machine measured)."""
+    import optuna
+    try:
+        study = optuna.load_study(study_name=name, storage=storage)
+    except KeyError:
+        return None
+    study_context(study)
+    return study_record(study).config
+
+
+def _stored_space(study: str, text: str, source: str) -> SearchSpace:
+    """The space a study stored (its YAML text), or one line naming the study when it is damaged (not
+    YAML, nested past the reader's bound, not a valid space)."""
+    try:
+        return SearchSpace.from_dict(parse_yaml(text, source), source=source)
+    except UserError as exc:
+        raise UserError(f"study '{study}''s stored space is damaged ({exc}): restore the study's storage, "
+                        "or search again under a new --study") from None
 
 
 def study_config(study) -> SearchConfig:

@@ -37,6 +37,7 @@ from explorer.study.config import (  # noqa: F401
     baseline_model,
     json_safe,
     objective_names,
+    stored_config,
     study_context,
 )
 from explorer.study.finalists import (
@@ -245,13 +246,6 @@ def ensure_supernet(context: StudyContext, progress: Callable[[int, int, dict], 
         progress=progress, data_progress=data_progress, deadline=deadline)
 
 
-def _existing_config(storage: optuna.storages.BaseStorage, name: str) -> dict | None:
-    try:
-        return study_record(optuna.load_study(study_name=name, storage=storage)).config
-    except KeyError:
-        return None
-
-
 def _cached_supernet_steps(space: SearchSpace, config: SearchConfig) -> list[int]:
     """Step counts of the finished supernets cached for this space, data and recipe (steps aside)."""
     found = []
@@ -291,7 +285,7 @@ def plan_search(context: StudyContext, storage: optuna.storages.BaseStorage, lim
     to what is left of ``limit`` (see explorer.study.planning)."""
     config = context.config
     free = set(limit.free)
-    old = _existing_config(storage, config.study)
+    old = stored_config(storage, config.study)   # a damaged one is one line before any work
     if old and "supernet_steps" in free and "supernet_steps" in old:
         config = dataclasses.replace(config, supernet_steps=int(old["supernet_steps"]))  # the study's supernet
         free.discard("supernet_steps")

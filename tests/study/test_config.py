@@ -85,3 +85,45 @@ def test_a_study_stored_before_baselines_were_named_still_reads():
     record_study(study, config={**SearchConfig(study="s").to_dict(), "baselines": True, "input_size": [96, 128]})
     config = study_config(study)
     assert config.baselines == DEFAULT_BASELINES and config.input_size == (96, 128)
+
+
+@pytest.fixture(scope="module")
+def tiny_study(tmp_path_factory):
+    """A one-trial study of the tiny space in a journal (copied by each test before damaging it)."""
+    from explorer.study.search import SearchConfig, search
+    from conftest import TINY_DATA
+    folder = tmp_path_factory.mktemp("tiny-study")
+    cfg = SearchConfig(study="s", space="tiny", data=TINY_DATA, train_size=(32, 32), input_size=(64, 64),
+                       train_steps=2, batch_size=8, val_limit=8, evaluator="proxy", finalists=0)
+    search(cfg, f"journal:{folder / 's.log'}", n_trials=1, timeout_s=None, reports=folder)
+    return folder / "s.log"
+
+
+DAMAGED_SPACES = {"not YAML": "name: [unclosed\n", "nested too deep": "[" * 5000,
+                  "not a space": "- a list\n", "an unknown section": "name: x\nwings: {span: [3]}\n"}
+
+
+@pytest.mark.parametrize("damage", DAMAGED_SPACES)
+@pytest.mark.parametrize("command", ["report", "rescore", "envelope", "search"])
+def test_a_study_whose_stored_space_is_damaged_is_one_line_naming_it(tmp_path, tiny_study, run_cli, damage, command):
+    import shutil
+
+    import optuna
+
+    from conftest import TINY_DATA
+    journal = tmp_path / "s.log"
+    shutil.copy(tiny_study, journal)
+    storage = optuna.storages.JournalStorage(optuna.storages.journal.JournalFileBackend(str(journal)))
+    optuna.load_study(study_name="s", storage=storage).set_user_attr("space_yaml", DAMAGED_SPACES[damage])
+    files = lambda: sorted(str(p.relative_to(tmp_path)) for p in tmp_path.rglob("*"))  # noqa: E731
+    before = files(), journal.read_bytes()
+    args = {"report": ["report", "--out", tmp_path / "r"],
+            "rescore": ["rescore", "--device", "tx2", "--budget", "time:uniform:33ms"],
+            "envelope": ["envelope", "--networks", "1"],
+            "search": ["search", "--space", "tiny", "--data", TINY_DATA, "--train-size", "32x32", "--input-size",
+                       "64x64", "--proxy-steps", "2", "--batch-size", "8", "--no-report", "--evaluator", "proxy",
+                       "--finalists", "0", "--trials", "2"]}[command]
+    code, _, err = run_cli(*args, "--study", "s", "--storage", f"journal:{journal}", "--reports", tmp_path)
+    assert code == 2 and len(err.strip().splitlines()) == 1, err
+    assert "study 's''s stored space is damaged" in err and "restore the study's storage" in err, err
+    assert (files(), journal.read_bytes()) == before
