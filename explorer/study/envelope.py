@@ -36,7 +36,7 @@ from explorer.study.objective import Objective
 from explorer.study.planning import SAFETY
 from explorer.study.records import record_values, trial_record
 from explorer.study.results import trial_losses, trial_path_costs, winner
-from explorer.study.storage import REPORTS_DIR, local_url, study_dir
+from explorer.study.storage import REPORTS_DIR, local_url, redacted, study_dir
 from explorer.training.deployment import DeploymentRecipe
 
 #: dedicated networks ``explorer envelope`` retrains unless told otherwise
@@ -269,14 +269,11 @@ def envelope_command(study: str, storage_url: str | None = None, reports: Path |
     """The ``explorer envelope`` command for ``study``: with ``--storage`` where the study is not in its
     journal on this machine (a PostgreSQL database, a journal elsewhere; the password hidden), with
     ``--reports`` where that is not the default folder."""
-    from sqlalchemy.engine import make_url   # Optuna's RDB storage depends on it
     command = f"explorer envelope --study {study}"
     if reports is not None and Path(reports) != REPORTS_DIR:
         command += f" --reports {reports}"
     if storage_url and storage_url != local_url(study, reports if reports is not None else REPORTS_DIR):
-        if "://" in storage_url:
-            storage_url = make_url(storage_url).render_as_string(hide_password=True)
-        command += f" --storage {storage_url}"
+        command += f" --storage {redacted(storage_url)}"
     return command
 
 

@@ -131,8 +131,7 @@ def open_storage(url: str | None, study: str, workers: int = 1, reports: Path = 
         storage = _rdb_storage(url, kwargs)
     except Exception as exc:  # sqlalchemy raises many types for unreachable or malformed URLs
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        secret = _password(url)
-        if secret:
+        for secret in _passwords(url):
             first = first.replace(secret, "***")
         raise UserError(f"storage {redacted(url)}: unreachable or invalid ({first[:160]})") from None
     if create and url.startswith("sqlite:///") and not on_network_filesystem(Path(url[len("sqlite:///"):])):
@@ -368,14 +367,40 @@ def load_study(study: str, url: str | None = None, reports: Path = REPORTS_DIR) 
         raise UserError(f"no study named '{study}' in that storage (it has: {names or 'none'})") from None
 
 
-_PASSWORD = re.compile(r"^([a-z0-9+.-]+://[^:/@]*:)([^@/]*)@", re.IGNORECASE)
+_SCHEME = re.compile(r"^[a-z0-9+.-]+://", re.IGNORECASE)
+#: a password given as a query parameter (libpq takes ?password=...)
+_QUERY_PASSWORD = re.compile(r"(?<![^&])((?:password|passwd)=)([^&#]*)", re.IGNORECASE)
 
 
-def _password(url: str) -> str:
-    m = _PASSWORD.match(url)
-    return m.group(2) if m else ""
+def _parts(url: str) -> tuple[str, str, str, str, str] | None:
+    """(scheme://, user, password, host and path, query) of a URL with a scheme, else None. The user part
+    ends at the last '@' before the query, so a password holding '/' or '@' is the password whole."""
+    m = _SCHEME.match(url)
+    if not m:
+        return None
+    base, _, query = url[m.end():].partition("?")
+    userinfo, at, host = base.rpartition("@")
+    if not at or userinfo.startswith("/") or ":" not in userinfo:   # no password (sqlite:///a:b@c.db)
+        return m.group(0), "", "", base, query
+    user, _, password = userinfo.partition(":")
+    return m.group(0), user, password, host, query
+
+
+def _passwords(url: str) -> list[str]:
+    parts = _parts(url)
+    if parts is None:
+        return []
+    return [p for p in (parts[2], *(v for _, v in _QUERY_PASSWORD.findall(parts[4]))) if p]
 
 
 def redacted(url: str) -> str:
-    """``url`` with its password, if any, written as ``***``: what may be printed or logged."""
-    return _PASSWORD.sub(lambda m: f"{m.group(1)}***@" if m.group(2) else m.group(0), url, count=1)
+    """``url`` with its passwords, if any, written as ``***`` (user:PASSWORD@host, ?password=...): what
+    may be printed or logged."""
+    parts = _parts(url)
+    if parts is None:
+        return url
+    scheme, user, password, host, query = parts
+    base, mark, _ = url[len(scheme):].partition("?")
+    if password:
+        base = f"{user}:***@{host}"
+    return scheme + base + mark + _QUERY_PASSWORD.sub(lambda m: f"{m.group(1)}***" if m.group(2) else m.group(0), query)

@@ -237,3 +237,17 @@ def test_a_trial_killed_on_an_explicit_journal_is_retried_on_resume(tmp_path, ru
     states = {t.number: t.state for t in storage.load_study("cc", f"journal:{journal}").trials}
     assert states[killed.number] == optuna.trial.TrialState.FAIL
     assert optuna.trial.TrialState.RUNNING not in states.values()
+
+
+@pytest.mark.parametrize("url, shown", [
+    ("postgresql://root:S3cretPw@127.0.0.1:5999/x", "postgresql://root:***@127.0.0.1:5999/x"),
+    ("postgresql://root:S3cret/Pw@h/x", "postgresql://root:***@h/x"),           # a '/' in the password
+    ("postgresql://root:S3cret@Pw@h/x", "postgresql://root:***@h/x"),           # an '@' in it
+    ("postgresql://root@h/x?password=S3cretPw&sslmode=require", "postgresql://root@h/x?password=***&sslmode=require"),
+    ("postgresql://h/x?user=root&PASSWORD=S3cretPw", "postgresql://h/x?user=root&PASSWORD=***"),
+    ("mysql://root:S3cretPw@h:notaport/x", "mysql://root:***@h:notaport/x"),
+    ("sqlite:///a:b@c.db", "sqlite:///a:b@c.db"),                               # a file name, no password
+    ("postgresql://u:@h/x", "postgresql://u:@h/x"),
+])
+def test_a_storage_url_is_shown_with_every_password_masked(url, shown):
+    assert storage.redacted(url) == shown and "S3cret" not in storage.redacted(url)
