@@ -231,13 +231,16 @@ def current_umask() -> int:
     return umask
 
 
-def check_writable_folder(folder: str | Path, what: str, fix: str) -> Path:
+def check_writable_folder(folder: str | Path, what: str, fix: str, keep: bool = True) -> Path:
     """``folder`` made if absent and a file written there and removed again, before any work: a file in
     its place, a read-only folder or file system (even for root, whom permission bits do not stop), or
-    /proc is one line naming ``what`` would be written and how to ``fix`` it."""
+    /proc is one line naming ``what`` would be written and how to ``fix`` it. ``keep=False``: the
+    folders it made are removed again, for a command that makes them itself when it writes (one
+    refused later then leaves nothing)."""
     folder = Path(folder)
     if folder.exists() and not folder.is_dir():
         raise UserError(f"{folder}: is a file, not a folder for the {what}: {fix}")
+    missing = [f for f in (folder, *folder.parents) if not f.exists()]
     try:
         folder.mkdir(parents=True, exist_ok=True)
         fd, probe = tempfile.mkstemp(prefix=".explorer-write-check.", dir=folder)
@@ -245,6 +248,12 @@ def check_writable_folder(folder: str | Path, what: str, fix: str) -> Path:
         os.unlink(probe)
     except OSError as exc:
         raise UserError(f"{folder}: cannot write the {what} there ({exc.strerror}): {fix}") from None
+    finally:
+        for made in missing if not keep else ():   # the deepest first; one that holds something stays
+            try:
+                made.rmdir()
+            except OSError:
+                break
     return folder
 
 

@@ -37,7 +37,7 @@ def cmd_train(args) -> None:
     check_spec_for(cfg, args.data)
     out = Path(args.out or f"reports/checkpoints/{candidate.key}.pt")
     check_checkpoint_target(out, candidate)
-    check_writable_folder(out.parent, "checkpoint", "give --out a file in a folder you can write")
+    check_writable_folder(out.parent, "checkpoint", "give --out a file in a folder you can write", keep=False)
     if cfg.exit_weights:
         console.print("exit loss weights: " + " ".join(f"{w:.3f}" for w in cfg.exit_weights))
     accelerator = resolve_accelerator(args.accelerator)
@@ -117,7 +117,7 @@ def cmd_supernet_train(args) -> None:
     space = SearchSpace.from_yaml(args.space)   # the numbers were checked by check_numbers (AT_LEAST)
     recipe = supernet_recipe(args)
     out = Path(args.out) if args.out else default_path(space, args.data, recipe)
-    check_writable_folder(out.parent, "supernet", "give --out a file in a folder you can write")
+    check_writable_folder(out.parent, "supernet", "give --out a file in a folder you can write", keep=False)
     train_on_free_cores()
     with progress() as bar:
         task = bar.add_task("supernet", total=recipe.steps, status="")
