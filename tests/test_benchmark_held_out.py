@@ -100,19 +100,25 @@ def test_networks_that_cannot_be_resolved_are_refused(text, message):
         resolve_networks(text, None, SearchConfig(study="s", space="tiny").resolve())
 
 
-def test_a_network_with_anytime_weights_is_trained_with_its_exits_anytime_shares(monkeypatch):
-    import experiments.lib.retraining as bench_held_out
-    from explorer.anytime import exit_loss_weights
-    from explorer.cost import candidate_cost
-
-    context = SearchConfig(study="s", data=TINY_DATA, input_size=(64, 64), train_size=(32, 32)).resolve()
+def _recipes_trained(monkeypatch) -> list:
+    """The training recipes retrained() hands over, collected instead of training (every path 1.0 m)."""
+    import experiments.lib.retraining as retraining
     seen = []
 
     def fake_training(net, data, recipe, accelerator):
         seen.append(recipe.train)
         return type("Result", (), {"metrics": {"rmse": [1.0] * net.candidate.num_paths}})()
 
-    monkeypatch.setattr(bench_held_out, "train_for_deployment", fake_training)
+    monkeypatch.setattr(retraining, "train_for_deployment", fake_training)
+    return seen
+
+
+def test_a_network_with_anytime_weights_is_trained_with_its_exits_anytime_shares(monkeypatch):
+    from explorer.anytime import exit_loss_weights
+    from explorer.cost import candidate_cost
+
+    context = SearchConfig(study="s", data=TINY_DATA, input_size=(64, 64), train_size=(32, 32)).resolve()
+    seen = _recipes_trained(monkeypatch)
     recipe = dataclasses.replace(context.config, finalist_steps=10).finalist_recipe()
     for weights in ("equal", "anytime"):
         retrained(Network(paper_candidate(), weights), recipe, 7, None, context)
@@ -123,20 +129,13 @@ def test_a_network_with_anytime_weights_is_trained_with_its_exits_anytime_shares
 
 
 def test_distill_trains_a_network_with_self_distillation_and_pairs_it_with_its_paper_design(monkeypatch):
-    import experiments.lib.retraining as bench_held_out
     context = SearchConfig(study="s", data=TINY_DATA, input_size=(64, 64), train_size=(32, 32)).resolve()
     networks = resolve_networks("paper,paper:distill=0.5,largest:distill=0.5", None, context)
     assert networks["paper_distill_0_5"] == Network(paper_candidate(), "equal", 0.5)
     assert reference_of("largest_distill_0_5", networks) == "paper_distill_0_5"
     with pytest.raises(SystemExit, match="not a number"):
         resolve_networks("paper,paper:distill=much", None, context)
-    seen = []
-
-    def fake_training(net, data, recipe, accelerator):
-        seen.append(recipe.train)
-        return type("Result", (), {"metrics": {"rmse": [1.0] * net.candidate.num_paths}})()
-
-    monkeypatch.setattr(bench_held_out, "train_for_deployment", fake_training)
+    seen = _recipes_trained(monkeypatch)
     recipe = dataclasses.replace(context.config, finalist_steps=10).finalist_recipe()
     retrained(networks["paper_distill_0_5"], recipe, 7, None, context)
     assert seen[0].self_distill == 0.5
