@@ -19,6 +19,7 @@ import time
 from pathlib import Path
 from typing import Sequence
 
+from explorer.deploy.manifest import Manifest, read_manifest
 from explorer.study import trial_record
 
 from benchmarks.harness import Bench, Case, RESULTS, ROOT, image_size, interleave, python_path, run_suite
@@ -427,10 +428,10 @@ def phase_spans(run: dict, search_end: float, export_s: float) -> dict[str, tupl
     return spans
 
 
-def export_gap(manifest: dict) -> float:
+def export_gap(manifest: Manifest) -> float:
     """The largest |error as exported - error as the study reported| over the winner's paths (RMSE, m)."""
-    study = manifest["source"]["study_path_metrics"]
-    return max(abs(a["rmse"] - b["rmse"]) for a, b in zip(manifest["path_metrics"], study))
+    study = manifest.source.study_path_metrics
+    return max(abs(a["rmse"] - b["rmse"]) for a, b in zip(manifest.path_metrics, study))
 
 
 def one_study(bench: Bench, args, rep: int, util: Utilisation) -> None:
@@ -458,7 +459,7 @@ def one_study(bench: Bench, args, rep: int, util: Utilisation) -> None:
         run, plan, trials = stored.runs[-1], stored.plan or {}, len(study.trials)
         best, paper = winner(study), baseline_trial(study, "paper", retrained=True)
         exported = Path(tmp) / "winner" / "manifest.json"
-        manifest = json.loads(exported.read_text()) if export_s is not None else None
+        manifest = read_manifest(exported.parent) if export_s is not None else None
         if args.keep:   # the study's report and the export's manifest, to read
             args.keep.mkdir(parents=True, exist_ok=True)
             shutil.copy(reports / name / "report.html", args.keep / f"report-{rep}.html")

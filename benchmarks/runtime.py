@@ -168,13 +168,13 @@ def int8_calls(bench: Bench, net, out: Path, runner, eager, feeds: dict) -> tupl
     runner8 = AnytimeRunner(q8)
     variants = {"int8_fp32": runner, "int8": runner8, "int8_no_handoff": AnytimeRunner(q8, handoff=False),
                 "int8_all": AnytimeRunner(out / "int8-all")}
-    bench.note("int8 export's stages: " + "; ".join(f"{st['name']} {st['precision']}" for st in m["stages"]))
+    bench.note("int8 export's stages: " + "; ".join(f"{st.name} {st.precision}" for st in m.stages))
     for key, mm in (("int8", m), ("int8_all", m_all)):
-        deg = mm["quantization"]["rmse_degradation"]
+        deg = mm.quantization.rmse_degradation
         bench.add(bench.figure(f"{key}_last_path_rmse_change", f"{INT8[key]}: last path RMSE change", "", "lower"),
                   deg[-1])
         bench.note(f"{INT8[key]}: RMSE change per path {' '.join(f'{100 * d:+.1f}%' for d in deg)} on "
-                   f"{mm['quantization']['evaluation']['frames']} frames; handed over: "
+                   f"{mm.quantization.evaluation.frames} frames; handed over: "
                    + (", ".join(f"{n} ({f})" for n, f in variants[key].handed_off.items()) or "none"))
     image, scan = feeds["image"][0], feeds["scan"][0]
     return {**{k: (lambda r=r: r.run(image, scan)) for k, r in variants.items()}, "int8_eager": eager}, runner8

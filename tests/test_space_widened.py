@@ -65,8 +65,8 @@ def test_export_and_runtime_return_every_path(tmp_path):
     torch.manual_seed(0)
     net = build_network(WIDE)
     manifest = export_network(net, tmp_path, (32, 48), devices=("tx2",))
-    assert manifest["verification"]["max_abs_diff"] <= 1e-4
-    assert [s["path"] for s in manifest["stages"]] == list(range(WIDE.num_paths))
+    assert manifest.verification.max_abs_diff <= 1e-4
+    assert [s.path for s in manifest.stages] == list(range(WIDE.num_paths))
     runner = AnytimeRunner(tmp_path)
     image = np.random.default_rng(0).random((3, 32, 48), dtype=np.float32)
     scan = np.linspace(1, 4, 48, dtype=np.float32)
@@ -169,7 +169,7 @@ def test_residual_exits_export_and_run(tmp_path):
     torch.manual_seed(0)
     net = build_network(RESIDUAL)
     manifest = export_network(net, tmp_path, (32, 48), devices=("tx2",))
-    assert manifest["verification"]["max_abs_diff"] <= 1e-4
+    assert manifest.verification.max_abs_diff <= 1e-4
     runner = AnytimeRunner(tmp_path)
     image = np.random.default_rng(0).random((3, 32, 48), dtype=np.float32)
     scan = np.linspace(1, 4, 48, dtype=np.float32)

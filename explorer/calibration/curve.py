@@ -34,7 +34,7 @@ def curve_check(model_dir: Path, data: str, device: str | None = None, frames: i
     B_max = 1.25 x the predicted last path. Written to ``model_dir/anytime_curve.json``.
     """
     runner = AnytimeRunner(model_dir, provider=provider)
-    cand = Candidate.from_dict(runner.manifest["candidate"])
+    cand = Candidate.from_dict(runner.manifest.candidate)
     ds = open_dataset(data, "val", runner.input_size, train_augment=False)
     items = [ds[i] for i in range(min(frames, len(ds)))]
     require_scores(items, data, "rmse")   # the curve is the RMSE of what each deadline returns
@@ -45,7 +45,7 @@ def curve_check(model_dir: Path, data: str, device: str | None = None, frames: i
         profile = calibrate(**{"scale": 0.5, **(calibration or {})}, provider=provider, progress=calibration_progress)
         if keep:
             keep(profile)
-    precision = runner.manifest.get("precision", "fp32")
+    precision = runner.manifest.precision
     priced = precision if precision in profile.precisions else "fp32"   # else the fp32 prediction, said so
     costs = candidate_cost(dataclasses.replace(cand, precision=priced), runner.input_size).path_latency_ms(profile)
     b_max = 1.25 * costs[-1]

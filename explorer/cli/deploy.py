@@ -4,9 +4,13 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from explorer.errors import UserError
 from explorer.cli._common import MAX_THREADS, _add_provider, _bounded_int, _ms, _size, ascii_digits, deprecated_alias
+
+if TYPE_CHECKING:
+    from explorer.deploy.manifest import Manifest
 
 
 @ascii_digits
@@ -21,7 +25,7 @@ def _percent(text: str) -> float:
 
 
 def cmd_export(args) -> None:
-    from explorer.console import console, err_console, print_frame, progress
+    from explorer.console import console, err_console, progress
     from explorer.deploy.export import Measurement, Quantization, export_from_checkpoint
     from explorer.study.export import AS_SEARCHED, export_from_study
     if bool(args.study) == bool(args.checkpoint):
@@ -58,54 +62,61 @@ def cmd_export(args) -> None:
             manifest = export_from_checkpoint(Path(args.checkpoint), Path(args.out), args.input_size, args.device,
                                               quant, say, Measurement(data, args.eval_frames or 96))
     _print_measured(manifest)
-    console.print(f"exported {len(manifest['stages'])} stage graphs to {args.out} (max |onnx - torch| "
-                  f"{manifest['verification']['max_abs_diff']:.2e}{' before quantization' if manifest.get('quantization') else ''})")
+    console.print(f"exported {len(manifest.stages)} stage graphs to {args.out} (max |onnx - torch| "
+                  f"{manifest.verification.max_abs_diff:.2e}{' before quantization' if manifest.quantization else ''})")
     if had_curve and not curve.exists():
         console.print(f"removed {curve}: it measured the graphs this export replaced; `explorer curve {args.out}` "
                       "measures these", markup=False, highlight=False)
-    if manifest.get("quantization"):
-        import pandas as pd
-        q = manifest["quantization"]
-        frame = pd.DataFrame({"path": range(len(q["rmse_degradation"])),
-                              "fp32 rmse": [m["rmse"] for m in manifest["path_metrics_fp32"]],
-                              "int8 rmse": [m["rmse"] for m in manifest["path_metrics_int8"]],
-                              "change %": [100 * d for d in q["rmse_degradation"]]})
-        print_frame(frame, f"int8 vs fp32 on {q['evaluation']['frames']} validation frames of {q['evaluation']['data']}"
-                    + (" (--force: over --max-degradation)" if q["forced"] else ""))
-        int8 = [st["name"] for st in manifest["stages"] if st.get("precision") == "int8"]
-        console.print(f"int8 stage graphs: {len(int8)} of {len(manifest['stages'])}"
-                      + (f" ({', '.join(int8)})" if int8 else " (none ran at least 5% faster in int8 here: the "
-                         "export is fp32; --int8-stages all forces int8)"))
-        if manifest.get("expected_cost_note"):
-            console.print(f"the manifest's expected costs per device are {manifest['expected_cost_note']}",
-                          markup=False, highlight=False)
-        if q.get("kept_fp32_for_accuracy"):
-            console.print(f"kept fp32 because int8 took a path past --max-degradation: "
-                          f"{', '.join(q['kept_fp32_for_accuracy'])}")
+    if manifest.quantization:
+        _print_int8(manifest)
 
 
-def _print_measured(manifest: dict) -> None:
+def _print_int8(manifest: Manifest) -> None:
+    """What quantizing an export did: each path's RMSE before and after, the graphs made int8, and why
+    some were not."""
+    import pandas as pd
+    from explorer.console import console, print_frame
+    q = manifest.quantization
+    frame = pd.DataFrame({"path": range(len(q.rmse_degradation)),
+                          "fp32 rmse": [m["rmse"] for m in manifest.path_metrics_fp32 or []],
+                          "int8 rmse": [m["rmse"] for m in manifest.path_metrics_int8 or []],
+                          "change %": [100 * d for d in q.rmse_degradation]})
+    print_frame(frame, f"int8 vs fp32 on {q.evaluation.frames} validation frames of {q.evaluation.data}"
+                + (" (--force: over --max-degradation)" if q.forced else ""))
+    int8 = [st.name for st in manifest.stages if st.precision == "int8"]
+    console.print(f"int8 stage graphs: {len(int8)} of {len(manifest.stages)}"
+                  + (f" ({', '.join(int8)})" if int8 else " (none ran at least 5% faster in int8 here: the "
+                     "export is fp32; --int8-stages all forces int8)"))
+    if manifest.expected_cost_note:
+        console.print(f"the manifest's expected costs per device are {manifest.expected_cost_note}",
+                      markup=False, highlight=False)
+    if q.kept_fp32_for_accuracy:
+        console.print(f"kept fp32 because int8 took a path past --max-degradation: "
+                      f"{', '.join(q.kept_fp32_for_accuracy)}")
+
+
+def _print_measured(manifest: Manifest) -> None:
     """The export's own figures, where they come from, and a line when it is deployed at a size its
     weights were not trained or tuned at."""
     import math
 
     import pandas as pd
     from explorer.console import console, print_frame
-    measured = manifest.get("measured")
+    measured = manifest.measured
     if not measured:
         return
-    size = "x".join(map(str, manifest["input_size"]))
+    size = "x".join(map(str, manifest.input_size))
     columns = {"rmse": "rmse (m)", "delta1": "delta1", "photometric": "photometric"}
-    metrics = manifest["path_metrics"]
+    metrics = manifest.path_metrics
     frame = pd.DataFrame({"path": range(len(metrics))})
     for key, title in columns.items():   # what the frames could measure: depth, the camera's motion, or both
         values = [m.get(key) for m in metrics]
         if any(v is not None and math.isfinite(v) for v in values):
             frame[title] = values
-    print_frame(frame, f"measured on the exported graphs at {size}, {measured['frames']} validation frames of "
-                f"{measured['data']}")
-    tuned = manifest.get("tuned_size")
-    if tuned and list(tuned) != list(manifest["input_size"]):
+    print_frame(frame, f"measured on the exported graphs at {size}, {measured.frames} validation frames of "
+                f"{measured.data}")
+    tuned = manifest.tuned_size
+    if tuned and tuple(tuned) != tuple(manifest.input_size):
         console.print(f"exported at {size}, but its weights were trained at {'x'.join(map(str, tuned))}: the manifest "
                       f"holds what they do at {size} (above), not the study's figures", markup=False, highlight=False)
 

@@ -15,7 +15,8 @@ import torch
 
 from explorer import __version__
 from explorer.cost import candidate_cost, get_device
-from explorer.deploy.manifest import MANIFEST, file_sha256, write_manifest
+from explorer.deploy.manifest import (MANIFEST, ExpectedCost, Manifest, Measured, PathMetrics, Source, Stage,
+                                      Verification, file_sha256, write_manifest)
 from explorer.deploy.quantize import MAX_DEGRADATION
 from explorer.deploy.sessions import session
 from explorer.errors import UserError
@@ -64,7 +65,8 @@ class Measurement:
     frames: int = 96
 
 
-def measure_export(model_dir: Path, measurement: Measurement, input_size: tuple[int, int]) -> dict:
+def measure_export(model_dir: Path, measurement: Measurement, input_size: tuple[int, int]
+                   ) -> tuple[PathMetrics, Measured]:
     """Per-path metrics of the graphs in ``model_dir`` as they stand, run by the project's runtime on
     ``measurement``'s frames at ``input_size``, and what they were measured on."""
     from explorer.data import open_dataset
@@ -75,9 +77,9 @@ def measure_export(model_dir: Path, measurement: Measurement, input_size: tuple[
         raise UserError(f"--data {measurement.data}: its validation split has no frames to measure the export on")
     metrics = path_metrics(AnytimeRunner(model_dir, warmup=False, arenas="shared"), frames)
     # a metric the frames cannot give (RMSE without depth, the photometric error without motion) is left out
-    return {"path_metrics": [{k: v for k, v in m.items() if k != "path" and not math.isnan(v)} for m in metrics],
-            "measured": {"data": measurement.data, "split": "val", "frames": len(frames),
-                         "input_size": list(input_size), "by": "onnxruntime, the exported graphs"}}
+    return ([{k: v for k, v in m.items() if k != "path" and not math.isnan(v)} for m in metrics],
+            Measured(data=measurement.data, split="val", frames=len(frames), input_size=tuple(input_size),
+                     by="onnxruntime, the exported graphs"))
 
 
 def export_network(net: AnytimeDepthNet, out_dir: Path, input_size: tuple[int, int],
@@ -85,7 +87,7 @@ def export_network(net: AnytimeDepthNet, out_dir: Path, input_size: tuple[int, i
                    devices: Sequence[str] = ("tx2", "rpi4"), source: dict | None = None,
                    quantization: Quantization | None = None,
                    progress: Callable[[str], None] | None = None,
-                   measurement: Measurement | None = None, tuned_size: tuple[int, int] | None = None) -> dict:
+                   measurement: Measurement | None = None, tuned_size: tuple[int, int] | None = None) -> Manifest:
     """Writes the stage graphs and the manifest to ``out_dir``, whole: everything is built, checked
     (and, with ``quantization``, quantized and measured) in a scratch folder that then replaces
     ``out_dir``; a refused or killed export leaves ``out_dir`` as it was. The manifest records each
@@ -100,28 +102,28 @@ def export_network(net: AnytimeDepthNet, out_dir: Path, input_size: tuple[int, i
     with replacing_folder(out_dir, MANIFEST) as scratch:
         manifest = _export_fp32(net, scratch, input_size, scan_row, path_metrics, devices, source, rows_input)
         if tuned_size is not None:
-            manifest["tuned_size"] = list(tuned_size)
+            manifest.tuned_size = tuple(tuned_size)
         if measurement is not None:
             write_manifest(scratch, manifest)   # what the runtime reads
             if progress:
                 progress(f"measuring every path on {measurement.frames} validation frames of {measurement.data}")
-            manifest.update(measure_export(scratch, measurement, input_size))
+            manifest.path_metrics, manifest.measured = measure_export(scratch, measurement, input_size)
         write_manifest(scratch, manifest)   # what quantization reads and rewrites
         if quantization is not None:
             from explorer.deploy.quantize import (
                 quantize_export,  # onnxruntime.quantization: only when asked
             )
             q = quantization
-            manifest.update(quantize_export(scratch, q.data, q.calibration_frames, q.eval_frames, q.max_degradation,
-                                            q.force, progress, q.stages))
-            manifest["path_metrics_trained"] = manifest["path_metrics"]
-            manifest["path_metrics"] = manifest["path_metrics_int8"]
-            if manifest["expected_cost_precision"] != "int8":   # the profiles priced the fp32 network
-                manifest["expected_cost_note"] = (
+            manifest = quantize_export(scratch, q.data, q.calibration_frames, q.eval_frames, q.max_degradation,
+                                       q.force, progress, q.stages)
+            manifest.path_metrics_trained = manifest.path_metrics
+            manifest.path_metrics = manifest.path_metrics_int8
+            if manifest.expected_cost_precision != "int8":   # the profiles priced the fp32 network
+                manifest.expected_cost_note = (
                     "fp32 estimates: the device profiles price this network's layers as fp32, not the int8 graphs "
                     "exported (`explorer curve` measures these on a machine)")
-        for stage in manifest["stages"]:
-            stage["sha256"] = file_sha256(scratch / stage["file"])
+        for stage in manifest.stages:
+            stage.sha256 = file_sha256(scratch / stage.file)
         write_manifest(scratch, manifest)
     return manifest
 
@@ -140,7 +142,7 @@ def slanted_scans(data: str, input_size: tuple[int, int], frames: int = 8) -> bo
 
 def _export_fp32(net: AnytimeDepthNet, out_dir: Path, input_size: tuple[int, int], scan_row: int | None,
                  path_metrics: list[dict] | None, devices: Sequence[str], source: dict | None,
-                 rows_input: bool = False) -> dict:
+                 rows_input: bool = False) -> Manifest:
     h, w = input_size
     if h % net.stride or w % net.stride:
         raise UserError(f"input {h}x{w} does not divide by the encoder stride {net.stride}")
@@ -154,34 +156,33 @@ def _export_fp32(net: AnytimeDepthNet, out_dir: Path, input_size: tuple[int, int
     for i, (seg, model) in enumerate(graphs):
         file = f"{i:02d}_path{seg['path']}.onnx"
         (out_dir / file).write_bytes(model)
-        stages.append({"file": file, **seg})
+        stages.append(Stage(file=file, **seg))
     cost = candidate_cost(net.candidate, input_size)
     expected = {}
     for d in devices:
         prof = get_device(d)
         if cost.precision not in prof.precisions:
             continue      # this profile cannot price the candidate's precision
-        expected[prof.name] = {"latency_ms": cost.path_latency_ms(prof), "energy_j": cost.path_energy_j(prof),
-                               "calibrated": prof.calibrated}
-    manifest = {
-        "format": "anytime-explorer/1", "explorer_version": __version__, "opset": OPSET,
-        "candidate": net.candidate.to_dict(), "candidate_key": net.candidate.key,
-        "architecture": net.candidate.describe(), "input_size": [h, w], "scan_row": scan_row,
-        "image": "RGB in [0, 1], (1, 3, H, W) float32", "scan": "(1, W) float32 metres, 0 = no return",
-        "scan_rows_input": rows_input,
-        "stages": stages, "paths": net.candidate.num_paths,
-        "path_metrics": path_metrics or [], "expected_cost": expected, "expected_cost_precision": cost.precision,
-        "params": [p for p, _ in cost.path_params_macs()], "macs": [m for _, m in cost.path_params_macs()],
-        "verification": {"max_abs_diff": diff, "tolerance": TOLERANCE}, "source": source or {},
-        "precision": "fp32",
-    }
-    return manifest
+        expected[prof.name] = ExpectedCost(latency_ms=cost.path_latency_ms(prof), energy_j=cost.path_energy_j(prof),
+                                           calibrated=prof.calibrated)
+    return Manifest(
+        format="anytime-explorer/1", explorer_version=__version__, opset=OPSET,
+        candidate=net.candidate.to_dict(), candidate_key=net.candidate.key,
+        architecture=net.candidate.describe(), input_size=(h, w), scan_row=scan_row,
+        image="RGB in [0, 1], (1, 3, H, W) float32", scan="(1, W) float32 metres, 0 = no return",
+        scan_rows_input=rows_input,
+        stages=stages, paths=net.candidate.num_paths,
+        path_metrics=path_metrics or [], expected_cost=expected, expected_cost_precision=cost.precision,
+        params=[p for p, _ in cost.path_params_macs()], macs=[m for _, m in cost.path_params_macs()],
+        verification=Verification(max_abs_diff=diff, tolerance=TOLERANCE), source=Source(**(source or {})),
+        precision="fp32",
+    )
 
 
 def export_from_checkpoint(ckpt: Path, out_dir: Path, input_size: tuple[int, int] | None = None,
                            devices: Sequence[str] | None = None, quantization: Quantization | None = None,
                            progress: Callable[[str], None] | None = None,
-                           measurement: Measurement | None = None) -> dict:
+                           measurement: Measurement | None = None) -> Manifest:
     net, state = network_from_checkpoint(ckpt)
     trained = tuple(state["train_config"]["input_size"])
     size = tuple(input_size or trained)
@@ -205,11 +206,11 @@ def quantization_effect(net, input_size: tuple[int, int], data: str, calibration
                            quantization=Quantization(data=data, calibration_frames=calibration_frames,
                                                      eval_frames=eval_frames, max_degradation=math.inf, force=True,
                                                      stages=stages))
-    before, after = m["path_metrics_fp32"], m["path_metrics_int8"]
+    before, after = m.path_metrics_fp32, m.path_metrics_int8
     ratios = [{k: (a[k] / b[k] if b[k] else 1.0) for k in b if isinstance(b[k], (int, float))}
               for a, b in zip(after, before)]
-    return {"ratios": ratios, "rmse_degradation": m["quantization"]["rmse_degradation"],
-            "frames": m["quantization"]["evaluation"]["frames"],
-            "int8_graphs": [s["name"] for s in m["stages"] if s["precision"] == "int8"]}
+    return {"ratios": ratios, "rmse_degradation": m.quantization.rmse_degradation,
+            "frames": m.quantization.evaluation.frames,
+            "int8_graphs": [s.name for s in m.stages if s.precision == "int8"]}
 
 

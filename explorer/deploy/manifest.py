@@ -1,13 +1,14 @@
-"""An export's ``manifest.json`` as the runtime reads it, checked before any graph is loaded: the
-schema (pydantic), stage files confined to the model folder, and each graph's SHA-256 against the one
-the export recorded. An edited, truncated or half-replaced export is one line, never a crash inside
-onnxruntime."""
+"""An export's ``manifest.json``, typed (:class:`Manifest`): the one module that names its keys. The
+export builds a ``Manifest`` and writes it (:func:`write_manifest`); the runtime and every other reader
+get one from :func:`read_manifest`, checked before any graph is loaded: the schema (pydantic), stage
+files confined to the model folder, and each graph's SHA-256 against the one the export recorded. An
+edited, truncated or half-replaced export is one line, never a crash inside onnxruntime."""
 
 from __future__ import annotations
 
 import hashlib
 from pathlib import Path, PurePosixPath
-from typing import Annotated, Any, Literal, Optional
+from typing import Annotated, Any, Literal, Optional, Union
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
@@ -18,11 +19,35 @@ MANIFEST = "manifest.json"
 Side = Annotated[int, Field(gt=0)]
 
 
+#: per path, one figure per metric name (``rmse``, ``delta1``, ``photometric``, ...), path 0 first
+PathMetrics = list[dict[str, float]]
+
+
+class StageTiming(BaseModel):
+    """``ms_here``: a stage graph's median time on the exporting machine in the staged chain, fp32 and
+    int8, and the whole chain's with it in each precision."""
+
+    model_config = ConfigDict(extra="allow")
+
+    fp32: float
+    int8: float
+    staged_fp32: float
+    staged_int8: float
+
+
 class Stage(BaseModel):
+    """One stage graph of the export, in execution order."""
+
     model_config = ConfigDict(extra="allow")
 
     file: str = Field(min_length=1)
-    path: Optional[int] = None
+    name: str = ""                         # the stages it runs, joined by '+' (``path0``: path 0's graph)
+    stages: list[str] = Field(default_factory=list)
+    inputs: list[str] = Field(default_factory=list)
+    outputs: list[str] = Field(default_factory=list)
+    path: Optional[int] = None             # the path it completes
+    precision: Optional[Literal["fp32", "int8"]] = None   # int8 exports: this graph's
+    ms_here: Optional[StageTiming] = None
     sha256: Optional[Annotated[str, Field(pattern=r"^[0-9a-f]{64}$")]] = None
 
     @field_validator("file")
@@ -33,10 +58,17 @@ class Stage(BaseModel):
             raise ValueError("a stage file must be a path inside the model folder")
         return file
 
+    @property
+    def is_scan_path(self) -> bool:
+        """Path 0's graph: the interpolated scan, read by no later stage."""
+        return self.path == 0 and list(self.outputs) == ["depth_0"]
+
 
 class Measured(BaseModel):
     """Where an export's ``path_metrics`` come from: the first ``frames`` of a split of ``data``, run at
     ``input_size`` through the exported graphs."""
+
+    model_config = ConfigDict(extra="allow")
 
     data: str
     split: str
@@ -46,37 +78,102 @@ class Measured(BaseModel):
 
 
 class ExpectedCost(BaseModel):
+    """What a device profile predicts per path (cumulative), and whether the profile was calibrated."""
+
+    model_config = ConfigDict(extra="allow")
+
     latency_ms: list[float]
     energy_j: list[float]
     calibrated: bool
 
 
+class Verification(BaseModel):
+    """The largest |onnxruntime - PyTorch| over every path's map on a random input, and the tolerance."""
+
+    model_config = ConfigDict(extra="allow")
+
+    max_abs_diff: float
+    tolerance: float
+
+
+class Source(BaseModel):
+    """Where the weights came from: a study's trial or a checkpoint; a study's own per-path figures only
+    where it measured them at the size exported."""
+
+    model_config = ConfigDict(extra="allow")
+
+    study: Optional[str] = None
+    trial: Optional[int] = None
+    objective: Optional[float] = None
+    figures: Optional[str] = None
+    study_path_metrics: Optional[list[dict[str, Any]]] = None
+    study_measured: Optional[dict[str, Any]] = None
+    checkpoint: Optional[str] = None
+
+
+class Frames(BaseModel):
+    """Frames of a data set an int8 export was calibrated or evaluated on."""
+
+    model_config = ConfigDict(extra="allow")
+
+    data: str
+    split: str
+    frames: int
+
+
+class QuantizationRecord(BaseModel):
+    """``quantization`` of an int8 export: how its graphs were quantized and what that cost each path."""
+
+    model_config = ConfigDict(extra="allow")
+
+    method: str = ""
+    int8_stages: str = ""
+    calibration: Optional[Frames] = None
+    evaluation: Optional[Frames] = None
+    rmse_degradation: list[float] = Field(default_factory=list)
+    max_degradation: Optional[float] = None
+    forced: bool = False
+    quantized_graphs: list[str] = Field(default_factory=list)
+    kept_fp32_for_accuracy: list[str] = Field(default_factory=list)
+
+
 class Manifest(BaseModel):
     """``manifest.json``, the one definition of what an export writes and what the runtime reads (see
-    the file formats page). Keys this version does not know are kept (a newer export's additions)."""
+    the file formats page). Keys this version does not know are kept (a newer export's additions), and
+    a manifest is written with the keys it was given or read with (``write_manifest``)."""
 
     model_config = ConfigDict(extra="allow")
 
     format: str = Field(pattern=r"^anytime-explorer/1$")
-    input_size: tuple[Side, Side]
-    scan_row: Annotated[int, Field(ge=0)]
-    scan_rows_input: bool = False   # the graphs take each column's scan row (``scan_rows``, (1, W) int64)
-    paths: Annotated[int, Field(ge=1)]
-    stages: list[Stage] = Field(min_length=1)
-    candidate: dict[str, Any]
-    candidate_key: Optional[str] = None
     explorer_version: Optional[str] = None
     opset: Optional[int] = None
+    candidate: dict[str, Any]              # as in candidate YAML (``Candidate.from_dict``)
+    candidate_key: Optional[str] = None
     architecture: Optional[str] = None
-    precision: Literal["fp32", "int8"] = "fp32"
-    path_metrics: list[dict[str, float]] = Field(default_factory=list)
-    measured: Optional[Measured] = None
-    tuned_size: Optional[tuple[Side, Side]] = None
+    input_size: tuple[Side, Side]
+    scan_row: Annotated[int, Field(ge=0)]
+    image: Optional[str] = None            # what the inputs are, in words
+    scan: Optional[str] = None
+    scan_rows_input: bool = False   # the graphs take each column's scan row (``scan_rows``, (1, W) int64)
+    stages: list[Stage] = Field(min_length=1)
+    paths: Annotated[int, Field(ge=1)]
+    path_metrics: PathMetrics = Field(default_factory=list)
     expected_cost: dict[str, ExpectedCost] = Field(default_factory=dict)
-    params: list[float] = Field(default_factory=list)
-    macs: list[float] = Field(default_factory=list)
-    verification: dict[str, float] = Field(default_factory=dict)
-    source: dict[str, Any] = Field(default_factory=dict)
+    expected_cost_precision: Optional[str] = None
+    params: list[Union[int, float]] = Field(default_factory=list)
+    macs: list[Union[int, float]] = Field(default_factory=list)
+    verification: Optional[Verification] = None
+    source: Source = Field(default_factory=Source)
+    precision: Literal["fp32", "int8"] = "fp32"
+    tuned_size: Optional[tuple[Side, Side]] = None
+    measured: Optional[Measured] = None
+    # int8 exports: the paths before and after quantization (``path_metrics`` is then the int8 one and
+    # ``path_metrics_trained`` the fp32 graphs', on the same frames)
+    path_metrics_fp32: Optional[PathMetrics] = None
+    path_metrics_int8: Optional[PathMetrics] = None
+    quantization: Optional[QuantizationRecord] = None
+    path_metrics_trained: Optional[PathMetrics] = None
+    expected_cost_note: Optional[str] = None
 
     @model_validator(mode="after")
     def _one_figure_per_path(self) -> "Manifest":
@@ -84,12 +181,18 @@ class Manifest(BaseModel):
             raise ValueError(f"path_metrics has {len(self.path_metrics)} entries for {self.paths} paths")
         return self
 
+    def to_json(self) -> dict:
+        """What ``manifest.json`` holds: the keys given or read (none added at their defaults), and the
+        keys this version does not know."""
+        return self.model_dump(mode="json", exclude_unset=True)
 
-def write_manifest(folder: Path, manifest: dict) -> None:
-    """Writes ``manifest`` to ``folder`` after checking it against the schema: an export never writes
-    a manifest its runtime would refuse."""
-    Manifest.model_validate(manifest)
-    write_json(Path(folder) / MANIFEST, manifest)
+
+def write_manifest(folder: Path, manifest: Manifest) -> None:
+    """Writes ``manifest`` to ``folder`` after checking what it writes against the schema (a field set
+    after the manifest was made included): an export never writes a manifest its runtime would refuse."""
+    data = manifest.to_json()
+    Manifest.model_validate(data)
+    write_json(Path(folder) / MANIFEST, data)
 
 
 def file_sha256(path: Path) -> str:
@@ -100,7 +203,7 @@ def file_sha256(path: Path) -> str:
     return digest.hexdigest()
 
 
-def read_manifest(model_dir: str | Path) -> dict:
+def read_manifest(model_dir: str | Path) -> Manifest:
     """The manifest of the export in ``model_dir``, checked: schema, scan row inside the image, stage
     files present, inside the folder and (where the export recorded them) with their hashes."""
     folder = Path(model_dir)
@@ -126,4 +229,4 @@ def read_manifest(model_dir: str | Path) -> dict:
         if stage.sha256 is not None and file_sha256(f) != stage.sha256:
             raise UserError(f"{folder / stage.file}: the graph does not match the manifest (changed or half "
                             "written): export the model again")
-    return data
+    return manifest

@@ -40,7 +40,9 @@ from explorer.cost.precision import INT8_KEEP_RATIO
 from explorer.data import open_dataset, require_scores
 from explorer.deploy import runtime
 from explorer.deploy.int8_graphs import quantize_graph, share_edge_scales
-from explorer.deploy.runtime import MANIFEST, AnytimeRunner, _is_scan_path
+from explorer.deploy.manifest import (MANIFEST, Frames, Manifest, PathMetrics, QuantizationRecord, StageTiming,
+                                      read_manifest, write_manifest)
+from explorer.deploy.runtime import AnytimeRunner
 from explorer.errors import UserError
 from explorer.probe import chain_runs, time_chain
 
@@ -76,7 +78,7 @@ def stage_inputs(model_dir: Path, frames: list[dict]) -> list[list[dict[str, np.
     return per_stage
 
 
-def compare_speed(model_dir: Path, manifest: dict, configs: list[dict[int, str]], frame: dict,
+def compare_speed(model_dir: Path, manifest: Manifest, configs: list[dict[int, str]], frame: dict,
                   reps: int = 5) -> list[tuple[float, dict[int, float]]]:
     """For each of ``configs`` (stage index -> its int8 graph in ``model_dir``; the others fp32), the
     staged runtime's median ms on ``frame`` over its stage graphs, and each stage's own median ms within
@@ -84,13 +86,11 @@ def compare_speed(model_dir: Path, manifest: dict, configs: list[dict[int, str]]
     (``explorer.probe.rewrites.hand_off_quantized``), so a stage's precision changes what its neighbours pay
     too. The runners take turns, ``reps`` blocks of 5 timed runs each (``explorer.probe.time_chain``).
     Leaves the manifest as it was."""
-    import json
     kept = (model_dir / MANIFEST).read_text()
     runners = []
     try:
         for chosen in configs:
-            files = [{**st, "file": chosen.get(k, st["file"])} for k, st in enumerate(manifest["stages"])]
-            (model_dir / MANIFEST).write_text(json.dumps({**manifest, "stages": files}))
+            write_manifest(model_dir, _with_files(manifest, chosen))
             runners.append(AnytimeRunner(model_dir, arenas="shared"))
     finally:
         (model_dir / MANIFEST).write_text(kept)
@@ -105,6 +105,12 @@ def compare_speed(model_dir: Path, manifest: dict, configs: list[dict[int, str]]
             for per_block in blocks]
 
 
+def _with_files(manifest: Manifest, chosen: dict[int, str]) -> Manifest:
+    """``manifest`` running the graphs ``chosen`` (stage index -> its file) in place of those it lists."""
+    return manifest.model_copy(update={"stages": [st.model_copy(update={"file": chosen.get(k, st.file)})
+                                                  for k, st in enumerate(manifest.stages)]})
+
+
 def path_metrics(model_dir: Path, frames: list[dict]) -> list[dict[str, float]]:
     """Per-path metrics of the export in ``model_dir`` as its graphs stand now (fp32 or int8)."""
     return runtime.path_metrics(runtime.AnytimeRunner(model_dir, warmup=False, arenas="shared"), frames)
@@ -113,9 +119,9 @@ def path_metrics(model_dir: Path, frames: list[dict]) -> list[dict[str, float]]:
 def quantize_export(model_dir: Path, data: str, calibration_frames: int = 32, eval_frames: int = 64,
                     max_degradation: float = MAX_DEGRADATION, force: bool = False,
                     progress: Callable[[str], None] | None = None,
-                    stages: "str | tuple[str, ...]" = "faster") -> dict:
+                    stages: "str | tuple[str, ...]" = "faster") -> Manifest:
     """Turns the fp32 export in ``model_dir`` (a scratch folder) into an int8 one in place and returns
-    what the manifest records: which stage graphs are int8 and why (``stages="faster"``: those whose int8
+    its manifest with what an int8 export records: which stage graphs are int8 and why (``stages="faster"``: those whose int8
     saved the staged runtime at least ``1 - INT8_KEEP_RATIO`` of their fp32 time here; ``"all"``: every
     one; a tuple: those named, as
     ``CandidateCost.int8_graphs`` names the ones a device profile prices int8), per-path metrics before and after
@@ -123,10 +129,9 @@ def quantize_export(model_dir: Path, data: str, calibration_frames: int = 32, ev
     (UserError) when a path degrades by more than ``max_degradation`` unless ``force``; with
     ``"faster"``, only once keeping graphs fp32 one by one (``kept_fp32_for_accuracy``) has not brought
     every path within it while one graph is still int8."""
-    import json
     _check_quantize_args(calibration_frames, eval_frames, max_degradation, stages)
-    manifest = json.loads((model_dir / MANIFEST).read_text())
-    size = tuple(manifest["input_size"])
+    manifest = read_manifest(model_dir)
+    size = tuple(manifest.input_size)
     say = progress or (lambda _: None)
     say(f"calibrating on {calibration_frames} training frames of {data}")
     frames = _frames(data, size, calibration_frames, "train")
@@ -149,22 +154,25 @@ def quantize_export(model_dir: Path, data: str, calibration_frames: int = 32, ev
             trial, int8_files, after, degradation, max_degradation, say)
     worst = int(np.argmax(degradation))
     if degradation[worst] > max_degradation and not force:
-        last = manifest["stages"][next(iter(int8_files))]["name"] if kept_for_accuracy else None
+        last = manifest.stages[next(iter(int8_files))].name if kept_for_accuracy else None
         alone = f" even with only {last} int8" if last else ""
         raise UserError(f"int8 degrades path {worst}'s RMSE by {degradation[worst]:.1%}{alone} (> --max-degradation "
                         f"{max_degradation:.0%}; {before[worst]['rmse']:.4f} -> {after[worst]['rmse']:.4f} m): "
                         "not exported; keep fp32, calibrate on more frames, or add --force")
     quantized = _swap_in_int8(model_dir, manifest, int8_files)
-    return {"precision": "int8", "stages": manifest["stages"], "path_metrics_fp32": before, "path_metrics_int8": after,
-            "quantization": {"method": "onnxruntime static QDQ, each stage graph quantized whole (every operator "
-                                       "the quantizer handles): int8 weights per channel (7-bit range), uint8 "
-                                       "activations (ranges at the 99.999th percentile of the calibration frames)",
-                             "int8_stages": _why(stages),
-                             "calibration": {"data": data, "split": "train", "frames": len(calib[0]) if calib else 0},
-                             "evaluation": {"data": data, "split": "val", "frames": len(evaluation)},
-                             "rmse_degradation": degradation, "max_degradation": max_degradation,
-                             "forced": bool(force and degradation[worst] > max_degradation),
-                             "quantized_graphs": quantized, "kept_fp32_for_accuracy": kept_for_accuracy}}
+    manifest.precision = "int8"
+    manifest.path_metrics_fp32, manifest.path_metrics_int8 = before, after
+    manifest.quantization = QuantizationRecord(
+        method="onnxruntime static QDQ, each stage graph quantized whole (every operator the quantizer handles): "
+               "int8 weights per channel (7-bit range), uint8 activations (ranges at the 99.999th percentile of the "
+               "calibration frames)",
+        int8_stages=_why(stages),
+        calibration=Frames(data=data, split="train", frames=len(calib[0]) if calib else 0),
+        evaluation=Frames(data=data, split="val", frames=len(evaluation)),
+        rmse_degradation=degradation, max_degradation=max_degradation,
+        forced=bool(force and degradation[worst] > max_degradation),
+        quantized_graphs=quantized, kept_fp32_for_accuracy=kept_for_accuracy)
+    return manifest
 
 
 def _check_quantize_args(calibration_frames: int, eval_frames: int, max_degradation: float,
@@ -178,20 +186,20 @@ def _check_quantize_args(calibration_frames: int, eval_frames: int, max_degradat
         raise UserError(f"--int8-stages {stages}: use {' or '.join(INT8_STAGES)}")
 
 
-def _quantize_stages(model_dir: Path, manifest: dict, calib: list[list[dict[str, np.ndarray]]],
+def _quantize_stages(model_dir: Path, manifest: Manifest, calib: list[list[dict[str, np.ndarray]]],
                      stages: "str | tuple[str, ...]", say: Callable[[str], None]) -> dict[int, Path]:
     """Quantizes each stage graph that ``stages`` lets be int8 next to its fp32 one; returns stage
     index -> its int8 graph, for those the quantizer could quantize. Marks every stage fp32 for now."""
     made: dict[int, Path] = {}
-    for k, stage in enumerate(manifest["stages"]):
-        src = model_dir / stage["file"]
+    for k, stage in enumerate(manifest.stages):
+        src = model_dir / stage.file
         dst = src.with_name(src.stem + ".int8.onnx")
-        stage["precision"] = "fp32"
-        if _is_scan_path(stage):
+        stage.precision = "fp32"
+        if stage.is_scan_path:
             continue   # the scan's own map: nothing to quantize
-        if not isinstance(stages, str) and stage["name"] not in stages:
+        if not isinstance(stages, str) and stage.name not in stages:
             continue
-        say(f"quantizing {stage['file']}")
+        say(f"quantizing {stage.file}")
         if quantize_graph(src, dst, calib[k]):
             made[k] = dst
         else:
@@ -199,21 +207,21 @@ def _quantize_stages(model_dir: Path, manifest: dict, calib: list[list[dict[str,
     return made
 
 
-def _drop_slower_stages(model_dir: Path, manifest: dict, int8_files: dict[int, str], frame: dict,
+def _drop_slower_stages(model_dir: Path, manifest: Manifest, int8_files: dict[int, str], frame: dict,
                         say: Callable[[str], None]) -> None:
     """From every quantized stage int8, each in turn goes back to fp32 (out of ``int8_files``, its
     int8 graph deleted) unless int8 saves the staged runtime at least 1 - INT8_KEEP_RATIO of that
     stage's fp32 time; each stage records what it measured (``ms_here``)."""
     say("timing the staged runtime with each quantized stage int8 and fp32")
     for k in list(int8_files):
-        stage = manifest["stages"][k]
+        stage = manifest.stages[k]
         (with_ms, with_stages), (without_ms, without_stages) = compare_speed(
             model_dir, manifest, [int8_files, {j: f for j, f in int8_files.items() if j != k}], frame)
         fp32_ms, int8_ms = without_stages[k], with_stages[k]
         keep = with_ms <= without_ms - (1 - INT8_KEEP_RATIO) * fp32_ms
-        stage["ms_here"] = {"fp32": round(fp32_ms, 4), "int8": round(int8_ms, 4),
-                            "staged_fp32": round(without_ms, 4), "staged_int8": round(with_ms, 4)}
-        say(f"  {stage['name']}: staged runtime {with_ms:.2f} ms with it int8, {without_ms:.2f} ms with it fp32 "
+        stage.ms_here = StageTiming(fp32=round(fp32_ms, 4), int8=round(int8_ms, 4),
+                                    staged_fp32=round(without_ms, 4), staged_int8=round(with_ms, 4))
+        say(f"  {stage.name}: staged runtime {with_ms:.2f} ms with it int8, {without_ms:.2f} ms with it fp32 "
             "on this machine: " + ("int8" if keep else "kept fp32"))
         if not keep:
             (model_dir / int8_files.pop(k)).unlink()
@@ -223,20 +231,18 @@ class _Trial:
     """Measures the export with a chosen set of stage graphs int8: writes the manifest that runs
     them, marks each stage's precision, and compares every path with its fp32 metrics."""
 
-    def __init__(self, model_dir: Path, manifest: dict, evaluation: list[dict],
-                 before: list[dict[str, float]]) -> None:
+    def __init__(self, model_dir: Path, manifest: Manifest, evaluation: list[dict],
+                 before: PathMetrics) -> None:
         self.model_dir, self.manifest, self.evaluation, self.before = model_dir, manifest, evaluation, before
 
     def choose(self, chosen: dict[int, str]) -> None:
-        for k, stage in enumerate(self.manifest["stages"]):
-            stage["precision"] = "int8" if k in chosen else "fp32"
+        for k, stage in enumerate(self.manifest.stages):
+            stage.precision = "int8" if k in chosen else "fp32"
 
     def measure(self, chosen: dict[int, str]) -> tuple[list[dict[str, float]], list[float]]:
         """Per-path metrics and RMSE degradation with exactly the graphs ``chosen`` int8."""
-        import json
         self.choose(chosen)
-        files = [{**st, "file": chosen.get(k, st["file"])} for k, st in enumerate(self.manifest["stages"])]
-        (self.model_dir / MANIFEST).write_text(json.dumps({**self.manifest, "stages": files}, indent=2))
+        write_manifest(self.model_dir, _with_files(self.manifest, chosen))
         after = path_metrics(self.model_dir, self.evaluation)
         return after, [a["rmse"] / b["rmse"] - 1 if b["rmse"] > 0 else 0.0 for a, b in zip(after, self.before)]
 
@@ -248,15 +254,15 @@ def _keep_fp32_for_accuracy(trial: _Trial, int8_files: dict[int, str], after: li
     path most (then the one that saved least time), while more than one int8 graph is left. Returns
     the metrics and degradation as they end, and the stages given back."""
     kept_for_accuracy = []
-    stages = trial.manifest["stages"]
+    stages = trial.manifest.stages
     while len(int8_files) > 1 and max(degradation) > max_degradation:
         trials = []
         for k in int8_files:
             a, d = trial.measure({j: f for j, f in int8_files.items() if j != k})
-            saved = stages[k].get("ms_here", {})
-            trials.append((max(d), saved.get("fp32", 0.0) - saved.get("int8", 0.0), k, a, d))
+            saved = stages[k].ms_here
+            trials.append((max(d), saved.fp32 - saved.int8 if saved else 0.0, k, a, d))
         worst_after, _, k, after, degradation = min(trials, key=lambda t: t[:2])
-        name = stages[k]["name"]
+        name = stages[k].name
         say(f"  {name} kept fp32: with it int8 a path lost more than {max_degradation:.1%} RMSE "
             f"(worst path without it {worst_after:+.1%})")
         kept_for_accuracy.append(name)
@@ -265,17 +271,16 @@ def _keep_fp32_for_accuracy(trial: _Trial, int8_files: dict[int, str], after: li
     return after, degradation, kept_for_accuracy
 
 
-def _swap_in_int8(model_dir: Path, manifest: dict, int8_files: dict[int, str]) -> list[str]:
-    """Puts each int8 graph in its stage's place (deleting the fp32 one) and writes the final
-    manifest; returns the fp32 files replaced."""
-    import json
+def _swap_in_int8(model_dir: Path, manifest: Manifest, int8_files: dict[int, str]) -> list[str]:
+    """Puts each int8 graph in its stage's place (deleting the fp32 one) and writes the manifest that
+    runs them; returns the fp32 files replaced."""
     quantized = []
-    for k, stage in enumerate(manifest["stages"]):
+    for k, stage in enumerate(manifest.stages):
         if k in int8_files:
-            (model_dir / stage["file"]).unlink()
-            quantized.append(stage["file"])
-            stage["file"] = int8_files[k]
-    (model_dir / MANIFEST).write_text(json.dumps(manifest, indent=2))
+            (model_dir / stage.file).unlink()
+            quantized.append(stage.file)
+            stage.file = int8_files[k]
+    write_manifest(model_dir, manifest)
     return quantized
 
 

@@ -17,7 +17,7 @@ from typing import Callable
 import numpy as np
 
 from explorer.deploy._arena_choice import ArenaChoice
-from explorer.deploy.manifest import MANIFEST, read_manifest  # noqa: F401  (MANIFEST: its callers' name)
+from explorer.deploy.manifest import MANIFEST, Manifest, Stage, read_manifest  # noqa: F401  (MANIFEST: its callers' name)
 from explorer.deploy.sessions import check_provider
 from explorer.errors import UserError
 from explorer.files import read_image as read_image_file
@@ -129,21 +129,21 @@ class AnytimeRunner:
         self.provider = provider
         self.dir = Path(model_dir)
         self.manifest = read_manifest(self.dir)
-        self.input_size = tuple(self.manifest["input_size"])
-        self.scan_row = int(self.manifest["scan_row"])
+        self.input_size = tuple(self.manifest.input_size)
+        self.scan_row = self.manifest.scan_row
         # graphs exported for a slanted scan line take each column's row (``scan_rows``) beside the scan
-        self.rows_input = bool(self.manifest.get("scan_rows_input", False))
+        self.rows_input = self.manifest.scan_rows_input
         self.path_errors = measured_errors(self.manifest)
         self.last_scan: ProjectedScan | None = None   # the last scan_from_ranges's projection
         self._row_warned = False
-        self.sessions: list[tuple[dict, object, list[str], list[str]]] = []
+        self.sessions: list[tuple[Stage, object, list[str], list[str]]] = []
         self.handed_off: dict[str, str] = {}   # tensor passed between stages -> its form ("blocked", ...)
         self._graphs: list[tuple[bytes, bool]] = []   # each session's graph, and whether onnxruntime optimises it
         handoff = handoff and provider == "CPUExecutionProvider"   # its NCHWc kernels and QDQ fusions
         with scratch_dir("runtime") as tmp:
             optimized = Path(tmp)
-            for k, st in enumerate(self.manifest["stages"]):
-                f = self.dir / st["file"]
+            for k, st in enumerate(self.manifest.stages):
+                f = self.dir / st.file
                 try:
                     graph = f.read_bytes()
                     sess = session(graph, threads, provider,
@@ -152,7 +152,7 @@ class AnytimeRunner:
                     raise UserError(f"{f}: not a loadable ONNX graph ({str(exc).splitlines()[0][:100]})") from None
                 self.sessions.append(_named(st, sess))
                 self._graphs.append((graph, True))
-            _check_chain(self.sessions, self.manifest["paths"], self.dir, self.rows_input)
+            _check_chain(self.sessions, self.manifest.paths, self.dir, self.rows_input)
             if handoff:
                 self.handed_off = self._hand_off(optimized, threads)
         # the same graphs again, each session with a memory arena of its own (``explorer.deploy._arena_choice``)
@@ -211,7 +211,7 @@ class AnytimeRunner:
         env = {"image": img, "scan": scan, **self.row_feed(rows)}
         for _, sess, ins, outs_names in sessions:
             env.update(zip(outs_names, sess.run(outs_names, {n: env[n] for n in ins})))
-        return [env[f"depth_{p}"][0, 0] for p in range(self.manifest["paths"])]
+        return [env[f"depth_{p}"][0, 0] for p in range(self.manifest.paths)]
 
     def depths(self, image: np.ndarray, scan: np.ndarray, rows=None) -> list[np.ndarray]:
         """Every path's depth map (no deadline), in order."""
@@ -299,7 +299,7 @@ class AnytimeRunner:
         option = self.arena_choice.pick()
         try:
             for k, (st, sess, ins, out_names) in enumerate(self.session_sets[option]):
-                if _is_scan_path(st):
+                if st.is_scan_path:
                     # the scan's own map is available at once (its cost is ~0) and is computed only
                     # if it is the answer: a run that reaches path 1 never needs it
                     path0 = (sess, ins, out_names)
@@ -330,7 +330,7 @@ class AnytimeRunner:
                 self.arena_choice.record(option, k, (done - started) * 1000.0)
                 ready = (done - t0) * 1000.0
                 env.update(zip(out_names, outs))
-                path = st["path"]
+                path = st.path
                 if path is not None:
                     if path == 0:
                         ready = 0.0  # the scan itself: available at once (its cost is ~0)
@@ -364,7 +364,7 @@ def _check_chain(sessions: list, paths: int, folder: Path, rows_input: bool = Fa
     for stage, _, ins, outs in sessions:
         missing = [n for n in ins if n not in have]
         if missing:
-            raise UserError(f"{folder / stage['file']}: reads {missing[0]}, which no graph before it outputs: "
+            raise UserError(f"{folder / stage.file}: reads {missing[0]}, which no graph before it outputs: "
                             "the graphs do not match the manifest (export the model again)")
         have.update(outs)
     lacking = [f"depth_{p}" for p in range(paths) if f"depth_{p}" not in have]
@@ -373,14 +373,9 @@ def _check_chain(sessions: list, paths: int, folder: Path, rows_input: bool = Fa
                         "not match the manifest (export the model again)")
 
 
-def _named(stage: dict, sess) -> tuple[dict, object, list[str], list[str]]:
+def _named(stage: Stage, sess) -> tuple[Stage, object, list[str], list[str]]:
     # names looked up once: get_inputs() builds new objects on every call
     return stage, sess, [i.name for i in sess.get_inputs()], [o.name for o in sess.get_outputs()]
-
-
-def _is_scan_path(stage: dict) -> bool:
-    """Path 0's graph: the interpolated scan, read by no later stage."""
-    return stage["path"] == 0 and list(stage["outputs"]) == ["depth_0"]
 
 
 def read_scan(path: Path) -> np.ndarray:
@@ -526,10 +521,10 @@ def off_row_warning(row: int, scan_row: int, height: int) -> str | None:
             "there): its depths will be off; retrain with this LiDAR's mount (--lidar)")
 
 
-def measured_errors(manifest: dict) -> list[float] | None:
+def measured_errors(manifest: Manifest) -> list[float] | None:
     """Each path's error as the export measured it on the exported graphs (RMSE, or the photometric
     error where the frames had no depth); None where it measured none."""
-    metrics = manifest.get("path_metrics") or []
+    metrics = manifest.path_metrics
     for key in ("rmse", "photometric"):
         values = [m.get(key) for m in metrics]
         if values and all(isinstance(v, (int, float)) and math.isfinite(v) for v in values):
@@ -559,7 +554,7 @@ def measured_anytime(runner: AnytimeRunner, frames: list[dict], deadlines_ms: np
 def path_metrics(runner: AnytimeRunner, frames: list[dict]) -> list[dict[str, float]]:
     """Per-path metrics (FastDepth's conventions) of an exported model on ``frames`` (data set items)."""
     from explorer.metrics import PHOTOMETRIC, MetricAverager, depth_metrics
-    averagers = [MetricAverager() for _ in range(runner.manifest["paths"])]
+    averagers = [MetricAverager() for _ in range(runner.manifest.paths)]
     for f in frames:
         for p, depth in enumerate(runner.depths(f["image"].numpy(), f["scan"].numpy(), _rows(f))):
             averagers[p].add(depth_metrics(depth, f["depth"][0].numpy()))

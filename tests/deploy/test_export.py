@@ -43,10 +43,10 @@ def test_export_matches_torch_on_every_path(exported):
 
 def test_paper_design_export_verified(tmp_path):
     m = export_network(build_network(paper_candidate()), tmp_path, (224, 224), devices=("tx2",))
-    assert m["verification"]["max_abs_diff"] <= 1e-4
+    assert m.verification.max_abs_diff <= 1e-4
     # path 0, then one graph per exit: encoders+ECU+exit, decoder 1+exit, decoder 2+exit, decoders 3-4+exit
-    assert [s["path"] for s in m["stages"]] == [0, 1, 2, 3, 4]
-    assert m["stages"][4]["stages"] == ["decoder_3", "decoder_4", "exit_4"]
+    assert [s.path for s in m.stages] == [0, 1, 2, 3, 4]
+    assert m.stages[4].stages == ["decoder_3", "decoder_4", "exit_4"]
 
 
 def test_deadlines_and_halt(exported):
@@ -92,7 +92,7 @@ def test_export_from_checkpoint(tmp_path):
     net = build_network(CAND)
     save_checkpoint(tmp_path / "c.pt", net, TrainConfig(input_size=(32, 32)), 1)
     m = export_from_checkpoint(tmp_path / "c.pt", tmp_path / "out")
-    assert m["input_size"] == [32, 32] and (tmp_path / "out" / m["stages"][1]["file"]).is_file()
+    assert m.input_size == (32, 32) and (tmp_path / "out" / m.stages[1].file).is_file()
 
 
 def test_run_cli_and_bad_inputs(exported, tmp_path, run_cli):
@@ -152,25 +152,25 @@ def test_int8_export_records_every_path_before_and_after(int8_export):
     from conftest import TINY_DATA
     from explorer.deploy.quantize import _frames, path_metrics
     out, m = int8_export
-    assert m["precision"] == "int8" and json.loads((out / "manifest.json").read_text()) == m
+    assert m.precision == "int8" and json.loads((out / "manifest.json").read_text()) == m.to_json()
     # the profiles priced the network searched in fp32: its manifest says its costs are fp32 estimates
-    assert m["expected_cost_precision"] == "fp32" and m["expected_cost_note"].startswith("fp32 estimates")
+    assert m.expected_cost_precision == "fp32" and m.expected_cost_note.startswith("fp32 estimates")
     # --int8-stages all: every stage graph but path 0's (the scan: nothing to quantize)
-    assert [s["precision"] for s in m["stages"]] == ["fp32"] + ["int8"] * (len(m["stages"]) - 1)
-    assert all(s["file"].endswith(".int8.onnx") and (out / s["file"]).is_file() for s in m["stages"][1:])
-    assert sorted(f.name for f in out.glob("*.onnx")) == sorted(s["file"] for s in m["stages"])   # no fp32 one left
-    ops = {n.op_type for s in m["stages"][1:] for n in onnx.load(str(out / s["file"])).graph.node}
+    assert [s.precision for s in m.stages] == ["fp32"] + ["int8"] * (len(m.stages) - 1)
+    assert all(s.file.endswith(".int8.onnx") and (out / s.file).is_file() for s in m.stages[1:])
+    assert sorted(f.name for f in out.glob("*.onnx")) == sorted(s.file for s in m.stages)   # no fp32 one left
+    ops = {n.op_type for s in m.stages[1:] for n in onnx.load(str(out / s.file)).graph.node}
     assert {"QuantizeLinear", "DequantizeLinear"} <= ops
-    q = m["quantization"]
-    assert q["calibration"]["frames"] == 4 and q["evaluation"]["frames"] == 6
-    assert len(m["path_metrics_fp32"]) == len(m["path_metrics_int8"]) == len(q["rmse_degradation"]) == CAND.num_paths
-    assert m["path_metrics"] == m["path_metrics_int8"]
+    q = m.quantization
+    assert q.calibration.frames == 4 and q.evaluation.frames == 6
+    assert len(m.path_metrics_fp32) == len(m.path_metrics_int8) == len(q.rmse_degradation) == CAND.num_paths
+    assert m.path_metrics == m.path_metrics_int8
     # what the manifest says is what the int8 graphs give, and path 0 (no weights) is untouched
     again = path_metrics(out, _frames(TINY_DATA, (32, 48), 6, "val"))
-    assert [p["rmse"] for p in again] == pytest.approx([p["rmse"] for p in m["path_metrics_int8"]], rel=1e-5)
-    assert q["rmse_degradation"][0] == 0.0
-    for before, after, d in zip(m["path_metrics_fp32"], m["path_metrics_int8"], q["rmse_degradation"]):
-        assert d == pytest.approx(after["rmse"] / before["rmse"] - 1) and d <= q["max_degradation"]
+    assert [p["rmse"] for p in again] == pytest.approx([p["rmse"] for p in m.path_metrics_int8], rel=1e-5)
+    assert q.rmse_degradation[0] == 0.0
+    for before, after, d in zip(m.path_metrics_fp32, m.path_metrics_int8, q.rmse_degradation):
+        assert d == pytest.approx(after["rmse"] / before["rmse"] - 1) and d <= q.max_degradation
 
 
 def test_int8_runs_under_deadlines(int8_export, run_cli):
@@ -180,7 +180,7 @@ def test_int8_runs_under_deadlines(int8_export, run_cli):
     img, scan = np.zeros((3, 32, 48), np.float32), np.ones(48, np.float32)
     assert runner.run(img, scan, deadline_ms=0).path == 0
     full = runner.run(img, scan, deadline_ms=10_000)
-    errors = [m["rmse"] for m in runner.manifest["path_metrics"]]
+    errors = [m["rmse"] for m in runner.manifest.path_metrics]
     # every path ran; the one returned is the most accurate of them as the export measured it
     assert [p for p, _ in full.completed] == list(range(CAND.num_paths))
     assert full.path == int(np.argmin(errors))
@@ -310,7 +310,7 @@ def _stage_speeds(int8_ratio: dict[int, float], timed: list | None = None) -> "C
             if timed is not None:
                 timed.append(sorted(chosen))
             per_stage = {k: 2.0 * (int8_ratio.get(k, 0.5) if k in chosen else 1.0)
-                         for k in range(len(manifest["stages"]))}
+                         for k in range(len(manifest.stages))}
             out.append((sum(per_stage.values()), per_stage))
         return out
     return speeds
@@ -338,12 +338,12 @@ def test_int8_keeps_fp32_the_graph_that_costs_accuracy(exported, tmp_path, monke
     monkeypatch.setattr(quantize, "path_metrics", _metrics_losing(0.10, lambda st: st["path"] == 2))
     m = export_network(net, tmp_path / "m", (32, 48), quantization=Quantization(
         data=TINY_DATA, calibration_frames=2, eval_frames=2, max_degradation=0.03))
-    precisions = [st["precision"] for st in m["stages"]]
-    assert precisions == ["fp32", "int8", "fp32"] + ["int8"] * (len(m["stages"]) - 3)
-    assert m["quantization"]["kept_fp32_for_accuracy"] == [m["stages"][2]["name"]]
-    assert max(m["quantization"]["rmse_degradation"]) == 0.0
-    assert sorted(f.name for f in (tmp_path / "m").glob("*.onnx")) == sorted(st["file"] for st in m["stages"])
-    assert json.loads((tmp_path / "m" / "manifest.json").read_text()) == m
+    precisions = [st.precision for st in m.stages]
+    assert precisions == ["fp32", "int8", "fp32"] + ["int8"] * (len(m.stages) - 3)
+    assert m.quantization.kept_fp32_for_accuracy == [m.stages[2].name]
+    assert max(m.quantization.rmse_degradation) == 0.0
+    assert sorted(f.name for f in (tmp_path / "m").glob("*.onnx")) == sorted(st.file for st in m.stages)
+    assert json.loads((tmp_path / "m" / "manifest.json").read_text()) == m.to_json()
 
 
 def test_int8_past_the_degradation_limit_is_refused_and_changes_nothing(exported, tmp_path, monkeypatch):
@@ -375,15 +375,15 @@ def test_int8_keeps_a_stage_fp32_where_int8_is_not_faster_here(exported, tmp_pat
     monkeypatch.setattr(quantize, "compare_speed", _stage_speeds({k: 0.97 for k in range(2, 9)}, timed))
     m = export_network(net, tmp_path / "m", (32, 48), quantization=Quantization(
         data=TINY_DATA, calibration_frames=2, eval_frames=2, max_degradation=10.0))
-    quantized = list(range(1, len(m["stages"])))   # every stage graph but path 0's
+    quantized = list(range(1, len(m.stages)))   # every stage graph but path 0's
     # from all int8, each stage timed in the staged runtime int8 and fp32, the others as decided so far
     assert timed[:2] == [quantized, quantized[1:]] and timed[2:4] == [quantized, [1] + quantized[2:]]
     assert len(timed) == 2 * len(quantized)
-    assert [s["precision"] for s in m["stages"]] == ["fp32", "int8"] + ["fp32"] * (len(m["stages"]) - 2)
-    assert {k: m["stages"][1]["ms_here"][k] for k in ("fp32", "int8")} == {"fp32": 2.0, "int8": 1.0}
-    assert m["stages"][2]["ms_here"]["int8"] == pytest.approx(1.94)
-    assert sorted(f.name for f in (tmp_path / "m").glob("*.onnx")) == sorted(s["file"] for s in m["stages"])
-    assert m["quantization"]["quantized_graphs"] == [m["stages"][1]["file"].replace(".int8", "")]
+    assert [s.precision for s in m.stages] == ["fp32", "int8"] + ["fp32"] * (len(m.stages) - 2)
+    assert (m.stages[1].ms_here.fp32, m.stages[1].ms_here.int8) == (2.0, 1.0)
+    assert m.stages[2].ms_here.int8 == pytest.approx(1.94)
+    assert sorted(f.name for f in (tmp_path / "m").glob("*.onnx")) == sorted(s.file for s in m.stages)
+    assert m.quantization.quantized_graphs == [m.stages[1].file.replace(".int8", "")]
     runner = AnytimeRunner(tmp_path / "m")   # fp32 and int8 stage graphs run together
     res = runner.run(np.zeros((3, 32, 48), np.float32), np.ones(48, np.float32))
     assert [p for p, _ in res.completed] == list(range(CAND.num_paths))

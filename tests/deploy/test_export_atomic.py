@@ -71,5 +71,5 @@ def test_a_failed_export_leaves_the_old_one(tmp_path, monkeypatch):
     first = export_network(build_network(paper_candidate()), out, (64, 64), devices=())
     with pytest.raises(UserError):
         export_network(build_network(paper_candidate()), out, (63, 64), devices=())   # not divisible by the stride
-    assert _whole(out)["candidate_key"] == first["candidate_key"]
+    assert _whole(out)["candidate_key"] == first.candidate_key
     assert [p.name for p in tmp_path.iterdir()] == ["model"]

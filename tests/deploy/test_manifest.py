@@ -59,7 +59,7 @@ def test_a_broken_manifest_is_one_line(model, tmp_path, name):
 def test_a_changed_graph_does_not_match_the_manifest(model, tmp_path):
     folder = _copy(model, tmp_path)
     manifest = read_manifest(folder)
-    a, b = manifest["stages"][1]["file"], manifest["stages"][2]["file"]
+    a, b = manifest.stages[1].file, manifest.stages[2].file
     (folder / a).write_bytes((folder / b).read_bytes())   # another stage's graph in its place
     with pytest.raises(UserError, match="does not match the manifest"):
         AnytimeRunner(folder, warmup=False)
@@ -84,15 +84,36 @@ def test_an_export_writes_only_what_its_schema_accepts(model, tmp_path):
     or a measurement without its frames, are refused before anything is written."""
     import pydantic
 
-    from explorer.deploy.manifest import write_manifest
-    manifest = json.loads((model / MANIFEST).read_text())
-    write_manifest(tmp_path, manifest)
-    assert json.loads((tmp_path / MANIFEST).read_text()) == manifest
-    for bad in ({"path_metrics": [{"rmse": 0.3}]},
-                {"measured": {"data": "synthetic", "split": "val", "input_size": [64, 64]}}):
+    from explorer.deploy.manifest import Manifest, Measured, write_manifest
+    on_disk = json.loads((model / MANIFEST).read_text())
+    write_manifest(tmp_path, read_manifest(model))   # read and written again: the same keys, the same values
+    assert json.loads((tmp_path / MANIFEST).read_text()) == on_disk
+    for name, value in (("path_metrics", [{"rmse": 0.3}]),
+                        ("measured", Measured(data="synthetic", split="val", frames=1, input_size=(64, 64)))):
+        manifest = read_manifest(model)
+        setattr(manifest, name, value)
+        if name == "measured":
+            manifest.measured.frames = 0   # set after it was made: a measurement on no frames
         with pytest.raises(pydantic.ValidationError):
-            write_manifest(tmp_path / "bad", {**manifest, **bad})
+            write_manifest(tmp_path / "bad", manifest)
         assert not (tmp_path / "bad" / MANIFEST).exists()
+    with pytest.raises(pydantic.ValidationError):
+        Manifest.model_validate({**on_disk, "measured": {"data": "synthetic", "split": "val", "input_size": [64, 64]}})
+
+
+def test_a_manifest_keeps_the_keys_it_does_not_know(model, tmp_path):
+    """A newer export's additions (at the top, in a stage, in a record) survive a read and a write, and
+    nothing is added at its default."""
+    from explorer.deploy.manifest import write_manifest
+    folder = _copy(model, tmp_path, lambda m, d: (m.update(added_later={"x": 1}), m["stages"][0].update(hint="y"),
+                                                   m["verification"].update(seed=3)))
+    manifest = read_manifest(folder)
+    assert manifest.added_later == {"x": 1} and manifest.stages[0].hint == "y"
+    assert manifest.tuned_size is None and manifest.quantization is None
+    on_disk = json.loads((folder / MANIFEST).read_text())
+    write_manifest(folder, manifest)
+    assert json.loads((folder / MANIFEST).read_text()) == on_disk
+    assert "tuned_size" not in on_disk and "quantization" not in on_disk
 
 
 def test_an_exports_files_are_readable_as_the_umask_allows(tmp_path):
@@ -108,3 +129,4 @@ def test_an_exports_files_are_readable_as_the_umask_allows(tmp_path):
     files = list((tmp_path / "m").iterdir())
     assert files and {stat.S_IMODE(f.stat().st_mode) for f in files} == {0o644}
     assert stat.S_IMODE((tmp_path / "m").stat().st_mode) == 0o755
+

@@ -370,12 +370,13 @@ def test_the_exported_winner_measures_what_the_study_reported(finished, tmp_path
     out, reports = finished
     for trial in (winner(out.study), baseline_trial(out.study, "paper", retrained=True)):
         manifest = export_from_study("fin", trial.number, tmp_path / f"t{trial.number}", None, reports)
-        assert manifest["measured"] == {**trial.user_attrs["measured"], "by": "onnxruntime, the exported graphs"}
-        assert manifest["input_size"] == manifest["tuned_size"] == [64, 64]
-        exported = [p["rmse"] for p in manifest["path_metrics"]]
+        assert manifest.measured.model_dump(mode="json") == {**trial.user_attrs["measured"],
+                                                             "by": "onnxruntime, the exported graphs"}
+        assert manifest.input_size == manifest.tuned_size == (64, 64)
+        exported = [p["rmse"] for p in manifest.path_metrics]
         assert exported == pytest.approx([p["rmse"] for p in trial.user_attrs["path_metrics"]], abs=0.01)
-        assert manifest["source"]["study_path_metrics"] == trial.user_attrs["path_metrics"]
-        costs = [c for c in manifest["expected_cost"]["tx2"]["latency_ms"]]
+        assert manifest.source.study_path_metrics == trial.user_attrs["path_metrics"]
+        costs = [c for c in manifest.expected_cost["tx2"].latency_ms]
         assert anytime_loss(costs, exported, "time:uniform:33ms") == pytest.approx(trial.values[0], abs=0.01)
 
 
