@@ -20,8 +20,9 @@ from dataclasses import dataclass
 from typing import Mapping, Sequence
 
 import torch
+from torch import nn
 
-from explorer.model.network import stage_specs
+from explorer.model.network import build_network, stage_specs
 from explorer.space import Candidate
 
 
@@ -135,3 +136,13 @@ def carry_weights(state: Mapping[str, torch.Tensor], trained: Candidate,
         elif key.split(".")[1] in wanted:
             out[key] = value
     return out
+
+
+def shipped_network(trained: nn.Module, shipped: Candidate) -> nn.Module:
+    """The network of ``shipped`` (``trained.candidate`` less some exits) with ``trained``'s weights, in
+    the same mode (training or evaluation)."""
+    if shipped == trained.candidate:
+        return trained
+    net = build_network(shipped)
+    net.load_state_dict(carry_weights(trained.state_dict(), trained.candidate, shipped))
+    return net.train(trained.training)

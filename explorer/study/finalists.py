@@ -213,6 +213,8 @@ def train_finalist(objective, job: FinalistJob, recipe: DeploymentRecipe, folder
     if any(not math.isfinite(v) for v in path_losses):
         checkpoint.unlink(missing_ok=True)
         raise FloatingPointError(f"finalist {candidate.key}: non-finite validation loss {path_losses}")
+    (cost, pm, latency), path_metrics = objective.shipped(holder, candidate, (cost, pm, latency), path_metrics)
+    path_losses = [m[objective.config.metric] for m in path_metrics]
     losses = objective.losses_for(cost, path_losses)
     values = objective.values(losses, pm, latency)
     attrs = {**holder.user_attrs, **record_values(

@@ -17,6 +17,7 @@ from explorer.cost import model_cost
 from explorer.data import open_dataset
 from explorer.deploy.export import quantization_effect
 from explorer.files import scratch_dir
+from explorer.model.shipped import ship
 from explorer.space import Candidate
 from explorer.study.config import SearchConfig, StudyContext, baseline_model, json_safe
 from explorer.study.records import record, trial_record
@@ -120,14 +121,37 @@ class Objective:
     def describe(self, trial, candidate):
         """Costs every path of ``candidate`` (or of a reference network) and stores what re-scoring
         needs on ``trial``."""
-        cost = model_cost(candidate, self.config.input_size)
+        what = {"candidate": candidate.to_dict()} if isinstance(candidate, Candidate) else {"reference": candidate.name}
+        record(trial, **what, candidate_key=candidate.key)
+        return self._record_costs(trial, model_cost(candidate, self.config.input_size))
+
+    def _record_costs(self, trial, cost):
         pm = cost.path_params_macs()
         latency = cost.path_latency_ms(self.device_profile)
-        what = {"candidate": candidate.to_dict()} if isinstance(candidate, Candidate) else {"reference": candidate.name}
-        record(trial, **what, candidate_key=candidate.key, params=[p for p, _ in pm], macs=[m for _, m in pm],
-               latency_ms=latency, energy_j=cost.path_energy_j(self.device_profile),
-               workloads=compact_workloads(cost))
+        record(trial, params=[p for p, _ in pm], macs=[m for _, m in pm], latency_ms=latency,
+               energy_j=cost.path_energy_j(self.device_profile), workloads=compact_workloads(cost))
         return cost, pm, latency
+
+    def shipped(self, trial, candidate, costs: tuple, path_metrics: list[dict]) -> tuple[tuple, list[dict]]:
+        """The network that ships from the trained ``candidate`` (explorer.model.shipped): its exits that
+        do not improve on an earlier path by the study's metric are dropped unless --keep-every-exit, and
+        the trial's costs and per-path figures become the shipped network's. ``costs``: (cost, params and
+        MACs, latency) of the trained network; returns them and the figures, those of what ships."""
+        if not isinstance(candidate, Candidate):
+            return costs, path_metrics
+        shipped = ship(candidate, [m[self.config.metric] for m in path_metrics], self.config.keep_every_exit)
+        if not shipped.dropped:
+            return costs, path_metrics
+        kept = self._record_costs(trial, model_cost(shipped.candidate, self.config.input_size))
+        record(trial, shipped={"candidate": shipped.candidate.to_dict(), "trained_paths": list(shipped.paths),
+                               "dropped": [d.to_dict() for d in shipped.dropped]})
+        if candidate.precision == "int8":   # what quantizing did, for the paths that ship
+            fp32, effect = trial.user_attrs.get("path_metrics_fp32"), trial.user_attrs.get("quantization")
+            record(trial, int8_graphs=list(kept[0].int8_graphs(self.device_profile)),
+                   **({"path_metrics_fp32": [fp32[p] for p in shipped.paths]} if fp32 else {}),
+                   **({"quantization": {**effect, "rmse_degradation": [
+                       effect["rmse_degradation"][p] for p in shipped.paths]}} if effect else {}))
+        return kept, [path_metrics[p] for p in shipped.paths]
 
     def values(self, losses: dict[str, float], pm, latency):
         values = []
@@ -157,7 +181,8 @@ class Objective:
                 paid = trial_record(done)
                 record(trial, **{key: getattr(paid, key) for key in (
                     "path_metrics", "train", "losses", "weights_artifact", "evaluator", "path_metrics_fp32",
-                    "quantization", "int8_graphs")}, duplicate_of=done.number)
+                    "quantization", "int8_graphs", "shipped", "params", "macs", "latency_ms", "energy_j",
+                    "workloads")}, duplicate_of=done.number)
                 return done.values[0] if len(done.values) == 1 else tuple(done.values)
         primary = self.budgets[0]
         costs = cost.path_costs(self.device_profile, primary.kind)
@@ -183,6 +208,7 @@ class Objective:
             if candidate.precision == "int8":   # a stage-by-stage evaluation made no network
                 net = result.network if result.network is not None else self.evaluator.network_of(candidate)
                 path_metrics = self.quantized(trial, net, path_metrics, cost)
+            (cost, pm, latency), path_metrics = self.shipped(trial, candidate, (cost, pm, latency), path_metrics)
             record(trial, path_metrics=path_metrics, evaluator=json_safe(result.info))
             if result.info["evaluator"] == "proxy":
                 record(trial, train={k: result.info[k] for k in ("seconds", "steps", "images_per_second")})

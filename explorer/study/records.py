@@ -45,6 +45,16 @@ class Retraining(BaseModel):
     path: Optional[int] = None        # a dedicated network of the envelope: the one path it was trained for
 
 
+class Shipped(BaseModel):
+    """What was left out of a trial's network for shipping (explorer.model.shipped): the candidate that
+    ships, the trained network's path behind each of its paths, and each exit dropped with why. The
+    trial's costs and per-path figures are those of the shipped network."""
+
+    candidate: dict[str, Any]
+    trained_paths: list[int]
+    dropped: list[dict[str, Any]]
+
+
 class TrialRecord(BaseModel):
     """Everything a trial stores. A sampled trial holds its candidate, costs and estimated metrics; a
     retrained one holds ``finalist`` (or ``envelope``) and ``measured`` too; a baseline is tagged by
@@ -79,6 +89,12 @@ class TrialRecord(BaseModel):
     finalist: Optional[Retraining] = None
     envelope: Optional[Retraining] = None
     measured: Optional[Measured] = None
+    shipped: Optional[Shipped] = None       # exits dropped for shipping: costs and figures are the shipped network's
+
+    @property
+    def shipped_candidate(self) -> Optional[dict[str, Any]]:
+        """The candidate as shipped: ``candidate`` less the exits dropped (explorer.model.shipped)."""
+        return self.shipped.candidate if self.shipped is not None else self.candidate
 
     @property
     def retraining(self) -> Retraining | None:
@@ -130,6 +146,27 @@ class TrialRecord(BaseModel):
         return "rmse" if has_rmse or not any(m.get("photometric") is not None for m in metrics) else "photometric"
 
 
+class PlanRecord(BaseModel):
+    """A ``--time-limit`` run's plan as the study stored it (:class:`explorer.study.planning.Plan`): what
+    the run was sized to, and what changed as it ran. A field a plan left out reads as nothing planned."""
+
+    model_config = ConfigDict(frozen=True, extra="ignore")
+
+    limit_s: float = 0.0
+    supernet_steps: int = 0
+    supernet_s: float = 0.0
+    sampling_s: float = 0.0
+    finalists: int = 0
+    finalist_steps: int = 0
+    retrain_jobs: int = 0
+    retrain_s: float = 0.0
+    changes: tuple[str, ...] = ()
+    trial_s: float = 0.0
+    tune: str = ""
+    fits: bool = True
+    not_retrained: int = 0
+
+
 class StudyRecord(BaseModel):
     """What a study stores about itself: its configuration (read as a checked SearchConfig by
     explorer.study.config.study_config), the space and device profile it was created with, its plan
@@ -143,7 +180,7 @@ class StudyRecord(BaseModel):
     device_profile: Optional[dict[str, Any]] = None
     created: Optional[str] = None
     baselines_not_estimated: dict[str, str] = {}
-    plan: Optional[dict[str, Any]] = None
+    plan: Optional[PlanRecord] = None
     runs: list[dict[str, Any]] = []
     artifacts_dir: Optional[str] = None
     supernet: Optional[str] = None

@@ -12,6 +12,7 @@ from explorer.cost import candidate_cost, get_device
 from explorer.cost.devices import DeviceProfile
 from explorer.errors import UserError
 from explorer.space import Candidate, SearchSpace, paper_candidate
+from explorer.study.records import trial_record
 
 TINY_INT8 = {**yaml.safe_load(open(SearchSpace.from_yaml("tiny").source).read()), "name": "tiny8",
              "precision": ["fp32", "int8"]}
@@ -69,14 +70,14 @@ def test_precision_is_a_dimension_of_a_space():
 @pytest.mark.slow
 def test_a_search_measures_int8_candidates_after_quantization(tmp_path, run_cli):
     from explorer.study.results import trial_path_costs
-    from explorer.study.search import SearchConfig, search
+    from explorer.study.search import SearchConfig, SearchRun, search
     space = tmp_path / "tiny8.yaml"
     space.write_text(yaml.safe_dump(TINY_INT8))
     device = _with_int8(tmp_path, slower=0.5)   # int8 pays in every stage graph
     cfg = SearchConfig(study="p8", space=str(space), device=str(device), data=TINY_DATA, train_size=(32, 32),
                        input_size=(64, 64), batch_size=8, val_limit=8, evaluator="supernet", supernet_steps=4,
                        finalists=0, baselines=())
-    out = search(cfg, n_trials=12, timeout_s=None, reports=tmp_path)
+    out = search(cfg.resolve(), SearchRun(n_trials=12, timeout_s=None, reports=tmp_path))
     done = [t for t in out.study.trials if "path_metrics" in t.user_attrs]
     int8 = [t for t in done if t.user_attrs["candidate"].get("precision") == "int8"]
     fp32 = [t for t in done if t.user_attrs["candidate"].get("precision", "fp32") == "fp32"]
@@ -87,7 +88,7 @@ def test_a_search_measures_int8_candidates_after_quantization(tmp_path, run_cli)
         for d, m, b in zip(q["rmse_degradation"], pm, before):   # the estimate scaled by what int8 did
             assert m["rmse"] == pytest.approx(b["rmse"] * (1 + d), rel=1e-6)
         assert any(abs(d) > 0 for d in q["rmse_degradation"][1:])
-        cand = Candidate.from_dict(t.user_attrs["candidate"])
+        cand = Candidate.from_dict(trial_record(t).shipped_candidate)   # the network as it ships
         assert t.user_attrs["int8_graphs"] == list(candidate_cost(cand, (64, 64)).int8_graphs(get_device(device)))
         assert len(t.user_attrs["int8_graphs"]) == cand.num_paths - 1   # every stage graph but path 0's
         assert t.user_attrs["latency_ms"] == pytest.approx(candidate_cost(cand, (64, 64)).path_latency_ms(get_device(device)))
@@ -132,13 +133,13 @@ def test_an_int8_space_shares_the_supernet_of_its_fp32_twin():
 
 def test_an_int8_finalist_is_retrained_then_measured_after_quantization(tmp_path):
     from explorer.study.finalists import finalist_trials
-    from explorer.study.search import SearchConfig, search
+    from explorer.study.search import SearchConfig, SearchRun, search
     space = tmp_path / "only8.yaml"
     space.write_text(yaml.safe_dump({**TINY_INT8, "name": "only8", "precision": ["int8"]}))
     cfg = SearchConfig(study="f8", space=str(space), device=str(_with_int8(tmp_path)), data=TINY_DATA,
                        train_size=(32, 32), input_size=(64, 64), batch_size=8, val_limit=8, evaluator="supernet",
                        supernet_steps=4, finalists=1, finalist_steps=3, baselines=())
-    out = search(cfg, n_trials=3, timeout_s=None, reports=tmp_path)
+    out = search(cfg.resolve(), SearchRun(n_trials=3, timeout_s=None, reports=tmp_path))
     (fin,) = finalist_trials(out.study)
     assert fin.user_attrs["candidate"]["precision"] == "int8"
     before, after = fin.user_attrs["path_metrics_fp32"], fin.user_attrs["path_metrics"]
