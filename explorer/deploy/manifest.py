@@ -109,6 +109,8 @@ class Source(BaseModel):
     study_path_metrics: Optional[list[dict[str, Any]]] = None
     study_measured: Optional[dict[str, Any]] = None
     checkpoint: Optional[str] = None
+    trained_candidate: Optional[dict[str, Any]] = None   # where exits were left out of what ships: as trained
+    dropped_exits: Optional[list[dict[str, Any]]] = None  # each exit left out, with the error that left it out
 
 
 class Frames(BaseModel):

@@ -1,18 +1,28 @@
 """Every trial is scored as the network that ships: its exits no better than an earlier path left out,
 its costs and per-path figures those of what ships, unless --keep-every-exit."""
 
+import json
+
+import numpy as np
 import optuna
 import pandas as pd
 import pytest
+import torch
+from PIL import Image
 
 from explorer.anytime import anytime_loss
 from explorer.cost import candidate_cost
+from explorer.deploy.manifest import read_manifest
+from explorer.model import build_network
 from explorer.space import Candidate
+from explorer.study import objective as objective_module
 from explorer.study.objective import Objective
 from explorer.study.records import trial_record
 from explorer.study.results import trial_anytime_loss
-from explorer.study.search import SearchConfig
+from explorer.study.run import SearchRun
+from explorer.study.search import SearchConfig, search
 from explorer.supernet.evaluators import Evaluation
+from explorer.training.train import TrainConfig, save_checkpoint
 from conftest import TINY_DATA
 
 TINY = dict(space="tiny", data=TINY_DATA, train_size=(32, 32), input_size=(64, 64), train_steps=2,
@@ -72,3 +82,46 @@ def test_keep_every_exit_scores_the_network_as_trained():
     trained = Candidate.from_dict(rec.candidate)
     assert rec.shipped is None and len(rec.path_metrics) == trained.num_paths
     assert rec.latency_ms == pytest.approx(candidate_cost(trained, (64, 64)).path_latency_ms(context.device))
+
+
+class TrainedWorseSecondPath(WorseSecondPath):
+    """:class:`WorseSecondPath` that also leaves weights (random ones) where the proxy leaves its checkpoint."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        pass
+
+    def __call__(self, candidate, checkpoint=None, report=None) -> Evaluation:
+        if checkpoint is not None:
+            torch.manual_seed(0)
+            net = build_network(candidate)
+            for p in net.parameters():
+                p.data.normal_(0, 0.1)
+            save_checkpoint(checkpoint, net, TrainConfig(), 0)
+        return super().__call__(candidate, checkpoint, report)
+
+
+@pytest.mark.slow
+def test_the_export_ships_the_network_less_its_dropped_exit(tmp_path, monkeypatch, run_cli):
+    monkeypatch.setattr(objective_module, "ProxyEvaluator", TrainedWorseSecondPath)
+    cfg = SearchConfig(study="ships", **{**TINY, "keep_weights": True})
+    out = search(cfg.resolve(), SearchRun(n_trials=1, timeout_s=None, reports=tmp_path))
+    rec = trial_record(out.study.trials[0])
+    assert rec.shipped is not None
+    code, _, err = run_cli("export", "--study", "ships", "--reports", tmp_path, "--out", tmp_path / "model",
+                           "--eval-frames", 4)
+    assert code == 0, err
+    manifest = read_manifest(tmp_path / "model")
+    assert Candidate.from_dict(manifest.candidate) == Candidate.from_dict(rec.shipped_candidate)
+    assert manifest.paths == len(rec.path_metrics) == Candidate.from_dict(rec.candidate).num_paths - 1
+    assert [d["path"] for d in manifest.source.dropped_exits] == [1]
+    assert manifest.source.trained_candidate == rec.candidate
+    dropped = rec.shipped.dropped[0]["exit"]
+    assert not [stage.file for stage in manifest.stages if dropped in stage.file]   # its head is not computed
+    assert manifest.verification   # the export checked its graphs against the shipped network
+    np.save(tmp_path / "scan.npy", np.full(64, 2.0, np.float32))
+    Image.fromarray(np.zeros((64, 64, 3), np.uint8)).save(tmp_path / "frame.png")
+    code, text, err = run_cli("run", tmp_path / "model", "--image", tmp_path / "frame.png", "--scan",
+                              tmp_path / "scan.npy", "--deadline", "1000ms", "--json")
+    assert code == 0, err
+    errors = [m["rmse"] for m in manifest.path_metrics]   # as the export measured them (random weights here)
+    assert json.loads(text)["path"] == errors.index(min(errors))   # every path ready: the most accurate
