@@ -158,14 +158,14 @@ def search_rate(device: str, data: str, seconds: float, supernet_steps: int) -> 
     """(distinct candidates evaluated per minute, share of the sampling time in the evaluator) of a
     supernet search sampling ``seconds`` (its supernet trained beforehand, outside the time)."""
     import optuna
-    from explorer.study.search import search
+    from explorer.study.search import SearchRun, search
     optuna.logging.set_verbosity(optuna.logging.WARNING)   # a line per trial would bury the figures
     config = search_config(f"gpu-bench-{random.randrange(10**9)}", device, data, supernet_steps)
     with tempfile.TemporaryDirectory() as tmp:
-        out = search(config, n_trials=None, timeout_s=seconds, reports=Path(tmp))
+        out = search(config.resolve(), SearchRun(n_trials=None, timeout_s=seconds, reports=Path(tmp)))
         trials = [t for t in out.study.get_trials() if t.state.name == "COMPLETE"]
         if not trials:   # a machine too busy to finish one in the time: the study goes on until one is done
-            out = search(config, n_trials=1, timeout_s=None, reports=Path(tmp))
+            out = search(config.resolve(), SearchRun(n_trials=1, timeout_s=None, reports=Path(tmp)))
             trials = [t for t in out.study.get_trials() if t.state.name == "COMPLETE"]
     if not trials:
         raise RuntimeError("the search finished no trial")
@@ -456,7 +456,8 @@ def one_study(bench: Bench, args, rep: int, util: Utilisation) -> None:
         optuna.logging.set_verbosity(optuna.logging.WARNING)
         study = load_study(name, reports=reports)
         stored = study_record(study)
-        run, plan, trials = stored.runs[-1], stored.plan or {}, len(study.trials)
+        run, trials = stored.runs[-1], len(study.trials)
+        plan = stored.plan.model_dump() if stored.plan is not None else {}
         best, paper = winner(study), baseline_trial(study, "paper", retrained=True)
         exported = Path(tmp) / "winner" / "manifest.json"
         manifest = read_manifest(exported.parent) if export_s is not None else None

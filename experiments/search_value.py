@@ -38,7 +38,7 @@ from explorer.space import Candidate, paper_candidate
 from explorer.study.envelope import envelope_steps, spread_along_front
 from explorer.study.finalists import choose_finalists
 from explorer.study.records import trial_record
-from explorer.study.search import search
+from explorer.study.search import SearchRun, search
 from explorer.training.deployment import DeploymentData, DeploymentRecipe
 from explorer.training.memory import release_host_memory
 from explorer.training.train import train
@@ -445,7 +445,7 @@ def estimated(seed: int, args, work: Path, data_cache: Path):
     config = base_config(seed, name, finalists=0)
     reports = work / "reports" / name
     with fresh_cache(work / "cache" / name, data_cache):
-        study = search(config, timeout_s=args.sampling_s, reports=reports).study
+        study = search(config.resolve(), SearchRun(timeout_s=args.sampling_s, reports=reports)).study
 
     def chosen(count: int) -> list[tuple[Candidate, float]]:
         return [(Candidate.from_dict(trial_record(t).candidate), t.values[0]) for t in choose_finalists(study, count)]

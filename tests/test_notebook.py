@@ -4,7 +4,7 @@ from pathlib import Path
 import nbformat
 from nbclient import NotebookClient
 
-from explorer.study.search import SearchConfig, search
+from explorer.study.search import SearchConfig, SearchRun, search
 from conftest import TINY_DATA
 
 NOTEBOOK = Path(__file__).resolve().parents[1] / "notebooks" / "analysis.ipynb"
@@ -14,7 +14,8 @@ NOTEBOOK = Path(__file__).resolve().parents[1] / "notebooks" / "analysis.ipynb"
 def test_analysis_notebook_runs_on_a_tiny_study(tmp_path, monkeypatch):
     search(SearchConfig(study="nb", space="tiny", data=TINY_DATA, train_size=(32, 32), input_size=(64, 64),
                         train_steps=4, batch_size=8, val_limit=8, supernet_steps=4, finalists=1,
-                        finalist_steps=4, tune_steps=1), n_trials=5, timeout_s=None, reports=tmp_path / "reports")
+                        finalist_steps=4, tune_steps=1).resolve(),
+           SearchRun(n_trials=5, timeout_s=None, reports=tmp_path / "reports"))
     monkeypatch.setenv("EXPLORER_STUDY", "nb")
     monkeypatch.delenv("EXPLORER_REPORTS", raising=False)
     monkeypatch.setenv("MPLBACKEND", "Agg")

@@ -32,7 +32,7 @@ from explorer.study.finalists import estimate_trials, finalist_trials, retrain_f
 from explorer.study.planning import RESERVE_S, TimeLimit
 from explorer.study.records import record_values, study_record, trial_record
 from explorer.study.results import winner
-from explorer.study.search import search
+from explorer.study.search import SearchRun, search
 from explorer.supernet import read_supernet
 from explorer.training.deployment import DeploymentData, DeploymentRecipe, train_for_deployment
 
@@ -94,7 +94,7 @@ def searched(config: SearchConfig, seconds: float, reports: Path, envelope_netwo
     user who sets none): (its winner, what the run did, with the dedicated networks ``explorer envelope``
     would choose from its estimates)."""
     limit = TimeLimit(seconds, time.time(), free)
-    outcome = search(config, timeout_s=SAMPLING_CAP_S, reports=reports, time_limit=limit)
+    outcome = search(config.resolve(), SearchRun(timeout_s=SAMPLING_CAP_S, reports=reports, time_limit=limit))
     study, plan = outcome.study, outcome.plan
     supernet = study_record(study).supernet
     state = read_supernet(Path(supernet)) if supernet else {}

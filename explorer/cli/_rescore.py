@@ -54,12 +54,11 @@ def advice(study: str, frame: pd.DataFrame, budget: str, sizes: tuple[str, str],
                     "estimates.")
 
 
-def print_rescored(study, frame: pd.DataFrame, args) -> None:
+def print_rescored(view, frame: pd.DataFrame, args) -> None:
     """The measured table, the estimates' table (each sorted by the first budget, at most ``args.top``
-    rows) and :func:`advice`."""
+    rows) and :func:`advice`; ``view``: the study's (explorer.study.view), for its settings."""
     from explorer.console import console, print_frame
-    from explorer.study.config import study_config
-    cfg = study_config(study)
+    cfg = view.config
     deploy, train = ("x".join(map(str, size)) for size in (cfg.input_size, cfg.train_size))
     budget = args.budget[0]
     console.print(f"{args.study} re-scored for {args.device}: anytime loss ({args.metric}), lower is better, "

@@ -7,42 +7,45 @@ from pathlib import Path
 
 from explorer.errors import UserError
 from explorer.cli._common import (HEAD_KINDS, MAX_WORKERS, _add_supervision, _bounded_int, _count, _duration_s, _ms,
-                                  _size, deprecated_alias, smallest_status, train_on_free_cores, write_output)
+                                  _size, deprecated_alias, train_on_free_cores, write_output)
 
 
 def cmd_search(args) -> None:
     import optuna
+    from explorer.cli._search_progress import SearchProgress
     from explorer.console import err_console, progress
+    from explorer.study.run import SearchRun
     from explorer.study.search import search
+    from explorer.study.view import study_view
     optuna.logging.set_verbosity(optuna.logging.WARNING)
     started = time.time()  # the time limit counts from here: data generation is part of the run
-    cfg = _search_config(args)
-    reports = Path(args.reports)
+    context = _search_context(args)
+    cfg, reports = context.config, Path(args.reports)
     timeout, limit = _time_limits(args, started)
+    run = SearchRun(storage_url=args.storage, workers=args.workers, n_trials=args.trials, timeout_s=timeout,
+                    time_limit=limit, reports=reports)
     train_on_free_cores()
     with progress(transient=True) as bar:
-        shown = _SearchProgress(bar, cfg.study, args.trials, timeout)
+        shown = SearchProgress(bar, cfg.study, args.trials, timeout)
         if limit is not None:
             bar.update(shown.task, status="measuring this machine for --time-limit (a few training steps)")
-        outcome = search(cfg, storage_url=args.storage, workers=args.workers, n_trials=args.trials,
-                         timeout_s=timeout, reports=reports, on_trial=shown.trial, on_poll=shown.trial,
-                         on_data=shown.data, on_supernet=shown.supernet, on_finalist=shown.finalist,
-                         time_limit=limit, on_plan=shown.planned, on_envelope=shown.envelope)
+        outcome = search(context, run, shown)
     cfg = outcome.config or cfg
     if outcome.interrupted_failed:
         err_console.print(f"marked {outcome.interrupted_failed} interrupted trial(s) as failed")
     _print_retries(outcome, cfg)
-    _print_outcome(outcome.study, cfg, outcome.storage_url, reports, args.report)
+    _print_outcome(study_view(outcome.study), cfg, outcome.storage_url, reports, args.report)
 
 
-def _search_config(args):
-    """The study's configuration from the command line, checked."""
-    from explorer.study.search import SearchConfig
-    from explorer.space import SearchSpace
-    space_name = SearchSpace.from_yaml(args.space).name
-    study = args.study or f"{Path(str(args.device)).stem}-{space_name}"
+def _search_context(args):
+    """The study's settings from the command line, resolved (its space, device and budgets) and checked,
+    once; a study not named is named DEVICE-SPACE. A device or budget not given is the settings' default."""
+    import dataclasses
+
+    from explorer.study.config import SearchConfig
+    given = {"device": args.device, "budgets": tuple(args.budget) if args.budget else None}
     cfg = SearchConfig(
-        study=study, space=args.space, device=args.device, budgets=tuple(args.budget or ["time:uniform:33ms"]),
+        study=args.study or "", space=args.space, **{k: v for k, v in given.items() if v is not None},
         data=args.data, objectives=tuple(args.objectives.split(",")), metric=_metric(args),
         input_size=args.input_size, train_size=args.train_size, train_steps=args.proxy_steps,
         batch_size=args.batch_size, amp=args.amp, head_kinds=args.head_kinds, seed=args.seed,
@@ -55,8 +58,11 @@ def _search_config(args):
         finalist_steps=300 if args.finalist_steps is None else args.finalist_steps, tune_steps=args.tune_steps,
         max_retries=args.max_retries,
         supervision=args.supervision, poses=args.poses, hints=args.depth_hints, self_distill=args.self_distill)
-    cfg.validate()
-    return cfg
+    context = cfg.resolve()
+    if not args.study:
+        named = f"{Path(str(cfg.device)).stem}-{context.space.name}"
+        context = context.with_config(dataclasses.replace(cfg, study=named))
+    return context
 
 
 def _metric(args) -> str:
@@ -88,61 +94,6 @@ def _time_limits(args, started: float):
     return timeout, limit
 
 
-class _SearchProgress:
-    """The progress bars of one search: its trials, then one bar per phase as the phase starts."""
-
-    def __init__(self, bar, study: str, trials: int | None, timeout: float | None) -> None:
-        self.bar, self.timeout = bar, timeout
-        self.task = bar.add_task(f"search {study}", total=trials, status="starting (data, baselines)")
-        self.phases: dict = {}
-        self.t0 = time.time()              # reset when sampling starts: the timeout counts from there
-        self.said = {"plan": False, "changes": 0}
-
-    def supernet(self, step: int, steps: int, record: dict) -> None:
-        if "supernet" not in self.phases:
-            self.phases["supernet"] = self.bar.add_task("supernet (once per space, data, recipe)", total=steps,
-                                                        status="")
-        self.bar.update(self.phases["supernet"], completed=step, status=f"largest {record['largest']:.3f}, "
-                        f"{smallest_status(record)}")
-
-    def finalist(self, i: int, n: int, what: str) -> None:
-        if "finalists" not in self.phases:
-            self.phases["finalists"] = self.bar.add_task("finalists (retraining)", total=n, status="")
-        self.bar.update(self.phases["finalists"], completed=i, status=what)
-
-    def envelope(self, i: int, n: int, what: str) -> None:
-        if "envelope" not in self.phases:
-            self.phases["envelope"] = self.bar.add_task("envelope (dedicated networks, in the time left)", total=n,
-                                                        status="")
-        self.bar.update(self.phases["envelope"], completed=i, status=what)
-
-    def trial(self, study_obj, trial=None) -> None:
-        import optuna
-        from explorer.study.retry import counted_trials
-        if "search_start" not in self.phases:
-            self.phases["search_start"], self.t0 = True, time.time()
-        complete = study_obj.get_trials(deepcopy=False, states=(optuna.trial.TrialState.COMPLETE,))
-        complete = [t for t in complete if t.values]
-        best = min((t.values[0] for t in complete), default=float("nan"))
-        last = f"trial {trial.number} {trial.state.name.lower()}" + (
-            f" {trial.values[0]:.4f}" if trial is not None and trial.values else "") if trial else ""
-        left = "" if self.timeout is None else f", {max(self.timeout - (time.time() - self.t0), 0) / 60:.1f} min left"
-        self.bar.update(self.task, completed=counted_trials(study_obj), status=f"{last}  best {best:.4f}{left}")
-
-    def data(self, i: int, n: int) -> None:
-        self.bar.update(self.task, status=f"generating synthetic scenes {i}/{n} (once, then cached)")
-
-    def planned(self, plan) -> None:
-        """Called again when a later phase re-plans: only what is new is said."""
-        from explorer.console import err_console
-        self.timeout = plan.sampling_s
-        if not self.said["plan"]:
-            err_console.print(plan.describe(), highlight=False)
-        for change in plan.changes[self.said["changes"]:]:
-            err_console.print(f"  plan: {change}", highlight=False)
-        self.said.update(plan=True, changes=len(plan.changes))
-
-
 def _baselines(args) -> tuple[str, ...]:
     from explorer.study.config import DEFAULT_BASELINES
     if args.no_baselines:
@@ -172,7 +123,9 @@ def _print_retries(outcome, cfg) -> None:
                           "reached)")
 
 
-def _print_outcome(study, cfg, storage_url: str, reports: Path, write_report: bool) -> None:
+def _print_outcome(view, cfg, storage_url: str, reports: Path, write_report: bool) -> None:
+    """The search's closing summary of the study ``view`` reads (explorer.study.view), ``cfg`` its settings
+    as this run ran them (a time limit may have sized its finalists); with ``write_report``, its report."""
     import optuna
     from explorer.console import console, print_frame
     from explorer.study.results import (baseline_label, baseline_trial, best_trial, estimate_fidelity,
@@ -180,9 +133,9 @@ def _print_outcome(study, cfg, storage_url: str, reports: Path, write_report: bo
                                         missing_baselines, path_table, unbeaten_baseline, wall_time, winner)
     from explorer.space import Candidate
     from explorer.study import trial_record
-    from explorer.study.config import study_context
     from explorer.study.envelope import envelope_summary
-    states = [t.state for t in study.get_trials(deepcopy=False)]
+    study = view.study
+    states = [t.state for t in view.trials]
     count = {s.name.lower(): states.count(s) for s in optuna.trial.TrialState if states.count(s)}
     console.print(f"study [bold]{cfg.study}[/bold]: " + ", ".join(f"{v} {k}" for k, v in count.items()))
     best, estimate = winner(study), best_trial(study)
@@ -195,10 +148,10 @@ def _print_outcome(study, cfg, storage_url: str, reports: Path, write_report: bo
         how = "retrained" if retrained else f"estimated ({rec.evaluator_name})"
         unbeaten = unbeaten_baseline(study)
         lead = "best searched candidate" if unbeaten is not None else "winner"
-        console.print(f"{lead}: trial {best.number} ({cand.key}) anytime loss [bold]{best.values[0]:.4f}[/bold] "
-                      f"{how}, for {cfg.budgets[0]} on {cfg.device}")
+        console.print(f"{lead}: trial {best.number} ({rec.candidate_key}) anytime loss [bold]{best.values[0]:.4f}"
+                      f"[/bold] {how}, for {cfg.budgets[0]} on {cfg.device}")
         console.print(f"  {cand.describe()}")
-        print_frame(path_table(best, [study_context(study).device]), f"{lead}, per path")
+        print_frame(path_table(best, [view.context.device]), f"{lead}, per path")
         console.print(f"  {figures_source(best, cfg.train_size)}", markup=False, highlight=False)
         fin = finalists_frame(study)
         if not fin.empty:
@@ -208,7 +161,7 @@ def _print_outcome(study, cfg, storage_url: str, reports: Path, write_report: bo
             if agreement:
                 console.print(f"finalists' agreement: Kendall tau {agreement['tau']:.2f} over {agreement['rows']} "
                               "rows the estimate itself chose (no measure of how it ranks the rest of the space)")
-        fidelity = estimate_fidelity(study)
+        fidelity = estimate_fidelity(view)
         if fidelity:
             console.print(f"estimate fidelity: {fidelity}", markup=False, highlight=False)
         paper = baseline_trial(study, "paper", retrained=retrained)
@@ -216,7 +169,7 @@ def _print_outcome(study, cfg, storage_url: str, reports: Path, write_report: bo
             kind = "retrained " if retrained else ""
             console.print(f"ratio to the {kind}paper-design baseline ({paper.values[0]:.4f}): "
                           f"[bold]{best.values[0] / paper.values[0]:.3f}[/bold]")
-        about_envelope = envelope_summary(study, storage_url, reports)
+        about_envelope = envelope_summary(view, storage_url, reports)
         if about_envelope:
             console.print(about_envelope, markup=False, highlight=False)
         if retrained and estimate is not None and estimate.number != rec.finalist.estimate_trial:
@@ -227,7 +180,7 @@ def _print_outcome(study, cfg, storage_url: str, reports: Path, write_report: bo
                           "model this study found is that baseline; give the search more time (--time-limit) or more "
                           "finalists (--finalists)")
     # a missing comparison is said, with why, never dropped silently
-    missing = missing_baselines(study)
+    missing = missing_baselines(view)
     if missing and all("--no-baselines" in m["why"] for m in missing):
         console.print("no baselines (the study was created with --no-baselines): no ratio to the paper design")
     else:
@@ -235,7 +188,7 @@ def _print_outcome(study, cfg, storage_url: str, reports: Path, write_report: bo
             lead = "no ratio to the paper-design baseline:" if m["name"] == "paper" and best is not None \
                 else f"baseline {m['label']} missing:"
             console.print(f"{lead} {m['why']}", markup=False, highlight=False)
-    console.print(f"wall time: {wall_time(study)}", markup=False, highlight=False)
+    console.print(f"wall time: {wall_time(view)}", markup=False, highlight=False)
     from explorer.study.storage import redacted
     console.print(f"study: {redacted(storage_url)}", markup=False, highlight=False)
     if write_report:
@@ -243,19 +196,19 @@ def _print_outcome(study, cfg, storage_url: str, reports: Path, write_report: bo
             from explorer.report import write_report as _write
         except ImportError:
             return
-        path = _write(study, out_dir=reports / cfg.study, storage_url=storage_url)
+        path = _write(view, out_dir=reports / cfg.study, storage_url=storage_url)
         console.print(f"report: {path}")
 
 
 def cmd_rescore(args) -> None:
     from explorer.cli._rescore import print_rescored
     from explorer.console import print_json
-    from explorer.study.config import study_context
     from explorer.study.results import rescore
     from explorer.study.storage import load_study
-    study = load_study(args.study, args.storage, Path(args.reports))
-    study_context(study)   # its stored settings, space and profile: a damaged one is one line
-    frame = rescore(study, args.device, args.budget, args.metric)
+    from explorer.study.view import study_view
+    # its stored settings, space and profile read first: a damaged one is one line
+    view = study_view(load_study(args.study, args.storage, Path(args.reports)))
+    frame = rescore(view.study, args.device, args.budget, args.metric)
     if frame.empty:
         raise UserError(f"study '{args.study}' has no completed trial to re-score yet")
     if args.csv:
@@ -263,29 +216,31 @@ def cmd_rescore(args) -> None:
     if args.json:
         print_json(frame.to_dict("records"))
     else:   # measured and estimated apart, and which to trust
-        print_rescored(study, frame, args)
+        print_rescored(view, frame, args)
 
 
 def cmd_envelope(args) -> None:
     import pandas as pd
 
     from explorer.console import console, print_frame, print_json, progress
-    from explorer.study.config import study_context
     from explorer.report import write_report
     from explorer.study.envelope import envelope, train_envelope
     from explorer.study.storage import load_study, local_url, searching_alone
+    from explorer.study.view import study_view
     if args.networks < 1:
         raise UserError("--networks must be at least 1")
     study = load_study(args.study, args.storage, Path(args.reports))
-    config = study_context(study).config   # a damaged stored space or profile is one line before any work
+    view = study_view(study)   # a damaged stored space or profile is one line before any work
+    config = view.config
     deadline = time.time() + args.time_limit if args.time_limit else None
     train_on_free_cores()
     url = args.storage or local_url(args.study, Path(args.reports))
     with searching_alone(url, args.study), progress(transient=True) as bar:   # one search or envelope at a time
         task = bar.add_task("dedicated networks", total=None, status="")
-        train_envelope(study, args.networks, Path(args.reports), deadline,
+        train_envelope(view, args.networks, Path(args.reports), deadline,
                        progress=lambda i, n, what: bar.update(task, completed=i, total=n, status=what))
-    found = envelope(study)
+    view = study_view(study)   # with the networks just retrained
+    found = envelope(view)
     if found is None:
         raise UserError(f"study '{args.study}' has no retrained winner or no dedicated network to compare: run "
                         "the search with finalists, and give the envelope time (--time-limit)")
@@ -300,7 +255,7 @@ def cmd_envelope(args) -> None:
         line += f"; the winner {found.winner_loss:.4f}, [bold]{found.ratio:.3f}[/bold] x the envelope"
     console.print(line)
     if args.report:   # the report draws the envelope under the winner's curve: bring it up to date
-        path = write_report(study, out_dir=Path(args.reports) / config.study, storage_url=args.storage)
+        path = write_report(view, out_dir=Path(args.reports) / config.study, storage_url=args.storage)
         console.print(f"report: {path}")
 
 
@@ -309,12 +264,12 @@ def cmd_report(args) -> None:
     from explorer.report import write_report
     from explorer.study.storage import load_study
     from explorer.files import check_writable_folder
-    from explorer.study.config import study_context
-    study = load_study(args.study, args.storage, Path(args.reports))
-    study_context(study)   # its stored settings, space and profile: a damaged one is one line, nothing written
+    from explorer.study.view import study_view
+    # its stored settings, space and profile read first: a damaged one is one line, nothing written
+    view = study_view(load_study(args.study, args.storage, Path(args.reports)))
     out = Path(args.out) if args.out else Path(args.reports) / args.study
     check_writable_folder(out, "report", "give --out a folder you can write")
-    path = write_report(study, out_dir=out, devices=args.device, budgets=args.budget, data=args.data,
+    path = write_report(view, out_dir=out, devices=args.device, budgets=args.budget, data=args.data,
                         curve=Path(args.curve) if args.curve else None, storage_url=args.storage)
     console.print(f"report: {path}")
 
@@ -364,7 +319,7 @@ def register(sub, add, reports: dict) -> None:
 
 def _register_search(add, reports: dict) -> None:
     s = add("search", cmd_search, "search the space for the lowest anytime loss on a device")
-    s.add_argument("--device", default="tx2", help="profile name or YAML (default tx2)")
+    s.add_argument("--device", help="profile name or YAML (default tx2)")
     s.add_argument("--space", default="anytime_depth")
     s.add_argument("--budget", action="append", help="repeatable; the first is the objective "
                    "(default time:uniform:33ms)")

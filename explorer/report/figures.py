@@ -24,7 +24,6 @@ from explorer.cost.devices import DeviceProfile  # noqa: E402
 from explorer.data import open_dataset
 from explorer.errors import UserError  # noqa: E402
 from explorer.model.reference import REFERENCES
-from explorer.study.config import study_config  # noqa: E402
 from explorer.study.records import trial_record  # noqa: E402
 from explorer.study.results import (  # noqa: E402
     baseline_label,
@@ -35,6 +34,7 @@ from explorer.study.results import (  # noqa: E402
     trial_path_costs,
     trial_precision,
 )
+from explorer.study.view import StudyView  # noqa: E402
 
 COLOURS = {"best": "#d62728", "paper": "#1f77b4", "paper-nee": "#7f7f7f", "fastdepth": "#2ca02c"}
 
@@ -294,25 +294,25 @@ def _draw_paths(ax, costs: list[float], errors: list[float], worse: dict, dist) 
     ax.legend(loc="lower right", bbox_to_anchor=(1.0, 1.0), fontsize=10, frameon=False)
 
 
-def depth_map_size(study: optuna.Study, trial: optuna.trial.FrozenTrial) -> tuple[int, int]:
+def depth_map_size(view: StudyView, trial: optuna.trial.FrozenTrial) -> tuple[int, int]:
     """The input size a trial's figures hold at: a retrained network's deployment size (where it was
     measured, and runs as shipped), else the study's training size (where the search estimated it)."""
     measured = trial_record(trial).measured
-    return tuple(measured.input_size) if measured else tuple(study_config(study).train_size)
+    return tuple(measured.input_size) if measured else tuple(view.config.train_size)
 
 
-def depth_maps(study: optuna.Study, trial: optuna.trial.FrozenTrial, data: str | None,
+def depth_maps(view: StudyView, trial: optuna.trial.FrozenTrial, data: str | None,
                device: DeviceProfile | None = None, count: int = 3):
     """Every path's depth map on a few validation images at :func:`depth_map_size` (needs the trial's
     stored weights), each path's column titled with its time on ``device`` and its RMSE: (PNG, "") or
     (None, why not)."""
     import torch
     try:
-        net = trial_network(study, trial)
+        net = trial_network(view, trial)
     except UserError as exc:
         return None, str(exc)
     try:
-        ds = open_dataset(data or study_config(study).data, "val", depth_map_size(study, trial),
+        ds = open_dataset(data or view.config.data, "val", depth_map_size(view, trial),
                           train_augment=False)
     except UserError as exc:
         return None, str(exc)

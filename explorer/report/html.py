@@ -16,14 +16,14 @@ from jinja2 import Environment, FileSystemLoader, select_autoescape
 from explorer import __version__
 from explorer.anytime import parse_budget
 from explorer.cost import reference_table
-from explorer.cost.devices import DeviceProfile, get_device
+from explorer.cost.devices import DeviceProfile
 from explorer.cost.fit_errors import fit_errors, fit_words
 from explorer.report import figures
 from explorer.space import Candidate
-from explorer.study.config import StudyContext, study_config, study_context
+from explorer.study.config import DEFAULT_BUDGET
 from explorer.study.envelope import dedicated_path, envelope, envelope_hint, envelope_trials
 from explorer.study.finalists import finalist_trials
-from explorer.study.records import StudyRecord, study_record, trial_record
+from explorer.study.records import StudyRecord, trial_record
 from explorer.study.results import (
     baseline_label,
     baseline_trial,
@@ -44,6 +44,7 @@ from explorer.study.results import (
     wall_time,
     winner,
 )
+from explorer.study.view import StudyView
 
 TABLE2_BUDGETS = ("time:uniform:100ms", "time:uniform:50ms", "time:uniform:33ms",
                   "energy:uniform:0.5J", "energy:uniform:0.25J")
@@ -88,15 +89,17 @@ def _frame_html(frame: pd.DataFrame, table_id: str, fmt: dict | None = None) -> 
     return shown.to_html(index=False, table_id=table_id, classes="sortable", escape=True, border=0)
 
 
-def build_context(study: optuna.Study, devices: Sequence[str] | None = None,
+def build_context(view: StudyView, devices: Sequence[str] | None = None,
                   budgets: Sequence[str] | None = None, data: str | None = None,
                   storage_url: str | None = None) -> dict:
-    """Everything the report's template shows of ``study``: on the study's device first, then
-    ``devices``; under the study's budgets, then ``budgets`` (default: the paper's Table 2 ones).
-    ``storage_url``: where the study is, for the commands the report suggests."""
-    stored, context = study_record(study), study_context(study)
-    cfg, config = stored.config or {}, context.config
-    primary, devs = _devices(context, devices)
+    """Everything the report's template shows of the study ``view`` reads: on the study's device first,
+    then ``devices`` (default: the comparison devices); under the study's budgets, then ``budgets``
+    (default: the paper's Table 2 ones). ``storage_url``: where the study is, for the commands the
+    report suggests."""
+    study, stored, config = view.study, view.record, view.config
+    cfg = stored.config or {}
+    devs = view.devices(devices)
+    primary = devs[0]
     budget_list = list(dict.fromkeys(list(cfg.get("budgets", [])) + list(budgets or TABLE2_BUDGETS)))
     dists = [parse_budget(b) for b in budget_list]
     frame = _tag_envelope(trials_frame(study), study)
@@ -108,15 +111,15 @@ def build_context(study: optuna.Study, devices: Sequence[str] | None = None,
     # the three best candidates of the winner's kind (retrained or estimated), and the baselines alike
     ranked = sorted([t for t in scored if not trial_record(t).baseline and is_retrained(t) == retrained],
                     key=lambda t: t.values[0])[:3]
-    baselines = [t for name in study_baselines(study) if (t := baseline_trial(study, name, retrained=retrained))]
+    baselines = [t for name in study_baselines(view) if (t := baseline_trial(study, name, retrained=retrained))]
     ctx: dict = {"study": study.study_name, "config": cfg,
                  "states": frame["state"].value_counts().to_dict() if not frame.empty else {},
                  "versions": _versions(), "generated": time.strftime("%Y-%m-%d %H:%M:%S"), "figures": {},
                  "notes": _notes(stored, devs, scored), "evaluator": cfg.get("evaluator", "proxy"),
                  "finalist_steps": cfg.get("finalist_steps"), "plan": stored.plan,
                  "envelope_networks": int(envelope_networks)}
-    ctx.update(_finalists(study, ctx["finalist_steps"]))
-    ctx["wall_time"] = wall_time(study)
+    ctx.update(_finalists(view, ctx["finalist_steps"]))
+    ctx["wall_time"] = wall_time(view)
     # how each profile's costs were obtained, in the words of `explorer devices` (measured, published,
     # estimate), and its fit errors in one unit
     ctx["devices"] = [{"name": d.name, "description": d.description, "latency": d.latency_basis,
@@ -126,17 +129,17 @@ def build_context(study: optuna.Study, devices: Sequence[str] | None = None,
     ctx["budgets"] = [d.spec for d in dists]
     ctx["multi_objective"] = len(study.directions) > 1
     if best is not None:
-        ctx["best"] = _best(study, best, retrained, devs)
+        ctx["best"] = _best(view, best, retrained, devs)
     # a baseline without a row is named, with why (not run, queued, failed, interrupted)
-    ctx["missing_baselines"] = missing_baselines(study)
+    ctx["missing_baselines"] = missing_baselines(view)
     ctx["no_ratio"] = next((m["why"] for m in ctx["missing_baselines"] if m["name"] == "paper"), "")
     unbeaten = unbeaten_baseline(study)
     ctx["unbeaten"] = ({"label": baseline_label(trial_record(unbeaten).baseline), "value": unbeaten.values[0]}
                        if unbeaten is not None and best is not None else None)
     ctx["table2"] = _table2(ranked + baselines, best, devs, dists, config.metric)
     ctx["references"] = _frame_html(reference_table(devs), "references")
-    _add_figures(ctx, study, frame, best, baselines, primary, dists, data)
-    ctx["envelope_hint"] = envelope_hint(study, storage_url)
+    _add_figures(ctx, view, frame, best, baselines, primary, dists, data)
+    ctx["envelope_hint"] = envelope_hint(view, storage_url)
     if best is not None and not frame.empty:
         frame.loc[frame["number"] == best.number, "figures"] = "measured: the winner" if retrained else "estimate: the best"
     ctx["trials"] = (_frame_html(frame[[c for c in TRIAL_COLUMNS if c in frame.columns]], "trials")
@@ -154,13 +157,6 @@ def _tag_envelope(frame: pd.DataFrame, study: optuna.Study) -> pd.DataFrame:
     return frame
 
 
-def _devices(context: StudyContext, devices: Sequence[str] | None) -> tuple[DeviceProfile, list]:
-    """(the study's own device profile, as stored when it was made; it and the other ``devices`` asked
-    for, default tx2 and rpi4)."""
-    primary = context.device
-    return primary, [primary] + [get_device(d) for d in (devices or ["tx2", "rpi4"]) if d != primary.name]
-
-
 def _notes(stored: StudyRecord, devs: list[DeviceProfile], scored: list) -> list[str]:
     """What the reader should know about cells left empty and baselines without estimates."""
     notes = []
@@ -173,12 +169,13 @@ def _notes(stored: StudyRecord, devs: list[DeviceProfile], scored: list) -> list
     return notes
 
 
-def _finalists(study: optuna.Study, finalist_steps) -> dict:
+def _finalists(view: StudyView, finalist_steps) -> dict:
     """The finalists' table (estimate beside retrained result), the finalists' agreement (Kendall's tau
     between the two where three or more have both), the measured fidelity of the study's estimate,
     and the retraining steps they really ran."""
+    study = view.study
     out = {"finalist_steps": finalist_steps, "finalists": "", "finalists_tau": None, "finalists_rows": 0,
-           "fidelity": estimate_fidelity(study)}
+           "fidelity": estimate_fidelity(view)}
     finals = finalist_trials(study)
     recipes = sorted({trial_record(t).finalist.recipe["steps"] for t in finals})
     if recipes:   # a --time-limit plan may have sized them after the study was created
@@ -200,17 +197,17 @@ def _finalists(study: optuna.Study, finalist_steps) -> dict:
     return out
 
 
-def _best(study: optuna.Study, best: optuna.trial.FrozenTrial, retrained: bool, devs: list) -> dict:
+def _best(view: StudyView, best: optuna.trial.FrozenTrial, retrained: bool, devs: list) -> dict:
     """The winner (Table 1 style): its architecture, how its loss was found, its paths on every
     device, and its loss over the paper design's where that has one of the same kind."""
     cand = Candidate.from_dict(trial_record(best).candidate)
     evaluator = trial_record(best).evaluator_name
     how = "retrained" if retrained else f"estimated by the {evaluator} evaluator"
     out = {"number": best.number, "value": best.values[0], "key": cand.key, "how": how,
-           "figures": figures_source(best, study_config(study).train_size),
+           "figures": figures_source(best, view.config.train_size),
            "architecture": cand.describe(), "yaml": cand.to_yaml(),
            "table": _frame_html(path_table(best, devs), "best-table")}
-    paper = baseline_trial(study, "paper", retrained=retrained)
+    paper = baseline_trial(view.study, "paper", retrained=retrained)
     if paper is not None:
         out["ratio"] = best.values[0] / paper.values[0]
     return out
@@ -230,12 +227,12 @@ def _table2(trials: list, best, devs: list[DeviceProfile], dists: list, metric: 
     return _frame_html(pd.DataFrame(rows), "table2") if rows else ""
 
 
-def _add_figures(ctx: dict, study: optuna.Study, frame: pd.DataFrame, best, baselines: list,
+def _add_figures(ctx: dict, view: StudyView, frame: pd.DataFrame, best, baselines: list,
                  primary: DeviceProfile, dists: list, data: str | None) -> None:
     """Draws the figures into ``ctx["figures"]``; a figure that cannot be drawn is left out, with a
     note where the reader can do something about it."""
-    config = study_config(study)
-    found = envelope(study) if best is not None and primary.name == config.device else None
+    config = view.config
+    found = envelope(view) if best is not None and primary.name == config.device else None
     if found is not None:
         ctx["envelope"] = {"loss": found.loss, "ratio": found.ratio, "networks": len(found.networks),
                            "below_one": found.below_one}
@@ -243,7 +240,7 @@ def _add_figures(ctx: dict, study: optuna.Study, frame: pd.DataFrame, best, base
     if best is not None:
         curve_rows.append((_label(best, best), best, figures.COLOURS["best"]))
     curve_rows += [(_label(t, best), t, figures.colour(trial_record(t).baseline)) for t in baselines]
-    time_budget = next((d.spec for d in dists if d.kind == "time"), "time:uniform:33ms")
+    time_budget = next((d.spec for d in dists if d.kind == "time"), DEFAULT_BUDGET)
     if curve_rows:
         ctx["figures"]["curve_time"] = figures.step_curves(
             curve_rows, primary, time_budget,
@@ -259,26 +256,26 @@ def _add_figures(ctx: dict, study: optuna.Study, frame: pd.DataFrame, best, base
             ctx["figures"][name], ctx["alt"][name] = drawn
     if not ctx["multi_objective"]:
         from optuna.visualization import matplotlib as ovm
-        png = figures.optuna_plot(ovm.plot_param_importances, study)
+        png = figures.optuna_plot(ovm.plot_param_importances, view.study)
         if png:
             ctx["figures"]["importances"] = png
     if best is not None:
-        _winner_figures(ctx, study, best, primary, time_budget, data)
+        _winner_figures(ctx, view, best, primary, time_budget, data)
 
 
-def _winner_figures(ctx: dict, study: optuna.Study, best, primary: DeviceProfile, budget: str,
+def _winner_figures(ctx: dict, view: StudyView, best, primary: DeviceProfile, budget: str,
                     data: str | None) -> None:
     """The winner's paths on a time axis and its depth maps, each with its alt text and caption: the
     times are the cost model's estimates on ``primary``, the errors the winner's own figures."""
     kind = figures_kind(best)
-    size = "x".join(map(str, figures.depth_map_size(study, best)))
+    size = "x".join(map(str, figures.depth_map_size(view, best)))
     errors = (f"measured on the retrained network at {size}" if kind == "measured"
               else f"estimated by the search at {size}")
     timeline, worse = figures.path_timeline(best, primary, budget)
     if timeline:
         ctx["figures"]["paths"] = timeline
         ctx["paths_figure"] = _timeline_words(best, primary, budget, worse, kind, errors)
-    png, note = figures.depth_maps(study, best, data, primary)
+    png, note = figures.depth_maps(view, best, data, primary)
     if png:
         ctx["figures"]["depth_maps"] = png
         ctx["depth_maps_figure"] = {
@@ -311,13 +308,13 @@ def _timeline_words(best, device: DeviceProfile, budget: str, worse: dict, kind:
     return {"alt": alt, "caption": caption}
 
 
-def write_report(study: optuna.Study, out_dir: str | Path, devices: Sequence[str] | None = None,
+def write_report(view: StudyView, out_dir: str | Path, devices: Sequence[str] | None = None,
                  budgets: Sequence[str] | None = None, data: str | None = None,
                  curve: Path | None = None, storage_url: str | None = None) -> Path:
-    """Writes ``out_dir/report.html`` (atomically) and returns its path. ``curve``: a measured
-    anytime curve (``explorer curve``) to show next to its prediction; ``storage_url``: where the
-    study is, for the commands the report suggests."""
-    ctx = build_context(study, devices, budgets, data, storage_url)
+    """Writes the report of the study ``view`` reads to ``out_dir/report.html`` (atomically) and returns
+    its path. ``curve``: a measured anytime curve (``explorer curve``) to show next to its prediction;
+    ``storage_url``: where the study is, for the commands the report suggests."""
+    ctx = build_context(view, devices, budgets, data, storage_url)
     curve = curve or Path(out_dir) / "export" / "anytime_curve.json"
     if curve.is_file():
         png = figures.measured_curve(curve)

@@ -28,6 +28,12 @@ from explorer.supernet.evaluators import EVALUATORS
 from explorer.training.deployment import DeploymentRecipe
 from explorer.training.train import PROXY, TrainConfig
 
+#: the device a study is priced on, and the budget it minimizes for, unless told otherwise (--device, --budget)
+DEFAULT_DEVICE = "tx2"
+DEFAULT_BUDGET = "time:uniform:33ms"
+#: the devices a study's winner is also priced on, after the study's own (the report's tables, an export)
+COMPARISON_DEVICES = ("tx2", "rpi4")
+
 BASELINES: dict[str, Callable[[], Candidate]] = {
     "paper": paper_candidate, "paper-nee": paper_nee_candidate, "fastdepth": fastdepth_candidate}
 #: what a study compares against unless told otherwise (--baselines)
@@ -61,8 +67,8 @@ def objective_names(config: "SearchConfig") -> list[str]:
 class SearchConfig:
     study: str
     space: str = "anytime_depth"
-    device: str = "tx2"
-    budgets: tuple[str, ...] = ("time:uniform:33ms",)
+    device: str = DEFAULT_DEVICE
+    budgets: tuple[str, ...] = (DEFAULT_BUDGET,)
     data: str = "synthetic"
     objectives: tuple[str, ...] = ("anytime_loss",)
     metric: str = "rmse"

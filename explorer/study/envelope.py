@@ -30,13 +30,14 @@ import optuna
 from explorer.anytime import anytime_curve, anytime_loss
 from explorer.cost import model_cost
 from explorer.space import Candidate
-from explorer.study.config import StudyContext, study_config, study_context
+from explorer.study.config import StudyContext
 from explorer.study.finalists import FinalistJob, proxy_view, estimate_trials, finalist_trials, train_finalist
 from explorer.study.objective import Objective
 from explorer.study.planning import SAFETY
 from explorer.study.records import record_values, trial_record
 from explorer.study.results import trial_losses, trial_path_costs, winner
 from explorer.study.storage import REPORTS_DIR, local_url, redacted, study_dir
+from explorer.study.view import StudyView
 from explorer.training.deployment import DeploymentRecipe
 
 #: dedicated networks ``explorer envelope`` retrains unless told otherwise
@@ -136,23 +137,24 @@ def choose_networks(study: optuna.Study, context: StudyContext, count: int) -> l
     return spread_along_front(estimated_networks(study, context), count)
 
 
-def _winners_config(study: optuna.Study):
+def _winners_config(view: StudyView):
     """The study's settings with the finalists' steps the winner was retrained with: a time limit can
     shorten them after the study was created, and the envelope is trained and compared at the winner's."""
-    config, best = study_config(study), winner(study)
+    config, best = view.config, winner(view.study)
     if best is not None and trial_record(best).is_retrained:
         return dataclasses.replace(config, finalist_steps=int(trial_record(best).finalist.recipe["steps"]))
     return config
 
 
-def train_envelope(study: optuna.Study, count: int, reports: Path, deadline: float | None = None,
+def train_envelope(view: StudyView, count: int, reports: Path, deadline: float | None = None,
                    progress: Callable[[int, int, str], None] | None = None,
                    expected_s: float | None = None) -> list[optuna.trial.FrozenTrial]:
     """Retrains the chosen dedicated networks not yet retrained with the study's finalists' recipe (one at
     a time; with a ``deadline``, a network starts only if the longest so far says it ends before it, the
-    first only if ``expected_s`` does, where given)."""
-    context = study_context(study)
-    config = _winners_config(study)
+    first only if ``expected_s`` does, where given). The study gains trials: a reader after it takes a
+    view made again."""
+    study, context = view.study, view.context
+    config = _winners_config(view)
     base = config.finalist_recipe()
     done = {f"{trial_record(t).candidate_key}/{dedicated_path(trial_record(t))}" for t in envelope_trials(study)
             if trial_record(t).envelope.recipe == base.to_dict()}
@@ -185,12 +187,12 @@ def train_envelope(study: optuna.Study, count: int, reports: Path, deadline: flo
     return envelope_trials(study)
 
 
-def envelope_members(study: optuna.Study) -> list[optuna.trial.FrozenTrial]:
+def envelope_members(view: StudyView) -> list[optuna.trial.FrozenTrial]:
     """The dedicated networks of the envelope: those retrained for it and the single-exit baselines
     retrained with the same recipe."""
-    recipe = _winners_config(study).finalist_recipe().to_dict()
-    mine = [t for t in envelope_trials(study) if trial_record(t).envelope.recipe == recipe]
-    single = [t for t in finalist_trials(study) if _single_exit_baseline(trial_record(t), recipe)]
+    recipe = _winners_config(view).finalist_recipe().to_dict()
+    mine = [t for t in envelope_trials(view.study) if trial_record(t).envelope.recipe == recipe]
+    single = [t for t in finalist_trials(view.study) if _single_exit_baseline(trial_record(t), recipe)]
     return mine + single
 
 
@@ -243,14 +245,13 @@ class Envelope:
         return anytime_curve(self.costs, self.errors, upper)
 
 
-def envelope(study: optuna.Study) -> Envelope | None:
+def envelope(view: StudyView) -> Envelope | None:
     """The envelope of the study's dedicated networks on its device and first budget (None before any
     is retrained). Each budget is served by the most accurate network ready by it; before the first,
     by the scan (path 0, as the winner measured it)."""
-    context = study_context(study)
-    config, device, budget = context.config, context.device, context.budget
-    members = envelope_members(study)
-    best = winner(study)
+    config, device, budget = view.config, view.context.device, view.context.budget
+    members = envelope_members(view)
+    best = winner(view.study)
     if not members or best is None:
         return None
     points = sorted(((trial_path_costs(t, device, budget.kind)[dedicated_path(trial_record(t))],
@@ -277,26 +278,26 @@ def envelope_command(study: str, storage_url: str | None = None, reports: Path |
     return command
 
 
-def envelope_hint(study: optuna.Study, storage_url: str | None = None, reports: Path | None = None) -> str | None:
+def envelope_hint(view: StudyView, storage_url: str | None = None, reports: Path | None = None) -> str | None:
     """How to compute the envelope, when the winner is retrained and no dedicated network of the space
     is yet (the single-exit baselines alone may make one); None otherwise. ``storage_url`` and
     ``reports``: where the study is, for the command (:func:`envelope_command`)."""
-    best = winner(study)
-    recipe = _winners_config(study).finalist_recipe().to_dict()
+    best = winner(view.study)
+    recipe = _winners_config(view).finalist_recipe().to_dict()
     if best is None or not trial_record(best).is_retrained or any(
-            trial_record(t).envelope.recipe == recipe for t in envelope_trials(study)):
+            trial_record(t).envelope.recipe == recipe for t in envelope_trials(view.study)):
         return None
-    return (f"`{envelope_command(study_config(study).study, storage_url, reports)}` retrains {DEFAULT_NETWORKS} "
+    return (f"`{envelope_command(view.config.study, storage_url, reports)}` retrains {DEFAULT_NETWORKS} "
             f"networks of the space, each trained for one path, with the finalists' recipe (about as long as "
             f"{DEFAULT_NETWORKS} finalists) and says how close the winner comes to the best network for each "
             "deadline known in advance")
 
 
-def envelope_summary(study: optuna.Study, storage_url: str | None = None, reports: Path | None = None) -> str | None:
+def envelope_summary(view: StudyView, storage_url: str | None = None, reports: Path | None = None) -> str | None:
     """The summary's sentence on the envelope: its anytime loss and the winner's ratio to it, what it is
     made of, and how to compute it where no dedicated network of the space is yet (None when there is
     nothing to say: no retrained winner). ``storage_url``, ``reports``: as :func:`envelope_hint`."""
-    found, hint = envelope(study), envelope_hint(study, storage_url, reports)
+    found, hint = envelope(view), envelope_hint(view, storage_url, reports)
     parts = []
     if found is not None and found.ratio is not None:
         parts.append(f"the winner's anytime loss is {found.ratio:.3f} x the envelope of {len(found.networks)} "

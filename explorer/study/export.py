@@ -9,10 +9,10 @@ from typing import Callable, Sequence
 
 from explorer.deploy.export import Measurement, Quantization, export_network
 from explorer.errors import UserError
-from explorer.study.config import study_config
 from explorer.study.records import trial_record
 from explorer.study.results import best_trial, scored_trials, trial_network, winner
 from explorer.study.storage import load_study
+from explorer.study.view import study_view
 
 #: ``export_from_study(quantization=AS_SEARCHED)``: int8 if the trial's candidate was searched as int8
 AS_SEARCHED = "as-searched"
@@ -27,8 +27,10 @@ def export_from_study(study_name: str, trial_number: int | None, out_dir: Path, 
     baseline) to ``out_dir``; ``quantization=AS_SEARCHED``: int8 where the trial was searched as int8.
     Every path of the exported graphs is measured on the first ``eval_frames`` validation frames of
     ``data`` (default: the study's data and the frames its figures come from); the study's own figures
-    are kept beside them only when they were measured at the size exported."""
-    study = load_study(study_name, storage, reports)
+    are kept beside them only when they were measured at the size exported. Its costs are priced on
+    ``devices`` (default: the profile the study stored, then the comparison devices)."""
+    view = study_view(load_study(study_name, storage, reports))
+    study = view.study
     trials = {t.number: t for t in scored_trials(study)}
     if trial_number is None:
         trial = winner(study) or best_trial(study, baseline=True)
@@ -39,8 +41,8 @@ def export_from_study(study_name: str, trial_number: int | None, out_dir: Path, 
                         f"{sorted(trials)[:20]})")
     else:
         trial = trials[trial_number]
-    net = trial_network(study, trial)
-    cfg = study_config(study)
+    net = trial_network(view, trial)
+    cfg = view.config
     rec = trial_record(trial)
     measured = rec.measured     # a retrained trial: measured at the deployment size
     measurement = Measurement(data=data or cfg.data,
@@ -53,7 +55,7 @@ def export_from_study(study_name: str, trial_number: int | None, out_dir: Path, 
                                     stages="faster" if searched is None else tuple(searched)) \
             if net.candidate.precision == "int8" else None
     size = tuple(input_size or cfg.input_size)
-    devs = list(devices or dict.fromkeys([cfg.device, "tx2", "rpi4"]))
+    devs = list(devices or view.devices())
     tuned = tuple(measured.input_size) if measured else tuple(cfg.train_size)
     source = {"study": study_name, "trial": trial.number, "objective": trial.values[0],
               "figures": "retrained, measured" if measured else "estimated by the search"}

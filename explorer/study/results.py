@@ -17,10 +17,11 @@ from explorer.data import open_dataset
 from explorer.errors import UserError
 from explorer.model.reference import REFERENCES
 from explorer.space import Candidate
-from explorer.study.config import DEFAULT_BASELINES, study_config, study_context
-from explorer.study.records import study_record, trial_record
+from explorer.study.config import DEFAULT_BASELINES
+from explorer.study.records import trial_record
 from explorer.study.retry import interrupted_trials, retries_by_origin
 from explorer.study.storage import load_study
+from explorer.study.view import StudyView
 from explorer.supernet import load_supernet
 from explorer.supernet.evaluators import loaded_batches, recalibrate_batchnorm
 from explorer.training.train import network_from_checkpoint
@@ -34,13 +35,13 @@ def baseline_label(name: str) -> str:
     return BASELINE_LABELS.get(name, name)
 
 
-def study_baselines(study: optuna.Study) -> list[str]:
+def study_baselines(view: StudyView) -> list[str]:
     """The baselines a study was created to compare against (--baselines), in order; for a study made
     with --no-baselines, the default ones (so that summaries can say why they are missing)."""
-    chosen = study_config(study).baselines if study_record(study).config else DEFAULT_BASELINES
+    chosen = view.config.baselines if view.record.config else DEFAULT_BASELINES
     names = list(chosen or DEFAULT_BASELINES)
     # a resumed run may have been given more (--baselines): they have trials of their own
-    tagged = (trial_record(t).baseline for t in study.get_trials(deepcopy=False))
+    tagged = (trial_record(t).baseline for t in view.trials)
     return list(dict.fromkeys(names + [b for b in tagged if b]))
 
 
@@ -279,40 +280,38 @@ def finalists_agreement(study: optuna.Study) -> dict | None:
     return {"tau": float(kendalltau(both["estimated"], both["retrained"]).statistic), "rows": len(both)}
 
 
-def estimate_fidelity(study: optuna.Study) -> str | None:
+def estimate_fidelity(view: StudyView) -> str | None:
     """A sentence on how well the study's supernet ranks its space, as the fidelity benchmark measured
     supernets of the same space, data and recipe (or that none was measured); None for a study that
     did not estimate with a supernet."""
     from explorer.supernet import SupernetRecipe, describe_fidelity, measured_fidelity, read_supernet
-    if not study_record(study).config:
+    if not view.record.config:
         return None
-    config = study_config(study)
+    config = view.config
     if config.evaluator != "supernet":
         return None
     recipe = config.supernet_recipe()
     try:
         if config.supernet:    # a given file: the recipe it was trained with
             recipe = SupernetRecipe.from_dict(read_supernet(config.supernet)["recipe"])
-        space = study_context(study).space
     except UserError:
         return None
-    return describe_fidelity(measured_fidelity(space, config.data, recipe))
+    return describe_fidelity(measured_fidelity(view.context.space, config.data, recipe))
 
 
-def missing_baselines(study: optuna.Study) -> list[dict]:
+def missing_baselines(view: StudyView) -> list[dict]:
     """The baselines that have no scored trial, each as {"name", "label", "why"}, "why" saying what
     happened to it: not run (--no-baselines, or not yet: queued), still running, failed (its reason),
     interrupted and not tried again. Summaries and reports print these instead of dropping a row."""
-    trials = study.get_trials(deepcopy=False)
+    study, trials, stored = view.study, list(view.trials), view.record
     scored = {trial_record(t).baseline for t in scored_trials(study)}
     interrupted = interrupted_trials(study, trials)
-    stored = study_record(study)
-    with_baselines = bool(study_config(study).baselines) if stored.config else True
+    with_baselines = bool(view.config.baselines) if stored.config else True
     why_untrained = ("not retrained: the time limit came first (run the search again with a longer "
-                     "--time-limit: it resumes and retrains it)" if (stored.plan or {}).get("not_retrained")
+                     "--time-limit: it resumes and retrains it)" if stored.plan is not None and stored.plan.not_retrained
                      else "not retrained yet (--finalists 0, or the study has not ended)")
     out = []
-    for name in study_baselines(study):
+    for name in study_baselines(view):
         label = baseline_label(name)
         if name in scored:
             continue
@@ -376,7 +375,7 @@ def study_frame(study: str, storage: str | None = None, reports: str = "reports"
     return frame
 
 
-def trial_network(study: optuna.Study, trial: optuna.trial.FrozenTrial):
+def trial_network(view: StudyView, trial: optuna.trial.FrozenTrial):
     """The trained network of a trial, from the study's artifact store (raises UserError when its
     weights are not stored on this machine)."""
     from pathlib import Path
@@ -388,9 +387,9 @@ def trial_network(study: optuna.Study, trial: optuna.trial.FrozenTrial):
     if rec.reference:
         raise UserError(f"trial {trial.number} is the reference network {rec.reference}, a baseline "
                         "for comparison: export a candidate's trial")
-    artifact, root = rec.weights_artifact, study_record(study).artifacts_dir
+    artifact, root = rec.weights_artifact, view.record.artifacts_dir
     if not artifact and rec.evaluator_name == "supernet":
-        return _supernet_network(study, trial)
+        return _supernet_network(view, trial)
     if not artifact or not root or not Path(root).is_dir():
         raise UserError(f"trial {trial.number} has no stored weights here (searched with --no-weights, or its "
                         "artifacts live on another machine): train it with `explorer train` and use the checkpoint")
@@ -404,7 +403,7 @@ def trial_network(study: optuna.Study, trial: optuna.trial.FrozenTrial):
     return net
 
 
-def _supernet_network(study: optuna.Study, trial: optuna.trial.FrozenTrial):
+def _supernet_network(view: StudyView, trial: optuna.trial.FrozenTrial):
     """A supernet-estimated trial's network: its slice of the supernet, BatchNorm recalibrated on
     the study's training data, exactly as the search evaluated it."""
     from pathlib import Path
@@ -414,25 +413,25 @@ def _supernet_network(study: optuna.Study, trial: optuna.trial.FrozenTrial):
         raise UserError(f"trial {trial.number} was estimated with supernet {file}, which is not on this machine: "
                         "export a retrained finalist instead (the default)")
     net, _ = load_supernet(file)
-    cfg = study_config(study)
+    cfg = view.config
     calibration = open_dataset(cfg.data, "train", cfg.train_size, train_augment=False)
     sub = net.extract(Candidate.from_dict(rec.candidate))
     recalibrate_batchnorm(sub, loaded_batches(calibration, 64, 32))
     return sub
 
 
-def wall_time(study: optuna.Study) -> str:
+def wall_time(view: StudyView) -> str:
     """The runs' wall time as each search recorded it, the last run's phases beside it (data,
     measuring, supernet, sampling, finalists), or, for a study made before runs were recorded, the
     span of its trials, said so."""
-    runs = study_record(study).runs
+    runs = view.record.runs
     if runs:
         total = sum(r["seconds"] for r in runs) / 60
         phases = runs[-1].get("phases") or {}
         parts = ", ".join(f"{name} {seconds / 60:.1f}" for name, seconds in phases.items())
         return (f"{total:.1f} min" + (f" over {len(runs)} runs" if len(runs) > 1 else "")
                 + (f" ({'the last: ' if len(runs) > 1 else ''}{parts} min)" if parts else ""))
-    starts = [t.datetime_start for t in study.trials if t.datetime_start]
-    ends = [t.datetime_complete for t in study.trials if t.datetime_complete]
+    starts = [t.datetime_start for t in view.trials if t.datetime_start]
+    ends = [t.datetime_complete for t in view.trials if t.datetime_complete]
     return (f"{(max(ends) - min(starts)).total_seconds() / 60:.1f} min from the first trial to the last (the "
             "supernet's training before them not counted)") if starts and ends else "n/a"

@@ -67,15 +67,16 @@ from explorer.study.retry import (
 )
 from explorer.study._stopping import check_workers, ctrl_c_says_what_is_kept, end_workers, quiet_ctrl_c
 from explorer.study.records import record_study, record_values, study_record, trial_record
+from explorer.study.run import SearchObserver, SearchRun
 from explorer.study.sampling import RecentTrialsTPE
 from explorer.study.storage import (
-    REPORTS_DIR,
     local_url,
     open_storage,
     refused_leaves_nothing,
     searching_alone,
     study_dir,
 )
+from explorer.study.view import study_view
 from explorer.supernet import default_path, load_supernet, read_supernet, train_supernet
 from explorer.training.deployment import DeploymentData
 from explorer.training.memory import release_host_memory
@@ -348,36 +349,27 @@ def _deployment_data(config: SearchConfig, train_set) -> DeploymentData:
                           open_dataset(config.data, "val", config.input_size, train_augment=False))
 
 
-def search(config: SearchConfig, storage_url: str | None = None, workers: int = 1,
-           n_trials: int | None = None, timeout_s: float | None = 600.0, reports: Path = REPORTS_DIR,
-           on_trial: Callable[[optuna.Study, optuna.trial.FrozenTrial], None] | None = None,
-           on_poll: Callable[[optuna.Study], None] | None = None,
-           on_data: Callable[[int, int], None] | None = None,
-           on_supernet: Callable[[int, int, dict], None] | None = None,
-           on_finalist: Callable[[int, int, str], None] | None = None,
-           time_limit: "TimeLimit | None" = None,
-           on_plan: Callable[["Plan"], None] | None = None,
-           on_envelope: Callable[[int, int, str], None] | None = None) -> SearchOutcome:
-    """Runs (or resumes) the study until ``n_trials`` trials are done or ``timeout_s`` passes (the
-    supernet's training and the finalists' retraining are not counted), then retrains the finalists.
-    With ``time_limit`` the whole run is sized to it first (explorer.study.planning): ``timeout_s`` is then
-    the most sampling may take, and the time the finalists leave goes to the envelope's dedicated
-    networks (:func:`_envelope_in_time_left`)."""
-    context = config.resolve()
-    check_workers(workers)   # no more processes than the machine can run (cores, memory), in one line
+def search(context: StudyContext, run: SearchRun = SearchRun(),
+           observer: SearchObserver | None = None) -> SearchOutcome:
+    """Runs (or resumes) the study ``context`` resolved until ``run.n_trials`` trials are done or
+    ``run.timeout_s`` passes (the supernet's training and the finalists' retraining are not counted), then
+    retrains the finalists, telling ``observer`` as it goes. With ``run.time_limit`` the whole run is sized
+    to it first (explorer.study.planning): ``run.timeout_s`` is then the most sampling may take, and the
+    time the finalists leave goes to the envelope's dedicated networks (:func:`_envelope_in_time_left`)."""
+    config, observer = context.config, observer or SearchObserver()
+    check_workers(run.workers)   # no more processes than the machine can run (cores, memory), in one line
     if parse_data_spec(config.data).kind in MAYBE_WITHOUT_DEPTH or config.metric not in DEPTH_METRICS:
         # data that cannot score a path by the study's metric is refused before the study exists
         require_scores(open_dataset(config.data, "val", config.train_size, train_augment=False), config.data,
                        config.metric, instead="score the paths by --metric photometric (a recording with its LiDAR), or ")
     if config.supernet:   # checked before the study's storage exists: a refused search creates nothing
         ensure_supernet(context)  # a foreign or corrupt file is one line before anything is measured
-    url = storage_url or local_url(config.study, reports)
-    started = time_limit.started if time_limit is not None else time.time()
+    url = run.storage_url or local_url(config.study, run.reports)
+    started = run.time_limit.started if run.time_limit is not None else time.time()
     clock = PhaseClock(started)
     with refused_leaves_nothing(url, config.study), searching_alone(url, config.study), \
             ctrl_c_says_what_is_kept(url, config.study):
-        outcome = _search(context, url, storage_url, workers, n_trials, timeout_s, reports, on_trial, on_poll, on_data,
-                          on_supernet, on_finalist, time_limit, on_plan, clock, on_envelope)
+        outcome = _search(context, dataclasses.replace(run, storage_url=url), run.storage_url, observer, clock)
         runs = study_record(outcome.study).runs
         record_study(outcome.study, runs=runs + [{"started": time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(started)),
                                                   "seconds": round(time.time() - started, 1),
@@ -385,69 +377,74 @@ def search(config: SearchConfig, storage_url: str | None = None, workers: int = 
     return outcome
 
 
-def _search(context: StudyContext, url: str, storage_url: str | None, workers: int, n_trials: int | None,
-            timeout_s: float | None, reports: Path, on_trial, on_poll, on_data, on_supernet, on_finalist,
-            time_limit: "TimeLimit | None", on_plan, clock: PhaseClock, on_envelope=None) -> SearchOutcome:
-    """:func:`search`'s run, under the study's search lock; ``clock`` is told where each phase ends."""
-    config = context.config
-    storage = open_storage(url, config.study, workers, reports, max_retries=config.max_retries)
+def _search(context: StudyContext, run: SearchRun, given_url: str | None, observer: SearchObserver,
+            clock: PhaseClock) -> SearchOutcome:
+    """:func:`search`'s run, under the study's search lock (``run.storage_url`` is where the study is,
+    ``given_url`` what the caller gave); ``clock`` is told where each phase ends. Each phase that changes
+    the settings (the plan, the finalists' re-plan and retraining) hands the next one its context."""
+    config, url, reports, time_limit = context.config, run.storage_url, run.reports, run.time_limit
+    storage = open_storage(url, config.study, run.workers, reports, max_retries=config.max_retries)
     plan = speeds = None
-    sampling_cap = timeout_s
+    timeout_s = run.timeout_s
     wanted = (config.finalists, config.finalist_steps)   # before a plan shrinks them
     if time_limit is not None:
-        config, plan, speeds = plan_search(context, storage, time_limit, timeout_s, on_data, clock)
+        config, plan, speeds = plan_search(context, storage, time_limit, run.timeout_s, observer.data, clock)
+        context = context.with_config(config)
         clock.lap("measuring")
         timeout_s = plan.sampling_s
-        if on_plan:
-            on_plan(plan)
-    study = create_or_resume(context.with_config(config), storage)
+        observer.plan(plan)
+    study = create_or_resume(context, storage)
     if plan is not None:
         record_study(study, plan=plan.to_dict())
     # No worker of this run has started yet; on local storage nobody else can be running: its RUNNING
     # trials were interrupted (kill -9), and are tried again. RDB storage does this by heartbeat.
     failed, retried, not_retried = 0, {}, []
-    if storage_url is None or storage_url.startswith(("sqlite", "journal:")):
+    if given_url is None or given_url.startswith(("sqlite", "journal:")):
         failed, retried, not_retried = resume_interrupted(study, config.max_retries)
     if config.keep_weights:
         record_study(study, artifacts_dir=str((study_dir(config.study, reports) / "artifacts").resolve()))
     cutoff = None if plan is None else supernet_deadline(plan, time_limit, speeds, "paper" in config.baselines,
-                                                         sampling_cap)
-    supernet = ensure_supernet(context.with_config(config), on_supernet, on_data, cutoff)   # the planned steps
+                                                         run.timeout_s)
+    supernet = ensure_supernet(context, observer.supernet, observer.data, cutoff)   # the planned steps
     if supernet is not None:
         clock.lap("supernet")
         record_study(study, supernet=str(supernet.resolve()))
         plan = _note_unfinished(supernet, plan)
     if plan is not None:
-        plan = replan_sampling(plan, time_limit.remaining(), sampling_cap)
+        plan = replan_sampling(plan, time_limit.remaining(), run.timeout_s)
         timeout_s = plan.sampling_s
-        _publish_plan(study, plan, on_plan)
+        _publish_plan(study, plan, observer)
     t0 = time.time()
-    deadline = None if timeout_s is None else t0 + timeout_s
-    if workers == 1:
-        release_host_memory()   # the measurements' and the supernet's training's pages, before the sampler's caches
-        objective = Objective(context.with_config(config), study_dir(config.study, reports), on_data)
-        cb = [lambda s, t: on_trial(s, t)] if on_trial else []
-        _optimize(study, objective, n_trials, deadline, cb)
-        # the sampler's caches (the stage memo, the encoders' features) are not the retrainings': their
-        # pages go back before those train at the deployment size (explorer.training.memory)
-        del objective, cb
-        gc.unfreeze()
-        release_host_memory()
-    else:
-        _run_workers(study, config, url, workers, n_trials, deadline, reports, on_poll, on_data)
+    _sample(study, context, run, observer, None if timeout_s is None else t0 + timeout_s)
     clock.lap("sampling")
     if plan is not None and (config.finalists or config.baselines):
-        config, plan = _replan_finalists(study, config, plan, speeds, time_limit, wanted, on_plan)
+        config, plan = _replan_finalists(study, config, plan, speeds, time_limit, wanted, observer)
+        context = context.with_config(config)
     if config.finalists:
-        config, plan = _retrain_finalists(study, context.with_config(config), plan, time_limit, wanted, reports,
-                                          on_finalist, on_plan, workers)
+        config, plan = _retrain_finalists(study, context, plan, time_limit, wanted, reports, observer, run.workers)
         clock.lap("finalists")
         if plan is not None:
-            before, plan = plan, _envelope_in_time_left(study, config, plan, speeds, time_limit, reports, on_envelope,
-                                                        on_plan)
+            before, plan = plan, _envelope_in_time_left(study, config, plan, speeds, time_limit, reports, observer)
             if plan is not before:
                 clock.lap("envelope")
     return SearchOutcome(study, url, time.time() - t0, failed, retried, not_retried, config, plan)
+
+
+def _sample(study: optuna.Study, context: StudyContext, run: SearchRun, observer: SearchObserver,
+            deadline: float | None) -> None:
+    """Samples until ``run.n_trials`` or ``deadline``: in this process, or in ``run.workers`` processes."""
+    config = context.config
+    if run.workers != 1:
+        _run_workers(study, config, run.storage_url, run.workers, run.n_trials, deadline, run.reports, observer)
+        return
+    release_host_memory()   # the measurements' and the supernet's training's pages, before the sampler's caches
+    objective = Objective(context, study_dir(config.study, run.reports), observer.data)
+    _optimize(study, objective, run.n_trials, deadline, [observer.trial])
+    # the sampler's caches (the stage memo, the encoders' features) are not the retrainings': their
+    # pages go back before those train at the deployment size (explorer.training.memory)
+    del objective
+    gc.unfreeze()
+    release_host_memory()
 
 
 def _retrained_and_skipped(study: optuna.Study, config: SearchConfig) -> tuple[int, int]:
@@ -459,9 +456,7 @@ def _retrained_and_skipped(study: optuna.Study, config: SearchConfig) -> tuple[i
 
 
 def _envelope_in_time_left(study: optuna.Study, config: SearchConfig, plan: "Plan", speeds,
-                           time_limit: "TimeLimit", reports: Path,
-                           on_envelope: Callable[[int, int, str], None] | None,
-                           on_plan: Callable[["Plan"], None] | None) -> "Plan":
+                           time_limit: "TimeLimit", reports: Path, observer: SearchObserver) -> "Plan":
     """Retrains the envelope's dedicated networks (``explorer envelope``'s, DEFAULT_NETWORKS of them) in
     the time the finalists left, each only if it ends before the time limit (the first by the plan's
     measure of one finalist, the others by the longest so far): a fast machine then gives the summary
@@ -471,14 +466,14 @@ def _envelope_in_time_left(study: optuna.Study, config: SearchConfig, plan: "Pla
     if not winner_retrained or _retrained_and_skipped(study, config)[1]:
         return plan
     before = len(envelope_trials(study))
-    train_envelope(study, DEFAULT_NETWORKS, reports, deadline=time_limit.ends - RESERVE_S,
-                   progress=on_envelope, expected_s=retrain_seconds(speeds, 1, 0.0, config.finalist_steps))
+    train_envelope(study_view(study), DEFAULT_NETWORKS, reports, deadline=time_limit.ends - RESERVE_S,
+                   progress=observer.envelope, expected_s=retrain_seconds(speeds, 1, 0.0, config.finalist_steps))
     trained = len(envelope_trials(study)) - before
     if trained:
         plan = dataclasses.replace(plan, changes=plan.changes + (
             f"{trained} dedicated network(s) of the envelope retrained in the time the finalists left "
             "(explorer envelope adds more)",))
-        _publish_plan(study, plan, on_plan)
+        _publish_plan(study, plan, observer)
     return plan
 
 
@@ -493,19 +488,17 @@ def _note_unfinished(supernet: Path, plan: "Plan | None") -> "Plan | None":
         "run needed the time (its estimates are rougher; the next study with this recipe finishes it)",))
 
 
-def _publish_plan(study: optuna.Study, plan: "Plan", on_plan: Callable[["Plan"], None] | None) -> None:
+def _publish_plan(study: optuna.Study, plan: "Plan", observer: SearchObserver) -> None:
     """Records the plan as it stands now in the study, and tells the caller."""
     record_study(study, plan=plan.to_dict())
-    if on_plan:
-        on_plan(plan)
+    observer.plan(plan)
 
 
 def _run_workers(study: optuna.Study, config: SearchConfig, url: str, workers: int, n_trials: int | None,
-                 deadline: float | None, reports: Path, on_poll: Callable[[optuna.Study], None] | None,
-                 on_data: Callable[[int, int], None] | None) -> None:
+                 deadline: float | None, reports: Path, observer: SearchObserver) -> None:
     """Samples in ``workers`` spawned processes sharing the study at ``url`` (the cores split among
     them), polling the study every 2 s until all have finished."""
-    open_dataset(config.data, "val", config.train_size, progress=on_data)  # generate once, not per worker
+    open_dataset(config.data, "val", config.train_size, progress=observer.data)  # generate once, not per worker
     if n_trials is not None:   # each worker starts one trial before it can count: no more workers than trials
         workers = max(1, min(workers, n_trials - counted_trials(study)))
     import multiprocessing as mp
@@ -520,16 +513,14 @@ def _run_workers(study: optuna.Study, config: SearchConfig, url: str, workers: i
     try:
         while any(p.is_alive() for p in procs):
             time.sleep(2.0)
-            if on_poll:
-                on_poll(study)
+            observer.poll(study)
         finished = True
     finally:
         end_workers(procs, interrupted=not finished)   # a Ctrl-C here: each records its trial, then stops
 
 
 def _replan_finalists(study: optuna.Study, config: SearchConfig, plan: "Plan", speeds, time_limit: "TimeLimit",
-                      wanted: tuple[int, int], on_plan: Callable[["Plan"], None] | None,
-                      ) -> tuple[SearchConfig, "Plan"]:
+                      wanted: tuple[int, int], observer: SearchObserver) -> tuple[SearchConfig, "Plan"]:
     """Sizes the finalists' retraining to what is left of ``time_limit`` once sampling is over:
     (config with the finalists and steps that fit, the plan as re-made)."""
     done = [trial_record(t).finalist.recipe["steps"] for t in finalist_trials(study)]
@@ -555,15 +546,13 @@ def _replan_finalists(study: optuna.Study, config: SearchConfig, plan: "Plan", s
             f"{config.finalist_steps} steps on this machine now, {max(left, 0) / 60:.1f} min are left: the winner "
             "is the search's best estimate, not retrained (give a longer --time-limit)",))
         config = dataclasses.replace(config, finalists=0)
-    _publish_plan(study, plan, on_plan)
+    _publish_plan(study, plan, observer)
     return config, plan
 
 
 def _retrain_finalists(study: optuna.Study, context: StudyContext, plan: "Plan | None",
                        time_limit: "TimeLimit | None", wanted: tuple[int, int], reports: Path,
-                       on_finalist: Callable[[int, int, str], None] | None,
-                       on_plan: Callable[["Plan"], None] | None, workers: int = 1
-                       ) -> tuple[SearchConfig, "Plan | None"]:
+                       observer: SearchObserver, workers: int = 1) -> tuple[SearchConfig, "Plan | None"]:
     """Retrains the finalists and the baselines (``workers`` at once, or one per GPU); (config, plan)
     counting the finalists retrained."""
     config = context.config
@@ -574,16 +563,17 @@ def _retrain_finalists(study: optuna.Study, context: StudyContext, plan: "Plan |
         extra = max(wanted[0] - config.finalists, 0) if "finalists" in time_limit.free else 0
         deadline = time_limit.ends - RESERVE_S
     left_s = deadline - time.time() if deadline is not None else math.inf
-    retrain_finalists(study, context, reports, progress=on_finalist, extra=extra, deadline=deadline, workers=workers)
+    retrain_finalists(study, context, reports, progress=observer.finalist, extra=extra, deadline=deadline,
+                      workers=workers)
     retrained, skipped = _retrained_and_skipped(study, config)
     if plan is not None and skipped:
         plan = dataclasses.replace(plan, not_retrained=skipped,
                                    changes=plan.changes + (planning.not_retrained(skipped, plan, left_s),))
-        _publish_plan(study, plan, on_plan)
+        _publish_plan(study, plan, observer)
     if plan is not None and retrained > plan.finalists:
         plan = dataclasses.replace(plan, finalists=retrained, retrain_jobs=plan.retrain_jobs + retrained - plan.finalists,
                                    changes=plan.changes + (
             f"{retrained - plan.finalists} more finalist(s) retrained: the others took less than planned",))
         config = dataclasses.replace(config, finalists=retrained)
-        _publish_plan(study, plan, on_plan)
+        _publish_plan(study, plan, observer)
     return config, plan

@@ -33,12 +33,10 @@ def test_the_advice_names_the_measured_pick_and_how_to_measure_a_lower_estimate(
 
 def test_measured_and_estimated_are_two_tables_that_fit_80_columns(monkeypatch, capsys):
     from explorer import console as console_module
-    import explorer.study.config
     monkeypatch.setattr(console_module.console, "width", 80)
-    monkeypatch.setattr(explorer.study.config, "study_config",
-                        lambda study: SimpleNamespace(input_size=(224, 224), train_size=(64, 64), evaluator="supernet"))
+    view = SimpleNamespace(config=SimpleNamespace(input_size=(224, 224), train_size=(64, 64), evaluator="supernet"))
     args = SimpleNamespace(study="s", device="rpi4", metric="rmse", budget=BUDGETS, top=15)
-    print_rescored(None, _frame(), args)
+    print_rescored(view, _frame(), args)
     out = capsys.readouterr().out
     lines = out.splitlines()
     measured = next(i for i, line in enumerate(lines) if "measured (2): retrained alone, measured at 224x224" in line)

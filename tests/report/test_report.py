@@ -5,7 +5,8 @@ import optuna
 import pytest
 
 from explorer.report import write_report
-from explorer.study.search import SearchConfig, search
+from explorer.study.search import SearchConfig, SearchRun, search
+from explorer.study.view import study_view
 from conftest import TINY_DATA
 
 # the whole default flow at toy size: supernet estimates, then finalists and baselines retrained
@@ -16,8 +17,8 @@ TINY = dict(space="tiny", data=TINY_DATA, train_size=(32, 32), input_size=(64, 6
 @pytest.fixture(scope="module")
 def study_with_everything(tmp_path_factory):
     reports = tmp_path_factory.mktemp("rep")
-    out = search(SearchConfig(study="rep", budgets=("time:uniform:30ms", "energy:uniform:0.5J"), **TINY),
-                 n_trials=9, timeout_s=None, reports=reports)
+    out = search(SearchConfig(study="rep", budgets=("time:uniform:30ms", "energy:uniform:0.5J"), **TINY).resolve(),
+                 SearchRun(n_trials=9, timeout_s=None, reports=reports))
     study = out.study
     # a failed trial and a rejected (pruned) one, as a real study has
     t = study.ask()
@@ -31,7 +32,7 @@ def study_with_everything(tmp_path_factory):
 @pytest.mark.slow
 def test_report_holds_the_tables(study_with_everything):
     study, reports = study_with_everything
-    path = write_report(study, reports / "rep")
+    path = write_report(study_view(study), reports / "rep")
     html = path.read_text()
     assert "Anytime loss against the baselines" in html and 'id="table2"' in html and 'id="trials"' in html
     assert "paper design" in html and "FastDepth-like" in html
@@ -58,14 +59,14 @@ def test_finalists_agreement_is_named_for_what_it_is(study_with_everything):
     study, _ = study_with_everything
     agreement = finalists_agreement(study)
     assert agreement is None or (-1 <= agreement["tau"] <= 1 and agreement["rows"] >= 3)
-    assert "unmeasured" in estimate_fidelity(study)
+    assert "unmeasured" in estimate_fidelity(study_view(study))
 
 
 def test_report_draws_the_winners_paths_on_a_time_axis(study_with_everything):
     from explorer.study.results import is_retrained, winner
     study, reports = study_with_everything
     assert is_retrained(winner(study))
-    html = write_report(study, reports / "rep").read_text()
+    html = write_report(study_view(study), reports / "rep").read_text()
     figure = html.split('<figure id="paths-figure">', 1)[1].split("</figure>", 1)[0]
     assert '<img alt="Trial ' in figure and "data:image/png;base64," in figure
     # the times are the cost model's, the errors the retrained winner's, at the size it was measured at
@@ -113,7 +114,7 @@ def test_depth_maps_are_drawn_at_the_deployment_size(study_with_everything, monk
         ([ax.get_title() for ax in fig.axes], [ax.get_ylabel() for ax in fig.axes], fig.get_suptitle()))
         or real_png(fig))
     device = get_device("tx2")
-    image, why = figures.depth_maps(study, best, None, device)
+    image, why = figures.depth_maps(study_view(study), best, None, device)
     assert image and not why and sizes == [deployed]
     titles, labels, legend = drawn[0]
     for p, (ms, rmse) in enumerate(zip(trial_path_costs(best, device, "time"), trial_losses(best))):
@@ -124,7 +125,7 @@ def test_depth_maps_are_drawn_at_the_deployment_size(study_with_everything, monk
 def test_report_escapes_user_strings(tmp_path):
     study = optuna.create_study(study_name="<script>alert(1)</script>")
     study.set_user_attr("config", {"device": "tx2", "data": "<b>x</b>", "budgets": ["time:uniform:33ms"]})
-    html = write_report(study, tmp_path).read_text()
+    html = write_report(study_view(study), tmp_path).read_text()
     assert "<script>alert(1)</script>" not in html and "&lt;script&gt;" in html
     assert "<b>x</b>" not in html
 
@@ -132,15 +133,16 @@ def test_report_escapes_user_strings(tmp_path):
 def test_report_costs_the_reference_networks_on_every_device(tmp_path):
     study = optuna.create_study(study_name="refs")
     study.set_user_attr("config", {"device": "tx2", "budgets": ["time:uniform:33ms"]})
-    html = write_report(study, tmp_path, devices=["tx2", "rpi4"]).read_text()
+    html = write_report(study_view(study), tmp_path, devices=["tx2", "rpi4"]).read_text()
     assert 'id="references"' in html
     for name in ("fastdepth", "s2d-resnet50", "s2d-resnet18", "monodepth2-resnet18", "tx2 ms", "rpi4 ms"):
         assert name in html
 
 
 def test_single_trial_study_reports(tmp_path):
-    out = search(SearchConfig(study="one", baselines=False, **{**TINY, "finalists": 0}), n_trials=1, timeout_s=None, reports=tmp_path)
-    assert write_report(out.study, tmp_path / "one").is_file()
+    out = search(SearchConfig(study="one", baselines=False, **{**TINY, "finalists": 0}).resolve(),
+                 SearchRun(n_trials=1, timeout_s=None, reports=tmp_path))
+    assert write_report(study_view(out.study), tmp_path / "one").is_file()
 
 
 def test_report_in_headless_chromium(study_with_everything, tmp_path):
@@ -148,7 +150,7 @@ def test_report_in_headless_chromium(study_with_everything, tmp_path):
     if not chromium:
         pytest.skip("Debian's chromium is not installed (make test installs it when it can)")
     study, reports = study_with_everything
-    path = write_report(study, reports / "rep")
+    path = write_report(study_view(study), reports / "rep")
     shot = tmp_path / "report.png"
     args = [chromium, "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
             "--disable-background-networking", "--disable-component-update", "--disable-sync",
@@ -169,7 +171,7 @@ def test_report_fits_the_screen_and_every_image_loads(study_with_everything, tmp
         pytest.skip("Debian's chromium is not installed (make test installs it when it can)")
     import html as html_lib
     study, reports = study_with_everything
-    report = write_report(study, reports / "rep").read_text()
+    report = write_report(study_view(study), reports / "rep").read_text()
     # the report in a frame of the screen's width (headless windows are 500 px or wider); a srcdoc frame
     # shares its parent's origin, so the parent measures it once it has loaded
     page = tmp_path / "probe.html"
@@ -217,7 +219,7 @@ def test_report_on_a_phone_under_mobile_emulation(study_with_everything, tmp_pat
     if not chromium():
         pytest.skip("Debian's chromium is not installed (make test installs it when it can)")
     study, reports = study_with_everything
-    page = write_report(study, reports / "rep")
+    page = write_report(study_view(study), reports / "rep")
     seen = json.loads(evaluate_emulated(page, _LAYOUT, tmp_path / "profile", width, 844, mobile))
     # the layout is the screen's width (less a laptop's vertical scroll bar; a phone's overlays the page)
     assert seen["inner"] == width and (seen["client"] == width if mobile else width - 20 <= seen["client"]), seen
@@ -241,7 +243,7 @@ def study_with_envelope(study_with_everything, tmp_path_factory):
     storage = optuna.storages.InMemoryStorage()
     optuna.copy_study(from_study_name=study.study_name, from_storage=study._storage, to_storage=storage)
     copy = optuna.load_study(study_name=study.study_name, storage=storage)
-    train_envelope(copy, 2, reports)
+    train_envelope(study_view(copy), 2, reports)
     assert len(envelope_trials(copy)) == 2
     return copy, reports
 
@@ -254,7 +256,7 @@ def test_after_explorer_envelope_its_networks_are_named_as_such(study_with_envel
     from explorer.study.finalists import finalist_trials
     from explorer.study.records import trial_record
     study, reports = study_with_envelope
-    html = write_report(study, reports / "rep").read_text()
+    html = write_report(study_view(study), reports / "rep").read_text()
     # the table of all trials tags each one with the path it was trained for
     for t in envelope_trials(study):
         row = re.search(rf"<tr>\s*<td>{t.number}</td>.*?</tr>", html, re.S).group(0)

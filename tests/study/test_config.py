@@ -90,12 +90,13 @@ def test_a_study_stored_before_baselines_were_named_still_reads():
 @pytest.fixture(scope="module")
 def tiny_study(tmp_path_factory):
     """A one-trial study of the tiny space in a journal (copied by each test before damaging it)."""
-    from explorer.study.search import SearchConfig, search
+    from explorer.study.search import SearchConfig, SearchRun, search
     from conftest import TINY_DATA
     folder = tmp_path_factory.mktemp("tiny-study")
     cfg = SearchConfig(study="s", space="tiny", data=TINY_DATA, train_size=(32, 32), input_size=(64, 64),
                        train_steps=2, batch_size=8, val_limit=8, evaluator="proxy", finalists=0)
-    search(cfg, f"journal:{folder / 's.log'}", n_trials=1, timeout_s=None, reports=folder)
+    search(cfg.resolve(), SearchRun(storage_url=f"journal:{folder / 's.log'}", n_trials=1, timeout_s=None,
+                                    reports=folder))
     return folder / "s.log"
 
 

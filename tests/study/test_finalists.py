@@ -5,7 +5,8 @@ import torch
 from conftest import TINY_DATA
 from explorer.study.finalists import choose_finalists, estimate_trials, finalist_trials, retrain_finalists
 from explorer.study.results import baseline_trial, best_trial, finalists_frame, is_retrained, winner
-from explorer.study.search import SearchConfig, search
+from explorer.study.search import SearchConfig, SearchObserver, SearchRun, search
+from explorer.study.view import study_view
 from explorer.space import Candidate
 from explorer.training.train import evaluate, save_checkpoint
 
@@ -14,10 +15,20 @@ CFG = SearchConfig(study="fin", space="tiny", data=TINY_DATA, train_size=(32, 32
                    tune_steps=2)
 
 
+class Plans(SearchObserver):
+    """Keeps every plan the search tells (at the start, and at each re-plan) in ``seen``."""
+
+    def __init__(self, seen: list) -> None:
+        self.seen = seen
+
+    def plan(self, plan) -> None:
+        self.seen.append(plan)
+
+
 @pytest.fixture(scope="module")
 def finished(tmp_path_factory):
     reports = tmp_path_factory.mktemp("fin")
-    return search(CFG, n_trials=6, timeout_s=None, reports=reports), reports
+    return search(CFG.resolve(), SearchRun(n_trials=6, timeout_s=None, reports=reports)), reports
 
 
 @pytest.mark.slow
@@ -72,7 +83,7 @@ def test_finalists_spread_over_image_encoders():
 def test_a_finished_finalist_is_never_redone(finished):
     out, reports = finished
     before = len(out.study.trials)
-    again = search(CFG, n_trials=6, timeout_s=None, reports=reports)
+    again = search(CFG.resolve(), SearchRun(n_trials=6, timeout_s=None, reports=reports))
     assert len(again.study.trials) == before
 
 
@@ -140,8 +151,8 @@ def test_a_time_limit_measures_the_machine_and_records_its_plan(tmp_path):
     from explorer.study.planning import TimeLimit
     seen = []
     limit = TimeLimit(600.0, free=frozenset({"finalists", "finalist_steps"}))
-    out = search(dataclasses.replace(CFG, study="roomy"), n_trials=3, timeout_s=None, reports=tmp_path,
-                 time_limit=limit, on_plan=seen.append)
+    out = search(dataclasses.replace(CFG, study="roomy").resolve(),
+                 SearchRun(n_trials=3, timeout_s=None, reports=tmp_path, time_limit=limit), Plans(seen))
     plan = out.study.user_attrs["plan"]
     assert seen and seen[-1].to_dict() == plan      # told at the start and at each re-plan; the last one stored
     assert plan["supernet_steps"] == CFG.supernet_steps and plan["sampling_s"] > 0
@@ -158,9 +169,9 @@ def test_a_time_limit_measures_the_machine_and_records_its_plan(tmp_path):
     assert 1 <= len(made) <= 4 and any(c.startswith(f"{len(made)} dedicated network(s) of the envelope")
                                        for c in plan["changes"])
     assert all(t.user_attrs["envelope"]["recipe"]["steps"] == 5 for t in made)
-    assert envelope(out.study).ratio is not None
+    assert envelope(study_view(out.study)).ratio is not None
     from explorer.report import write_report
-    html = write_report(out.study, out_dir=tmp_path / "report").read_text()
+    html = write_report(study_view(out.study), out_dir=tmp_path / "report").read_text()
     assert 'id="plan"' in html and "supernet 4 steps" in html and "2 finalist(s) retrained 5 steps" in html
     assert "measuring 0." in html and "finalists " in html   # the wall time row names the phases
     assert 'id="envelope-ratio"' in html and 'id="envelope-hint"' not in html
@@ -174,7 +185,7 @@ def test_no_dedicated_network_starts_that_would_end_after_the_deadline(finished)
     from explorer.study.envelope import envelope_trials, train_envelope
     out, reports = finished
     before, said = len(envelope_trials(out.study)), []
-    train_envelope(out.study, 2, reports, deadline=time.time() + 5, expected_s=60.0,
+    train_envelope(study_view(out.study), 2, reports, deadline=time.time() + 5, expected_s=60.0,
                    progress=lambda i, n, what: said.append(what))
     assert len(envelope_trials(out.study)) == before and any(what.startswith("no time for") for what in said)
 
@@ -198,9 +209,9 @@ def test_the_envelope_gets_no_time_where_the_time_limit_stopped_a_finalist(finis
     speeds, limit = Speeds(retrain_step_s=0.01, retrain_eval_s=0.1, supernet_step_s=0), TimeLimit(3600)
     before = len(envelope_trials(study))
     one_more = dataclasses.replace(out.config, finalists=out.config.finalists + 1)   # one the limit stopped
-    assert _envelope_in_time_left(study, one_more, plan, speeds, limit, tmp_path, None, None) is plan
+    assert _envelope_in_time_left(study, one_more, plan, speeds, limit, tmp_path, SearchObserver()) is plan
     assert len(envelope_trials(study)) == before
-    as_asked = _envelope_in_time_left(study, out.config, plan, speeds, limit, tmp_path, None, None)
+    as_asked = _envelope_in_time_left(study, out.config, plan, speeds, limit, tmp_path, SearchObserver())
     assert len(envelope_trials(study)) > before and "dedicated network(s) of the envelope" in as_asked.changes[-1]
 
 
@@ -208,8 +219,9 @@ def test_the_envelope_gets_no_time_where_the_time_limit_stopped_a_finalist(finis
 def test_a_time_limit_too_short_for_any_retraining_retrains_none_and_says_so(tmp_path):
     import dataclasses
     from explorer.study.planning import TimeLimit
-    out = search(dataclasses.replace(CFG, study="tight"), n_trials=3, timeout_s=None, reports=tmp_path,
-                 time_limit=TimeLimit(1.0, free=frozenset({"finalists", "finalist_steps"})))
+    out = search(dataclasses.replace(CFG, study="tight").resolve(),
+                 SearchRun(n_trials=3, timeout_s=None, reports=tmp_path,
+                           time_limit=TimeLimit(1.0, free=frozenset({"finalists", "finalist_steps"}))))
     assert out.config.finalists == 0 and out.config.finalist_steps == 5   # never more steps than asked
     changes = out.study.user_attrs["plan"]["changes"]
     assert any(c.startswith("no finalist retrained") and "longer --time-limit" in c for c in changes)
@@ -223,7 +235,7 @@ def test_a_reference_network_joins_the_study_as_a_baseline(tmp_path):
     from explorer.report import write_report
     from explorer.study.results import missing_baselines, rescore, trials_frame
     cfg = dataclasses.replace(CFG, study="refs", baselines=("paper", "fastdepth-pruned"), finalists=1)
-    out = search(cfg, n_trials=3, timeout_s=None, reports=tmp_path)
+    out = search(cfg.resolve(), SearchRun(n_trials=3, timeout_s=None, reports=tmp_path))
     study = out.study
     assert "fastdepth-pruned" in study.user_attrs["baselines_not_estimated"]   # outside every space
     ref = baseline_trial(study, "fastdepth-pruned", retrained=True)
@@ -232,11 +244,11 @@ def test_a_reference_network_joins_the_study_as_a_baseline(tmp_path):
     expected = profile_reference("fastdepth-pruned", (64, 64), "tx2")["latency_ms"].iloc[0]
     assert ref.user_attrs["latency_ms"] == pytest.approx([0.0, expected])
     assert {t.user_attrs.get("baseline", "") for t in finalist_trials(study)} == {"", "paper", "fastdepth-pruned"}
-    assert missing_baselines(study) == []                                    # paper-nee was not asked for
+    assert missing_baselines(study_view(study)) == []                                    # paper-nee was not asked for
     assert "FastDepth after NetAdapt" in trials_frame(study).set_index("number").loc[ref.number, "architecture"]
     again = rescore(study, "rpi4", ["time:uniform:100ms"])
     assert "fastdepth-pruned" in set(again["baseline"])
-    html = write_report(study, out_dir=tmp_path / "report").read_text()
+    html = write_report(study_view(study), out_dir=tmp_path / "report").read_text()
     table2 = html.split('<section id="table2">')[1].split("</section>")[0]
     assert "fastdepth-pruned" in table2 and "paper design" in table2
 
@@ -322,8 +334,8 @@ def test_a_supernet_the_time_limit_stopped_still_serves_the_study(tmp_path, monk
     import explorer.study.search as search_module
     from explorer.study.planning import TimeLimit
     monkeypatch.setattr(search_module, "supernet_deadline", lambda *a, **k: time.time())   # the machine slowed
-    out = search(dataclasses.replace(CFG, study="cut", supernet_steps=300, baselines=("paper",), finalists=1),
-                 n_trials=3, timeout_s=None, reports=tmp_path, time_limit=TimeLimit(600.0, free=frozenset()))
+    out = search(dataclasses.replace(CFG, study="cut", supernet_steps=300, baselines=("paper",), finalists=1).resolve(),
+                 SearchRun(n_trials=3, timeout_s=None, reports=tmp_path, time_limit=TimeLimit(600.0, free=frozenset())))
     changes = out.study.user_attrs["plan"]["changes"]
     assert any(c.startswith("supernet stopped at step") and "of 300" in c for c in changes)
     estimates = estimate_trials(out.study)
@@ -350,13 +362,13 @@ def test_when_even_the_best_finalist_and_the_paper_design_no_longer_fit_none_is_
     planned = Plan(limit_s=600.0, supernet_steps=0, supernet_s=0.0, sampling_s=60.0, finalists=1, finalist_steps=150,
                    retrain_jobs=2, retrain_s=10.0)
     limit = TimeLimit(600.0, started=__import__("time").time() - 300.0, free=frozenset())
-    config, plan = search_module._replan_finalists(study, config, planned, speeds, limit, (1, 150), None)
+    config, plan = search_module._replan_finalists(study, config, planned, speeds, limit, (1, 150), SearchObserver())
     assert config.finalists == plan.finalists == retrained
     assert any(c.startswith("no finalist retrained") for c in plan.changes) == (retrained == 0)
     if not retrained:   # a study without baselines is not told of a paper design it does not have
         assert any("the best one and the paper design need" in c for c in plan.changes)
         alone = dataclasses.replace(config, finalists=1, baselines=())
-        _, plan = search_module._replan_finalists(study, alone, planned, speeds, limit, (1, 150), None)
+        _, plan = search_module._replan_finalists(study, alone, planned, speeds, limit, (1, 150), SearchObserver())
         said = [c for c in plan.changes if c.startswith("no finalist retrained")]
         assert said and "paper" not in said[0] and "the best one needs" in said[0]
 
@@ -392,12 +404,12 @@ def test_the_envelope_of_dedicated_networks(finished, run_cli):
     out, reports = finished
     before_winner = winner(out.study).number
     if not envelope_trials(out.study):    # before: the summary and the report say how to get it
-        assert "explorer envelope --study fin" in envelope_summary(out.study)
-        before = write_report(out.study, out_dir=reports / "before-envelope").read_text()
+        assert "explorer envelope --study fin" in envelope_summary(study_view(out.study))
+        before = write_report(study_view(out.study), out_dir=reports / "before-envelope").read_text()
         assert 'id="envelope-hint"' in before and "explorer envelope --study fin" in before
         shared = "postgresql://me:secret@db.lab/studies"     # a study elsewhere: the command says where
-        assert "--storage postgresql://me:***@db.lab/studies" in envelope_summary(out.study, shared)
-        html = write_report(out.study, out_dir=reports / "shared", storage_url=shared).read_text()
+        assert "--storage postgresql://me:***@db.lab/studies" in envelope_summary(study_view(out.study), shared)
+        html = write_report(study_view(out.study), out_dir=reports / "shared", storage_url=shared).read_text()
         assert "--storage postgresql://me:***@db.lab/studies" in html and "secret" not in html
     code, text, err = run_cli("envelope", "--study", "fin", "--networks", "1", "--reports", reports)
     assert code == 0, err
@@ -410,16 +422,16 @@ def test_the_envelope_of_dedicated_networks(finished, run_cli):
         assert t.user_attrs["measured"]["input_size"] == [64, 64]
     assert winner(out.study).number == before_winner                     # never a finalist
     assert not {t.number for t in made} & {t.number for t in estimate_trials(out.study)}
-    found = envelope(out.study)
+    found = envelope(study_view(out.study))
     assert found.costs[0] == 0 and all(a < b for a, b in zip(found.costs, found.costs[1:]))
     assert all(a > b for a, b in zip(found.errors, found.errors[1:]))  # each step serves budgets better
     assert found.loss == pytest.approx(anytime_loss(found.costs, found.errors, "time:uniform:33ms"))
     assert found.ratio == pytest.approx(winner(out.study).values[0] / found.loss)
     assert "x the envelope" in " ".join(text.split())
-    assert f"{found.ratio:.3f} x the envelope of" in envelope_summary(out.study)
+    assert f"{found.ratio:.3f} x the envelope of" in envelope_summary(study_view(out.study))
     html = (reports / "fin" / "report.html").read_text()          # the command brought the report up to date
     assert 'id="envelope-ratio"' in html and f"{found.ratio:.3f}" in html and 'id="envelope-hint"' not in html
-    assert "explorer envelope" not in envelope_summary(out.study)
+    assert "explorer envelope" not in envelope_summary(study_view(out.study))
     code, _, _ = run_cli("envelope", "--study", "fin", "--networks", "1", "--reports", reports)   # cached
     assert code == 0 and len(envelope_trials(out.study)) == len(made)
 
@@ -439,7 +451,7 @@ def test_finalists_retrained_beyond_the_plan_are_counted_as_finalists_not_baseli
                    retrain_jobs=2, retrain_s=10.0)
     limit = TimeLimit(600.0, free=frozenset({"finalists"}))
     config, plan = search_module._retrain_finalists(study, types.SimpleNamespace(config=config), planned, limit,
-                                                    (3, 150), tmp_path, None, None)
+                                                    (3, 150), tmp_path, SearchObserver())
     assert (config.finalists, plan.finalists, plan.retrain_jobs) == (2, 2, 3)
     assert "2 finalist(s) and 1 baseline(s) retrained" in plan.describe()
     assert plan.changes[-1].startswith("1 more finalist(s) retrained")
@@ -454,14 +466,15 @@ def test_a_time_limited_proxy_search_plans_no_supernet(tmp_path):
     from explorer.study.planning import Plan, TimeLimit
     cfg = dataclasses.replace(CFG, study="proxy-plan", evaluator="proxy", train_steps=3, finalists=1, baselines=())
     seen = []
-    out = search(cfg, n_trials=2, timeout_s=None, reports=tmp_path, on_plan=seen.append,
-                 time_limit=TimeLimit(600.0, free=frozenset({"finalists", "finalist_steps"})))
+    out = search(cfg.resolve(), SearchRun(n_trials=2, timeout_s=None, reports=tmp_path,
+                                          time_limit=TimeLimit(600.0, free=frozenset({"finalists", "finalist_steps"}))),
+                 Plans(seen))
     plan = out.study.user_attrs["plan"]
     assert plan["supernet_steps"] == 0 and plan["supernet_s"] == 0
     assert seen and all(p.supernet_steps == 0 for p in seen)
     line = Plan(**{**plan, "changes": tuple(plan["changes"])}).describe()
     assert "no supernet" in line and "supernet 4 steps" not in line
-    html = write_report(out.study, out_dir=tmp_path / "report").read_text()
+    html = write_report(study_view(out.study), out_dir=tmp_path / "report").read_text()
     assert 'id="plan"' in html and "no supernet" in html and "supernet 4 steps" not in html
     assert "phases" in out.study.user_attrs["runs"][-1]
     assert finalist_trials(out.study)

@@ -10,7 +10,7 @@ from explorer.data.synthetic import cache_dir
 from explorer.space import SearchSpace
 from explorer.study.planning import Plan, Speeds, TimeLimit
 from explorer.study.records import study_record, trial_record
-from explorer.study.search import SearchConfig, search
+from explorer.study.search import SearchConfig, SearchRun, search
 from explorer.supernet import default_path, read_supernet
 
 CFG = SearchConfig(study="planned", space="tiny", data=TINY_DATA, train_size=(32, 32), input_size=(64, 64),
@@ -31,8 +31,8 @@ def test_the_supernet_trained_has_the_steps_the_plan_gave_it(tmp_path, monkeypat
         return dataclasses.replace(context.config, supernet_steps=6), plan, Speeds(0.01, 0.1, 0.01)
 
     monkeypatch.setattr(search_module, "plan_search", planned)
-    out = search(CFG, n_trials=3, timeout_s=None, reports=tmp_path / "reports",
-                 time_limit=TimeLimit(600.0, free=frozenset({"supernet_steps"})))
+    out = search(CFG.resolve(), SearchRun(n_trials=3, timeout_s=None, reports=tmp_path / "reports",
+                                          time_limit=TimeLimit(600.0, free=frozenset({"supernet_steps"}))))
     space = SearchSpace.from_yaml(CFG.space)
     trained = default_path(space, CFG.data, dataclasses.replace(CFG, supernet_steps=6).supernet_recipe())
     assert study_record(out.study).supernet == str(trained.resolve())

@@ -17,7 +17,8 @@ from explorer.study.records import RECORD_VERSION, VERSION_KEY
 from explorer.study.results import missing_baselines, trials_frame
 from explorer.study.retry import (CTRL_C, RetryStaleTrials, counted_trials, enqueue_retry, guarded,
                             interrupted_trials)
-from explorer.study.search import SearchConfig, objective_names, search
+from explorer.study.search import SearchConfig, SearchRun, objective_names, search
+from explorer.study.view import study_view
 from explorer.study.storage import load_study
 from conftest import POSTGRES, TINY_DATA, journal_trials, needs_postgres
 
@@ -116,8 +117,8 @@ def test_kill_9_during_a_sampled_trial_retries_it_once(tmp_path):
 
 def test_a_trial_failing_with_nan_is_not_retried(tmp_path):
     cfg = SearchConfig(study="nan", baselines=False, lr=1e30, **TINY)  # diverges: NaN loss at once
-    out = search(cfg, n_trials=2, timeout_s=None, reports=tmp_path)
-    out = search(cfg, n_trials=3, timeout_s=None, reports=tmp_path)
+    out = search(cfg.resolve(), SearchRun(n_trials=2, timeout_s=None, reports=tmp_path))
+    out = search(cfg.resolve(), SearchRun(n_trials=3, timeout_s=None, reports=tmp_path))
     trials = out.study.get_trials()
     assert len(trials) == 3 and all(t.state == optuna.trial.TrialState.FAIL for t in trials)
     assert all("FloatingPointError" in t.system_attrs["fail_reason"] for t in trials)
@@ -233,34 +234,34 @@ def test_missing_baselines_say_why(tmp_path, capsys):
                                   system_attrs={"fail_reason": "interrupted (process killed)"}),
         optuna.trial.create_trial(state=WAITING, user_attrs={"baseline": "fastdepth", "retry_of": 1}),
     ], device="tx2", budgets=["time:uniform:33ms"])
-    why = {m["name"]: m["why"] for m in missing_baselines(study)}
+    why = {m["name"]: m["why"] for m in missing_baselines(study_view(study))}
     assert why["paper"] == "failed in trial 0: FloatingPointError: training loss became nan"
     assert why["paper-nee"] == "not run: it is not in this study"
     assert why["fastdepth"].startswith("not run yet: queued as trial 2 (trial 1 was interrupted (process killed))")
 
     from explorer.cli import _print_outcome
-    _print_outcome(study, SearchConfig(study="x"), "sqlite:///x.db", tmp_path, write_report=False)
+    _print_outcome(study_view(study), SearchConfig(study="x"), "sqlite:///x.db", tmp_path, write_report=False)
     out = capsys.readouterr().out
     assert "baseline paper design missing: failed in trial 0" in out
     assert "baseline FastDepth-like missing: not run yet" in out
 
     from explorer.report import write_report
-    html = write_report(study, tmp_path).read_text()
+    html = write_report(study_view(study), tmp_path).read_text()
     assert "Not in this table" in html and "failed in trial 0: FloatingPointError" in html
 
     none = _study_with([], baselines=False)
-    assert {m["why"] for m in missing_baselines(none)} == {"not run: the study was created with --no-baselines"}
+    assert {m["why"] for m in missing_baselines(study_view(none))} == {"not run: the study was created with --no-baselines"}
 
 
 def test_a_baseline_the_time_limit_left_untrained_says_so():
     from explorer.study.records import record_study
     study = _study_with([], device="tx2", budgets=["time:uniform:33ms"])
     record_study(study, baselines_not_estimated={"fastdepth": "outside the space 'anytime_depth'"})
-    assert {m["name"]: m["why"] for m in missing_baselines(study)}["fastdepth"] == (
+    assert {m["name"]: m["why"] for m in missing_baselines(study_view(study))}["fastdepth"] == (
         "not estimated: outside the space 'anytime_depth'; not retrained yet (--finalists 0, or the study has not "
         "ended)")
     record_study(study, plan={"finalists": 3, "not_retrained": 1})
-    why = {m["name"]: m["why"] for m in missing_baselines(study)}["fastdepth"]
+    why = {m["name"]: m["why"] for m in missing_baselines(study_view(study))}["fastdepth"]
     assert why == ("not estimated: outside the space 'anytime_depth'; not retrained: the time limit came first (run "
                    "the search again with a longer --time-limit: it resumes and retrains it)")
 

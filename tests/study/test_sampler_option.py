@@ -4,7 +4,7 @@ import optuna
 import pytest
 
 from explorer.cli import build_parser
-from explorer.cli.study import _search_config
+from explorer.cli.study import _search_context
 from explorer.errors import UserError
 from explorer.study.config import SAMPLERS, SearchConfig
 from explorer.study.records import study_record
@@ -14,8 +14,8 @@ from explorer.study.search import create_or_resume, make_sampler
 
 def _study(*flags: str) -> optuna.Study:
     """The study ``explorer search FLAGS`` creates (in memory: nothing is trained)."""
-    config = _search_config(build_parser().parse_args(["search", "--study", "sampler-test", *flags]))
-    return create_or_resume(config.resolve(), optuna.storages.InMemoryStorage())
+    context = _search_context(build_parser().parse_args(["search", "--study", "sampler-test", *flags]))
+    return create_or_resume(context, optuna.storages.InMemoryStorage())
 
 
 def test_sampler_random_makes_a_study_sample_uniformly():

@@ -13,7 +13,7 @@ from explorer.anytime import anytime_loss
 from explorer.cost import candidate_cost, get_device
 from explorer.errors import UserError
 from explorer.study.results import rescore, scored_trials, trials_frame
-from explorer.study.search import SearchConfig, search
+from explorer.study.search import SearchConfig, SearchRun, search
 from explorer.study.storage import load_study
 from explorer.space import Candidate
 from conftest import POSTGRES, TINY_DATA, journal_trials, needs_postgres
@@ -30,7 +30,7 @@ CLI_TINY = ["--space", "tiny", "--data", TINY_DATA, "--train-size", "32x32", "--
 def finished(tmp_path_factory):
     reports = tmp_path_factory.mktemp("reports")
     cfg = SearchConfig(study="tiny-e2e", budgets=("time:uniform:30ms", "energy:uniform:0.5J"), **TINY)
-    out = search(cfg, n_trials=7, timeout_s=None, reports=reports)
+    out = search(cfg.resolve(), SearchRun(n_trials=7, timeout_s=None, reports=reports))
     return out, reports
 
 
@@ -84,12 +84,12 @@ def test_resume_with_other_settings_is_refused(finished):
     _, reports = finished
     cfg = SearchConfig(study="tiny-e2e", device="rpi4", **TINY)
     with pytest.raises(UserError, match="rescore"):
-        search(cfg, n_trials=1, reports=reports)
+        search(cfg.resolve(), SearchRun(n_trials=1, reports=reports))
 
 
 def test_constraints_reject_before_training(tmp_path):
     cfg = SearchConfig(study="constrained", baselines=False, max_params=1000, **TINY)
-    out = search(cfg, n_trials=3, timeout_s=None, reports=tmp_path)
+    out = search(cfg.resolve(), SearchRun(n_trials=3, timeout_s=None, reports=tmp_path))
     trials = out.study.get_trials()
     assert all(t.state == optuna.trial.TrialState.PRUNED for t in trials)
     assert all("--max-params" in t.user_attrs["rejected"] and "path_metrics" not in t.user_attrs for t in trials)
@@ -97,7 +97,7 @@ def test_constraints_reject_before_training(tmp_path):
 
 def test_multi_objective(tmp_path):
     cfg = SearchConfig(study="mo", baselines=False, objectives=("anytime_loss", "params"), **TINY)
-    out = search(cfg, n_trials=3, timeout_s=None, reports=tmp_path)
+    out = search(cfg.resolve(), SearchRun(n_trials=3, timeout_s=None, reports=tmp_path))
     assert len(out.study.directions) == 2
     assert out.study.metric_names == ["anytime_loss[time:uniform:33ms]", "params"]  # named for dashboards
     assert all(len(t.values) == 2 for t in out.study.get_trials() if t.values)
@@ -180,10 +180,10 @@ def test_a_candidate_sampled_twice_is_not_trained_twice(tmp_path):
     cfg = SearchConfig(study="dup", baselines=False, **TINY)
     space = SearchSpace.from_yaml("tiny")
     cand = list(space.enumerate())[0]
-    out = search(cfg, n_trials=1, timeout_s=None, reports=tmp_path)
+    out = search(cfg.resolve(), SearchRun(n_trials=1, timeout_s=None, reports=tmp_path))
     out.study.enqueue_trial(space.params_of(cand))
     out.study.enqueue_trial(space.params_of(cand))
-    out = search(cfg, n_trials=3, timeout_s=None, reports=tmp_path)
+    out = search(cfg.resolve(), SearchRun(n_trials=3, timeout_s=None, reports=tmp_path))
     a, b = out.study.trials[1], out.study.trials[2]
     assert a.user_attrs["candidate_key"] == b.user_attrs["candidate_key"] == cand.key
     assert "duplicate_of" in b.user_attrs and b.values == a.values
@@ -193,7 +193,7 @@ def test_a_candidate_sampled_twice_is_not_trained_twice(tmp_path):
 @pytest.mark.slow
 def test_two_workers_on_a_journal_file(tmp_path):
     cfg = SearchConfig(study="journal", **TINY)
-    out = search(cfg, workers=2, n_trials=6, timeout_s=None, reports=tmp_path)
+    out = search(cfg.resolve(), SearchRun(workers=2, n_trials=6, timeout_s=None, reports=tmp_path))
     assert out.storage_url.startswith("journal:") and (tmp_path / "journal" / "journal.log").is_file()
     trials = out.study.get_trials()
     assert len({t.number for t in trials}) == len(trials) >= 6

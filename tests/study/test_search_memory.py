@@ -4,7 +4,7 @@ import weakref
 
 import explorer.study.search as search_module
 from explorer.study.objective import Objective
-from explorer.study.search import SearchConfig, search
+from explorer.study.search import SearchConfig, SearchRun, search
 from conftest import TINY_DATA
 
 TINY = dict(space="tiny", data=TINY_DATA, train_size=(32, 32), input_size=(64, 64), train_steps=2,
@@ -30,6 +30,7 @@ def test_the_samplers_objective_is_let_go_when_sampling_ends(tmp_path, monkeypat
 
     monkeypatch.setattr(search_module, "Objective", Tracked)
     monkeypatch.setattr(search_module, "release_host_memory", release)
-    out = search(SearchConfig(study="memory", **TINY), n_trials=2, timeout_s=None, reports=tmp_path)
+    out = search(SearchConfig(study="memory", **TINY).resolve(),
+                 SearchRun(n_trials=2, timeout_s=None, reports=tmp_path))
     assert len(out.study.trials) == 2 and len(made) == 1
     assert alive_at_release == [0, 0]   # none before sampling, and the sampler's is gone after it

@@ -189,11 +189,11 @@ def test_a_search_leaves_no_lock_file_behind(tmp_path, run_cli):
 def test_a_damaged_stored_device_profile_is_refused_before_any_trial_runs(tmp_path, run_cli):
     from explorer.cli import build_parser
     from explorer.cli._common import resolve_data
-    from explorer.cli.study import _search_config
+    from explorer.cli.study import _search_context
     from explorer.study.search import create_or_resume
     args = build_parser().parse_args([str(a) for a in _fast_search(tmp_path)])
     resolve_data(args)
-    study = create_or_resume(_search_config(args).resolve(), storage.open_storage(None, "cc", reports=tmp_path))
+    study = create_or_resume(_search_context(args), storage.open_storage(None, "cc", reports=tmp_path))
     study.set_user_attr("device_profile", {**study.user_attrs["device_profile"], "body_exponent": 1e6})
     code, _, err = run_cli(*_fast_search(tmp_path))
     assert code == 2 and "body_exponent must lie in" in err and len(err.strip().splitlines()) == 1, err

@@ -289,10 +289,10 @@ def test_supernet_files_that_do_not_fit_are_one_line_exit_2(tmp_path, run_cli):
 
 @pytest.mark.slow
 def test_short_supernet_search_on_the_default_space(tmp_path):
-    from explorer.study.search import SearchConfig, search
+    from explorer.study.search import SearchConfig, SearchRun, search
     cfg = SearchConfig(study="sn", data=TINY_DATA, train_size=(32, 32), batch_size=8, val_limit=16,
                        evaluator="supernet", supernet_steps=3, finalists=0, keep_weights=False)
-    out = search(cfg, n_trials=40, timeout_s=None, reports=tmp_path)
+    out = search(cfg.resolve(), SearchRun(n_trials=40, timeout_s=None, reports=tmp_path))
     done = [t for t in out.study.get_trials() if t.state == optuna.trial.TrialState.COMPLETE]
     assert not out.study.get_trials(states=(optuna.trial.TrialState.FAIL,))
     assert all(t.user_attrs["evaluator"]["evaluator"] == "supernet" for t in done)
@@ -302,7 +302,7 @@ def test_short_supernet_search_on_the_default_space(tmp_path):
     # the same study with the other evaluator would change what its values mean: refused
     import dataclasses
     with pytest.raises(UserError, match="evaluator"):
-        search(dataclasses.replace(cfg, evaluator="proxy"), n_trials=1, reports=tmp_path)
+        search(dataclasses.replace(cfg, evaluator="proxy").resolve(), SearchRun(n_trials=1, reports=tmp_path))
 
 
 @pytest.mark.slow
