@@ -12,7 +12,6 @@ from __future__ import annotations
 import dataclasses
 import datetime
 import hashlib
-import json
 import os
 import tarfile
 from pathlib import Path
@@ -109,7 +108,8 @@ def stage_candidates(count: int, seed: int, exclude: set[str] = frozenset()) -> 
 def write_bundle_dir(folder: Path, scale: float = 1.0, seed: int = 0, n_stage: int | None = None,
                      exclude: set[str] = frozenset(), input_size: tuple[int, int] = (224, 224),
                      stage_sizes: tuple[tuple[int, int], ...] | None = None, repeats: int = 25,
-                     progress: Callable[[int, int], None] | None = None, int8: bool = True) -> dict:
+                     progress: Callable[[int, int], None] | None = None, int8: bool = True
+                     ) -> probe_script.BundleManifest:
     """Exports the layer sweep (``scale`` x the default counts) and the stage graphs of ``n_stage``
     candidates (default ``STAGE_CANDIDATES`` x ``scale``) into ``folder``; returns the manifest. ``int8``: every
     convolution of the sweep, and the stage graphs of some candidates (``INT8_STAGE_EVERY``), also go in
@@ -171,18 +171,15 @@ def write_bundle_dir(folder: Path, scale: float = 1.0, seed: int = 0, n_stage: i
         if progress:
             progress(len(layers) + len(quantized) + j + 1 + len(int8_entries), total)
     cand_entries += int8_entries   # after the fp32 ones: the probe's speed check is an fp32 stage graph
-    manifest = {"format": probe_script.BUNDLE_FORMAT, "version": probe_script.VERSION,
-                "explorer": __version__, "created": datetime.datetime.now().isoformat(timespec="seconds"),
-                "scale": scale, "seed": seed, "input_size": list(input_size), "repeats": repeats,
-                "layers": layer_entries, "candidates": cand_entries}
-    digest.update(json.dumps({k: v for k, v in manifest.items() if k != "created"}, sort_keys=True).encode())
-    manifest["id"] = digest.hexdigest()[:16]
-    (folder / "manifest.json").write_text(json.dumps(manifest, indent=1))
+    manifest = probe_script.write_bundle_manifest(
+        folder, {"explorer": __version__, "created": datetime.datetime.now().isoformat(timespec="seconds"),
+                 "scale": scale, "seed": seed, "input_size": list(input_size), "repeats": repeats,
+                 "layers": layer_entries, "candidates": cand_entries}, digest)
     write_zipapp(folder / "probe.pyz")
     return manifest
 
 
-def write_bundle(out: Path, **kwargs) -> dict:
+def write_bundle(out: Path, **kwargs) -> probe_script.BundleManifest:
     """The bundle as one gzip-compressed tar (``tar xf`` unpacks it); written whole or not at all."""
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)

@@ -54,8 +54,8 @@ def cmd_calibrate(args) -> None:
             task = bar.add_task("exporting graphs", total=None, status="")
             manifest = write_bundle(bundle, scale=0.35 if args.quick else 1.0, repeats=args.repeats,
                                     progress=lambda i, n: bar.update(task, completed=i, total=n))
-        console.print(f"wrote {bundle} ({bundle.stat().st_size / 1e6:.1f} MB, {len(manifest['layers'])} layer "
-                      f"graphs, {len(manifest['candidates'])} candidates' stages, bundle {manifest['id']}); on the "
+        console.print(f"wrote {bundle} ({bundle.stat().st_size / 1e6:.1f} MB, {len(manifest.layers)} layer "
+                      f"graphs, {len(manifest.candidates)} candidates' stages, bundle {manifest.id}); on the "
                       f"device: tar xf {bundle.name} && python3 probe.pyz --out results.json")
         return
     if not args.out:

@@ -21,8 +21,8 @@ arena), ``rewrites`` (graph rewrites shared with the runtime), ``timing`` (timin
 ``scratch`` (scratch folders a killed process does not leave behind, SIGTERM that unwinds).
 """
 
-from .formats import (BUNDLE_FORMAT, DEFAULT_PROVIDER, RESULTS_FORMAT, VERSION, WARMUP, ProbeError, load_manifest,
-                      read_results, write_atomically)
+from .formats import (BUNDLE_FORMAT, DEFAULT_PROVIDER, RESULTS_FORMAT, VERSION, WARMUP, BundleManifest, ProbeError,
+                      load_manifest, read_results, write_atomically, write_bundle_manifest)
 from .identity import device_identity
 from .power import PowerSensor, PowerWindow, find_sensor, idle_power, inference_energy, parse_pmic_adc
 from .rewrites import (NHWC_SUFFIX, SUFFIX, UINT8_NHWC_SUFFIX, UINT8_SUFFIX, blocked_skip_adds,

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+from dataclasses import dataclass, field
 from pathlib import Path
 
 try:
@@ -24,22 +25,60 @@ class ProbeError(Exception):
 
 
 
-# -- results -------------------------------------------------------------------------------------
-def load_manifest(bundle_dir: Path) -> dict:
+# -- the bundle manifest -------------------------------------------------------------------------
+@dataclass(frozen=True)
+class BundleManifest:
+    """A bundle's ``manifest.json`` (the bundle manifest on the file formats page), typed: the probe has
+    no pydantic, so a dataclass; this module names its keys (:func:`load_manifest` reads it,
+    :func:`write_bundle_manifest` writes it). ``id``: a digest of the bundle's content, which results
+    remember; ``repeats``: the timed runs per graph; ``input_size``: (H, W) of a candidate's inputs where its
+    entry gives none; ``layers`` and ``candidates``: the graphs' entries as written (the file formats page
+    lists their fields); ``written``: the whole manifest as written, which results keep under ``bundle``."""
+
+    id: "str | None"
+    repeats: "int | None"
+    input_size: "tuple[int, int] | None"
+    layers: list = field(default_factory=list)
+    candidates: list = field(default_factory=list)
+    written: dict = field(default_factory=dict, repr=False)
+
+    @classmethod
+    def from_json(cls, data: dict) -> "BundleManifest":
+        size = data.get("input_size")
+        return cls(id=data.get("id"), repeats=data.get("repeats"), input_size=tuple(size) if size else None,
+                   layers=list(data.get("layers") or []), candidates=list(data.get("candidates") or []),
+                   written=data)
+
+
+def load_manifest(bundle_dir: Path) -> BundleManifest:
+    """The manifest of the unpacked bundle in ``bundle_dir``, checked: this format and version, every
+    graph it names inside the bundle."""
     path = Path(bundle_dir) / "manifest.json"
     try:
-        manifest = json.loads(path.read_text())
+        data = json.loads(path.read_text())
     except OSError:
         raise ProbeError(f"{path}: no bundle manifest here (unpack the bundle and run probe.pyz inside it, "
                          "or pass --bundle DIR)") from None
     except json.JSONDecodeError:
         raise ProbeError(f"{path}: the bundle manifest is not valid JSON (unpack the bundle again)") from None
-    if manifest.get("format") != BUNDLE_FORMAT or manifest.get("version") != VERSION:
-        raise ProbeError(f"{path}: bundle format {manifest.get('format')} v{manifest.get('version')}, this probe "
+    if not isinstance(data, dict) or data.get("format") != BUNDLE_FORMAT or data.get("version") != VERSION:
+        got = data if isinstance(data, dict) else {}
+        raise ProbeError(f"{path}: bundle format {got.get('format')} v{got.get('version')}, this probe "
                          f"reads {BUNDLE_FORMAT} v{VERSION}: use the probe.pyz that came in the bundle")
-    for name in _files_named(manifest):
+    for name in _files_named(data):
         _check_inside(Path(bundle_dir), name, path)
-    return manifest
+    return BundleManifest.from_json(data)
+
+
+def write_bundle_manifest(folder: Path, fields: dict, digest) -> BundleManifest:
+    """Writes ``folder/manifest.json``: this format and version, ``fields`` (``explorer``, ``created``,
+    ``scale``, ``seed``, ``input_size``, ``repeats``, ``layers``, ``candidates``) and the bundle's ``id``,
+    ``digest`` (a hashlib object that has taken in every graph) updated with every field but ``created``."""
+    data = {"format": BUNDLE_FORMAT, "version": VERSION, **fields}
+    digest.update(json.dumps({k: v for k, v in data.items() if k != "created"}, sort_keys=True).encode())
+    data["id"] = digest.hexdigest()[:16]
+    (Path(folder) / "manifest.json").write_text(json.dumps(data, indent=1))
+    return BundleManifest.from_json(data)
 
 
 def _files_named(entry) -> list:
@@ -68,6 +107,7 @@ def _check_inside(bundle_dir: Path, name, manifest_path: Path) -> None:
                          "manifest): unpack the bundle that explorer calibrate wrote again")
 
 
+# -- results -------------------------------------------------------------------------------------
 def read_results(path: Path) -> dict:
     """A results file, checked: whole JSON, this format and version."""
     path = Path(path)

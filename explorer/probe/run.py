@@ -15,8 +15,8 @@ except ImportError:  # the probe's main() says what to install, in one line
     np = None
 
 
-from .formats import (DEFAULT_PROVIDER, RESULTS_FORMAT, VERSION, WARMUP, ProbeError, load_manifest, read_results,
-                      write_atomically)
+from .formats import (DEFAULT_PROVIDER, RESULTS_FORMAT, VERSION, WARMUP, BundleManifest, ProbeError, load_manifest,
+                      read_results, write_atomically)
 from .identity import device_identity
 from .power import find_sensor, idle_power, inference_energy
 from .scratch import sigterm_unwinds
@@ -31,8 +31,9 @@ from .timing import (REMEASURE_PASSES, SPEED_CHECK_EVERY, SPEED_DRIFT_WARN, _ran
 TIMING_GRAPHS, TIMING_AGAIN, MEASURING_ENERGY = "timing graphs", "timing again", "measuring energy"
 
 
-def candidate_inputs(manifest: dict, rng: np.random.Generator, cand: dict | None = None) -> dict[str, np.ndarray]:
-    h, w = (cand or {}).get("input_size") or manifest["input_size"]
+def candidate_inputs(manifest: BundleManifest, rng: np.random.Generator,
+                     cand: dict | None = None) -> dict[str, np.ndarray]:
+    h, w = (cand or {}).get("input_size") or manifest.input_size
     return {"image": rng.random((1, 3, h, w), dtype=np.float32),
             "scan": rng.random((1, w), dtype=np.float32) * 5 + 0.5}
 
@@ -67,7 +68,7 @@ def run_probe(bundle_dir: "str | Path", out: "str | Path", provider: str = DEFAU
     threads = threads or default_threads()
     _shared_pool(threads)
     threads = shared_pool_threads() or threads
-    repeats = repeats or int(manifest["repeats"])
+    repeats = repeats or int(manifest.repeats)
     cond = {"provider": provider, "threads": threads, "thread_pool": thread_pool(),
             "repeats": repeats, "warmup": WARMUP, "statistic": "median", "stage_graphs": "timed in sequence"}
     # again: the caller's own results timed once more in part (explorer calibrate's slow graphs), where
@@ -85,22 +86,22 @@ def run_probe(bundle_dir: "str | Path", out: "str | Path", provider: str = DEFAU
     return res
 
 
-def _open_results(out: Path, manifest: dict, cond: dict, provider: str, threads: int, root: str,
+def _open_results(out: Path, manifest: BundleManifest, cond: dict, provider: str, threads: int, root: str,
                   log: Callable[[str], None]) -> dict:
     """The results in ``out`` to resume (refused, ProbeError, when they are another bundle's or were
     measured under other conditions), or new, empty ones."""
     if out.exists():
         res = read_results(out)
-        if res["bundle"].get("id") != manifest["id"]:
+        if res["bundle"].get("id") != manifest.id:
             raise ProbeError(f"{out}: results of another bundle ({res['bundle'].get('id')}, this one is "
-                             f"{manifest['id']}): give another --out, or delete it to start over")
+                             f"{manifest.id}): give another --out, or delete it to start over")
         if res["conditions"] != cond:
             raise ProbeError(f"{out}: measured with {res['conditions']}, now asked for {cond}: give another "
                              "--out, or the same options as before to resume")
         log(f"resuming {out}: {len(res['layers'])} layer graphs and "
             f"{sum(len(v) for v in res['stages'].values())} stage graphs already measured")
         return res
-    return {"format": RESULTS_FORMAT, "version": VERSION, "bundle": manifest,
+    return {"format": RESULTS_FORMAT, "version": VERSION, "bundle": manifest.written,
             "device": device_identity(provider, threads, root), "conditions": cond,
             "layers": {}, "stages": {}, "energy": None}
 
@@ -111,11 +112,11 @@ class _Timing:
     the speed check before it (``timed_after``), so that it can be judged again after every pass
     against all checks so far (a machine slowed for a whole pass looks usual until it speeds up)."""
 
-    def __init__(self, res: dict, manifest: dict, bundle_dir: Path, out: Path, threads: int, provider: str,
+    def __init__(self, res: dict, manifest: BundleManifest, bundle_dir: Path, out: Path, threads: int, provider: str,
                  repeats: int, progress: Callable[[int, int, str], None] | None) -> None:
         self.res, self.manifest, self.bundle_dir, self.out = res, manifest, bundle_dir, out
         self.threads, self.provider, self.repeats, self.progress = threads, provider, repeats, progress
-        self.layers, self.cands = manifest["layers"], manifest["candidates"]
+        self.layers, self.cands = manifest.layers, manifest.candidates
         self.what, self.total, self.done = TIMING_GRAPHS, 0, 0
         self.rng = np.random.default_rng(0)
         self.reference, reference_stage = speed_layer(self.layers), speed_stage(self.cands)
@@ -234,7 +235,7 @@ def _warn_of_drift(res: dict, log: Callable[[str], None]) -> None:
             "throttling? If the profile disagrees with later measurements, measure again when the machine is idle")
 
 
-def _probe_energy(res: dict, manifest: dict, bundle_dir: Path, out: Path, provider: str, threads: int,
+def _probe_energy(res: dict, manifest: BundleManifest, bundle_dir: Path, out: Path, provider: str, threads: int,
                   root: str, vcgencmd: str, idle_s: float, window_s: float,
                   progress: Callable[[int, int, str], None] | None, log: Callable[[str], None]) -> None:
     sensor = find_sensor(root, vcgencmd)
@@ -244,7 +245,7 @@ def _probe_energy(res: dict, manifest: dict, bundle_dir: Path, out: Path, provid
                          "energy not measured"}
         log(res["energy"]["note"])
         return
-    cands = manifest["candidates"]
+    cands = manifest.candidates
     if progress:
         progress(0, len(cands), MEASURING_ENERGY)   # the idle power first
     e = res["energy"] if res.get("energy") and res["energy"].get("sensor") else None

@@ -130,3 +130,48 @@ def test_an_exports_files_are_readable_as_the_umask_allows(tmp_path):
     assert files and {stat.S_IMODE(f.stat().st_mode) for f in files} == {0o644}
     assert stat.S_IMODE((tmp_path / "m").stat().st_mode) == 0o755
 
+
+def _string_key_reads(source: str) -> list[int]:
+    """The lines of ``source`` that read a manifest by string key: ``manifest["paths"]``,
+    ``runner.manifest.get("precision")``, ``"quantization" in manifest`` (any name holding "manifest")."""
+    import ast
+
+    def manifest(node) -> bool:
+        name = node.id if isinstance(node, ast.Name) else node.attr if isinstance(node, ast.Attribute) else ""
+        return "manifest" in name.lower()
+
+    def text(node) -> bool:
+        return isinstance(node, ast.Constant) and isinstance(node.value, str)
+
+    found = set()
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.Subscript) and manifest(node.value) and text(node.slice):
+            found.add(node.lineno)
+        elif (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and manifest(node.func.value)
+              and node.func.attr in ("get", "pop", "setdefault") and node.args and text(node.args[0])):
+            found.add(node.lineno)
+        elif (isinstance(node, ast.Compare) and text(node.left) and any(manifest(c) for c in node.comparators)
+              and all(isinstance(op, (ast.In, ast.NotIn)) for op in node.ops)):
+            found.add(node.lineno)
+    return sorted(found)
+
+
+def test_the_check_for_string_key_reads_finds_them():
+    reads = 'a = manifest["paths"]\nb = self.manifest.get("precision", "fp32")\nc = "quantization" in manifest\n' \
+            'bundle_manifest["id"] = 1\nd = manifest_json.pop("x")\n'
+    assert _string_key_reads(reads) == [1, 2, 3, 4, 5]
+    typed = 'a = manifest.paths\nb = manifest.stages[0].file\nc = metrics["rmse"]\nd = manifest.expected_cost["tx2"]\n'
+    assert _string_key_reads(typed) == []
+
+
+def test_no_code_reads_a_manifest_by_string_key():
+    """A manifest is read through its types (``explorer.deploy.manifest.Manifest``, the probe's
+    ``BundleManifest``), never by key: a renamed or removed field is then one place to change, and a
+    reader of a field that does not exist fails at once."""
+    from pathlib import Path
+
+    import explorer
+    root = Path(explorer.__file__).parent
+    reads = {str(f.relative_to(root.parent)): lines for f in sorted(root.rglob("*.py"))
+             if (lines := _string_key_reads(f.read_text()))}
+    assert reads == {}, f"string-key reads of a manifest (file: lines): {reads}"

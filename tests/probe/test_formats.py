@@ -27,4 +27,4 @@ def test_a_graph_path_that_leaves_the_bundle_is_one_line(tmp_path, name):
 
 def test_graph_paths_inside_the_bundle_are_read(tmp_path):
     manifest = load_manifest(_bundle(tmp_path, ["layers/a.onnx", "layers/./b.onnx"]))
-    assert [layer["file"] for layer in manifest["layers"]] == ["layers/a.onnx", "layers/./b.onnx"]
+    assert [layer["file"] for layer in manifest.layers] == ["layers/a.onnx", "layers/./b.onnx"]

@@ -332,11 +332,11 @@ def _graph_by_graph(time_call):
 
 def test_bundle_int8_graphs_are_quantized_convolutions_and_stage_graphs(bundle_dir):
     import onnx
-    manifest = json.loads((bundle_dir / "manifest.json").read_text())
-    int8 = [layer for layer in manifest["layers"] if layer.get("precision") == "int8"]
+    manifest = probe.load_manifest(bundle_dir)
+    int8 = [layer for layer in manifest.layers if layer.get("precision") == "int8"]
     ops = {n.op_type for n in onnx.load(str(bundle_dir / int8[0]["file"])).graph.node}
     assert {"QuantizeLinear", "DequantizeLinear", "Conv"} <= ops
-    cand = next(c for c in manifest["candidates"] if c.get("precision") == "int8")
+    cand = next(c for c in manifest.candidates if c.get("precision") == "int8")
     # its deployed stage graphs, as an export groups them: the first runs the encoders up to exit 0
     encoder = cand["graphs"][0]
     assert "image_encoder" in encoder["stage"].split("+") and encoder["stage"].split("+")[-1].startswith("exit")
