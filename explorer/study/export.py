@@ -7,7 +7,7 @@ import dataclasses
 from pathlib import Path
 from typing import Callable, Sequence
 
-from explorer.deploy.export import Measurement, Quantization, export_network
+from explorer.deploy.export import Manifest, Measurement, Quantization, export_network
 from explorer.errors import UserError
 from explorer.study.records import trial_record
 from explorer.study.results import best_trial, scored_trials, trial_network, winner
@@ -22,7 +22,7 @@ def export_from_study(study_name: str, trial_number: int | None, out_dir: Path, 
                       reports: Path, input_size: tuple[int, int] | None = None,
                       devices: Sequence[str] | None = None, quantization: Quantization | str | None = None,
                       progress: Callable[[str], None] | None = None, data: str | None = None,
-                      eval_frames: int | None = None) -> dict:
+                      eval_frames: int | None = None) -> Manifest:
     """Exports trial ``trial_number`` of study ``study_name`` (default: the winner, else the best
     baseline) to ``out_dir``; ``quantization=AS_SEARCHED``: int8 where the trial was searched as int8.
     Every path of the exported graphs is measured on the first ``eval_frames`` validation frames of
