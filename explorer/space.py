@@ -20,7 +20,8 @@ from typing import Any, Callable, Iterator
 import yaml
 
 from explorer.errors import UserError
-from explorer.files import read_choices, read_stage_choices, read_yaml
+from explorer._space_parse import RandomTrial, parse_choices
+from explorer.files import read_choices, read_yaml
 
 #: MobileNet v1 depthwise-separable blocks (in, out, stride), after conv0 (3 -> 32, stride 2).
 MOBILENET_V1_BLOCKS: tuple[tuple[int, int, int], ...] = (
@@ -73,6 +74,7 @@ class Candidate:
     lidar_first: bool = False              # LiDAR encoder before the image encoder (encoder exits fuse it)
     precision: str = "fp32"                # "int8": deployed statically quantized, costed and measured so
     exit_residual: bool = False            # every exit corrects path 0 (the interpolated scan) instead of replacing it
+    exit_cascade: bool = False             # with exit_residual: each exit after the first corrects the one before it
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "decoder_widths", tuple(int(w) for w in self.decoder_widths))
@@ -81,6 +83,8 @@ class Candidate:
         object.__setattr__(self, "encoder_exits", tuple(sorted({int(e) for e in self.encoder_exits})))
         object.__setattr__(self, "lidar_exit", bool(self.lidar_exit))
         object.__setattr__(self, "exit_residual", bool(self.exit_residual))
+        # a cascade is of corrections: without residual exits there is none (canonical form)
+        object.__setattr__(self, "exit_cascade", bool(self.exit_cascade and self.exit_residual))
         if not self.ecu:
             for name in ("lidar_depth", "lidar_width", "ecu_band", "ecu_width"):
                 object.__setattr__(self, name, 0)
@@ -168,6 +172,8 @@ class Candidate:
         names = ["ECU" if e == 0 else f"stage {e}" for e in self.exits]
         head = "1 pw conv" if self.head_depth == 1 else f"2 pw convs ({self.head_width} ch)"
         correct = ", each correcting the interpolated scan" if self.exit_residual else ""
+        if self.exit_cascade:
+            correct = ", the first correcting the interpolated scan, each later one the exit before it"
         parts.append(f"exits after {', '.join(names)} ({head}){correct}")
         if self.precision != "fp32":
             parts.append(self.precision)
@@ -209,7 +215,8 @@ class Candidate:
 
 #: Fields added after the first release, with the value that leaves them out of a candidate's dict.
 _LATER_FIELDS: dict[str, Any] = {"encoder_exits": [], "lidar_exit": False, "lidar_first": False,
-                                  "precision": "fp32", "exit_residual": False}
+                                  "precision": "fp32", "exit_residual": False,
+                                  "exit_cascade": False}
 #: Numeric precisions a candidate may be deployed at (``explorer export --quantize``).
 PRECISIONS = ("fp32", "int8")
 #: Strides at which an image exit may leave the encoder (after block k, before the decoder).
@@ -276,6 +283,7 @@ DIMENSIONS: tuple[Dimension, ...] = (
     Dimension("lidar_exit", "exits", "lidar_only", bool),
     Dimension("precision", "", "precision", str, several=True),
     Dimension("exit_residual", "exits", "residual", bool, several=True),
+    Dimension("exit_cascade", "exits", "cascade", bool, lambda params: params.get("exit_residual", True), several=True),
     Dimension("encoder_blocks", "image_encoder", "blocks", int),
     Dimension("width_mult", "image_encoder", "width_mult", float),
     Dimension("decoder_widths", "decoder", "widths", "stages"),
@@ -343,6 +351,7 @@ class SearchSpace:
     lidar_exit: tuple[bool, ...] = (False,)
     precision: tuple[str, ...] = ("fp32",)
     exit_residual: tuple[bool, ...] = (False,)
+    exit_cascade: tuple[bool, ...] = (False,)
     description: str = ""
     source: str = ""
 
@@ -374,7 +383,8 @@ class SearchSpace:
             if bad:
                 raise UserError(f"{source}: unknown key(s) {bad} in '{section}'; known: {sorted(fields)}")
             for key, field in fields.items():
-                _parse_choices(values, field, body, key, f"{source}: {section}.{key}", defaults)
+                parse_choices(values, field, _KINDS[field], _POSITIONS.get(field, (field,))[0], body, key,
+                              f"{source}: {section}.{key}", getattr(defaults, field, None))
         if "precision" in data:
             values["precision"] = tuple(read_choices(data["precision"], f"{source}: precision", str))
             bad = [p for p in values["precision"] if p not in PRECISIONS]
@@ -442,6 +452,8 @@ class SearchSpace:
         return out
 
     def _lists(self, dim: Dimension) -> bool:
+        if dim.field == "exit_cascade":   # drawn only where residual exits can be chosen
+            return len(set(self.exit_cascade)) > 1 and True in self.exit_residual
         if dim.several:
             return len(getattr(self, dim.field)) > 1
         if dim.applies is _ecu_and_encoder_exits:   # drawn only where both can be chosen
@@ -464,7 +476,12 @@ class SearchSpace:
         heads = sum(len(self.head_width) if d == 2 else 1 for d in self.head_depth)
         rest = len(self.encoder_blocks) * len(self.width_mult) * math.prod(len(c) for c in self.decoder_widths)
         return (ecu * heads * rest * 2 ** len(self.optional_exits) * len(set(self.lidar_exit))
-                * len(set(self.exit_residual)) * len(set(self.precision)))
+                * len(self.exit_modes()) * len(set(self.precision)))
+
+    def exit_modes(self) -> list[tuple[bool, bool]]:
+        """The (exit_residual, exit_cascade) pairs of the space's candidates (a cascade needs residual exits)."""
+        return [(r, c) for r in sorted(set(self.exit_residual))
+                for c in (sorted(set(self.exit_cascade)) if r else [False])]
 
     def _exit_sets(self) -> Iterator[tuple[int, ...]]:
         last = len(self.decoder_widths)
@@ -489,15 +506,15 @@ class SearchSpace:
                 enc = tuple(k for k, on in zip(self.optional_encoder_exits, mask) if on)
                 orders = sorted(set(self.lidar_first)) if ecu[0] and enc else [False]
                 early += [(ecu, enc, first) for first in orders]
-        for blocks, wm, (ecu, enc, first), widths, exits, head, lidar_exit, residual, precision in itertools.product(
+        for blocks, wm, (ecu, enc, first), widths, exits, head, lidar_exit, mode, precision in itertools.product(
                 self.encoder_blocks, self.width_mult, early, itertools.product(*self.decoder_widths),
-                exit_sets, heads, sorted(set(self.lidar_exit)), sorted(set(self.exit_residual)),
+                exit_sets, heads, sorted(set(self.lidar_exit)), self.exit_modes(),
                 dict.fromkeys(self.precision)):
             yield Candidate(encoder_blocks=blocks, width_mult=wm, ecu=ecu[0], lidar_depth=ecu[1],
                             lidar_width=ecu[2], ecu_band=ecu[3], ecu_width=ecu[4],
                             decoder_widths=widths, exits=exits, head_depth=head[0], head_width=head[1],
                             encoder_exits=enc, lidar_exit=lidar_exit, lidar_first=first, precision=precision,
-                            exit_residual=residual)
+                            exit_residual=mode[0], exit_cascade=mode[1])
 
     def sample(self, trial: Any) -> Candidate:
         """Draw a candidate with an Optuna trial (conditional dimensions only when they apply)."""
@@ -523,7 +540,7 @@ class SearchSpace:
         does), without enumerating the space; fewer if the space is smaller."""
         import random
         rng = random.Random(seed)
-        trial = _RandomTrial(rng)
+        trial = RandomTrial(rng)
         out: dict[Candidate, None] = {}
         for _ in range(20 * count + 100):
             out.setdefault(self.sample(trial))
@@ -543,40 +560,9 @@ class SearchSpace:
         d = self.dimensions()
         p = self.params_of(candidate)
         inner = set(candidate.exits[:-1])
-        return candidate.precision in self.precision and candidate.exit_residual in self.exit_residual and len(candidate.decoder_widths) == len(self.decoder_widths) and \
+        return candidate.precision in self.precision and \
+            (candidate.exit_residual, candidate.exit_cascade) in self.exit_modes() and \
+            len(candidate.decoder_widths) == len(self.decoder_widths) and \
             set(candidate.encoder_exits) <= set(self.optional_encoder_exits) and all(
             v in d[k] for k, v in p.items()) and set(self.required_exits) <= inner and \
             inner <= set(self.optional_exits) | set(self.required_exits)
-
-
-class _RandomTrial:
-    """Stands in for an Optuna trial: each categorical is drawn uniformly."""
-
-    def __init__(self, rng) -> None:
-        self.rng = rng
-
-    def suggest_categorical(self, name: str, choices: list) -> Any:
-        return self.rng.choice(list(choices))
-
-
-def _parse_choices(values: dict, field: str, body: dict, key: str, where: str, defaults: Candidate) -> None:
-    """Reads ``body[key]``, the choices of ``field``, into ``values`` (the default candidate's value when
-    the key is absent)."""
-    kind = _KINDS[field]
-    space_field = _POSITIONS[field][0] if field in _POSITIONS else field
-    if key not in body:
-        default = getattr(defaults, field, None)
-        if kind == "stages":
-            values[field] = tuple((w,) for w in default)
-        elif field == "exits":
-            values[space_field] = tuple(default[:-1])
-        elif kind != "positions":    # no required exits, no encoder exits: the dataclass's defaults
-            values[field] = (default,)
-        return
-    raw = body[key]
-    if kind == "stages":
-        values[field] = read_stage_choices(raw, where)
-    elif kind == "positions":
-        values[space_field] = tuple(read_choices(raw, where, int, allow_empty=True))
-    else:
-        values[field] = tuple(read_choices(raw, where, kind))

@@ -9,6 +9,8 @@ weights are those of the trained network (:func:`carry_weights`): no retraining.
 
 The last exit is never dropped (the candidate family always exits after its last decoder stage); where
 it is not the most accurate path, the runtime's rule, returning the most accurate path ready, covers it.
+Nor is an exit whose depth map a later exit reads (a cascade, ``Candidate.exit_cascade``: each exit
+corrects the one before it): without it the later exit would correct another map than it learned to.
 """
 
 from __future__ import annotations
@@ -87,10 +89,12 @@ def without_exits(candidate: Candidate, names: Sequence[str]) -> Candidate:
 def ship(candidate: Candidate, path_losses: Sequence[float], keep_every_exit: bool = False) -> ShippedNetwork:
     """The network to ship from ``candidate`` given its per-path losses (path 0 included; lower is
     better): every exit whose loss is not below the best of the paths before it is dropped, the last
-    excepted. A NaN loss never improves. ``keep_every_exit``: ship the network as trained."""
+    excepted, and those whose depth map a later exit reads (a cascade). A NaN loss never improves.
+    ``keep_every_exit``: ship the network as trained."""
     if len(path_losses) != candidate.num_paths:
         raise ValueError(f"{len(path_losses)} losses for the {candidate.num_paths} paths of {candidate.key}")
     names = exit_names(candidate)
+    read = {i for s in stage_specs(candidate) for i in s.inputs}   # an exit read by a later one stays
     best, best_path = float(path_losses[0]), 0
     dropped: list[DroppedExit] = []
     for path in range(1, candidate.num_paths):
@@ -99,7 +103,7 @@ def ship(candidate: Candidate, path_losses: Sequence[float], keep_every_exit: bo
         last = path == candidate.num_paths - 1
         if improves:
             best, best_path = loss, path
-        elif not keep_every_exit and not last:
+        elif not keep_every_exit and not last and f"depth_{path}" not in read:
             dropped.append(DroppedExit(path, names[path - 1], loss, best_path, best))
     gone = {d.path for d in dropped}
     shipped = without_exits(candidate, [d.exit for d in dropped])
