@@ -43,12 +43,13 @@ from explorer.data import open_dataset
 from explorer.data.resident import training_batches
 from explorer.data.synthetic import cache_dir
 from explorer.errors import UserError
-from explorer.files import remove_dead_scratch
+from explorer.files import remove_dead_scratch, writing_atomically
 from explorer.processes import StopAtStep
 from explorer.space import Candidate, SearchSpace, check_size
 from explorer.supernet._graphs import StageGraphs
 from explorer.supernet.network import (
     Supernet,
+    head_kinds,
     largest_candidate,
     random_training_subnet,
     smallest_candidate,
@@ -144,9 +145,8 @@ def save(path: Path, net: Supernet, recipe: SupernetRecipe, data: str, step: int
              "history": history, "seconds": seconds}
     state["digest"] = tensors_digest(state["state_dict"], state["optimizer"])
     remove_dead_scratch(path.parent, only_for=path)   # what a save killed midway left (tens of MB)
-    tmp = path.with_name(f"{path.name}.tmp{os.getpid()}")
-    torch.save(state, tmp)
-    tmp.replace(path)  # a kill never leaves a half-written file
+    with writing_atomically(path) as f:   # a kill never leaves a half-written file, a full disk no scratch
+        torch.save(state, f)
 
 
 def _space_text(space: SearchSpace) -> str:
@@ -302,7 +302,7 @@ def _subnets(largest: Candidate, smallest: Candidate, space: SearchSpace, recipe
              rng: random.Random) -> list[Candidate]:
     """This step's subnets: the teacher, the smallest, ``recipe.random_subnets`` random ones.
 
-    Each kind of exit head (depth x residual) has its own weights. The largest and the smallest
+    Each kind of exit head (depth x residual x cascade) has its own weights. The largest and the smallest
     subnets always train two kinds; with ``head_kinds="random"`` a random subnet draws its kind, so
     the other kinds train about a quarter of the steps each (their heads see 4x fewer updates).
     "cover" gives the random subnets those other kinds in turn: each trains at least every other step.
@@ -318,12 +318,12 @@ def _subnets(largest: Candidate, smallest: Candidate, space: SearchSpace, recipe
     if _shrinking(recipe, step):   # progressive shrinking: widths stay full at first
         smallest, *randoms = [_full_width(c, largest) for c in [random_training_subnet(space, rng)] + randoms]
     subnets = [_teacher(largest, space, recipe, step), smallest] + randoms
-    every = [(d, r) for d in sorted(set(space.head_depth)) for r in sorted(set(space.exit_residual))]
+    every = head_kinds(space)
     if recipe.head_kinds == "rotate":
         return [with_head_kind(c, space, *every[(step * len(subnets) + j) % len(every)])
                 for j, c in enumerate(subnets)]
     if recipe.head_kinds == "cover":
-        kinds = [k for k in every if k not in {(c.head_depth, c.exit_residual) for c in (largest, smallest)}]
+        kinds = [k for k in every if k not in {(c.head_depth, c.exit_residual, c.exit_cascade) for c in (largest, smallest)}]
         if kinds:
             subnets[2:] = [with_head_kind(c, space, *kinds[(step * len(randoms) + j) % len(kinds)])
                            for j, c in enumerate(randoms)]
