@@ -10,6 +10,7 @@ beside it (named with its pid) is cleaned, or restored, by the next writer.
 
 from __future__ import annotations
 
+import io
 import json
 import math
 import os
@@ -23,7 +24,7 @@ from typing import Any, Iterator
 import numpy as np
 import yaml
 
-from explorer.errors import UserError
+from explorer.errors import UserError, refused_write
 # scratch folders named by pid, cleaned when their process is gone; SIGTERM that unwinds (the probe
 # holds them: it ships alone, and may import nothing of the package)
 from explorer.probe.scratch import (process_alive, remove_stale_scratch, scratch_dir,  # noqa: F401
@@ -176,35 +177,40 @@ def read_json(path: str | Path, what: str = "JSON file") -> Any:
 
 
 @contextmanager
-def writing_atomically(path: str | Path, mode: str = "wb") -> Iterator[Any]:
+def writing_atomically(path: str | Path, mode: str = "wb", buffering: int = -1) -> Iterator[Any]:
     """A file opened on a scratch name beside ``path`` (``.NAME.XXXX.tmpPID``), flushed to disk and
     renamed onto ``path`` when the block ends, removed when it raises: readers, and a process killed
     midway, see the old file or the new one. The file gets the mode a plain ``open`` would give it (0644
     under the usual umask): ``mkstemp`` makes its scratch private, and an export or a profile is often
-    read by another user or a service."""
+    read by another user or a service. A write the disk refuses (full, read-only) names ``path``."""
     p = Path(path)
-    fd, tmp = _scratch_beside(p)
+    tmp = None
     try:
-        with os.fdopen(fd, mode) as f:
+        fd, tmp = _scratch_beside(p)
+        with os.fdopen(fd, mode, buffering) as f:
             yield f
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, p)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
+    except BaseException as exc:
+        if tmp is not None:
+            Path(tmp).unlink(missing_ok=True)
+        _name_target(exc, p)
         raise
 
 
 @contextmanager
 def replacing_file(path: str | Path) -> Iterator[Path]:
-    """:func:`writing_atomically` for a writer that opens the file itself by name (an HDF5 file): yields
-    the scratch's path (``.NAME.XXXX.tmpPID``, made empty, to be opened for writing and closed within the
-    block), flushed to disk and renamed onto ``path`` when the block ends, removed when it raises (an
-    error or Ctrl-C): readers, and a process killed midway, never see half a file."""
+    """:func:`writing_atomically` for a writer that opens the file itself by name: yields the scratch's
+    path (``.NAME.XXXX.tmpPID``, made empty, to be opened for writing and closed within the block),
+    flushed to disk and renamed onto ``path`` when the block ends, removed when it raises (an error or
+    Ctrl-C): readers, and a process killed midway, never see half a file. (HDF5 files are written with
+    :func:`writing_hdf5`: HDF5 crashes after a write that fails.)"""
     p = Path(path)
-    fd, tmp = _scratch_beside(p)
-    os.close(fd)
+    tmp = None
     try:
+        fd, tmp = _scratch_beside(p)
+        os.close(fd)
         yield Path(tmp)
         fd = os.open(tmp, os.O_RDONLY)
         try:
@@ -212,15 +218,130 @@ def replacing_file(path: str | Path) -> Iterator[Path]:
         finally:
             os.close(fd)
         os.replace(tmp, p)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
+    except BaseException as exc:
+        if tmp is not None:
+            Path(tmp).unlink(missing_ok=True)
+        _name_target(exc, p)
         raise
+
+
+@contextmanager
+def writing_hdf5(path: str | Path) -> Iterator["Hdf5Writer"]:
+    """An HDF5 file written as :func:`writing_atomically` writes one (a scratch beside ``path``, renamed
+    onto it when the block ends, removed when it raises). HDF5 (2.0) whose write failed crashes the
+    process (a segmentation fault) when it closes the file, even at exit: here it writes through a file
+    object that never fails it. A write the disk refuses (full, read-only) is held in memory instead and
+    raised once HDF5 has closed the file; :meth:`Hdf5Writer.check` raises it at once, for a writer to
+    stop at (after a frame) rather than render the rest for nothing."""
+    import h5py
+    with writing_atomically(path, "r+b", buffering=0) as raw:
+        sink = _NeverFailing(raw)
+        h5 = h5py.File(sink, "w")
+        try:
+            yield Hdf5Writer(h5, sink)
+        finally:
+            h5.close()
+        sink.check()
+
+
+class Hdf5Writer:
+    """:func:`writing_hdf5`'s file: ``file`` is the open ``h5py.File``; :meth:`check` raises the write
+    the disk refused so far, if one was."""
+
+    def __init__(self, file, sink: "_NeverFailing") -> None:
+        self.file, self._sink = file, sink
+
+    def check(self) -> None:
+        self._sink.check()
+
+
+class _NeverFailing(io.RawIOBase):
+    """A file (unbuffered, seekable) whose writes never fail: once the disk refuses one, it and every
+    later write are held in memory (reads see them), and the error waits for :meth:`check`."""
+
+    def __init__(self, raw) -> None:
+        super().__init__()
+        self.raw, self.pos, self.error = raw, 0, None
+        self.held: list[tuple[int, bytes]] = []   # (offset, data) refused by the disk, in order
+
+    def readable(self) -> bool:
+        return True
+
+    def writable(self) -> bool:
+        return True
+
+    def seekable(self) -> bool:
+        return True
+
+    def tell(self) -> int:
+        return self.pos
+
+    def seek(self, offset: int, whence: int = os.SEEK_SET) -> int:
+        base = {os.SEEK_SET: 0, os.SEEK_CUR: self.pos}.get(whence)
+        if base is None:   # from the end: the file's, or past it what is held
+            base = max([self.raw.seek(0, os.SEEK_END)] + [at + len(data) for at, data in self.held])
+        self.pos = base + offset
+        return self.pos
+
+    def write(self, data) -> int:
+        data = bytes(data)
+        if self.error is None:
+            try:
+                self.raw.seek(self.pos)
+                view, done = memoryview(data), 0
+                while done < len(data):
+                    done += self.raw.write(view[done:])
+            except OSError as exc:
+                self.error = exc
+        if self.error is not None:
+            self.held.append((self.pos, data))
+        self.pos += len(data)
+        return len(data)
+
+    def readinto(self, buffer) -> int:
+        self.raw.seek(self.pos)
+        n = self.raw.readinto(buffer) or 0
+        for at, data in self.held:
+            lo, hi = max(at, self.pos), min(at + len(data), self.pos + len(buffer))
+            if lo < hi:
+                buffer[lo - self.pos:hi - self.pos] = data[lo - at:hi - at]
+                n = max(n, hi - self.pos)
+        self.pos += n
+        return n
+
+    def truncate(self, size: int | None = None) -> int:
+        size = self.pos if size is None else size
+        try:
+            self.raw.truncate(size)
+        except OSError as exc:
+            self.error = self.error or exc
+        self.held = [(at, data[:max(size - at, 0)]) for at, data in self.held if at < size]
+        return size
+
+    def flush(self) -> None:
+        pass
+
+    def check(self) -> None:
+        if self.error is not None:
+            raise self.error
+
+
+def _name_target(exc: BaseException, target: Path) -> None:
+    """A refused write in ``exc`` named by the file being written (not its scratch, nor nothing)."""
+    refused = refused_write(exc)
+    if refused is not None and (refused.filename is None or ".tmp" in str(refused.filename)):
+        refused.filename = str(target)
 
 
 def _scratch_beside(p: Path) -> tuple[int, str]:
     """A new scratch file beside ``p`` (its descriptor and name), with the mode a plain ``open`` gives."""
     fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=f".tmp{os.getpid()}", dir=p.parent)
-    os.fchmod(fd, 0o666 & ~current_umask())
+    try:
+        os.fchmod(fd, 0o666 & ~current_umask())
+    except OSError:
+        os.close(fd)
+        os.unlink(tmp)
+        raise
     return fd, tmp
 
 
@@ -255,6 +376,22 @@ def check_writable_folder(folder: str | Path, what: str, fix: str, keep: bool = 
             except OSError:
                 break
     return folder
+
+
+def check_free_space(folder: str | Path, need: int, what: str, fix: str) -> None:
+    """Refuses in one line, before any work, a ``folder`` whose disk has less than ``need`` bytes free for
+    the ``what`` to be written there (``fix``: how to go on). A disk that fills later is the writer's to
+    tell (:func:`writing_atomically`)."""
+    try:
+        free = shutil.disk_usage(folder).free
+    except OSError:
+        return   # not known here: the write itself tells
+    if free < need:
+        raise UserError(f"{folder}: {_size(free)} free on its disk, and the {what} needs about {_size(need)}: {fix}")
+
+
+def _size(n: float) -> str:
+    return f"{n / 2**30:.1f} GiB" if n >= 2**30 else f"{n / 2**20:.1f} MiB"
 
 
 def write_atomically(path: str | Path, data: "str | bytes") -> Path:
@@ -342,8 +479,9 @@ def replacing_folder(target: str | Path, marker: str) -> Iterator[Path]:
         raise UserError(f"{target.parent}: cannot write there ({exc.strerror})") from None
     try:
         yield scratch
-    except BaseException:
+    except BaseException as exc:
         shutil.rmtree(scratch, ignore_errors=True)
+        _name_target(exc, target)
         raise
     aside = target.with_name(f".{target.name}.old{os.getpid()}")
     if target.exists():

@@ -9,6 +9,7 @@ in execution order).
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import datetime
 import hashlib
@@ -192,6 +193,7 @@ def write_bundle(out: Path, **kwargs) -> probe_script.BundleManifest:
                     tar.add(os.path.join(tmp, name), arcname=name)
             os.replace(part, out)
         except OSError as exc:
-            part.unlink(missing_ok=True)
+            with contextlib.suppress(OSError):   # a read-only folder refuses even removing nothing
+                part.unlink(missing_ok=True)
             raise UserError(f"{out}: cannot write the bundle ({exc.strerror})") from None
     return manifest

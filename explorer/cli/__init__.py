@@ -14,7 +14,7 @@ from typing import Sequence
 from explorer.cli import deploy, devices, inspect, notebook, study, training
 from explorer.cli._common import _Parser, check_numbers, explain, resolve_data
 from explorer.cli.study import _print_outcome  # noqa: F401  (the closing summary, for tests and notebooks)
-from explorer.errors import UserError
+from explorer.errors import UserError, refused_line, refused_write
 from explorer.files import sigterm_unwinds
 
 GROUPS = (inspect, devices, training, study, deploy, notebook)
@@ -71,6 +71,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         sys.stderr.write(f"explorer: error: explorer {args.command} is not in the runtime install ({RUNTIME}, which "
                          f"runs exported models with explorer run and has no {missing}); `pip install "
                          "anytime-explorer` has every command\n")
+        return 2
+    except Exception as exc:   # a full disk, a folder made read-only meanwhile: one line, what was kept
+        refused = refused_write(exc)
+        if refused is None:
+            raise
+        sys.stderr.write(f"explorer: error: {refused_line(refused)}\n")
         return 2
     return 0
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from explorer.errors import UserError
+from explorer.files import check_writable_folder
 from explorer.cli._common import MAX_THREADS, _add_provider, _bounded_int, _check_provider, write_output
 
 
@@ -50,6 +51,7 @@ def cmd_calibrate(args) -> None:
         bundle = Path(args.bundle)
         if bundle.exists() and not args.force:
             raise UserError(f"{bundle} exists: pass --force to overwrite it")
+        check_writable_folder(bundle.parent, "bundle", "give --bundle a file in a folder you can write", keep=False)
         with progress() as bar:
             task = bar.add_task("exporting graphs", total=None, status="")
             manifest = write_bundle(bundle, scale=0.35 if args.quick else 1.0, repeats=args.repeats,
@@ -63,6 +65,9 @@ def cmd_calibrate(args) -> None:
     out = Path(args.out)
     if out.exists() and not args.force:
         raise UserError(f"{out} exists: pass --force to overwrite it")
+    if out.is_dir():
+        raise UserError(f"{out}: is a folder; give --out a file name")
+    check_writable_folder(out.parent, "profile", "give --out a file in a folder you can write", keep=False)
     if args.fit:
         prof = fit_results(read_results(args.fit), name=args.name or out.stem)
     else:

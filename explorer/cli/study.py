@@ -196,7 +196,10 @@ def _print_outcome(view, cfg, storage_url: str, reports: Path, write_report: boo
             from explorer.report import write_report as _write
         except ImportError:
             return
-        path = _write(view, out_dir=reports / cfg.study, storage_url=storage_url)
+        from explorer.errors import kept_if_refused
+        with kept_if_refused(lambda: f"the search is done and its study stored in {redacted(storage_url)}: `explorer "
+                             f"report --study {cfg.study}` writes the report"):
+            path = _write(view, out_dir=reports / cfg.study, storage_url=storage_url)
         console.print(f"report: {path}")
 
 

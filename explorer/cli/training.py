@@ -6,7 +6,7 @@ import argparse
 import os
 from pathlib import Path
 
-from explorer.errors import UserError
+from explorer.errors import UserError, kept_if_refused
 from explorer.files import check_writable_folder
 from explorer.space import check_size
 from explorer.cli.inspect import _candidates_of
@@ -59,7 +59,7 @@ def cmd_train(args) -> None:
     if args.encoder_weights:
         n = load_encoder_weights(net, args.encoder_weights)
         console.print(f"loaded {n} encoder tensors from {args.encoder_weights}")
-    with progress() as bar:
+    with progress() as bar, kept_if_refused(_kept(out, "checkpoint")):
         task = bar.add_task(f"training ({cfg.supervision})", total=cfg.steps, status="")
         result = train(net, train_set, val_set, cfg, accelerator, checkpoint=out,
                        progress=lambda s, n, r: bar.update(task, completed=s, status=f"loss {r['loss']:.3f}"))
@@ -68,6 +68,12 @@ def cmd_train(args) -> None:
         console.print(f"no validation metrics: the validation frames of {args.data} have no depth to measure on")
         return
     print_frame(result.metrics, "validation, per path" + ("" if cfg.metric else " (median-scaled: no scan term)"))
+
+
+def _kept(out: Path, what: str):
+    """What a training whose save the disk refused kept, for its one line (``kept_if_refused``)."""
+    return lambda: (f"{out} keeps the last {what} saved, and the same command resumes from it" if out.is_file()
+                    else f"no {what} was saved yet: run the same command again")
 
 
 def _exit_weights(spec: str, candidate, profile: str, budget: str) -> tuple[float, ...] | None:
@@ -119,7 +125,7 @@ def cmd_supernet_train(args) -> None:
     out = Path(args.out) if args.out else default_path(space, args.data, recipe)
     check_writable_folder(out.parent, "supernet", "give --out a file in a folder you can write", keep=False)
     train_on_free_cores()
-    with progress() as bar:
+    with progress() as bar, kept_if_refused(_kept(out, "supernet")):
         task = bar.add_task("supernet", total=recipe.steps, status="")
         data = bar.add_task("data", total=None, status="", visible=False)
         path = train_supernet(

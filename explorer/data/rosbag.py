@@ -62,9 +62,9 @@ from explorer.scan import LIDAR_KEYS, RADIAN_KEYS, LaserScan, lidar_model, proje
 from explorer.scan import MOUNT_KEYS as LIDAR_MOUNT_KEYS
 from explorer.data.sequences import SequenceSample
 from explorer.data.splits import VAL_SHARE, parse_share, split_range
-from explorer.data.synthetic import cache_dir
+from explorer.data.synthetic import cache_dir, writing_cache
 from explorer.errors import UserError
-from explorer.files import read_yaml, remove_dead_scratch, replacing_file
+from explorer.files import read_yaml
 
 try:   # imported here so that tests can stand in for it
     from rosbags.highlevel import AnyReader, AnyReaderError
@@ -352,16 +352,17 @@ def cache_path(path: Path, opts: BagOptions) -> Path:
     return cache_dir() / "rosbag" / f"{name}-{hashlib.sha256(text.encode()).hexdigest()[:16]}.h5"
 
 
-def _decode_into(reader, topics: dict, plan: _Plan, h5, where: str) -> None:
-    """The second pass: decodes the planned images and depth images into ``h5`` at their frames
-    (a message is known by its bag time and stamp, whatever order the bag yields it in)."""
-    n, (h, w) = len(plan.image), plan.shape
-    out = {"image": h5.create_dataset("rgb", (n, h, w, 3), np.uint8, chunks=(1, h, w, 3), compression="lzf")}
+def _decode_into(reader, topics: dict, plan: _Plan, out, where: str) -> None:
+    """The second pass: decodes the planned images and depth images into the cache ``out``
+    (``explorer.files.Hdf5Writer``) at their frames (a message is known by its bag time and stamp,
+    whatever order the bag yields it in)."""
+    n, (h, w), h5 = len(plan.image), plan.shape, out.file
+    datasets = {"image": h5.create_dataset("rgb", (n, h, w, 3), np.uint8, chunks=(1, h, w, 3), compression="lzf")}
     slots: dict = {}
     for i, key in enumerate(plan.image):
         slots.setdefault(("image", key), []).append(i)
     if plan.depth is not None:
-        out["depth"] = h5.create_dataset("depth", (n, h, w), np.float32, chunks=(1, h, w), compression="lzf")
+        datasets["depth"] = h5.create_dataset("depth", (n, h, w), np.float32, chunks=(1, h, w), compression="lzf")
         for i, key in enumerate(plan.depth):
             slots.setdefault(("depth", key), []).append(i)
     kinds = {topics[k]: k for k in ("image", "depth") if topics[k]}
@@ -374,7 +375,8 @@ def _decode_into(reader, topics: dict, plan: _Plan, h5, where: str) -> None:
             if arr.shape[:2] != (h, w):
                 raise UserError(f"{at}: an image is {arr.shape[1]}x{arr.shape[0]}, the camera's are {w}x{h}")
             for i in frames:
-                out[kind][i] = arr
+                datasets[kind][i] = arr
+            out.check()   # a disk that filled: stop here, not after decoding the rest
 
 
 def build_cache(path: Path, opts: BagOptions) -> Path:
@@ -384,18 +386,17 @@ def build_cache(path: Path, opts: BagOptions) -> Path:
     target = cache_path(path, opts)
     if target.is_file():
         return target
-    import h5py
     where = str(path)
     reader = _open_reader(path)
     try:
         topic_types = {t: info.msgtype for t, info in reader.topics.items() if info.msgtype}
         topics = choose_topics(topic_types, opts, where)
         plan = _plan(_survey(reader, topics, where), topics, opts, where)
-        target.parent.mkdir(parents=True, exist_ok=True)
-        remove_dead_scratch(target.parent)
-        with replacing_file(target) as tmp, h5py.File(tmp, "w") as h5:
-            _decode_into(reader, topics, plan, h5, where)
-            _write_meta(h5, plan, topics)
+        n, (h, w) = len(plan.image), plan.shape
+        need = n * h * w * (3 + (4 if plan.depth is not None else 0)) // 2   # LZF rarely halves them
+        with writing_cache(target, need, "recording's cache") as out:
+            _decode_into(reader, topics, plan, out, where)
+            _write_meta(out.file, plan, topics)
     except AnyReaderError as exc:
         raise UserError(f"{path}: a message does not decode ({_first_line(exc)})") from None
     finally:

@@ -30,14 +30,15 @@ from explorer.scan import LidarModel, ScanPoints, scale_intrinsics  # noqa: F401
 from explorer.data.synthetic import (
     MAX_DEPTH,
     Room,
+    _least_bytes,
     _pool,
     cache_dir,
     camera_to_world,
     intrinsics,
     render_room,
     sample_room,
+    writing_cache,
 )
-from explorer.files import remove_dead_scratch, replacing_file
 
 #: Frames rendered per synthetic room; the middle ones are targets (each needs both neighbours).
 CLIP = 5
@@ -133,13 +134,11 @@ def _render_clip(job: tuple[int, int, int, int]) -> tuple[np.ndarray, np.ndarray
 def generate_sequences(config: SyntheticSequenceConfig, path: Path,
                        progress: Callable[[int, int], None] | None = None) -> Path:
     """Renders every clip into one HDF5 file (via a temporary name: no half file is ever left)."""
-    import h5py
-    path.parent.mkdir(parents=True, exist_ok=True)
-    remove_dead_scratch(path.parent)   # what a generation killed earlier (SIGTERM, kill -9) left
     clips = {s: -(-n // TARGETS_PER_CLIP) for s, n in (("train", config.train), ("val", config.val))}
     total, done = (clips["train"] + clips["val"]) * CLIP, 0
     h, w = config.height, config.width
-    with replacing_file(path) as tmp, h5py.File(tmp, "w") as f:   # an error or Ctrl-C: no scratch left
+    with writing_cache(path, _least_bytes(total, h, w), "synthetic sequence cache") as out:
+        f = out.file
         f.attrs["config"] = repr(config)
         f.attrs["K"] = intrinsics(h, w)
         for split, offset in (("train", 0), ("val", 10_000_000)):
@@ -154,6 +153,7 @@ def generate_sequences(config: SyntheticSequenceConfig, path: Path,
                 clips_iter = pool.imap(_render_clip, jobs, chunksize=2) if pool else map(_render_clip, jobs)
                 for i, (im, dp, ps) in enumerate(clips_iter):
                     rgb[i], dep[i], pos[i] = im, dp, ps
+                    out.check()   # a disk that filled: stop here, not after rendering the rest
                     done += CLIP
                     if progress:
                         progress(done, total)

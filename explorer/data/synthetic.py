@@ -12,12 +12,15 @@ from __future__ import annotations
 import hashlib
 import os
 from dataclasses import dataclass
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Iterator
 
 import numpy as np
 
-from explorer.files import remove_dead_scratch, replacing_file
+from explorer.errors import UserError, refused_write
+from explorer.files import (Hdf5Writer, check_free_space, check_writable_folder, remove_dead_scratch,
+                           writing_hdf5)
 
 MIN_DEPTH, MAX_DEPTH = 0.5, 10.0
 HFOV_DEG = 60.0  # NYU's Kinect: ~58-63 degrees
@@ -41,6 +44,31 @@ def cache_dir() -> Path:
     root = os.environ.get("ANYTIME_EXPLORER_CACHE") or os.path.join(
         os.environ.get("XDG_CACHE_HOME", os.path.expanduser("~/.cache")), "anytime-explorer")
     return Path(root)
+
+
+#: how to go on when the cache cannot be written
+CACHE_FIX = "free space there, or set ANYTIME_EXPLORER_CACHE to a folder on a disk with room"
+
+
+@contextmanager
+def writing_cache(path: Path, need: int, what: str) -> Iterator[Hdf5Writer]:
+    """The cache file ``path`` (HDF5) written whole or not at all (:func:`explorer.files.writing_hdf5`),
+    its folder tried and its disk's free space (``need`` bytes, the least the ``what`` takes) checked
+    before any work; what a generation killed earlier left is removed. A disk that fills meanwhile (or a
+    folder made read-only) is one line, with nothing of the file left."""
+    check_writable_folder(path.parent, what, "set ANYTIME_EXPLORER_CACHE to a folder you can write", keep=False)
+    check_free_space(_existing(path.parent), need, what, CACHE_FIX)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    remove_dead_scratch(path.parent)   # what a generation killed earlier (SIGTERM, kill -9) left
+    try:
+        with writing_hdf5(path) as out:
+            yield out
+    except Exception as exc:
+        refused = refused_write(exc)
+        if refused is None:
+            raise
+        raise UserError(f"{path}: cannot write the {what} ({os.strerror(refused.errno).lower()}): {CACHE_FIX}; "
+                        "nothing of it was kept") from None
 
 
 def _camera_rays(h: int, w: int, yaw: float, pitch: float) -> np.ndarray:
@@ -287,11 +315,9 @@ def generate(config: SyntheticConfig, path: Path,
              progress: Callable[[int, int], None] | None = None) -> Path:
     """Render the train and val splits into one HDF5 file (written to a temporary name first, so an
     interrupted generation never leaves a half file behind)."""
-    import h5py
-    path.parent.mkdir(parents=True, exist_ok=True)
-    remove_dead_scratch(path.parent)   # what a generation killed earlier (SIGTERM, kill -9) left
     total, done = config.train + config.val, 0
-    with replacing_file(path) as tmp, h5py.File(tmp, "w") as f:   # an error or Ctrl-C: no scratch left
+    with writing_cache(path, _least_bytes(total, config.height, config.width), "synthetic data cache") as out:
+        f = out.file
         f.attrs["config"] = repr(config)
         for split, count, offset in (("train", config.train, 0), ("val", config.val, 10_000_000)):
             g = f.create_group(split)
@@ -304,10 +330,21 @@ def generate(config: SyntheticConfig, path: Path,
                 frames = pool.imap(_render_job, jobs, chunksize=8) if pool else map(_render_job, jobs)
                 for i, (im, dp) in enumerate(frames):
                     rgb[i], dep[i] = im, dp
+                    out.check()   # a disk that filled: stop here, not after rendering the rest
                     done += 1
                     if progress:
                         progress(done, total)
     return path
+
+
+def _existing(folder: Path) -> Path:
+    """``folder``, or the nearest folder above it that exists (the disk it will be made on)."""
+    return next((f for f in (folder, *folder.parents) if f.exists()), folder)
+
+
+def _least_bytes(frames: int, h: int, w: int) -> int:
+    """The least a cache of ``frames`` RGB frames with 16-bit depth takes: LZF rarely halves them."""
+    return frames * h * w * (3 + 2) // 2
 
 
 def ensure_synthetic(config: SyntheticConfig = SyntheticConfig(),

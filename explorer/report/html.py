@@ -18,6 +18,7 @@ from explorer.anytime import parse_budget
 from explorer.cost import reference_table
 from explorer.cost.devices import DeviceProfile
 from explorer.cost.fit_errors import fit_errors, fit_words
+from explorer.files import write_atomically
 from explorer.report import figures
 from explorer.space import Candidate
 from explorer.study.config import DEFAULT_BUDGET
@@ -325,7 +326,5 @@ def write_report(view: StudyView, out_dir: str | Path, devices: Sequence[str] | 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     path = out / "report.html"
-    tmp = path.with_suffix(".tmp")
-    tmp.write_text(html, encoding="utf-8")
-    tmp.replace(path)
+    write_atomically(path, html)   # a full disk leaves the report before, and no scratch
     return path

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import json
 import os
+from pathlib import Path
 from typing import Any
 
 from optuna.storages.journal import JournalFileBackend, JournalFileSymlinkLock
@@ -57,6 +58,9 @@ class TrialSyncedJournal(JournalFileBackend):
                     os.fsync(f.fileno())
                 ran = any(_runs_a_trial(log) for log in logs)
                 _APPENDS.setdefault(os.path.realpath(self._path), []).append((start, f.tell(), ran))
+        except OSError as exc:   # a full disk: the line names the journal (a torn line is cut by the next write)
+            exc.filename = exc.filename or self._path
+            raise
         finally:
             self._file_lock.release()
 
@@ -82,11 +86,14 @@ def undo_own_appends(path: str, size: int) -> bool:
     """Cuts the journal at ``path`` back to ``size`` bytes where everything after is what this process
     appended since and no trial ran in it (a search refused after its study was created writes nothing).
     False, and the file left as it is, where another process wrote after ``size`` or a trial ran."""
+    own = sorted(r for r in _APPENDS.get(os.path.realpath(path), []) if r[0] >= size)
+    if not own:   # nothing of ours to cut, and no lock to take (a read-only folder refused takes none)
+        return os.path.getsize(path) == size
     lock = JournalFileSymlinkLock(path)
     lock.acquire()
     try:
         pos = size
-        for start, end, ran in sorted(r for r in _APPENDS.get(os.path.realpath(path), []) if r[0] >= size):
+        for start, end, ran in own:
             if start != pos or ran:
                 return False
             pos = end
@@ -182,8 +189,14 @@ def _cut_torn_tail(path: str) -> None:
                 f.flush()
                 os.fsync(f.fileno())
                 return
-            with open(f"{path}.torn", "ab") as aside:
-                aside.write(torn + b"\n")
+            aside_path = Path(f"{path}.torn")
+            try:
+                with open(aside_path, "ab") as aside:
+                    aside.write(torn + b"\n")
+            except OSError:   # a full disk: the tail stays until a write has room; no empty .torn is left
+                if aside_path.is_file() and aside_path.stat().st_size == 0:
+                    aside_path.unlink()
+                raise
             f.truncate(keep)
             f.flush()
             os.fsync(f.fileno())

@@ -13,7 +13,7 @@ from typing import Iterator
 
 import optuna
 
-from explorer.errors import UserError
+from explorer.errors import UserError, kept_if_refused
 from explorer.processes import interrupted_once, machine_workers
 from explorer.study.storage import open_storage, redacted
 
@@ -50,8 +50,9 @@ def quiet_ctrl_c() -> Iterator[None]:
 @contextmanager
 def ctrl_c_says_what_is_kept(url: str, study: str) -> Iterator[None]:
     """A Ctrl-C in the block ends it with ``KeyboardInterrupt("<what study kept, how to resume>")``;
-    Ctrl-Cs after the first are ignored until then (the interrupted trial is recorded and retried)."""
-    with interrupted_once():
+    Ctrl-Cs after the first are ignored until then (the interrupted trial is recorded and retried). A
+    write the disk refuses (full, read-only) says the same in its one line."""
+    with interrupted_once(), kept_if_refused(lambda: _study_kept(url, study)):
         try:
             yield
         except KeyboardInterrupt as exc:

@@ -270,8 +270,8 @@ def searching_alone(url: str, study: str):
     try:
         lock.seek(0)
         lock.truncate()
-        lock.write(f"process {os.getpid()}")
-        lock.flush()
+        with contextlib.suppress(OSError):   # who holds it, for the next search's refusal: a full disk locks too
+            os.write(lock.fileno(), f"process {os.getpid()}".encode())
         yield
     finally:
         with contextlib.suppress(OSError):

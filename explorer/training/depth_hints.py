@@ -16,7 +16,6 @@ before training, and cached on disk under a key of the frames and the hint recip
 from __future__ import annotations
 
 import hashlib
-import os
 from pathlib import Path
 from typing import Callable
 
@@ -24,6 +23,8 @@ import torch
 from torch.utils.data import DataLoader, Dataset
 
 from explorer.data.synthetic import cache_dir
+from explorer.errors import refused_write
+from explorer.files import writing_atomically
 from explorer.model.exits import interpolate_scan
 from explorer.training.selfsup import (
     MIN_DEPTH,
@@ -119,8 +120,11 @@ def with_hints(dataset, steps: int = STEPS, cache: Path | None = None,
         if progress:
             progress(sum(len(h) for h in hints), len(dataset))
     stacked = torch.cat(hints)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(f".tmp{os.getpid()}")
-    torch.save(stacked, tmp)
-    os.replace(tmp, path)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with writing_atomically(path) as f:
+            torch.save(stacked, f)
+    except Exception as exc:   # a full or read-only cache: the hints serve this run, and are computed again
+        if refused_write(exc) is None:
+            raise
     return HintedDataset(dataset, stacked)

@@ -4,7 +4,6 @@ for search, checkpoints and resume, per-path evaluation."""
 from __future__ import annotations
 
 import dataclasses
-import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -17,7 +16,7 @@ from torch.utils.data import DataLoader
 from explorer.data import parse_data_spec
 from explorer.data.resident import training_batches
 from explorer.errors import UserError
-from explorer.files import remove_dead_scratch
+from explorer.files import remove_dead_scratch, writing_atomically
 from explorer.metrics import PHOTOMETRIC, MetricAverager, batch_depth_metrics, depth_metrics
 from explorer.model import AnytimeDepthNet, build_network
 from explorer.processes import StopAtStep
@@ -300,9 +299,8 @@ def save_checkpoint(path: Path, net: AnytimeDepthNet, cfg: TrainConfig, step: in
     state = {"candidate": net.candidate.to_dict(), "state_dict": net.state_dict(), "train_config": cfg.to_dict(),
              "step": step, "optimizer": optimizer.state_dict() if optimizer else None, **(extra or {})}
     remove_dead_scratch(path.parent, only_for=path)   # what a save of this checkpoint killed midway left
-    tmp = path.with_name(f"{path.name}.tmp{os.getpid()}")
-    torch.save(state, tmp)
-    tmp.replace(path)  # never leave a half-written checkpoint
+    with writing_atomically(path) as f:   # never a half-written checkpoint, nor its scratch on a full disk
+        torch.save(state, f)
 
 
 def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") -> dict:
