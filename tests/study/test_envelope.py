@@ -95,13 +95,3 @@ def test_the_envelope_command_names_the_storage_where_the_study_is_not_in_its_lo
     shared = envelope_command("s", "postgresql://me:secret@db.lab:5432/studies")
     assert shared == "explorer envelope --study s --storage postgresql://me:***@db.lab:5432/studies"
     assert envelope_command("s", "journal:/nfs/s.log").endswith("--storage journal:/nfs/s.log")
-
-
-@pytest.mark.parametrize("url", ["postgresql://me@db.lab/studies?password=S3cretPw",
-                                 "postgresql://me:S3cret/Pw@db.lab/studies", "mysql://me:S3cretPw@db.lab:noport/s"])
-def test_the_envelope_command_masks_the_storage_password_however_the_url_gives_it(url):
-    """The command the report and the search's summary suggest (explorer envelope --storage ...)."""
-    from explorer.study.envelope import envelope_command
-    from explorer.study.storage import redacted
-    command = envelope_command("s", url)
-    assert "S3cret" not in command and command.endswith(f"--storage {redacted(url)}")

@@ -60,19 +60,6 @@ def test_encoder_weights_loaded_from_a_state_dict(tmp_path):
         load_encoder_weights(net, bad)
 
 
-def test_a_checkpoint_save_cleans_what_a_killed_save_left(tmp_path):
-    import subprocess
-    import sys
-    from explorer.model import build_network
-    from explorer.space import paper_candidate
-    from explorer.training.train import TrainConfig, save_checkpoint
-    child = subprocess.Popen([sys.executable, "-c", "pass"])
-    child.wait()
-    (tmp_path / f"c.pt.tmp{child.pid}").write_bytes(b"half a checkpoint")
-    save_checkpoint(tmp_path / "c.pt", build_network(paper_candidate()), TrainConfig(), 1)
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["c.pt"]
-
-
 def test_micro_batches_compute_the_whole_batch_update(sets):
     """Without BatchNorm (whose statistics are per part by design) a batch trained in two parts takes
     the step the whole batch takes."""
