@@ -65,13 +65,25 @@ def test_the_runtime_runs_a_cascade_path_by_path(fp32_export):
 
 
 def test_a_cascade_exports_in_int8_and_runs(tmp_path):
+    import onnx
     from conftest import TINY_DATA
+    from explorer.deploy.int8_graphs import uint8_edges
     from explorer.deploy.export import Quantization
     m = export_network(_network(), tmp_path / "m", SIZE, devices=(), quantization=Quantization(
         data=TINY_DATA, calibration_frames=4, eval_frames=4, max_degradation=10.0, stages="all"))
     assert m.precision == "int8" and [s.precision for s in m.stages] == ["fp32"] + ["int8"] * (len(m.stages) - 1)
     assert len(m.path_metrics_int8) == CASCADE.num_paths
     image, scan = _inputs()
-    res = AnytimeRunner(tmp_path / "m").run(image, scan)
+    runner = AnytimeRunner(tmp_path / "m")
+    res = runner.run(image, scan)
     assert [p for p, _ in res.completed] == list(range(CASCADE.num_paths))
-    assert np.isfinite(res.depth).all()
+    # features pass between the int8 graphs as uint8; each depth map stays float, read by the next exit
+    assert runner.handed_off and not any(n.startswith("depth_") for n in runner.handed_off)
+    with torch.no_grad():
+        ref = _network()(torch.from_numpy(image)[None], torch.from_numpy(scan)[None])
+    depths = runner.depths(image, scan)
+    assert all(d.dtype == np.float32 and np.abs(d - r[0, 0].numpy()).max() < 0.2 for d, r in zip(depths, ref))
+    # and so as the calibration bundle times int8 graphs
+    models = [onnx.load(str(tmp_path / "m" / s.file)) for s in m.stages[1:]]
+    handed = uint8_edges(models)
+    assert handed and not any(n.startswith("depth_") for n in handed)
