@@ -255,6 +255,9 @@ FLAG_HELP = {
     "--csv": "also write the whole table to this CSV file",
     "--image": "RGB image (PNG or JPEG) at the model's input size (any size with --lidar, resized to it)",
     "--deadlines": "deadlines spread evenly over U(0, 1.25 x the last path's predicted time)",
+    "--keep-every-exit": "ship every exit: by default an exit whose error is not below an earlier path's is "
+                         "left out of the network that ships (its head not computed, so later paths are ready "
+                         "sooner), and every trial is scored as shipped",
     "--no-pruning": "train every proxy candidate to the end (no Optuna pruning of the worst quarter)",
     "checkpoint": "checkpoint file written by explorer train",
     "file": "supernet file (explorer supernet train --out, or the cache)",

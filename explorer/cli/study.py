@@ -123,6 +123,20 @@ def _print_retries(outcome, cfg) -> None:
                           "reached)")
 
 
+def _print_missing_baselines(view, has_winner: bool) -> None:
+    """A missing comparison is said, with why, never dropped silently."""
+    from explorer.console import console
+    from explorer.study.results import missing_baselines
+    missing = missing_baselines(view)
+    if missing and all("--no-baselines" in m["why"] for m in missing):
+        console.print("no baselines (the study was created with --no-baselines): no ratio to the paper design")
+        return
+    for m in missing:
+        lead = "no ratio to the paper-design baseline:" if m["name"] == "paper" and has_winner \
+            else f"baseline {m['label']} missing:"
+        console.print(f"{lead} {m['why']}", markup=False, highlight=False)
+
+
 def _print_outcome(view, cfg, storage_url: str, reports: Path, write_report: bool) -> None:
     """The search's closing summary of the study ``view`` reads (explorer.study.view), ``cfg`` its settings
     as this run ran them (a time limit may have sized its finalists); with ``write_report``, its report."""
@@ -130,7 +144,8 @@ def _print_outcome(view, cfg, storage_url: str, reports: Path, write_report: boo
     from explorer.console import console, print_frame
     from explorer.study.results import (baseline_label, baseline_trial, best_trial, estimate_fidelity,
                                         figures_source, finalists_agreement, finalists_frame, is_retrained,
-                                        missing_baselines, path_table, unbeaten_baseline, wall_time, winner)
+                                        path_table, unbeaten_baseline, wall_time, winner)
+    from explorer.model.shipped import DroppedExit
     from explorer.space import Candidate
     from explorer.study import trial_record
     from explorer.study.envelope import envelope_summary
@@ -144,13 +159,16 @@ def _print_outcome(view, cfg, storage_url: str, reports: Path, write_report: boo
     else:
         retrained = is_retrained(best)
         rec = trial_record(best)
-        cand = Candidate.from_dict(rec.candidate)
+        cand = Candidate.from_dict(rec.shipped_candidate)
         how = "retrained" if retrained else f"estimated ({rec.evaluator_name})"
         unbeaten = unbeaten_baseline(study)
         lead = "best searched candidate" if unbeaten is not None else "winner"
         console.print(f"{lead}: trial {best.number} ({rec.candidate_key}) anytime loss [bold]{best.values[0]:.4f}"
                       f"[/bold] {how}, for {cfg.budgets[0]} on {cfg.device}")
         console.print(f"  {cand.describe()}")
+        for dropped in (rec.shipped.dropped if rec.shipped is not None else []):
+            console.print(f"  {DroppedExit.from_dict(dropped).describe(rec.error_metric)}: left out of what ships "
+                          "(--keep-every-exit keeps it)", markup=False, highlight=False)
         print_frame(path_table(best, [view.context.device]), f"{lead}, per path")
         console.print(f"  {figures_source(best, cfg.train_size)}", markup=False, highlight=False)
         fin = finalists_frame(study)
@@ -179,15 +197,7 @@ def _print_outcome(view, cfg, storage_url: str, reports: Path, write_report: boo
                           f"after retraining[/bold] ({best.values[0]:.4f} against {unbeaten.values[0]:.4f}): the best "
                           "model this study found is that baseline; give the search more time (--time-limit) or more "
                           "finalists (--finalists)")
-    # a missing comparison is said, with why, never dropped silently
-    missing = missing_baselines(view)
-    if missing and all("--no-baselines" in m["why"] for m in missing):
-        console.print("no baselines (the study was created with --no-baselines): no ratio to the paper design")
-    else:
-        for m in missing:
-            lead = "no ratio to the paper-design baseline:" if m["name"] == "paper" and best is not None \
-                else f"baseline {m['label']} missing:"
-            console.print(f"{lead} {m['why']}", markup=False, highlight=False)
+    _print_missing_baselines(view, best is not None)
     console.print(f"wall time: {wall_time(view)}", markup=False, highlight=False)
     from explorer.study.storage import redacted
     console.print(f"study: {redacted(storage_url)}", markup=False, highlight=False)
@@ -394,6 +404,7 @@ def _register_search(add, reports: dict) -> None:
     s.add_argument("--max-retries", type=int, default=2, help="try an interrupted trial (killed, Ctrl-C, "
                    "lost worker) again at most this many times (default 2); a trial that fails is not")
     s.add_argument("--no-pruning", action="store_true")
+    s.add_argument("--keep-every-exit", action="store_true")
     s.add_argument("--no-weights", action="store_true", help="do not keep trained weights as artifacts")
     s.add_argument("--no-report", dest="report", action="store_false", help="skip the HTML report")
     _add_supervision(s)

@@ -20,6 +20,7 @@ from explorer.cost.devices import DeviceProfile
 from explorer.cost.fit_errors import fit_errors, fit_words
 from explorer.files import write_atomically
 from explorer.report import figures
+from explorer.model.shipped import DroppedExit
 from explorer.space import Candidate
 from explorer.study.config import DEFAULT_BUDGET
 from explorer.study.envelope import dedicated_path, envelope, envelope_hint, envelope_trials
@@ -201,12 +202,14 @@ def _finalists(view: StudyView, finalist_steps) -> dict:
 def _best(view: StudyView, best: optuna.trial.FrozenTrial, retrained: bool, devs: list) -> dict:
     """The winner (Table 1 style): its architecture, how its loss was found, its paths on every
     device, and its loss over the paper design's where that has one of the same kind."""
-    cand = Candidate.from_dict(trial_record(best).candidate)
+    cand = Candidate.from_dict(trial_record(best).shipped_candidate)
     evaluator = trial_record(best).evaluator_name
     how = "retrained" if retrained else f"estimated by the {evaluator} evaluator"
     out = {"number": best.number, "value": best.values[0], "key": cand.key, "how": how,
            "figures": figures_source(best, view.config.train_size),
            "architecture": cand.describe(), "yaml": cand.to_yaml(),
+           "dropped": [DroppedExit.from_dict(d).describe(trial_record(best).error_metric)
+                       for d in (trial_record(best).shipped.dropped if trial_record(best).shipped else [])],
            "table": _frame_html(path_table(best, devs), "best-table")}
     paper = baseline_trial(view.study, "paper", retrained=retrained)
     if paper is not None:

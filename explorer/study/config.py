@@ -99,6 +99,7 @@ class SearchConfig:
     head_kinds: str = "rotate"                   # which supernet subnet trains which exit-head kind
     sampler: str = "tpe"                         # tpe (NSGA-II with several objectives) | random (uniform)
     self_distill: float = 0.0                    # every network's early exits also learn its last exit's map
+    keep_every_exit: bool = False                # ship every exit, even one no better than an earlier path
 
     def __post_init__(self) -> None:
         if self.evaluator == "auto":  # the supernet is trained with dense labels; self-supervision trains alone
@@ -222,13 +223,13 @@ class SearchConfig:
     # settings that change what a trial's value means: a resumed study must keep them
     IDENTITY = ("space", "device", "budgets", "data", "objectives", "metric", "input_size", "train_size",
                 "train_steps", "batch_size", "lr", "evaluator", "supernet_steps", "supervision", "poses", "hints", "amp",
-                "head_kinds", "self_distill")
+                "head_kinds", "self_distill", "keep_every_exit")
 
     @classmethod
     def defaults_of_older_studies(cls) -> dict:
         """Settings a study made before they existed was run with."""
         return {"evaluator": "proxy", "finalists": 0, "supervision": "supervised", "poses": "net", "hints": False,
-                "amp": False, "head_kinds": "random", "self_distill": 0.0}
+                "amp": False, "head_kinds": "random", "self_distill": 0.0, "keep_every_exit": True}
 
 
 @dataclass(frozen=True)

@@ -103,7 +103,7 @@ def estimated_networks(study: optuna.Study, context: StudyContext) -> list[tuple
         if rec.baseline or rec.candidate is None:
             continue
         errors, costs = rec.losses_of(config.metric), trial_path_costs(t, device, budget.kind)
-        for network in dedicated_networks(Candidate.from_dict(rec.candidate)):
+        for network in dedicated_networks(Candidate.from_dict(rec.shipped_candidate)):
             last = network.candidate.num_paths == 2
             error = errors[-1] if last else errors[network.path]
             if network.key not in best or error < best[network.key][1]:

@@ -61,5 +61,7 @@ def export_from_study(study_name: str, trial_number: int | None, out_dir: Path, 
               "figures": "retrained, measured" if measured else "estimated by the search"}
     if measured and tuple(measured.input_size) == size:
         source.update(study_path_metrics=rec.path_metrics, study_measured=measured.model_dump(mode="json"))
+    if rec.shipped is not None:   # the exits left out of what ships, and why
+        source.update(trained_candidate=rec.candidate, dropped_exits=rec.shipped.dropped)
     return export_network(net, out_dir, size, devices=devs, source=source, quantization=quantization,
                           progress=progress, measurement=measurement, tuned_size=tuned)

@@ -16,6 +16,7 @@ from explorer.cost.workloads import Workload
 from explorer.data import open_dataset
 from explorer.errors import UserError
 from explorer.model.reference import REFERENCES
+from explorer.model.shipped import shipped_network
 from explorer.space import Candidate
 from explorer.study.config import DEFAULT_BASELINES
 from explorer.study.records import trial_record
@@ -143,7 +144,7 @@ def trials_frame(study: optuna.Study) -> pd.DataFrame:
                "figures": rec.figures if t.values else "",
                "evaluator": rec.evaluator_name if rec.evaluator or rec.train else "",
                "candidate_key": rec.candidate_key or "",
-               "architecture": (Candidate.from_dict(rec.candidate).describe() if rec.candidate
+               "architecture": (Candidate.from_dict(rec.shipped_candidate).describe() if rec.candidate
                                 else _reference_description(rec.reference)),
                "params": (rec.params or [np.nan])[-1],
                "macs": (rec.macs or [np.nan])[-1],
@@ -376,8 +377,15 @@ def study_frame(study: str, storage: str | None = None, reports: str = "reports"
 
 
 def trial_network(view: StudyView, trial: optuna.trial.FrozenTrial):
-    """The trained network of a trial, from the study's artifact store (raises UserError when its
-    weights are not stored on this machine)."""
+    """The network of a trial as it ships (its exits dropped for shipping left out, explorer.model.shipped),
+    with its trained weights from the study's artifact store (raises UserError when its weights are not
+    stored on this machine)."""
+    net = _trained_network(view, trial)
+    shipped = trial_record(trial).shipped
+    return net if shipped is None else shipped_network(net, Candidate.from_dict(shipped.candidate))
+
+
+def _trained_network(view: StudyView, trial: optuna.trial.FrozenTrial):
     from pathlib import Path
 
     from optuna.artifacts import FileSystemArtifactStore, download_artifact

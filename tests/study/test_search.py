@@ -16,6 +16,7 @@ from explorer.study.results import rescore, scored_trials, trials_frame
 from explorer.study.search import SearchConfig, SearchRun, search
 from explorer.study.storage import load_study
 from explorer.space import Candidate
+from explorer.study.records import trial_record
 from conftest import POSTGRES, TINY_DATA, journal_trials, needs_postgres
 
 # These tests exercise storage, workers and resume with the proxy evaluator (tests/test_supernet.py
@@ -54,7 +55,7 @@ def test_rescore_equals_direct_computation(finished):
     frame = rescore(out.study, "rpi4", ["time:uniform:100ms", "energy:uniform:0.25J"])
     rpi4 = get_device("rpi4")
     for t in scored_trials(out.study):
-        cand = Candidate.from_dict(t.user_attrs["candidate"])
+        cand = Candidate.from_dict(trial_record(t).shipped_candidate)   # the network as it ships
         cost = candidate_cost(cand, (64, 64))
         losses = [m["rmse"] for m in t.user_attrs["path_metrics"]]
         direct = anytime_loss(cost.path_costs(rpi4, "time"), losses, "time:uniform:100ms")
