@@ -10,7 +10,11 @@ the paper's Eq. 1 counts it (the last path ready, whatever its error), so the tw
 what the rule is worth. Figures per network: anytime loss, its ratio to the plain design's, and its
 early-to-last ratio (the mean error of its paths ready before 9 ms on the TX2 over its last path's).
 
-    python -m experiments.early_paths [--steps 300] [--distill 0.5,1] [--reps 3]
+    python -m experiments.early_paths --only bench_early_paths [--steps 300] [--distill 0.5,1] [--reps 3]
+    python -m experiments.early_paths --only bench_cascade [--steps 300] [--reps 3]
+
+``bench_cascade`` asks the same of exits that build on each other (``exits.cascade``): the paper design
+with residual exits, plain and cascaded, beside the plain design.
 
 Each repetition is one training seed; the networks train in an order that rotates.
 """
@@ -43,6 +47,41 @@ def declare(bench: Bench, names: list[str], steps: int) -> None:
             bench.figure(f"ratio_{name}_{steps}", f"{name} / paper, anytime loss, {steps} steps", "", "lower")
 
 
+def compare(bench: Bench, specs: str, steps: int, first_seed: int, study: str) -> None:
+    """Retrains the paper design and the networks ``specs`` names (``experiments.lib.retraining``) with the
+    finalists' recipe of a default study at ``steps`` steps, one seed per repetition, and adds each one's
+    figures (:func:`declare`) to ``bench``."""
+    context = SearchConfig(study=study, finalist_steps=steps).resolve()
+    config = context.config
+    networks = resolve_networks(specs, None, context)
+    declare(bench, list(networks), steps)
+    val_from = evaluated_frames(open_dataset(config.data, "val", config.input_size, train_augment=False),
+                                config.val_limit)
+    recipe = config.finalist_recipe()
+    bench.note(f"{', '.join(networks)}: {steps} steps at {config.train_size[0]}x{config.train_size[1]} then "
+               f"{config.tuning_steps} at {config.input_size[0]}x{config.input_size[1]}, measured there on the "
+               f"validation frames from {val_from} of {config.data}; tx2, {config.budgets[0]}; seeds "
+               f"{first_seed} on")
+    for rep in bench.repetitions():
+        seed = first_seed + rep
+        data = held_out_data(context, seed, val_from)
+        loss = {}
+        for name in rotated(list(networks), rep):
+            t0 = time.perf_counter()
+            costs, errors = retrained(networks[name], recipe, seed, data, context)
+            loss[name] = anytime_loss(costs, errors, context.budgets[0])
+            eq1 = float(np.dot(errors, interval_probabilities(costs, context.budgets[0])))
+            bench.add(f"{name}_anytime_{steps}", loss[name])
+            bench.add(f"{name}_eq1_{steps}", eq1)
+            bench.add(f"{name}_early_to_last_{steps}", early_to_last(networks[name], errors, config))
+            print(f"  seed {seed}: {name} anytime {loss[name]:.4f} (Eq. 1: {eq1:.4f}), by path "
+                  f"{[round(e, 4) for e in errors]} ({time.perf_counter() - t0:.0f} s)", flush=True)
+        for name in networks:
+            if name != "paper":
+                bench.add(f"ratio_{name}_{steps}", loss[name] / loss["paper"])
+    bench.finish()
+
+
 def bench_early_paths(argv: Sequence[str] | None = None) -> None:
     """The experiment (the module's docstring says what it asks)."""
     bench = Bench("bench_early_paths", "Early paths: self-distillation and never-worse on the paper design",
@@ -54,38 +93,27 @@ def bench_early_paths(argv: Sequence[str] | None = None) -> None:
     ap.add_argument("--first-seed", type=int, default=100, help="the first repetition's seed (default 100)")
     args = bench.parse_args(ap, argv)
     weights = [w.strip() for w in args.distill.split(",") if w.strip()]
-    context = SearchConfig(study="early-paths", finalist_steps=args.steps).resolve()
-    config = context.config
-    networks = resolve_networks(",".join(["paper"] + [f"paper:distill={w}" for w in weights]), None, context)
-    declare(bench, list(networks), args.steps)
-    val_from = evaluated_frames(open_dataset(config.data, "val", config.input_size, train_augment=False),
-                                config.val_limit)
-    recipe = config.finalist_recipe()
-    bench.note(f"paper design, {args.steps} steps at {config.train_size[0]}x{config.train_size[1]} then "
-               f"{config.tuning_steps} at {config.input_size[0]}x{config.input_size[1]}, measured there on the "
-               f"validation frames from {val_from} of {config.data}; tx2, {config.budgets[0]}; seeds "
-               f"{args.first_seed} on")
-    for rep in bench.repetitions():
-        seed = args.first_seed + rep
-        data = held_out_data(context, seed, val_from)
-        loss = {}
-        for name in rotated(list(networks), rep):
-            t0 = time.perf_counter()
-            costs, errors = retrained(networks[name], recipe, seed, data, context)
-            loss[name] = anytime_loss(costs, errors, context.budgets[0])
-            eq1 = float(np.dot(errors, interval_probabilities(costs, context.budgets[0])))
-            bench.add(f"{name}_anytime_{args.steps}", loss[name])
-            bench.add(f"{name}_eq1_{args.steps}", eq1)
-            bench.add(f"{name}_early_to_last_{args.steps}", early_to_last(networks[name], errors, config))
-            print(f"  seed {seed}: {name} anytime {loss[name]:.4f} (Eq. 1: {eq1:.4f}), by path "
-                  f"{[round(e, 4) for e in errors]} ({time.perf_counter() - t0:.0f} s)", flush=True)
-        for name in networks:
-            if name != "paper":
-                bench.add(f"ratio_{name}_{args.steps}", loss[name] / loss["paper"])
-    bench.finish()
+    compare(bench, ",".join(["paper"] + [f"paper:distill={w}" for w in weights]), args.steps, args.first_seed,
+            "early-paths")
 
 
-CASES = (Case(bench_early_paths),)
+#: the paper design with residual exits (each corrects the scan), and with them cascaded
+CASCADE_NETWORKS = "paper,paper:exit_residual=true,paper:exit_residual=true:exit_cascade=true"
+
+
+def bench_cascade(argv: Sequence[str] | None = None) -> None:
+    """Do cascaded exits pay? The paper design, its residual variant (every exit corrects the scan) and its
+    cascade (the first exit corrects the scan, each later one the exit before it), retrained as above."""
+    bench = Bench("bench_cascade", "Early paths: exits that correct the exit before them", bench_cascade.__doc__)
+    ap = bench.parser()
+    ap.add_argument("--steps", type=int, default=300, help="steps at the training size (default 300, the "
+                    "finalists'); then the default study's tuning steps at 224x224")
+    ap.add_argument("--first-seed", type=int, default=100, help="the first repetition's seed (default 100)")
+    args = bench.parse_args(ap, argv)
+    compare(bench, CASCADE_NETWORKS, args.steps, args.first_seed, "cascade")
+
+
+CASES = (Case(bench_early_paths), Case(bench_cascade))
 
 if __name__ == "__main__":
     run_suite(CASES)
