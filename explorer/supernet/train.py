@@ -43,7 +43,7 @@ from explorer.data import open_dataset
 from explorer.data.resident import training_batches
 from explorer.data.synthetic import cache_dir
 from explorer.errors import UserError
-from explorer.files import remove_dead_scratch, writing_atomically
+from explorer.files import check_writable_folder, remove_dead_scratch, writing_atomically
 from explorer.processes import StopAtStep
 from explorer.space import Candidate, SearchSpace, check_size
 from explorer.supernet._graphs import StageGraphs
@@ -369,6 +369,8 @@ def train_supernet(space: SearchSpace, data: str, recipe: SupernetRecipe = Super
         _check_same_start(step, out)
     if step >= recipe.steps:
         return out
+    if rank == 0:   # its saves, tried before any training (a search's supernet goes to the cache)
+        check_writable_folder(out.parent, "supernet", "give --out, or ANYTIME_EXPLORER_CACHE, a folder you can write")
     train_set = open_dataset(data, "train", recipe.input_size, seed=recipe.seed, progress=data_progress)
     gen = torch.Generator().manual_seed(recipe.seed)
     loader = training_batches(train_set, recipe.batch_size, gen, accelerator)   # on the device where it fits

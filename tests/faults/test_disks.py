@@ -241,6 +241,15 @@ def test_a_data_cache_that_cannot_be_written_is_one_line_before_any_training(run
     assert "set ANYTIME_EXPLORER_CACHE to a folder you can write" in line and not Path("/tmp/never").exists()
 
 
+def test_a_search_s_supernet_into_a_cache_that_cannot_be_written_is_refused_before_any_training(monkeypatch):
+    from explorer.space import SearchSpace
+    from explorer.supernet import train as supernet_train
+    monkeypatch.setattr(supernet_train, "open_dataset", _no_work)
+    with pytest.raises(UserError, match="/proc/x: cannot write the supernet there") as caught:
+        supernet_train.train_supernet(SearchSpace.from_yaml("tiny"), TINY_DATA, out=Path("/proc/x/sn.pt"))
+    assert "\n" not in str(caught.value)
+
+
 READ_ONLY = {   # a command, given the read-only folder RO holding study 'cc'; what its line says
     "search resume": (lambda ro: fast_search(ro, "--trials", "2"), "cannot write the study's journal and lock there"),
     "report": (lambda ro: ["report", "--study", "cc", "--reports", ro], "cannot write the report there"),
