@@ -13,14 +13,14 @@ from typing import Iterator
 
 import optuna
 
-from explorer.errors import UserError, kept_if_refused
+from explorer.errors import UserError, kept_if_refused, refused_write
 from explorer.processes import interrupted_once, machine_workers
 from explorer.study.storage import open_storage, redacted
 
 
 class _QuietCtrlC(logging.Filter):
-    """Drops Optuna's two warnings about a trial that Ctrl-C stopped (its traceback, then "failed with
-    value None"): the search says in one line what happened to it."""
+    """Drops Optuna's two warnings about a trial that Ctrl-C, or a write the machine refused (a full disk),
+    stopped (its traceback, then "failed with value None"): the search says in one line what happened."""
 
     def __init__(self) -> None:
         super().__init__()
@@ -29,7 +29,7 @@ class _QuietCtrlC(logging.Filter):
     def filter(self, record: logging.LogRecord) -> bool:
         exc = record.exc_info[1] if record.exc_info else None
         message = record.getMessage()
-        if isinstance(exc, KeyboardInterrupt):
+        if isinstance(exc, KeyboardInterrupt) or refused_write(exc) is not None:   # a full disk too
             self.trial = message.split(" failed", 1)[0]    # "Trial 12"
             return False
         return not (self.trial is not None and message.startswith(f"{self.trial} failed with value"))
@@ -52,17 +52,17 @@ def ctrl_c_says_what_is_kept(url: str, study: str) -> Iterator[None]:
     """A Ctrl-C in the block ends it with ``KeyboardInterrupt("<what study kept, how to resume>")``;
     Ctrl-Cs after the first are ignored until then (the interrupted trial is recorded and retried). A
     write the disk refuses (full, read-only) says the same in its one line."""
-    with interrupted_once(), kept_if_refused(lambda: _study_kept(url, study)):
+    with interrupted_once(), kept_if_refused(lambda: study_kept(url, study)):
         try:
             yield
         except KeyboardInterrupt as exc:
             saved = getattr(exc, "saved", None)   # a training stopped at a step's end: what it saved, where
             inner = exc.kept if saved is not None and saved.exists() else None   # not a trial's scratch file
-            line = _study_kept(url, study)
+            line = study_kept(url, study)
             raise KeyboardInterrupt(f"{inner}; {line}" if inner else line) from exc
 
 
-def _study_kept(url: str, study: str) -> str:
+def study_kept(url: str, study: str) -> str:
     """What the study at ``url`` holds now, and how to resume it, in words."""
     where = url[len("journal:"):] if url.startswith("journal:") else redacted(url)
     try:

@@ -5,6 +5,7 @@ A trial is *interrupted* when the process running it stopped under it:
 - killed (``kill -9``, the OOM killer, a reboot): found RUNNING when a search resumes on local
   storage (SQLite, journal file), where no other process can be working on the study;
 - stopped with Ctrl-C (``KeyboardInterrupt`` in the objective);
+- stopped by a write the machine refused (a full disk, a folder made read-only): enqueued again on resume;
 - a worker whose heartbeat stopped (RDB storage such as PostgreSQL): another worker fails the trial
   after the grace period, through Optuna's heartbeat mechanism.
 
@@ -25,11 +26,13 @@ from typing import Any, Callable, Sequence
 import optuna
 from optuna.trial import FrozenTrial, TrialState
 
+from explorer.errors import refused_write
 from explorer.study.records import VERSION_KEY, record, record_values, trial_record
 
 INTERRUPTED = "interrupted"
 KILLED = "interrupted (process killed)"      # fail_interrupted_trials writes this
 CTRL_C = "interrupted (Ctrl-C)"
+REFUSED_WRITE = "interrupted (a write the machine refused)"   # a full disk: the resume tries it again
 _STUDY_MARK = "interrupted:"                   # study system attr "interrupted:<number>" -> reason
 INPUT_ATTRS = "input_attrs"                    # trial system attr: the user attrs it was started with
 
@@ -209,7 +212,9 @@ def guarded(objective: Callable[[optuna.Trial], Any], max_retries: int,
             enqueue_retry(trial.study, storage.get_trial(tid), max_retries)
             raise
         except Exception as exc:
-            storage.set_trial_system_attr(tid, "fail_reason", error_text(exc))
+            refused = refused_write(exc)   # a full disk, a read-only folder: not the candidate's fault, tried again
+            storage.set_trial_system_attr(tid, "fail_reason", error_text(exc) if refused is None else
+                                          f"{REFUSED_WRITE}: {error_text(refused)}")
             raise
     return run
 

@@ -24,7 +24,7 @@ import optuna
 from explorer import __version__
 from explorer.cost import candidate_cost, model_cost
 from explorer.data import DEPTH_METRICS, MAYBE_WITHOUT_DEPTH, open_dataset, parse_data_spec, require_scores
-from explorer.errors import UserError
+from explorer.errors import UserError, refused_write
 from explorer.processes import die_with_parent, held_between_trials, interrupted_once
 from explorer.space import Candidate, SearchSpace, paper_candidate
 from explorer.study import planning
@@ -65,7 +65,7 @@ from explorer.study.retry import (
     resume_interrupted,
     set_objective_names,
 )
-from explorer.study._stopping import check_workers, ctrl_c_says_what_is_kept, end_workers, quiet_ctrl_c
+from explorer.study._stopping import check_workers, ctrl_c_says_what_is_kept, end_workers, quiet_ctrl_c, study_kept
 from explorer.study.records import record_study, record_values, study_record, trial_record
 from explorer.study.run import SearchObserver, SearchRun
 from explorer.study.sampling import RecentTrialsTPE
@@ -190,6 +190,10 @@ def run_worker(config_dict: dict, storage_url: str | None, n_trials: int | None,
             _work(config_dict, storage_url, n_trials, deadline, worker, reports, threads)
     except KeyboardInterrupt:
         raise SystemExit(130) from None
+    except Exception as exc:   # a full disk, a folder made read-only: the parent says it in one line
+        if refused_write(exc) is None:
+            raise
+        raise SystemExit(2) from None
 
 
 def _work(config_dict: dict, storage_url: str | None, n_trials: int | None, deadline: float | None,
@@ -517,6 +521,9 @@ def _run_workers(study: optuna.Study, config: SearchConfig, url: str, workers: i
         finished = True
     finally:
         end_workers(procs, interrupted=not finished)   # a Ctrl-C here: each records its trial, then stops
+    if any(p.exitcode == 2 for p in procs):
+        raise UserError("a search worker could not write the study (a full disk, or a folder made read-only): free "
+                        f"space there; {study_kept(url, config.study)}")
 
 
 def _replan_finalists(study: optuna.Study, config: SearchConfig, plan: "Plan", speeds, time_limit: "TimeLimit",

@@ -4,6 +4,8 @@ written. A disk that fills while a command writes (search, export, supernet trai
 data cache) is one line saying what was kept, exit 2, no traceback, no scratch left, nothing stored lost;
 HDF5 never sees the failed write (it crashed the process at exit, a segmentation fault)."""
 
+import errno
+import os
 import shutil
 import subprocess
 import sys
@@ -211,6 +213,34 @@ def test_a_checkpoint_on_a_real_full_disk_is_one_line_and_leaves_no_scratch(tmp_
     line = says_one_line(done.stderr)
     assert done.returncode == 2 and "ck.pt: cannot write it (no space left on device)" in line, done.stderr
     assert left == []
+
+
+def test_a_trial_stopped_by_a_full_disk_is_interrupted_not_failed_and_said_once(tmp_path, monkeypatch):
+    """Not the candidate's fault: the resume tries it again (a failed trial is a result, never retried);
+    Optuna's traceback of it is not shown (the search says it in one line), and a search worker stopped
+    by it exits quietly, for its parent to say it."""
+    import logging
+
+    from explorer.study import search
+    from explorer.study._stopping import _QuietCtrlC
+    from explorer.study.retry import guarded, interrupted_trials
+    full = OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(tmp_path / "artifact"))
+
+    def objective(trial):
+        raise full
+
+    study = optuna.create_study()
+    study.optimize(guarded(objective, max_retries=2), n_trials=1, catch=(OSError,))
+    assert list(interrupted_trials(study)) == [0]
+    assert interrupted_trials(study)[0].startswith("interrupted (a write the machine refused): OSError")
+    record = logging.LogRecord("optuna.study._optimize", logging.WARNING, __file__, 1, "Trial 0 failed with "
+                               "parameters: {} because of ...", None, (OSError, full, None))
+    assert _QuietCtrlC().filter(record) is False
+    monkeypatch.setattr(search, "die_with_parent", lambda: None)
+    monkeypatch.setattr(search, "_work", lambda *args: objective(None))
+    with pytest.raises(SystemExit) as stopped:
+        search.run_worker({}, None, None, None, 0, "reports", 1)
+    assert stopped.value.code == 2
 
 
 # -- a folder that cannot be written ---------------------------------------------------------------------
