@@ -48,8 +48,8 @@ class DroppedExit:
                    float(data["better_loss"]))
 
     def describe(self, metric: str = "error") -> str:
-        return (f"path {self.path} ({self.exit}) dropped: {metric} {self.loss:.4g} is not below path "
-                f"{self.better_path}'s {self.better_loss:.4g}")
+        return (f"{self.exit} (path {self.path} as trained) dropped: {metric} {self.loss:.4g} is not below "
+                f"{self.better_loss:.4g}, path {self.better_path}'s as trained")
 
 
 @dataclass(frozen=True)

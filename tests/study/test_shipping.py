@@ -118,7 +118,7 @@ def test_the_export_ships_the_network_less_its_dropped_exit(tmp_path, monkeypatc
     code, _, err = run_cli("report", "--study", "ships", "--reports", tmp_path)
     assert code == 0, err
     html = (tmp_path / "ships" / "report.html").read_text()
-    assert "Left out of the network that ships" in html and f"path 1 ({rec.shipped.dropped[0]['exit']}) dropped" in html
+    assert "Left out of the network that ships" in html and f"{rec.shipped.dropped[0]['exit']} (path 1 as trained) dropped" in html
     dropped = rec.shipped.dropped[0]["exit"]
     assert not [stage.file for stage in manifest.stages if dropped in stage.file]   # its head is not computed
     assert manifest.verification   # the export checked its graphs against the shipped network
