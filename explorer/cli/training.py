@@ -152,7 +152,8 @@ def supernet_recipe(args):
         changes["lr_end"] = args.lr / 10
     return dataclasses.replace(RECIPES[args.recipe], **changes, random_subnets=args.random_subnets,
                                micro_batches=args.micro_batches, seed=args.seed, teacher_depths=args.teacher_depths,
-                               head_kinds=args.head_kinds, distill=args.distill, cuda_graphs=args.cuda_graphs)
+                               head_kinds=args.head_kinds, distill=args.distill, cuda_graphs=args.cuda_graphs,
+                               self_distill=args.self_distill)
 
 
 def _supernet_status(record: dict) -> str:
@@ -260,6 +261,8 @@ def _register_supernet(sp) -> None:
     s.add_argument("--distill", type=float, default=0.0, metavar="W", help="weight, in the other subnets' "
                    "loss, of the largest subnet's last exit (in-place distillation; default 0: off, the supernet "
                    "ranked stand-alone results better without it)")
+    s.add_argument("--self-distill", type=float, default=0.0, metavar="W", help="weight of self-distillation: "
+                   "every subnet's exits before its last also learn its last exit's map, detached (default 0: off)")
     s.add_argument("--micro-batches", type=int, default=1, help="split each process's batch (gradient "
                    "accumulation; BatchNorm statistics per micro-batch)")
     s.add_argument("--cuda-graphs", action=argparse.BooleanOptionalAction, default=True,

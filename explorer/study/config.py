@@ -155,7 +155,7 @@ class SearchConfig:
     def supernet_recipe(self):
         return SupernetRecipe(steps=self.supernet_steps, batch_size=self.batch_size, input_size=self.train_size,
                               lr=self.lr, lr_end=self.lr / 10, seed=self.seed, amp=self.amp,
-                              head_kinds=self.head_kinds)
+                              head_kinds=self.head_kinds, self_distill=self.self_distill)
 
     def resolve(self) -> "StudyContext":
         """Checks the settings (one line per mistake) and resolves the names they give (space, device,

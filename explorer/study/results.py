@@ -420,7 +420,13 @@ def _supernet_network(view: StudyView, trial: optuna.trial.FrozenTrial):
     if not file.is_file():
         raise UserError(f"trial {trial.number} was estimated with supernet {file}, which is not on this machine: "
                         "export a retrained finalist instead (the default)")
-    net, _ = load_supernet(file)
+    # a supernet a time limit stopped short is the one the search estimated with: its slice is the network
+    net, state = load_supernet(file, require_complete=False)
+    step = rec.evaluator.get("supernet_step")
+    if step is not None and state["step"] != step:
+        raise UserError(f"trial {trial.number} was estimated with supernet {file} at step {step}, which has trained "
+                        f"on since (step {state['step']}): its slice is no longer the network the search scored; "
+                        "retrain the candidate (`explorer train`) and export its checkpoint")
     cfg = view.config
     calibration = open_dataset(cfg.data, "train", cfg.train_size, train_augment=False)
     sub = net.extract(Candidate.from_dict(rec.candidate))

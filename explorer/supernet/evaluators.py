@@ -109,6 +109,7 @@ class SupernetEvaluator:
         self.supernet, state = load_supernet(self.file, space, require_complete)
         self.supernet.to(device).eval()
         self.key = state["space_key"] + "-" + self.file.stem
+        self.step = int(state["step"])    # the step its weights are at: an export slices the same weights
         self.device = device
         if batch_size is None:
             batch_size = frames_per_batch(device, calibration_images, val_limit or len(val_set))
@@ -133,7 +134,7 @@ class SupernetEvaluator:
             net = self.network_of(candidate)
             metrics = evaluate(net, self.validation, accelerator=self.device)
         info = {"evaluator": self.name, "seconds": time.perf_counter() - t0, "supernet": str(self.file),
-                "supernet_key": self.key}
+                "supernet_key": self.key, "supernet_step": self.step}
         return Evaluation(metrics, info, net)
 
     def network_of(self, candidate: Candidate) -> AnytimeDepthNet:

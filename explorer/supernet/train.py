@@ -57,7 +57,7 @@ from explorer.supernet.network import (
     space_key,
     with_head_kind,
 )
-from explorer.training.train import TrainConfig, adamw, batch_row, lr_at
+from explorer.training.train import TrainConfig, adamw, batch_row, lr_at, self_distillation
 
 FORMAT = "anytime-explorer-supernet/1"
 TEACHER_DEPTHS = ("cycle", "max")
@@ -76,6 +76,7 @@ class SupernetRecipe:
     weight_decay: float = 1e-4
     random_subnets: int = 1          # besides the largest and the smallest, per step
     distill: float = 0.0             # weight of the largest subnet's output in the others' loss
+    self_distill: float = 0.0        # weight of each subnet's own last exit (detached) in its earlier exits' loss
     teacher_depths: str = "cycle"    # "cycle": the largest subnet's encoder depth turns over the space's; "max"
     micro_batches: int = 1           # per process; BatchNorm statistics are per micro-batch
     seed: int = 0
@@ -109,6 +110,8 @@ class SupernetRecipe:
             d.pop("head_kinds")
         if not d["shrink"]:
             d.pop("shrink")
+        if not d["self_distill"]:
+            d.pop("self_distill")
         return d
 
 
@@ -276,12 +279,17 @@ def _exits_l1(outs: list[torch.Tensor], target: torch.Tensor) -> torch.Tensor:
 
 
 def _subnet_loss(outs: list[torch.Tensor], target: torch.Tensor, teacher: torch.Tensor | None,
-                 distill: float) -> torch.Tensor:
+                 distill: float, self_distill: float = 0.0) -> torch.Tensor:
+    """A subnet's loss: L1 of every exit on the labels, the largest subnet's last exit (``teacher``) mixed
+    in with weight ``distill``, and the subnet's own last exit taught to its earlier ones with weight
+    ``self_distill`` (as ``explorer train --self-distill`` does: a network's early exits learn its best map)."""
     loss = _exits_l1(outs, target)
-    if teacher is None or distill <= 0:
-        return loss
-    soft = sum((o.float() - teacher).abs().mean() for o in outs[1:]) / (len(outs) - 1)
-    return (1 - distill) * loss + distill * soft
+    if teacher is not None and distill > 0:
+        soft = sum((o.float() - teacher).abs().mean() for o in outs[1:]) / (len(outs) - 1)
+        loss = (1 - distill) * loss + distill * soft
+    if self_distill > 0:
+        loss = loss + self_distill * self_distillation([o.float() for o in outs])
+    return loss
 
 
 def _teacher(largest: Candidate, space: SearchSpace, recipe: SupernetRecipe, step: int) -> Candidate:
@@ -492,6 +500,8 @@ def _check_recipe(recipe: SupernetRecipe, world: int, space: SearchSpace) -> Non
     check_size(recipe.input_size, space.max_stride, "--train-size")
     if not 0 <= recipe.distill <= 1:
         raise UserError(f"--distill {recipe.distill}: give a weight between 0 (off, the default) and 1")
+    if not 0 <= recipe.self_distill <= 10:
+        raise UserError(f"--self-distill {recipe.self_distill:g}: give a weight between 0 (off) and 10")
     if not 0 <= recipe.shrink < 1:
         raise UserError(f"--shrink {recipe.shrink}: give the fraction of the steps trained at full widths first, "
                         "from 0 (off) to below 1")
@@ -548,7 +558,7 @@ def _sandwich_step(net: Supernet, opt: torch.optim.Optimizer, batch: dict, subne
             with torch.autocast(accelerator.type, dtype=torch.bfloat16, enabled=recipe.amp,
                                 cache_enabled=graphs is None):
                 outs = net.forward_subnet(cand, image[part], scan[part], row, graphs)
-                loss = _subnet_loss(outs, depth[part], teacher, recipe.distill)
+                loss = _subnet_loss(outs, depth[part], teacher, recipe.distill, recipe.self_distill)
             if j == 0 and recipe.distill > 0:   # a copy: a graph's output is overwritten by its next replay
                 teacher = outs[-1].detach().float().clone()
             (loss / recipe.micro_batches).backward()

@@ -40,3 +40,33 @@ def test_the_supernet_trained_has_the_steps_the_plan_gave_it(tmp_path, monkeypat
     assert not default_path(space, CFG.data, CFG.supernet_recipe()).exists()   # not the recipe's 4 steps
     estimates = out.study.get_trials(states=(optuna.trial.TrialState.COMPLETE,))
     assert estimates and all(trial_record(t).evaluator_name == "supernet" for t in estimates)
+
+
+def _rewrite(file, **changes):
+    import torch
+    state = torch.load(file, map_location="cpu", weights_only=True)
+    recipe = {**state["recipe"], **changes.pop("recipe", {})}
+    torch.save({**state, "recipe": recipe, **changes}, file)
+
+
+def test_a_winner_estimated_with_a_supernet_stopped_short_exports_until_the_supernet_trains_on(
+        tmp_path, monkeypatch, run_cli):
+    cache = tmp_path / "cache"
+    cache.mkdir()
+    for data in cache_dir().glob("synthetic-*.h5"):
+        (cache / data.name).symlink_to(data)
+    monkeypatch.setenv("ANYTIME_EXPLORER_CACHE", str(cache))
+    out = search(CFG.resolve(), SearchRun(n_trials=2, timeout_s=None, reports=tmp_path / "reports"))
+    file = default_path(SearchSpace.from_yaml(CFG.space), CFG.data, CFG.supernet_recipe())
+    assert all(trial_record(t).evaluator["supernet_step"] == 4 for t in out.study.get_trials()
+               if trial_record(t).evaluator)
+    # as a time limit leaves it: short of its recipe's steps, the weights the search estimated with
+    _rewrite(file, recipe={"steps": 8}, complete=False)
+    args = ("export", "--study", "planned", "--reports", tmp_path / "reports", "--eval-frames", 2)
+    code, _, err = run_cli(*args, "--out", tmp_path / "short")
+    assert code == 0, err
+    assert (tmp_path / "short" / "manifest.json").is_file()
+    _rewrite(file, step=6)     # a later study trained it on: its slice is another network now
+    code, _, err = run_cli(*args, "--out", tmp_path / "later")
+    assert code == 2 and "has trained on since (step 6)" in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "later").exists()
