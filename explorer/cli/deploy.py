@@ -26,6 +26,7 @@ def _percent(text: str) -> float:
 
 def cmd_export(args) -> None:
     from explorer.console import console, err_console, progress
+    from explorer.files import check_writable_folder
     from explorer.deploy.export import Measurement, Quantization, export_from_checkpoint
     from explorer.study.export import AS_SEARCHED, export_from_study
     if bool(args.study) == bool(args.checkpoint):
@@ -47,6 +48,8 @@ def cmd_export(args) -> None:
         raise UserError("--force and --int8-stages are read by --quantize int8 only")
     elif args.quantize is None and args.study:
         quant = AS_SEARCHED
+    # the export is built beside --out, then swapped in: a folder it cannot write is one line before any work
+    check_writable_folder(Path(args.out).resolve().parent, "export", "give --out a folder you can write", keep=False)
     curve = Path(args.out) / "anytime_curve.json"   # measured on the graphs the export replaces
     had_curve = curve.is_file()
     # what the export is doing shows on one status line that a refusal clears: its error is then the

@@ -306,3 +306,12 @@ def test_a_read_only_folder_is_refused_in_one_line_and_left_as_it_was(tmp_path, 
 
 def _no_work(*args, **kwargs):
     raise AssertionError("the command went on to its work")
+
+
+def test_an_export_into_a_folder_that_cannot_be_written_is_one_line_before_any_work(run_cli, monkeypatch):
+    import explorer.study.export
+    monkeypatch.setattr(explorer.study.export, "export_from_study", _no_work)
+    code, _, err = run_cli("export", "--study", "cc", "--out", "/proc/x/model")
+    line = says_one_line(err)
+    assert code == 2 and "/proc/x: cannot write the export there" in line, line
+    assert "give --out a folder you can write" in line
