@@ -3,9 +3,91 @@ dimension's choices from a space's YAML, and a stand-in for an Optuna trial."""
 
 from __future__ import annotations
 
-from typing import Any
+import math
+from typing import Any, Callable
 
+from explorer.errors import UserError
 from explorer.files import read_choices, read_stage_choices
+
+
+#: where an exit's head may be sized apart from ``head_depth``/``head_width`` (Candidate fields ``<position>_head_*``)
+HEAD_POSITIONS = ("encoder", "ecu")
+
+
+def head_words(candidate) -> str:
+    """``candidate``'s exit heads in words, those sized for their position after the others."""
+    words = lambda depth, width: "1 pw conv" if depth == 1 else f"2 pw convs ({width} ch)"   # noqa: E731
+    out = words(candidate.head_depth, candidate.head_width)
+    for position, where in (("encoder", "encoder exits"), ("ecu", "ECU exit")):
+        if getattr(candidate, f"{position}_head_depth") or getattr(candidate, f"{position}_head_width"):
+            out += f"; {where}: {words(*candidate.head(position))}"
+    return out
+
+
+def check_heads(candidate) -> None:
+    """One UserError line where a head sized for its position is not a head."""
+    for position in HEAD_POSITIONS:
+        depth, width = candidate.head(position)
+        if depth not in (1, 2) or (depth == 2 and width < 1):
+            raise UserError(f"{position}_head_depth={depth}, {position}_head_width={width}: an exit head has "
+                            "1 or 2 pointwise convs, the first of a positive width")
+
+
+def canonical_head(candidate, position: str, present: bool) -> tuple[int, int]:
+    """The stored (depth, width) override of ``candidate``'s heads at ``position``: 0 where it agrees
+    with ``head_depth``/``head_width`` or the position has no exit, so one network has one key."""
+    if not present:
+        return 0, 0
+    depth = getattr(candidate, f"{position}_head_depth") or candidate.head_depth
+    width = (getattr(candidate, f"{position}_head_width") or candidate.head_width) if depth == 2 else 0
+    return (0 if depth == candidate.head_depth else depth,
+            0 if depth != 2 or width == candidate.head_width else width)
+
+
+def head_options(space, position: str, depth: int, width: int, present: bool) -> list[tuple[int, int]]:
+    """The distinct (depth, width) heads ``space`` offers at ``position`` where the other heads are
+    (``depth``, ``width``); one, (0, 0), where the position has no exit."""
+    if not present:
+        return [(0, 0)]
+    out: dict[tuple[int, int], None] = {}
+    for d in getattr(space, f"{position}_head_depth"):
+        d = d or depth
+        for w in (getattr(space, f"{position}_head_width") if d == 2 else (0,)):
+            out[(d, (w or width) if d == 2 else 0)] = None
+    return list(out)
+
+
+def encoder_exit_drawn(params: dict) -> bool:
+    return any(v for k, v in params.items() if k.startswith("encoder_exit_"))
+
+
+def ecu_exit_drawn(params: dict) -> bool:   # listed only where exit_0 is optional or required
+    return bool(params.get("exit_0", True))
+
+
+def two_layers(position: str) -> Callable[[dict], bool]:
+    """Whether a trial draws ``position``'s head width: where the position has an exit whose head has two layers."""
+    drawn = encoder_exit_drawn if position == "encoder" else ecu_exit_drawn
+    return lambda params: drawn(params) and (params.get(f"{position}_head_depth") or params["head_depth"]) == 2
+
+
+def space_size(space) -> int:
+    """``SearchSpace.size``: LiDAR/ECU choices count only where the ECU is on, a head's width only where
+    it has two layers, a position's heads only where it has an exit."""
+    lidar = len(space.lidar_depth) * len(space.lidar_width) * len(space.ecu_band) * len(space.ecu_width)
+    encoder_exit_sets = 2 ** len(space.optional_encoder_exits)
+    exit_sets = 2 ** len(space.optional_exits)
+    with_ecu_exit = exit_sets if 0 in space.required_exits else exit_sets // 2 if 0 in space.optional_exits else 0
+    heads = 0
+    for d in space.head_depth:
+        for w in (space.head_width if d == 2 else (0,)):
+            encoder = len(head_options(space, "encoder", d, w, True))
+            # with the ECU on, a non-empty set of encoder exits also chooses the stage order
+            ecu = sum(lidar * (1 + (encoder_exit_sets - 1) * len(set(space.lidar_first)) * encoder) if on
+                      else 1 + (encoder_exit_sets - 1) * encoder for on in space.ecu)
+            heads += ecu * (exit_sets - with_ecu_exit + with_ecu_exit * len(head_options(space, "ecu", d, w, True)))
+    rest = len(space.encoder_blocks) * len(space.width_mult) * math.prod(len(c) for c in space.decoder_widths)
+    return heads * rest * len(set(space.lidar_exit)) * len(space.exit_modes()) * len(set(space.precision))
 
 
 class RandomTrial:

@@ -20,7 +20,8 @@ from typing import Any, Callable, Iterator
 import yaml
 
 from explorer.errors import UserError
-from explorer._space_parse import RandomTrial, parse_choices
+from explorer._space_parse import (HEAD_POSITIONS, RandomTrial, canonical_head, check_heads, ecu_exit_drawn,
+                                   encoder_exit_drawn, head_options, head_words, parse_choices, space_size, two_layers)
 from explorer.files import read_choices, read_yaml
 
 #: MobileNet v1 depthwise-separable blocks (in, out, stride), after conv0 (3 -> 32, stride 2).
@@ -75,6 +76,11 @@ class Candidate:
     precision: str = "fp32"                # "int8": deployed statically quantized, costed and measured so
     exit_residual: bool = False            # every exit corrects path 0 (the interpolated scan) instead of replacing it
     exit_cascade: bool = False             # with exit_residual: each exit after the first corrects the one before it
+    # exit heads sized for their position: 0 = as head_depth / head_width (canonical where they agree)
+    encoder_head_depth: int = 0            # the encoder exits' heads (stride 4-8)
+    encoder_head_width: int = 0
+    ecu_head_depth: int = 0                # exit_0's head, after the ECU (the encoder's stride)
+    ecu_head_width: int = 0
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "decoder_widths", tuple(int(w) for w in self.decoder_widths))
@@ -92,7 +98,17 @@ class Candidate:
         object.__setattr__(self, "lidar_first", bool(self.lidar_first and self.ecu and self.encoder_exits))
         if self.head_depth == 1:
             object.__setattr__(self, "head_width", 0)
+        for position, present in (("encoder", bool(self.encoder_exits)), ("ecu", 0 in self.exits)):
+            for name, value in zip(("depth", "width"), canonical_head(self, position, present)):
+                object.__setattr__(self, f"{position}_head_{name}", value)
         self.validate()
+
+    def head(self, position: str) -> tuple[int, int]:
+        """(depth, width) of the exit heads at ``position``: "encoder", "ecu" (exit_0) or "decoder"
+        (width 0 for a one-layer head)."""
+        depth = getattr(self, f"{position}_head_depth", 0) or self.head_depth
+        width = (getattr(self, f"{position}_head_width", 0) or self.head_width) if depth == 2 else 0
+        return depth, width
 
     # -- validation --------------------------------------------------------------------------
     def validate(self) -> None:
@@ -129,6 +145,7 @@ class Candidate:
             raise UserError(f"head_depth={self.head_depth}: an exit head has 1 or 2 pointwise convs")
         if self.head_depth == 2 and self.head_width < 1:
             raise UserError("head_width must be positive when head_depth is 2")
+        check_heads(self)
         if self.ecu:
             if self.lidar_depth < int(math.log2(stride)):
                 raise UserError(
@@ -170,7 +187,7 @@ class Candidate:
             parts.append("no LiDAR branch (image only)")
         parts.append("decoder " + "-".join(str(w) for w in self.decoder_widths))
         names = ["ECU" if e == 0 else f"stage {e}" for e in self.exits]
-        head = "1 pw conv" if self.head_depth == 1 else f"2 pw convs ({self.head_width} ch)"
+        head = head_words(self)
         correct = ", each correcting the interpolated scan" if self.exit_residual else ""
         if self.exit_cascade:
             correct = ", the first correcting the interpolated scan, each later one the exit before it"
@@ -216,7 +233,8 @@ class Candidate:
 #: Fields added after the first release, with the value that leaves them out of a candidate's dict.
 _LATER_FIELDS: dict[str, Any] = {"encoder_exits": [], "lidar_exit": False, "lidar_first": False,
                                   "precision": "fp32", "exit_residual": False,
-                                  "exit_cascade": False}
+                                  "exit_cascade": False, "encoder_head_depth": 0, "encoder_head_width": 0,
+                                  "ecu_head_depth": 0, "ecu_head_width": 0}
 #: Numeric precisions a candidate may be deployed at (``explorer export --quantize``).
 PRECISIONS = ("fp32", "int8")
 #: Strides at which an image exit may leave the encoder (after block k, before the decoder).
@@ -265,7 +283,7 @@ def _ecu_on(params: dict) -> bool:
 
 
 def _ecu_and_encoder_exits(params: dict) -> bool:   # the stage order matters only then
-    return bool(params["ecu"]) and any(v for k, v in params.items() if k.startswith("encoder_exit_"))
+    return bool(params["ecu"]) and encoder_exit_drawn(params)
 
 
 #: The family's dimensions, in the order a trial draws them (the order fixes what a seeded sampler draws).
@@ -281,6 +299,10 @@ DIMENSIONS: tuple[Dimension, ...] = (
     Dimension("encoder_exits", "image_encoder", "exits", "positions"),
     Dimension("lidar_first", "lidar_encoder", "first", bool, _ecu_and_encoder_exits),
     Dimension("lidar_exit", "exits", "lidar_only", bool),
+    Dimension("encoder_head_depth", "exits", "encoder_head_depth", int, encoder_exit_drawn),
+    Dimension("encoder_head_width", "exits", "encoder_head_width", int, two_layers("encoder")),
+    Dimension("ecu_head_depth", "exits", "ecu_head_depth", int, ecu_exit_drawn),
+    Dimension("ecu_head_width", "exits", "ecu_head_width", int, two_layers("ecu")),
     Dimension("precision", "", "precision", str, several=True),
     Dimension("exit_residual", "exits", "residual", bool, several=True),
     Dimension("exit_cascade", "exits", "cascade", bool, lambda params: params.get("exit_residual", True), several=True),
@@ -295,6 +317,9 @@ _SPACE_SCHEMA: dict[str, dict[str, str]] = {"exits": {"required": "required_exit
 for _dim in filter(lambda d: d.section, DIMENSIONS):
     _SPACE_SCHEMA.setdefault(_dim.section, {})[_dim.key] = _dim.field
 _KINDS = {**{d.field: d.kind for d in DIMENSIONS}, "required_exits": "positions"}
+#: the per-position head dimensions, each with its value in a candidate (resolved: 0 stands for head_depth/width)
+_HEAD_FIELDS: dict[str, Callable[[Candidate], int]] = {
+    f"{p}_head_{n}": (lambda c, p=p, i=i: c.head(p)[i]) for p in HEAD_POSITIONS for i, n in enumerate(("depth", "width"))}
 
 
 @dataclass(frozen=True)
@@ -352,6 +377,10 @@ class SearchSpace:
     precision: tuple[str, ...] = ("fp32",)
     exit_residual: tuple[bool, ...] = (False,)
     exit_cascade: tuple[bool, ...] = (False,)
+    encoder_head_depth: tuple[int, ...] = (0,)
+    encoder_head_width: tuple[int, ...] = (0,)
+    ecu_head_depth: tuple[int, ...] = (0,)
+    ecu_head_width: tuple[int, ...] = (0,)
     description: str = ""
     source: str = ""
 
@@ -429,9 +458,10 @@ class SearchSpace:
                         f"{source}: image_encoder.exits has block {k}, but a {blocks}-block encoder has no exit "
                         f"place there: encoder exits go after a block at stride 4 or 8, i.e. one of "
                         f"{list(encoder_exit_blocks(min(self.encoder_blocks)))}")
-        for d in self.head_depth:
-            if d not in (1, 2):
-                raise UserError(f"{source}: exits.head_depth {d}: a head has 1 or 2 pointwise convs")
+        for field in ("head_depth", *(f"{p}_head_depth" for p in HEAD_POSITIONS)):
+            bad = [d for d in getattr(self, field) if d not in ((1, 2) if field == "head_depth" else (0, 1, 2))]
+            if bad:
+                raise UserError(f"{source}: exits.{field} {bad}: a head has 1 or 2 pointwise convs")
         # Every combination must be a valid candidate: build the smallest and largest.
         next(iter(self.enumerate()))
 
@@ -447,6 +477,8 @@ class SearchSpace:
             elif dim.kind == "stages":
                 out += [_Param(f"decoder_width_{k}", choices, dim, lambda c, k=k: c.decoder_widths[k - 1])
                         for k, choices in enumerate(self.decoder_widths, start=1)]
+            elif dim.field in _HEAD_FIELDS and self._lists(dim):   # the candidate's head there, resolved
+                out.append(_Param(dim.field, getattr(self, dim.field), dim, _HEAD_FIELDS[dim.field]))
             elif self._lists(dim):
                 out.append(_Param(dim.field, getattr(self, dim.field), dim, lambda c, f=dim.field: getattr(c, f)))
         return out
@@ -454,6 +486,10 @@ class SearchSpace:
     def _lists(self, dim: Dimension) -> bool:
         if dim.field == "exit_cascade":   # drawn only where residual exits can be chosen
             return len(set(self.exit_cascade)) > 1 and True in self.exit_residual
+        if dim.field in _HEAD_FIELDS:   # where the space sizes heads there, and the position can have an exit
+            has = self.optional_encoder_exits if dim.field.startswith("encoder") else \
+                0 in self.optional_exits + self.required_exits
+            return bool(has) and getattr(self, dim.field) != (0,)
         if dim.several:
             return len(getattr(self, dim.field)) > 1
         if dim.applies is _ecu_and_encoder_exits:   # drawn only where both can be chosen
@@ -468,15 +504,7 @@ class SearchSpace:
     def size(self) -> int:
         """Number of distinct candidates (LiDAR/ECU choices only count when the ECU is on;
         head width only when heads have two layers)."""
-        lidar = len(self.lidar_depth) * len(self.lidar_width) * len(self.ecu_band) * len(self.ecu_width)
-        encoder_exit_sets = 2 ** len(self.optional_encoder_exits)
-        # with the ECU on, a non-empty set of encoder exits also chooses the stage order
-        with_order = 1 + (encoder_exit_sets - 1) * len(set(self.lidar_first))
-        ecu = sum(lidar * with_order if on else encoder_exit_sets for on in self.ecu)
-        heads = sum(len(self.head_width) if d == 2 else 1 for d in self.head_depth)
-        rest = len(self.encoder_blocks) * len(self.width_mult) * math.prod(len(c) for c in self.decoder_widths)
-        return (ecu * heads * rest * 2 ** len(self.optional_exits) * len(set(self.lidar_exit))
-                * len(self.exit_modes()) * len(set(self.precision)))
+        return space_size(self)
 
     def exit_modes(self) -> list[tuple[bool, bool]]:
         """The (exit_residual, exit_cascade) pairs of the space's candidates (a cascade needs residual exits)."""
@@ -510,11 +538,14 @@ class SearchSpace:
                 self.encoder_blocks, self.width_mult, early, itertools.product(*self.decoder_widths),
                 exit_sets, heads, sorted(set(self.lidar_exit)), self.exit_modes(),
                 dict.fromkeys(self.precision)):
-            yield Candidate(encoder_blocks=blocks, width_mult=wm, ecu=ecu[0], lidar_depth=ecu[1],
-                            lidar_width=ecu[2], ecu_band=ecu[3], ecu_width=ecu[4],
-                            decoder_widths=widths, exits=exits, head_depth=head[0], head_width=head[1],
-                            encoder_exits=enc, lidar_exit=lidar_exit, lidar_first=first, precision=precision,
-                            exit_residual=mode[0], exit_cascade=mode[1])
+            for enc_head, ecu_head in itertools.product(head_options(self, "encoder", *head, bool(enc)),
+                                                        head_options(self, "ecu", *head, 0 in exits)):
+                yield Candidate(encoder_blocks=blocks, width_mult=wm, ecu=ecu[0], lidar_depth=ecu[1],
+                                lidar_width=ecu[2], ecu_band=ecu[3], ecu_width=ecu[4],
+                                decoder_widths=widths, exits=exits, head_depth=head[0], head_width=head[1],
+                                encoder_exits=enc, lidar_exit=lidar_exit, lidar_first=first, precision=precision,
+                                exit_residual=mode[0], exit_cascade=mode[1], encoder_head_depth=enc_head[0],
+                                encoder_head_width=enc_head[1], ecu_head_depth=ecu_head[0], ecu_head_width=ecu_head[1])
 
     def sample(self, trial: Any) -> Candidate:
         """Draw a candidate with an Optuna trial (conditional dimensions only when they apply)."""

@@ -23,6 +23,7 @@ import numpy as np
 import pandas as pd
 
 from explorer.anytime import BudgetDistribution
+from explorer.errors import UserError
 from explorer.cost.devices import DeviceProfile
 from explorer.cost.workloads import stage_cost
 from explorer.model.network import stage_specs
@@ -42,6 +43,11 @@ COLUMNS = ("key", "encoder_blocks", "width_mult", "ecu", "decoder_widths", "exit
 
 def space_axes(space: SearchSpace) -> dict[str, list[dict[str, Any]]]:
     """Each axis of the space as the candidate fields its choices set, in ``SearchSpace.enumerate``'s order."""
+    sized = [f for f in ("encoder_head_depth", "encoder_head_width", "ecu_head_depth", "ecu_head_width")
+             if getattr(space, f) != (0,)]
+    if sized:   # a position's heads exist only with its exit: not one more axis of the grid
+        raise UserError(f"space '{space.name}' sizes exit heads per position (exits.{', exits.'.join(sized)}): "
+                        "the space table does not cost such spaces yet; cost its candidates one at a time")
     ecu_options: list[dict[str, Any]] = []
     for on in space.ecu:
         lidar = itertools.product(space.lidar_depth, space.lidar_width, space.ecu_band, space.ecu_width) \

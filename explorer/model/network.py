@@ -86,7 +86,7 @@ def stage_specs(candidate: Candidate, paper_graph: bool = False) -> list[StageSp
         if k < candidate.encoder_blocks:
             s = encoder_stride(k)
             fuse = lidar.tap_channels(s) if candidate.lidar_first else 0
-            cfg = ExitHeadConfig(seg.out_channels(), candidate.head_depth, candidate.head_width, s, fuse, residual)
+            cfg = ExitHeadConfig(seg.out_channels(), *candidate.head("encoder"), s, fuse, residual)
             add_exit(f"exit_b{k}", cfg, (out, f"lidar_s{s}") if fuse else (out,))
         start, x = k, out
     enc = ImageEncoderConfig(candidate.encoder_blocks, candidate.width_mult)
@@ -101,12 +101,12 @@ def stage_specs(candidate: Candidate, paper_graph: bool = False) -> list[StageSp
         x = "x0"
     channels = enc.out_channels()
 
-    def exit_cfg(cin: int, scale: int) -> ExitHeadConfig:
-        return ExitHeadConfig(cin, candidate.head_depth, candidate.head_width, scale, residual=residual,
+    def exit_cfg(cin: int, scale: int, position: str = "decoder") -> ExitHeadConfig:
+        return ExitHeadConfig(cin, *candidate.head(position), scale, residual=residual,
                               bilinear_products=not paper_graph)
 
     if 0 in candidate.exits:
-        add_exit("exit_0", exit_cfg(channels, stride), (x,))
+        add_exit("exit_0", exit_cfg(channels, stride, "ecu"), (x,))
     last = len(candidate.decoder_widths)
     for k, width in enumerate(candidate.decoder_widths, start=1):
         out_stride = stride // 2 ** k
