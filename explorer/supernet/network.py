@@ -47,6 +47,10 @@ def space_key(space: SearchSpace) -> str:
     return hashlib.sha1(text.encode()).hexdigest()[:10]
 
 
+#: the Candidate fields of exit heads sized for their position (0: as head_depth / head_width)
+HEAD_FIELDS = ("encoder_head_depth", "encoder_head_width", "ecu_head_depth", "ecu_head_width")
+
+
 def _extreme_candidate(space: SearchSpace, pick, head_depth: int | None, residual: bool | None = None,
                        cascade: bool | None = None) -> Candidate:
     """Every dimension at ``pick`` (max or min) of its choices, with every exit the space allows
@@ -62,7 +66,8 @@ def _extreme_candidate(space: SearchSpace, pick, head_depth: int | None, residua
         exits=tuple(sorted(set(space.optional_exits) | set(space.required_exits))) + (last,),
         head_depth=depth, head_width=pick(space.head_width) if depth == 2 else 0,
         encoder_exits=space.optional_encoder_exits, lidar_exit=True in space.lidar_exit,
-        lidar_first=pick(space.lidar_first), exit_residual=residual, exit_cascade=cascade)
+        lidar_first=pick(space.lidar_first), exit_residual=residual, exit_cascade=cascade,
+        **{f: pick(getattr(space, f)) for f in HEAD_FIELDS})
 
 
 def largest_candidate(space: SearchSpace, head_depth: int | None = None, residual: bool | None = None,
@@ -90,7 +95,19 @@ def random_training_subnet(space: SearchSpace, rng: random.Random) -> Candidate:
         ecu_band=rng.choice(space.ecu_band) if ecu else 0, ecu_width=rng.choice(space.ecu_width) if ecu else 0,
         decoder_widths=tuple(rng.choice(c) for c in space.decoder_widths),
         head_depth=depth, head_width=rng.choice(space.head_width) if depth == 2 else 0,
-        lidar_first=rng.choice(space.lidar_first), exit_residual=residual, exit_cascade=cascade)
+        lidar_first=rng.choice(space.lidar_first), exit_residual=residual, exit_cascade=cascade,
+        # drawn only where the space sizes heads per position: other spaces draw what they drew before
+        **{f: rng.choice(getattr(space, f)) for f in HEAD_FIELDS if getattr(space, f) != (0,)})
+
+
+def _widest_heads(space: SearchSpace, depth: int) -> list[dict]:
+    """Per-position heads of every depth the space offers there beside heads of ``depth`` layers, each at
+    the widest width any head has: a head slot per position and depth, whose leading channels every
+    narrower head of that slot is (Once-for-All style)."""
+    wide = max([w for f in ("head_width", "encoder_head_width", "ecu_head_width") for w in getattr(space, f)])
+    return [{"encoder_head_depth": e, "encoder_head_width": wide, "ecu_head_depth": c, "ecu_head_width": wide}
+            for e in sorted({d or depth for d in space.encoder_head_depth})
+            for c in sorted({d or depth for d in space.ecu_head_depth})]
 
 
 def head_kinds(space: SearchSpace) -> list[tuple[int, bool, bool]]:
@@ -115,12 +132,13 @@ class Supernet(nn.Module):
         # a cascade's first exit corrects the scan: whichever exit is first, its scan-correcting head exists
         kinds = dict.fromkeys(k for d, r, c in head_kinds(space) for k in ((d, r, False), (d, r, c)))
         for depth, residual, cascade in kinds:
-            widest = largest_candidate(space, depth, residual, cascade)
-            # the whole image encoder in one slot; encoder exits split a candidate's encoder into views of it
-            for spec in stage_specs(dataclasses.replace(widest, encoder_exits=())) + stage_specs(widest):
-                slot = slot_of(spec)
-                if slot not in slots and not (isinstance(spec.config, ImageEncoderConfig) and spec.config.start):
-                    slots[slot] = spec.config.build()
+            for heads in _widest_heads(space, depth):
+                widest = dataclasses.replace(largest_candidate(space, depth, residual, cascade), **heads)
+                # the whole image encoder in one slot; encoder exits split a candidate's encoder into views of it
+                for spec in stage_specs(dataclasses.replace(widest, encoder_exits=())) + stage_specs(widest):
+                    slot = slot_of(spec)
+                    if slot not in slots and not (isinstance(spec.config, ImageEncoderConfig) and spec.config.start):
+                        slots[slot] = spec.config.build()
         self.slots = nn.ModuleDict(slots)
         self.ecu_channels = ImageEncoderConfig(self.largest.encoder_blocks, self.largest.width_mult).out_channels()
         self._plans: OrderedDict[Candidate, tuple] = OrderedDict()
