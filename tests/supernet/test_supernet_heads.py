@@ -71,3 +71,24 @@ def test_training_subnets_draw_the_heads_of_each_position():
     # a space without heads sized per position draws what it drew before
     plain = SearchSpace.from_dict({**SPACE, "exits": {"optional": [0, 2], "head_depth": [1], "head_width": [8]}})
     assert random_training_subnet(plain, random.Random(5)).ecu_head_depth == 0
+
+
+def test_a_per_position_head_subnet_trains_and_is_evaluated_stage_by_stage(tmp_path):
+    from conftest import TINY_DATA
+    from explorer.data import open_dataset
+    from explorer.supernet import train_supernet
+    from explorer.supernet.evaluators import SupernetEvaluator
+    space = SearchSpace.from_dict(SPACE, "heads")
+    file = train_supernet(space, TINY_DATA, SupernetRecipe(steps=2, batch_size=8, input_size=(32, 32)),
+                          tmp_path / "s.pt")
+    train = open_dataset(TINY_DATA, "train", (32, 32), train_augment=False)
+    val = open_dataset(TINY_DATA, "val", (32, 32))
+    args = (file, space, train, val, torch.device("cpu"))
+    shared = SupernetEvaluator(*args, calibration_images=8, batch_size=8)
+    alone = SupernetEvaluator(*args, calibration_images=8, batch_size=8, stagewise=False)
+    base = dataclasses.replace(random_training_subnet(space, random.Random(3)), exits=(0, 2, 3), encoder_exits=(3,))
+    for width in (4, 16):
+        cand = dataclasses.replace(base, ecu_head_depth=2, ecu_head_width=width)
+        a, b = shared(cand), alone(cand)
+        assert list(a.metrics["path"]) == list(b.metrics["path"]) == list(range(cand.num_paths))
+        assert (a.metrics["rmse"] - b.metrics["rmse"]).abs().max() < 1e-4, cand
