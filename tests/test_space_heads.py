@@ -75,3 +75,12 @@ def test_a_space_without_the_position_does_not_draw_its_heads():
     assert "ecu_head_width" not in space.dimensions() and space.size == _space(optional=[1]).size
     with pytest.raises(UserError, match="1 or 2 pointwise"):
         _space(ecu_head_depth=[3])
+
+
+def test_the_space_table_refuses_per_position_heads_in_one_line():
+    from explorer.cost.enumerate import candidate_rows, space_grid
+    space = _space(ecu_head_width=[4, 16])
+    with pytest.raises(UserError, match="one at a time"):
+        space_grid(space, "tx2", "time:uniform:4ms", (32, 32))
+    rows = list(candidate_rows(space, "tx2", "time:uniform:4ms", (32, 32)))   # one at a time, every candidate
+    assert len(rows) == space.size == len({r["key"] for r in rows})
