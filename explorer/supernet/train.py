@@ -47,16 +47,8 @@ from explorer.files import check_writable_folder, remove_dead_scratch, writing_a
 from explorer.processes import StopAtStep
 from explorer.space import Candidate, SearchSpace, check_size
 from explorer.supernet._graphs import StageGraphs
-from explorer.supernet.network import (
-    Supernet,
-    head_kinds,
-    largest_candidate,
-    random_training_subnet,
-    smallest_candidate,
-    space_identity,
-    space_key,
-    with_head_kind,
-)
+from explorer.supernet.network import (Supernet, head_kinds, largest_candidate, random_training_subnet,
+                                       smallest_candidate, space_identity, space_key, with_head_kind)
 from explorer.training.train import TrainConfig, adamw, batch_row, lr_at, self_distillation
 
 FORMAT = "anytime-explorer-supernet/1"
