@@ -596,4 +596,5 @@ class SearchSpace:
             len(candidate.decoder_widths) == len(self.decoder_widths) and \
             set(candidate.encoder_exits) <= set(self.optional_encoder_exits) and all(
             v in d[k] for k, v in p.items()) and set(self.required_exits) <= inner and \
-            inner <= set(self.optional_exits) | set(self.required_exits)
+            inner <= set(self.optional_exits) | set(self.required_exits) and \
+            not any(getattr(candidate, f) for f in _HEAD_FIELDS if f not in d)   # heads sized where not offered

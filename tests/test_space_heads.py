@@ -84,3 +84,10 @@ def test_the_space_table_refuses_per_position_heads_in_one_line():
         space_grid(space, "tx2", "time:uniform:4ms", (32, 32))
     rows = list(candidate_rows(space, "tx2", "time:uniform:4ms", (32, 32)))   # one at a time, every candidate
     assert len(rows) == space.size == len({r["key"] for r in rows})
+
+
+def test_a_space_that_does_not_size_heads_per_position_does_not_contain_such_candidates():
+    sized = [c for c in _space(ecu_head_width=[4, 16]).enumerate() if c.ecu_head_width]
+    plain = _space()
+    assert sized and not any(plain.contains(c) for c in sized)
+    assert all(plain.contains(dataclasses.replace(c, ecu_head_width=0)) for c in sized)
