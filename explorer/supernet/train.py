@@ -338,7 +338,9 @@ def _shrinking(recipe: SupernetRecipe, step: int) -> bool:
 def _full_width(candidate: Candidate, largest: Candidate) -> Candidate:
     """``candidate`` with every width of ``largest`` (its depths, exits, LiDAR path and heads kept)."""
     widths = dict(width_mult=largest.width_mult, decoder_widths=largest.decoder_widths,
-                  head_width=largest.head_width if candidate.head_depth == 2 else 0)
+                  head_width=largest.head_width if candidate.head_depth == 2 else 0,
+                  # heads sized per position: the largest's there (0, as head_width, where it has none of its own)
+                  encoder_head_width=largest.head("encoder")[1], ecu_head_width=largest.head("ecu")[1])
     if candidate.ecu:
         widths.update(lidar_width=largest.lidar_width, ecu_width=largest.ecu_width)
     return dataclasses.replace(candidate, **widths)

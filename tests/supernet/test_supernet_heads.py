@@ -92,3 +92,18 @@ def test_a_per_position_head_subnet_trains_and_is_evaluated_stage_by_stage(tmp_p
         a, b = shared(cand), alone(cand)
         assert list(a.metrics["path"]) == list(b.metrics["path"]) == list(range(cand.num_paths))
         assert (a.metrics["rmse"] - b.metrics["rmse"]).abs().max() < 1e-4, cand
+
+
+def test_progressive_shrinking_starts_every_positions_heads_at_full_width():
+    from explorer.supernet.train import _full_width
+    space = SearchSpace.from_dict(SPACE, "heads")
+    largest = largest_candidate(space)
+    assert largest.head("ecu") == (2, 16) and largest.head("encoder") == (2, 8)
+    for seed in range(6):
+        full = _full_width(random_training_subnet(space, random.Random(seed)), largest)
+        assert full.head("ecu") in ((1, 0), (2, 16)) and full.head("encoder") == (2, 8)
+    plain = SearchSpace.from_dict({**SPACE, "exits": {"optional": [0, 2], "head_depth": [1, 2], "head_width": [8]}})
+    sub = random_training_subnet(plain, random.Random(1))
+    assert _full_width(sub, largest_candidate(plain)) == dataclasses.replace(
+        sub, width_mult=0.25, decoder_widths=largest_candidate(plain).decoder_widths,
+        head_width=8 if sub.head_depth == 2 else 0)
