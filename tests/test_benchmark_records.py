@@ -15,7 +15,8 @@ ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results"
 MODULES = ("benchmarks.runtime", "benchmarks.training", "benchmarks.search", "benchmarks.commands", "benchmarks.gpu",
            "experiments.fidelity", "experiments.search_value", "experiments.held_out", "experiments.resolution",
-           "experiments.scan_model", "experiments.photometric", "experiments.early_paths")
+           "experiments.scan_model", "experiments.photometric", "experiments.early_paths",
+           "experiments.table2")
 NAMED = re.compile(r"\bbench_\w+")
 PATH = re.compile(r"\b(?:benchmarks|experiments)/[\w/]+\.py\b")
 
