@@ -29,7 +29,7 @@ def check_heads(candidate) -> None:
     for position in HEAD_POSITIONS:
         depth, width = candidate.head(position)
         if depth not in (1, 2) or (depth == 2 and width < 1):
-            raise UserError(f"{position}_head_depth={depth}, {position}_head_width={width}: an exit head has "
+            raise UserError(f"{position}_head_depth={depth!r}, {position}_head_width={width!r}: an exit head has "
                             "1 or 2 pointwise convs, the first of a positive width")
 
 

@@ -140,9 +140,9 @@ class Candidate:
                     f"encoder exit after block {k}: no such place in a {self.encoder_blocks}-block encoder; "
                     f"encoder exits go after a block at stride 4 or 8 (blocks {list(encoder_exit_blocks(self.encoder_blocks))})")
         if self.precision not in PRECISIONS:
-            raise UserError(f"precision '{self.precision}' is not one of {list(PRECISIONS)}")
+            raise UserError(f"precision {self.precision!r} is not one of {list(PRECISIONS)}")
         if self.head_depth not in (1, 2):
-            raise UserError(f"head_depth={self.head_depth}: an exit head has 1 or 2 pointwise convs")
+            raise UserError(f"head_depth={self.head_depth!r}: an exit head has 1 or 2 pointwise convs")
         if self.head_depth == 2 and self.head_width < 1:
             raise UserError("head_width must be positive when head_depth is 2")
         check_heads(self)

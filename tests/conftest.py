@@ -1,4 +1,5 @@
 import os
+import signal
 from pathlib import Path
 
 import pytest
@@ -21,6 +22,11 @@ needs_postgres = pytest.mark.skipif(not _postgres_ok(), reason="PostgreSQL at 12
 
 
 def pytest_configure(config):
+    # A suite started in the background by a shell (`make test &`, nohup, some CI runners) inherits Ctrl-C
+    # ignored, and so would every command a test starts: the tests of what Ctrl-C does need the commands to
+    # receive it as a terminal's user would. A handler of this process becomes the default in a child.
+    if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
     os.environ.setdefault("ANYTIME_EXPLORER_CACHE", str(Path(config.rootpath) / ".cache" / "test-data"))
     workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
     if workers > 1:

@@ -32,6 +32,7 @@ def test_phases_are_placed_on_the_clock_the_study_recorded():
 
 def test_the_export_gap_is_the_worst_path():
     from benchmarks.gpu import export_gap
-    manifest = {"path_metrics": [{"rmse": 0.50}, {"rmse": 0.40}],
-                "source": {"study_path_metrics": [{"rmse": 0.50}, {"rmse": 0.43}]}}
+    from explorer.deploy.manifest import Manifest, Source
+    manifest = Manifest.model_construct(path_metrics=[{"rmse": 0.50}, {"rmse": 0.40}],
+                                        source=Source(study_path_metrics=[{"rmse": 0.50}, {"rmse": 0.43}]))
     assert export_gap(manifest) == pytest.approx(0.03)
