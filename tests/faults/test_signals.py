@@ -46,7 +46,11 @@ def _wait_for_steps(proc: subprocess.Popen, lines: list[str], task: str) -> None
 
 def _ended(proc: subprocess.Popen, lines: list[str]) -> str:
     """The last line on stderr, once the command ended (no traceback before it)."""
-    out = proc.communicate(timeout=300)[0]
+    try:
+        out = proc.communicate(timeout=300)[0]
+    except subprocess.TimeoutExpired:
+        proc.kill()    # a command that did not stop is not left running after the test
+        raise
     time.sleep(0.1)   # the reader thread's last line
     err = "".join(lines)
     assert "Traceback" not in err, err
