@@ -107,10 +107,9 @@ def bench_table2(argv: Sequence[str] | None = None) -> None:
     for device in DEVICES:
         for budget in BUDGETS:
             name = column(device, budget)
-            unit = "m"
             bench.figure(f"explorer_{name}", f"explorer's pick ({picks[name].key}): anytime loss, {device}, {budget}",
-                         unit, "lower")
-            bench.figure(f"paper_{name}", f"paper design: anytime loss, {device}, {budget}", unit, "lower")
+                         "m", "lower")
+            bench.figure(f"paper_{name}", f"paper design: anytime loss, {device}, {budget}", "m", "lower")
             bench.figure(f"ratio_{name}", f"explorer's pick / paper design, {device}, {budget}", "", "lower")
     val = open_dataset(config.data, "val", config.input_size, train_augment=False)
     val_from = evaluated_frames(val, config.val_limit)
