@@ -31,25 +31,31 @@ from explorer.space import Candidate
 @dataclass(frozen=True)
 class DroppedExit:
     """An exit left out of the shipped network: its path in the trained network, its head's stage
-    name, its error, and the earlier path (with its error) that was at least as accurate."""
+    name, its error, and the earlier path (with its error) that was at least as accurate;
+    ``measured_on``: where those errors come from when not the study's own figures (an export's graphs)."""
 
     path: int
     exit: str
     loss: float
     better_path: int
     better_loss: float
+    measured_on: str = ""
 
     def to_dict(self) -> dict:
-        return dataclasses.asdict(self)
+        data = dataclasses.asdict(self)
+        if not self.measured_on:
+            del data["measured_on"]
+        return data
 
     @classmethod
     def from_dict(cls, data: Mapping) -> "DroppedExit":
         return cls(int(data["path"]), str(data["exit"]), float(data["loss"]), int(data["better_path"]),
-                   float(data["better_loss"]))
+                   float(data["better_loss"]), str(data.get("measured_on") or ""))
 
     def describe(self, metric: str = "error") -> str:
+        where = f", measured on {self.measured_on}" if self.measured_on else ""
         return (f"{self.exit} (path {self.path} as trained) dropped: {metric} {self.loss:.4g} is not below "
-                f"{self.better_loss:.4g}, path {self.better_path}'s as trained")
+                f"{self.better_loss:.4g}, path {self.better_path}'s as trained{where}")
 
 
 @dataclass(frozen=True)

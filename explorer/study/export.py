@@ -4,11 +4,13 @@ of it: its data, its device, whether it was searched as int8."""
 from __future__ import annotations
 
 import dataclasses
+import math
 from pathlib import Path
 from typing import Callable, Sequence
 
 from explorer.deploy.export import Manifest, Measurement, Quantization, export_network
 from explorer.errors import UserError
+from explorer.model.shipped import ship, shipped_network
 from explorer.study.records import trial_record
 from explorer.study.results import best_trial, scored_trials, trial_network, winner
 from explorer.study.storage import load_study
@@ -63,5 +65,40 @@ def export_from_study(study_name: str, trial_number: int | None, out_dir: Path, 
         source.update(study_path_metrics=rec.path_metrics, study_measured=measured.model_dump(mode="json"))
     if rec.shipped is not None:   # the exits left out of what ships, and why
         source.update(trained_candidate=rec.candidate, dropped_exits=rec.shipped.dropped)
-    return export_network(net, out_dir, size, devices=devs, source=source, quantization=quantization,
+    manifest = export_network(net, out_dir, size, devices=devs, source=source, quantization=quantization,
+                              progress=progress, measurement=measurement, tuned_size=tuned)
+    if quantization is not None or cfg.keep_every_exit:
+        return manifest
+    # The study decided what ships on its own figures (estimates, or another size): the exported graphs,
+    # measured here at the deployment size, decide again, so that no path shipped is less accurate than
+    # one returned before it.
+    again = _ship_as_measured(net.candidate, manifest, cfg.metric, rec, size)
+    if again is None:
+        return manifest
+    shipped, dropped = again
+    if "study_path_metrics" in source:   # the study's figures of the paths that still ship
+        source["study_path_metrics"] = [source["study_path_metrics"][p] for p in shipped.paths]
+    if progress:
+        progress(f"leaving out {', '.join(d['exit'] for d in dropped[len(source.get('dropped_exits') or []):])}: "
+                 f"no more accurate than an earlier path as exported; exporting again")
+    source.update(trained_candidate=rec.candidate, dropped_exits=dropped)
+    return export_network(shipped_network(net, shipped.candidate), out_dir, size, devices=devs, source=source,
                           progress=progress, measurement=measurement, tuned_size=tuned)
+
+
+def _ship_as_measured(exported, manifest: Manifest, metric: str, rec, size: tuple[int, int]):
+    """(the network that ships, every exit left out of the trained network) where the export's own per-path figures
+    leave out more exits than the study did; None where they leave out none (or cannot tell: a figure
+    missing). Exits dropped here are numbered by the trained network's paths, like the study's."""
+    losses = [m.get(metric, math.nan) for m in manifest.path_metrics]
+    if len(losses) != exported.num_paths or not all(math.isfinite(v) for v in losses):
+        return None
+    shipped = ship(exported, losses)
+    if not shipped.dropped:
+        return None
+    trained_paths = rec.shipped.trained_paths if rec.shipped is not None else list(range(exported.num_paths))
+    where = f"the exported graphs at {size[0]}x{size[1]}"
+    dropped = list(rec.shipped.dropped if rec.shipped is not None else []) + [
+        {**d.to_dict(), "path": trained_paths[d.path], "better_path": trained_paths[d.better_path],
+         "measured_on": where} for d in shipped.dropped]
+    return shipped, dropped

@@ -2,18 +2,23 @@
 its costs and per-path figures those of what ships, unless --keep-every-exit."""
 
 import json
+from pathlib import Path
 
 import numpy as np
 import optuna
 import pandas as pd
 import pytest
 import torch
+import yaml
 from PIL import Image
 
+import explorer
 from explorer.anytime import anytime_loss
 from explorer.cost import candidate_cost
+from explorer.deploy import export as export_module
 from explorer.deploy.manifest import read_manifest
 from explorer.model import build_network
+from explorer.model.shipped import exit_names
 from explorer.space import Candidate
 from explorer.study import objective as objective_module
 from explorer.study.objective import Objective
@@ -24,6 +29,8 @@ from explorer.study.search import SearchConfig, search
 from explorer.supernet.evaluators import Evaluation
 from explorer.training.train import TrainConfig, save_checkpoint
 from conftest import TINY_DATA
+
+SPACES = Path(explorer.__file__).parent / "search_spaces"
 
 TINY = dict(space="tiny", data=TINY_DATA, train_size=(32, 32), input_size=(64, 64), train_steps=2,
             batch_size=8, val_limit=16, evaluator="proxy", finalists=0, baselines=(), pruning=False,
@@ -100,9 +107,28 @@ class TrainedWorseSecondPath(WorseSecondPath):
         return super().__call__(candidate, checkpoint, report)
 
 
+def _measured_as(monkeypatch, *shapes):
+    """The export's measurements (each call's in turn, the last one thereafter) with their per-path RMSE
+    replaced by ``shape(paths)``."""
+    real, calls = export_module.measure_export, []
+
+    def measure(model_dir, measurement, input_size):
+        metrics, measured = real(model_dir, measurement, input_size)
+        shape = shapes[min(len(calls), len(shapes) - 1)]
+        calls.append(len(metrics))
+        return [dict(m, rmse=r) for m, r in zip(metrics, shape(len(metrics)))], measured
+    monkeypatch.setattr(export_module, "measure_export", measure)
+    return calls
+
+
+def _improving(paths: int) -> list[float]:
+    return [1.0 - 0.1 * p for p in range(paths)]
+
+
 @pytest.mark.slow
 def test_the_export_ships_the_network_less_its_dropped_exit(tmp_path, monkeypatch, run_cli):
     monkeypatch.setattr(objective_module, "ProxyEvaluator", TrainedWorseSecondPath)
+    _measured_as(monkeypatch, _improving)   # the exported graphs confirm the study's figures
     cfg = SearchConfig(study="ships", **{**TINY, "keep_weights": True})
     out = search(cfg.resolve(), SearchRun(n_trials=1, timeout_s=None, reports=tmp_path))
     rec = trial_record(out.study.trials[0])
@@ -129,3 +155,52 @@ def test_the_export_ships_the_network_less_its_dropped_exit(tmp_path, monkeypatc
     assert code == 0, err
     errors = [m["rmse"] for m in manifest.path_metrics]   # as the export measured them (random weights here)
     assert json.loads(text)["path"] == errors.index(min(errors))   # every path ready: the most accurate
+
+
+@pytest.mark.slow
+def test_the_export_leaves_out_an_exit_its_own_measurement_finds_no_better_and_exports_again(
+        tmp_path, monkeypatch, run_cli):
+    """The study's figures (estimates, or another size) kept path 2; measured on the exported graphs at the
+    deployment size it is less accurate than path 1, so the export ships the network without it."""
+    monkeypatch.setattr(objective_module, "ProxyEvaluator", TrainedWorseSecondPath)
+    space = yaml.safe_load((SPACES / "tiny.yaml").read_text())
+    space["exits"].update(optional=[], required=[0, 1], lidar_only=[True])   # 5 paths, 4 shipped by the study
+    (tmp_path / "five.yaml").write_text(yaml.safe_dump(space))
+    cfg = SearchConfig(study="reships", **{**TINY, "keep_weights": True, "space": str(tmp_path / "five.yaml")})
+    out = search(cfg.resolve(), SearchRun(n_trials=1, timeout_s=None, reports=tmp_path))
+    rec = trial_record(out.study.trials[0])
+    studied = Candidate.from_dict(rec.shipped_candidate)
+    assert studied.num_paths >= 4   # path 2 is not the last
+    worse_path_2 = lambda n: [1.0, 0.8, 0.9] + [0.7 - 0.1 * i for i in range(n - 3)]  # noqa: E731
+    calls = _measured_as(monkeypatch, worse_path_2, _improving)
+    code, _, err = run_cli("export", "--study", "reships", "--reports", tmp_path, "--out", tmp_path / "model",
+                           "--eval-frames", 4)
+    assert code == 0, err
+    assert calls == [studied.num_paths, studied.num_paths - 1]   # measured, then exported and measured again
+    manifest = read_manifest(tmp_path / "model")
+    ships = Candidate.from_dict(manifest.candidate)
+    assert ships.num_paths == studied.num_paths - 1 == manifest.paths
+    by_study, by_export = manifest.source.dropped_exits
+    assert by_study == rec.shipped.dropped[0] and "measured_on" not in by_study
+    exit_2 = exit_names(studied)[1]
+    assert by_export["exit"] == exit_2 and by_export["measured_on"] == "the exported graphs at 64x64"
+    assert by_export["path"] == rec.shipped.trained_paths[2] and by_export["better_path"] == rec.shipped.trained_paths[1]
+    assert by_export["loss"] == 0.9 and by_export["better_loss"] == 0.8
+    assert not [stage.file for stage in manifest.stages if exit_2 in stage.file]   # its head is not computed
+    assert [m["rmse"] for m in manifest.path_metrics] == _improving(ships.num_paths)   # measured again
+    assert manifest.source.trained_candidate == rec.candidate
+
+
+@pytest.mark.slow
+def test_an_export_of_a_study_that_keeps_every_exit_keeps_them_whatever_it_measures(tmp_path, monkeypatch, run_cli):
+    monkeypatch.setattr(objective_module, "ProxyEvaluator", TrainedWorseSecondPath)
+    cfg = SearchConfig(study="keeps", keep_every_exit=True, **{**TINY, "keep_weights": True})
+    out = search(cfg.resolve(), SearchRun(n_trials=1, timeout_s=None, reports=tmp_path))
+    rec = trial_record(out.study.trials[0])
+    calls = _measured_as(monkeypatch, lambda n: [1.0, 0.8, 0.9] + [0.7] * (n - 3))
+    code, _, err = run_cli("export", "--study", "keeps", "--reports", tmp_path, "--out", tmp_path / "model",
+                           "--eval-frames", 4)
+    assert code == 0, err
+    manifest = read_manifest(tmp_path / "model")
+    assert len(calls) == 1 and Candidate.from_dict(manifest.candidate) == Candidate.from_dict(rec.candidate)
+    assert manifest.source.dropped_exits is None
