@@ -12,9 +12,13 @@ early-to-last ratio (the mean error of its paths ready before 9 ms on the TX2 ov
 
     python -m experiments.early_paths --only bench_early_paths [--steps 300] [--distill 0.5,1] [--reps 3]
     python -m experiments.early_paths --only bench_cascade [--steps 300] [--reps 3]
+    python -m experiments.early_paths --only bench_heads [--steps 300] [--reps 3]
 
 ``bench_cascade`` asks the same of exits that build on each other (``exits.cascade``): the paper design
-with residual exits, plain and cascaded, beside the plain design.
+with residual exits, plain and cascaded, beside the plain design. ``bench_heads`` asks it of a head sized for
+its position: the paper design's first exit with a two-layer head.
+
+Every network is scored as it ships (an exit no more accurate than an earlier path left out).
 
 Each repetition is one training seed; the networks train in an order that rotates.
 """
@@ -68,14 +72,15 @@ def compare(bench: Bench, specs: str, steps: int, first_seed: int, study: str) -
         loss = {}
         for name in rotated(list(networks), rep):
             t0 = time.perf_counter()
-            costs, errors = retrained(networks[name], recipe, seed, data, context)
-            loss[name] = anytime_loss(costs, errors, context.budgets[0])
-            eq1 = float(np.dot(errors, interval_probabilities(costs, context.budgets[0])))
+            got = retrained(networks[name], recipe, seed, data, context)
+            loss[name] = anytime_loss(got.costs, got.errors, context.budgets[0])
+            eq1 = float(np.dot(got.errors, interval_probabilities(got.costs, context.budgets[0])))
             bench.add(f"{name}_anytime_{steps}", loss[name])
             bench.add(f"{name}_eq1_{steps}", eq1)
-            bench.add(f"{name}_early_to_last_{steps}", early_to_last(networks[name], errors, config))
-            print(f"  seed {seed}: {name} anytime {loss[name]:.4f} (Eq. 1: {eq1:.4f}), by path "
-                  f"{[round(e, 4) for e in errors]} ({time.perf_counter() - t0:.0f} s)", flush=True)
+            bench.add(f"{name}_early_to_last_{steps}", early_to_last(got.candidate, got.errors, config))
+            print(f"  seed {seed}: {name} anytime {loss[name]:.4f} (Eq. 1: {eq1:.4f}), as shipped, by path "
+                  f"{[round(e, 4) for e in got.errors]} ({time.perf_counter() - t0:.0f} s)"
+                  + "".join(f"; {d.describe(config.metric)}" for d in got.dropped), flush=True)
         for name in networks:
             if name != "paper":
                 bench.add(f"ratio_{name}_{steps}", loss[name] / loss["paper"])
@@ -113,7 +118,24 @@ def bench_cascade(argv: Sequence[str] | None = None) -> None:
     compare(bench, CASCADE_NETWORKS, args.steps, args.first_seed, "cascade")
 
 
-CASES = (Case(bench_early_paths), Case(bench_cascade))
+#: the paper design with its first exit (after the ECU, at the encoder's stride) given a two-layer head, narrow
+#: and wide, the other exits' heads as they are
+HEAD_NETWORKS = "paper,paper:ecu_head_depth=2:ecu_head_width=32,paper:ecu_head_depth=2:ecu_head_width=64"
+
+
+def bench_heads(argv: Sequence[str] | None = None) -> None:
+    """Do exit heads sized for their position pay? The paper design, and the same with a two-layer head
+    (32 or 64 channels wide) on its first exit only, retrained as above."""
+    bench = Bench("bench_heads", "Early paths: a larger head on the first exit", bench_heads.__doc__)
+    ap = bench.parser()
+    ap.add_argument("--steps", type=int, default=300, help="steps at the training size (default 300, the "
+                    "finalists'); then the default study's tuning steps at 224x224")
+    ap.add_argument("--first-seed", type=int, default=100, help="the first repetition's seed (default 100)")
+    args = bench.parse_args(ap, argv)
+    compare(bench, HEAD_NETWORKS, args.steps, args.first_seed, "heads")
+
+
+CASES = (Case(bench_early_paths), Case(bench_cascade), Case(bench_heads))
 
 if __name__ == "__main__":
     run_suite(CASES)

@@ -153,14 +153,16 @@ def bench_held_out(argv: Sequence[str] | None = None) -> None:
             trained, loss = {}, {}
             for name in rotated(list(networks), rep):
                 t0 = time.perf_counter()
-                trained[name] = retrained(networks[name], recipe, seed, data, context)
-                loss[name], last = anytime_loss(*trained[name], context.budgets[0]), trained[name][1][-1]
+                got = retrained(networks[name], recipe, seed, data, context)
+                trained[name] = got.loss_inputs
+                loss[name], last = anytime_loss(got.costs, got.errors, context.budgets[0]), got.errors[-1]
                 bench.add(f"{name}_anytime_{suffix}", loss[name])
                 bench.add(f"{name}_last_{suffix}", last)
-                bench.add(f"{name}_early_to_last_{suffix}", early_to_last(networks[name], trained[name][1], config))
+                bench.add(f"{name}_early_to_last_{suffix}", early_to_last(got.candidate, got.errors, config))
                 print(f"  seed {seed}, {n}+{tune} steps: {name} anytime {loss[name]:.4f}, last path {last:.4f} "
-                      f"({time.perf_counter() - t0:.0f} s); by path {[round(e, 4) for e in trained[name][1]]} at "
-                      f"{[round(c, 1) for c in trained[name][0]]}", flush=True)
+                      f"({time.perf_counter() - t0:.0f} s); as shipped, by path {[round(e, 4) for e in got.errors]} "
+                      f"at {[round(c, 1) for c in got.costs]}"
+                      + "".join(f"; {d.describe(config.metric)}" for d in got.dropped), flush=True)
             for name in networks:
                 if name != "paper":
                     figure = f"ratio_{suffix}" if name == "winner" else f"ratio_{name}_{suffix}"

@@ -31,7 +31,6 @@ import torch
 from explorer.anytime import anytime_loss, parse_budget
 from explorer.cost import candidate_cost, get_device
 from explorer.data import open_dataset
-from explorer.model.shipped import ship
 from explorer.space import Candidate, paper_candidate
 from explorer.study import trial_record
 from explorer.study.config import study_context
@@ -68,14 +67,12 @@ def column_picks(study) -> dict[str, Candidate]:
     return picks
 
 
-def shipped_losses(candidate: Candidate, errors: list[float], size: tuple[int, int],
-                   keep_every_exit: bool) -> dict[str, float]:
-    """The anytime loss in every column of ``candidate`` as it ships, given its trained paths' errors."""
-    shipped = ship(candidate, errors, keep_every_exit)
-    cost = candidate_cost(shipped.candidate, size)
-    kept = shipped.losses(errors)
+def shipped_losses(shipped: Candidate, errors: list[float], size: tuple[int, int]) -> dict[str, float]:
+    """The anytime loss in every column of the network that ships, given its paths' errors (dropping an
+    exit depends on accuracy alone: one network ships for every device)."""
+    cost = candidate_cost(shipped, size)
     return {column(device, budget): anytime_loss(cost.path_costs(get_device(device), parse_budget(budget).kind),
-                                                 kept, budget)
+                                                 errors, budget)
             for device in DEVICES for budget in BUDGETS}
 
 
@@ -127,8 +124,9 @@ def bench_table2(argv: Sequence[str] | None = None) -> None:
         losses = {}
         for name in rotated(list(networks), rep):
             t0 = time.perf_counter()
-            _, errors = retrained(Network(networks[name]), recipe, seed, data, context)
-            losses[name] = shipped_losses(networks[name], errors, size, config.keep_every_exit)
+            got = retrained(Network(networks[name]), recipe, seed, data, context)
+            losses[name] = shipped_losses(got.candidate, got.errors, size)
+            errors = got.errors
             print(f"  seed {seed}: {name} by path {[round(e, 4) for e in errors]} "
                   f"({time.perf_counter() - t0:.0f} s)", flush=True)
         for col, name in by_column.items():

@@ -100,14 +100,15 @@ def test_networks_that_cannot_be_resolved_are_refused(text, message):
         resolve_networks(text, None, SearchConfig(study="s", space="tiny").resolve())
 
 
-def _recipes_trained(monkeypatch) -> list:
-    """The training recipes retrained() hands over, collected instead of training (every path 1.0 m)."""
+def _recipes_trained(monkeypatch, errors=None) -> list:
+    """The training recipes retrained() hands over, collected instead of training (every path ``errors``,
+    by default 1.0 m)."""
     import experiments.lib.retraining as retraining
     seen = []
 
     def fake_training(net, data, recipe, accelerator):
         seen.append(recipe.train)
-        return type("Result", (), {"metrics": {"rmse": [1.0] * net.candidate.num_paths}})()
+        return type("Result", (), {"metrics": {"rmse": errors or [1.0] * net.candidate.num_paths}})()
 
     monkeypatch.setattr(retraining, "train_for_deployment", fake_training)
     return seen
@@ -150,4 +151,20 @@ def test_the_early_to_last_ratio_takes_the_paths_ready_before_9ms_on_the_tx2():
     errors = [1.0] + [0.5 + 0.1 * k for k in range(len(ms) - 2)] + [0.25]
     early = [e for c, e in zip(ms[1:], errors[1:]) if c < 9.0]
     assert early   # the paper design's first path is ready at 6.4 ms on the TX2
-    assert early_to_last(Network(paper), errors, config) == pytest.approx(sum(early) / len(early) / 0.25)
+    assert early_to_last(paper, errors, config) == pytest.approx(sum(early) / len(early) / 0.25)
+
+
+@pytest.mark.parametrize("keep_every_exit", [False, True])
+def test_a_retrained_network_is_scored_as_it_ships(monkeypatch, keep_every_exit):
+    from explorer.cost import candidate_cost
+    from explorer.model.shipped import ship
+    context = SearchConfig(study="s", data=TINY_DATA, input_size=(64, 64), train_size=(32, 32),
+                           keep_every_exit=keep_every_exit).resolve()
+    errors = [1.0, 1.1, 0.5, 0.4, 0.3]   # the paper design's path 1 no better than the scan
+    _recipes_trained(monkeypatch, errors)
+    recipe = dataclasses.replace(context.config, finalist_steps=10).finalist_recipe()
+    got = retrained(Network(paper_candidate()), recipe, 7, None, context)
+    shipped = ship(paper_candidate(), errors, keep_every_exit)
+    assert got.candidate == shipped.candidate and len(got.dropped) == (0 if keep_every_exit else 1)
+    assert got.errors == ([1.0, 0.5, 0.4, 0.3] if not keep_every_exit else errors)
+    assert got.costs == pytest.approx(candidate_cost(shipped.candidate, (64, 64)).path_costs(context.device, "time"))

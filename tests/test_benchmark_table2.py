@@ -57,15 +57,15 @@ def test_each_column_picks_the_best_estimate_rescored_for_it():
     assert set(picks.values()) == {SLOW, FAST}   # the fast network wins where the slow one is late
 
 
-def test_a_network_is_scored_as_it_ships():
+def test_each_column_prices_the_network_that_ships():
     errors = [1.0, 1.1, 0.5, 0.4, 0.3]    # path 1 no better than the scan: left out
-    losses = table2.shipped_losses(SLOW, errors, (224, 224), keep_every_exit=False)
     shipped = ship(SLOW, errors)
+    losses = table2.shipped_losses(shipped.candidate, shipped.losses(errors), (224, 224))
     cost = candidate_cost(shipped.candidate)
     assert losses["tx2_t33ms"] == pytest.approx(anytime_loss(cost.path_costs(get_device("tx2"), "time"),
                                                              [1.0, 0.5, 0.4, 0.3], "time:uniform:33ms"))
-    kept = table2.shipped_losses(SLOW, errors, (224, 224), keep_every_exit=True)
-    assert kept["tx2_t33ms"] > losses["tx2_t33ms"]   # the dropped head delayed every later path
+    as_trained = table2.shipped_losses(SLOW, errors, (224, 224))
+    assert as_trained["tx2_t33ms"] > losses["tx2_t33ms"]   # the dropped head delayed every later path
 
 
 @pytest.mark.slow
@@ -74,6 +74,7 @@ def test_the_experiment_writes_every_column_for_every_seed(tmp_path, monkeypatch
     from explorer.study.config import SearchConfig
     from explorer.study.storage import local_url, open_storage
     from conftest import TINY_DATA
+    from experiments.lib.retraining import Retrained
     cfg = SearchConfig(study="t2", data=TINY_DATA, input_size=(64, 64), train_size=(32, 32), val_limit=4)
     study = optuna.create_study(study_name="t2", storage=open_storage(local_url("t2", tmp_path), "t2", reports=tmp_path))
     study.set_user_attr("config", cfg.to_dict())
@@ -82,7 +83,8 @@ def test_the_experiment_writes_every_column_for_every_seed(tmp_path, monkeypatch
 
     def fake_retrained(network, recipe, seed, data, context):
         trained.append((network.candidate.key, seed))
-        return [], [1.0] + [0.5 - 0.05 * i for i in range(network.candidate.num_paths - 1)]
+        return Retrained(network.candidate, [],
+                         [1.0] + [0.5 - 0.05 * i for i in range(network.candidate.num_paths - 1)])
     monkeypatch.setattr(table2, "retrained", fake_retrained)
     table2.bench_table2(["--study", "t2", "--reports", str(tmp_path), "--reps", "3", "--results",
                          str(tmp_path / "results")])

@@ -18,6 +18,7 @@ from explorer.cost import candidate_cost, get_device
 from explorer.data import open_dataset
 from explorer.errors import UserError
 from explorer.model import build_network
+from explorer.model.shipped import DroppedExit, ship
 from explorer.space import Candidate, paper_candidate
 from explorer.study import trial_record
 from explorer.study.config import SearchConfig, StudyContext
@@ -56,10 +57,26 @@ class Network:
         return self.weights, self.distill
 
 
+@dataclasses.dataclass(frozen=True)
+class Retrained:
+    """A network retrained and measured, as it ships (explorer.model.shipped: its exits no more accurate
+    than an earlier path left out, unless the study keeps every exit): the candidate that ships, its paths'
+    costs on the study's device for its first budget's kind and their errors, and what was left out."""
+
+    candidate: Candidate
+    costs: list[float]
+    errors: list[float]
+    dropped: tuple[DroppedExit, ...] = ()
+
+    @property
+    def loss_inputs(self) -> tuple[list[float], list[float]]:
+        return self.costs, self.errors
+
+
 def retrained(network: Network, recipe: DeploymentRecipe, seed: int, data: DeploymentData,
-              context: StudyContext) -> tuple[list[float], list[float]]:
-    """``network`` trained from scratch with ``recipe`` and ``seed``: (its paths' costs on the study's
-    device for its first budget's kind, their errors measured on ``data``'s validation frames)."""
+              context: StudyContext) -> Retrained:
+    """``network`` trained from scratch with ``recipe`` and ``seed``, its paths measured on ``data``'s
+    validation frames, and scored as it ships."""
     config, budget = context.config, context.budgets[0]
     costs = candidate_cost(network.candidate, tuple(config.input_size)).path_costs(context.device, budget.kind)
     weights = exit_loss_weights(costs, budget) if network.weights == "anytime" else None
@@ -68,18 +85,20 @@ def retrained(network: Network, recipe: DeploymentRecipe, seed: int, data: Deplo
     recipe = dataclasses.replace(recipe, train=dataclasses.replace(recipe.train, seed=seed, exit_weights=weights,
                                                                    self_distill=network.distill))
     result = train_for_deployment(net, data, recipe, torch.device("cpu"))
-    errors = [float(x) for x in result.metrics[config.metric]]
-    return [float(c) for c in costs], errors
+    shipped = ship(network.candidate, [float(x) for x in result.metrics[config.metric]], config.keep_every_exit)
+    ships = candidate_cost(shipped.candidate, tuple(config.input_size)).path_costs(context.device, budget.kind)
+    return Retrained(shipped.candidate, [float(c) for c in ships],
+                     shipped.losses([float(x) for x in result.metrics[config.metric]]), shipped.dropped)
 
 
 #: a path ready before this on the TX2 is an early one (the early-to-last ratio)
 EARLY_MS = 9.0
 
 
-def early_to_last(network: Network, errors: list[float], config: SearchConfig) -> float:
-    """The mean error of ``network``'s paths (past the scan) ready before EARLY_MS on the TX2, over its last
+def early_to_last(candidate: Candidate, errors: list[float], config: SearchConfig) -> float:
+    """The mean error of ``candidate``'s paths (past the scan) ready before EARLY_MS on the TX2, over its last
     path's (NaN where none is ready that early)."""
-    ms = candidate_cost(network.candidate, tuple(config.input_size)).path_costs(get_device("tx2"), "time")
+    ms = candidate_cost(candidate, tuple(config.input_size)).path_costs(get_device("tx2"), "time")
     early = [e for c, e in zip(ms[1:], errors[1:]) if c < EARLY_MS]
     return sum(early) / len(early) / errors[-1] if early else float("nan")
 
