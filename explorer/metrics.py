@@ -3,8 +3,12 @@ image, in metres; RMSE, MAE, REL (mean |pred - gt| / gt), delta_k (max(p/g, g/p)
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
-import torch
+
+if TYPE_CHECKING:   # the runtime install scores its maps with NumPy alone: no torch there
+    import torch
 
 METRICS = ("rmse", "mae", "rel", "delta1", "delta2", "delta3")
 #: the score of a path where the frames have no depth: see explorer.training.selfsup.photometric_score
@@ -38,13 +42,14 @@ def depth_metrics(pred: torch.Tensor | np.ndarray, target: torch.Tensor | np.nda
 
 
 def _float64(x: torch.Tensor | np.ndarray) -> np.ndarray:
-    if isinstance(x, torch.Tensor):
+    if hasattr(x, "detach"):   # a torch.Tensor
         x = x.detach().cpu().numpy()
     return np.asarray(x, dtype=np.float64).reshape(-1)
 
 
 def batch_depth_metrics(pred: torch.Tensor, target: torch.Tensor) -> list[dict[str, float]]:
     """:func:`depth_metrics` of every image of a batch (N, ...), computed at once."""
+    import torch
     p, t = pred.double().flatten(1), target.double().flatten(1)
     if p.shape != t.shape:
         raise ValueError(f"prediction has shape {tuple(pred.shape)} but target {tuple(target.shape)}")

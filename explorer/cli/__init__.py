@@ -12,7 +12,7 @@ import warnings
 from typing import Sequence
 
 from explorer.cli import deploy, devices, inspect, notebook, study, training
-from explorer.cli._common import _Parser, check_numbers, explain, resolve_data
+from explorer.cli._common import RUNTIME, _Parser, check_numbers, explain, resolve_data, runtime_install
 from explorer.cli.study import _print_outcome  # noqa: F401  (the closing summary, for tests and notebooks)
 from explorer.errors import UserError, refused_line, refused_write
 from explorer.files import sigterm_unwinds
@@ -89,16 +89,6 @@ def _kept(exc: BaseException | None) -> str:
             return str(exc.args[0])
         exc = exc.__context__
     return "finished trials and checkpoints are kept"
-
-
-#: the distribution that holds the runtime alone (runtime/pyproject.toml): explorer run, no torch
-RUNTIME = "anytime-explorer-runtime"
-
-
-def runtime_install() -> bool:
-    """Whether this is the runtime install: the package without its search, training and study code."""
-    import importlib.util
-    return importlib.util.find_spec("explorer.study") is None
 
 
 if __name__ == "__main__":

@@ -304,6 +304,10 @@ def resolve_data(args: argparse.Namespace) -> None:
     data = args.data
     if not isinstance(data, str) and lidar is None:
         return
+    if getattr(args, "command", None) == "curve" and runtime_install():   # the one command here with --data
+        raise UserError(f"--data {data}: reading a data set needs torch, which the runtime install ({RUNTIME}) "
+                        "has not; without --data explorer curve measures on the validation frames the export "
+                        "carries (`pip install anytime-explorer` reads any data)")
     from explorer.data import parse_data_spec, with_lidar
     if lidar is not None:
         if not isinstance(data, str):
@@ -313,3 +317,12 @@ def resolve_data(args: argparse.Namespace) -> None:
     else:
         args.data = str(parse_data_spec(data))
 
+
+#: the distribution that holds the runtime alone (runtime/pyproject.toml): explorer run and curve, no torch
+RUNTIME = "anytime-explorer-runtime"
+
+
+def runtime_install() -> bool:
+    """Whether this is the runtime install: the package without its search, training and study code."""
+    import importlib.util
+    return importlib.util.find_spec("explorer.study") is None

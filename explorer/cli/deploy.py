@@ -7,7 +7,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from explorer.errors import UserError
-from explorer.cli._common import MAX_THREADS, _add_provider, _bounded_int, _ms, _size, ascii_digits, deprecated_alias
+from explorer.cli._common import (MAX_THREADS, _add_provider, _bounded_int, _ms, _size, ascii_digits, deprecated_alias,
+                                  runtime_install)
 
 if TYPE_CHECKING:
     from explorer.deploy.manifest import Manifest
@@ -66,7 +67,9 @@ def cmd_export(args) -> None:
                                               quant, say, Measurement(data, args.eval_frames or 96))
     _print_measured(manifest)
     console.print(f"exported {len(manifest.stages)} stage graphs to {args.out} (max |onnx - torch| "
-                  f"{manifest.verification.max_abs_diff:.2e}{' before quantization' if manifest.quantization else ''})")
+                  f"{manifest.verification.max_abs_diff:.2e}{' before quantization' if manifest.quantization else ''})"
+                  + (f", and {manifest.curve_frames.frames} validation frames that `explorer curve` measures on"
+                     if manifest.curve_frames else ""), markup=False, highlight=False)
     if had_curve and not curve.exists():
         console.print(f"removed {curve}: it measured the graphs this export replaced; `explorer curve {args.out}` "
                       "measures these", markup=False, highlight=False)
@@ -186,8 +189,44 @@ def _keeper(args, kept: list):
 
 
 def cmd_curve(args) -> None:
+    from explorer.console import console, print_json
+    if runtime_install():   # no torch: the export's own frames and the manifest's prediction only
+        res = _device_curve(args)
+    else:
+        res = _full_curve(args)
+    if args.json:
+        print_json(res)
+        return
+    m, p = res["measured_anytime_loss"], res["predicted_anytime_loss"]
+    size = "x".join(map(str, res["input_size"]))
+    by = f"{res['device']}" + (" (the export's expected costs)" if res.get("predicted_from") == "manifest" else "")
+    console.print(f"anytime loss U(0, {res['b_max_ms']:.1f} ms) on this machine: measured {m:.4f}, predicted by "
+                  f"{by} {p:.4f} ({m / p - 1:+.1%}); on {res['frames']} validation frames of {res['data']} "
+                  f"at {size}; written to {Path(args.model) / 'anytime_curve.json'}")
+    if res["precision"] != res["priced_precision"]:
+        console.print(f"(the model is {res['precision']}; the profile prices {res['priced_precision']} layers only, "
+                      f"so the prediction is an {res['priced_precision']} one)")
+
+
+def _say(line: str) -> None:
+    from explorer.console import err_console
+    err_console.print(line, markup=False, highlight=False)
+
+
+def _device_curve(args) -> dict:
+    """``explorer curve`` in the runtime install: the export's frames, the manifest's prediction."""
+    from explorer.console import progress
+    from explorer.deploy.curve import device_curve
+    with progress(transient=True) as bar:
+        task = bar.add_task("deadlines", total=args.deadlines, status="")
+        return device_curve(Path(args.model), args.device, args.frames, args.deadlines,
+                            progress=lambda i, n: bar.update(task, completed=i), provider=args.provider, say=_say)
+
+
+def _full_curve(args) -> dict:
+    """``explorer curve`` with the whole package: any data, any profile, or this machine calibrated."""
     from explorer.calibration.curve import curve_check
-    from explorer.console import Phases, console, err_console, print_json, progress
+    from explorer.console import Phases, progress
     kept: list[Path] = []
     device, calibration = _curve_profile(args)
     with progress(transient=True) as bar:
@@ -196,22 +235,11 @@ def cmd_curve(args) -> None:
                           progress=lambda i, n: bar.update(task, completed=i), provider=args.provider,
                           calibration=calibration,
                           calibration_progress=Phases(bar, "calibrating this machine: ") if calibration else None,
-                          keep=_keeper(args, kept) if calibration else None)
+                          keep=_keeper(args, kept) if calibration else None, say=_say)
     if kept:
-        err_console.print(f"kept this machine's profile at {kept[0]}: the next `explorer curve` here reuses it, and "
-                          f"--device {kept[0]} prices with it (explorer rescore, search)", markup=False,
-                          highlight=False)
-    if args.json:
-        print_json(res)
-        return
-    m, p = res["measured_anytime_loss"], res["predicted_anytime_loss"]
-    size = "x".join(map(str, res["input_size"]))
-    console.print(f"anytime loss U(0, {res['b_max_ms']:.1f} ms) on this machine: measured {m:.4f}, predicted by "
-                  f"{res['device']} {p:.4f} ({m / p - 1:+.1%}); on {res['frames']} validation frames of {res['data']} "
-                  f"at {size}; written to {Path(args.model) / 'anytime_curve.json'}")
-    if res["precision"] != res["priced_precision"]:
-        console.print(f"(the model is {res['precision']}; the profile prices {res['priced_precision']} layers only, "
-                      f"so the prediction is an {res['priced_precision']} one)")
+        _say(f"kept this machine's profile at {kept[0]}: the next `explorer curve` here reuses it, and "
+             f"--device {kept[0]} prices with it (explorer rescore, search)")
+    return res
 
 
 def register(sub, add, reports: dict) -> None:
@@ -268,9 +296,12 @@ def register(sub, add, reports: dict) -> None:
 
     s = add("curve", cmd_curve, "measure an exported model's anytime curve here and compare with the prediction")
     s.add_argument("model", help="folder written by explorer export")
-    s.add_argument("--data", default="synthetic", help="frames to measure on (validation split)")
-    s.add_argument("--device", help="host profile from explorer calibrate (default: the profile of this machine "
-                   "an earlier explorer curve kept, else calibrate this machine now, several minutes, and keep it)")
+    s.add_argument("--data", default=None, help="frames to measure on (validation split; needs the full package) "
+                   "(default: the validation frames the export carries, else synthetic)")
+    s.add_argument("--device", help="a device the export's manifest prices (its expected costs predict the curve; "
+                   "what the runtime install needs), or a host profile from explorer calibrate (default: the "
+                   "profile of this machine an earlier explorer curve kept, else calibrate this machine now, several "
+                   "minutes, and keep it)")
     s.add_argument("--quick", action="store_true", help="without --device: calibrate quickly (a third of the "
                    "sweep); a kept full calibration serves too")
     s.add_argument("--recalibrate", action="store_true", help="calibrate this machine again even where a profile "

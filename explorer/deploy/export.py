@@ -15,8 +15,9 @@ import torch
 
 from explorer import __version__
 from explorer.cost import candidate_cost, get_device
-from explorer.deploy.manifest import (MANIFEST, ExpectedCost, Manifest, Measured, PathMetrics, Source, Stage,
-                                      Verification, file_sha256, write_manifest)
+from explorer.deploy.curve import CURVE_FRAME_COUNT, write_curve_frames
+from explorer.deploy.manifest import (MANIFEST, CurveFrames, ExpectedCost, Manifest, Measured, PathMetrics, Source,
+                                      Stage, Verification, file_sha256, write_manifest)
 from explorer.deploy.quantize import MAX_DEGRADATION
 from explorer.deploy.sessions import session
 from explorer.errors import UserError
@@ -122,10 +123,22 @@ def export_network(net: AnytimeDepthNet, out_dir: Path, input_size: tuple[int, i
                 manifest.expected_cost_note = (
                     "fp32 estimates: the device profiles price this network's layers as fp32, not the int8 graphs "
                     "exported (`explorer curve` measures these on a machine)")
+        if measurement is not None:   # what `explorer curve` measures on where it cannot read the data
+            manifest.curve_frames = store_curve_frames(scratch, measurement.data, input_size, rows_input)
         for stage in manifest.stages:
             stage.sha256 = file_sha256(scratch / stage.file)
         write_manifest(scratch, manifest)
     return manifest
+
+
+def store_curve_frames(folder: Path, data: str, input_size: tuple[int, int], rows_input: bool) -> CurveFrames | None:
+    """Writes the first validation frames of ``data`` at ``input_size`` into the export in ``folder``
+    for ``explorer curve`` (:func:`explorer.deploy.curve.write_curve_frames`); None where they have no
+    depth."""
+    from explorer.data import open_dataset
+    ds = open_dataset(data, "val", tuple(input_size), train_augment=False)
+    items = [ds[i] for i in range(min(CURVE_FRAME_COUNT, len(ds)))]
+    return write_curve_frames(folder, items, data, rows_input)
 
 
 def slanted_scans(data: str, input_size: tuple[int, int], frames: int = 8) -> bool:

@@ -16,7 +16,17 @@ from explorer.errors import UserError
 from explorer.files import read_json, write_json
 
 MANIFEST = "manifest.json"
+#: the validation frames an export carries for ``explorer curve`` (:class:`CurveFrames`)
+CURVE_FRAMES = "curve_frames.npz"
 Side = Annotated[int, Field(gt=0)]
+Sha256 = Annotated[str, Field(pattern=r"^[0-9a-f]{64}$")]
+
+
+def _inside_the_folder(file: str, what: str) -> str:
+    parts = PurePosixPath(file).parts
+    if PurePosixPath(file).is_absolute() or ".." in parts or "\\" in file:
+        raise ValueError(f"{what} must be a path inside the model folder")
+    return file
 
 
 #: per path, one figure per metric name (``rmse``, ``delta1``, ``photometric``, ...), path 0 first
@@ -48,15 +58,12 @@ class Stage(BaseModel):
     path: Optional[int] = None             # the path it completes
     precision: Optional[Literal["fp32", "int8"]] = None   # int8 exports: this graph's
     ms_here: Optional[StageTiming] = None
-    sha256: Optional[Annotated[str, Field(pattern=r"^[0-9a-f]{64}$")]] = None
+    sha256: Optional[Sha256] = None
 
     @field_validator("file")
     @classmethod
     def _inside_the_folder(cls, file: str) -> str:
-        parts = PurePosixPath(file).parts
-        if PurePosixPath(file).is_absolute() or ".." in parts or "\\" in file:
-            raise ValueError("a stage file must be a path inside the model folder")
-        return file
+        return _inside_the_folder(file, "a stage file")
 
     @property
     def is_scan_path(self) -> bool:
@@ -75,6 +82,26 @@ class Measured(BaseModel):
     frames: Annotated[int, Field(ge=1)]
     input_size: tuple[Side, Side]
     by: str = "onnxruntime, the exported graphs"
+
+
+class CurveFrames(BaseModel):
+    """``curve_frames``: the first ``frames`` validation frames of ``data`` that ``explorer curve`` measures
+    on where no data set can be read (the runtime install), in ``file`` (an ``.npz``: ``image``, ``scan``,
+    ``depth`` and, where the graphs take them, ``scan_rows``, one row per frame, each as the graphs take
+    it at the export's input size), checked against ``sha256`` when read."""
+
+    model_config = ConfigDict(extra="allow")
+
+    file: str = Field(min_length=1)
+    data: str
+    split: str = "val"
+    frames: Annotated[int, Field(ge=1)]
+    sha256: Sha256
+
+    @field_validator("file")
+    @classmethod
+    def _inside_the_folder(cls, file: str) -> str:
+        return _inside_the_folder(file, "the curve frames file")
 
 
 class ExpectedCost(BaseModel):
@@ -169,6 +196,7 @@ class Manifest(BaseModel):
     precision: Literal["fp32", "int8"] = "fp32"
     tuned_size: Optional[tuple[Side, Side]] = None
     measured: Optional[Measured] = None
+    curve_frames: Optional[CurveFrames] = None   # none where the frames measured had no depth
     # int8 exports: the paths before and after quantization (``path_metrics`` is then the int8 one and
     # ``path_metrics_trained`` the fp32 graphs', on the same frames)
     path_metrics_fp32: Optional[PathMetrics] = None
@@ -232,3 +260,22 @@ def read_manifest(model_dir: str | Path) -> Manifest:
             raise UserError(f"{folder / stage.file}: the graph does not match the manifest (changed or half "
                             "written): export the model again")
     return manifest
+
+
+def curve_frames_file(model_dir: str | Path, manifest: Manifest) -> Path:
+    """The file of the curve frames ``manifest`` names, checked as stage files are: inside the folder,
+    present, and with the SHA-256 the export recorded."""
+    folder = Path(model_dir)
+    entry = manifest.curve_frames
+    if entry is None:
+        raise UserError(f"{folder / MANIFEST}: names no curve frames")
+    f = (folder / entry.file).resolve()
+    if folder.resolve() not in f.parents:
+        raise UserError(f"{folder / MANIFEST}: curve frames file {entry.file} lies outside the model folder")
+    if not f.is_file():
+        raise UserError(f"{folder / entry.file}: curve frames listed in the manifest are missing: export the model "
+                        "again")
+    if file_sha256(f) != entry.sha256:
+        raise UserError(f"{folder / entry.file}: the curve frames do not match the manifest (changed or half "
+                        "written): export the model again")
+    return f

@@ -536,16 +536,17 @@ def measured_errors(manifest: Manifest) -> list[float] | None:
 
 def measured_anytime(runner: AnytimeRunner, frames: list[dict], deadlines_ms: np.ndarray,
                      metric: str = "rmse") -> dict:
-    """Runs every frame under every deadline; returns the mean loss of what came back per deadline
-    and the measured anytime loss for U(0, max deadline) (deadlines on a uniform grid)."""
+    """Runs every frame (as :func:`path_metrics` takes them) under every deadline; returns the mean loss
+    of what came back per deadline and the measured anytime loss for U(0, max deadline) (deadlines on a
+    uniform grid)."""
     from explorer.metrics import depth_metrics
     per_deadline = []
     paths = []
     for d in deadlines_ms:
         losses, ps = [], []
         for f in frames:
-            res = runner.run(f["image"].numpy(), f["scan"].numpy(), float(d), rows=_rows(f))
-            losses.append(depth_metrics(res.depth, f["depth"][0].numpy())[metric])
+            res = runner.run(np.asarray(f["image"]), np.asarray(f["scan"]), float(d), rows=_rows(f))
+            losses.append(depth_metrics(res.depth, np.asarray(f["depth"][0]))[metric])
             ps.append(res.path)
         per_deadline.append(float(np.mean(losses)))
         paths.append(float(np.mean(ps)))
@@ -554,12 +555,13 @@ def measured_anytime(runner: AnytimeRunner, frames: list[dict], deadlines_ms: np
 
 
 def path_metrics(runner: AnytimeRunner, frames: list[dict]) -> list[dict[str, float]]:
-    """Per-path metrics (FastDepth's conventions) of an exported model on ``frames`` (data set items)."""
+    """Per-path metrics (FastDepth's conventions) of an exported model on ``frames`` (data set items, or
+    the NumPy frames an export carries for ``explorer curve``)."""
     from explorer.metrics import PHOTOMETRIC, MetricAverager, depth_metrics
     averagers = [MetricAverager() for _ in range(runner.manifest.paths)]
     for f in frames:
-        for p, depth in enumerate(runner.depths(f["image"].numpy(), f["scan"].numpy(), _rows(f))):
-            averagers[p].add(depth_metrics(depth, f["depth"][0].numpy()))
+        for p, depth in enumerate(runner.depths(np.asarray(f["image"]), np.asarray(f["scan"]), _rows(f))):
+            averagers[p].add(depth_metrics(depth, np.asarray(f["depth"][0])))
             if bool(f.get("pose_known", False)):   # a sequence's frame with the camera's motion
                 averagers[p].add({PHOTOMETRIC: _photometric(depth, f)})
     return [{"path": p, **a.result()} for p, a in enumerate(averagers)]

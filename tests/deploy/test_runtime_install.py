@@ -70,7 +70,7 @@ def test_the_runtime_wheel_holds_the_runtime_and_needs_no_torch(runtime_wheel):
     import zipfile
     names = zipfile.ZipFile(runtime_wheel).namelist()
     assert "explorer/deploy/runtime.py" in names and "explorer/deploy/manifest.py" in names
-    assert "explorer/cli/deploy.py" in names
+    assert "explorer/cli/deploy.py" in names and "explorer/deploy/curve.py" in names   # explorer curve --device
     assert not any(n.startswith(("explorer/study/", "explorer/training/", "explorer/model/")) for n in names)
     reqs = {r.name: str(r.specifier) for r in _wheel_requirements(runtime_wheel)}
     assert set(reqs) == {"numpy", "onnx", "onnxruntime", "pyyaml", "pydantic", "pillow", "rich"}
@@ -93,12 +93,16 @@ def test_a_fresh_environment_without_torch_runs_an_exported_network(runtime_whee
     import torch
     from PIL import Image
 
-    from explorer.deploy.export import export_network
+    from conftest import TINY_DATA
+    from explorer.deploy.export import Measurement, export_network
     from explorer.model import build_network
     from explorer.space import paper_candidate
 
     torch.manual_seed(0)
     export_network(build_network(paper_candidate()), tmp_path / "winner", SIZE, devices=("tx2",))
+    # measured on frames with depth, an export carries the validation frames explorer curve measures on
+    export_network(build_network(paper_candidate()), tmp_path / "measured", SIZE, devices=("tx2",),
+                   measurement=Measurement(TINY_DATA, 4))
     rng = np.random.default_rng(0)
     Image.fromarray(rng.integers(0, 255, (*SIZE, 3), dtype=np.uint8)).save(tmp_path / "frame.png")
     np.savetxt(tmp_path / "scan.csv", rng.uniform(0.5, 8.0, (1, SIZE[1])), delimiter=",")
@@ -129,6 +133,20 @@ def test_a_fresh_environment_without_torch_runs_an_exported_network(runtime_whee
                               "--json").stdout)
     assert res["path"] == 0   # path 0 is always there, however short the deadline
 
+    # the anytime curve here, predicted with the costs the manifest holds for a device, and never torch
+    curve = subprocess.run([str(python), "-c", "import sys; from explorer.cli import main; rc = main(sys.argv[1:]); "
+                            "assert 'torch' not in sys.modules and 'pandas' not in sys.modules; sys.exit(rc)",
+                            "curve", "measured", "--device", "tx2", "--frames", "4", "--deadlines", "3"],
+                           cwd=tmp_path, capture_output=True, text=True, env={"HOME": str(tmp_path)})
+    assert curve.returncode == 0, curve.stderr
+    assert "predicted by tx2 (the export's expected costs)" in curve.stdout
+    written = json.loads((tmp_path / "measured" / "anytime_curve.json").read_text())
+    assert written["frames"] == 4 and len(written["measured"]["loss"]) == 3 and written["predicted_from"] == "manifest"
+    unpriced = explorer("curve", "measured", "--frames", "4")
+    assert unpriced.returncode == 2 and unpriced.stderr.count("\n") == 1, unpriced.stderr
+    assert "this export prices tx2" in unpriced.stderr and "probe bundle" in unpriced.stderr
+    assert "Traceback" not in unpriced.stderr
+
     # a command that needs the full package says so in one line
     search = explorer("search", "--space", "tiny")
     assert search.returncode == 2 and search.stderr.count("\n") == 1, search.stderr
@@ -138,5 +156,7 @@ def test_a_fresh_environment_without_torch_runs_an_exported_network(runtime_whee
 
 def test_the_deploying_guide_gives_the_steps_this_test_takes():
     guide = (ROOT / "docs" / "guides" / "deploying.md").read_text()
-    assert "pip wheel ./runtime --no-deps -w dist/" in guide
-    assert "pip install anytime_explorer_runtime-" in guide
+    device = guide.split("## On the device", 1)[1].split("\n## ", 1)[0]
+    assert "pip wheel ./runtime --no-deps -w dist/" in device
+    assert "pip install anytime_explorer_runtime-" in device
+    assert "explorer run winner/ " in device and "explorer curve winner/ --device tx2" in device
