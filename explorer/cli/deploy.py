@@ -70,11 +70,25 @@ def cmd_export(args) -> None:
                   f"{manifest.verification.max_abs_diff:.2e}{' before quantization' if manifest.quantization else ''})"
                   + (f", and {manifest.curve_frames.frames} validation frames that `explorer curve` measures on"
                      if manifest.curve_frames else ""), markup=False, highlight=False)
+    _print_dropped(manifest)
     if had_curve and not curve.exists():
         console.print(f"removed {curve}: it measured the graphs this export replaced; `explorer curve {args.out}` "
                       "measures these", markup=False, highlight=False)
     if manifest.quantization:
         _print_int8(manifest)
+
+
+def _print_dropped(manifest: Manifest) -> None:
+    """The exits the export's own measurement left out of what ships (beyond the study's)."""
+    from explorer.console import console
+    from explorer.model.shipped import DroppedExit
+    first = manifest.path_metrics[0] if manifest.path_metrics else {}
+    metric = "rmse" if "rmse" in first else next(iter(first), "error")
+    for drop in manifest.source.dropped_exits or []:
+        exit_ = DroppedExit.from_dict(drop)
+        if exit_.measured_on:
+            console.print(f"{exit_.describe(metric)}: left out of what ships (--keep-every-exit on the search "
+                          "keeps every exit)", markup=False, highlight=False)
 
 
 def _print_int8(manifest: Manifest) -> None:

@@ -173,9 +173,10 @@ def test_the_export_leaves_out_an_exit_its_own_measurement_finds_no_better_and_e
     assert studied.num_paths >= 4   # path 2 is not the last
     worse_path_2 = lambda n: [1.0, 0.8, 0.9] + [0.7 - 0.1 * i for i in range(n - 3)]  # noqa: E731
     calls = _measured_as(monkeypatch, worse_path_2, _improving)
-    code, _, err = run_cli("export", "--study", "reships", "--reports", tmp_path, "--out", tmp_path / "model",
+    code, out, err = run_cli("export", "--study", "reships", "--reports", tmp_path, "--out", tmp_path / "model",
                            "--eval-frames", 4)
     assert code == 0, err
+    assert "dropped: rmse 0.9 is not below 0.8" in out and "measured on the exported graphs at 64x64" in out
     assert calls == [studied.num_paths, studied.num_paths - 1]   # measured, then exported and measured again
     manifest = read_manifest(tmp_path / "model")
     ships = Candidate.from_dict(manifest.candidate)
