@@ -11,12 +11,10 @@ what the rule is worth. Figures per network: anytime loss, its ratio to the plai
 early-to-last ratio (the mean error of its paths ready before 9 ms on the TX2 over its last path's).
 
     python -m experiments.early_paths --only bench_early_paths [--steps 300] [--distill 0.5,1] [--reps 3]
-    python -m experiments.early_paths --only bench_cascade [--steps 300] [--reps 3]
     python -m experiments.early_paths --only bench_heads [--steps 300] [--reps 3]
 
-``bench_cascade`` asks the same of exits that build on each other (``exits.cascade``): the paper design
-with residual exits, plain and cascaded, beside the plain design. ``bench_heads`` asks it of a head sized for
-its position: the paper design's first exit with a two-layer head.
+``bench_heads`` asks the same of a head sized for its position: the paper design's first exit with a
+two-layer head.
 
 Every network is scored as it ships (an exit no more accurate than an earlier path left out).
 
@@ -102,22 +100,6 @@ def bench_early_paths(argv: Sequence[str] | None = None) -> None:
             "early-paths")
 
 
-#: the paper design with residual exits (each corrects the scan), and with them cascaded
-CASCADE_NETWORKS = "paper,paper:exit_residual=true,paper:exit_residual=true:exit_cascade=true"
-
-
-def bench_cascade(argv: Sequence[str] | None = None) -> None:
-    """Do cascaded exits pay? The paper design, its residual variant (every exit corrects the scan) and its
-    cascade (the first exit corrects the scan, each later one the exit before it), retrained as above."""
-    bench = Bench("bench_cascade", "Early paths: exits that correct the exit before them", bench_cascade.__doc__)
-    ap = bench.parser()
-    ap.add_argument("--steps", type=int, default=300, help="steps at the training size (default 300, the "
-                    "finalists'); then the default study's tuning steps at 224x224")
-    ap.add_argument("--first-seed", type=int, default=100, help="the first repetition's seed (default 100)")
-    args = bench.parse_args(ap, argv)
-    compare(bench, CASCADE_NETWORKS, args.steps, args.first_seed, "cascade")
-
-
 #: the paper design with its first exit (after the ECU, at the encoder's stride) given a two-layer head, narrow
 #: and wide, the other exits' heads as they are
 HEAD_NETWORKS = "paper,paper:ecu_head_depth=2:ecu_head_width=32,paper:ecu_head_depth=2:ecu_head_width=64"
@@ -135,7 +117,7 @@ def bench_heads(argv: Sequence[str] | None = None) -> None:
     compare(bench, HEAD_NETWORKS, args.steps, args.first_seed, "heads")
 
 
-CASES = (Case(bench_early_paths), Case(bench_cascade), Case(bench_heads))
+CASES = (Case(bench_early_paths), Case(bench_heads))
 
 if __name__ == "__main__":
     run_suite(CASES)

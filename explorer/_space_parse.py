@@ -87,7 +87,24 @@ def space_size(space) -> int:
                       else 1 + (encoder_exit_sets - 1) * encoder for on in space.ecu)
             heads += ecu * (exit_sets - with_ecu_exit + with_ecu_exit * len(head_options(space, "ecu", d, w, True)))
     rest = len(space.encoder_blocks) * len(space.width_mult) * math.prod(len(c) for c in space.decoder_widths)
-    return heads * rest * len(set(space.lidar_exit)) * len(space.exit_modes()) * len(set(space.precision))
+    return heads * rest * len(set(space.lidar_exit)) * len(set(space.exit_residual)) * len(set(space.precision))
+
+
+#: the one line for a stored candidate or a space that asks for cascaded exits
+CASCADE_GONE = ("cascaded exits (exit_cascade, exits.cascade) were removed because they did not pay: retrained, "
+                "they made the paper design's anytime loss worse in every seed (docs/evidence.md); search or "
+                "retrain without them (residual exits, each correcting the scan, remain)")
+
+
+def without_cascade(data: dict, key: str, where: str) -> dict:
+    """``data`` less ``key`` where it holds only false (a candidate's ``exit_cascade`` at its default, a
+    space's ``exits.cascade: [false]``), so what was stored so still loads; one UserError line otherwise."""
+    if key not in data:
+        return data
+    raw = data[key]
+    if any(v is not False for v in (raw if isinstance(raw, list) else [raw])):
+        raise UserError(f"{where}: {CASCADE_GONE}")
+    return {k: v for k, v in data.items() if k != key}
 
 
 class RandomTrial:

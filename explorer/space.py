@@ -21,7 +21,8 @@ import yaml
 
 from explorer.errors import UserError
 from explorer._space_parse import (HEAD_POSITIONS, RandomTrial, canonical_head, check_heads, ecu_exit_drawn,
-                                   encoder_exit_drawn, head_options, head_words, parse_choices, space_size, two_layers)
+                                   encoder_exit_drawn, head_options, head_words, parse_choices, space_size, two_layers,
+                                   without_cascade)
 from explorer.files import read_choices, read_yaml
 
 #: MobileNet v1 depthwise-separable blocks (in, out, stride), after conv0 (3 -> 32, stride 2).
@@ -75,7 +76,6 @@ class Candidate:
     lidar_first: bool = False              # LiDAR encoder before the image encoder (encoder exits fuse it)
     precision: str = "fp32"                # "int8": deployed statically quantized, costed and measured so
     exit_residual: bool = False            # every exit corrects path 0 (the interpolated scan) instead of replacing it
-    exit_cascade: bool = False             # with exit_residual: each exit after the first corrects the one before it
     # exit heads sized for their position: 0 = as head_depth / head_width (canonical where they agree)
     encoder_head_depth: int = 0            # the encoder exits' heads (stride 4-8)
     encoder_head_width: int = 0
@@ -89,8 +89,6 @@ class Candidate:
         object.__setattr__(self, "encoder_exits", tuple(sorted({int(e) for e in self.encoder_exits})))
         object.__setattr__(self, "lidar_exit", bool(self.lidar_exit))
         object.__setattr__(self, "exit_residual", bool(self.exit_residual))
-        # a cascade is of corrections: without residual exits there is none (canonical form)
-        object.__setattr__(self, "exit_cascade", bool(self.exit_cascade and self.exit_residual))
         if not self.ecu:
             for name in ("lidar_depth", "lidar_width", "ecu_band", "ecu_width"):
                 object.__setattr__(self, name, 0)
@@ -189,8 +187,6 @@ class Candidate:
         names = ["ECU" if e == 0 else f"stage {e}" for e in self.exits]
         head = head_words(self)
         correct = ", each correcting the interpolated scan" if self.exit_residual else ""
-        if self.exit_cascade:
-            correct = ", the first correcting the interpolated scan, each later one the exit before it"
         parts.append(f"exits after {', '.join(names)} ({head}){correct}")
         if self.precision != "fp32":
             parts.append(self.precision)
@@ -213,6 +209,7 @@ class Candidate:
     def from_dict(cls, data: Any, source: str = "candidate") -> "Candidate":
         if not isinstance(data, dict):
             raise UserError(f"{source}: a candidate is a mapping of fields, got {type(data).__name__}")
+        data = without_cascade(data, "exit_cascade", source)
         known = {f.name for f in dataclasses.fields(cls)}
         unknown = sorted(set(data) - known)
         if unknown:
@@ -232,9 +229,8 @@ class Candidate:
 
 #: Fields added after the first release, with the value that leaves them out of a candidate's dict.
 _LATER_FIELDS: dict[str, Any] = {"encoder_exits": [], "lidar_exit": False, "lidar_first": False,
-                                  "precision": "fp32", "exit_residual": False,
-                                  "exit_cascade": False, "encoder_head_depth": 0, "encoder_head_width": 0,
-                                  "ecu_head_depth": 0, "ecu_head_width": 0}
+                                  "precision": "fp32", "exit_residual": False, "encoder_head_depth": 0,
+                                  "encoder_head_width": 0, "ecu_head_depth": 0, "ecu_head_width": 0}
 #: Numeric precisions a candidate may be deployed at (``explorer export --quantize``).
 PRECISIONS = ("fp32", "int8")
 #: Strides at which an image exit may leave the encoder (after block k, before the decoder).
@@ -305,7 +301,6 @@ DIMENSIONS: tuple[Dimension, ...] = (
     Dimension("ecu_head_width", "exits", "ecu_head_width", int, two_layers("ecu")),
     Dimension("precision", "", "precision", str, several=True),
     Dimension("exit_residual", "exits", "residual", bool, several=True),
-    Dimension("exit_cascade", "exits", "cascade", bool, lambda params: params.get("exit_residual", True), several=True),
     Dimension("encoder_blocks", "image_encoder", "blocks", int),
     Dimension("width_mult", "image_encoder", "width_mult", float),
     Dimension("decoder_widths", "decoder", "widths", "stages"),
@@ -376,7 +371,6 @@ class SearchSpace:
     lidar_exit: tuple[bool, ...] = (False,)
     precision: tuple[str, ...] = ("fp32",)
     exit_residual: tuple[bool, ...] = (False,)
-    exit_cascade: tuple[bool, ...] = (False,)
     encoder_head_depth: tuple[int, ...] = (0,)
     encoder_head_width: tuple[int, ...] = (0,)
     ecu_head_depth: tuple[int, ...] = (0,)
@@ -408,6 +402,8 @@ class SearchSpace:
             body = data.get(section, {}) or {}
             if not isinstance(body, dict):
                 raise UserError(f"{source}: section '{section}' must be a mapping of {sorted(fields)}")
+            if section == "exits":
+                body = without_cascade(body, "cascade", f"{source}: exits.cascade")
             bad = sorted(set(body) - set(fields))
             if bad:
                 raise UserError(f"{source}: unknown key(s) {bad} in '{section}'; known: {sorted(fields)}")
@@ -484,8 +480,6 @@ class SearchSpace:
         return out
 
     def _lists(self, dim: Dimension) -> bool:
-        if dim.field == "exit_cascade":   # drawn only where residual exits can be chosen
-            return len(set(self.exit_cascade)) > 1 and True in self.exit_residual
         if dim.field in _HEAD_FIELDS:   # where the space sizes heads there, and the position can have an exit
             has = self.optional_encoder_exits if dim.field.startswith("encoder") else \
                 0 in self.optional_exits + self.required_exits
@@ -505,11 +499,6 @@ class SearchSpace:
         """Number of distinct candidates (LiDAR/ECU choices only count when the ECU is on;
         head width only when heads have two layers)."""
         return space_size(self)
-
-    def exit_modes(self) -> list[tuple[bool, bool]]:
-        """The (exit_residual, exit_cascade) pairs of the space's candidates (a cascade needs residual exits)."""
-        return [(r, c) for r in sorted(set(self.exit_residual))
-                for c in (sorted(set(self.exit_cascade)) if r else [False])]
 
     def _exit_sets(self) -> Iterator[tuple[int, ...]]:
         last = len(self.decoder_widths)
@@ -534,9 +523,9 @@ class SearchSpace:
                 enc = tuple(k for k, on in zip(self.optional_encoder_exits, mask) if on)
                 orders = sorted(set(self.lidar_first)) if ecu[0] and enc else [False]
                 early += [(ecu, enc, first) for first in orders]
-        for blocks, wm, (ecu, enc, first), widths, exits, head, lidar_exit, mode, precision in itertools.product(
+        for blocks, wm, (ecu, enc, first), widths, exits, head, lidar_exit, residual, precision in itertools.product(
                 self.encoder_blocks, self.width_mult, early, itertools.product(*self.decoder_widths),
-                exit_sets, heads, sorted(set(self.lidar_exit)), self.exit_modes(),
+                exit_sets, heads, sorted(set(self.lidar_exit)), sorted(set(self.exit_residual)),
                 dict.fromkeys(self.precision)):
             for enc_head, ecu_head in itertools.product(head_options(self, "encoder", *head, bool(enc)),
                                                         head_options(self, "ecu", *head, 0 in exits)):
@@ -544,7 +533,7 @@ class SearchSpace:
                                 lidar_width=ecu[2], ecu_band=ecu[3], ecu_width=ecu[4],
                                 decoder_widths=widths, exits=exits, head_depth=head[0], head_width=head[1],
                                 encoder_exits=enc, lidar_exit=lidar_exit, lidar_first=first, precision=precision,
-                                exit_residual=mode[0], exit_cascade=mode[1], encoder_head_depth=enc_head[0],
+                                exit_residual=residual, encoder_head_depth=enc_head[0],
                                 encoder_head_width=enc_head[1], ecu_head_depth=ecu_head[0], ecu_head_width=ecu_head[1])
 
     def sample(self, trial: Any) -> Candidate:
@@ -592,7 +581,7 @@ class SearchSpace:
         p = self.params_of(candidate)
         inner = set(candidate.exits[:-1])
         return candidate.precision in self.precision and \
-            (candidate.exit_residual, candidate.exit_cascade) in self.exit_modes() and \
+            candidate.exit_residual in self.exit_residual and \
             len(candidate.decoder_widths) == len(self.decoder_widths) and \
             set(candidate.encoder_exits) <= set(self.optional_encoder_exits) and all(
             v in d[k] for k, v in p.items()) and set(self.required_exits) <= inner and \

@@ -59,10 +59,22 @@ def test_every_suite_and_experiment_has_a_record(module):
     assert any(_has_record(n) for n in names), f"{module}: no record of {names}"
 
 
+#: records whose experiment is gone, each kept for a reason: the evidence of why what it measured is gone too
+RETIRED = {"bench_cascade": "cascaded exits, removed: the record is the evidence why (docs/evidence.md)"}
+
+
 def test_every_record_belongs_to_a_benchmark_or_an_experiment():
     cases = _cases()
-    orphans = sorted(p.name for p in RESULTS.iterdir() if p.is_dir() and p.name not in cases)
+    orphans = sorted(p.name for p in RESULTS.iterdir() if p.is_dir() and p.name not in cases and p.name not in RETIRED)
     assert not orphans, f"records of no benchmark: {orphans}"
+
+
+@pytest.mark.parametrize("name", sorted(RETIRED))
+def test_a_retired_record_is_kept_and_belongs_to_no_benchmark(name):
+    assert name not in _cases(), f"{name} is a benchmark again: take it out of RETIRED"
+    assert _has_record(name), f"{name} is retired but has no record under benchmarks/results/: {RETIRED[name]}"
+    assert f"benchmarks.md#{name}" in (ROOT / "docs" / "evidence.md").read_text(), \
+        f"{name}: the evidence page, the reason its record is kept, no longer links it"
 
 
 def test_the_benchmarks_are_a_few_small_suites_that_leave_sys_path_alone():

@@ -73,7 +73,7 @@ def space_axes(space: SearchSpace) -> dict[str, list[dict[str, Any]]]:
         "heads": [{"head_depth": d, "head_width": w} for d in space.head_depth
                   for w in (space.head_width if d == 2 else (0,))],
         "lidar_exit": [{"lidar_exit": v} for v in sorted(set(space.lidar_exit))],
-        "residual": [{"exit_residual": r, "exit_cascade": c} for r, c in space.exit_modes()],
+        "residual": [{"exit_residual": v} for v in sorted(set(space.exit_residual))],
         "precision": [{"precision": p} for p in dict.fromkeys(space.precision)],
     }
 

@@ -376,8 +376,6 @@ def uint8_edges(models) -> list[str]:
     from onnx import TensorProto
     done = []
     for name, (p, dq) in _dequantized_outputs(models).items():
-        if name.startswith("depth_"):   # a path's depth map stays float, as the runtime hands it on (a cascade)
-            continue
         src = models[p].graph
 
         def quantizes_alike(graph, node, tensor: str) -> bool:

@@ -186,9 +186,7 @@ class AnytimeRunner:
         from explorer.probe import hand_off_blocked, hand_off_quantized
         try:
             models = [onnx.load(str(optimized / f"{k}.onnx")) for k in range(len(self.sessions))]
-            # a path's depth map stays as it is, float: the runtime returns it (a cascade's next exit reads it too)
-            ins = [[n for n in s[2] if not n.startswith("depth_")] for s in self.sessions]
-            outs = [s[3] for s in self.sessions]
+            ins, outs = [s[2] for s in self.sessions], [s[3] for s in self.sessions]
             handed = dict.fromkeys(hand_off_blocked(models, ins, outs), "blocked")
             handed.update(hand_off_quantized(models, ins, outs))
             if not handed:

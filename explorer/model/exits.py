@@ -2,9 +2,7 @@
 
 A residual head adds its output to path 0 (the interpolated scan, computed once per inference by the
 ``scan_fill`` stage): it learns a correction to the scan instead of the whole depth map, and keeps
-the scan's full horizontal resolution where its own output is coarse. In a cascade
-(``Candidate.exit_cascade``) every residual head after the first corrects the previous exit's depth
-map instead, as the stages of AnyNet do: the same layers and the same add, another input."""
+the scan's full horizontal resolution where its own output is coarse."""
 
 from __future__ import annotations
 
@@ -29,7 +27,6 @@ class ExitHeadConfig:
     residual: bool = False       # the output corrects path 0 (its last input) instead of replacing it
     nearest: int = 1             # > 1: the decoder stage before left its nearest up-sampling to the head
     bilinear_products: bool = True   # False: a bilinear resize operator, as the paper's graph (``ops.Resize``)
-    cascade: bool = False        # residual, correcting the previous exit's depth map (its last input), not path 0
 
     def build(self) -> "ExitHead":
         return ExitHead(self)
@@ -58,8 +55,7 @@ class ExitHead(nn.Module):
             self.correct = SkipAdd()
 
     def forward(self, x: torch.Tensor, *extra: torch.Tensor) -> torch.Tensor:
-        """``extra``: the LiDAR feature when the head fuses it, then the depth map it corrects when it is
-        residual (path 0, or the previous exit's in a cascade)."""
+        """``extra``: the LiDAR feature when the head fuses it, then path 0 when it is residual."""
         if self.config.lidar_channels:
             x = self.add(x, self.fuse(extra[0]).unsqueeze(2))
         depth = self.layers(x)

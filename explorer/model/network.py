@@ -49,26 +49,21 @@ def stage_specs(candidate: Candidate, paper_graph: bool = False) -> list[StageSp
     to its exit head where that gives the same values (``explorer.model.decoder``), and exit heads
     up-sample bilinearly as two matrix products (``ops.Resize``); ``paper_graph``: neither, the graph
     the paper measured, for its figures (the same parameters, the same values to float rounding).
-    Residual exits read last the depth map they correct: the scan (``scan_fill``), or in a cascade,
-    after the first exit, the previous exit's ``depth_{path - 1}``."""
+    Residual exits read last the depth map they correct, the scan (``scan_fill``)."""
     stride = candidate.stride
     specs: list[StageSpec] = []
     path = 1
     residual = candidate.exit_residual
-    base = "scan_fill"   # what the next residual exit corrects
+    base = ("scan_fill",) if residual else ()
 
     def add_exit(name: str, cfg: ExitHeadConfig | LidarExitConfig, inputs: tuple[str, ...]) -> None:
-        nonlocal path, base
-        if residual and isinstance(cfg, ExitHeadConfig):
-            cfg = replace(cfg, cascade=base != "scan_fill")
-        specs.append(StageSpec(name, cfg, inputs + ((base,) if residual else ()), (f"depth_{path}",), path))
-        if candidate.exit_cascade:
-            base = f"depth_{path}"
+        nonlocal path
+        specs.append(StageSpec(name, cfg, inputs + base, (f"depth_{path}",), path))
         path += 1
 
     if residual:
         specs.append(StageSpec("scan_fill", ScanFillConfig(), ("scan", "image"), ("scan_fill",)))
-    if candidate.lidar_exit:   # always the first exit: it corrects the scan
+    if candidate.lidar_exit:
         add_exit("lidar_exit", LidarExitConfig(residual=residual), ("scan", "image"))
     lidar = None
     if candidate.ecu:

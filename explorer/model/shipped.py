@@ -9,8 +9,7 @@ weights are those of the trained network (:func:`carry_weights`): no retraining.
 
 The last exit is never dropped (the candidate family always exits after its last decoder stage); where
 it is not the most accurate path, the runtime's rule, returning the most accurate path ready, covers it.
-Nor is an exit whose depth map a later exit reads (a cascade, ``Candidate.exit_cascade``: each exit
-corrects the one before it): without it the later exit would correct another map than it learned to.
+Nor is an exit whose depth map a later stage reads: that stage would lose an input it was trained on.
 """
 
 from __future__ import annotations
@@ -95,12 +94,12 @@ def without_exits(candidate: Candidate, names: Sequence[str]) -> Candidate:
 def ship(candidate: Candidate, path_losses: Sequence[float], keep_every_exit: bool = False) -> ShippedNetwork:
     """The network to ship from ``candidate`` given its per-path losses (path 0 included; lower is
     better): every exit whose loss is not below the best of the paths before it is dropped, the last
-    excepted, and those whose depth map a later exit reads (a cascade). A NaN loss never improves.
+    excepted, and those whose depth map a later stage reads. A NaN loss never improves.
     ``keep_every_exit``: ship the network as trained."""
     if len(path_losses) != candidate.num_paths:
         raise ValueError(f"{len(path_losses)} losses for the {candidate.num_paths} paths of {candidate.key}")
     names = exit_names(candidate)
-    read = {i for s in stage_specs(candidate) for i in s.inputs}   # an exit read by a later one stays
+    read = {i for s in stage_specs(candidate) for i in s.inputs}   # an exit a later stage reads stays
     best, best_path = float(path_losses[0]), 0
     dropped: list[DroppedExit] = []
     for path in range(1, candidate.num_paths):

@@ -31,14 +31,13 @@ def slot_of(spec: StageSpec) -> str:
         return "ecu"
     if isinstance(cfg, ScanFillConfig):
         return "scan_fill"
-    # a head that corrects the scan learns another output than one that replaces it: its own weights;
-    # one that corrects the previous exit (a cascade) learns another again: its own weights too
+    # a head that corrects the scan learns another output than one that replaces it: its own weights
     if isinstance(cfg, LidarExitConfig):
         return "lidar_exit" + ("_r" if cfg.residual else "")
     if isinstance(cfg, DecoderStageConfig):
         return spec.name
     if isinstance(cfg, ExitHeadConfig):
-        return f"{spec.name}_d{cfg.depth}" + ("_c" if cfg.cascade else "_r" if cfg.residual else "")
+        return f"{spec.name}_d{cfg.depth}" + ("_r" if cfg.residual else "")
     raise TypeError(f"no supernet slot for stage {spec.name} ({type(cfg).__name__})")
 
 

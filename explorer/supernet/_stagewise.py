@@ -136,7 +136,6 @@ class StageMemo:
             return
         if entry.nbytes > self.max_bytes:
             return
-        self.exits.pop(key, None)   # an exit's metrics alone, kept before its outputs were wanted (a cascade)
         self.entries[key] = entry
         self.nbytes += entry.nbytes
         while self.nbytes > self.max_bytes:
@@ -157,9 +156,8 @@ def _path_metrics(outputs: list[torch.Tensor], depths: list[torch.Tensor]) -> di
 
 
 def _run_stage(module: torch.nn.Module, spec: StageSpec, calibration: list[dict], validation: list[dict],
-               cal_frames: Frames, val_frames: Frames, read_later: bool = False) -> _StageResult:
-    """Recalibrates the stage's statistics on the calibration inputs, then runs the validation ones.
-    ``read_later``: an exit whose depth map a later stage reads (a cascade) keeps its outputs too."""
+               cal_frames: Frames, val_frames: Frames) -> _StageResult:
+    """Recalibrates the stage's statistics on the calibration inputs, then runs the validation ones."""
 
     def call(env: dict, row: int):
         args = [env[n] for n in spec.inputs] + ([row] if spec.uses_scan_row else [])
@@ -168,18 +166,15 @@ def _run_stage(module: torch.nn.Module, spec: StageSpec, calibration: list[dict]
 
     exit_stage = spec.path is not None
     cal_outs = None
-    # an exit's outputs feed nothing (but in a cascade): without statistics to recalibrate it need not run here
-    if _norms(module) or not exit_stage or read_later:
+    # an exit's outputs feed nothing: without statistics to recalibrate it need not run here
+    if _norms(module) or not exit_stage:
         with recalibrating(module):
             cal_outs = [call(env, row) for env, row in zip(calibration, cal_frames.rows)]
     module.eval()
     with torch.no_grad():
         val_outs = [call(env, row) for env, row in zip(validation, val_frames.rows)]
-    if exit_stage and not read_later:
-        return _StageResult(None, None, _path_metrics([o[0] for o in val_outs], val_frames.depths))
     if exit_stage:
-        return _StageResult(cal_outs, val_outs, _path_metrics([o[0] for o in val_outs], val_frames.depths),
-                            nbytes=_nbytes(cal_outs) + _nbytes(val_outs))
+        return _StageResult(None, None, _path_metrics([o[0] for o in val_outs], val_frames.depths))
     return _StageResult(cal_outs, val_outs, nbytes=_nbytes(cal_outs) + _nbytes(val_outs))
 
 
@@ -197,7 +192,6 @@ def evaluate_stagewise(specs: list[StageSpec], stage_module: Callable[[StageSpec
         height = val_frames.images[0].shape[2]
         memo.path_0 = _path_metrics([interpolate_scan(s, height) for s in val_frames.scans], val_frames.depths)
     rows = [{"path": 0, **memo.path_0}]
-    read = {name for spec in specs for name in spec.inputs}
     for spec in specs:
         if isinstance(spec.config, ImageEncoderConfig):
             for name, block in zip(spec.outputs, spec.config.output_blocks()):
@@ -209,18 +203,14 @@ def evaluate_stagewise(specs: list[StageSpec], stage_module: Callable[[StageSpec
             continue
         key = (spec.name, spec.config, tuple(keys[n] for n in spec.inputs))
         result = memo.get(key)
-        read_later = spec.outputs[0] in read
-        # a cascade's first exit may be kept as a leaf (its metrics alone) from a candidate without a cascade
-        if result is None or (read_later and result.calibration is None):
-            result = _run_stage(stage_module(spec), spec, calibration, validation, cal_frames, val_frames,
-                                read_later=read_later)
+        if result is None:
+            result = _run_stage(stage_module(spec), spec, calibration, validation, cal_frames, val_frames)
             memo.put(key, result)
         for i, name in enumerate(spec.outputs):
             keys[name] = (key, i)
         if spec.path is not None:
             rows.append({"path": spec.path, **result.metrics})
-            if result.calibration is None:
-                continue
+            continue
         for env, outs in zip(calibration, result.calibration):
             env.update(zip(spec.outputs, outs))
         for env, outs in zip(validation, result.validation):

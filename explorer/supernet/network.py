@@ -37,8 +37,6 @@ def space_identity(space: SearchSpace) -> dict:
     dims["decoder_stages"] = len(space.decoder_widths)
     if space.exit_residual != (False,):   # spaces without residual exits keep the keys they had
         dims["exit_residual"] = list(space.exit_residual)
-    if space.exit_cascade != (False,):    # and spaces without cascades theirs
-        dims["exit_cascade"] = list(space.exit_cascade)
     return dims
 
 
@@ -51,13 +49,11 @@ def space_key(space: SearchSpace) -> str:
 HEAD_FIELDS = ("encoder_head_depth", "encoder_head_width", "ecu_head_depth", "ecu_head_width")
 
 
-def _extreme_candidate(space: SearchSpace, pick, head_depth: int | None, residual: bool | None = None,
-                       cascade: bool | None = None) -> Candidate:
+def _extreme_candidate(space: SearchSpace, pick, head_depth: int | None, residual: bool | None = None) -> Candidate:
     """Every dimension at ``pick`` (max or min) of its choices, with every exit the space allows
     (heads cost nothing to train along, and every head trains every step)."""
     depth = pick(space.head_depth) if head_depth is None else head_depth
     residual = pick(space.exit_residual) if residual is None else residual
-    cascade = pick(space.exit_cascade) if cascade is None else cascade
     last = len(space.decoder_widths)
     return Candidate(
         encoder_blocks=pick(space.encoder_blocks), width_mult=pick(space.width_mult), ecu=pick(space.ecu),
@@ -66,14 +62,14 @@ def _extreme_candidate(space: SearchSpace, pick, head_depth: int | None, residua
         exits=tuple(sorted(set(space.optional_exits) | set(space.required_exits))) + (last,),
         head_depth=depth, head_width=pick(space.head_width) if depth == 2 else 0,
         encoder_exits=space.optional_encoder_exits, lidar_exit=True in space.lidar_exit,
-        lidar_first=pick(space.lidar_first), exit_residual=residual, exit_cascade=cascade,
+        lidar_first=pick(space.lidar_first), exit_residual=residual,
         **{f: pick(getattr(space, f)) for f in HEAD_FIELDS})
 
 
-def largest_candidate(space: SearchSpace, head_depth: int | None = None, residual: bool | None = None,
-                      cascade: bool | None = None) -> Candidate:
+def largest_candidate(space: SearchSpace, head_depth: int | None = None, residual: bool | None = None
+                      ) -> Candidate:
     """The biggest network of ``space`` with every exit it allows."""
-    return _extreme_candidate(space, max, head_depth, residual, cascade)
+    return _extreme_candidate(space, max, head_depth, residual)
 
 
 def smallest_candidate(space: SearchSpace, head_depth: int | None = None) -> Candidate:
@@ -87,15 +83,13 @@ def random_training_subnet(space: SearchSpace, rng: random.Random) -> Candidate:
     ecu = rng.choice(space.ecu)
     depth = rng.choice(space.head_depth)
     residual = rng.choice(space.exit_residual)
-    # drawn only where it is a choice: a space without cascades draws what it drew before
-    cascade = rng.choice(space.exit_cascade) if residual and len(space.exit_cascade) > 1 else space.exit_cascade[0]
     return dataclasses.replace(
         base, encoder_blocks=rng.choice(space.encoder_blocks), width_mult=rng.choice(space.width_mult), ecu=ecu,
         lidar_depth=rng.choice(space.lidar_depth) if ecu else 0, lidar_width=rng.choice(space.lidar_width) if ecu else 0,
         ecu_band=rng.choice(space.ecu_band) if ecu else 0, ecu_width=rng.choice(space.ecu_width) if ecu else 0,
         decoder_widths=tuple(rng.choice(c) for c in space.decoder_widths),
         head_depth=depth, head_width=rng.choice(space.head_width) if depth == 2 else 0,
-        lidar_first=rng.choice(space.lidar_first), exit_residual=residual, exit_cascade=cascade,
+        lidar_first=rng.choice(space.lidar_first), exit_residual=residual,
         # drawn only where the space sizes heads per position: other spaces draw what they drew before
         **{f: rng.choice(getattr(space, f)) for f in HEAD_FIELDS if getattr(space, f) != (0,)})
 
@@ -110,16 +104,14 @@ def _widest_heads(space: SearchSpace, depth: int) -> list[dict]:
             for c in sorted({d or depth for d in space.ecu_head_depth})]
 
 
-def head_kinds(space: SearchSpace) -> list[tuple[int, bool, bool]]:
-    """Every kind of exit head set ``space`` has: (depth, residual, cascade)."""
-    return [(d, r, c) for d in sorted(set(space.head_depth)) for r, c in space.exit_modes()]
+def head_kinds(space: SearchSpace) -> list[tuple[int, bool]]:
+    """Every kind of exit head set ``space`` has: (depth, residual)."""
+    return [(d, r) for d in sorted(set(space.head_depth)) for r in sorted(set(space.exit_residual))]
 
 
-def with_head_kind(candidate: Candidate, space: SearchSpace, depth: int, residual: bool,
-                   cascade: bool = False) -> Candidate:
-    """``candidate`` with exit heads of ``depth`` layers, correcting the scan or not (``residual``), each
-    after the first correcting the exit before it (``cascade``)."""
-    return dataclasses.replace(candidate, head_depth=depth, exit_residual=residual, exit_cascade=cascade,
+def with_head_kind(candidate: Candidate, space: SearchSpace, depth: int, residual: bool) -> Candidate:
+    """``candidate`` with exit heads of ``depth`` layers, correcting the scan or not (``residual``)."""
+    return dataclasses.replace(candidate, head_depth=depth, exit_residual=residual,
                                head_width=max(space.head_width) if depth == 2 else 0)
 
 
@@ -129,11 +121,9 @@ class Supernet(nn.Module):
         self.space = space
         self.largest = largest_candidate(space)
         slots: dict[str, nn.Module] = {}
-        # a cascade's first exit corrects the scan: whichever exit is first, its scan-correcting head exists
-        kinds = dict.fromkeys(k for d, r, c in head_kinds(space) for k in ((d, r, False), (d, r, c)))
-        for depth, residual, cascade in kinds:
+        for depth, residual in head_kinds(space):
             for heads in _widest_heads(space, depth):
-                widest = dataclasses.replace(largest_candidate(space, depth, residual, cascade), **heads)
+                widest = dataclasses.replace(largest_candidate(space, depth, residual), **heads)
                 # the whole image encoder in one slot; encoder exits split a candidate's encoder into views of it
                 for spec in stage_specs(dataclasses.replace(widest, encoder_exits=())) + stage_specs(widest):
                     slot = slot_of(spec)

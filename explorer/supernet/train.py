@@ -302,7 +302,7 @@ def _subnets(largest: Candidate, smallest: Candidate, space: SearchSpace, recipe
              rng: random.Random) -> list[Candidate]:
     """This step's subnets: the teacher, the smallest, ``recipe.random_subnets`` random ones.
 
-    Each kind of exit head (depth x residual x cascade) has its own weights. The largest and the smallest
+    Each kind of exit head (depth x residual) has its own weights. The largest and the smallest
     subnets always train two kinds; with ``head_kinds="random"`` a random subnet draws its kind, so
     the other kinds train about a quarter of the steps each (their heads see 4x fewer updates).
     "cover" gives the random subnets those other kinds in turn: each trains at least every other step.
@@ -323,7 +323,7 @@ def _subnets(largest: Candidate, smallest: Candidate, space: SearchSpace, recipe
         return [with_head_kind(c, space, *every[(step * len(subnets) + j) % len(every)])
                 for j, c in enumerate(subnets)]
     if recipe.head_kinds == "cover":
-        kinds = [k for k in every if k not in {(c.head_depth, c.exit_residual, c.exit_cascade) for c in (largest, smallest)}]
+        kinds = [k for k in every if k not in {(c.head_depth, c.exit_residual) for c in (largest, smallest)}]
         if kinds:
             subnets[2:] = [with_head_kind(c, space, *kinds[(step * len(randoms) + j) % len(kinds)])
                            for j, c in enumerate(randoms)]
