@@ -86,9 +86,23 @@ def envelope_trials(study: optuna.Study) -> list[optuna.trial.FrozenTrial]:
 
 
 def dedicated_path(rec) -> int:
-    """The path a retrained network of the envelope serves with (the last one for a single exit)."""
+    """The path a retrained network of the envelope serves with, numbered as trained (the last one for a
+    single exit)."""
     path = rec.envelope.path if rec.envelope is not None else None
     return path if path is not None else len(rec.path_metrics) - 1
+
+
+def served_index(rec) -> int:
+    """Where the path a network of the envelope serves with stands in its record's per-path figures, which
+    are those of the network as it ships: its other exits, trained with no weight, are left out, and so
+    is the dedicated exit where it is no more accurate than an earlier path, which then serves instead."""
+    path = dedicated_path(rec)
+    if rec.envelope is None or rec.shipped is None:
+        return path
+    kept = rec.shipped.trained_paths
+    if path not in kept:
+        path = next(int(d["better_path"]) for d in rec.shipped.dropped if int(d["path"]) == path)
+    return kept.index(path)
 
 
 def estimated_networks(study: optuna.Study, context: StudyContext) -> list[tuple[float, float, DedicatedNetwork]]:
@@ -254,8 +268,8 @@ def envelope(view: StudyView) -> Envelope | None:
     best = winner(view.study)
     if not members or best is None:
         return None
-    points = sorted(((trial_path_costs(t, device, budget.kind)[dedicated_path(trial_record(t))],
-                      trial_losses(t, config.metric)[dedicated_path(trial_record(t))], t)
+    points = sorted(((trial_path_costs(t, device, budget.kind)[served_index(trial_record(t))],
+                      trial_losses(t, config.metric)[served_index(trial_record(t))], t)
                      for t in members), key=lambda p: (p[0], p[1]))
     costs, errors = envelope_steps(trial_losses(best, config.metric)[0], [(c, e) for c, e, _ in points])
     networks = [{"number": t.number, "candidate_key": trial_record(t).candidate_key,

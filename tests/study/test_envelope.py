@@ -95,3 +95,24 @@ def test_the_envelope_command_names_the_storage_where_the_study_is_not_in_its_lo
     shared = envelope_command("s", "postgresql://me:secret@db.lab:5432/studies")
     assert shared == "explorer envelope --study s --storage postgresql://me:***@db.lab:5432/studies"
     assert envelope_command("s", "journal:/nfs/s.log").endswith("--storage journal:/nfs/s.log")
+
+
+def _shipped_envelope_record(path: int, trained_paths: list[int], dropped: list[dict]):
+    from types import SimpleNamespace
+    return SimpleNamespace(envelope=SimpleNamespace(path=path), path_metrics=[{}] * len(trained_paths),
+                           shipped=SimpleNamespace(trained_paths=trained_paths, dropped=dropped))
+
+
+def test_a_dedicated_network_is_read_at_its_path_as_it_ships():
+    """Its other exits, trained with no weight, were left out of what ships: its figures are the shipped
+    network's, so its path stands where the shipped paths put it; numbered as trained, it keeps its key."""
+    from explorer.study.envelope import dedicated_path, served_index
+    rec = _shipped_envelope_record(3, [0, 3, 4], [{"path": 1, "better_path": 0}, {"path": 2, "better_path": 0}])
+    assert dedicated_path(rec) == 3 and served_index(rec) == 1
+    # its own exit no more accurate than the scan: the scan serves in its place
+    rec = _shipped_envelope_record(2, [0, 4], [{"path": 1, "better_path": 0}, {"path": 2, "better_path": 0},
+                                               {"path": 3, "better_path": 0}])
+    assert served_index(rec) == 0
+    kept = _shipped_envelope_record(2, [0, 1, 2, 3], [])
+    kept.shipped = None
+    assert served_index(kept) == 2
