@@ -27,8 +27,8 @@ import yaml
 from explorer.errors import UserError, refused_write
 # scratch folders named by pid, cleaned when their process is gone; SIGTERM that unwinds (the probe
 # holds them: it ships alone, and may import nothing of the package)
-from explorer.probe.scratch import (process_alive, remove_stale_scratch, scratch_dir,  # noqa: F401
-                                    sigterm_unwinds)
+from explorer.probe.scratch import (process_alive, remove_own_scratch, remove_stale_scratch,  # noqa: F401
+                                    scratch_dir, sigterm_unwinds)
 
 #: the largest YAML or JSON file the package reads: spaces, profiles and manifests are kilobytes
 MAX_TEXT_BYTES = 16 * 1024 * 1024

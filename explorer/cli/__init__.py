@@ -15,7 +15,7 @@ from explorer.cli import deploy, devices, inspect, notebook, study, training
 from explorer.cli._common import RUNTIME, _Parser, check_numbers, explain, resolve_data, runtime_install
 from explorer.cli.study import _print_outcome  # noqa: F401  (the closing summary, for tests and notebooks)
 from explorer.errors import UserError, refused_line, refused_write
-from explorer.files import sigterm_unwinds
+from explorer.files import remove_own_scratch, sigterm_unwinds
 
 GROUPS = (inspect, devices, training, study, deploy, notebook)
 
@@ -58,6 +58,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     except UserError as exc:
         sys.stderr.write(f"explorer: error: {exc}\n")
         return 2
+    except SystemExit as exc:
+        if exc.code == 128 + signal.SIGTERM:   # what its with blocks could not remove goes too
+            remove_own_scratch()
+        raise
     except KeyboardInterrupt as exc:
         if threading.current_thread() is threading.main_thread():
             signal.signal(signal.SIGINT, signal.SIG_IGN)   # a second Ctrl-C cannot cut this line short

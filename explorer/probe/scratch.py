@@ -62,6 +62,20 @@ def scratch_dir(what: str = "scratch") -> tempfile.TemporaryDirectory:
     return tempfile.TemporaryDirectory(prefix=f"{PREFIX}{os.getpid()}-{what}-")
 
 
+def remove_own_scratch(root: "str | Path | None" = None) -> None:
+    """Removes this process's scratch folders in ``root`` (default: the system's temporary folder): for a
+    process that SIGTERM is ending, whose signal may have come between making a folder and the ``with``
+    block that removes it, or in the middle of removing it."""
+    root = Path(root if root is not None else tempfile.gettempdir())
+    try:
+        entries = [e for e in os.scandir(root) if e.name.startswith(f"{PREFIX}{os.getpid()}-")]
+    except OSError:
+        return
+    for entry in entries:
+        if entry.is_dir(follow_symlinks=False):
+            shutil.rmtree(entry.path, ignore_errors=True)
+
+
 @contextmanager
 def sigterm_unwinds() -> Iterator[None]:
     """While the block runs, SIGTERM raises ``SystemExit(143)`` in the main thread, so that ``with`` and

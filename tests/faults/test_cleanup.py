@@ -28,6 +28,17 @@ def test_scratch_of_dead_processes_is_removed_and_live_ones_kept(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted([f"synthetic-y.tmp{alive}", "synthetic-z.h5"])
 
 
+def test_a_process_ended_by_sigterm_removes_its_own_scratch_folders_and_only_those(tmp_path):
+    """What a signal between making a folder and entering the block that removes it would leave."""
+    from explorer.files import remove_own_scratch
+    mine, other = tmp_path / f"explorer-{os.getpid()}-int8-abc", tmp_path / f"explorer-{dead_pid()}-export-abc"
+    for folder in (mine, other):
+        (folder / "sub").mkdir(parents=True)
+    (tmp_path / f"explorer-{os.getpid()}-note.txt").write_text("a file, not a scratch folder")
+    remove_own_scratch(tmp_path)
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([other.name, f"explorer-{os.getpid()}-note.txt"])
+
+
 def test_a_scratch_folder_of_a_dead_process_is_removed_when_the_next_is_made(tmp_path, monkeypatch):
     """kill -9 leaves a scratch folder behind (nothing can catch it): the next one made removes it, and
     leaves a live process's and every folder not named as scratch."""
