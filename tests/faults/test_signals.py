@@ -29,7 +29,8 @@ def _started(tmp_path, *args: str) -> tuple[subprocess.Popen, list[str]]:
                             stderr=subprocess.PIPE, text=True, cwd=tmp_path,
                             env={**os.environ, "EXPLORER_PROGRESS_EVERY": "0.2"})
     lines: list[str] = []
-    threading.Thread(target=lambda: lines.extend(iter(proc.stderr.readline, "")), daemon=True).start()
+    proc.reader = threading.Thread(target=lambda: lines.extend(iter(proc.stderr.readline, "")), daemon=True)
+    proc.reader.start()
     return proc, lines
 
 
@@ -51,7 +52,7 @@ def _ended(proc: subprocess.Popen, lines: list[str]) -> str:
     except subprocess.TimeoutExpired:
         proc.kill()    # a command that did not stop is not left running after the test
         raise
-    time.sleep(0.1)   # the reader thread's last line
+    proc.reader.join(timeout=60)   # every line the command wrote, however busy the machine
     err = "".join(lines)
     assert "Traceback" not in err, err
     return [line for line in err.splitlines() if line.strip()][-1] if err.strip() else out
