@@ -45,8 +45,12 @@ def _wait_for_steps(proc: subprocess.Popen, lines: list[str], task: str) -> None
         time.sleep(0.05)
 
 
+#: a progress line off a terminal (explorer.console): the tests below read what the command said, not these
+PROGRESS_LINE = re.compile(r"^[^:]+: (?:\d+(?:/\d+)? done|started|done \()")
+
+
 def _ended(proc: subprocess.Popen, lines: list[str]) -> str:
-    """The last line on stderr, once the command ended (no traceback before it)."""
+    """The last line on stderr that is not a progress line, once the command ended (no traceback before it)."""
     try:
         out = proc.communicate(timeout=300)[0]
     except subprocess.TimeoutExpired:
@@ -55,7 +59,8 @@ def _ended(proc: subprocess.Popen, lines: list[str]) -> str:
     proc.reader.join(timeout=60)   # every line the command wrote, however busy the machine
     err = "".join(lines)
     assert "Traceback" not in err, err
-    return [line for line in err.splitlines() if line.strip()][-1] if err.strip() else out
+    said = [line for line in err.splitlines() if line.strip() and not PROGRESS_LINE.match(line)]
+    return said[-1] if said else out
 
 
 @pytest.mark.slow
