@@ -250,7 +250,10 @@ def benchmarks_markdown(records: dict[str, tuple[Path, dict]], root: Path, probl
 
 #: what a user asks first, each answered by one figure of one benchmark's latest record
 SUMMARY = (
-    ("How long `make search` takes from a fresh clone, setup included (a busy machine)", "bench_make_search_load", "wall_s", 1 / 60, "min"),
+    ("How long `make search` takes from a fresh clone, setup included (the record says how busy the machine was)",
+     "bench_make_search_load", "wall_s", 1 / 60, "min"),
+    ("...its summary's answer: the retrained winner's anytime loss over the retrained paper design's",
+     "bench_make_search_load", "winner_over_paper", 1, "x"),
     ("Candidates the search estimates a minute (2-core CPU)", "bench_search_rate", "candidates_per_minute", 1, ""),
     ("Peak memory of `make search`'s job (resident, its process tree)", "bench_search_memory", "peak_rss_gb", 1, "GB"),
     ("How well the estimate ranks the space (Kendall tau against long stand-alone trainings)", "bench_fidelity",
