@@ -98,25 +98,50 @@ def declare(bench: Bench, recipes: dict[str, tuple[int, int]], networks: dict[st
                          f"{EARLY_MS:g} ms on tx2 over its last path's, {recipe}", "x", better="lower")
 
 
+#: exit heads sized for their position: two pointwise layers, 64 channels wide, on the exits in the image
+#: encoder and after the ECU (a network without such an exit keeps the heads it has)
+EARLY_HEADS = "encoder_head_depth=2:encoder_head_width=64:ecu_head_depth=2:ecu_head_width=64"
+#: the early-path levers: heads per position alone on the winner and the paper design, and with
+#: self-distillation on the winner, the network a study ships (self-distillation alone: bench_held_out's
+#: ``:distill=1``)
+LEVER_NETWORKS = f"winner,paper,winner:{EARLY_HEADS},paper:{EARLY_HEADS},winner:{EARLY_HEADS}:distill=1"
+
+
 def bench_held_out(argv: Sequence[str] | None = None) -> None:
     """The experiment (the module's docstring says what it asks)."""
     bench = Bench("bench_held_out", "a study's winner against the paper design in held-out retraining, by recipe "
                   "length", __doc__)
+    run_held_out(bench, argv, "winner,paper", "300,2000+130")
+
+
+def bench_early_path_levers(argv: Sequence[str] | None = None) -> None:
+    """Do the early-path levers pay after the long recipe? The held-out experiment (above) with heads sized
+    for their position (two pointwise layers, 64 wide, on the encoder and ECU exits), on a study's winner
+    and on the paper design, and on the winner with self-distillation of weight 1 as well, each beside
+    the plain networks on the same seeds, after 2000 steps then 130 at the deployment size by default."""
+    bench = Bench("bench_early_path_levers", "early-path levers after the long recipe, on a study's winner and the "
+                  "paper design", bench_early_path_levers.__doc__)
+    run_held_out(bench, argv, LEVER_NETWORKS, "2000+130")
+
+
+def run_held_out(bench: Bench, argv: Sequence[str] | None, networks: str, steps: str) -> None:
+    """Retrains ``networks`` (the default of ``--networks``) at each of ``steps`` (``--steps``') per seed."""
     ap = bench.parser()
     ap.add_argument("--study", default="tx2-anytime_depth", help="the finished study (default tx2-anytime_depth)")
     ap.add_argument("--reports", type=Path, default=Path("reports"), help="its reports folder (default reports)")
-    ap.add_argument("--steps", default="300,2000+130", help="recipes, comma-separated: N steps at the training "
-                    "size then the study's tuning steps, or N+T for T tuning steps (default 300,2000+130: the "
-                    "finalists' recipe, and one about 7 times as long with the same share of tuning)")
+    ap.add_argument("--steps", default=steps, help="recipes, comma-separated: N steps at the training "
+                    "size then the study's tuning steps, or N+T for T tuning steps (default %(default)s; "
+                    "300 is the finalists' recipe, 2000+130 one about 7 times as long with the same share of "
+                    "tuning)")
     ap.add_argument("--first-seed", type=int, default=100, help="the first repetition's training seed, the next "
                     "ones following it (default 100)")
     ap.add_argument("--val-from", type=int, help="the first validation frame measured (default: the first after "
                     "those the study measured its finalists on)")
-    ap.add_argument("--networks", default="winner,paper", help="what to retrain, comma-separated: winner, paper, "
+    ap.add_argument("--networks", default=networks, help="what to retrain, comma-separated: winner, paper, "
                     "largest (the largest network of the study's space) or candidate YAML files, each with "
                     ":FIELD=VALUE changes if any (winner:encoder_blocks=11), :weights=anytime to weight its exits' "
-                    "training losses by their share of the anytime loss, :distill=W for self-distillation of weight W; paper "
-                    "among them (default winner,paper)")
+                    "training losses by their share of the anytime loss, :distill=W for self-distillation of "
+                    "weight W; paper among them (default %(default)s)")
     ap.add_argument("--threads", type=int, default=torch.get_num_threads(), help="torch threads")
     args = bench.parse_args(ap, argv)
     torch.set_num_threads(args.threads)
@@ -173,7 +198,7 @@ def bench_held_out(argv: Sequence[str] | None = None) -> None:
     bench.finish()
 
 
-CASES = (Case(bench_held_out),)
+CASES = (Case(bench_held_out), Case(bench_early_path_levers))
 
 if __name__ == "__main__":
     run_suite(CASES)
