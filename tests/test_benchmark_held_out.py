@@ -8,7 +8,7 @@ import dataclasses
 import pytest
 import torch
 
-from experiments.held_out import parse_recipes
+from experiments.held_out import EARLY_HEADS, LEVER_NETWORKS, parse_recipes
 from experiments.lib.retraining import Network, held_out_data, reference_of, resolve_networks, retrained
 
 from explorer.data import open_dataset
@@ -84,6 +84,25 @@ def test_weights_anytime_trains_a_network_with_anytime_exit_weights_and_pairs_it
     assert reference_of("paper_weights_anytime", networks) == "paper"
     alone = resolve_networks("paper,largest:weights=anytime", None, context)
     assert reference_of("largest_weights_anytime", alone) == "paper"
+
+
+def test_the_lever_networks_size_the_early_heads_and_keep_the_rest_of_each_network():
+    context = SearchConfig(study="s", space="anytime_depth").resolve()
+    largest = resolve_networks("paper,largest", None, context)["largest"].candidate
+    networks = resolve_networks(LEVER_NETWORKS.replace("winner", "largest"), None, context)
+    heads = "_" + "_".join(EARLY_HEADS.replace(":", "_").replace("=", "_").split("_"))
+    assert list(networks) == ["largest", "paper", f"largest{heads}", f"paper{heads}", f"largest{heads}_distill_1"]
+    paper = networks[f"paper{heads}"].candidate
+    # the paper design has no encoder exit: only its first exit's head (after the ECU) is sized
+    assert paper == dataclasses.replace(paper_candidate(), ecu_head_depth=2, ecu_head_width=64)
+    assert paper.head("ecu") == (2, 64) and paper.head("decoder") == paper_candidate().head("decoder")
+    sized = networks[f"largest{heads}"].candidate
+    assert sized.head("encoder") == (2, 64) and sized.head("ecu") == (2, 64)
+    assert sized.head("decoder") == largest.head("decoder")
+    assert dataclasses.replace(sized, encoder_head_depth=0, encoder_head_width=0, ecu_head_depth=0,
+                               ecu_head_width=0) == largest
+    assert networks[f"largest{heads}_distill_1"] == Network(sized, "equal", 1.0)
+    assert networks[f"largest{heads}"].distill == 0.0 and reference_of(f"largest{heads}_distill_1", networks) == "paper"
 
 
 @pytest.mark.parametrize("text, message", [("winner,largest", "include paper"),
