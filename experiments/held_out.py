@@ -115,13 +115,14 @@ def bench_held_out(argv: Sequence[str] | None = None) -> None:
 
 
 def bench_early_path_levers(argv: Sequence[str] | None = None) -> None:
-    """Do the early-path levers pay after the long recipe? The held-out experiment (above) with heads sized
-    for their position (two pointwise layers, 64 wide, on the encoder and ECU exits), on a study's winner
-    and on the paper design, and on the winner with self-distillation of weight 1 as well, each beside
-    the plain networks on the same seeds, after 2000 steps then 130 at the deployment size by default."""
-    bench = Bench("bench_early_path_levers", "early-path levers after the long recipe, on a study's winner and the "
-                  "paper design", bench_early_path_levers.__doc__)
-    run_held_out(bench, argv, LEVER_NETWORKS, "2000+130")
+    """Do the early-path levers pay on a study's winner, and after the long recipe? The held-out
+    experiment (above) with heads sized for their position (two pointwise layers, 64 wide, on the encoder
+    and ECU exits), on a study's winner and on the paper design, and on the winner with
+    self-distillation of weight 1 as well, each beside the plain networks on the same seeds, after the
+    finalists' recipe and the long one by default."""
+    bench = Bench("bench_early_path_levers", "early-path levers on a study's winner and the paper design, by "
+                  "recipe length", bench_early_path_levers.__doc__)
+    run_held_out(bench, argv, LEVER_NETWORKS, "300,2000+130")
 
 
 def run_held_out(bench: Bench, argv: Sequence[str] | None, networks: str, steps: str) -> None:
