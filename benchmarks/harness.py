@@ -364,12 +364,15 @@ class Bench:
 # -- the suite ------------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class Case:
-    """One benchmark of a suite: its function (named after its record), and whether ``make benchmarks``
-    runs it (``cpu``: it fits a CPU in minutes) or what keeps it out (``skip``)."""
+    """One benchmark of a suite: its function (named after its record), whether ``make benchmarks``
+    runs it (``cpu``: it fits a CPU in minutes) or what keeps it out (``skip``), and whether it runs only
+    when ``--only`` names it (``named_only``: a variant of the suite's experiment, hours long, that the
+    suite's plain command must not start as well)."""
 
     run: Callable[[Sequence[str] | None], object]
     cpu: bool = True
     skip: str = ""
+    named_only: bool = False
 
     @property
     def name(self) -> str:
@@ -381,7 +384,8 @@ def _selected(cases: Sequence[Case], only: Sequence[str], cpu: bool, ap: argpars
     for name in only:
         if name not in by_name and f"bench_{name}" not in by_name:
             ap.error(f"no benchmark {name!r} in this suite: {', '.join(by_name)}")
-    chosen = [c for c in cases if not only or c.name in only or c.name.removeprefix("bench_") in only]
+    chosen = ([c for c in cases if c.name in only or c.name.removeprefix("bench_") in only] if only
+              else [c for c in cases if not c.named_only])
     if cpu:
         for c in chosen:
             if not c.cpu:
@@ -391,8 +395,8 @@ def _selected(cases: Sequence[Case], only: Sequence[str], cpu: bool, ap: argpars
 
 
 def run_suite(cases: Sequence[Case], argv: Sequence[str] | None = None, module: str | None = None) -> None:
-    """A suite's command line: ``--list`` its benchmarks, ``--only NAME`` (repeatable; default all) runs
-    some, ``--cpu`` leaves out those that do not fit a CPU (saying why); every other option goes to
+    """A suite's command line: ``--list`` its benchmarks, ``--only NAME`` (repeatable; default all but
+    those run only when named) runs some, ``--cpu`` leaves out those that do not fit a CPU (saying why); every other option goes to
     the benchmarks run. One benchmark runs in this process; several run one after another, each in a
     process of its own (its threads, pools and imports its own)."""
     ap = argparse.ArgumentParser(prog=f"python -m {module or _caller_module()}", add_help=False,
@@ -401,10 +405,12 @@ def run_suite(cases: Sequence[Case], argv: Sequence[str] | None = None, module: 
     ap.add_argument("--only", action="append", default=[], metavar="NAME", help="run NAME (repeatable)")
     ap.add_argument("--cpu", action="store_true", help="leave out what does not fit a CPU in minutes")
     args, rest = ap.parse_known_args(argv)
-    if args.list or (not args.only and len(cases) > 1 and rest in (["-h"], ["--help"])):
+    by_default = [c for c in cases if not c.named_only]
+    if args.list or (not args.only and len(by_default) > 1 and rest in (["-h"], ["--help"])):
         ap.print_help()
         for c in cases:
-            print(f"  {c.name}{'' if c.cpu else f'  (make benchmarks skips it: {c.skip})'}")
+            print(f"  {c.name}{'' if c.cpu else f'  (make benchmarks skips it: {c.skip})'}"
+                  f"{'  (runs only with --only)' if c.named_only else ''}")
         return
     chosen = _selected(cases, args.only, args.cpu, ap)
     if len(chosen) == 1:

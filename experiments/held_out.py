@@ -34,6 +34,10 @@ the spec, punctuation as underscores).
     python -m experiments.held_out --study tx2-anytime_depth [--steps 300,2000+130] [--reps 3]
         [--networks winner,paper,winner:encoder_blocks=11,winner:weights=anytime,paper:weights=anytime]
 
+``--only early_path_levers`` (``bench_early_path_levers``) runs the same with the early-path levers by
+default: heads sized for their position alone, on the winner and the paper design, and with
+self-distillation on the winner.
+
 Run it after ``make search`` (whose study it reads, from ``reports/``, untouched).
 """
 
@@ -126,7 +130,8 @@ def bench_early_path_levers(argv: Sequence[str] | None = None) -> None:
 
 
 def run_held_out(bench: Bench, argv: Sequence[str] | None, networks: str, steps: str) -> None:
-    """Retrains ``networks`` (the default of ``--networks``) at each of ``steps`` (``--steps``') per seed."""
+    """Retrains, per seed, every network at every recipe (the defaults of ``--networks`` and ``--steps``:
+    ``networks`` and ``steps``) and records the figures ``declare`` names."""
     ap = bench.parser()
     ap.add_argument("--study", default="tx2-anytime_depth", help="the finished study (default tx2-anytime_depth)")
     ap.add_argument("--reports", type=Path, default=Path("reports"), help="its reports folder (default reports)")
@@ -199,7 +204,7 @@ def run_held_out(bench: Bench, argv: Sequence[str] | None, networks: str, steps:
     bench.finish()
 
 
-CASES = (Case(bench_held_out), Case(bench_early_path_levers))
+CASES = (Case(bench_held_out), Case(bench_early_path_levers, named_only=True))
 
 if __name__ == "__main__":
     run_suite(CASES)

@@ -198,6 +198,27 @@ def test_a_suite_runs_only_what_it_is_asked_and_says_what_it_skips(capsys):
         harness.run_suite(_suite(calls), ["--only", "nothing"], module="toy")
 
 
+def test_a_case_run_only_when_named_is_left_out_of_the_suites_plain_run_and_help(capsys):
+    calls: list = []
+
+    def bench_main(argv=None):
+        calls.append(("main", list(argv)))
+
+    def bench_variant(argv=None):
+        calls.append(("variant", list(argv)))
+    suite = (harness.Case(bench_main), harness.Case(bench_variant, named_only=True))
+    harness.run_suite(suite, ["--reps", "3"], module="toy")
+    assert calls == [("main", ["--reps", "3"])]          # one case left: it runs here, alone
+    calls.clear()
+    harness.run_suite(suite, ["--only", "variant", "--reps", "3"], module="toy")
+    assert calls == [("variant", ["--reps", "3"])]
+    calls.clear()
+    harness.run_suite(suite, ["--help"], module="toy")   # the plain command's help is the main case's
+    assert calls == [("main", ["--help"])]
+    harness.run_suite(suite, ["--list"], module="toy")
+    assert "bench_variant  (runs only with --only)" in capsys.readouterr().out
+
+
 # Runs each case of each module given as an argument with --help, in one process: the heavy imports
 # (torch, onnxruntime) are paid once per process instead of once per benchmark.
 _HELP_RUNNER = """

@@ -4,6 +4,7 @@ validation frames the study did not choose with."""
 from __future__ import annotations
 
 import dataclasses
+import re
 
 import pytest
 import torch
@@ -90,7 +91,7 @@ def test_the_lever_networks_size_the_early_heads_and_keep_the_rest_of_each_netwo
     context = SearchConfig(study="s", space="anytime_depth").resolve()
     largest = resolve_networks("paper,largest", None, context)["largest"].candidate
     networks = resolve_networks(LEVER_NETWORKS.replace("winner", "largest"), None, context)
-    heads = "_" + "_".join(EARLY_HEADS.replace(":", "_").replace("=", "_").split("_"))
+    heads = "_" + re.sub(r"[^0-9A-Za-z]+", "_", EARLY_HEADS)   # a change's punctuation as underscores
     assert list(networks) == ["largest", "paper", f"largest{heads}", f"paper{heads}", f"largest{heads}_distill_1"]
     paper = networks[f"paper{heads}"].candidate
     # the paper design has no encoder exit: only its first exit's head (after the ECU) is sized
