@@ -185,8 +185,9 @@ def _print_outcome(view, cfg, storage_url: str, reports: Path, write_report: boo
         paper = baseline_trial(study, "paper", retrained=retrained)
         if paper is not None:
             kind = "retrained " if retrained else ""
+            once = f" (one training run of each, seed {cfg.seed})" if retrained else ""
             console.print(f"ratio to the {kind}paper-design baseline ({paper.values[0]:.4f}): "
-                          f"[bold]{best.values[0] / paper.values[0]:.3f}[/bold]")
+                          f"[bold]{best.values[0] / paper.values[0]:.3f}[/bold]{once}")
         about_envelope = envelope_summary(view, storage_url, reports)
         if about_envelope:
             console.print(about_envelope, markup=False, highlight=False)

@@ -186,6 +186,7 @@ def test_search_rescore_report_export_cli(run_cli, tmp_path):
                              "--finalists", "1", "--finalist-steps", "4", "--tune-steps", "2", *common)
     assert code == 0, err
     assert "ratio to the retrained paper-design baseline" in out and (tmp_path / "cli" / "report.html").is_file()
+    assert "(one training run of each, seed 0)" in " ".join(out.split())   # one seed's figure says so
     assert "measured on the retrained network at 64x64, the deployment size, on the first 16 validation" in " ".join(out.split())
     assert "finalists: search estimate vs retrained" in out
     code, out, _ = run_cli("rescore", "--study", "cli", "--device", "rpi4", "--budget", "energy:uniform:0.5J",
