@@ -396,9 +396,9 @@ def _selected(cases: Sequence[Case], only: Sequence[str], cpu: bool, ap: argpars
 
 def run_suite(cases: Sequence[Case], argv: Sequence[str] | None = None, module: str | None = None) -> None:
     """A suite's command line: ``--list`` its benchmarks, ``--only NAME`` (repeatable; default all but
-    those run only when named) runs some, ``--cpu`` leaves out those that do not fit a CPU (saying why); every other option goes to
-    the benchmarks run. One benchmark runs in this process; several run one after another, each in a
-    process of its own (its threads, pools and imports its own)."""
+    those run only when named) runs some, ``--cpu`` leaves out those that do not fit a CPU (saying why);
+    every other option goes to the benchmarks run. One benchmark runs in this process; several run one
+    after another, each in a process of its own (its threads, pools and imports its own)."""
     ap = argparse.ArgumentParser(prog=f"python -m {module or _caller_module()}", add_help=False,
                                  description="Runs benchmarks of this suite; NAME --help: its options.")
     ap.add_argument("--list", action="store_true", help="list the benchmarks and what make benchmarks skips")
