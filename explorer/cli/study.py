@@ -145,7 +145,6 @@ def _print_outcome(view, cfg, storage_url: str, reports: Path, write_report: boo
     from explorer.study.results import (baseline_label, baseline_trial, best_trial, estimate_fidelity,
                                         figures_source, finalists_agreement, finalists_frame, is_retrained,
                                         path_table, unbeaten_baseline, wall_time, winner)
-    from explorer.model.shipped import DroppedExit
     from explorer.space import Candidate
     from explorer.study import trial_record
     from explorer.study.envelope import envelope_summary
@@ -166,9 +165,7 @@ def _print_outcome(view, cfg, storage_url: str, reports: Path, write_report: boo
         console.print(f"{lead}: trial {best.number} ({rec.candidate_key}) anytime loss [bold]{best.values[0]:.4f}"
                       f"[/bold] {how}, for {cfg.budgets[0]} on {cfg.device}")
         console.print(f"  {cand.describe()}")
-        for dropped in (rec.shipped.dropped if rec.shipped is not None else []):
-            console.print(f"  {DroppedExit.from_dict(dropped).describe(rec.error_metric)}: left out of what ships "
-                          "(--keep-every-exit keeps it)", markup=False, highlight=False)
+        _print_shipping(rec)
         print_frame(path_table(best, [view.context.device]), f"{lead}, per path")
         console.print(f"  {figures_source(best, cfg.train_size)}", markup=False, highlight=False)
         fin = finalists_frame(study)
@@ -212,6 +209,19 @@ def _print_outcome(view, cfg, storage_url: str, reports: Path, write_report: boo
                              f"report --study {cfg.study}` writes the report"):
             path = _write(view, out_dir=reports / cfg.study, storage_url=storage_url)
         console.print(f"report: {path}")
+
+
+def _print_shipping(rec) -> None:
+    """What the winner's record ``rec`` says of the network that ships: each exit left out, and a last
+    path that a halt after it never returns."""
+    from explorer.console import console
+    from explorer.model.shipped import DroppedExit, last_path_note
+    for dropped in (rec.shipped.dropped if rec.shipped is not None else []):
+        console.print(f"  {DroppedExit.from_dict(dropped).describe(rec.error_metric)}: left out of what ships "
+                      "(--keep-every-exit keeps it)", markup=False, highlight=False)
+    note = last_path_note(rec.losses_of(), rec.error_metric)
+    if note:
+        console.print(f"  {note}", markup=False, highlight=False)
 
 
 def cmd_rescore(args) -> None:

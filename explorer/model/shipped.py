@@ -116,6 +116,19 @@ def ship(candidate: Candidate, path_losses: Sequence[float], keep_every_exit: bo
                           tuple(dropped))
 
 
+def last_path_note(path_losses: Sequence[float], metric: str = "error") -> str | None:
+    """A line for a shipped network (its per-path losses, path 0 included) whose last path is not more
+    accurate than an earlier one, which :func:`ship` keeps: that a halt after it returns the earlier
+    path, as the anytime loss counts it and the runtime does. None where the last path is the best."""
+    last = float(path_losses[-1]) if len(path_losses) > 1 else math.nan
+    earlier = [(float(loss), path) for path, loss in enumerate(path_losses[:-1]) if not math.isnan(float(loss))]
+    if math.isnan(last) or not earlier or last < min(earlier)[0]:
+        return None
+    best, path = min(earlier)
+    return (f"the last path (path {len(path_losses) - 1}) is not below path {path}'s {metric} ({last:.4g} against "
+            f"{best:.4g}): it ships, as the last stage always exits, but a halt after it returns path {path}")
+
+
 _ENCODER_BLOCK = re.compile(r"^stages\.(image_encoder(?:_(\d+))?)\.blocks\.(\d+)\.(.*)$")
 
 

@@ -5,7 +5,7 @@ import torch
 
 from explorer.cost import candidate_cost, get_device
 from explorer.model import build_network
-from explorer.model.shipped import carry_weights, exit_names, ship, without_exits
+from explorer.model.shipped import carry_weights, exit_names, last_path_note, ship, without_exits
 from explorer.space import Candidate, paper_candidate
 
 #: every kind of exit: the LiDAR-only one, two encoder exits (fused with the LiDAR feature), the ECU's,
@@ -73,3 +73,15 @@ def test_later_paths_are_ready_sooner_once_a_head_is_dropped():
     kept = candidate_cost(shipped.candidate).path_latency_ms(tx2)
     assert kept[0] == 0.0 and kept[1] == pytest.approx(full[1])
     assert all(k < f for k, f in zip(kept[2:], full[3:]))
+
+
+def test_a_last_path_no_better_than_an_earlier_one_is_said_with_the_path_a_halt_returns():
+    note = last_path_note([0.50, 0.40, 0.30, 0.31, 0.32], "rmse")
+    assert note is not None
+    assert "path 4" in note and "path 2's rmse" in note and "0.32 against 0.3" in note
+    assert note.endswith("returns path 2")
+    assert "path 1's" in last_path_note([0.5, 0.4, 0.4])          # equal is not more accurate
+    assert last_path_note([0.50, 0.40, 0.30, 0.29]) is None
+    assert last_path_note([0.50, math.nan, 0.45]) is None           # a path measured nothing is no rival
+    assert last_path_note([0.50, 0.40, math.nan]) is None           # nor is a last path without a figure
+    assert last_path_note([0.50]) is None
