@@ -355,26 +355,24 @@ def current_umask() -> int:
 def check_writable_folder(folder: str | Path, what: str, fix: str, keep: bool = True) -> Path:
     """``folder`` made if absent and a file written there and removed again, before any work: a file in
     its place, a read-only folder or file system (even for root, whom permission bits do not stop), or
-    /proc is one line naming ``what`` would be written and how to ``fix`` it. ``keep=False``: the
-    folders it made are removed again, for a command that makes them itself when it writes (one
-    refused later then leaves nothing)."""
+    /proc is one line naming ``what`` would be written and how to ``fix`` it. ``keep=False``, for a
+    command that makes the folder itself when it writes: nothing is made; the nearest folder that exists
+    is probed with a folder of a unique name, made and removed again, so that commands refused at the
+    same time never remove each other's folders or leave one behind."""
     folder = Path(folder)
-    if folder.exists() and not folder.is_dir():
-        raise UserError(f"{folder}: is a file, not a folder for the {what}: {fix}")
-    missing = [f for f in (folder, *folder.parents) if not f.exists()]
+    existing = next(f for f in (folder, *folder.parents) if f.exists() or f == f.parent)
+    if not existing.is_dir():
+        raise UserError(f"{existing}: is a file, not a folder for the {what}: {fix}")
     try:
-        folder.mkdir(parents=True, exist_ok=True)
-        fd, probe = tempfile.mkstemp(prefix=".explorer-write-check.", dir=folder)
-        os.close(fd)
-        os.unlink(probe)
+        if keep:
+            folder.mkdir(parents=True, exist_ok=True)
+            fd, probe = tempfile.mkstemp(prefix=".explorer-write-check.", dir=folder)
+            os.close(fd)
+            os.unlink(probe)
+        else:
+            os.rmdir(tempfile.mkdtemp(prefix=".explorer-write-check.", dir=existing))
     except OSError as exc:
         raise UserError(f"{folder}: cannot write the {what} there ({exc.strerror}): {fix}") from None
-    finally:
-        for made in missing if not keep else ():   # the deepest first; one that holds something stays
-            try:
-                made.rmdir()
-            except OSError:
-                break
     return folder
 
 

@@ -130,3 +130,20 @@ def test_a_16_bit_grey_frame_is_scaled_not_clipped_to_white(tmp_path):
     assert rgb.shape == (8, 64, 3) and rgb.dtype == np.uint8
     assert rgb[0, 0, 0] == 0 and rgb[0, -1, 0] == 255 and (rgb[0, 1:, 0] >= rgb[0, :-1, 0]).all()
     assert (rgb == 255).mean() < 0.05                                  # not clipped to white
+
+
+def test_a_writable_check_that_may_not_keep_makes_nothing_even_when_run_at_once(tmp_path):
+    """Commands refused at the same moment (a missing folder probed by each) leave the folder as they
+    found it: none makes the folder, so none can leave it behind for another's files."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from explorer.files import check_writable_folder
+    target = tmp_path / "reports" / "checkpoints"
+    with ThreadPoolExecutor(max_workers=8) as pool:
+        list(pool.map(lambda _: check_writable_folder(target, "checkpoint", "fix", keep=False), range(64)))
+    assert list(tmp_path.iterdir()) == []
+    (tmp_path / "afile").write_text("x")
+    with pytest.raises(UserError, match="afile: is a file"):
+        check_writable_folder(tmp_path / "afile" / "sub", "checkpoint", "fix", keep=False)
+    kept = check_writable_folder(target, "checkpoint", "fix")
+    assert kept.is_dir() and list(kept.iterdir()) == []
