@@ -36,10 +36,11 @@ def cmd_export(args) -> None:
         raise UserError(f"--quantize {args.quantize}: use int8 or none")
     if args.eval_frames is not None and args.eval_frames < 1:
         raise UserError("--eval-frames must be at least 1")
-    # a study's own data and frames unless told; a checkpoint's: the generated scenes
-    data = args.data or (None if args.study else "synthetic")
+    # a study's own data and frames unless told; a checkpoint's: the data it was trained on
+    data = args.data
     if data is None and args.quantize == "int8":
-        err_console.print("no --data: calibrating and measuring on the study's data")
+        err_console.print(f"no --data: calibrating and measuring on the {'study' if args.study else 'checkpoint'}'s "
+                          "data")
     quant = None
     if args.quantize == "int8":
         quant = Quantization(data=data, calibration_frames=args.calibration_frames,
@@ -274,7 +275,8 @@ def register(sub, add, reports: dict) -> None:
                    "are measured again and written beside the fp32 ones (default: as the trial was searched, "
                    "int8 for a candidate of precision int8, else none)")
     s.add_argument("--data", help="frames every exported path is measured on (val split) and int8 is "
-                   "calibrated on (train split) (default: the study's data; for a checkpoint, synthetic)")
+                   "calibrated on (train split) (default: the study's data; for a checkpoint, the data it was trained "
+                   "on)")
     s.add_argument("--calibration-frames", type=int, default=32, help="frames to calibrate on (default 32)")
     s.add_argument("--eval-frames", type=int, default=None, help="validation frames (the split's first) every "
                    "path is measured on (default: those of the study's figures, 96)")

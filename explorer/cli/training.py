@@ -61,7 +61,7 @@ def cmd_train(args) -> None:
         console.print(f"loaded {n} encoder tensors from {args.encoder_weights}")
     with progress() as bar, kept_if_refused(_kept(out, "checkpoint")):
         task = bar.add_task(f"training ({cfg.supervision})", total=cfg.steps, status="")
-        result = train(net, train_set, val_set, cfg, accelerator, checkpoint=out,
+        result = train(net, train_set, val_set, cfg, accelerator, checkpoint=out, data=args.data,
                        progress=lambda s, n, r: bar.update(task, completed=s, status=f"loss {r['loss']:.3f}"))
     console.print(f"saved {out} ({result.steps} steps, {result.images_per_second:.1f} images/s)")
     if result.metrics is not None and result.metrics.drop(columns="path", errors="ignore").isna().all().all():
@@ -98,11 +98,12 @@ def _exit_weights(spec: str, candidate, profile: str, budget: str) -> tuple[floa
 def cmd_evaluate(args) -> None:
     from explorer.console import print_frame, print_json
     from explorer.data import open_dataset
-    from explorer.training.train import TrainConfig, evaluate, network_from_checkpoint
+    from explorer.training.train import TrainConfig, evaluate, network_from_checkpoint, trained_on
     net, state = network_from_checkpoint(args.checkpoint)
+    data = args.data or trained_on(state, args.checkpoint)
     recipe = TrainConfig.from_dict(state["train_config"])
     size = check_size(args.input_size or recipe.input_size, net.stride, "--input-size")
-    ds = open_dataset(args.data, args.split, size, train_augment=False)
+    ds = open_dataset(data, args.split, size, train_augment=False)
     # a depth known only up to scale (self-supervised without the scan term) is median-scaled
     frame = evaluate(net, ds, limit=args.frames, median_scaling=not recipe.metric)
     if args.json:
@@ -212,7 +213,7 @@ def register(sub, add, reports: dict) -> None:
 
     s = add("evaluate", cmd_evaluate, "per-path metrics of a checkpoint on a data set")
     s.add_argument("checkpoint")
-    s.add_argument("--data", default="synthetic")
+    s.add_argument("--data", help="data set to measure on (default: the data the checkpoint was trained on)")
     s.add_argument("--lidar")
     s.add_argument("--split", default="val", choices=["train", "val"])
     s.add_argument("--input-size", type=_size, help="evaluation resolution HxW (default: the training size)")

@@ -4,6 +4,7 @@ an exit, path 0 on its own), plus a manifest. Verified against PyTorch at export
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 from dataclasses import dataclass
@@ -24,7 +25,7 @@ from explorer.errors import UserError
 from explorer.files import replacing_folder, scratch_dir
 from explorer.model import AnytimeDepthNet
 from explorer.model.onnx import OPSET, SCAN_ROWS, example_inputs, export_segments
-from explorer.training.train import network_from_checkpoint
+from explorer.training.train import network_from_checkpoint, trained_on
 
 TOLERANCE = 1e-4
 
@@ -48,7 +49,7 @@ def verify(graphs, net: AnytimeDepthNet, input_size: tuple[int, int], scan_row: 
 class Quantization:
     """What ``explorer export --quantize int8`` asks for (see :mod:`explorer.deploy.quantize`)."""
 
-    data: str | None = "synthetic"   # None: the frames the export is measured on (a study's own)
+    data: str | None = "synthetic"   # None: the frames the export is measured on (a study's or checkpoint's own)
     calibration_frames: int = 32
     eval_frames: int = 64
     max_degradation: float = MAX_DEGRADATION
@@ -60,9 +61,10 @@ class Quantization:
 @dataclass(frozen=True)
 class Measurement:
     """The frames an export's paths are measured on with onnxruntime: the first ``frames`` of the
-    validation split of ``data`` (a study's own: the frames its figures are measured on)."""
+    validation split of ``data`` (a study's own: the frames its figures are measured on; None, for a
+    checkpoint: the data it was trained on)."""
 
-    data: str = "synthetic"
+    data: str | None = "synthetic"
     frames: int = 96
 
 
@@ -198,6 +200,11 @@ def export_from_checkpoint(ckpt: Path, out_dir: Path, input_size: tuple[int, int
                            measurement: Measurement | None = None) -> Manifest:
     net, state = network_from_checkpoint(ckpt)
     trained = tuple(state["train_config"]["input_size"])
+    # the frames it was trained for, unless told
+    if measurement is not None and measurement.data is None:
+        measurement = dataclasses.replace(measurement, data=trained_on(state, ckpt))
+    if quantization is not None and quantization.data is None:
+        quantization = dataclasses.replace(quantization, data=trained_on(state, ckpt))
     size = tuple(input_size or trained)
     return export_network(net, out_dir, size, devices=devices or ("tx2", "rpi4"),
                           source={"checkpoint": str(ckpt)}, quantization=quantization, progress=progress,

@@ -338,6 +338,16 @@ def network_from_checkpoint(path: str | Path) -> tuple[AnytimeDepthNet, dict]:
     return net.eval(), state
 
 
+def trained_on(state: dict, path: str | Path) -> str:
+    """The data spec a checkpoint was trained on (the generated scenes for one that does not say), checked
+    here: a recording or folder this machine cannot read is one line asking for ``--data``."""
+    data = state.get("data") or "synthetic"
+    try:
+        return str(parse_data_spec(data))
+    except UserError as exc:
+        raise UserError(f"{path} was trained on '{data}', which cannot be read here ({exc}): give --data") from None
+
+
 def load_encoder_weights(net: AnytimeDepthNet, path: str | Path) -> int:
     """Loads a MobileNet v1 state dict (a file the user has; weights only, never pickled code) into
     the image encoder, matching tensors in order by shape. Returns how many tensors were loaded."""
@@ -374,11 +384,12 @@ def train(net: AnytimeDepthNet, train_set, val_set, cfg: TrainConfig = PROXY,
           accelerator: torch.device | None = None, checkpoint: Path | None = None,
           progress: Callable[[int, int, dict], None] | None = None,
           report: Callable[[int, pd.DataFrame], None] | None = None, val_limit: int | None = None,
-          checkpoint_every: int = 200) -> TrainResult:
+          checkpoint_every: int = 200, data: str | None = None) -> TrainResult:
     """Trains every exit jointly for ``cfg.steps`` steps on ``accelerator`` (a torch device; the CPU if
     None). ``report(step, per_path_metrics)`` is called at each evaluation (``cfg.eval_every``) and may
     raise :class:`Pruned`. With ``checkpoint`` the state is saved every ``checkpoint_every`` steps and
-    training resumes from it."""
+    training resumes from it; ``data``, the spec of the data trained on, is saved with it
+    (:func:`trained_on` reads it)."""
     accelerator = accelerator or torch.device("cpu")
     cfg.validate()
     torch.manual_seed(cfg.seed)
@@ -396,7 +407,7 @@ def train(net: AnytimeDepthNet, train_set, val_set, cfg: TrainConfig = PROXY,
         loader = DataLoader(train_set, batch_size=len(train_set), shuffle=True, generator=gen)
     history: list[dict] = []
     # the pose network travels with the checkpoint so that a resumed run continues it
-    extra = {"selfsup": selfsup.state_dict()} if selfsup is not None else None
+    extra = {"data": data, **({"selfsup": selfsup.state_dict()} if selfsup is not None else {})}
     step, seen, t0 = start, 0, time.perf_counter()
     epoch = 0
     # Ctrl-C or SIGTERM ends training at the end of a step, with the weights reached saved (resumed from)

@@ -95,6 +95,31 @@ def test_export_from_checkpoint(tmp_path):
     assert m.input_size == (32, 32) and (tmp_path / "out" / m.stages[1].file).is_file()
 
 
+def test_a_checkpoint_is_exported_and_evaluated_on_the_data_it_was_trained_on(tmp_path, run_cli):
+    """Without --data, a checkpoint's export and evaluation measure the frames of the data it was trained
+    on (a robot's own recording, not the generated scenes); data this machine cannot read is one line."""
+    data = "synthetic:12:6"
+    ck = tmp_path / "ck.pt"
+    code, _, err = run_cli("train", "paper", "--data", data, "--steps", "1", "--batch-size", "2", "--train-size",
+                           "32x32", "--out", ck)
+    assert code == 0, err
+    code, out, err = run_cli("evaluate", ck, "--frames", "2")
+    assert code == 0 and f"on {data} (val)" in " ".join(out.split()), out + err
+    code, _, err = run_cli("export", "--checkpoint", ck, "--out", tmp_path / "model")
+    assert code == 0, err
+    manifest = json.loads((tmp_path / "model" / "manifest.json").read_text())
+    assert manifest["measured"]["data"] == data and manifest["curve_frames"]["data"] == data
+    state = torch.load(ck, weights_only=True)
+    state["data"] = f"rosbag:{tmp_path / 'gone.bag'}"
+    torch.save(state, tmp_path / "moved.pt")
+    for args in (["export", "--checkpoint", tmp_path / "moved.pt", "--out", tmp_path / "other"],
+                 ["evaluate", tmp_path / "moved.pt"]):
+        code, _, err = run_cli(*args)
+        assert code == 2 and "was trained on 'rosbag:" in err and err.strip().endswith("give --data"), err
+        assert len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "other").exists()
+
+
 def test_run_cli_and_bad_inputs(exported, tmp_path, run_cli):
     from PIL import Image
     out, _ = exported
