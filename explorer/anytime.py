@@ -171,6 +171,8 @@ class Trace(BudgetDistribution):
             raise UserError(f"budget trace {path}: no such file (a CSV with one deadline per row)")
         try:
             frame = pd.read_csv(p)
+            if len(frame.columns) and all(_is_number(c) for c in frame.columns):   # no header: its first row is a deadline
+                frame = pd.read_csv(p, header=None)
         except Exception as exc:  # pandas raises many types for malformed files
             raise UserError(f"budget trace {path}: unreadable CSV ({exc})") from None
         numeric = frame.select_dtypes("number")
@@ -189,6 +191,14 @@ class Trace(BudgetDistribution):
         if m and m.group(1) in UNITS[kind]:
             scale = UNITS[kind][m.group(1)]
         return cls(tuple(float(v) * scale for v in values), kind=kind, source=str(path))
+
+
+def _is_number(text) -> bool:
+    try:
+        float(str(text))
+    except ValueError:
+        return False
+    return True
 
 
 def parse_quantity(text: str, kind: str) -> float:

@@ -376,6 +376,17 @@ def check_writable_folder(folder: str | Path, what: str, fix: str, keep: bool = 
     return folder
 
 
+def refuse_overwriting_inputs(out: str | Path, flag: str, inputs: dict[str, str | Path | None]) -> None:
+    """A :class:`UserError` where the file ``out`` (given by ``flag``) is one of the command's ``inputs``
+    (flag: path): writing the output would destroy what the command reads."""
+    out = Path(out)
+    if not out.exists():
+        return
+    for name, given in inputs.items():
+        if given is not None and Path(given).exists() and os.path.samefile(out, given):
+            raise UserError(f"{flag} {out}: is the file given to {name}; write the output to another file")
+
+
 def check_free_space(folder: str | Path, need: int, what: str, fix: str) -> None:
     """Refuses in one line, before any work, a ``folder`` whose disk has less than ``need`` bytes free for
     the ``what`` to be written there (``fix``: how to go on). A disk that fills later is the writer's to

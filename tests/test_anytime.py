@@ -121,3 +121,12 @@ def test_a_halt_returns_the_most_accurate_path_ready_never_a_worse_later_one():
     assert anytime_loss(costs, [0.9, 0.6, 0.5, 0.4], "time:uniform:40ms") == pytest.approx(0.6)
     xs, ys = anytime_curve(costs, losses, 40.0)
     assert list(ys) == [0.9, 0.5, 0.5, 0.4, 0.4]
+
+
+def test_a_trace_without_a_header_keeps_its_first_deadline(tmp_path):
+    headed, bare = tmp_path / "headed.csv", tmp_path / "bare.csv"
+    headed.write_text("deadline_ms\n20\n5\n5\n5\n")
+    bare.write_text("20\n5\n5\n5\n")
+    costs, losses = [0.0, 6.4, 12.2], [1.0, 0.465, 0.416]
+    loss = anytime_loss(costs, losses, f"time:trace:{bare}")
+    assert loss == anytime_loss(costs, losses, f"time:trace:{headed}") == pytest.approx(0.75 * 1.0 + 0.25 * 0.416)

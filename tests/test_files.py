@@ -147,3 +147,15 @@ def test_a_writable_check_that_may_not_keep_makes_nothing_even_when_run_at_once(
         check_writable_folder(tmp_path / "afile" / "sub", "checkpoint", "fix", keep=False)
     kept = check_writable_folder(target, "checkpoint", "fix")
     assert kept.is_dir() and list(kept.iterdir()) == []
+
+
+def test_an_output_that_is_one_of_the_inputs_is_refused(tmp_path):
+    from explorer.files import refuse_overwriting_inputs
+    image = tmp_path / "frame.png"
+    image.write_bytes(b"mine")
+    (tmp_path / "link.png").symlink_to(image)
+    for out in (image, tmp_path / "link.png", tmp_path / "." / "frame.png"):
+        with pytest.raises(UserError, match="is the file given to --image; write the output to another file"):
+            refuse_overwriting_inputs(out, "--out", {"--image": image, "--scan": None})
+    refuse_overwriting_inputs(tmp_path / "depth.png", "--out", {"--image": image})   # a new file: fine
+    assert image.read_bytes() == b"mine"

@@ -205,6 +205,12 @@ def _keeper(args, kept: list):
 
 def cmd_curve(args) -> None:
     from explorer.console import console, print_json
+    from explorer.files import check_writable_folder
+    curve = Path(args.model) / "anytime_curve.json"   # written after the measurement: checked before it
+    if curve.is_dir():
+        raise UserError(f"{curve}: is a folder; move it away so that explorer curve can write the curve there")
+    if Path(args.model).is_dir():
+        check_writable_folder(args.model, "anytime curve", "copy the export to a folder you can write")
     if runtime_install():   # no torch: the export's own frames and the manifest's prediction only
         res = _device_curve(args)
     else:

@@ -126,10 +126,14 @@ def cmd_anytime(args) -> None:
 def cmd_enumerate(args) -> None:
     from explorer.console import console, print_frame, progress
     from explorer.cost.enumerate import front_columns, write_enumeration
+    from explorer.files import check_writable_folder
     from explorer.space import SearchSpace, check_size
     space = SearchSpace.from_yaml(args.space)
     check_size(args.input_size, space.max_stride, "--input-size")
     front = front_columns(args.front)
+    for flag, path in (("--csv", args.csv), ("--parquet", args.parquet)):
+        if path:
+            check_writable_folder(Path(path).parent, "table", f"give {flag} a path you can write", keep=False)
     with progress(transient=True) as bar:
         task = bar.add_task(f"costing {space.name}", total=space.size, status="")
         done = write_enumeration(space, args.device, args.budget, args.input_size, csv=args.csv, parquet=args.parquet,
@@ -152,6 +156,8 @@ def cmd_data_inspect(args) -> None:
     from explorer.data import open_dataset
     from explorer.metrics import MetricAverager, depth_metrics
     from explorer.model import interpolate_scan
+    if args.out:
+        _check_drawing_out(Path(args.out), args.data)
     with progress(transient=True) as bar:
         task = bar.add_task("preparing the data (generated or decoded once, then cached)", total=None, status="")
         ds = open_dataset(args.data, args.split, args.input_size, train_augment=False,
@@ -245,14 +251,41 @@ def _print_inspection(console, res: dict, args) -> None:
         console.print(f"  the first frame with its scan drawn over it: {res['png']}")
 
 
+def _check_drawing_out(out: Path, data: str) -> None:
+    """``--out`` refused before any frame is read where the drawing cannot go: not a PNG name, a folder,
+    a folder nobody can write, or a file of the data set itself (a frame, its list, the recording), or
+    any place inside a data set that is a folder (a new image there would be read as a frame)."""
+    from explorer.data import parse_data_spec
+    from explorer.files import check_writable_folder
+    if out.suffix.lower() != ".png":
+        raise UserError(f"--out {out}: the drawing is a PNG; give a name ending in .png")
+    if out.is_dir():
+        raise UserError(f"--out {out}: is a folder; give a file name ending in .png")
+    spec = parse_data_spec(data)
+    sources = [Path(x) for x in (spec.path, spec.val_option) if x and Path(x).exists()]
+    target = out.resolve()
+    for src in sources:
+        src = src.resolve()
+        if target == src or (src.is_dir() and target.is_relative_to(src)) or _listed_in(target, src):
+            raise UserError(f"--out {out}: is part of the data set {data}; write the drawing outside it")
+    check_writable_folder(out.parent, "drawing", "give --out a path you can write", keep=False)
+
+
+def _listed_in(target: Path, listing: Path) -> bool:
+    """Whether the text file ``listing`` (a CSV of image,depth pairs) names the existing file ``target``."""
+    if not target.exists() or listing.suffix.lower() not in (".csv", ".txt"):
+        return False
+    text = listing.read_bytes()[:1 << 24].decode("utf-8", errors="replace")
+    names = (field.strip() for line in text.splitlines() for field in line.split(","))
+    return any(name and (listing.parent / name).resolve() == target for name in names)
+
+
 def _draw_scan(item: dict, out: Path) -> None:
     """The frame with each column's return drawn at its row, coloured by depth (near red, far blue)."""
     import numpy as np
     from PIL import Image
 
     from explorer.files import write_atomically
-    if out.suffix.lower() != ".png":
-        raise UserError(f"--out {out}: the drawing is a PNG; give a name ending in .png")
     rgb = (item["image"].permute(1, 2, 0).numpy() * 255).astype(np.uint8).copy()
     scan, rows = item["scan"].numpy(), item["scan_rows"].numpy()
     h, w = rgb.shape[:2]
@@ -265,6 +298,7 @@ def _draw_scan(item: dict, out: Path) -> None:
     import io
     buf = io.BytesIO()
     Image.fromarray(rgb).save(buf, format="PNG")
+    out.parent.mkdir(parents=True, exist_ok=True)
     write_atomically(out, buf.getvalue())
 
 

@@ -217,6 +217,9 @@ def reference_workloads(name: str, input_size: tuple[int, int] = (224, 224)) -> 
     """All workloads of the reference network ``name`` (``explorer.model.reference``) at
     ``input_size`` (H, W), batch 1, as one stage called 'network'."""
     ref = get_reference(name)
+    h, w = input_size
+    if min(h, w) < ref.stride:   # padding carries even a 1x1 image through every layer: no depth map
+        raise UserError(f"{name} cannot run at {h}x{w}: each side must be at least {ref.stride} pixels")
     with torch.device("meta"):
         module = ref.build().eval()
         image = torch.empty(ref.input_shape(tuple(input_size)))

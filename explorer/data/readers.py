@@ -12,7 +12,7 @@ import numpy as np
 from explorer.scan import ScanPoints
 from explorer.data.splits import SPLITS, VAL_SHARE, split_range
 from explorer.errors import UserError
-from explorer.files import open_image, read_image, read_text  # noqa: F401  (the readers' image access)
+from explorer.files import WIDE_GREY, open_image, read_image, read_text  # noqa: F401  (the readers' image access)
 
 
 @dataclass
@@ -36,6 +36,44 @@ def _check_frame(rgb: np.ndarray, depth: np.ndarray, name: str) -> None:
         raise UserError(f"{name}: depth has NaN or infinite values; clean the file or mark them 0 (unknown)")
     if (depth < 0).any():
         raise UserError(f"{name}: depth has negative values")
+
+
+def _numbered_rows(path: Path) -> list[tuple[int, list[str]]]:
+    """The CSV's non-blank rows, each with the file's own 1-based number of the line it ends on. Read
+    as it streams, so that a large binary file given by mistake is refused at its first bytes."""
+    def text_lines(fh):
+        for line in fh:
+            if "\0" in line:   # never in text: an image, random bytes, or UTF-16 without its mark
+                raise UnicodeError
+            yield line
+    try:
+        # -sig: a spreadsheet's byte-order mark is not part of the first path
+        with path.open(encoding="utf-8-sig", newline="") as fh:
+            reader = csv.reader(text_lines(fh))
+            return [(reader.line_num, r) for r in reader if r]
+    except OSError as exc:
+        raise UserError(f"{path}: cannot read ({exc.strerror})") from None
+    except UnicodeError:
+        raise UserError(f"{path}: not a UTF-8 text CSV of image,depth pairs (give one 'image.png,depth.png' "
+                        "line per frame, saved as UTF-8)") from None
+    except csv.Error as exc:
+        raise UserError(f"{path}: line {reader.line_num}: not a CSV row ({exc}); give one 'image.png,depth.png' "
+                        "line per frame") from None
+
+
+def read_depth_png(path: Path) -> np.ndarray:
+    """A depth image in millimetres as float32 metres. Only 16-bit grey is accepted: an 8-bit or colour
+    file holds no millimetres (read as them, a wall 3 m away would be 3 cm)."""
+    with open_image(path) as im:
+        mode = im.mode
+    if mode not in WIDE_GREY:
+        raise UserError(f"{path}: depth must be a 16-bit PNG in millimetres (this one is "
+                        f"{_MODE_NAMES.get(mode, mode)}): save it as 16-bit grey, uint16 millimetres")
+    return read_image(path).astype(np.float32) / 1000.0
+
+
+_MODE_NAMES = {"1": "1-bit", "L": "8-bit grey", "P": "8-bit palette", "LA": "8-bit grey with alpha",
+               "RGB": "8-bit colour", "RGBA": "8-bit colour with alpha", "F": "32-bit float"}
 
 
 # -- NYU Depth v2 ----------------------------------------------------------------------------------
@@ -104,19 +142,15 @@ class PairCSV:
     @staticmethod
     def _read(path: Path) -> list[tuple[Path, Path]]:
         root = path.parent
-        try:
-            with path.open(newline="") as fh:
-                rows = [r for r in csv.reader(fh) if r]
-        except OSError as exc:
-            raise UserError(f"{path}: cannot read ({exc.strerror})") from None
-        if rows and not rows[0][0].lower().endswith((".png", ".jpg", ".jpeg")):
+        rows = _numbered_rows(path)
+        if rows and not rows[0][1][0].lower().endswith((".png", ".jpg", ".jpeg")):
             rows = rows[1:]  # header
         if not rows:
             raise UserError(f"{path}: no image/depth pairs listed")
-        bad = [i + 2 for i, r in enumerate(rows) if len(r) < 2]
+        bad = [n for n, r in rows if len(r) < 2 or not r[0].strip() or not r[1].strip()]
         if bad:
             raise UserError(f"{path}: line {bad[0]} does not have two columns (image, depth)")
-        return [(root / r[0].strip(), root / r[1].strip()) for r in rows]
+        return [(root / r[0].strip(), root / r[1].strip()) for _, r in rows]
 
     def __len__(self) -> int:
         return len(self.pairs)
@@ -128,18 +162,17 @@ class PairCSV:
                 raise UserError(f"{p}: listed in the CSV but missing")
         try:
             rgb = read_image(img_path, "RGB")
-            raw = read_image(depth_path).astype(np.float32)
+            depth = read_depth_png(depth_path)
         except (OSError, ValueError) as exc:
             raise UserError(f"{img_path.name}/{depth_path.name}: unreadable image ({exc})") from None
-        if raw.ndim != 2:
-            raise UserError(f"{depth_path}: depth must be a single-channel 16-bit PNG")
-        depth = raw / 1000.0
         _check_frame(rgb, depth, str(img_path))
         return RawFrame(rgb, depth, None, img_path.stem)
 
 
 # -- KITTI ---------------------------------------------------------------------------------------
 def read_calib(path: Path) -> dict[str, np.ndarray]:
+    """An object-detection calibration file: ``P2`` (3x4), ``R0_rect`` (3x3) and ``Tr_velo_to_cam``
+    (3x4, rigid), each checked and reshaped."""
     out = {}
     for line in read_text(path, 'calibration file').splitlines():
         if ":" in line:
@@ -148,20 +181,57 @@ def read_calib(path: Path) -> dict[str, np.ndarray]:
                 out[k.strip()] = np.array([float(x) for x in v.split()])
             except ValueError:
                 raise UserError(f"{path}: malformed calibration line '{k}'") from None
-    for k in ("P2", "R0_rect", "Tr_velo_to_cam"):
-        if k not in out:
-            raise UserError(f"{path}: calibration lacks {k}")
-    return out
+    calib = {k: calib_matrix(out, k, shape, path)
+             for k, shape in (("P2", (3, 4)), ("R0_rect", (3, 3)), ("Tr_velo_to_cam", (3, 4)))}
+    check_rotation(calib["R0_rect"], path, "R0_rect")
+    check_rotation(calib["Tr_velo_to_cam"][:, :3], path, "Tr_velo_to_cam")
+    return calib
+
+
+def calib_matrix(values: dict[str, np.ndarray], key: str, shape: tuple[int, ...], path: Path) -> np.ndarray:
+    """``values[key]`` as a finite matrix of ``shape``, or one line naming the file, the key and the count
+    it needs."""
+    if key not in values:
+        raise UserError(f"{path}: calibration lacks {key}")
+    v, need = values[key], int(np.prod(shape))
+    if v.size != need:
+        what = f"a {shape[0]}x{shape[1]} matrix, row by row" if len(shape) == 2 else "a vector"
+        raise UserError(f"{path}: {key} has {v.size} number(s), needs {need} ({what})")
+    if not np.isfinite(v).all():
+        raise UserError(f"{path}: {key} has NaN or infinite values")
+    return v.reshape(shape)
+
+
+def check_rotation(r: np.ndarray, path: Path, key: str) -> None:
+    """A calibration's rotation must be one: a scaled or mirrored matrix moves every point to a wrong
+    depth, past the range or behind the camera. The tolerance admits a file's rounding of its values."""
+    if not np.allclose(r @ r.T, np.eye(3), atol=1e-3) or np.linalg.det(r) <= 0:
+        raise UserError(f"{path}: {key} is not a rigid transform (its rotation part must be orthonormal with "
+                        "determinant +1): check the calibration file")
+
+
+def read_velodyne(path: Path) -> np.ndarray:
+    """A Velodyne scan as (N, 4) float32 x, y, z, reflectance, N >= 1; a file that is empty or cut
+    short (not whole 16-byte records) is refused rather than read as garbage or as no points."""
+    try:
+        size = path.stat().st_size
+        if size and size % 16 == 0:
+            return np.fromfile(path, dtype=np.float32).reshape(-1, 4)
+    except OSError as exc:
+        raise UserError(f"{path}: cannot read the Velodyne scan ({exc.strerror})") from None
+    raise UserError(f"{path}: a truncated or empty Velodyne scan ({size} bytes): expected float32 x, y, z, "
+                    "reflectance records of 16 bytes each")
 
 
 def project_velodyne(points: np.ndarray, calib: dict[str, np.ndarray], shape: tuple[int, int]
                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Image columns, rows and depths of the points in front of the camera and inside the image."""
-    p2 = calib["P2"].reshape(3, 4)
+    """Image columns, rows and depths of the points in front of the camera and inside the image
+    (``calib`` as :func:`read_calib` returns it)."""
+    p2 = calib["P2"]
     r0 = np.eye(4)
-    r0[:3, :3] = calib["R0_rect"].reshape(3, 3)
+    r0[:3, :3] = calib["R0_rect"]
     tr = np.eye(4)
-    tr[:3, :4] = calib["Tr_velo_to_cam"].reshape(3, 4)
+    tr[:3, :4] = calib["Tr_velo_to_cam"]
     xyz1 = np.c_[points[:, :3], np.ones(len(points))]
     cam = r0 @ tr @ xyz1.T
     front = cam[2] > 0.5
@@ -215,10 +285,7 @@ class KittiRaw:
             if not p.is_file():
                 raise UserError(f"{p}: missing for frame {n}")
         rgb = read_image(img, "RGB")
-        raw = np.fromfile(velo, dtype=np.float32)
-        if raw.size % 4:
-            raise UserError(f"{velo}: size is not a multiple of 4 floats (x, y, z, reflectance)")
-        points = raw.reshape(-1, 4)
+        points = read_velodyne(velo)
         calib = read_calib(cal)
         shape = rgb.shape[:2]
         depth = sparse_depth(*project_velodyne(points, calib, shape), shape)

@@ -31,8 +31,10 @@ import json
 import math
 import os
 import re
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Callable, Iterator
 
 import numpy as np
 
@@ -379,9 +381,36 @@ def _decode_into(reader, topics: dict, plan: _Plan, out, where: str) -> None:
             out.check()   # a disk that filled: stop here, not after decoding the rest
 
 
-def build_cache(path: Path, opts: BagOptions) -> Path:
-    """Decodes the bag into its cache (if not there yet) and returns the cache's path; a UserError
-    leaves nothing behind."""
+@contextmanager
+def _folders_made_undone(folder: Path) -> Iterator[None]:
+    """Removes again, when the block raises, the folders up to ``folder`` that it made (those missing
+    now, deepest first, each only while empty: another process's files in one keep it)."""
+    missing = []
+    for f in (folder, *folder.parents):
+        if f.exists():
+            break
+        missing.append(f)
+    try:
+        yield
+    except BaseException:
+        for f in missing:
+            try:
+                f.rmdir()
+            except OSError:
+                break
+        raise
+
+
+#: what a reader of the cache accepts, asked before the cache is written: ``accept(has_depth, n)``
+#: (``n`` None: the frames not counted yet) raises the UserError of a bag it refuses.
+Accept = Callable[[bool, int | None], object]
+
+
+def build_cache(path: Path, opts: BagOptions, accept: Accept | None = None) -> Path:
+    """Decodes the bag into its cache (if not there yet) and returns the cache's path. ``accept``
+    refuses a bag before anything is written: once its topics are chosen (has it a depth topic) and
+    once its frames are paired (how many). A UserError leaves the cache as it was: the file is
+    written on a scratch name and renamed into place whole, and a folder made for it is removed."""
     _check_path(path)
     target = cache_path(path, opts)
     if target.is_file():
@@ -391,10 +420,14 @@ def build_cache(path: Path, opts: BagOptions) -> Path:
     try:
         topic_types = {t: info.msgtype for t, info in reader.topics.items() if info.msgtype}
         topics = choose_topics(topic_types, opts, where)
+        if accept is not None:
+            accept(topics["depth"] is not None, None)
         plan = _plan(_survey(reader, topics, where), topics, opts, where)
         n, (h, w) = len(plan.image), plan.shape
+        if accept is not None:
+            accept(plan.depth is not None, n)
         need = n * h * w * (3 + (4 if plan.depth is not None else 0)) // 2   # LZF rarely halves them
-        with writing_cache(target, need, "recording's cache") as out:
+        with _folders_made_undone(target.parent), writing_cache(target, need, "recording's cache") as out:
             _decode_into(reader, topics, plan, out, where)
             _write_meta(out.file, plan, topics)
     except AnyReaderError as exc:
@@ -424,10 +457,11 @@ class _BagSource:
     """The cache of one bag (decoded on first use); its pixels are read per item, through a file
     opened once per process (a DataLoader's workers each open their own)."""
 
-    def __init__(self, path: Path, options: dict) -> None:
+    def __init__(self, path: Path, options: dict, split: str) -> None:
         import h5py
+        self.path, self.split = path, split
         self.options = bag_options(Path(path), dict(options))
-        self.cache = build_cache(Path(path), self.options)
+        self.cache = build_cache(Path(path), self.options, accept=self._items)
         try:
             with h5py.File(self.cache, "r") as h5:
                 self.K, self.T_cam_lidar = np.asarray(h5.attrs["K"]), np.asarray(h5.attrs["T_cam_lidar"])
@@ -440,6 +474,12 @@ class _BagSource:
             raise UserError(f"{self.cache}: a damaged bag cache, removed ({_first_line(exc)}); run again") from None
         self.names = [frame_name(int(t)) for t in self.stamps]
         self._h5, self._pid = None, None
+        self.items = self._items(self.has_depth, len(self.stamps))
+
+    def _items(self, has_depth: bool, n: int | None) -> range | None:
+        """The split's items of ``n`` paired frames (None while ``n`` is not known), or the UserError
+        of a bag this reader refuses: asked before the cache is written, and again when it is read."""
+        raise NotImplementedError
 
     def __getstate__(self) -> dict:   # pickled to a worker: without the open file
         return {**self.__dict__, "_h5": None, "_pid": None}
@@ -469,13 +509,14 @@ class BagFrames(_BagSource):
     image. Split in time (the end validates), 1% of the frames left out between, so that no
     neighbour of a validation frame trains."""
 
-    def __init__(self, path: Path, options: dict, split: str) -> None:
-        super().__init__(path, options)
-        if not self.has_depth:
+    def _items(self, has_depth: bool, n: int | None) -> range | None:
+        path = self.path
+        if not has_depth:
             raise UserError(f"{path}: no depth topic: train self-supervised with rosbag-seq:{path}, "
                             "or name depth=TOPIC")
-        n = len(self.stamps)
-        self.items = split_range(n, split, str(path), share=self.options.val, gap=max(1, round(0.01 * n)))
+        if n is None:
+            return None
+        return split_range(n, self.split, str(path), share=self.options.val, gap=max(1, round(0.01 * n)))
 
     def __getitem__(self, i: int) -> RawFrame:
         j = self.items[i]
@@ -497,12 +538,16 @@ class BagSequence(_BagSource):
     kind = "frames"
 
     def __init__(self, path: Path, options: dict, split: str) -> None:
-        super().__init__(path, options)
-        if len(self.stamps) < 3:
-            raise UserError(f"{path}: {len(self.stamps)} paired frame(s); a sequence needs at least 3")
-        self.items = split_range(len(self.stamps) - 2, split, str(path), share=self.options.val, gap=2, start=1)
+        super().__init__(path, options, split)
         self.max_depth = float(self.params[:, 3].max())
         self.poses = [self._poses(j) for j in self.items] if split == "val" else None
+
+    def _items(self, has_depth: bool, n: int | None) -> range | None:
+        if n is None:
+            return None
+        if n < 3:
+            raise UserError(f"{self.path}: {n} paired frame(s); a sequence needs at least 3")
+        return split_range(n - 2, self.split, str(self.path), share=self.options.val, gap=2, start=1)
 
     def _poses(self, j: int) -> list[np.ndarray] | None:
         """Camera-to-world of frames j-1, j, j+1, frame j's camera being the world; None where the scans

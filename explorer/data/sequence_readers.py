@@ -13,7 +13,8 @@ from pathlib import Path
 import numpy as np
 
 from explorer.data.odometry import camera_motion
-from explorer.data.readers import open_image, read_image, ring_mask, sparse_depth
+from explorer.data.readers import (calib_matrix, check_rotation, open_image, read_depth_png, read_image,
+                                   read_velodyne, ring_mask, sparse_depth)
 from explorer.scan import LidarModel, project_scan, read_intrinsics, read_lidar_yaml, read_ranges  # noqa: F401
 from explorer.data.sequences import SequenceSample
 from explorer.data.splits import VAL_SHARE, split_range
@@ -169,7 +170,7 @@ class FrameFolder:
         depth_path = self.root / "depth" / f"{self.paths[t].stem}.png"
         depth = np.zeros(self.shape, np.float32)
         if depth_path.is_file():
-            depth = read_image(depth_path).astype(np.float32) / 1000.0
+            depth = read_depth_png(depth_path)
             if depth.shape != self.shape:
                 raise UserError(f"{depth_path}: {depth.shape} differs from the frames' {self.shape}")
         poses = [self.poses[t + d] for d in (-1, 0, 1)] if self.poses else self.scan_poses.get(t)
@@ -199,10 +200,9 @@ def _read_kv(path: Path) -> dict[str, np.ndarray]:
 
 
 def _rigid(values: dict[str, np.ndarray], path: Path) -> np.ndarray:
-    if "R" not in values or "T" not in values:
-        raise UserError(f"{path}: calibration lacks R or T")
     m = np.eye(4)
-    m[:3, :3], m[:3, 3] = values["R"].reshape(3, 3), values["T"]
+    m[:3, :3], m[:3, 3] = calib_matrix(values, "R", (3, 3), path), calib_matrix(values, "T", (3,), path)
+    check_rotation(m[:3, :3], path, "R")
     return m
 
 
@@ -247,14 +247,12 @@ class KittiDrive:
         self.shape = _check_sizes(self.paths)
         cam_file, velo_file = self._calib("calib_cam_to_cam.txt"), self._calib("calib_velo_to_cam.txt")
         cam = _read_kv(cam_file)
-        for k in ("P_rect_02", "R_rect_00"):
-            if k not in cam:
-                raise UserError(f"{cam_file}: calibration lacks {k}")
-        p2 = cam["P_rect_02"].reshape(3, 4)
+        p2 = calib_matrix(cam, "P_rect_02", (3, 4), cam_file)
         self.K = p2[:, :3].copy()
         # rectified camera 2 from the velodyne: R_rect_00, then camera 2's offset along x
         rect = np.eye(4)
-        rect[:3, :3] = cam["R_rect_00"].reshape(3, 3)
+        rect[:3, :3] = calib_matrix(cam, "R_rect_00", (3, 3), cam_file)
+        check_rotation(rect[:3, :3], cam_file, "R_rect_00")
         offset = np.eye(4)
         offset[0, 3] = p2[0, 3] / p2[0, 0]
         self.cam_from_velo = offset @ rect @ _rigid(_read_kv(velo_file), velo_file)
@@ -309,11 +307,8 @@ class KittiDrive:
         t = self.targets[i]
         frames = [_rgb(self.paths[t + d]) for d in (-1, 0, 1)]
         velo = self.root / "velodyne_points" / "data" / f"{self.paths[t].stem}.bin"
-        raw = np.fromfile(velo, dtype=np.float32)
-        if raw.size % 4:
-            raise UserError(f"{velo}: size is not a multiple of 4 floats (x, y, z, reflectance)")
-        points = raw.reshape(-1, 4)
+        points = read_velodyne(velo)
         depth = self._project(points)
-        scan_image = self._project(points[ring_mask(points, self.elevation)]) if len(points) else None
+        scan_image = self._project(points[ring_mask(points, self.elevation)])
         poses = [self.poses[t + d] for d in (-1, 0, 1)] if self.poses else None
         return SequenceSample(frames, depth, self.K, poses, scan_image, self.paths[t].stem)

@@ -21,7 +21,8 @@ from explorer.deploy.manifest import MANIFEST, Manifest, Stage, read_manifest  #
 from explorer.deploy.sessions import check_provider
 from explorer.errors import UserError
 from explorer.files import read_image as read_image_file
-from explorer.files import check_writable_folder, read_text, scratch_dir, write_atomically
+from explorer.files import (check_writable_folder, read_text, refuse_overwriting_inputs, scratch_dir,
+                            write_atomically)
 from explorer.scan import (  # noqa: F401  (read_intrinsics: the runtime's face for robot code)
     LidarModel,
     check_camera_matrix,
@@ -442,6 +443,8 @@ def run_files(model_dir: Path, image: Path, scan: Path, deadline_ms: float, out:
                         "a per-column --scan needs neither")
     if out is not None:
         check_depth_out(out)
+        refuse_overwriting_inputs(out, "--out", {"--image": image, "--scan": scan, "--lidar": lidar,
+                                                 "--intrinsics": intrinsics})
     ranges = None
     if lidar is None:
         image_pixels, scan_depths = read_image(image), read_scan(scan)

@@ -62,8 +62,12 @@ def _workspace(root: Path) -> None:
     (root / "notafolder.txt").write_text("x")
     (root / "empty_model").mkdir()
     (root / "empty_model" / "manifest.json").write_text("{}")
+    (root / "curve_folder_model").mkdir()
+    (root / "curve_folder_model" / "manifest.json").write_text("{}")
+    (root / "curve_folder_model" / "anytime_curve.json").mkdir()
     Image.fromarray(np.zeros((32, 32, 3), np.uint8)).save(root / "ok.png")
     (root / "scan.csv").write_text(",".join(["2.0"] * 32))
+    (root / "pairs.csv").write_text("ok.png,ok.png\n")
     (root / "notjournal.log").write_text("this is not a journal\n")
     (root / "zeros.csv").write_text("deadline_ms\n0\n0\n0\n")
     _damaged_study(root / "damaged.log")
@@ -86,6 +90,14 @@ BAD = {
     "run out jpg": RUN + ["--deadline", "5ms", "--out", "x.jpg"],
     "run out txt": RUN + ["--deadline", "5ms", "--out", "x.txt"],
     "run out unwritable": RUN + ["--deadline", "5ms", "--out", "/proc/nope/x.png"],
+    "run out onto its image": RUN + ["--deadline", "5ms", "--out", "ok.png"],
+    "drawing onto a frame": ["data", "inspect", "--data", "frames:bomb_frames", "--out", "bomb_frames/0001.png"],
+    "drawing onto a listed frame": ["data", "inspect", "--data", "nyu:pairs.csv", "--out", "./ok.png"],
+    "drawing into a data folder": ["data", "inspect", "--data", "frames:bomb_frames", "--out", "bomb_frames/new.png"],
+    "drawing unwritable": ["data", "inspect", "--data", "synthetic:4:2", "--out", "/proc/nope/x.png"],
+    "table unwritable": ["enumerate", "--space", "tiny", "--csv", "/proc/x.csv"],
+    "curve onto a folder": ["curve", "curve_folder_model", "--device", "tx2"],
+    "reference at 1x1": ["profile", "fastdepth", "--input-size", "1x1", "--device", "tx2"],
     "empty manifest": RUN + ["--deadline", "5ms"],
     "run threads": RUN + ["--deadline", "5ms", "--threads", "-3"],
     "run deadline 0": RUN + ["--deadline", "0ms"],
