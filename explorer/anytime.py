@@ -167,6 +167,8 @@ class Trace(BudgetDistribution):
     def from_csv(cls, path: str, kind: str, scale: float) -> "Trace":
         import pandas as pd
         p = Path(path)
+        if p.is_dir():
+            raise UserError(f"budget trace {path}: is a folder; give a CSV file with one deadline per row")
         if not p.is_file():
             raise UserError(f"budget trace {path}: no such file (a CSV with one deadline per row)")
         try:

@@ -171,7 +171,7 @@ def _curve_profile(args) -> tuple[str | None, dict | None]:
     from explorer.calibration.kept import find_kept
     from explorer.cli.devices import QUICK_PROBE
     from explorer.console import err_console
-    if args.device:
+    if args.device is not None:
         if args.recalibrate:
             raise UserError("--recalibrate measures this machine again: give it without --device")
         return args.device, None

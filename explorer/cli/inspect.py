@@ -63,7 +63,7 @@ def cmd_profile(args) -> None:
     from explorer.cost import get_device, profile_candidate
     from explorer.space import SPACES_DIR
     out = []
-    device = get_device(args.device) if args.device else None
+    device = get_device(args.device) if args.device is not None else None
     looks_like_file = args.target.endswith((".yaml", ".yml")) or "/" in args.target
     if not looks_like_file and not Path(args.target).is_file() and not (SPACES_DIR / f"{args.target}.yaml").is_file():
         return _profile_reference(args, device)   # a reference network, or one line naming them

@@ -199,6 +199,9 @@ class DeviceProfile:
         energy = data.get("energy") or {}
         if not isinstance(energy, dict):
             raise UserError(f"{source}: 'energy' must be a mapping with fixed_j and active_power_w")
+        if set(energy) - {"fixed_j", "active_power_w"}:   # a misspelt key would price energy at 0 in silence
+            raise UserError(f"{source}: unknown key(s) under 'energy': {sorted(set(energy) - {'fixed_j', 'active_power_w'})} "
+                            "(it takes fixed_j and active_power_w)")
         int8 = data.get("int8")
         if int8 is not None:
             if not isinstance(int8, dict) or "kinds" not in int8:
@@ -290,6 +293,8 @@ def get_device(spec: str | Path | DeviceProfile) -> DeviceProfile:
     if isinstance(spec, DeviceProfile):
         return spec
     text = str(spec)
+    if not text.strip():   # an unset shell variable: never "no device" in silence
+        raise UserError(f"--device is empty: give one of {available_devices()} or a profile YAML file")
     builtin = PROFILES_DIR / f"{text}.yaml"
     if builtin.is_file():
         return DeviceProfile.from_yaml(builtin)

@@ -381,6 +381,8 @@ def _named(stage: Stage, sess) -> tuple[Stage, object, list[str], list[str]]:
 
 def read_scan(path: Path) -> np.ndarray:
     """One depth in metres per image column (0 = no return), from ``.npy`` or text (CSV or spaces)."""
+    if path.is_dir():
+        raise UserError(f"{path}: is a folder; give --scan one scan file (.npy, or text)")
     if not path.is_file():
         raise UserError(f"{path}: no such scan file")
     try:
@@ -397,6 +399,8 @@ def read_scan(path: Path) -> np.ndarray:
 
 
 def read_image(path: Path) -> np.ndarray:
+    if path.is_dir():
+        raise UserError(f"{path}: is a folder; give --image one image file")
     if not path.is_file():
         raise UserError(f"{path}: no such image")
     return read_image_file(path, "RGB")

@@ -305,12 +305,15 @@ def save_checkpoint(path: Path, net: AnytimeDepthNet, cfg: TrainConfig, step: in
 
 def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") -> dict:
     p = Path(path)
+    if p.is_dir():
+        raise UserError(f"checkpoint {p}: is a folder; give the .pt file explorer train wrote")
     if not p.is_file():
         raise UserError(f"checkpoint {p}: no such file")
     try:
         state = torch.load(p, map_location=map_location, weights_only=True)
     except Exception as exc:  # torch raises several types for corrupt or foreign files
-        raise UserError(f"checkpoint {p}: unreadable ({str(exc).splitlines()[0][:120]})") from None
+        raise UserError(f"checkpoint {p}: not a checkpoint PyTorch can read (a damaged or foreign file, "
+                        f"{type(exc).__name__}); give the .pt file explorer train wrote") from None
     if not isinstance(state, dict) or "candidate" not in state or "state_dict" not in state:
         raise UserError(f"checkpoint {p}: not an anytime-explorer checkpoint (no candidate/state_dict)")
     return state

@@ -68,6 +68,9 @@ def _workspace(root: Path) -> None:
     Image.fromarray(np.zeros((32, 32, 3), np.uint8)).save(root / "ok.png")
     (root / "scan.csv").write_text(",".join(["2.0"] * 32))
     (root / "pairs.csv").write_text("ok.png,ok.png\n")
+    from explorer.cost.devices import PROFILES_DIR
+    tx2 = (PROFILES_DIR / "tx2.yaml").read_text()
+    (root / "energy_typo.yaml").write_text(tx2.replace("fixed_j:", "fixd_j:").replace("name: tx2", "name: typo"))
     (root / "notjournal.log").write_text("this is not a journal\n")
     (root / "zeros.csv").write_text("deadline_ms\n0\n0\n0\n")
     _damaged_study(root / "damaged.log")
@@ -97,6 +100,12 @@ BAD = {
     "drawing unwritable": ["data", "inspect", "--data", "synthetic:4:2", "--out", "/proc/nope/x.png"],
     "table unwritable": ["enumerate", "--space", "tiny", "--csv", "/proc/x.csv"],
     "curve onto a folder": ["curve", "curve_folder_model", "--device", "tx2"],
+    "empty device": ["profile", "paper", "--device", ""],
+    "energy key misspelt": ["profile", "paper", "--device", "energy_typo.yaml"],
+    "image is a folder": ["run", "empty_model", "--image", "bomb_frames", "--scan", "scan.csv", "--deadline", "5ms"],
+    "checkpoint is a folder": ["evaluate", "bomb_frames"],
+    "text as a checkpoint": ["evaluate", "scan.csv"],
+    "trace is a folder": ["anytime", "--path", "5:0.3", "--budget", "time:trace:bomb_frames"],
     "reference at 1x1": ["profile", "fastdepth", "--input-size", "1x1", "--device", "tx2"],
     "empty manifest": RUN + ["--deadline", "5ms"],
     "run threads": RUN + ["--deadline", "5ms", "--threads", "-3"],
