@@ -108,7 +108,12 @@ def options_path(path: Path) -> Path:
 def bag_options(path: Path, options: dict[str, str]) -> BagOptions:
     """The :class:`BagOptions` of the YAML beside ``path`` (if any; LiDAR keys under ``lidar:``)
     overridden by ``options`` (LiDAR keys among them), each checked; unknown keys name the known ones."""
+    if Path(path).suffix.lower() in (".yaml", ".yml"):   # a ROS 2 bag's metadata.yaml, given for its folder
+        raise UserError(f"{path}: a YAML file, not a bag: give the ROS 2 bag's folder (the one holding "
+                        "metadata.yaml), or a .bag, .mcap or .db3 file")
     yml = options_path(path)
+    if yml.is_dir():
+        raise UserError(f"{yml}: is a folder where the bag's options file goes; move it away")
     data = read_yaml(yml, "bag options") if yml.is_file() else {}
     merged = data or {}
     if not isinstance(merged, dict) or not isinstance(merged.get("lidar") or {}, dict):
@@ -193,6 +198,10 @@ def _choose(topics: dict[str, str], key: str, named: str | None, types: tuple[st
     if len(candidates) > 1:
         raise UserError(f"{where}: {len(candidates)} {kind} topics ({', '.join(candidates)}); "
                         f"name one, e.g. {key}={candidates[0]}")
+    taken = [t for t in of_type if t in exclude]
+    if needed and taken:   # the camera's own topic was named as the depth
+        raise UserError(f"{where}: {taken[0]} is named as the depth, and no other topic is the camera's image; "
+                        "name the depth topic with depth=TOPIC, or give depth=none")
     if needed:
         raise UserError(f"{where}: the bag has no {kind} topic (its topics: {', '.join(sorted(topics)) or 'none'})")
     return None

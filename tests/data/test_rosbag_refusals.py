@@ -139,3 +139,16 @@ def test_a_good_bag_still_caches_and_reads_back(sc, good, cache, tmp_path, monke
     replaced = BagFrames(bag, {}, "train")
     assert replaced.cache != first.cache and replaced.cache.is_file()
     assert replaced.frame_names() == first.frame_names()
+
+
+def test_a_mistaken_bag_path_or_topic_is_one_line_that_says_what_to_give(good, sc, cache, tmp_path):
+    _refused(cache, r"is named as the depth, and no other topic is the camera's image; name the depth topic",
+             lambda: open_dataset(f"rosbag:{good},depth=/camera/color/image_raw", "val", (32, 32)))
+    folder = write_bag(tmp_path / "r2", sc, fmt="sqlite3")
+    _refused(cache, "a YAML file, not a bag: give the ROS 2 bag's folder",
+             lambda: open_dataset(f"rosbag:{folder / 'metadata.yaml'}", "val", (32, 32)))
+    copy = tmp_path / "copy.bag"
+    copy.write_bytes(good.read_bytes())
+    (tmp_path / "copy.yaml").mkdir()
+    _refused(cache, "copy.yaml: is a folder where the bag's options file goes",
+             lambda: open_dataset(f"rosbag:{copy}", "val", (32, 32)))
