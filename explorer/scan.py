@@ -21,9 +21,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import yaml
 
 from explorer.errors import UserError
-from explorer.files import read_text, read_yaml
+from explorer.files import parse_yaml, read_text
 
 #: the rotation from the LiDAR frame (x forward, y left, z up) to the optical frame (x right, y down,
 #: z forward) of a camera looking the same way
@@ -78,9 +79,23 @@ class ScanPoints:
         return ScanPoints(u, v, self.z)
 
 
+def _holds_bool(value) -> bool:
+    """Whether ``value`` (a number, or nested lists / arrays of them) holds a boolean anywhere: YAML's
+    true / false would pass as 1 / 0 (bool is an int in Python), a typo taken for a number."""
+    if isinstance(value, (bool, np.bool_)):
+        return True
+    if isinstance(value, np.ndarray):
+        return value.dtype.kind == "b" or (value.dtype == object and any(_holds_bool(v) for v in value.ravel()))
+    if isinstance(value, (list, tuple)):
+        return any(_holds_bool(v) for v in value)
+    return False
+
+
 def rigid_transform(matrix, where: str) -> np.ndarray:
     """``matrix`` as a 4x4 rigid transform (rotation with determinant +1, last row 0 0 0 1), or a
     :class:`UserError` saying what is wrong with it."""
+    if _holds_bool(matrix):
+        raise UserError(f"{where}: T_cam_lidar holds true/false; write its entries as numbers (1, 0)")
     try:
         m = np.asarray(matrix, dtype=np.float64)
     except (TypeError, ValueError):
@@ -251,6 +266,19 @@ def check_camera_matrix(K, where: str) -> np.ndarray:
     return m
 
 
+def check_principal_point(K, shape: tuple[int, ...], where: str) -> None:
+    """Refuses ``K`` whose principal point (cx, cy) lies outside an image of ``shape`` (H, W, ...): such
+    intrinsics belong to another resolution or have fx, fy and cx, cy swapped, and every projected
+    return would land off the image. The image's edges are -0.5 and W - 0.5 in pixel-index coordinates,
+    0 and W where a pixel's corner is 0 (as some calibration tools write it): either is accepted."""
+    h, w = int(shape[0]), int(shape[1])
+    cx, cy = float(np.asarray(K)[0, 2]), float(np.asarray(K)[1, 2])
+    if not (-0.5 <= cx <= w and -0.5 <= cy <= h):
+        raise UserError(f"{where}: the principal point cx={cx:g}, cy={cy:g} lies outside the {w}x{h} image; give "
+                        f"the intrinsics of these frames in their pixels (cx near {w / 2:g}, cy near {h / 2:g}), "
+                        "in the order fx fy cx cy")
+
+
 def read_intrinsics(path: str | Path) -> np.ndarray:
     """K from ``fx fy cx cy`` (4 numbers) or its 9 entries, in pixels of the image it belongs to,
     checked to be a camera matrix before any tensor sees it."""
@@ -315,7 +343,16 @@ RADIAN_KEYS = ("angle_min", "angle_max", "angle_increment")
 MOUNT_KEYS = ("height", "forward", "lateral", "tilt", "roll", "yaw")
 
 
+#: the widest span of beams a 2D LiDAR sweeps: a full turn (degrees for fov, radians for angle_min ..
+#: angle_max, with a little slack for a LaserScan's float32 angles rounded when written out)
+MAX_FOV_DEG = 360.0
+MAX_SPAN_RAD = 2 * math.pi + 1e-3
+
+
 def _number(value, key: str, where: str) -> float:
+    if _holds_bool(value):   # bool is an int: `fov: true` would be read as fov 1
+        raise UserError(f"{where}: {key} must be a number, got {str(value).lower()} (a YAML true/false); "
+                        "write the number")
     try:
         x = float(value)
     except (TypeError, ValueError):
@@ -332,18 +369,9 @@ def lidar_model(options: dict, where: str, base: LidarModel = LidarModel()) -> L
     if unknown:
         raise UserError(f"{where}: unknown LiDAR key {unknown[0]!r}; use {', '.join(LIDAR_KEYS)}, "
                         f"{', '.join(RADIAN_KEYS)} or T_cam_lidar")
-    opts = dict(options)
-    if isinstance(opts.get("mount"), dict):
-        opts.update(opts.pop("mount"))
+    opts = flat_lidar_options(options, where)
     values = {k: _number(v, k, where) for k, v in opts.items() if k != "T_cam_lidar"}
-    half = math.radians(values["fov"]) / 2 if "fov" in values else None
-    angle_min = values.get("angle_min", -half if half is not None else base.angle_min)
-    angle_max = values.get("angle_max", half if half is not None else base.angle_max)
-    step = values.get("angle_increment", math.radians(values["resolution"]) if "resolution" in values
-                      else base.angle_increment)
-    if not angle_min < angle_max or not 0 < step <= angle_max - angle_min:
-        raise UserError(f"{where}: the beams must run from angle_min to a larger angle_max by a positive step "
-                        "no larger than the field of view (fov > 0, resolution > 0)")
+    angle_min, angle_max, step = _beams(values, where, base)
     if "T_cam_lidar" in opts and any(k in values for k in MOUNT_KEYS):
         raise UserError(f"{where}: give the mount either as T_cam_lidar or as height/tilt/..., not both")
     if "T_cam_lidar" in opts:
@@ -371,11 +399,96 @@ def lidar_model(options: dict, where: str, base: LidarModel = LidarModel()) -> L
     return model
 
 
+def flat_lidar_options(options: dict, where: str) -> dict:
+    """``options`` with a ``mount:`` mapping's keys (the mount keys or T_cam_lidar) lifted beside the
+    others; a mount that is not such a mapping, or that repeats a key given beside it, is refused (the
+    one would silently override the other)."""
+    opts = dict(options)
+    if "mount" not in opts:
+        return opts
+    mount = opts.pop("mount")
+    if not isinstance(mount, dict):
+        raise UserError(f"{where}: mount must be a mapping of {', '.join(MOUNT_KEYS)} (or T_cam_lidar), "
+                        f"got {mount!r}")
+    bad = sorted(str(k) for k in mount if k not in MOUNT_KEYS and k != "T_cam_lidar")
+    if bad:
+        raise UserError(f"{where}: {bad[0]!r} under mount: is not a mount key; use {', '.join(MOUNT_KEYS)} or "
+                        "T_cam_lidar there, the others beside mount:")
+    twice = sorted(str(k) for k in mount if k in opts)
+    if twice:
+        raise UserError(f"{where}: {twice[0]!r} is given both under mount: and beside it; keep one")
+    opts.update(mount)
+    return opts
+
+
+def _beams(values: dict, where: str, base: LidarModel) -> tuple[float, float, float]:
+    """(angle_min, angle_max, angle_increment) from ``values``: fov / resolution in degrees, or the
+    radian keys a LaserScan has; both forms of one quantity at once are refused, as they would
+    silently mix (fov 180 with angle_min -1 is no field of view anyone meant)."""
+    limits = [k for k in ("angle_min", "angle_max") if k in values]
+    if "fov" in values and limits:
+        raise UserError(f"{where}: fov and {' and '.join(limits)} both give the field of view; keep fov (degrees, "
+                        "centred on the LiDAR's x axis) or angle_min and angle_max (radians, as the LaserScan has "
+                        "them), not both")
+    if "resolution" in values and "angle_increment" in values:
+        raise UserError(f"{where}: resolution and angle_increment both give the step between beams; keep "
+                        "resolution (degrees) or angle_increment (radians), not both")
+    if values.get("fov", 0.0) > MAX_FOV_DEG:
+        raise UserError(f"{where}: fov {values['fov']:g} is more than a full turn; a 2D LiDAR sweeps at most "
+                        f"{MAX_FOV_DEG:g} degrees (fov is in degrees)")
+    half = math.radians(values["fov"]) / 2 if "fov" in values else None
+    angle_min = values.get("angle_min", -half if half is not None else base.angle_min)
+    angle_max = values.get("angle_max", half if half is not None else base.angle_max)
+    step = values.get("angle_increment", math.radians(values["resolution"]) if "resolution" in values
+                      else base.angle_increment)
+    if not angle_min < angle_max or not 0 < step <= angle_max - angle_min:
+        raise UserError(f"{where}: the beams must run from angle_min to a larger angle_max by a positive step "
+                        "no larger than the field of view (fov > 0, resolution > 0)")
+    if angle_max - angle_min > MAX_SPAN_RAD:
+        raise UserError(f"{where}: angle_min {angle_min:g} to angle_max {angle_max:g} spans "
+                        f"{math.degrees(angle_max - angle_min):.1f} degrees, more than a full turn; they are "
+                        "radians (a full turn is -3.1416 to 3.1416)")
+    return angle_min, angle_max, step
+
+
+def _duplicate_key(text: str) -> tuple[str, int, int] | None:
+    """The first key a YAML mapping of ``text`` repeats, with the lines of both (PyYAML keeps the last
+    silently). Walks the composed nodes, not the constructed values: nothing is built, and a node an
+    alias shares is visited once. ``text`` must already have parsed (its size and nesting checked)."""
+    root = yaml.compose(text, Loader=yaml.SafeLoader)
+    stack, seen = [root] if root is not None else [], set()
+    while stack:
+        node = stack.pop()
+        if id(node) in seen:
+            continue
+        seen.add(id(node))
+        if isinstance(node, yaml.MappingNode):
+            lines: dict = {}
+            for key, value in node.value:
+                # a merge key (<<) may override what it merges: that is YAML, not a repeat
+                if isinstance(key, yaml.ScalarNode) and key.tag != "tag:yaml.org,2002:merge":
+                    line = key.start_mark.line + 1
+                    if (key.tag, key.value) in lines:
+                        return key.value, lines[(key.tag, key.value)], line
+                    lines[(key.tag, key.value)] = line
+                stack.extend((key, value))
+        elif isinstance(node, yaml.SequenceNode):
+            stack.extend(node.value)
+    return None
+
+
 def read_lidar_options(path: Path) -> dict:
-    """A ``lidar.yaml``'s mapping of LiDAR keys, unchecked (:func:`lidar_model` checks them)."""
-    data = read_yaml(Path(path), "LiDAR file")
+    """A ``lidar.yaml``'s mapping of LiDAR keys, each key once, checked as :func:`lidar_model` checks them."""
+    path = Path(path)
+    text = read_text(path, "LiDAR file")
+    data = parse_yaml(text, str(path))   # the package's safe reading: size, nesting and alias bombs refused
     if not isinstance(data, dict):
         raise UserError(f"{path}: expected a mapping of LiDAR keys ({', '.join(LIDAR_KEYS)})")
+    twice = _duplicate_key(text)
+    if twice:
+        key, first, again = twice
+        raise UserError(f"{path}: the key {key!r} is given twice (lines {first} and {again}); keep one")
+    lidar_model(data, str(path))   # checked here, so that a mistake names this file (--lidar merges the keys after)
     return data
 
 

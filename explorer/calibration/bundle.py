@@ -180,6 +180,11 @@ def write_bundle_dir(folder: Path, scale: float = 1.0, seed: int = 0, n_stage: i
     return manifest
 
 
+#: The names ``explorer calibrate --bundle`` writes: the bundle is a gzip-compressed tar, which ``tar xf``
+#: unpacks under any of them (docs: ``probe.tar``); another name (``.zip``) would mislead who unpacks it.
+BUNDLE_SUFFIXES = (".tar", ".tar.gz", ".tgz")
+
+
 def write_bundle(out: Path, **kwargs) -> probe_script.BundleManifest:
     """The bundle as one gzip-compressed tar (``tar xf`` unpacks it); written whole or not at all."""
     out = Path(out)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 from explorer.errors import UserError
@@ -40,6 +41,61 @@ def cmd_devices(args) -> None:
     console.print("  (any profile YAML file works too: --device ./mybox.yaml; make one with explorer calibrate)")
 
 
+#: A profile's name names files (``explorer.cost.fit`` writes ``<name>.yaml``) and keys (an export's
+#: ``expected_cost``, a report's devices): a plain name, by the rule study names follow (explorer.study.storage)
+PROFILE_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,99}")
+PLAIN_NAME = "letters, digits, '-', '_' and '.', starting with a letter or digit, at most 100 characters"
+#: The file names ``--device`` reads a profile from (``explorer.cost.devices.get_device``): any other is
+#: taken for a built-in profile's name, so a profile written under it could not be used
+PROFILE_SUFFIXES = (".yaml", ".yml")
+
+
+def _check_output(path: Path, flag: str, suffixes: tuple[str, ...], why: str, what: str, force: bool) -> None:
+    """Refuses, before any work, an output ``path`` (``flag``'s) that is a folder, does not end in one of
+    ``suffixes`` (``why``: what the file is), is there without --force, or lies where nothing can be written.
+    The folder first: --force would not help there, the write would only fail after the work."""
+    ending = ", ".join(suffixes[:-1]) + f" or {suffixes[-1]}"
+    if path.is_dir():
+        raise UserError(f"{path}: is a folder; give {flag} a file name ending in {ending}")
+    if not path.name.endswith(suffixes):
+        raise UserError(f"{flag} {path}: {why}; give a file name ending in {ending}")
+    if path.exists() and not force:
+        raise UserError(f"{path} exists: pass --force to overwrite it")
+    check_writable_folder(path.parent, what, f"give {flag} a file in a folder you can write", keep=False)
+
+
+def _profile_name(name: str | None, out: Path) -> str:
+    """The profile's name (``--name``, else ``--out``'s stem), refused before any measuring where it is
+    not a plain name or is a built-in profile's (one name would then stand for two profiles in an export's
+    expected costs and a report's devices, and in the files a fit writes by name)."""
+    from explorer.cost.devices import available_devices
+    given, name = name is not None, out.stem if name is None else name
+    where = f"--name {name!r}" if given else f"--out {out.name}: the profile would be named {name!r}, which"
+    if not PROFILE_NAME.fullmatch(name):
+        raise UserError(f"{where} is not a plain name ({PLAIN_NAME}): give --name a plain name, e.g. --name mybox")
+    builtins = available_devices()
+    if name.lower() in {b.lower() for b in builtins}:   # as a case-blind file system would find it too
+        raise UserError(f"{where} is a built-in device profile's name ({', '.join(builtins)}): choose another "
+                        f"name, e.g. --name {name}-measured")
+    return name
+
+
+def _write_bundle(args) -> None:
+    """``calibrate --bundle``: every mistake in the file name refused before the minute of exporting."""
+    from explorer.calibration.bundle import BUNDLE_SUFFIXES, write_bundle
+    from explorer.console import console, progress
+    bundle = Path(args.bundle)
+    _check_output(bundle, "--bundle", BUNDLE_SUFFIXES, "the bundle is a gzip-compressed tar archive (tar xf "
+                  "unpacks it)", "bundle", args.force)
+    with progress() as bar:
+        task = bar.add_task("exporting graphs", total=None, status="")
+        manifest = write_bundle(bundle, scale=0.35 if args.quick else 1.0, repeats=args.repeats,
+                                progress=lambda i, n: bar.update(task, completed=i, total=n))
+    console.print(f"wrote {bundle} ({bundle.stat().st_size / 1e6:.1f} MB, {len(manifest.layers)} layer "
+                  f"graphs, {len(manifest.candidates)} candidates' stages, bundle {manifest.id}); on the "
+                  f"device: tar xf {bundle.name} && python3 probe.pyz --out results.json")
+
+
 def cmd_calibrate(args) -> None:
     from explorer.console import Phases, console, progress
     from explorer.calibration.calibrate import calibrate, fit_results, read_results
@@ -47,34 +103,21 @@ def cmd_calibrate(args) -> None:
     if args.bundle and args.fit:
         raise UserError("--bundle writes graphs for a device, --fit reads what the probe measured there: give one")
     if args.bundle:
-        from explorer.calibration.bundle import write_bundle
-        bundle = Path(args.bundle)
-        if bundle.exists() and not args.force:
-            raise UserError(f"{bundle} exists: pass --force to overwrite it")
-        check_writable_folder(bundle.parent, "bundle", "give --bundle a file in a folder you can write", keep=False)
-        with progress() as bar:
-            task = bar.add_task("exporting graphs", total=None, status="")
-            manifest = write_bundle(bundle, scale=0.35 if args.quick else 1.0, repeats=args.repeats,
-                                    progress=lambda i, n: bar.update(task, completed=i, total=n))
-        console.print(f"wrote {bundle} ({bundle.stat().st_size / 1e6:.1f} MB, {len(manifest.layers)} layer "
-                      f"graphs, {len(manifest.candidates)} candidates' stages, bundle {manifest.id}); on the "
-                      f"device: tar xf {bundle.name} && python3 probe.pyz --out results.json")
+        _write_bundle(args)
         return
     if not args.out:
         raise UserError("give --out PROFILE.yaml (or --bundle FILE to measure another device)")
     out = Path(args.out)
-    if out.exists() and not args.force:
-        raise UserError(f"{out} exists: pass --force to overwrite it")
-    if out.is_dir():
-        raise UserError(f"{out}: is a folder; give --out a file name")
-    check_writable_folder(out.parent, "profile", "give --out a file in a folder you can write", keep=False)
+    _check_output(out, "--out", PROFILE_SUFFIXES, "a device profile is YAML, and --device reads one only from a "
+                  ".yaml or .yml file", "profile", args.force)
+    name = _profile_name(args.name, out)
     if args.fit:
-        prof = fit_results(read_results(args.fit), name=args.name or out.stem)
+        prof = fit_results(read_results(args.fit), name=name)
     else:
         _check_provider(args.provider)  # before the progress bar: one line, nothing else
         with progress() as bar:
             prof = calibrate(threads=args.threads, repeats=args.repeats, scale=0.35 if args.quick else 1.0,
-                             name=args.name or out.stem, provider=args.provider, energy=args.energy,
+                             name=name, provider=args.provider, energy=args.energy,
                              progress=Phases(bar),
                              log=lambda s: bar.console.print(s),
                              **(QUICK_PROBE if args.quick else {}))
@@ -113,11 +156,13 @@ def register(sub, add, reports: dict) -> None:
 
     s = add("calibrate", cmd_calibrate, "measure this machine with onnxruntime and write a device profile; "
             "or pack the measurement for another device (--bundle) and fit what it measured (--fit)")
-    s.add_argument("--out", help="profile YAML file to write (needed unless --bundle)")
+    s.add_argument("--out", help="profile YAML file to write, .yaml or .yml (needed unless --bundle)")
     s.add_argument("--bundle", metavar="FILE.tar", help="write the graphs and probe.pyz (needs only python3, numpy "
-                   "and onnxruntime) for a device, instead of measuring here")
+                   "and onnxruntime) for a device, instead of measuring here: a gzip-compressed tar (.tar, .tar.gz "
+                   "or .tgz)")
     s.add_argument("--fit", metavar="RESULTS.json", help="fit --out to what probe.pyz measured on a device")
-    s.add_argument("--name", help="profile name (default: the file's stem)")
+    s.add_argument("--name", help="profile name (default: the file's stem): letters, digits, '-', '_' and '.', "
+                   "not a built-in profile's")
     s.add_argument("--threads", type=_bounded_int(1, MAX_THREADS, "threads"), default=None)
     s.add_argument("--repeats", type=int, default=25)
     _add_provider(s)

@@ -60,7 +60,8 @@ from explorer.data._ros_messages import (
 from explorer.data.odometry import camera_motion
 from explorer.data.readers import RawFrame
 from explorer.data.spec import BAG_KEYS as SPEC_BAG_KEYS
-from explorer.scan import LIDAR_KEYS, RADIAN_KEYS, LaserScan, lidar_model, project_scan, rigid_transform
+from explorer.scan import (LIDAR_KEYS, RADIAN_KEYS, LaserScan, check_principal_point, lidar_model, project_scan,
+                           rigid_transform)
 from explorer.scan import MOUNT_KEYS as LIDAR_MOUNT_KEYS
 from explorer.data.sequences import SequenceSample
 from explorer.data.splits import VAL_SHARE, parse_share, split_range
@@ -317,6 +318,7 @@ def _plan(s: _Survey, topics: dict, opts: BagOptions, where: str) -> _Plan:
                         f"{off.min() / 1e9:.3g} s apart); raise tolerance= or check the stamps")
     counts["paired"] = int(ok.sum())
     shape = _shape(s, where)
+    check_principal_point(K, shape, f"{where}: {topics['camera_info']}")
     paired = [s.scans[i][1] for i in np.array(scans, np.int64)[pick[ok]]]
     if not any(len(project_scan(scan, T, K, shape).z) for scan in paired):
         raise UserError(f"{where}: no scan lands in the image on any frame (T_cam_lidar puts every return outside "

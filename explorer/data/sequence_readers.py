@@ -15,7 +15,8 @@ import numpy as np
 from explorer.data.odometry import camera_motion
 from explorer.data.readers import (calib_matrix, check_rotation, open_image, read_depth_png, read_image,
                                    read_velodyne, ring_mask, sparse_depth)
-from explorer.scan import LidarModel, project_scan, read_intrinsics, read_lidar_yaml, read_ranges  # noqa: F401
+from explorer.scan import (LidarModel, check_principal_point, project_scan, read_intrinsics,  # noqa: F401
+                           read_lidar_yaml, read_ranges)
 from explorer.data.sequences import SequenceSample
 from explorer.data.splits import VAL_SHARE, split_range
 from explorer.errors import UserError
@@ -114,6 +115,7 @@ class FrameFolder:
         self.K = read_intrinsics(root / "intrinsics.txt")
         _check_consecutive(self.paths, root)
         self.shape = _check_sizes(self.paths)
+        check_principal_point(self.K, self.shape, str(root / "intrinsics.txt"))
         self.poses = self._read_poses(root / "poses.txt")
         self.targets = _split_targets(len(self.paths), split, root, share)
         self.lidar = self._scan_model(lidar)

@@ -26,6 +26,7 @@ from explorer.files import (check_writable_folder, read_text, refuse_overwriting
 from explorer.scan import (  # noqa: F401  (read_intrinsics: the runtime's face for robot code)
     LidarModel,
     check_camera_matrix,
+    check_principal_point,
     column_scan,
     project_scan,
     read_intrinsics,
@@ -458,6 +459,7 @@ def run_files(model_dir: Path, image: Path, scan: Path, deadline_ms: float, out:
             raise UserError(f"{scan}: no such scan file")
         ranges = read_ranges(scan, model.beams)
         image_pixels = read_image(image)
+        check_principal_point(K, image_pixels.shape[:2], str(intrinsics))
     # one run: nothing to choose between sets by
     runner = AnytimeRunner(model_dir, threads, provider=provider, arenas="shared")
     extra = {}

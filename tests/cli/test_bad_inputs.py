@@ -55,6 +55,7 @@ def _workspace(root: Path) -> None:
     (root / "bomb.yaml").write_text("\n".join(lines) + "\n")
     _frames(root / "nan_intrinsics", "nan 0 32 24")
     _frames(root / "zero_intrinsics", "0 0 32 24")
+    _frames(root / "far_centre", "40 40 1600 1600")
     _frames(root / "text_poses", poses="\n".join([GOOD_POSE, GOOD_POSE.replace("1.0", "one", 1), GOOD_POSE,
                                                   GOOD_POSE]))
     _frames(root / "bomb_frames")
@@ -86,6 +87,7 @@ BAD = {
     "alias bomb": ["space", "show", "bomb.yaml"],
     "nan intrinsics": ["train", "paper", "--supervision", "self", "--data", "frames:nan_intrinsics", "--steps", "1"],
     "zero intrinsics": ["train", "paper", "--supervision", "self", "--data", "frames:zero_intrinsics", "--steps", "1"],
+    "principal point outside": ["data", "inspect", "--data", "frames:far_centre"],
     "frames on a file": ["data", "inspect", "--data", "frames:notafolder.txt"],
     "text in poses": ["train", "paper", "--supervision", "self", "--poses", "given", "--data", "frames:text_poses",
                       "--steps", "1"],
