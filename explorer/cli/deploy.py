@@ -32,6 +32,8 @@ def cmd_export(args) -> None:
     from explorer.study.export import AS_SEARCHED, export_from_study
     if bool(args.study) == bool(args.checkpoint):
         raise UserError("give either --study S (optionally --trial N) or --checkpoint FILE")
+    if args.checkpoint and args.trial is not None:
+        raise UserError("--trial picks a trial of --study; a --checkpoint is one network already")
     if args.quantize not in (None, "none", "int8"):
         raise UserError(f"--quantize {args.quantize}: use int8 or none")
     if args.eval_frames is not None and args.eval_frames < 1:

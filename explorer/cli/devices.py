@@ -102,6 +102,7 @@ def cmd_calibrate(args) -> None:
     from explorer.probe import SPEED_CHECK_EVERY, SPEED_DRIFT_WARN
     if args.bundle and args.fit:
         raise UserError("--bundle writes graphs for a device, --fit reads what the probe measured there: give one")
+    _refuse_unread(args)
     if args.bundle:
         _write_bundle(args)
         return
@@ -143,6 +144,26 @@ def cmd_calibrate(args) -> None:
     console.print(f"  energy: {prof.provenance['energy_note']}")
 
 
+def _refuse_unread(args) -> None:
+    """Options the chosen way of calibrating would ignore are refused, not dropped in silence: the bundle
+    names its profile when it is fitted, and a fit measures nothing here."""
+    if args.bundle:
+        unread = [f for f, given in (("--out", args.out), ("--name", args.name)) if given is not None]
+        why = "the bundle only measures; give them to --fit with what the probe measured"
+    elif args.fit:
+        unread = [f for f, given in (("--quick", args.quick), ("--threads", args.threads is not None),
+                                     ("--provider", args.provider != "CPUExecutionProvider"),
+                                     ("--no-energy", not args.energy), ("--repeats", args.repeats != REPEATS)) if given]
+        why = "--fit measures nothing here; they belong to the measurement (here, or --bundle for a device)"
+    else:
+        return
+    if unread:
+        raise UserError(f"{', '.join(unread)}: not read with --{'bundle' if args.bundle else 'fit'}: {why}")
+
+
+#: timings per graph (the median is kept)
+REPEATS = 25
+
 #: ``explorer calibrate --quick``: the probe times graphs again once, after a shorter wait for calm
 QUICK_PROBE = {"remeasure_passes": 1, "calm_wait_s": 10.0}
 
@@ -164,7 +185,7 @@ def register(sub, add, reports: dict) -> None:
     s.add_argument("--name", help="profile name (default: the file's stem): letters, digits, '-', '_' and '.', "
                    "not a built-in profile's")
     s.add_argument("--threads", type=_bounded_int(1, MAX_THREADS, "threads"), default=None)
-    s.add_argument("--repeats", type=int, default=25)
+    s.add_argument("--repeats", type=int, default=REPEATS)
     _add_provider(s)
     s.add_argument("--no-energy", dest="energy", action="store_false", help="do not sample power sensors")
     s.add_argument("--quick", action="store_true", help="a third of the sweep, and graphs timed while the machine "

@@ -111,3 +111,16 @@ def test_good_names_reach_the_work(calibrate_cli, monkeypatch, args, reached, ex
     monkeypatch.setattr(module, reached, stop)
     code, err = calibrate_cli(*args)
     assert code == 2 and _one_line(err) == f"explorer: error: reached {reached} with {expected}"
+
+
+@pytest.mark.parametrize("args, says", [
+    (["--bundle", "b.tar", "--out", "p.yaml"], "--out: not read with --bundle"),
+    (["--bundle", "b.tar", "--name", "box"], "--name: not read with --bundle"),
+    (["--fit", "r.json", "--out", "p.yaml", "--quick"], "--quick: not read with --fit"),
+    (["--fit", "r.json", "--out", "p.yaml", "--threads", "2", "--no-energy"], "--threads, --no-energy: not read"),
+    (["--fit", "r.json", "--out", "p.yaml", "--repeats", "5"], "--repeats: not read with --fit"),
+])
+def test_an_option_the_chosen_way_would_ignore_is_refused(calibrate_cli, args, says):
+    code, err = calibrate_cli(*args)
+    line = _one_line(err)
+    assert code == 2 and says in line, line

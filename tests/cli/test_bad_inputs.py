@@ -137,6 +137,7 @@ BAD = {
     "study name": ["search", "--study", "a b<>", "--trials", "1"],
     "fit edited results": ["calibrate", "--fit", "edited.json", "--out", "p.yaml"],
     "export unknown study": ["export", "--study", "nope", "--out", "exported"],
+    "trial of a checkpoint": ["export", "--checkpoint", "none.pt", "--trial", "3", "--out", "exported"],
     "self-supervision on frames": ["train", "paper", "--supervision", "self", "--data", "synthetic:48:16",
                                    "--steps", "1"],
     "missing supernet": ["search", "--space", "tiny", "--evaluator", "supernet", "--supernet", "missing.pt",
