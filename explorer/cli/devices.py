@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import re
 from pathlib import Path
 
 from explorer.errors import UserError
@@ -42,8 +41,7 @@ def cmd_devices(args) -> None:
 
 
 #: A profile's name names files (``explorer.cost.fit`` writes ``<name>.yaml``) and keys (an export's
-#: ``expected_cost``, a report's devices): a plain name, by the rule study names follow (explorer.study.storage)
-PROFILE_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,99}")
+#: ``expected_cost``, a report's devices): a plain name, by the rule study names follow
 PLAIN_NAME = "letters, digits, '-', '_' and '.', starting with a letter or digit, at most 100 characters"
 #: The file names ``--device`` reads a profile from (``explorer.cost.devices.get_device``): any other is
 #: taken for a built-in profile's name, so a profile written under it could not be used
@@ -69,6 +67,7 @@ def _profile_name(name: str | None, out: Path) -> str:
     not a plain name or is a built-in profile's (one name would then stand for two profiles in an export's
     expected costs and a report's devices, and in the files a fit writes by name)."""
     from explorer.cost.devices import available_devices
+    from explorer.study.storage import STUDY_NAME as PROFILE_NAME   # the one rule for a plain name
     given, name = name is not None, out.stem if name is None else name
     where = f"--name {name!r}" if given else f"--out {out.name}: the profile would be named {name!r}, which"
     if not PROFILE_NAME.fullmatch(name):

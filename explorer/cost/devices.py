@@ -199,9 +199,9 @@ class DeviceProfile:
         energy = data.get("energy") or {}
         if not isinstance(energy, dict):
             raise UserError(f"{source}: 'energy' must be a mapping with fixed_j and active_power_w")
-        if set(energy) - {"fixed_j", "active_power_w"}:   # a misspelt key would price energy at 0 in silence
-            raise UserError(f"{source}: unknown key(s) under 'energy': {sorted(set(energy) - {'fixed_j', 'active_power_w'})} "
-                            "(it takes fixed_j and active_power_w)")
+        unknown = sorted(set(energy) - {"fixed_j", "active_power_w"})
+        if unknown:   # a misspelt key would price energy at 0 in silence
+            raise UserError(f"{source}: unknown key(s) under 'energy': {unknown} (it takes fixed_j and active_power_w)")
         int8 = data.get("int8")
         if int8 is not None:
             if not isinstance(int8, dict) or "kinds" not in int8:

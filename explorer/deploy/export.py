@@ -201,10 +201,13 @@ def export_from_checkpoint(ckpt: Path, out_dir: Path, input_size: tuple[int, int
     net, state = network_from_checkpoint(ckpt)
     trained = tuple(state["train_config"]["input_size"])
     # the frames it was trained for, unless told
-    if measurement is not None and measurement.data is None:
-        measurement = dataclasses.replace(measurement, data=trained_on(state, ckpt))
-    if quantization is not None and quantization.data is None:
-        quantization = dataclasses.replace(quantization, data=trained_on(state, ckpt))
+    if (measurement is not None and measurement.data is None) or (quantization is not None and
+                                                                  quantization.data is None):
+        data = trained_on(state, ckpt)
+        if measurement is not None and measurement.data is None:
+            measurement = dataclasses.replace(measurement, data=data)
+        if quantization is not None and quantization.data is None:
+            quantization = dataclasses.replace(quantization, data=data)
     size = tuple(input_size or trained)
     return export_network(net, out_dir, size, devices=devices or ("tx2", "rpi4"),
                           source={"checkpoint": str(ckpt)}, quantization=quantization, progress=progress,
