@@ -16,7 +16,7 @@ RESULTS = ROOT / "benchmarks" / "results"
 MODULES = ("benchmarks.runtime", "benchmarks.training", "benchmarks.search", "benchmarks.commands", "benchmarks.gpu",
            "experiments.fidelity", "experiments.search_value", "experiments.held_out", "experiments.resolution",
            "experiments.scan_model", "experiments.photometric", "experiments.early_paths",
-           "experiments.table2")
+           "experiments.table2", "experiments.low_res_pass")
 NAMED = re.compile(r"\bbench_\w+")
 PATH = re.compile(r"\b(?:benchmarks|experiments)/[\w/]+\.py\b")
 
