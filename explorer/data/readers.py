@@ -183,6 +183,7 @@ def read_calib(path: Path) -> dict[str, np.ndarray]:
                 raise UserError(f"{path}: malformed calibration line '{k}'") from None
     calib = {k: calib_matrix(out, k, shape, path)
              for k, shape in (("P2", (3, 4)), ("R0_rect", (3, 3)), ("Tr_velo_to_cam", (3, 4)))}
+    check_projection(calib["P2"], path, "P2")
     check_rotation(calib["R0_rect"], path, "R0_rect")
     check_rotation(calib["Tr_velo_to_cam"][:, :3], path, "Tr_velo_to_cam")
     return calib
@@ -208,6 +209,14 @@ def check_rotation(r: np.ndarray, path: Path, key: str) -> None:
     if not np.allclose(r @ r.T, np.eye(3), atol=1e-3) or np.linalg.det(r) <= 0:
         raise UserError(f"{path}: {key} is not a rigid transform (its rotation part must be orthonormal with "
                         "determinant +1): check the calibration file")
+
+
+def check_projection(p: np.ndarray, path: Path, key: str) -> None:
+    """A rectified camera's 3x4 projection must have positive focal lengths and map depth to its third
+    row: with a zero focal length every point lands on one column, or divides by zero."""
+    if not (p[0, 0] > 0 and p[1, 1] > 0 and p[2, 2] > 0):
+        raise UserError(f"{path}: {key} is not a camera projection (its focal lengths fx = {p[0, 0]:g}, "
+                        f"fy = {p[1, 1]:g} and its [2, 2] = {p[2, 2]:g} must be positive): check the calibration file")
 
 
 def read_velodyne(path: Path) -> np.ndarray:

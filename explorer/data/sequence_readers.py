@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from explorer.data.odometry import camera_motion
-from explorer.data.readers import (calib_matrix, check_rotation, open_image, read_depth_png, read_image,
+from explorer.data.readers import (calib_matrix, check_projection, check_rotation, open_image, read_depth_png, read_image,
                                    read_velodyne, ring_mask, sparse_depth)
 from explorer.scan import (LidarModel, check_principal_point, project_scan, read_intrinsics,  # noqa: F401
                            read_lidar_yaml, read_ranges)
@@ -250,6 +250,7 @@ class KittiDrive:
         cam_file, velo_file = self._calib("calib_cam_to_cam.txt"), self._calib("calib_velo_to_cam.txt")
         cam = _read_kv(cam_file)
         p2 = calib_matrix(cam, "P_rect_02", (3, 4), cam_file)
+        check_projection(p2, cam_file, "P_rect_02")
         self.K = p2[:, :3].copy()
         # rectified camera 2 from the velodyne: R_rect_00, then camera 2's offset along x
         rect = np.eye(4)

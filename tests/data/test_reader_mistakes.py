@@ -210,6 +210,19 @@ def test_kitti_drive_calibration_of_the_wrong_count(layouts, name, key, value, n
     assert str(calib) in message
 
 
+@pytest.mark.parametrize("broken", ["fx", "fy", "row"])
+def test_a_projection_with_a_zero_focal_length_is_refused(layouts, broken):
+    index = {"fx": 0, "fy": 5, "row": 10}[broken]          # P[0, 0], P[1, 1], P[2, 2] row by row
+    for kind, calib, key in (("kitti", layouts["kitti"] / "calib" / "000002.txt", "P2"),
+                             ("kitti-seq", layouts["kitti-seq"].parent / "calib_cam_to_cam.txt", "P_rect_02")):
+        line = next(x for x in calib.read_text().splitlines() if x.startswith(f"{key}:"))
+        values = line.split(":", 1)[1].split()
+        values[index] = "0"
+        _replace_line(calib, key, " ".join(values))
+        message = _refused(f"{kind}:{layouts[kind]}", f"{key} is not a camera projection")
+        assert str(calib) in message and "must be positive" in message
+
+
 def _scaled(values, factor):
     v = np.array(values.split(), float)
     if len(v) == 12:
