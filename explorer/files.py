@@ -70,9 +70,38 @@ def _check_depth(text: str) -> None:
             depth -= 1
 
 
+class _RepeatedKey(Exception):
+    """A mapping gives one key twice (args: the key, the lines of both): YAML forbids it, and PyYAML
+    would keep the last in silence."""
+
+
+def _repeated_key(root: yaml.Node) -> tuple[str, int, int] | None:
+    """The first key a mapping under ``root`` repeats, with the lines of both. Walks the composed nodes,
+    not the constructed values: nothing is built, and a node an alias shares is visited once."""
+    stack, seen = [root], set()
+    while stack:
+        node = stack.pop()
+        if id(node) in seen:
+            continue
+        seen.add(id(node))
+        if isinstance(node, yaml.MappingNode):
+            lines: dict = {}
+            for key, value in node.value:
+                # a merge key (<<) may override what it merges: that is YAML, not a repeat
+                if isinstance(key, yaml.ScalarNode) and key.tag != "tag:yaml.org,2002:merge":
+                    line = key.start_mark.line + 1
+                    if (key.tag, key.value) in lines:
+                        return key.value, lines[(key.tag, key.value)], line
+                    lines[(key.tag, key.value)] = line
+                stack.extend((key, value))
+        elif isinstance(node, yaml.SequenceNode):
+            stack.extend(node.value)
+    return None
+
+
 def _load_yaml(text: str):
-    """PyYAML's safe loader, refusing a document whose aliases expand past ``MAX_YAML_NODES`` or that
-    nests deeper than ``MAX_YAML_DEPTH``."""
+    """PyYAML's safe loader, refusing a document whose aliases expand past ``MAX_YAML_NODES``, that
+    nests deeper than ``MAX_YAML_DEPTH`` or that gives a key of a mapping twice (:class:`_RepeatedKey`)."""
     _check_depth(text)
     loader = yaml.SafeLoader(text)
     try:
@@ -82,6 +111,9 @@ def _load_yaml(text: str):
         if _expanded_nodes(node, {}) > MAX_YAML_NODES:
             raise yaml.YAMLError(f"its aliases expand to more than {MAX_YAML_NODES:,} values (nested *aliases): "
                                  "write the values out")
+        twice = _repeated_key(node)
+        if twice:
+            raise _RepeatedKey(*twice)
         return loader.construct_document(node)
     finally:
         loader.dispose()
@@ -153,6 +185,9 @@ def parse_yaml(text: str, source: str) -> Any:
     not valid YAML is one UserError line naming ``source``."""
     try:
         return _load_yaml(text)
+    except _RepeatedKey as exc:
+        key, first, again = exc.args
+        raise UserError(f"{source}: the key {key!r} is given twice (lines {first} and {again}); keep one") from None
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f" (line {mark.line + 1})" if mark else ""

@@ -21,7 +21,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-import yaml
 
 from explorer.errors import UserError
 from explorer.files import parse_yaml, read_text
@@ -451,43 +450,13 @@ def _beams(values: dict, where: str, base: LidarModel) -> tuple[float, float, fl
     return angle_min, angle_max, step
 
 
-def _duplicate_key(text: str) -> tuple[str, int, int] | None:
-    """The first key a YAML mapping of ``text`` repeats, with the lines of both (PyYAML keeps the last
-    silently). Walks the composed nodes, not the constructed values: nothing is built, and a node an
-    alias shares is visited once. ``text`` must already have parsed (its size and nesting checked)."""
-    root = yaml.compose(text, Loader=yaml.SafeLoader)
-    stack, seen = [root] if root is not None else [], set()
-    while stack:
-        node = stack.pop()
-        if id(node) in seen:
-            continue
-        seen.add(id(node))
-        if isinstance(node, yaml.MappingNode):
-            lines: dict = {}
-            for key, value in node.value:
-                # a merge key (<<) may override what it merges: that is YAML, not a repeat
-                if isinstance(key, yaml.ScalarNode) and key.tag != "tag:yaml.org,2002:merge":
-                    line = key.start_mark.line + 1
-                    if (key.tag, key.value) in lines:
-                        return key.value, lines[(key.tag, key.value)], line
-                    lines[(key.tag, key.value)] = line
-                stack.extend((key, value))
-        elif isinstance(node, yaml.SequenceNode):
-            stack.extend(node.value)
-    return None
-
-
 def read_lidar_options(path: Path) -> dict:
     """A ``lidar.yaml``'s mapping of LiDAR keys, each key once, checked as :func:`lidar_model` checks them."""
     path = Path(path)
     text = read_text(path, "LiDAR file")
-    data = parse_yaml(text, str(path))   # the package's safe reading: size, nesting and alias bombs refused
+    data = parse_yaml(text, str(path))   # the package's safe reading: size, nesting, alias bombs, keys twice
     if not isinstance(data, dict):
         raise UserError(f"{path}: expected a mapping of LiDAR keys ({', '.join(LIDAR_KEYS)})")
-    twice = _duplicate_key(text)
-    if twice:
-        key, first, again = twice
-        raise UserError(f"{path}: the key {key!r} is given twice (lines {first} and {again}); keep one")
     lidar_model(data, str(path))   # checked here, so that a mistake names this file (--lidar merges the keys after)
     return data
 

@@ -118,6 +118,20 @@ def test_a_few_aliases_as_yaml_dump_writes_them_are_read(tmp_path):
     assert "&id" in path.read_text() and read_yaml(path) == {"a": [1, 2, 3], "b": [1, 2, 3]}
 
 
+def test_a_key_given_twice_in_any_users_yaml_is_refused_with_both_lines(tmp_path):
+    path = tmp_path / "x.yaml"
+    path.write_text("depth: /depth\nimage: /camera\ndepth: /depth2\n")
+    with pytest.raises(UserError) as err:
+        read_yaml(path)
+    assert str(err.value) == f"{path}: the key 'depth' is given twice (lines 1 and 3); keep one"
+    path.write_text("rates:\n  conv: 1\n  pointwise: 2\n  conv: 3\n")
+    with pytest.raises(UserError, match=r"'conv' is given twice \(lines 2 and 4\)"):
+        read_yaml(path)
+    # the same key in two mappings, and a merge key that a mapping overrides, are YAML as written
+    path.write_text("a: {x: 1}\nb: {x: 2}\nbase: &b {x: 1, y: 2}\nc:\n  <<: *b\n  x: 3\n")
+    assert read_yaml(path)["c"] == {"x": 3, "y": 2} and read_yaml(path)["b"] == {"x": 2}
+
+
 def test_a_16_bit_grey_frame_is_scaled_not_clipped_to_white(tmp_path):
     """A 16-bit camera frame (mono industrial cameras write them) keeps its contrast as RGB."""
     import numpy as np

@@ -72,6 +72,7 @@ def _workspace(root: Path) -> None:
     from explorer.cost.devices import PROFILES_DIR
     tx2 = (PROFILES_DIR / "tx2.yaml").read_text()
     (root / "energy_typo.yaml").write_text(tx2.replace("fixed_j:", "fixd_j:").replace("name: tx2", "name: typo"))
+    (root / "twice.yaml").write_text(tx2.replace("name: tx2", "name: twice\nname: again"))
     (root / "notjournal.log").write_text("this is not a journal\n")
     (root / "zeros.csv").write_text("deadline_ms\n0\n0\n0\n")
     _damaged_study(root / "damaged.log")
@@ -104,6 +105,7 @@ BAD = {
     "curve onto a folder": ["curve", "curve_folder_model", "--device", "tx2"],
     "empty device": ["profile", "paper", "--device", ""],
     "energy key misspelt": ["profile", "paper", "--device", "energy_typo.yaml"],
+    "profile key given twice": ["profile", "paper", "--device", "twice.yaml"],
     "image is a folder": ["run", "empty_model", "--image", "bomb_frames", "--scan", "scan.csv", "--deadline", "5ms"],
     "checkpoint is a folder": ["evaluate", "bomb_frames"],
     "text as a checkpoint": ["evaluate", "scan.csv"],
