@@ -20,10 +20,12 @@ the paper design and the study's winner at the deployment size (``<B>_anytime_N`
 (``chain_<A>_<B>_anytime_N``), every one over the paper design's (``ratio_...``), and the early-to-last
 ratio of each (``..._early_to_last_N``: the mean error of the paths ready before 9 ms on the TX2 over the
 last path's). ``chain_<A>_<B>_to_<B>_N`` is the chain's anytime loss over B's alone: below 1, the first
-pass earns its time.
+pass earns its time. A first network trains at the study's training size, then tunes at the lower size;
+``@HxW`` after its name trains it at another size (``winner@32x32``: at the lower size's share of the
+training size, as the network would see its frames if it resized them itself).
 
     python -m experiments.low_res_pass --study tx2-anytime_depth [--steps 300] [--reps 3]
-        [--networks winner,paper] [--first winner,paper] [--size 112x112]
+        [--networks winner,paper] [--first winner,paper,winner@32x32] [--size 112x112]
 
 Run it after ``make search`` (whose study it reads, from ``reports/``, untouched).
 """
@@ -117,6 +119,26 @@ def chained(scan: float, first: Candidate | None, first_errors: list[float], the
     return Chain(costs, ms, errors)
 
 
+def resolve_first(text: str, study, context) -> tuple[dict[str, Network], dict[str, tuple[int, int]]]:
+    """``--first``: specs as ``--networks`` takes them, each with ``@HxW`` for a training size other than the
+    study's -> ({figure name: network}, {figure name: its training size}); a size adds ``_trainHxW`` to
+    the name."""
+    networks, sizes = {}, {}
+    for spec in filter(None, (part.strip() for part in text.split(","))):
+        base, at, size_text = spec.partition("@")
+        try:
+            size = image_size(size_text) if at else tuple(context.config.train_size)
+        except ValueError:
+            raise SystemExit(f"--first: {size_text!r} in {spec!r} is not a size HxW") from None
+        (name, network), = ((k, v) for k, v in resolve_networks(f"paper,{base}", study, context).items()
+                            if k != "paper" or base.strip() == "paper")
+        name += f"_train{size[0]}x{size[1]}" if at else ""
+        networks[name], sizes[name] = network, size
+    if not networks:
+        raise SystemExit("--first: name at least one network")
+    return networks, sizes
+
+
 def declare(bench: Bench, recipes, networks, first, unit: str) -> None:
     for suffix, (n, tune) in recipes.items():
         recipe = f"{n} steps + {tune} at the deployment size (the lower size for a first pass)"
@@ -150,7 +172,8 @@ def bench_low_res_pass(argv: Sequence[str] | None = None) -> None:
     ap.add_argument("--networks", default="winner,paper", help="the networks at the deployment size, as "
                     "experiments.held_out names them; paper among them (default %(default)s)")
     ap.add_argument("--first", default="winner,paper", help="the networks run first at the lower size, named "
-                    "the same way (default %(default)s)")
+                    "the same way, each with @HxW where it trains at another size than the study's training size "
+                    "(winner@32x32) (default %(default)s)")
     ap.add_argument("--size", type=image_size, help="the first pass's input size, HxW (default: half the "
                     "study's deployment size)")
     ap.add_argument("--first-seed", type=int, default=100, help="the first repetition's seed (default 100)")
@@ -164,9 +187,7 @@ def bench_low_res_pass(argv: Sequence[str] | None = None) -> None:
     full = tuple(config.input_size)
     low = tuple(args.size) if args.size else (full[0] // 2, full[1] // 2)
     networks = resolve_networks(args.networks, study, context)
-    first = resolve_networks(f"{args.first},paper", study, context)
-    if "paper" not in [s.strip() for s in args.first.split(",")]:
-        first.pop("paper")
+    first, first_train = resolve_first(args.first, study, context)
     recipes = parse_recipes(args.steps, config)
     declare(bench, recipes, networks, first, "m" if config.metric in ("rmse", "mae") else "")
     val = open_dataset(config.data, "val", full, train_augment=False)
@@ -181,11 +202,15 @@ def bench_low_res_pass(argv: Sequence[str] | None = None) -> None:
         seed = args.first_seed + rep
         data = held_out_data(context, seed, val_from)
         low_val = Subset(open_dataset(config.data, "val", low, train_augment=False), range(val_from, len(val)))
-        low_data = DeploymentData(data.train, open_dataset(config.data, "train", low, seed=seed), low_val)
+        low_train = open_dataset(config.data, "train", low, seed=seed)
+        trains = {size: open_dataset(config.data, "train", size, seed=seed) for size in set(first_train.values())}
+        low_data = {a: DeploymentData(trains[first_train[a]], low_train, low_val) for a in first}
         for suffix in rotated(list(recipes), rep):
             n, tune = recipes[suffix]
             recipe = dataclasses.replace(config, finalist_steps=n, tune_steps=tune).finalist_recipe()
             low_recipe = dataclasses.replace(recipe, deploy_size=low)
+            low_recipe = {a: dataclasses.replace(low_recipe, train=dataclasses.replace(low_recipe.train, input_size=size))
+                          for a, size in first_train.items()}
             whole, low_errors = {}, {}
             for kind, name in rotated([("full", b) for b in networks] + [("low", a) for a in first], rep):
                 t0 = time.perf_counter()
@@ -193,7 +218,7 @@ def bench_low_res_pass(argv: Sequence[str] | None = None) -> None:
                     whole[name] = retrained(networks[name], recipe, seed, data, context)
                     got = whole[name].errors
                 else:
-                    low_errors[name] = got = trained_low(first[name], low_recipe, seed, low_data, data.deploy_val,
+                    low_errors[name] = got = trained_low(first[name], low_recipe[name], seed, low_data[name], data.deploy_val,
                                                          config.metric)
                 print(f"  seed {seed}, {n}+{tune}: {name} at {low if kind == 'low' else full}, by path "
                       f"{[round(e, 4) for e in got]} ({time.perf_counter() - t0:.0f} s)", flush=True)

@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from experiments.lib.retraining import Retrained
-from experiments.low_res_pass import chained, upsampled_errors
+from experiments.low_res_pass import chained, resolve_first, upsampled_errors
 
 from explorer.cost import candidate_cost, get_device
 from explorer.data import open_dataset
@@ -69,3 +69,12 @@ def test_a_smaller_pass_is_scored_against_the_deployment_sizes_ground_truth():
     got = upsampled_errors(net, small, full, "rmse")
     assert len(got) == paper_candidate().num_paths and all(math.isfinite(e) and e > 0 for e in got)
     assert got != pytest.approx(evaluate(net, small)["rmse"].tolist())
+
+
+def test_a_first_pass_may_train_at_its_own_size():
+    first, sizes = resolve_first("paper, largest@32x32", None, CONTEXT)
+    assert list(first) == ["paper", "largest_train32x32"]
+    assert sizes == {"paper": tuple(CONTEXT.config.train_size), "largest_train32x32": (32, 32)}
+    assert first["paper"].candidate == paper_candidate()
+    with pytest.raises(SystemExit, match="not a size"):
+        resolve_first("paper@32", None, CONTEXT)
