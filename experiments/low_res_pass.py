@@ -165,13 +165,53 @@ def bench_low_res_pass(argv: Sequence[str] | None = None) -> None:
     validation frames the study did not use."""
     bench = Bench("bench_low_res_pass", "a low-resolution first pass before the full-resolution network",
                   __doc__)
+    run_low_res_pass(bench, argv, "winner,paper", "winner,paper")
+
+
+def bench_low_res_train_size(argv: Sequence[str] | None = None) -> None:
+    """Must a network that works at half the deployment size also train at half the training size, as it
+    would if it resized its frames itself? The study's winner as a first pass at half the deployment size,
+    trained at the study's training size and at half of it, beside the paper design, on the same seeds."""
+    bench = Bench("bench_low_res_train_size", "a low-resolution network trained at the training size or at "
+                  "its share of it", bench_low_res_train_size.__doc__)
+    run_low_res_pass(bench, argv, "paper", "winner,winner@32x32")
+
+
+def record_chains(bench: Bench, suffix: str, first: dict[str, Network], whole: dict[str, Retrained],
+                  low_errors: dict[str, list[float]], sizes: tuple[tuple[int, int], tuple[int, int]], context) -> None:
+    """One recipe's figures: every network at the deployment size (``whole``), every first pass alone
+    (``low_errors``) and every chain of the two, scored as they ship; ``sizes``: (lower, deployment)."""
+    low, full = sizes
+    scan = whole["paper"].errors[0]
+    chains = {b: chained(scan, None, [], whole[b], low, full, context) for b in whole}
+    chains |= {f"low_{a}": chained(scan, first[a].candidate, low_errors[a], None, low, full, context)
+               for a in first}
+    chains |= {f"chain_{a}_{b}": chained(scan, first[a].candidate, low_errors[a], whole[b], low, full, context)
+               for a in first for b in whole}
+    loss = {name: anytime_loss(c.costs, c.errors, context.budgets[0]) for name, c in chains.items()}
+    for name, chain in chains.items():
+        bench.add(f"{name}_anytime_{suffix}", loss[name])
+        bench.add(f"{name}_early_to_last_{suffix}", chain.early_to_last())
+        if name != "paper":
+            bench.add(f"ratio_{name}_{suffix}", loss[name] / loss["paper"])
+        print(f"  {name}: anytime {loss[name]:.4f}, paths {[round(e, 4) for e in chain.errors]} at "
+              f"{[round(c, 1) for c in chain.costs]}", flush=True)
+    for a in first:
+        bench.add(f"low_{a}_last_{suffix}", chains[f"low_{a}"].errors[-1])
+        for b in whole:
+            bench.add(f"chain_{a}_{b}_to_{b}_{suffix}", loss[f"chain_{a}_{b}"] / loss[b])
+
+
+def run_low_res_pass(bench: Bench, argv: Sequence[str] | None, networks: str, first: str) -> None:
+    """Retrains, per seed, the networks at the deployment size and the first passes (the defaults of
+    ``--networks`` and ``--first``: ``networks`` and ``first``) and records the figures ``declare`` names."""
     ap = bench.parser()
     ap.add_argument("--study", default="tx2-anytime_depth", help="the finished study (default tx2-anytime_depth)")
     ap.add_argument("--reports", type=Path, default=Path("reports"), help="its reports folder (default reports)")
     ap.add_argument("--steps", default="300", help="recipes, as experiments.held_out takes them (default 300)")
-    ap.add_argument("--networks", default="winner,paper", help="the networks at the deployment size, as "
+    ap.add_argument("--networks", default=networks, help="the networks at the deployment size, as "
                     "experiments.held_out names them; paper among them (default %(default)s)")
-    ap.add_argument("--first", default="winner,paper", help="the networks run first at the lower size, named "
+    ap.add_argument("--first", default=first, help="the networks run first at the lower size, named "
                     "the same way, each with @HxW where it trains at another size than the study's training size "
                     "(winner@32x32) (default %(default)s)")
     ap.add_argument("--size", type=image_size, help="the first pass's input size, HxW (default: half the "
@@ -222,28 +262,11 @@ def bench_low_res_pass(argv: Sequence[str] | None = None) -> None:
                                                          config.metric)
                 print(f"  seed {seed}, {n}+{tune}: {name} at {low if kind == 'low' else full}, by path "
                       f"{[round(e, 4) for e in got]} ({time.perf_counter() - t0:.0f} s)", flush=True)
-            scan = whole["paper"].errors[0]
-            chains = {b: chained(scan, None, [], whole[b], low, full, context) for b in networks}
-            chains |= {f"low_{a}": chained(scan, first[a].candidate, low_errors[a], None, low, full, context)
-                       for a in first}
-            chains |= {f"chain_{a}_{b}": chained(scan, first[a].candidate, low_errors[a], whole[b], low, full, context)
-                       for a in first for b in networks}
-            loss = {name: anytime_loss(c.costs, c.errors, context.budgets[0]) for name, c in chains.items()}
-            for name, chain in chains.items():
-                bench.add(f"{name}_anytime_{suffix}", loss[name])
-                bench.add(f"{name}_early_to_last_{suffix}", chain.early_to_last())
-                if name != "paper":
-                    bench.add(f"ratio_{name}_{suffix}", loss[name] / loss["paper"])
-                print(f"  {name}: anytime {loss[name]:.4f}, paths {[round(e, 4) for e in chain.errors]} at "
-                      f"{[round(c, 1) for c in chain.costs]}", flush=True)
-            for a in first:
-                bench.add(f"low_{a}_last_{suffix}", chains[f"low_{a}"].errors[-1])
-                for b in networks:
-                    bench.add(f"chain_{a}_{b}_to_{b}_{suffix}", loss[f"chain_{a}_{b}"] / loss[b])
+            record_chains(bench, suffix, first, whole, low_errors, (low, full), context)
     bench.finish()
 
 
-CASES = (Case(bench_low_res_pass),)
+CASES = (Case(bench_low_res_pass), Case(bench_low_res_train_size, named_only=True))
 
 if __name__ == "__main__":
     run_suite(CASES)
