@@ -13,8 +13,8 @@ from pathlib import Path
 import numpy as np
 
 from explorer.data.odometry import camera_motion
-from explorer.data.readers import (calib_matrix, check_projection, check_rotation, open_image, read_depth_png, read_image,
-                                   read_velodyne, ring_mask, sparse_depth)
+from explorer.data.readers import (calib_matrix, check_projection, check_rotation, open_image, read_depth_png,
+                                   read_image, read_velodyne, ring_mask, sparse_depth)
 from explorer.scan import (LidarModel, check_principal_point, project_scan, read_intrinsics,  # noqa: F401
                            read_lidar_yaml, read_ranges)
 from explorer.data.sequences import SequenceSample
