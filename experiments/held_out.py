@@ -45,22 +45,19 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from pathlib import Path
 from typing import Sequence
 
-import torch
 
 from explorer.anytime import anytime_loss
 from explorer.data import open_dataset
-from explorer.study.config import SearchConfig, study_context
+from explorer.study.config import SearchConfig
 from explorer.study.results import winner
-from explorer.study.storage import load_study
 from explorer.training.train import evaluated_frames
 
 from benchmarks.harness import Bench, Case, rotated, run_suite
 from experiments.lib.comparison import floor_steps
-from experiments.lib.retraining import (EARLY_MS, Network, early_to_last, held_out_data, reference_of,
-                                        resolve_networks, retrained)
+from experiments.lib.retraining import (EARLY_MS, Network, add_study_options, early_to_last, held_out_data, open_study,
+                                        reference_of, resolve_networks, retrained)
 
 
 def parse_recipes(text: str, config: SearchConfig) -> dict[str, tuple[int, int]]:
@@ -133,14 +130,10 @@ def run_held_out(bench: Bench, argv: Sequence[str] | None, networks: str, steps:
     """Retrains, per seed, every network at every recipe (the defaults of ``--networks`` and ``--steps``:
     ``networks`` and ``steps``) and records the figures ``declare`` names."""
     ap = bench.parser()
-    ap.add_argument("--study", default="tx2-anytime_depth", help="the finished study (default tx2-anytime_depth)")
-    ap.add_argument("--reports", type=Path, default=Path("reports"), help="its reports folder (default reports)")
     ap.add_argument("--steps", default=steps, help="recipes, comma-separated: N steps at the training "
                     "size then the study's tuning steps, or N+T for T tuning steps (default %(default)s; "
                     "300 is the finalists' recipe, 2000+130 one about 7 times as long with the same share of "
                     "tuning)")
-    ap.add_argument("--first-seed", type=int, default=100, help="the first repetition's training seed, the next "
-                    "ones following it (default 100)")
     ap.add_argument("--val-from", type=int, help="the first validation frame measured (default: the first after "
                     "those the study measured its finalists on)")
     ap.add_argument("--networks", default=networks, help="what to retrain, comma-separated: winner, paper, "
@@ -148,12 +141,9 @@ def run_held_out(bench: Bench, argv: Sequence[str] | None, networks: str, steps:
                     ":FIELD=VALUE changes if any (winner:encoder_blocks=11), :weights=anytime to weight its exits' "
                     "training losses by their share of the anytime loss, :distill=W for self-distillation of "
                     "weight W; paper among them (default %(default)s)")
-    ap.add_argument("--threads", type=int, default=torch.get_num_threads(), help="torch threads")
+    add_study_options(ap)
     args = bench.parse_args(ap, argv)
-    torch.set_num_threads(args.threads)
-
-    study = load_study(args.study, None, args.reports)
-    context = study_context(study)
+    study, context = open_study(args)
     config = context.config
     networks = resolve_networks(args.networks, study, context)
     unit = "m" if config.metric in ("rmse", "mae") else ""

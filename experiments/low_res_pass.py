@@ -34,7 +34,6 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from pathlib import Path
 from typing import Sequence
 
 import torch
@@ -48,14 +47,13 @@ from explorer.metrics import MetricAverager, batch_depth_metrics
 from explorer.model import build_network
 from explorer.model.shipped import ship
 from explorer.space import Candidate
-from explorer.study.config import study_context
-from explorer.study.storage import load_study
 from explorer.training.deployment import DeploymentData, train_for_deployment
 from explorer.training.train import batch_row, evaluated_frames, image_batch
 
 from benchmarks.harness import Bench, Case, image_size, rotated, run_suite
 from experiments.held_out import parse_recipes
-from experiments.lib.retraining import EARLY_MS, Network, Retrained, held_out_data, resolve_networks, retrained
+from experiments.lib.retraining import (EARLY_MS, Network, Retrained, add_study_options, held_out_data, open_study,
+                                        resolve_networks, retrained)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -206,8 +204,6 @@ def run_low_res_pass(bench: Bench, argv: Sequence[str] | None, networks: str, fi
     """Retrains, per seed, the networks at the deployment size and the first passes (the defaults of
     ``--networks`` and ``--first``: ``networks`` and ``first``) and records the figures ``declare`` names."""
     ap = bench.parser()
-    ap.add_argument("--study", default="tx2-anytime_depth", help="the finished study (default tx2-anytime_depth)")
-    ap.add_argument("--reports", type=Path, default=Path("reports"), help="its reports folder (default reports)")
     ap.add_argument("--steps", default="300", help="recipes, as experiments.held_out takes them (default 300)")
     ap.add_argument("--networks", default=networks, help="the networks at the deployment size, as "
                     "experiments.held_out names them; paper among them (default %(default)s)")
@@ -216,13 +212,9 @@ def run_low_res_pass(bench: Bench, argv: Sequence[str] | None, networks: str, fi
                     "(winner@32x32) (default %(default)s)")
     ap.add_argument("--size", type=image_size, help="the first pass's input size, HxW (default: half the "
                     "study's deployment size)")
-    ap.add_argument("--first-seed", type=int, default=100, help="the first repetition's seed (default 100)")
-    ap.add_argument("--threads", type=int, default=torch.get_num_threads(), help="torch threads")
+    add_study_options(ap)
     args = bench.parse_args(ap, argv)
-    torch.set_num_threads(args.threads)
-
-    study = load_study(args.study, None, args.reports)
-    context = study_context(study)
+    study, context = open_study(args)
     config = context.config
     full = tuple(config.input_size)
     low = tuple(args.size) if args.size else (full[0] // 2, full[1] // 2)

@@ -23,23 +23,19 @@ from __future__ import annotations
 import dataclasses
 import re
 import time
-from pathlib import Path
 from typing import Sequence
 
-import torch
 
 from explorer.anytime import anytime_loss, parse_budget
 from explorer.cost import candidate_cost, get_device
 from explorer.data import open_dataset
 from explorer.space import Candidate, paper_candidate
 from explorer.study import trial_record
-from explorer.study.config import study_context
 from explorer.study.results import scored_trials, trial_anytime_loss
-from explorer.study.storage import load_study
 from explorer.training.train import evaluated_frames
 
 from benchmarks.harness import Bench, Case, rotated, run_suite
-from experiments.lib.retraining import Network, held_out_data, retrained
+from experiments.lib.retraining import Network, add_study_options, held_out_data, open_study, retrained
 
 DEVICES = ("tx2", "rpi4")
 BUDGETS = ("time:uniform:100ms", "time:uniform:50ms", "time:uniform:33ms", "energy:uniform:0.5J",
@@ -80,17 +76,11 @@ def bench_table2(argv: Sequence[str] | None = None) -> None:
     """The experiment (the module's docstring says what it asks)."""
     bench = Bench("bench_table2", "The paper's Table 2 with the explorer's row", __doc__)
     ap = bench.parser()
-    ap.add_argument("--study", default="tx2-anytime_depth", help="the finished study (default tx2-anytime_depth)")
-    ap.add_argument("--reports", type=Path, default=Path("reports"), help="its reports folder (default reports)")
     ap.add_argument("--steps", type=int, help="steps at the training size (default: the study's finalists'); "
                     "then the study's tuning steps at the deployment size")
-    ap.add_argument("--first-seed", type=int, default=100, help="the first repetition's seed (default 100)")
-    ap.add_argument("--threads", type=int, default=torch.get_num_threads(), help="torch threads")
+    add_study_options(ap)
     args = bench.parse_args(ap, argv)
-    torch.set_num_threads(args.threads)
-
-    study = load_study(args.study, None, args.reports)
-    context = study_context(study)
+    study, context = open_study(args)
     config = context.config
     if args.steps is not None:
         config = dataclasses.replace(config, finalist_steps=args.steps)

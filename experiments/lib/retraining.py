@@ -5,6 +5,7 @@ study did not choose with: what the held-out and early-paths experiments share. 
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import re
 from pathlib import Path
@@ -21,10 +22,28 @@ from explorer.model import build_network
 from explorer.model.shipped import DroppedExit, ship
 from explorer.space import Candidate, paper_candidate
 from explorer.study import trial_record
-from explorer.study.config import SearchConfig, StudyContext
+from explorer.study.config import SearchConfig, StudyContext, study_context
 from explorer.study.results import winner
+from explorer.study.storage import load_study
 from explorer.supernet import largest_candidate
 from explorer.training.deployment import DeploymentData, DeploymentRecipe, train_for_deployment
+
+
+def add_study_options(ap: argparse.ArgumentParser) -> None:
+    """The options of an experiment on a finished study: which study (read untouched), the first seed, the
+    torch threads."""
+    ap.add_argument("--study", default="tx2-anytime_depth", help="the finished study (default tx2-anytime_depth)")
+    ap.add_argument("--reports", type=Path, default=Path("reports"), help="its reports folder (default reports)")
+    ap.add_argument("--first-seed", type=int, default=100, help="the first repetition's training seed, the next "
+                    "ones following it (default 100)")
+    ap.add_argument("--threads", type=int, default=torch.get_num_threads(), help="torch threads")
+
+
+def open_study(args: argparse.Namespace) -> tuple[object, StudyContext]:
+    """The study the options of :func:`add_study_options` name, and its context, with torch's threads set."""
+    torch.set_num_threads(args.threads)
+    study = load_study(args.study, None, args.reports)
+    return study, study_context(study)
 
 
 def held_out_data(context: StudyContext, seed: int, val_from: int) -> DeploymentData:
