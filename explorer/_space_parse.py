@@ -87,7 +87,8 @@ def space_size(space) -> int:
                       else 1 + (encoder_exit_sets - 1) * encoder for on in space.ecu)
             heads += ecu * (exit_sets - with_ecu_exit + with_ecu_exit * len(head_options(space, "ecu", d, w, True)))
     rest = len(space.encoder_blocks) * len(space.width_mult) * math.prod(len(c) for c in space.decoder_widths)
-    return heads * rest * len(set(space.lidar_exit)) * len(set(space.exit_residual)) * len(set(space.precision))
+    return heads * rest * len(set(space.lidar_exit)) * len(set(space.exit_residual)) * len(set(space.precision)) \
+        * len(set(space.downscale))
 
 
 #: the one line for a stored candidate or a space that asks for cascaded exits
@@ -136,3 +137,40 @@ def parse_choices(values: dict, field: str, kind: Any, space_field: str, body: d
         values[space_field] = tuple(read_choices(raw, where, int, allow_empty=True))
     else:
         values[field] = tuple(read_choices(raw, where, kind))
+
+
+def describe_candidate(c) -> str:
+    """A candidate's architecture in words."""
+    parts = ["LiDAR-only exit first"] if c.lidar_exit else []
+    if c.downscale > 1:
+        parts.append(f"working at 1/{c.downscale} of the input size")
+    parts.append(f"MobileNet v1 x{c.width_mult:g}, {c.encoder_blocks} blocks (stride {c.working_stride})")
+    if c.encoder_exits:
+        fused = " fused with the LiDAR feature" if c.lidar_first else ""
+        parts.append("encoder exits after block " + ", ".join(map(str, c.encoder_exits)) + fused)
+    if c.ecu:
+        order = "before" if c.lidar_first else "after"
+        parts.append(f"LiDAR encoder ({order} the image encoder) {c.lidar_depth} layers from "
+                     f"{c.lidar_width} ch, ECU band {c.ecu_band} rows, {c.ecu_width} ch")
+    else:
+        parts.append("no LiDAR branch (image only)")
+    parts.append("decoder " + "-".join(str(w) for w in c.decoder_widths))
+    names = ["ECU" if e == 0 else f"stage {e}" for e in c.exits]
+    head = head_words(c)
+    correct = ", each correcting the interpolated scan" if c.exit_residual else ""
+    parts.append(f"exits after {', '.join(names)} ({head}){correct}")
+    if c.precision != "fp32":
+        parts.append(c.precision)
+    return "; ".join(parts)
+
+
+def top_level_choices(data: dict, source: str, keys: dict[str, tuple[type, tuple]]) -> dict[str, tuple]:
+    """The choices a space lists at its top level (``key: (kind, allowed values)``), each checked."""
+    values = {}
+    for key, (kind, allowed) in keys.items():
+        if key in data:
+            values[key] = tuple(read_choices(data[key], f"{source}: {key}", kind))
+            bad = [v for v in values[key] if v not in allowed]
+            if bad:
+                raise UserError(f"{source}: {key} {bad} unknown: list some of {list(allowed)}")
+    return values

@@ -20,10 +20,11 @@ from typing import Any, Callable, Iterator
 import yaml
 
 from explorer.errors import UserError
-from explorer._space_parse import (HEAD_POSITIONS, RandomTrial, canonical_head, check_heads, ecu_exit_drawn,
-                                   encoder_exit_drawn, head_options, head_words, parse_choices, space_size, two_layers,
+from explorer._space_parse import (HEAD_POSITIONS, RandomTrial, canonical_head, check_heads, describe_candidate,
+                                   ecu_exit_drawn,
+                                   encoder_exit_drawn, head_options, parse_choices, space_size, top_level_choices, two_layers,
                                    without_cascade)
-from explorer.files import read_choices, read_yaml
+from explorer.files import read_yaml
 
 #: MobileNet v1 depthwise-separable blocks (in, out, stride), after conv0 (3 -> 32, stride 2).
 MOBILENET_V1_BLOCKS: tuple[tuple[int, int, int], ...] = (
@@ -81,6 +82,7 @@ class Candidate:
     encoder_head_width: int = 0
     ecu_head_depth: int = 0                # exit_0's head, after the ECU (the encoder's stride)
     ecu_head_width: int = 0
+    downscale: int = 1                     # works at the input size divided by this (1: at the input size)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "decoder_widths", tuple(int(w) for w in self.decoder_widths))
@@ -89,6 +91,7 @@ class Candidate:
         object.__setattr__(self, "encoder_exits", tuple(sorted({int(e) for e in self.encoder_exits})))
         object.__setattr__(self, "lidar_exit", bool(self.lidar_exit))
         object.__setattr__(self, "exit_residual", bool(self.exit_residual))
+        object.__setattr__(self, "downscale", int(self.downscale))
         if not self.ecu:
             for name in ("lidar_depth", "lidar_width", "ecu_band", "ecu_width"):
                 object.__setattr__(self, name, 0)
@@ -137,6 +140,8 @@ class Candidate:
                 raise UserError(
                     f"encoder exit after block {k}: no such place in a {self.encoder_blocks}-block encoder; "
                     f"encoder exits go after a block at stride 4 or 8 (blocks {list(encoder_exit_blocks(self.encoder_blocks))})")
+        if self.downscale not in DOWNSCALES:
+            raise UserError(f"downscale={self.downscale} is not one of {list(DOWNSCALES)}")
         if self.precision not in PRECISIONS:
             raise UserError(f"precision {self.precision!r} is not one of {list(PRECISIONS)}")
         if self.head_depth not in (1, 2):
@@ -157,6 +162,12 @@ class Candidate:
     # -- derived -------------------------------------------------------------------------------
     @property
     def stride(self) -> int:
+        """What the input's sides must divide by: the encoder's stride at the working size."""
+        return encoder_stride(self.encoder_blocks) * self.downscale
+
+    @property
+    def working_stride(self) -> int:
+        """The encoder's stride relative to the size the network works at (the input / ``downscale``)."""
         return encoder_stride(self.encoder_blocks)
 
     @property
@@ -172,25 +183,7 @@ class Candidate:
 
     def describe(self) -> str:
         """The architecture in words."""
-        parts = ["LiDAR-only exit first"] if self.lidar_exit else []
-        parts.append(f"MobileNet v1 x{self.width_mult:g}, {self.encoder_blocks} blocks (stride {self.stride})")
-        if self.encoder_exits:
-            fused = " fused with the LiDAR feature" if self.lidar_first else ""
-            parts.append("encoder exits after block " + ", ".join(map(str, self.encoder_exits)) + fused)
-        if self.ecu:
-            order = "before" if self.lidar_first else "after"
-            parts.append(f"LiDAR encoder ({order} the image encoder) {self.lidar_depth} layers from "
-                         f"{self.lidar_width} ch, ECU band {self.ecu_band} rows, {self.ecu_width} ch")
-        else:
-            parts.append("no LiDAR branch (image only)")
-        parts.append("decoder " + "-".join(str(w) for w in self.decoder_widths))
-        names = ["ECU" if e == 0 else f"stage {e}" for e in self.exits]
-        head = head_words(self)
-        correct = ", each correcting the interpolated scan" if self.exit_residual else ""
-        parts.append(f"exits after {', '.join(names)} ({head}){correct}")
-        if self.precision != "fp32":
-            parts.append(self.precision)
-        return "; ".join(parts)
+        return describe_candidate(self)
 
     def to_dict(self) -> dict[str, Any]:
         d = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
@@ -230,9 +223,13 @@ class Candidate:
 #: Fields added after the first release, with the value that leaves them out of a candidate's dict.
 _LATER_FIELDS: dict[str, Any] = {"encoder_exits": [], "lidar_exit": False, "lidar_first": False,
                                   "precision": "fp32", "exit_residual": False, "encoder_head_depth": 0,
-                                  "encoder_head_width": 0, "ecu_head_depth": 0, "ecu_head_width": 0}
+                                  "encoder_head_width": 0, "ecu_head_depth": 0, "ecu_head_width": 0, "downscale": 1}
 #: Numeric precisions a candidate may be deployed at (``explorer export --quantize``).
 PRECISIONS = ("fp32", "int8")
+#: Sizes a candidate may work at, as divisors of its input size: the image is averaged over
+#: ``downscale`` x ``downscale`` pixels and the scan keeps the first return of each ``downscale`` columns
+#: before the first stage that learns; its exits resize their depth maps to the input size.
+DOWNSCALES = (1, 2, 4)
 #: Strides at which an image exit may leave the encoder (after block k, before the decoder).
 ENCODER_EXIT_STRIDES = (4, 8)
 
@@ -300,6 +297,7 @@ DIMENSIONS: tuple[Dimension, ...] = (
     Dimension("ecu_head_depth", "exits", "ecu_head_depth", int, ecu_exit_drawn),
     Dimension("ecu_head_width", "exits", "ecu_head_width", int, two_layers("ecu")),
     Dimension("precision", "", "precision", str, several=True),
+    Dimension("downscale", "", "downscale", int, several=True),
     Dimension("exit_residual", "exits", "residual", bool, several=True),
     Dimension("encoder_blocks", "image_encoder", "blocks", int),
     Dimension("width_mult", "image_encoder", "width_mult", float),
@@ -327,7 +325,7 @@ class _Param:
     value_of: Callable[[Candidate], Any]
 
 
-_TOP_KEYS = set(_SPACE_SCHEMA) | {"name", "description", "precision"}
+_TOP_KEYS = set(_SPACE_SCHEMA) | {"name", "description", "precision", "downscale"}
 
 
 def load_yaml(path: str | Path) -> Any:
@@ -375,12 +373,19 @@ class SearchSpace:
     encoder_head_width: tuple[int, ...] = (0,)
     ecu_head_depth: tuple[int, ...] = (0,)
     ecu_head_width: tuple[int, ...] = (0,)
+    downscale: tuple[int, ...] = (1,)
     description: str = ""
     source: str = ""
 
     @property
     def max_stride(self) -> int:
-        """The largest encoder stride of the space: every size it trains or runs at divides by it."""
+        """What every size the space's networks run at divides by: the largest encoder stride, times the
+        largest ``downscale``."""
+        return self.max_working_stride * max(self.downscale)
+
+    @property
+    def max_working_stride(self) -> int:
+        """The largest encoder stride: every training size divides by it (networks work at that size)."""
         return max(encoder_stride(b) for b in self.encoder_blocks)
 
     @classmethod
@@ -410,11 +415,7 @@ class SearchSpace:
             for key, field in fields.items():
                 parse_choices(values, field, _KINDS[field], _POSITIONS.get(field, (field,))[0], body, key,
                               f"{source}: {section}.{key}", getattr(defaults, field, None))
-        if "precision" in data:
-            values["precision"] = tuple(read_choices(data["precision"], f"{source}: precision", str))
-            bad = [p for p in values["precision"] if p not in PRECISIONS]
-            if bad:
-                raise UserError(f"{source}: precision {bad} unknown: list some of {list(PRECISIONS)}")
+        values.update(top_level_choices(data, source, {"precision": (str, PRECISIONS), "downscale": (int, DOWNSCALES)}))
         space = cls(name=str(data.get("name", Path(source).stem)),
                     description=str(data.get("description", "")), source=source, **values)
         space._validate(source)
@@ -523,17 +524,17 @@ class SearchSpace:
                 enc = tuple(k for k, on in zip(self.optional_encoder_exits, mask) if on)
                 orders = sorted(set(self.lidar_first)) if ecu[0] and enc else [False]
                 early += [(ecu, enc, first) for first in orders]
-        for blocks, wm, (ecu, enc, first), widths, exits, head, lidar_exit, residual, precision in itertools.product(
-                self.encoder_blocks, self.width_mult, early, itertools.product(*self.decoder_widths),
-                exit_sets, heads, sorted(set(self.lidar_exit)), sorted(set(self.exit_residual)),
-                dict.fromkeys(self.precision)):
+        for blocks, wm, (ecu, enc, first), widths, exits, head, lidar_exit, residual, precision, downscale in \
+                itertools.product(self.encoder_blocks, self.width_mult, early, itertools.product(*self.decoder_widths),
+                                  exit_sets, heads, sorted(set(self.lidar_exit)), sorted(set(self.exit_residual)),
+                                  dict.fromkeys(self.precision), dict.fromkeys(self.downscale)):
             for enc_head, ecu_head in itertools.product(head_options(self, "encoder", *head, bool(enc)),
                                                         head_options(self, "ecu", *head, 0 in exits)):
                 yield Candidate(encoder_blocks=blocks, width_mult=wm, ecu=ecu[0], lidar_depth=ecu[1],
                                 lidar_width=ecu[2], ecu_band=ecu[3], ecu_width=ecu[4],
                                 decoder_widths=widths, exits=exits, head_depth=head[0], head_width=head[1],
                                 encoder_exits=enc, lidar_exit=lidar_exit, lidar_first=first, precision=precision,
-                                exit_residual=residual, encoder_head_depth=enc_head[0],
+                                exit_residual=residual, downscale=downscale, encoder_head_depth=enc_head[0],
                                 encoder_head_width=enc_head[1], ecu_head_depth=ecu_head[0], ecu_head_width=ecu_head[1])
 
     def sample(self, trial: Any) -> Candidate:
@@ -580,7 +581,7 @@ class SearchSpace:
         d = self.dimensions()
         p = self.params_of(candidate)
         inner = set(candidate.exits[:-1])
-        return candidate.precision in self.precision and \
+        return candidate.precision in self.precision and candidate.downscale in self.downscale and \
             candidate.exit_residual in self.exit_residual and \
             len(candidate.decoder_widths) == len(self.decoder_widths) and \
             set(candidate.encoder_exits) <= set(self.optional_encoder_exits) and all(

@@ -33,7 +33,11 @@ def cmd_train(args) -> None:
                               scan_loss=not args.no_scan_loss, hints=args.depth_hints, self_distill=args.self_distill,
                               exit_weights=_exit_weights(args.exit_weights, candidate, args.device, args.budget))
     cfg.validate()
-    check_size(cfg.input_size, candidate.stride, "--train-size")
+    check_size(cfg.input_size, candidate.working_stride, "--train-size")
+    if candidate.downscale > 1:   # it works at --train-size: its frames are that much larger (and recorded so)
+        cfg = dataclasses.replace(cfg, input_size=tuple(s * candidate.downscale for s in cfg.input_size))
+        console.print(f"frames at {cfg.input_size[0]}x{cfg.input_size[1]}: the network works at 1/{candidate.downscale} "
+                      "of its input size")
     check_spec_for(cfg, args.data)
     out = Path(args.out or f"reports/checkpoints/{candidate.key}.pt")
     check_checkpoint_target(out, candidate)

@@ -30,10 +30,10 @@ from explorer.model.network import stage_specs
 from explorer.space import Candidate, SearchSpace
 
 #: the axes of ``SearchSpace.enumerate``'s product, outermost first
-AXES = ("blocks", "width", "early", "widths", "exits", "heads", "lidar_exit", "residual", "precision")
+AXES = ("blocks", "width", "early", "widths", "exits", "heads", "lidar_exit", "residual", "precision", "downscale")
 #: the axes that decide a candidate's front stages, and its back stages
-FRONT_AXES = ("blocks", "width", "early", "front_exits", "heads", "lidar_exit", "residual")
-BACK_AXES = ("blocks", "width", "ecu", "widths", "back_exits", "heads", "residual")
+FRONT_AXES = ("blocks", "width", "early", "front_exits", "heads", "lidar_exit", "residual", "downscale")
+BACK_AXES = ("blocks", "width", "ecu", "widths", "back_exits", "heads", "residual", "downscale")
 #: the most rows of a table of key texts over several axes
 KEY_TABLE_ROWS = 1 << 16
 COLUMNS = ("key", "encoder_blocks", "width_mult", "ecu", "decoder_widths", "exits", "head_depth", "paths",
@@ -75,6 +75,7 @@ def space_axes(space: SearchSpace) -> dict[str, list[dict[str, Any]]]:
         "lidar_exit": [{"lidar_exit": v} for v in sorted(set(space.lidar_exit))],
         "residual": [{"exit_residual": v} for v in sorted(set(space.exit_residual))],
         "precision": [{"precision": p} for p in dict.fromkeys(space.precision)],
+        "downscale": [{"downscale": d} for d in dict.fromkeys(space.downscale)],
     }
 
 

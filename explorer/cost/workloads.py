@@ -19,6 +19,7 @@ from torch import nn
 
 from explorer.errors import UserError
 from explorer.model import ops
+from explorer.model.downscale import FirstReturns
 from explorer.model.exits import ScanFill
 from explorer.model.network import StageSpec, stage_specs
 from explorer.model.reference import get_reference
@@ -150,9 +151,11 @@ def trace_stage(module: nn.Module, stage: str, inputs: list) -> tuple[list[Workl
                 kind, k = "resize", 0
                 s = max(1, round(out_shape[-1] / in_shape[-1]))
                 macs = 4 * n_out if m.mode == "bilinear" else 0
-            elif isinstance(m, nn.MaxPool2d):
-                # a window max: memory-bound resampling, priced like a resize by the bytes it moves
+            elif isinstance(m, (nn.MaxPool2d, nn.AvgPool2d)):
+                # a window max or mean: memory-bound resampling, priced like a resize by the bytes it moves
                 kind, k, s, macs = "resize", 0, int(m.stride if isinstance(m.stride, int) else m.stride[0]), 0
+            elif isinstance(m, FirstReturns):
+                kind, k, s, macs = "slice", 0, m.factor, 0
             elif isinstance(m, (ops.SkipAdd, ops.BroadcastAdd, ops.Normalize)):
                 kind, k, s, macs = "add", 0, 1, 0
             elif isinstance(m, ops.Concat):

@@ -14,6 +14,7 @@ bag's, a folder's ``scans/``, KITTI's ring), else simulated: by the spec's LiDAR
 
 from __future__ import annotations
 
+import copy
 import weakref
 from pathlib import Path
 from typing import Callable
@@ -41,7 +42,7 @@ from explorer.data.splits import VAL_SHARE, parse_share
 from explorer.data.synthetic import SyntheticConfig, ensure_synthetic, intrinsics
 from explorer.errors import UserError
 
-__all__ = ["DEPTH_METRICS", "MAX_GENERATED", "MAYBE_WITHOUT_DEPTH", "SCORES", "SEQUENCE_KINDS", "SPEC_HELP", "DataSpec",
+__all__ = ["DEPTH_METRICS", "frames_for_downscale", "MAX_GENERATED", "MAYBE_WITHOUT_DEPTH", "SCORES", "SEQUENCE_KINDS", "SPEC_HELP", "DataSpec",
            "DepthDataset", "ScanConfig", "SyntheticConfig", "default_metric", "has_depth", "open_dataset",
            "parse_data_spec", "require_scores", "scan_from_image", "simulate_scan", "with_lidar"]
 
@@ -104,6 +105,12 @@ class DepthDataset(Dataset):
     def __len__(self) -> int:
         return len(self.frames)
 
+    def resized(self, input_size: tuple[int, int]) -> "DepthDataset":
+        """The same frames at another input size (the frames themselves are shared, not copied)."""
+        other = copy.copy(self)
+        other.input_size, other.epoch = tuple(input_size), 0
+        return other
+
     def frame_names(self) -> list[str]:
         """The frames this split serves, by name (unique within a source)."""
         names = getattr(self.frames, "frame_names", None)
@@ -163,6 +170,17 @@ class DepthDataset(Dataset):
                 "depth": torch.tensor(depth, dtype=torch.float32)[None],
                 "scan": torch.tensor(scan, dtype=torch.float32), "scan_rows": torch.from_numpy(rows),
                 "scan_row": row}
+
+
+def frames_for_downscale(dataset, downscale: int):
+    """The frames a network that works at 1/``downscale`` of its input trains or is scored on where
+    ``dataset``'s size is asked for: the same frames, ``downscale`` times larger, so that every network
+    of a study works at the size asked for (a network fed the frames as they are would work at a
+    fraction of it, and learn less than it can)."""
+    if downscale == 1 or not len(dataset):
+        return dataset
+    h, w = dataset.input_size
+    return dataset.resized((h * downscale, w * downscale))
 
 
 def open_dataset(spec: str | DataSpec, split: str, input_size: tuple[int, int] = (224, 224),

@@ -14,6 +14,8 @@ transform from the target camera to each source camera (identity when unknown) a
 
 from __future__ import annotations
 
+import copy
+
 import hashlib
 from dataclasses import dataclass
 from pathlib import Path
@@ -230,6 +232,12 @@ class SequenceDataset(Dataset):
 
     def __len__(self) -> int:
         return len(self.source)
+
+    def resized(self, input_size: tuple[int, int]) -> "SequenceDataset":
+        """The same samples at another input size (the source is shared, not copied)."""
+        other = copy.copy(self)
+        other.input_size, other.epoch = tuple(input_size), 0
+        return other
 
     def frame_names(self) -> list[str]:
         """Every frame the samples of this split read (targets and their neighbours)."""

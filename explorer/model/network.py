@@ -10,6 +10,7 @@ import torch
 from torch import nn
 
 from explorer.model.decoder import DecoderStageConfig
+from explorer.model.downscale import DownscaleConfig
 from explorer.model.ecu import ECUConfig
 from explorer.model.exits import ExitHeadConfig, ScanFillConfig, interpolate_scan
 from explorer.model.image_encoder import ImageEncoderConfig
@@ -49,8 +50,10 @@ def stage_specs(candidate: Candidate, paper_graph: bool = False) -> list[StageSp
     to its exit head where that gives the same values (``explorer.model.decoder``), and exit heads
     up-sample bilinearly as two matrix products (``ops.Resize``); ``paper_graph``: neither, the graph
     the paper measured, for its figures (the same parameters, the same values to float rounding).
-    Residual exits read last the depth map they correct, the scan (``scan_fill``)."""
-    stride = candidate.stride
+    Residual exits read last the depth map they correct, the scan (``scan_fill``). A network working below
+    its input size first resizes it (``downscale``), read by every later stage; its heads resize back."""
+    stride, factor = candidate.working_stride, candidate.downscale
+    image, scan = ("image_low", "scan_low") if factor > 1 else ("image", "scan")
     specs: list[StageSpec] = []
     path = 1
     residual = candidate.exit_residual
@@ -65,14 +68,16 @@ def stage_specs(candidate: Candidate, paper_graph: bool = False) -> list[StageSp
         specs.append(StageSpec("scan_fill", ScanFillConfig(), ("scan", "image"), ("scan_fill",)))
     if candidate.lidar_exit:
         add_exit("lidar_exit", LidarExitConfig(residual=residual), ("scan", "image"))
+    if factor > 1:
+        specs.append(StageSpec("downscale", DownscaleConfig(factor), ("image", "scan"), (image, scan)))
     lidar = None
     if candidate.ecu:
         taps = tuple(encoder_stride(k) for k in candidate.encoder_exits) if candidate.lidar_first else ()
         lidar = LidarEncoderConfig(candidate.lidar_depth, candidate.lidar_width, stride, taps)
-        lidar_stage = StageSpec("lidar_encoder", lidar, ("scan",), ("lidar", *(f"lidar_s{t}" for t in taps)))
+        lidar_stage = StageSpec("lidar_encoder", lidar, (scan,), ("lidar", *(f"lidar_s{t}" for t in taps)))
         if candidate.lidar_first:
             specs.append(lidar_stage)
-    start, x = 0, "image"
+    start, x = 0, image
     for k in (*candidate.encoder_exits, candidate.encoder_blocks):
         seg = ImageEncoderConfig(k, candidate.width_mult, start)
         out = "enc" if k == candidate.encoder_blocks else _encoder_tensor(k, candidate.encoder_blocks)
@@ -81,7 +86,7 @@ def stage_specs(candidate: Candidate, paper_graph: bool = False) -> list[StageSp
         if k < candidate.encoder_blocks:
             s = encoder_stride(k)
             fuse = lidar.tap_channels(s) if candidate.lidar_first else 0
-            cfg = ExitHeadConfig(seg.out_channels(), *candidate.head("encoder"), s, fuse, residual)
+            cfg = ExitHeadConfig(seg.out_channels(), *candidate.head("encoder"), s * factor, fuse, residual)
             add_exit(f"exit_b{k}", cfg, (out, f"lidar_s{s}") if fuse else (out,))
         start, x = k, out
     enc = ImageEncoderConfig(candidate.encoder_blocks, candidate.width_mult)
@@ -90,14 +95,15 @@ def stage_specs(candidate: Candidate, paper_graph: bool = False) -> list[StageSp
     if candidate.ecu:
         if not candidate.lidar_first:
             specs.append(lidar_stage)
+        # the scan's row is the input's: its feature row is found at the stride relative to the input
         ecu = ECUConfig(enc.out_channels(), lidar.out_channels(), candidate.ecu_band,
-                        candidate.ecu_width, stride)
+                        candidate.ecu_width, stride * factor)
         specs.append(StageSpec("ecu", ecu, ("enc", "lidar"), ("x0",)))
         x = "x0"
     channels = enc.out_channels()
 
     def exit_cfg(cin: int, scale: int, position: str = "decoder") -> ExitHeadConfig:
-        return ExitHeadConfig(cin, *candidate.head(position), scale, residual=residual,
+        return ExitHeadConfig(cin, *candidate.head(position), scale * factor, residual=residual,
                               bilinear_products=not paper_graph)
 
     if 0 in candidate.exits:

@@ -181,7 +181,7 @@ class SearchConfig:
         for name, size in (("--input-size", self.input_size), ("--train-size", self.train_size)):
             if len(size) != 2:
                 raise UserError(f"{name} {size}: give HxW, e.g. 224x224")
-            check_size(tuple(size), space.max_stride, name)
+            check_size(tuple(size), space.max_stride if name == "--input-size" else space.max_working_stride, name)
         if self.train_steps < 1:
             raise UserError("--proxy-steps must be at least 1")
         if self.sampler not in SAMPLERS:

@@ -231,7 +231,9 @@ class Objective:
         the device profile prices int8 (``CandidateCost.int8_graphs``), as its latency assumes."""
         net.eval()
         graphs = cost.int8_graphs(self.device_profile)
-        effect = quantization_effect(net, tuple(size or self.config.train_size), self.config.data,
+        factor = getattr(net.candidate, "downscale", 1)   # at the training size: the frames its estimate used
+        size = size or tuple(s * factor for s in self.config.train_size)
+        effect = quantization_effect(net, tuple(size), self.config.data,
                                      eval_frames=self.config.val_limit or 32, stages=graphs)
         record(trial, int8_graphs=list(graphs), path_metrics_fp32=path_metrics,
                quantization=json_safe({k: effect[k] for k in ("rmse_degradation", "frames")}))

@@ -13,7 +13,7 @@ import pandas as pd
 from explorer.anytime import anytime_loss, parse_budget
 from explorer.cost.devices import DeviceProfile, check_budget_priced, get_device, path_latencies_ms
 from explorer.cost.workloads import Workload
-from explorer.data import open_dataset
+from explorer.data import frames_for_downscale, open_dataset
 from explorer.errors import UserError
 from explorer.model.reference import REFERENCES
 from explorer.model.shipped import shipped_network
@@ -428,8 +428,10 @@ def _supernet_network(view: StudyView, trial: optuna.trial.FrozenTrial):
                         f"on since (step {state['step']}): its slice is no longer the network the search scored; "
                         "retrain the candidate (`explorer train`) and export its checkpoint")
     cfg = view.config
-    calibration = open_dataset(cfg.data, "train", cfg.train_size, train_augment=False)
-    sub = net.extract(Candidate.from_dict(rec.candidate))
+    candidate = Candidate.from_dict(rec.candidate)
+    calibration = frames_for_downscale(open_dataset(cfg.data, "train", cfg.train_size, train_augment=False),
+                                       candidate.downscale)
+    sub = net.extract(candidate)
     recalibrate_batchnorm(sub, loaded_batches(calibration, 64, 32))
     return sub
 

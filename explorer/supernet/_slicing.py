@@ -12,6 +12,7 @@ from __future__ import annotations
 import torch
 
 from explorer.model.decoder import DecoderStageConfig
+from explorer.model.downscale import DownscaleConfig
 from explorer.model.ecu import ECUConfig
 from explorer.model.exits import ExitHeadConfig, ScanFillConfig
 from explorer.model.image_encoder import ImageEncoderConfig
@@ -29,8 +30,8 @@ def slot_of(spec: StageSpec) -> str:
         return "lidar_encoder"
     if isinstance(cfg, ECUConfig):
         return "ecu"
-    if isinstance(cfg, ScanFillConfig):
-        return "scan_fill"
+    if isinstance(cfg, (ScanFillConfig, DownscaleConfig)):
+        return spec.name
     # a head that corrects the scan learns another output than one that replaces it: its own weights
     if isinstance(cfg, LidarExitConfig):
         return "lidar_exit" + ("_r" if cfg.residual else "")

@@ -17,6 +17,7 @@ from typing import Callable
 import pandas as pd
 import torch
 
+from explorer.data import frames_for_downscale
 from explorer.model import AnytimeDepthNet, build_network
 from explorer.space import Candidate
 from explorer.supernet._stagewise import (
@@ -61,7 +62,8 @@ class ProxyEvaluator:
                  report: Callable[[int, pd.DataFrame], None] | None = None) -> Evaluation:
         torch.manual_seed(self.seed)  # same candidate, same initial weights: results are repeatable
         net = build_network(candidate)
-        result = train(net, self.train_set, self.val_set, self.recipe, self.device, checkpoint=checkpoint,
+        train_set, val_set = (frames_for_downscale(d, candidate.downscale) for d in (self.train_set, self.val_set))
+        result = train(net, train_set, val_set, self.recipe, self.device, checkpoint=checkpoint,
                        report=report, val_limit=self.val_limit, checkpoint_every=10 ** 9)
         info = {"evaluator": self.name, "seconds": result.seconds, "steps": result.steps,
                 "images_per_second": result.images_per_second}
@@ -115,6 +117,11 @@ class SupernetEvaluator:
             batch_size = frames_per_batch(device, calibration_images, val_limit or len(val_set))
         self.calibration = loaded_batches(train_set, calibration_images, batch_size)
         self.validation = loaded_batches(val_set, val_limit or len(val_set), batch_size)
+        # a network working below its input size is scored on the same frames, that much larger: loaded
+        # now, as the training set is not kept (see explorer.data.frames_for_downscale)
+        self.downscaled = {f: (loaded_batches(frames_for_downscale(train_set, f), calibration_images, batch_size),
+                               loaded_batches(frames_for_downscale(val_set, f), val_limit or len(val_set), batch_size))
+                           for f in space.downscale if f > 1}
         self.stagewise = stagewise
         if stagewise:
             self._frames = Frames.of(self.calibration, device), Frames.of(self.validation, device)
@@ -127,7 +134,10 @@ class SupernetEvaluator:
         before, one by one), and the Evaluation holds none: ``network_of`` makes it when asked."""
         t0 = time.perf_counter()
         net = None
-        if self.stagewise:
+        if candidate.downscale > 1:   # its own frames: evaluated whole (its stages share no input with others)
+            net = self.network_of(candidate)
+            metrics = evaluate(net, self.downscaled[candidate.downscale][1], accelerator=self.device)
+        elif self.stagewise:
             metrics = evaluate_stagewise(self.supernet.stages_of(candidate), self._stage_module,
                                          self.shared_encoder(candidate.width_mult), *self._frames, self.memo)
         else:
@@ -141,7 +151,7 @@ class SupernetEvaluator:
         """``candidate``'s slice as an ordinary network, BatchNorm recalibrated: the network whose metrics
         the evaluation gives."""
         net = self.supernet.extract(candidate).to(memory_format=torch.channels_last)  # see train.image_batch
-        recalibrate_batchnorm(net, self.calibration)
+        recalibrate_batchnorm(net, self.downscaled[candidate.downscale][0] if candidate.downscale > 1 else self.calibration)
         return net.to(memory_format=torch.contiguous_format)
 
     def _stage_module(self, spec) -> torch.nn.Module:

@@ -31,8 +31,10 @@ from explorer.supernet._slicing import slice_of, slot_of, super_name
 
 def space_identity(space: SearchSpace) -> dict:
     """What a supernet depends on in a space: its dimensions, not its name or description (nor the
-    precisions it lists: int8 candidates are fp32 weights quantized afterwards)."""
-    dims = {k: list(v) for k, v in space.dimensions().items() if k != "precision"}
+    precisions it lists: int8 candidates are fp32 weights quantized afterwards; nor the sizes its
+    networks work at: a network working at half its input size has the weights of its twin at full
+    size, and it trains on frames twice the size, so that it works at the training size as its twin does)."""
+    dims = {k: list(v) for k, v in space.dimensions().items() if k not in ("precision", "downscale")}
     dims["required_exits"] = list(space.required_exits)
     dims["decoder_stages"] = len(space.decoder_widths)
     if space.exit_residual != (False,):   # spaces without residual exits keep the keys they had
@@ -138,8 +140,9 @@ class Supernet(nn.Module):
 
     # -- candidates as views ------------------------------------------------------------------------
     def _check_contains(self, candidate: Candidate) -> None:
-        # the weights do not depend on the precision a candidate is deployed at
-        as_searched = dataclasses.replace(candidate, precision=self.space.precision[0])
+        # the weights do not depend on the precision a candidate is deployed at, nor on the size it works at
+        as_searched = dataclasses.replace(candidate, precision=self.space.precision[0],
+                                          downscale=self.space.downscale[0])
         if not self.space.contains(as_searched) and candidate != self.largest:
             raise UserError(f"candidate {candidate.key} is outside the supernet's space '{self.space.name}': "
                             "train a supernet for a space that contains it")

@@ -491,7 +491,7 @@ def _pace(step_seconds: float, accelerator: torch.device) -> dict:
 
 
 def _check_recipe(recipe: SupernetRecipe, world: int, space: SearchSpace) -> None:
-    check_size(recipe.input_size, space.max_stride, "--train-size")
+    check_size(recipe.input_size, space.max_working_stride, "--train-size")
     if not 0 <= recipe.distill <= 1:
         raise UserError(f"--distill {recipe.distill}: give a weight between 0 (off, the default) and 1")
     if not 0 <= recipe.self_distill <= 10:

@@ -17,6 +17,7 @@ from pathlib import Path
 
 import torch
 
+from explorer.data import frames_for_downscale
 from explorer.training.memory import release_host_memory
 from explorer.training.train import TrainConfig, TrainResult, train
 
@@ -71,11 +72,13 @@ def train_for_deployment(net, data: DeploymentData, recipe: DeploymentRecipe, ac
     """Trains ``net`` with ``recipe`` and returns the result with its per-path metrics measured at the
     deployment size on the first ``val_limit`` validation frames. Each phase checkpoints on its own
     file (``checkpoint`` and its ``-tune`` sibling), so a killed run resumes in the phase it was in."""
+    # a network working below its input size trains at the training size on frames that much larger
+    small = frames_for_downscale(data.train, getattr(getattr(net, "candidate", None), "downscale", 1))
     if not recipe.tunes:   # measured where it is deployed, whatever size it was trained at
-        return train(net, data.train, data.deploy_val, recipe.train, accelerator, checkpoint=checkpoint,
+        return train(net, small, data.deploy_val, recipe.train, accelerator, checkpoint=checkpoint,
                      val_limit=val_limit)
     # no validation pass at the training size ([] evaluates nothing): its figures are not the network's
-    first = train(net, data.train, [], recipe.train, accelerator, checkpoint=checkpoint)
+    first = train(net, small, [], recipe.train, accelerator, checkpoint=checkpoint)
     # a training step's activations at the deployment size are the most a search allocates at once (see
     # TUNE_PART_FRAMES): the tuning starts from the pages what ran before it freed
     release_host_memory()

@@ -90,6 +90,10 @@ class HintedDataset(Dataset):
     def __getitem__(self, i: int) -> dict:
         return {**self.dataset[i], "hint": self.hints[i]}
 
+    def resized(self, input_size: tuple[int, int]) -> "HintedDataset":
+        """The same samples at another input size, with hints computed there (once, then cached)."""
+        return with_hints(self.dataset.resized(input_size))
+
     def __getattr__(self, name: str):
         if name in ("dataset", "hints"):  # not yet set (unpickling): no recursion
             raise AttributeError(name)

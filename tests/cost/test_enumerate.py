@@ -18,7 +18,7 @@ from explorer.errors import UserError
 from explorer.space import SearchSpace
 
 #: every kind of choice the default space has, few of each: encoder exits, stage order, the LiDAR-only
-#: exit, residual exits, two head depths, a required exit, two precisions
+#: exit, residual exits, two head depths, a required exit, two precisions, two working sizes
 MIXED = {
     "name": "mixed",
     "image_encoder": {"blocks": [6, 7], "width_mult": [0.5], "exits": [3, 5]},
@@ -28,6 +28,7 @@ MIXED = {
     "exits": {"optional": [0, 2], "required": [1], "head_depth": [1, 2], "head_width": [8],
               "lidar_only": [False, True], "residual": [False, True]},
     "precision": ["fp32", "int8"],
+    "downscale": [1, 2],
 }
 SIZE = (64, 96)
 
