@@ -53,4 +53,4 @@ def test_held_out_estimates_rank_labels_a_correction_explains():
     raw = [_predictor.corrected(c, estimated[c], NO_CORRECTION) for c in cands]
     raw_tau = kendalltau(raw, [labels[c] for c in cands]).statistic
     held = _predictor.held_out_taus(estimated, retrained, labels, train_count=len(cands) - 1)
-    assert len(held) == 1 and held[0] > raw_tau and held[0] > 0.9
+    assert len(held) == 1 and held[0] > raw_tau + 0.1 and held[0] > 0.8
