@@ -126,6 +126,15 @@ def bench_early_path_levers(argv: Sequence[str] | None = None) -> None:
     run_held_out(bench, argv, LEVER_NETWORKS, "300,2000+130")
 
 
+def bench_self_distillation(argv: Sequence[str] | None = None) -> None:
+    """Does self-distillation (weight 1) pay on a study's winner and on the paper design after the long
+    recipe? The held-out experiment (above) with both networks trained with it and without it, on the
+    same seeds."""
+    bench = Bench("bench_self_distillation", "self-distillation on a study's winner and the paper design, by "
+                  "recipe length", bench_self_distillation.__doc__)
+    run_held_out(bench, argv, "winner,paper,winner:distill=1,paper:distill=1", "300,2000+130")
+
+
 def run_held_out(bench: Bench, argv: Sequence[str] | None, networks: str, steps: str) -> None:
     """Retrains, per seed, every network at every recipe (the defaults of ``--networks`` and ``--steps``:
     ``networks`` and ``steps``) and records the figures ``declare`` names."""
@@ -194,7 +203,8 @@ def run_held_out(bench: Bench, argv: Sequence[str] | None, networks: str, steps:
     bench.finish()
 
 
-CASES = (Case(bench_held_out), Case(bench_early_path_levers, named_only=True))
+CASES = (Case(bench_held_out), Case(bench_early_path_levers, named_only=True),
+         Case(bench_self_distillation, named_only=True))
 
 if __name__ == "__main__":
     run_suite(CASES)
