@@ -134,7 +134,7 @@ class SupernetEvaluator:
         before, one by one), and the Evaluation holds none: ``network_of`` makes it when asked."""
         t0 = time.perf_counter()
         net = None
-        if candidate.downscale > 1:   # its own frames: evaluated whole (its stages share no input with others)
+        if candidate.downscale > 1:   # on its own frames, evaluated whole: no stage of it is read back
             net = self.network_of(candidate)
             metrics = evaluate(net, self.downscaled[candidate.downscale][1], accelerator=self.device)
         elif self.stagewise:
