@@ -21,9 +21,8 @@ import yaml
 
 from explorer.errors import UserError
 from explorer._space_parse import (HEAD_POSITIONS, RandomTrial, canonical_head, check_heads, describe_candidate,
-                                   ecu_exit_drawn,
-                                   encoder_exit_drawn, head_options, parse_choices, space_size, top_level_choices, two_layers,
-                                   without_cascade)
+                                   ecu_exit_drawn, encoder_exit_drawn, head_options, parse_choices, space_size,
+                                   top_level_choices, two_layers, without_cascade)
 from explorer.files import read_yaml
 
 #: MobileNet v1 depthwise-separable blocks (in, out, stride), after conv0 (3 -> 32, stride 2).
@@ -162,7 +161,7 @@ class Candidate:
     # -- derived -------------------------------------------------------------------------------
     @property
     def stride(self) -> int:
-        """What the input's sides must divide by: the encoder's stride at the working size."""
+        """What the input's sides must divide by: the encoder's stride times ``downscale``."""
         return encoder_stride(self.encoder_blocks) * self.downscale
 
     @property
