@@ -135,6 +135,16 @@ def bench_self_distillation(argv: Sequence[str] | None = None) -> None:
     run_held_out(bench, argv, "winner,paper,winner:distill=1,paper:distill=1", "300,2000+130")
 
 
+def bench_first_paths(argv: Sequence[str] | None = None) -> None:
+    """What holds a study's winner's first paths back? The held-out experiment (above) with the winner as
+    it is, without its LiDAR-only exit (which sees one scan row), and with exit heads that read each row's
+    vertical position (``exit_position``: a pointwise head on shallow features cannot see where in the
+    image a pixel is), beside the paper design, on the same seeds."""
+    bench = Bench("bench_first_paths", "a study's winner without its LiDAR-only exit, and with heads that read "
+                  "the row's position, by recipe length", bench_first_paths.__doc__)
+    run_held_out(bench, argv, "winner,paper,winner:lidar_exit=false,winner:exit_position=true", "300,2000+130")
+
+
 def run_held_out(bench: Bench, argv: Sequence[str] | None, networks: str, steps: str) -> None:
     """Retrains, per seed, every network at every recipe (the defaults of ``--networks`` and ``--steps``:
     ``networks`` and ``steps``) and records the figures ``declare`` names."""
@@ -204,7 +214,7 @@ def run_held_out(bench: Bench, argv: Sequence[str] | None, networks: str, steps:
 
 
 CASES = (Case(bench_held_out), Case(bench_early_path_levers, named_only=True),
-         Case(bench_self_distillation, named_only=True))
+         Case(bench_self_distillation, named_only=True), Case(bench_first_paths, named_only=True))
 
 if __name__ == "__main__":
     run_suite(CASES)

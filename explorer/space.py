@@ -82,6 +82,7 @@ class Candidate:
     ecu_head_depth: int = 0                # exit_0's head, after the ECU (the encoder's stride)
     ecu_head_width: int = 0
     downscale: int = 1                     # works at the input size divided by this (1: at the input size)
+    exit_position: bool = False            # every exit head reads each row's vertical position
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "decoder_widths", tuple(int(w) for w in self.decoder_widths))
@@ -91,6 +92,7 @@ class Candidate:
         object.__setattr__(self, "lidar_exit", bool(self.lidar_exit))
         object.__setattr__(self, "exit_residual", bool(self.exit_residual))
         object.__setattr__(self, "downscale", int(self.downscale))
+        object.__setattr__(self, "exit_position", bool(self.exit_position))
         if not self.ecu:
             for name in ("lidar_depth", "lidar_width", "ecu_band", "ecu_width"):
                 object.__setattr__(self, name, 0)
@@ -164,6 +166,11 @@ class Candidate:
         """What the input's sides must divide by: the encoder's stride times ``downscale``."""
         return encoder_stride(self.encoder_blocks) * self.downscale
 
+    def frame_size(self, size: tuple[int, int]) -> tuple[int, int]:
+        """The frames this network trains or is scored on where ``size`` is asked for: ``downscale`` times
+        larger, so that it works at ``size`` (explorer.data.frames_for_downscale)."""
+        return (size[0] * self.downscale, size[1] * self.downscale)
+
     @property
     def working_stride(self) -> int:
         """The encoder's stride relative to the size the network works at (the input / ``downscale``)."""
@@ -222,7 +229,8 @@ class Candidate:
 #: Fields added after the first release, with the value that leaves them out of a candidate's dict.
 _LATER_FIELDS: dict[str, Any] = {"encoder_exits": [], "lidar_exit": False, "lidar_first": False,
                                   "precision": "fp32", "exit_residual": False, "encoder_head_depth": 0,
-                                  "encoder_head_width": 0, "ecu_head_depth": 0, "ecu_head_width": 0, "downscale": 1}
+                                  "encoder_head_width": 0, "ecu_head_depth": 0, "ecu_head_width": 0, "downscale": 1,
+                                  "exit_position": False}
 #: Numeric precisions a candidate may be deployed at (``explorer export --quantize``).
 PRECISIONS = ("fp32", "int8")
 #: Sizes a candidate may work at, as divisors of its input size: the image is averaged over

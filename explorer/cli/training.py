@@ -35,7 +35,7 @@ def cmd_train(args) -> None:
     cfg.validate()
     check_size(cfg.input_size, candidate.working_stride, "--train-size")
     if candidate.downscale > 1:   # it works at --train-size: its frames are that much larger (and recorded so)
-        cfg = dataclasses.replace(cfg, input_size=tuple(s * candidate.downscale for s in cfg.input_size))
+        cfg = dataclasses.replace(cfg, input_size=candidate.frame_size(cfg.input_size))
         console.print(f"frames at {cfg.input_size[0]}x{cfg.input_size[1]}: the network works at 1/{candidate.downscale} "
                       "of its input size")
     check_spec_for(cfg, args.data)

@@ -86,7 +86,8 @@ def stage_specs(candidate: Candidate, paper_graph: bool = False) -> list[StageSp
         if k < candidate.encoder_blocks:
             s = encoder_stride(k)
             fuse = lidar.tap_channels(s) if candidate.lidar_first else 0
-            cfg = ExitHeadConfig(seg.out_channels(), *candidate.head("encoder"), s * factor, fuse, residual)
+            cfg = ExitHeadConfig(seg.out_channels(), *candidate.head("encoder"), s * factor, fuse, residual,
+                                 position=candidate.exit_position)
             add_exit(f"exit_b{k}", cfg, (out, f"lidar_s{s}") if fuse else (out,))
         start, x = k, out
     enc = ImageEncoderConfig(candidate.encoder_blocks, candidate.width_mult)
@@ -104,7 +105,7 @@ def stage_specs(candidate: Candidate, paper_graph: bool = False) -> list[StageSp
 
     def exit_cfg(cin: int, scale: int, position: str = "decoder") -> ExitHeadConfig:
         return ExitHeadConfig(cin, *candidate.head(position), scale * factor, residual=residual,
-                              bilinear_products=not paper_graph)
+                              bilinear_products=not paper_graph, position=candidate.exit_position)
 
     if 0 in candidate.exits:
         add_exit("exit_0", exit_cfg(channels, stride, "ecu"), (x,))

@@ -231,8 +231,7 @@ class Objective:
         the device profile prices int8 (``CandidateCost.int8_graphs``), as its latency assumes."""
         net.eval()
         graphs = cost.int8_graphs(self.device_profile)
-        factor = getattr(net.candidate, "downscale", 1)   # at the training size: the frames its estimate used
-        size = size or tuple(s * factor for s in self.config.train_size)
+        size = size or net.candidate.frame_size(self.config.train_size)   # the frames its estimate used
         effect = quantization_effect(net, tuple(size), self.config.data,
                                      eval_frames=self.config.val_limit or 32, stages=graphs)
         record(trial, int8_graphs=list(graphs), path_metrics_fp32=path_metrics,
