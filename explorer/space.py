@@ -167,8 +167,7 @@ class Candidate:
         return encoder_stride(self.encoder_blocks) * self.downscale
 
     def frame_size(self, size: tuple[int, int]) -> tuple[int, int]:
-        """The frames this network trains or is scored on where ``size`` is asked for: ``downscale`` times
-        larger, so that it works at ``size`` (explorer.data.frames_for_downscale)."""
+        """The frames it trains or is scored on where ``size`` is asked for (data.frames_for_downscale)."""
         return (size[0] * self.downscale, size[1] * self.downscale)
 
     @property
@@ -306,6 +305,7 @@ DIMENSIONS: tuple[Dimension, ...] = (
     Dimension("precision", "", "precision", str, several=True),
     Dimension("downscale", "", "downscale", int, several=True),
     Dimension("exit_residual", "exits", "residual", bool, several=True),
+    Dimension("exit_position", "exits", "position", bool, several=True),
     Dimension("encoder_blocks", "image_encoder", "blocks", int),
     Dimension("width_mult", "image_encoder", "width_mult", float),
     Dimension("decoder_widths", "decoder", "widths", "stages"),
@@ -381,6 +381,7 @@ class SearchSpace:
     ecu_head_depth: tuple[int, ...] = (0,)
     ecu_head_width: tuple[int, ...] = (0,)
     downscale: tuple[int, ...] = (1,)
+    exit_position: tuple[bool, ...] = (False,)
     description: str = ""
     source: str = ""
 
@@ -531,9 +532,10 @@ class SearchSpace:
                 enc = tuple(k for k, on in zip(self.optional_encoder_exits, mask) if on)
                 orders = sorted(set(self.lidar_first)) if ecu[0] and enc else [False]
                 early += [(ecu, enc, first) for first in orders]
-        for blocks, wm, (ecu, enc, first), widths, exits, head, lidar_exit, residual, precision, downscale in \
+        for blocks, wm, (ecu, enc, first), widths, exits, head, lidar_exit, (residual, position), precision, downscale in \
                 itertools.product(self.encoder_blocks, self.width_mult, early, itertools.product(*self.decoder_widths),
-                                  exit_sets, heads, sorted(set(self.lidar_exit)), sorted(set(self.exit_residual)),
+                                  exit_sets, heads, sorted(set(self.lidar_exit)),
+                                  itertools.product(sorted(set(self.exit_residual)), sorted(set(self.exit_position))),
                                   dict.fromkeys(self.precision), dict.fromkeys(self.downscale)):
             for enc_head, ecu_head in itertools.product(head_options(self, "encoder", *head, bool(enc)),
                                                         head_options(self, "ecu", *head, 0 in exits)):
@@ -541,7 +543,8 @@ class SearchSpace:
                                 lidar_width=ecu[2], ecu_band=ecu[3], ecu_width=ecu[4],
                                 decoder_widths=widths, exits=exits, head_depth=head[0], head_width=head[1],
                                 encoder_exits=enc, lidar_exit=lidar_exit, lidar_first=first, precision=precision,
-                                exit_residual=residual, downscale=downscale, encoder_head_depth=enc_head[0],
+                                exit_residual=residual, exit_position=position, downscale=downscale,
+                                encoder_head_depth=enc_head[0],
                                 encoder_head_width=enc_head[1], ecu_head_depth=ecu_head[0], ecu_head_width=ecu_head[1])
 
     def sample(self, trial: Any) -> Candidate:
@@ -589,7 +592,7 @@ class SearchSpace:
         p = self.params_of(candidate)
         inner = set(candidate.exits[:-1])
         return candidate.precision in self.precision and candidate.downscale in self.downscale and \
-            candidate.exit_residual in self.exit_residual and \
+            candidate.exit_residual in self.exit_residual and candidate.exit_position in self.exit_position and \
             len(candidate.decoder_widths) == len(self.decoder_widths) and \
             set(candidate.encoder_exits) <= set(self.optional_encoder_exits) and all(
             v in d[k] for k, v in p.items()) and set(self.required_exits) <= inner and \

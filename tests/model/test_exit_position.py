@@ -4,6 +4,7 @@ definition, a head that starts as it would without it, costed, exported and run 
 from __future__ import annotations
 
 import dataclasses
+import random
 
 import numpy as np
 import torch
@@ -84,3 +85,32 @@ def test_exported_graphs_give_the_networks_depth_maps(tmp_path):
     assert len(got) == len(want)
     for a, b in zip(got, want):
         np.testing.assert_allclose(np.squeeze(a), b.numpy().squeeze(), rtol=1e-4, atol=1e-4)
+
+
+def _spaces():
+    from explorer.space import SearchSpace, load_yaml, resolve_space_path
+    base = load_yaml(resolve_space_path("tiny"))
+    both = {**base, "exits": {**base["exits"], "position": [False, True]}}
+    return SearchSpace.from_dict(base, source="one"), SearchSpace.from_dict(both, source="both")
+
+
+def test_a_space_lists_heads_reading_the_position_and_its_supernet_holds_their_weights():
+    from explorer.supernet import Supernet, random_training_subnet
+    from explorer.supernet.network import space_key
+    one, both = _spaces()
+    assert both.size == 2 * one.size and "exit_position" in both.dimensions()
+    assert sorted({c.exit_position for c in both.enumerate()}) == [False, True]
+    placed = dataclasses.replace(next(one.enumerate()), exit_position=True)
+    assert both.contains(placed) and not one.contains(placed)
+    assert space_key(both) != space_key(one)
+    assert "exit_position" not in one.dimensions()     # a space without it keeps its key and its draws
+    assert {random_training_subnet(both, random.Random(s)).exit_position for s in range(20)} == {False, True}
+    net = Supernet(both).eval()
+    image, scan = _frame(3)
+    sub = net.extract(placed).eval()
+    assert any(k.endswith("position.weight") for k in sub.state_dict())
+    with torch.no_grad():
+        for a, b in zip(net.forward_subnet(placed, image, scan), sub(image, scan)):
+            torch.testing.assert_close(a, b)
+    twin = net.extract(dataclasses.replace(placed, exit_position=False)).state_dict()
+    assert all(torch.equal(v, sub.state_dict()[k]) for k, v in twin.items())
