@@ -36,7 +36,9 @@ the spec, punctuation as underscores).
 
 ``--only early_path_levers`` (``bench_early_path_levers``) runs the same with the early-path levers by
 default: heads sized for their position alone, on the winner and the paper design, and with
-self-distillation on the winner.
+self-distillation on the winner; ``--only self_distillation`` with self-distillation (weight 1) on
+both; ``--only first_paths`` with the winner without its LiDAR-only exit, and with exit heads that read
+each row's vertical position (``exit_position``).
 
 Run it after ``make search`` (whose study it reads, from ``reports/``, untouched).
 """
