@@ -37,8 +37,7 @@ the spec, punctuation as underscores).
 ``--only early_path_levers`` (``bench_early_path_levers``) runs the same with the early-path levers by
 default: heads sized for their position alone, on the winner and the paper design, and with
 self-distillation on the winner; ``--only self_distillation`` with self-distillation (weight 1) on
-both; ``--only first_paths`` with the winner without its LiDAR-only exit, and with exit heads that read
-each row's vertical position (``exit_position``).
+both; ``--only first_paths`` with the winner without its LiDAR-only exit.
 
 Run it after ``make search`` (whose study it reads, from ``reports/``, untouched).
 """
@@ -138,13 +137,12 @@ def bench_self_distillation(argv: Sequence[str] | None = None) -> None:
 
 
 def bench_first_paths(argv: Sequence[str] | None = None) -> None:
-    """What holds a study's winner's first paths back? The held-out experiment (above) with the winner as
-    it is, without its LiDAR-only exit (which sees one scan row), and with exit heads that read each row's
-    vertical position (``exit_position``: a pointwise head on shallow features cannot see where in the
-    image a pixel is), beside the paper design, on the same seeds."""
-    bench = Bench("bench_first_paths", "a study's winner without its LiDAR-only exit, and with heads that read "
-                  "the row's position, by recipe length", bench_first_paths.__doc__)
-    run_held_out(bench, argv, "winner,paper,winner:lidar_exit=false,winner:exit_position=true", "300,2000+130")
+    """What does a study's winner owe its LiDAR-only exit, the exit that holds its early-to-last ratio up?
+    The held-out experiment (above) with the winner as it is and without that exit (which sees one scan
+    row), beside the paper design, on the same seeds."""
+    bench = Bench("bench_first_paths", "a study's winner with and without its LiDAR-only exit, by recipe length",
+                  bench_first_paths.__doc__)
+    run_held_out(bench, argv, "winner,paper,winner:lidar_exit=false", "300,2000+130")
 
 
 def run_held_out(bench: Bench, argv: Sequence[str] | None, networks: str, steps: str) -> None:

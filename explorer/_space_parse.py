@@ -88,7 +88,7 @@ def space_size(space) -> int:
             heads += ecu * (exit_sets - with_ecu_exit + with_ecu_exit * len(head_options(space, "ecu", d, w, True)))
     rest = len(space.encoder_blocks) * len(space.width_mult) * math.prod(len(c) for c in space.decoder_widths)
     return heads * rest * len(set(space.lidar_exit)) * len(set(space.exit_residual)) * len(set(space.precision)) \
-        * len(set(space.downscale)) * len(set(space.exit_position))
+        * len(set(space.downscale))
 
 
 #: the one line for a stored candidate or a space that asks for cascaded exits
@@ -158,7 +158,6 @@ def describe_candidate(c) -> str:
     names = ["ECU" if e == 0 else f"stage {e}" for e in c.exits]
     head = head_words(c)
     correct = ", each correcting the interpolated scan" if c.exit_residual else ""
-    correct += ", reading each row's position" if c.exit_position else ""
     parts.append(f"exits after {', '.join(names)} ({head}){correct}")
     if c.precision != "fp32":
         parts.append(c.precision)

@@ -82,7 +82,6 @@ class Candidate:
     ecu_head_depth: int = 0                # exit_0's head, after the ECU (the encoder's stride)
     ecu_head_width: int = 0
     downscale: int = 1                     # works at the input size divided by this (1: at the input size)
-    exit_position: bool = False            # every exit head reads each row's vertical position
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "decoder_widths", tuple(int(w) for w in self.decoder_widths))
@@ -92,7 +91,6 @@ class Candidate:
         object.__setattr__(self, "lidar_exit", bool(self.lidar_exit))
         object.__setattr__(self, "exit_residual", bool(self.exit_residual))
         object.__setattr__(self, "downscale", int(self.downscale))
-        object.__setattr__(self, "exit_position", bool(self.exit_position))
         if not self.ecu:
             for name in ("lidar_depth", "lidar_width", "ecu_band", "ecu_width"):
                 object.__setattr__(self, name, 0)
@@ -228,8 +226,7 @@ class Candidate:
 #: Fields added after the first release, with the value that leaves them out of a candidate's dict.
 _LATER_FIELDS: dict[str, Any] = {"encoder_exits": [], "lidar_exit": False, "lidar_first": False,
                                   "precision": "fp32", "exit_residual": False, "encoder_head_depth": 0,
-                                  "encoder_head_width": 0, "ecu_head_depth": 0, "ecu_head_width": 0, "downscale": 1,
-                                  "exit_position": False}
+                                  "encoder_head_width": 0, "ecu_head_depth": 0, "ecu_head_width": 0, "downscale": 1}
 #: Numeric precisions a candidate may be deployed at (``explorer export --quantize``).
 PRECISIONS = ("fp32", "int8")
 #: Sizes a candidate may work at, as divisors of its input size: the image is averaged over
@@ -305,7 +302,6 @@ DIMENSIONS: tuple[Dimension, ...] = (
     Dimension("precision", "", "precision", str, several=True),
     Dimension("downscale", "", "downscale", int, several=True),
     Dimension("exit_residual", "exits", "residual", bool, several=True),
-    Dimension("exit_position", "exits", "position", bool, several=True),
     Dimension("encoder_blocks", "image_encoder", "blocks", int),
     Dimension("width_mult", "image_encoder", "width_mult", float),
     Dimension("decoder_widths", "decoder", "widths", "stages"),
@@ -381,7 +377,6 @@ class SearchSpace:
     ecu_head_depth: tuple[int, ...] = (0,)
     ecu_head_width: tuple[int, ...] = (0,)
     downscale: tuple[int, ...] = (1,)
-    exit_position: tuple[bool, ...] = (False,)
     description: str = ""
     source: str = ""
 
@@ -532,10 +527,9 @@ class SearchSpace:
                 enc = tuple(k for k, on in zip(self.optional_encoder_exits, mask) if on)
                 orders = sorted(set(self.lidar_first)) if ecu[0] and enc else [False]
                 early += [(ecu, enc, first) for first in orders]
-        for blocks, wm, (ecu, enc, first), widths, exits, head, lidar_exit, (residual, position), precision, downscale in \
+        for blocks, wm, (ecu, enc, first), widths, exits, head, lidar_exit, residual, precision, downscale in \
                 itertools.product(self.encoder_blocks, self.width_mult, early, itertools.product(*self.decoder_widths),
-                                  exit_sets, heads, sorted(set(self.lidar_exit)),
-                                  itertools.product(sorted(set(self.exit_residual)), sorted(set(self.exit_position))),
+                                  exit_sets, heads, sorted(set(self.lidar_exit)), sorted(set(self.exit_residual)),
                                   dict.fromkeys(self.precision), dict.fromkeys(self.downscale)):
             for enc_head, ecu_head in itertools.product(head_options(self, "encoder", *head, bool(enc)),
                                                         head_options(self, "ecu", *head, 0 in exits)):
@@ -543,8 +537,7 @@ class SearchSpace:
                                 lidar_width=ecu[2], ecu_band=ecu[3], ecu_width=ecu[4],
                                 decoder_widths=widths, exits=exits, head_depth=head[0], head_width=head[1],
                                 encoder_exits=enc, lidar_exit=lidar_exit, lidar_first=first, precision=precision,
-                                exit_residual=residual, exit_position=position, downscale=downscale,
-                                encoder_head_depth=enc_head[0],
+                                exit_residual=residual, downscale=downscale, encoder_head_depth=enc_head[0],
                                 encoder_head_width=enc_head[1], ecu_head_depth=ecu_head[0], ecu_head_width=ecu_head[1])
 
     def sample(self, trial: Any) -> Candidate:
@@ -592,7 +585,7 @@ class SearchSpace:
         p = self.params_of(candidate)
         inner = set(candidate.exits[:-1])
         return candidate.precision in self.precision and candidate.downscale in self.downscale and \
-            candidate.exit_residual in self.exit_residual and candidate.exit_position in self.exit_position and \
+            candidate.exit_residual in self.exit_residual and \
             len(candidate.decoder_widths) == len(self.decoder_widths) and \
             set(candidate.encoder_exits) <= set(self.optional_encoder_exits) and all(
             v in d[k] for k, v in p.items()) and set(self.required_exits) <= inner and \

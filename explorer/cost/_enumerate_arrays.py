@@ -73,9 +73,7 @@ def space_axes(space: SearchSpace) -> dict[str, list[dict[str, Any]]]:
         "heads": [{"head_depth": d, "head_width": w} for d in space.head_depth
                   for w in (space.head_width if d == 2 else (0,))],
         "lidar_exit": [{"lidar_exit": v} for v in sorted(set(space.lidar_exit))],
-        # heads that read the row's position are heads of another kind: on the same axis as residual ones
-        "residual": [{"exit_residual": v, "exit_position": p} for v in sorted(set(space.exit_residual))
-                     for p in sorted(set(space.exit_position))],
+        "residual": [{"exit_residual": v} for v in sorted(set(space.exit_residual))],
         "precision": [{"precision": p} for p in dict.fromkeys(space.precision)],
         "downscale": [{"downscale": d} for d in dict.fromkeys(space.downscale)],
     }

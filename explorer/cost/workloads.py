@@ -156,7 +156,7 @@ def trace_stage(module: nn.Module, stage: str, inputs: list) -> tuple[list[Workl
                 kind, k, s, macs = "resize", 0, int(m.stride if isinstance(m.stride, int) else m.stride[0]), 0
             elif isinstance(m, FirstReturns):
                 kind, k, s, macs = "slice", 0, m.factor, 0
-            elif isinstance(m, (ops.SkipAdd, ops.BroadcastAdd, ops.Normalize, ops.RowPosition)):
+            elif isinstance(m, (ops.SkipAdd, ops.BroadcastAdd, ops.Normalize)):
                 kind, k, s, macs = "add", 0, 1, 0
             elif isinstance(m, ops.Concat):
                 kind, k, s, macs = "concat", 0, 1, 0

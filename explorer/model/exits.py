@@ -1,8 +1,5 @@
 """Exit heads (1-2 pointwise convs to one channel, resized to full resolution) and path 0.
 
-A head may read each row's vertical position as well (``position``): on shallow features it cannot
-see it otherwise.
-
 A residual head adds its output to path 0 (the interpolated scan, computed once per inference by the
 ``scan_fill`` stage): it learns a correction to the scan instead of the whole depth map, and keeps
 the scan's full horizontal resolution where its own output is coarse."""
@@ -14,7 +11,7 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from explorer.model.ops import BroadcastAdd, Resize, RowPosition, SkipAdd, one_channel_unblocked
+from explorer.model.ops import BroadcastAdd, Resize, SkipAdd, one_channel_unblocked
 
 #: Initial bias of the depth output (metres): a typical indoor depth, so training starts near it.
 DEPTH_INIT_M = 2.5
@@ -30,7 +27,6 @@ class ExitHeadConfig:
     residual: bool = False       # the output corrects path 0 (its last input) instead of replacing it
     nearest: int = 1             # > 1: the decoder stage before left its nearest up-sampling to the head
     bilinear_products: bool = True   # False: a bilinear resize operator, as the paper's graph (``ops.Resize``)
-    position: bool = False       # each row's vertical position is added to the feature first (``ops.RowPosition``)
 
     def build(self) -> "ExitHead":
         return ExitHead(self)
@@ -45,8 +41,6 @@ class ExitHead(nn.Module):
         if config.lidar_channels:
             self.fuse = nn.Conv1d(config.lidar_channels, cin, 1)
             self.add = BroadcastAdd()
-        if config.position:
-            self.position = RowPosition(cin)
         if config.depth == 2:
             layers += [nn.Conv2d(cin, config.width, 1, bias=False), nn.BatchNorm2d(config.width),
                        nn.ReLU(inplace=True)]
@@ -64,8 +58,6 @@ class ExitHead(nn.Module):
         """``extra``: the LiDAR feature when the head fuses it, then path 0 when it is residual."""
         if self.config.lidar_channels:
             x = self.add(x, self.fuse(extra[0]).unsqueeze(2))
-        if self.config.position:
-            x = self.position(x)
         depth = self.layers(x)
         if self.config.nearest > 1:
             depth = self.nearest(one_channel_unblocked(depth))

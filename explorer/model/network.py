@@ -50,17 +50,19 @@ def stage_specs(candidate: Candidate, paper_graph: bool = False) -> list[StageSp
     to its exit head where that gives the same values (``explorer.model.decoder``), and exit heads
     up-sample bilinearly as two matrix products (``ops.Resize``); ``paper_graph``: neither, the graph
     the paper measured, for its figures (the same parameters, the same values to float rounding).
-    Residual exits read last the scan they correct (``scan_fill``). A network working below its input
-    size resizes it first (``downscale``); its heads resize back. Heads may read the row (``RowPosition``)."""
+    Residual exits read last the depth map they correct, the scan (``scan_fill``). A network working below
+    its input size first resizes it (``downscale``), read by every later stage; its heads resize back."""
     stride, factor = candidate.working_stride, candidate.downscale
     image, scan = ("image_low", "scan_low") if factor > 1 else ("image", "scan")
     specs: list[StageSpec] = []
-    residual, placed = candidate.exit_residual, candidate.exit_position
+    path = 1
+    residual = candidate.exit_residual
     base = ("scan_fill",) if residual else ()
 
     def add_exit(name: str, cfg: ExitHeadConfig | LidarExitConfig, inputs: tuple[str, ...]) -> None:
-        path = 1 + sum(s.path is not None for s in specs)
+        nonlocal path
         specs.append(StageSpec(name, cfg, inputs + base, (f"depth_{path}",), path))
+        path += 1
 
     if residual:
         specs.append(StageSpec("scan_fill", ScanFillConfig(), ("scan", "image"), ("scan_fill",)))
@@ -84,8 +86,7 @@ def stage_specs(candidate: Candidate, paper_graph: bool = False) -> list[StageSp
         if k < candidate.encoder_blocks:
             s = encoder_stride(k)
             fuse = lidar.tap_channels(s) if candidate.lidar_first else 0
-            cfg = ExitHeadConfig(seg.out_channels(), *candidate.head("encoder"), s * factor, fuse, residual,
-                                 position=placed)
+            cfg = ExitHeadConfig(seg.out_channels(), *candidate.head("encoder"), s * factor, fuse, residual)
             add_exit(f"exit_b{k}", cfg, (out, f"lidar_s{s}") if fuse else (out,))
         start, x = k, out
     enc = ImageEncoderConfig(candidate.encoder_blocks, candidate.width_mult)
@@ -103,7 +104,7 @@ def stage_specs(candidate: Candidate, paper_graph: bool = False) -> list[StageSp
 
     def exit_cfg(cin: int, scale: int, position: str = "decoder") -> ExitHeadConfig:
         return ExitHeadConfig(cin, *candidate.head(position), scale * factor, residual=residual,
-                              bilinear_products=not paper_graph, position=placed)
+                              bilinear_products=not paper_graph)
 
     if 0 in candidate.exits:
         add_exit("exit_0", exit_cfg(channels, stride, "ecu"), (x,))

@@ -108,23 +108,6 @@ class BroadcastAdd(nn.Module):
         return x + row
 
 
-class RowPosition(nn.Module):
-    """Adds each row's vertical position in [-1, 1], times a learned weight per channel, to a feature
-    (N, C, H, W). A head of pointwise layers on shallow features cannot see where in the image a pixel
-    is; depth depends on it (the floor below the scan line, the ceiling above). The weights start at
-    zero: the head starts as it would without them."""
-
-    def __init__(self, channels: int) -> None:
-        super().__init__()
-        self.weight = nn.Parameter(torch.zeros(channels))
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        rows = x.shape[2]
-        # arange, not linspace: the ONNX exporter writes linspace's constant as float64
-        position = torch.arange(rows, dtype=x.dtype, device=x.device) * (2.0 / max(rows - 1, 1)) - 1.0
-        return x + position.view(1, 1, rows, 1) * self.weight.view(1, -1, 1, 1)
-
-
 class Concat(nn.Module):
     def forward(self, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
         return torch.cat([a, b], dim=1)

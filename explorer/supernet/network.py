@@ -64,7 +64,7 @@ def _extreme_candidate(space: SearchSpace, pick, head_depth: int | None, residua
         exits=tuple(sorted(set(space.optional_exits) | set(space.required_exits))) + (last,),
         head_depth=depth, head_width=pick(space.head_width) if depth == 2 else 0,
         encoder_exits=space.optional_encoder_exits, lidar_exit=True in space.lidar_exit,
-        lidar_first=pick(space.lidar_first), exit_residual=residual, exit_position=pick(space.exit_position),
+        lidar_first=pick(space.lidar_first), exit_residual=residual,
         **{f: pick(getattr(space, f)) for f in HEAD_FIELDS})
 
 
@@ -92,10 +92,8 @@ def random_training_subnet(space: SearchSpace, rng: random.Random) -> Candidate:
         decoder_widths=tuple(rng.choice(c) for c in space.decoder_widths),
         head_depth=depth, head_width=rng.choice(space.head_width) if depth == 2 else 0,
         lidar_first=rng.choice(space.lidar_first), exit_residual=residual,
-        # drawn only where the space sizes heads per position, or offers heads reading the row's position:
-        # other spaces draw what they drew before
-        **{f: rng.choice(getattr(space, f)) for f in HEAD_FIELDS if getattr(space, f) != (0,)},
-        **({"exit_position": rng.choice(space.exit_position)} if len(set(space.exit_position)) > 1 else {}))
+        # drawn only where the space sizes heads per position: other spaces draw what they drew before
+        **{f: rng.choice(getattr(space, f)) for f in HEAD_FIELDS if getattr(space, f) != (0,)})
 
 
 def _widest_heads(space: SearchSpace, depth: int) -> list[dict]:

@@ -26,7 +26,7 @@ MIXED = {
     "ecu": {"enabled": [False, True], "band": [1], "width": [64]},
     "decoder": {"widths": [[64], [32], [16], [8, 16]]},
     "exits": {"optional": [0, 2], "required": [1], "head_depth": [1, 2], "head_width": [8],
-              "lidar_only": [False, True], "residual": [False, True], "position": [False, True]},
+              "lidar_only": [False, True], "residual": [False, True]},
     "precision": ["fp32", "int8"],
     "downscale": [1, 2],
 }
