@@ -42,9 +42,10 @@ from explorer.data.splits import VAL_SHARE, parse_share
 from explorer.data.synthetic import SyntheticConfig, ensure_synthetic, intrinsics
 from explorer.errors import UserError
 
-__all__ = ["DEPTH_METRICS", "MAX_GENERATED", "MAYBE_WITHOUT_DEPTH", "SCORES", "SEQUENCE_KINDS", "SPEC_HELP", "DataSpec",
-           "DepthDataset", "ScanConfig", "SyntheticConfig", "default_metric", "frames_for_downscale", "has_depth", "open_dataset",
-           "parse_data_spec", "require_scores", "scan_from_image", "simulate_scan", "with_lidar"]
+__all__ = ["DEPTH_METRICS", "MAX_GENERATED", "MAYBE_WITHOUT_DEPTH", "SCORES", "SEQUENCE_KINDS", "SPEC_HELP",
+           "DataSpec", "DepthDataset", "ScanConfig", "SyntheticConfig", "default_metric", "frames_for_downscale",
+           "has_depth", "open_dataset", "parse_data_spec", "require_scores", "scan_from_image", "simulate_scan",
+           "with_lidar"]
 
 #: kinds whose training augmentation is a horizontal flip alone (FastDepth's NYU recipe also scales,
 #: rotates and jitters colours): their frames can be prepared once and flipped per batch
