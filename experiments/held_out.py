@@ -25,8 +25,8 @@ the space would do (``winner:encoder_blocks=11``: the winner with two more encod
 ``:weights=anytime`` trains it with each exit's loss weighted by its share of the study's anytime loss
 (``explorer train --exit-weights anytime``) instead of equal weights, and ``:distill=W`` trains it with
 self-distillation of weight W (``explorer train --self-distill W``). Each network also gets its
-early-to-last ratio (``<name>_early_to_last_N``): the mean error of its paths ready before 9 ms on the
-TX2 over its last path's. A network beside the winner and
+early error (``<name>_early_N``): the mean error of its paths ready before 9 ms on the TX2, and its
+early-to-last ratio (``<name>_early_to_last_N``): that over its last path's. A network beside the winner and
 the paper design adds ``ratio_<name>_N``, its anytime loss over the paper design's trained with the
 same weights when that is measured too (``paper:weights=anytime``), else the plain one's (``<name>``:
 the spec, punctuation as underscores).
@@ -57,8 +57,8 @@ from explorer.training.train import evaluated_frames
 
 from benchmarks.harness import Bench, Case, rotated, run_suite
 from experiments.lib.comparison import floor_steps
-from experiments.lib.retraining import (EARLY_MS, Network, add_study_options, early_to_last, held_out_data, open_study,
-                                        reference_of, resolve_networks, retrained)
+from experiments.lib.retraining import (EARLY_MS, Network, add_study_options, early_error, early_to_last, held_out_data,
+                                        open_study, reference_of, resolve_networks, retrained)
 
 
 def parse_recipes(text: str, config: SearchConfig) -> dict[str, tuple[int, int]]:
@@ -96,6 +96,8 @@ def declare(bench: Bench, recipes: dict[str, tuple[int, int]], networks: dict[st
         for name in networks:
             bench.figure(f"{name}_anytime_{suffix}", f"{name}: anytime loss, {recipe}", unit, better="lower")
             bench.figure(f"{name}_last_{suffix}", f"{name}: last path's {metric}, {recipe}", unit, better="lower")
+            bench.figure(f"{name}_early_{suffix}", f"{name}: mean {metric} of its paths ready before "
+                         f"{EARLY_MS:g} ms on tx2, {recipe}", unit, better="lower")
             bench.figure(f"{name}_early_to_last_{suffix}", f"{name}: mean {metric} of its paths ready before "
                          f"{EARLY_MS:g} ms on tx2 over its last path's, {recipe}", "x", better="lower")
 
@@ -198,6 +200,7 @@ def run_held_out(bench: Bench, argv: Sequence[str] | None, networks: str, steps:
                 loss[name], last = anytime_loss(got.costs, got.errors, context.budgets[0]), got.errors[-1]
                 bench.add(f"{name}_anytime_{suffix}", loss[name])
                 bench.add(f"{name}_last_{suffix}", last)
+                bench.add(f"{name}_early_{suffix}", early_error(got.candidate, got.errors, config))
                 bench.add(f"{name}_early_to_last_{suffix}", early_to_last(got.candidate, got.errors, config))
                 print(f"  seed {seed}, {n}+{tune} steps: {name} anytime {loss[name]:.4f}, last path {last:.4f} "
                       f"({time.perf_counter() - t0:.0f} s); as shipped, by path {[round(e, 4) for e in got.errors]} "

@@ -162,8 +162,8 @@ def test_distill_trains_a_network_with_self_distillation_and_pairs_it_with_its_p
     assert seen[0].self_distill == 0.5
 
 
-def test_the_early_to_last_ratio_takes_the_paths_ready_before_9ms_on_the_tx2():
-    from experiments.lib.retraining import early_to_last
+def test_the_early_error_and_ratio_take_the_paths_ready_before_9ms_on_the_tx2():
+    from experiments.lib.retraining import early_error, early_to_last
     from explorer.cost import candidate_cost, get_device
     config = SearchConfig(study="s")
     paper = paper_candidate()
@@ -171,6 +171,7 @@ def test_the_early_to_last_ratio_takes_the_paths_ready_before_9ms_on_the_tx2():
     errors = [1.0] + [0.5 + 0.1 * k for k in range(len(ms) - 2)] + [0.25]
     early = [e for c, e in zip(ms[1:], errors[1:]) if c < 9.0]
     assert early   # the paper design's first path is ready at 6.4 ms on the TX2
+    assert early_error(paper, errors, config) == pytest.approx(sum(early) / len(early))
     assert early_to_last(paper, errors, config) == pytest.approx(sum(early) / len(early) / 0.25)
 
 

@@ -114,12 +114,17 @@ def retrained(network: Network, recipe: DeploymentRecipe, seed: int, data: Deplo
 EARLY_MS = 9.0
 
 
-def early_to_last(candidate: Candidate, errors: list[float], config: SearchConfig) -> float:
-    """The mean error of ``candidate``'s paths (past the scan) ready before EARLY_MS on the TX2, over its last
-    path's (NaN where none is ready that early)."""
+def early_error(candidate: Candidate, errors: list[float], config: SearchConfig) -> float:
+    """The mean error of ``candidate``'s paths (past the scan) ready before EARLY_MS on the TX2 (NaN where
+    none is ready that early)."""
     ms = candidate_cost(candidate, tuple(config.input_size)).path_costs(get_device("tx2"), "time")
     early = [e for c, e in zip(ms[1:], errors[1:]) if c < EARLY_MS]
-    return sum(early) / len(early) / errors[-1] if early else float("nan")
+    return sum(early) / len(early) if early else float("nan")
+
+
+def early_to_last(candidate: Candidate, errors: list[float], config: SearchConfig) -> float:
+    """``early_error`` over the last path's error."""
+    return early_error(candidate, errors, config) / errors[-1]
 
 
 def resolve_networks(text: str, study, context: StudyContext) -> dict[str, Network]:
